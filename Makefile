@@ -1,0 +1,24 @@
+SHELL := /bin/bash
+.PHONY: setup test unit integration demo bench clean
+ENV := . scripts/env.sh &&
+
+setup:
+	@bash scripts/setup.sh
+
+test: setup
+	$(ENV) python -m pytest -q -p no:cacheprovider tests
+
+unit: setup
+	$(ENV) python -m pytest -q -p no:cacheprovider tests/unit
+
+integration: setup
+	$(ENV) python -m pytest -q -p no:cacheprovider -s tests/integration
+
+demo: setup
+	$(ENV) python scripts/demo_pbr
+
+bench: setup
+	$(ENV) python scripts/bench_pbr --json bench_pbr.json
+
+clean:
+	rm -rf catkin_ws/build catkin_ws/devel

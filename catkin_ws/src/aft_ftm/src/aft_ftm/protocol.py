@@ -1,0 +1,215 @@
+"""The Protocol of an FTM graph: duplicate detection and one request at a time.
+
+A Protocol receives requests from Proxies, answers duplicates from a reply cache,
+and hands other requests one at a time to Before (so that a state captured after a
+request reflects exactly the requests before it). In a backup replica it does not
+execute anything: it stores the replies that checkpoints carry, so that after a
+failover re-sent requests that were already executed are answered from the cache.
+
+Requests and replies are any objects with ``origin``, ``id`` attributes (and
+``oldest_pending`` for requests): the ROS adapter passes aft_msgs messages.
+"""
+import collections
+import enum
+
+from .errors import RoleError
+
+
+class DuplicateCache(object):
+    """Stored replies per (origin, request id).
+
+    A Proxy tells, with each request, the oldest id it is still waiting for; replies to
+    older ids can never be asked for again and are forgotten. ``capacity`` is a safety
+    net against a Proxy that never advances: past it the oldest reply is evicted and
+    counted in ``evicted`` (the adapter logs it), never silently.
+    """
+
+    def __init__(self, capacity=100000):
+        self._capacity = capacity
+        self._replies = collections.OrderedDict()   # (origin, id) -> reply, in insertion order
+        self._by_origin = collections.defaultdict(set)
+        self.evicted = 0
+
+    def __len__(self):
+        return len(self._replies)
+
+    def __contains__(self, key):
+        return key in self._replies
+
+    def lookup(self, origin, request_id):
+        """Return the stored reply of this request, or None."""
+        return self._replies.get((origin, request_id))
+
+    def store(self, reply):
+        """Remember a reply; returns the reply evicted to make room, or None."""
+        key = (reply.origin, reply.id)
+        if key in self._replies:
+            self._replies[key] = reply
+            return None
+        self._replies[key] = reply
+        self._by_origin[reply.origin].add(reply.id)
+        if len(self._replies) > self._capacity:
+            (origin, rid), old = self._replies.popitem(last=False)
+            self._by_origin[origin].discard(rid)
+            self.evicted += 1
+            return old
+        return None
+
+    def forget_below(self, origin, watermark):
+        """Forget the replies of origin whose id is below watermark (already received)."""
+        ids = self._by_origin.get(origin)
+        if not ids:
+            return 0
+        old = [rid for rid in ids if rid < watermark]
+        for rid in old:
+            ids.discard(rid)
+            del self._replies[(origin, rid)]
+        return len(old)
+
+
+class Role(enum.Enum):
+    """Role of a replica (and of its Protocol and After nodes)."""
+    BACKUP = 0    # receives checkpoints, executes nothing
+    PRIMARY = 1   # executes requests and checkpoints them to a live backup
+    ALONE = 2     # executes requests, no backup (lost, or none configured)
+
+
+# Allowed role changes, each with the event that causes it.
+ROLE_EDGES = {
+    (Role.BACKUP, Role.ALONE): 'the primary failed: the backup takes over',
+    (Role.PRIMARY, Role.ALONE): 'the backup failed: the primary goes on without checkpoints',
+}
+
+
+def check_role_change(current, new):
+    """Raise RoleError unless current -> new is an allowed edge (or no change)."""
+    if current == new:
+        return
+    if (current, new) not in ROLE_EDGES:
+        raise RoleError('role change %s -> %s is not allowed (allowed: %s)' % (
+            current.name, new.name,
+            ', '.join('%s -> %s' % (a.name, b.name) for a, b in ROLE_EDGES)))
+
+
+class Forward(object):
+    """Action: send this request to Before."""
+    __slots__ = ('request',)
+
+    def __init__(self, request):
+        self.request = request
+
+    def __repr__(self):
+        return 'Forward(%s/%s)' % (self.request.origin, self.request.id)
+
+
+class Answer(object):
+    """Action: send this reply to the Proxies. ``cached`` tells a duplicate answered from the cache."""
+    __slots__ = ('reply', 'cached')
+
+    def __init__(self, reply, cached=False):
+        self.reply = reply
+        self.cached = cached
+
+    def __repr__(self):
+        return 'Answer(%s/%s%s)' % (self.reply.origin, self.reply.id, ', cached' if self.cached else '')
+
+
+class ProtocolStats(object):
+    def __init__(self):
+        self.requests = 0            # requests received (including duplicates)
+        self.executed = 0            # requests handed to Before
+        self.cached_answers = 0      # duplicates answered from the cache
+        self.joined = 0              # duplicates of a request still queued or executing
+        self.stray_results = 0       # results that match no executing request
+        self.stored = 0              # replies stored from checkpoints (backup)
+
+
+class ProtocolCore(object):
+    """Duplicate detection and sequencing, as an explicit state machine.
+
+    Pipeline state: idle (``current is None``) or executing ``current``. Role: see Role.
+    Each method returns the list of actions (Forward, Answer) for the adapter to carry out.
+    """
+
+    def __init__(self, role, cache_capacity=100000):
+        self.role = role
+        self.cache = DuplicateCache(cache_capacity)
+        self.queue = collections.deque()
+        self.queued_keys = set()
+        self.current = None
+        self.started_at = None
+        self.last_stored_seq = 0
+        self.stats = ProtocolStats()
+
+    # -- requests and results -------------------------------------------------
+    def on_request(self, request, now):
+        """A request arrived from a Proxy."""
+        self.stats.requests += 1
+        self.cache.forget_below(request.origin, request.oldest_pending)
+        key = (request.origin, request.id)
+        cached = self.cache.lookup(*key)
+        if cached is not None:
+            self.stats.cached_answers += 1
+            return [Answer(cached, cached=True)]
+        if key in self.queued_keys or (self.current is not None and
+                                       (self.current.origin, self.current.id) == key):
+            # A re-send of a request not answered yet: its reply will answer both.
+            self.stats.joined += 1
+            return []
+        self.queue.append(request)
+        self.queued_keys.add(key)
+        return self._dispatch(now)
+
+    def on_result(self, reply, now):
+        """The result of the executing request came back from After."""
+        current = self.current
+        if current is None or (current.origin, current.id) != (reply.origin, reply.id):
+            self.stats.stray_results += 1
+            return []
+        self.cache.store(reply)
+        self.current = None
+        self.started_at = None
+        return [Answer(reply)] + self._dispatch(now)
+
+    def on_stored(self, reply, seq):
+        """A backup stores the reply carried by checkpoint ``seq``."""
+        self.cache.forget_below(reply.origin, reply.oldest_pending)
+        self.cache.store(reply)
+        self.last_stored_seq = max(self.last_stored_seq, seq)
+        self.stats.stored += 1
+
+    def overdue(self, now, timeout):
+        """The executing request if it has been executing for longer than timeout, else None."""
+        if self.current is not None and now - self.started_at > timeout:
+            return self.current
+        return None
+
+    # -- role -------------------------------------------------------------------
+    def can_take_over(self, last_seq):
+        """True when the replies of every checkpoint up to last_seq are stored."""
+        return self.last_stored_seq >= last_seq
+
+    def set_role(self, role, now):
+        """Change role (guarded); a new primary starts executing queued requests."""
+        check_role_change(self.role, role)
+        self.role = role
+        return self._dispatch(now)
+
+    # -- internals --------------------------------------------------------------
+    def _dispatch(self, now):
+        actions = []
+        while self.role != Role.BACKUP and self.current is None and self.queue:
+            request = self.queue.popleft()
+            key = (request.origin, request.id)
+            self.queued_keys.discard(key)
+            cached = self.cache.lookup(*key)
+            if cached is not None:
+                # Queued while a backup, and executed by the old primary meanwhile.
+                self.stats.cached_answers += 1
+                actions.append(Answer(cached, cached=True))
+                continue
+            self.current = request
+            self.started_at = now
+            self.stats.executed += 1
+            actions.append(Forward(request))
+        return actions

@@ -1,0 +1,109 @@
+"""The demo application: an unmodified bank server and client (no FTM code in them but the
+server's state-manager mixin)."""
+import json
+import threading
+import time
+
+import rospy
+from aft_msgs.srv import Account, AccountResponse
+
+from .. import config
+from ..bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, operation
+from .params import param
+from .state_manager import StateManager
+
+
+class BankServerNode(StateManager):
+    """A bank account served as a ROS service.
+
+    Services:
+        account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
+    """
+
+    def __init__(self):
+        self.account = AccountLogic()
+        self.state_lock = threading.RLock()
+
+    def setup(self, timeout):
+        self.advertise_state_services()
+        rospy.Service('account', Account, self._on_request)
+        return True
+
+    def _on_request(self, req):
+        with self.state_lock:
+            try:
+                balance, count, digest = self.account.apply(req.op, req.amount)
+            except (ValueError, InsufficientFunds) as e:
+                raise rospy.ServiceException(str(e))
+        return AccountResponse(balance=balance, count=count, digest=digest)
+
+    def get_state(self):
+        return self.account.get_state()
+
+    def set_state(self, data):
+        self.account.set_state(data)
+
+
+def drive(call, count, checker, on_reply=None, pause=0.0):
+    """Send count operations through call(op, amount) -> (balance, count, digest), checking each.
+
+    Returns a list of (index, sent_wall, replied_wall, ok) records; failed calls count as errors.
+    """
+    records = []
+    for i in range(count):
+        op, amount = operation(i)
+        expected = checker.expect(op, amount)
+        sent = time.time()
+        try:
+            got = call(op, amount)
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            checker.errors += 1
+            rospy.logerr('request %d failed: %s', i, e)
+            records.append((i, sent, time.time(), False))
+            continue
+        ok = checker.check(expected, got)
+        records.append((i, sent, time.time(), ok))
+        if on_reply:
+            on_reply(i)
+        if pause:
+            time.sleep(pause)
+    return records
+
+
+class BankClientNode(object):
+    """Sends ~count operations to the account service, checks every reply, writes a report.
+
+    Parameters:
+        ~count (int, 500), ~pause (float, 0 s between requests), ~report (str: JSON output path, optional)
+    Services called:
+        account (aft_msgs/Account)
+    """
+
+    def __init__(self):
+        self.count = param('count', config.non_negative_int, 500)
+        self.pause = param('pause', lambda n, v: float(v), 0.0)
+        self.report = param('report', config.non_empty_str, '')
+
+    def setup(self, timeout):
+        try:
+            rospy.wait_for_service('account', timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: service %s not available', rospy.get_name(), rospy.resolve_name('account'))
+            return False
+        self.proxy = rospy.ServiceProxy('account', Account)
+        return True
+
+    def run(self):
+        checker = ReplyChecker()
+
+        def call(op, amount):
+            r = self.proxy(op=op, amount=amount)
+            return r.balance, r.count, r.digest
+
+        records = drive(call, self.count, checker, pause=self.pause)
+        summary = dict(checker.summary(), sent=self.count, answered=self.count - checker.errors,
+                       records=records)
+        if self.report:
+            with open(self.report, 'w') as f:
+                json.dump(summary, f)
+        return checker.summary()['correct'] == self.count

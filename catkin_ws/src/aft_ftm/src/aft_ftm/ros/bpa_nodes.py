@@ -1,0 +1,141 @@
+"""Before, Proceed and After: the nodes a mechanism specialises (paper Table II).
+
+Each node has one input port and one output port of the generic graph. Before and
+After default to pass-through; Proceed calls the real server. Mechanism-specific
+behaviours subclass them (see :mod:`aft_ftm.ros.pbr_nodes`).
+"""
+import threading
+
+import rospy
+from aft_msgs.msg import Reply
+
+from .. import config
+from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from .envelope import deserialize, serialize, service_class
+from .params import param
+from .ports import Ports, wait_for_connections
+
+
+class StageNode(object):
+    """A stage of the Before-Proceed-After pipeline: ``inp`` -> handle() -> ``out``.
+
+    Subclasses set IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC and override handle(msg),
+    which returns the message to send on, or None if it will send it later itself.
+    """
+    IN_TYPE = OUT_TYPE = IN_TOPIC = OUT_TOPIC = None
+
+    def __init__(self, extra_ports=(), extra_callbacks=None):
+        callbacks = {'inp': self._on_input}
+        callbacks.update(extra_callbacks or {})
+        self.ports = Ports([PortSpec('inp', SUBSCRIBE, self.IN_TYPE),
+                            PortSpec('out', PUBLISH, self.OUT_TYPE)] + list(extra_ports), callbacks)
+        self.name = rospy.get_name()
+
+    def setup(self, timeout):
+        self.ports.bind('out', self.OUT_TOPIC)
+        self.ports.bind('inp', self.IN_TOPIC)
+        missing = wait_for_connections(self.ports, ['out', 'inp'], timeout)
+        if missing:
+            rospy.logerr('%s: ports %s not connected within %.1f s', self.name, missing, timeout)
+            return False
+        self.ports.advertise_service()
+        return True
+
+    def _on_input(self, msg):
+        out = self.handle(msg)
+        if out is not None:
+            self.ports.publish('out', out)
+
+    def handle(self, msg):
+        return msg
+
+
+class BeforeNode(StageNode):
+    """Before, pass-through (PBR has no Before action).
+
+    Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.  Publishes: bfr2prd (aft_msgs/Request), port ``out``.
+    Services: ~rebind (aft_msgs/Rebind)
+    """
+    IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Request', 'aft_msgs/Request', 'pro2bfr', 'bfr2prd'
+
+
+class ProceedNode(StageNode):
+    """Proceed: calls the real server with the application's request and passes the reply on.
+
+    Parameters:
+        ~server_timeout (float, 5 s): how long to wait for an unavailable server before replying an error.
+    Services called:
+        server (the application's type): remap to the server replica's service (paper: prd2srv).
+    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``.  Publishes: prd2aft (aft_msgs/Reply), port ``out``.
+    Services: ~rebind (aft_msgs/Rebind)
+    """
+    IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Request', 'aft_msgs/Reply', 'bfr2prd', 'prd2aft'
+
+    def __init__(self):
+        self.server_timeout = param('server_timeout', config.positive_float, 5.0)
+        super(ProceedNode, self).__init__()
+        self.server_name = rospy.resolve_name('server')
+        self._proxies = {}
+        self._lock = threading.Lock()
+
+    def _proxy(self, type_name):
+        proxy = self._proxies.get(type_name)
+        if proxy is None:
+            proxy = rospy.ServiceProxy(self.server_name, service_class(type_name), persistent=True)
+            self._proxies[type_name] = proxy
+        return proxy
+
+    def handle(self, request):
+        reply = Reply(id=request.id, origin=request.origin, client=request.client,
+                      oldest_pending=request.oldest_pending)
+        with self._lock:
+            try:
+                cls = service_class(request.service_type)
+                app_request = deserialize(cls._request_class, request.payload)
+            except Exception as e:   # a malformed request is answered, not dropped
+                reply.status, reply.error = Reply.ERROR, 'cannot decode the request: %s' % e
+                return reply
+            try:
+                response = self._call(request.service_type, app_request)
+            except rospy.ServiceException as e:
+                reply.status, reply.error = Reply.ERROR, str(e)
+                return reply
+            reply.payload = serialize(response)
+        return reply
+
+    def _call(self, type_name, app_request):
+        try:
+            return self._proxy(type_name)(app_request)
+        except rospy.ServiceException as e:
+            if 'responded with an error' in str(e):
+                raise   # the server answered, with an application error
+            first_error = e
+        # The connection was lost: reconnect once the server is back, then retry once.
+        self._proxies.pop(type_name, None)
+        try:
+            rospy.wait_for_service(self.server_name, self.server_timeout)
+        except rospy.ROSException:
+            raise rospy.ServiceException('server %s unavailable: %s' % (self.server_name, first_error))
+        return self._proxy(type_name)(app_request)
+
+
+class AfterNode(StageNode):
+    """After, pass-through.
+
+    Subscribes: prd2aft (aft_msgs/Reply), port ``inp``.  Publishes: aft2pro (aft_msgs/Reply), port ``out``.
+    Services: ~rebind (aft_msgs/Rebind)
+    """
+    IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Reply', 'aft_msgs/Reply', 'prd2aft', 'aft2pro'
+
+
+class RelayNode(StageNode):
+    """A plain relay, for baselines: republishes every message of ~type from inp to out.
+
+    Parameters: ~type (str, required): aft_msgs/Request or aft_msgs/Reply.
+    Subscribes: inp, port ``inp``.  Publishes: out, port ``out``.
+    """
+    IN_TOPIC, OUT_TOPIC = 'inp', 'out'
+
+    def __init__(self):
+        self.IN_TYPE = self.OUT_TYPE = param('type', config.service_type, required=True)
+        super(RelayNode, self).__init__()

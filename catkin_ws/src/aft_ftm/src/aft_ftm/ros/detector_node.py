@@ -1,0 +1,93 @@
+"""Crash detector: heartbeats to the peer site, and failure verdicts about it."""
+import os
+import threading
+import time
+
+import rospy
+from aft_msgs.msg import Failure, Heartbeat
+
+from .. import config
+from ..detector import HeartbeatMonitor
+from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..sites import this_host
+from .params import param
+from .ports import Ports
+
+
+class CrashDetectorNode(object):
+    """Sends this site's heartbeat every period and declares the peer failed after timeout.
+
+    Parameters:
+        ~site (str, required): this site's name.  ~peer (str, required): the watched site's name.
+        ~period (float, 0.01 s), ~timeout (float, 0.03 s)
+        ~startup_grace (float, 0 = never): declare a never-heard peer failed after this long.
+        ~site_pid (int, default: this node's parent, i.e. the site's roslaunch): sent in heartbeats
+            so that the peer's Recovery can enforce fail-silence on the same host.
+    Publishes:
+        heartbeat (aft_msgs/Heartbeat), port ``heartbeat``
+        failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
+    Subscribes:
+        peer_heartbeat (aft_msgs/Heartbeat), port ``peer_heartbeat``
+    Services:
+        ~rebind (aft_msgs/Rebind)
+    """
+
+    def __init__(self):
+        self.site = param('site', config.non_empty_str, required=True)
+        self.peer = param('peer', config.non_empty_str, required=True)
+        self.period = param('period', config.positive_float, 0.01)
+        timeout = param('timeout', config.positive_float, 0.03)
+        if timeout <= self.period:
+            raise config.ConfigError('parameter %s (%r) must be longer than ~period (%r)'
+                                     % (rospy.resolve_name('~timeout'), timeout, self.period))
+        grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
+        self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
+        self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic())
+        self.lock = threading.Lock()
+        self.host = this_host()
+        self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),
+                            PortSpec('failures', PUBLISH, 'aft_msgs/Failure'),
+                            PortSpec('peer_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat')],
+                           {'peer_heartbeat': self._on_heartbeat}, queue_size=10)
+        self.seq = 0
+
+    def setup(self, timeout):
+        for name in ('heartbeat', 'failures', 'peer_heartbeat'):
+            self.ports.bind(name)
+        self.ports.advertise_service()
+        self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
+        self.thread.start()
+        return True
+
+    def _on_heartbeat(self, beat):
+        with self.lock:
+            zombie = self.monitor.beat(time.monotonic(), beat)
+        if zombie:
+            rospy.logerr_throttle(1.0, '%s: heartbeat from %s, which was declared failed: fail-silence is broken'
+                                  % (rospy.get_name(), beat.site))
+
+    def _loop(self):
+        """Send a heartbeat every period; check the peer five times as often, so that a
+        failure is declared within period/5 of the timeout expiring."""
+        tick = self.period / 5.0
+        next_beat = next_tick = time.monotonic()
+        while not rospy.is_shutdown():
+            now = time.monotonic()
+            if now >= next_beat:
+                self.seq += 1
+                self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
+                                                          seq=self.seq, stamp=rospy.Time.now()))
+                next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
+            with self.lock:
+                verdict = self.monitor.check(now)
+            if verdict is not None:
+                self._report(verdict)
+            next_tick = max(next_tick + tick, time.monotonic())
+            time.sleep(max(0.0, next_tick - time.monotonic()))
+
+    def _report(self, verdict):
+        info = verdict.last_info
+        rospy.logwarn('%s: site %s failed: %s', rospy.get_name(), self.peer, verdict.reason)
+        self.ports.publish('failures', Failure(
+            site=self.peer, host=info.host if info else '', pid=info.pid if info else 0,
+            reason=verdict.reason, silence=verdict.silence, detected=rospy.Time.now()))

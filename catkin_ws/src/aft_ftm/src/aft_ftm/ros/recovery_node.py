@@ -1,0 +1,181 @@
+"""Recovery: fail-silence of the failed site, then failover or going on alone."""
+import json
+import threading
+import time
+
+import psutil
+import rosgraph
+import rosnode
+import rospy
+from aft_msgs.msg import Failure
+from aft_msgs.srv import Rebind, RebindRequest, SetRole
+from std_msgs.msg import String
+
+from .. import config
+from ..protocol import Role
+from ..recovery import OVERLAP_FAIL_SILENCE, Step, plan, role_after, same_process
+from ..sites import power_off, this_host
+from .params import param
+from .protocol_node import ROLES
+
+
+class RecoveryNode(object):
+    """Acts on the crash detector's verdicts about the peer replica.
+
+    Backup whose primary failed: kill what is left of the primary's site, fence and promote
+    this replica's After, promote its Protocol once it stored every checkpointed reply, and
+    bind the Protocol to the clients' topics through its rebind service. Primary whose
+    backup failed: kill what is left of the backup's site and tell After to stop
+    checkpointing.
+
+    Parameters:
+        ~role (primary | backup): this replica's role at start.
+        ~protocol, ~after (str, required): node names of this replica's Protocol and After.
+        ~client_requests, ~client_replies (str, required for a backup): the Proxies' topics.
+        ~peer_namespace (str, required): namespace of the peer site's nodes.
+        ~service_timeout (float, 2 s): limit on each service call of a recovery.
+    Subscribes:
+        failures (aft_msgs/Failure): from this site's crash detector.
+    Publishes:
+        ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations).
+    """
+
+    def __init__(self):
+        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ('primary', 'backup')), 'backup')]
+        self.protocol = rospy.resolve_name(param('protocol', config.non_empty_str, required=True))
+        self.after = rospy.resolve_name(param('after', config.non_empty_str, required=True))
+        self.peer_ns = rospy.resolve_name(param('peer_namespace', config.non_empty_str, required=True))
+        required = self.role == Role.BACKUP
+        self.client_requests = param('client_requests', config.non_empty_str, required=required)
+        self.client_replies = param('client_replies', config.non_empty_str, required=required)
+        self.timeout = param('service_timeout', config.positive_float, 2.0)
+        self.lock = threading.Lock()
+        self.recovered = False
+
+    def setup(self, timeout):
+        names = [self.after + '/set_role'] + ([self.protocol + '/set_role', self.protocol + '/rebind']
+                                             if self.role == Role.BACKUP else [])
+        for name in names:
+            try:
+                rospy.wait_for_service(name, timeout)
+            except rospy.ROSException:
+                rospy.logerr('%s: service %s not available within %.1f s', rospy.get_name(), name, timeout)
+                return False
+        # Persistent connections, opened now by no-op calls, so that a failover pays no connection set-up.
+        self.set_role_after = rospy.ServiceProxy(self.after + '/set_role', SetRole, persistent=True)
+        self.set_role_protocol = rospy.ServiceProxy(self.protocol + '/set_role', SetRole, persistent=True)
+        self.rebind_protocol = rospy.ServiceProxy(self.protocol + '/rebind', Rebind, persistent=True)
+        try:
+            self.set_role_after(role=self.role.value)
+            if self.role == Role.BACKUP:
+                self.set_role_protocol(role=self.role.value, last_seq=0)
+                bound = self.rebind_protocol(port='replies', topic=self.client_replies,
+                                             direction=RebindRequest.PUBLISH, activate=True)
+                if not bound.success:
+                    rospy.logerr('%s: cannot bind the Protocol replies to %s: %s', rospy.get_name(),
+                                 self.client_replies, bound.message)
+                    return False
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            rospy.logerr('%s: cannot reach this replica\'s nodes: %s', rospy.get_name(), e)
+            return False
+        self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
+        self.sub = rospy.Subscriber('failures', Failure, self._on_failure, tcp_nodelay=True)
+        return True
+
+    def _on_failure(self, failure):
+        with self.lock:
+            if self.recovered:
+                return
+            self.recovered = True
+            record = {'failed_site': failure.site, 'reason': failure.reason, 'silence': failure.silence,
+                      'role_before': self.role.name, 'steps': [], 'ok': True,
+                      'detected_wall': failure.detected.to_sec()}
+            start = self._start = time.monotonic()
+            silencer = None
+            for step in plan(self.role):
+                if step == Step.FAIL_SILENCE:
+                    silencer = threading.Thread(target=self._run_step, args=(step, failure, record))
+                    silencer.start()
+                    continue
+                if silencer is not None and step not in OVERLAP_FAIL_SILENCE:
+                    silencer.join()
+                self._run_step(step, failure, record)
+            if silencer is not None:
+                silencer.join()
+            record['seconds'] = time.monotonic() - start
+            record['done_wall'] = time.time()
+            self.role = role_after(self.role)
+            record['role_after'] = self.role.name
+        rospy.logwarn('%s: recovered from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
+                      record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
+                                                          for s in record['steps']))
+        self.events.publish(String(data=json.dumps(record)))
+        threading.Thread(target=self._clean_master, daemon=True).start()
+
+    def _run_step(self, step, failure, record):
+        t0 = time.monotonic()
+        try:
+            detail = self._do(step, failure)
+            ok = True
+        except Exception as e:   # a failed step is reported, and the next ones still run
+            detail, ok = str(e), False
+            record['ok'] = False
+            rospy.logerr('%s: recovery step %s failed: %s', rospy.get_name(), step.name, e)
+        record['steps'].append({'step': step.name, 'ok': ok, 'detail': detail,
+                                'start': t0 - self._start, 'seconds': time.monotonic() - t0})
+
+    def _do(self, step, failure):
+        if step == Step.FAIL_SILENCE:
+            return self._fail_silence(failure)
+        if step == Step.PROMOTE_AFTER:
+            result = self.set_role_after(role=Role.ALONE.value)
+            if not result.success:
+                raise RuntimeError('After refused: %s' % result.message)
+            self.last_seq = result.last_seq
+            return 'last checkpoint %d' % result.last_seq
+        if step == Step.PROMOTE_PROTOCOL:
+            result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq)
+            if not result.success:
+                raise RuntimeError('Protocol refused: %s' % result.message)
+            return result.message
+        if step == Step.BIND_CLIENT:
+            # The replies port was bound to the clients' topic at set-up (checked there): its
+            # publisher is already connected, so only the requests port is bound now.
+            result = self.rebind_protocol(port='requests', topic=self.client_requests,
+                                          direction=RebindRequest.SUBSCRIBE, activate=True)
+            if not result.success:
+                raise RuntimeError('rebind of requests refused: %s' % result.message)
+            return result.message
+        if step == Step.AFTER_ALONE:
+            result = self.set_role_after(role=Role.ALONE.value)
+            if not result.success:
+                raise RuntimeError('After refused: %s' % result.message)
+            return result.message
+        raise ValueError(step)
+
+    def _fail_silence(self, failure):
+        """Kill the failed site's processes if they are on this host (the heartbeat names them)."""
+        if failure.pid <= 0 or failure.host != this_host():
+            return 'site %s is on host %r: its nodes are asked to shut down' % (failure.site, failure.host)
+        try:
+            created = psutil.Process(failure.pid).create_time()
+        except psutil.NoSuchProcess:
+            return 'site %s (pid %d) already gone' % (failure.site, failure.pid)
+        last_heard = failure.detected.to_sec() - failure.silence
+        if not same_process(created, last_heard):
+            return 'pid %d now belongs to another process: not killed' % failure.pid
+        return 'killed %d processes of site %s' % (power_off(failure.pid), failure.site)
+
+    def _clean_master(self):
+        """Ask the failed site's remaining nodes to shut down, and unregister the dead ones."""
+        try:
+            prefix = self.peer_ns.rstrip('/') + '/'
+            names = [n for n in rosnode.get_node_names() if n.startswith(prefix)]
+            if not names:
+                return
+            _, failed = rosnode.kill_nodes(names)
+            if failed:
+                rosnode.cleanup_master_blacklist(rosgraph.Master(rospy.get_name()), failed)
+            rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), len(names), self.peer_ns)
+        except Exception as e:   # best effort: the failover is already done
+            rospy.logwarn('%s: could not clean the master of %s: %s', rospy.get_name(), self.peer_ns, e)

@@ -1,0 +1,149 @@
+"""Sites: groups of processes that live and die together (our stand-in for a machine).
+
+A site is a roslaunch process and its children. roslaunch puts every node in a session
+of its own, so a process group is not enough to find them: the process tree is.
+:func:`power_off` freezes the whole tree first (so nothing respawns or reacts), then
+kills it, which is as abrupt as a power loss for everything on the site.
+"""
+import os
+import signal
+import subprocess
+import time
+
+import psutil
+
+
+def process_tree(pid):
+    """The process pid and all its descendants (empty if pid does not exist)."""
+    try:
+        root = psutil.Process(pid)
+        return [root] + root.children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+def _signal_all(procs, sig):
+    for proc in procs:
+        try:
+            proc.send_signal(sig)
+        except psutil.NoSuchProcess:
+            pass
+
+
+def power_off(pid, timeout=5.0, on_stopped=None):
+    """SIGSTOP then SIGKILL pid and every descendant. Returns the number of processes killed.
+
+    on_stopped() is called the moment every process is stopped: that is when the site stops
+    computing, the instant a power loss would happen.
+    """
+    procs = process_tree(pid)
+    _signal_all(procs, signal.SIGSTOP)
+    # Children forked between the snapshot and the stop are caught by a second look.
+    seen = {p.pid for p in procs}
+    for proc in process_tree(pid):
+        if proc.pid not in seen:
+            procs.append(proc)
+            _signal_all([proc], signal.SIGSTOP)
+    if on_stopped is not None:
+        on_stopped()
+    _signal_all(procs, signal.SIGKILL)
+    wait_dead(procs, timeout)
+    return len(procs)
+
+
+def _dead(proc):
+    """Gone, or a zombie: it runs no more, whoever reaps it and whenever."""
+    try:
+        return proc.status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def wait_dead(procs, timeout):
+    """Wait until every process is dead (see _dead). Returns those still running."""
+    deadline = time.monotonic() + timeout
+    alive = [p for p in procs if not _dead(p)]
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.001)
+        alive = [p for p in alive if not _dead(p)]
+    return alive
+
+
+def terminate_tree(pid, grace=5.0):
+    """Ask pid's tree to stop (SIGINT, as Ctrl-C to roslaunch), then power it off after grace seconds."""
+    procs = process_tree(pid)
+    if not procs:
+        return 0
+    _signal_all(procs[:1], signal.SIGINT)
+    alive = wait_dead(procs, grace)
+    if alive:
+        _signal_all(alive, signal.SIGKILL)
+        wait_dead(alive, grace)
+    return len(procs)
+
+
+class Site(object):
+    """A command started as a site (for example ``roslaunch --wait pkg file.launch args``)."""
+
+    def __init__(self, name, argv, env=None, log_path=None):
+        self.name = name
+        self.argv = list(argv)
+        self.env = env
+        self.log_path = log_path
+        self.proc = None
+        self._log = None
+        self.powered_off_at = None   # wall-clock time at which power_off() stopped the whole site
+
+    def start(self):
+        if self.log_path:
+            self._log = open(self.log_path, 'ab')
+        out = self._log if self._log else subprocess.DEVNULL
+        self.proc = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        return self
+
+    @property
+    def pid(self):
+        return self.proc.pid if self.proc else None
+
+    def alive(self):
+        return self.proc is not None and self.proc.poll() is None
+
+    def power_off(self):
+        """Kill the whole site at once, as a power loss would."""
+        if self.proc is None:
+            return 0
+        count = power_off(self.proc.pid, on_stopped=lambda: setattr(self, 'powered_off_at', time.time()))
+        self.proc.wait()
+        return count
+
+    def stop(self, grace=5.0):
+        """Stop the site cleanly if it can, by force otherwise. Never raises."""
+        try:
+            if self.proc is not None:
+                terminate_tree(self.proc.pid, grace)
+                power_off(self.proc.pid)
+                try:
+                    self.proc.wait(timeout=grace)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+        except Exception:   # shutdown paths never raise
+            pass
+        finally:
+            if self._log:
+                self._log.close()
+                self._log = None
+
+
+def wait_until(predicate, timeout, interval=0.02):
+    """Poll predicate until it is true or timeout seconds passed. Returns its last value."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value or time.monotonic() >= deadline:
+            return value
+        time.sleep(interval)
+
+
+def this_host():
+    return os.uname()[1]

@@ -1,0 +1,8 @@
+"""Test set-up: the aft_ftm library importable from the source tree, and the shared fakes."""
+import os
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_ftm', 'src'))
+sys.path.insert(0, HERE)

@@ -1,0 +1,21 @@
+"""Fakes shared by the tests that need no ROS master: messages and a clock."""
+import types
+
+
+def request(origin='/proxy', rid=1, oldest_pending=0, client='/client'):
+    """A stand-in for aft_msgs/Request in tests that need no ROS."""
+    return types.SimpleNamespace(origin=origin, id=rid, oldest_pending=oldest_pending, client=client)
+
+
+def reply(origin='/proxy', rid=1, value=None, oldest_pending=0):
+    """A stand-in for aft_msgs/Reply."""
+    return types.SimpleNamespace(origin=origin, id=rid, value=value, oldest_pending=oldest_pending)
+
+
+class FakeClock(object):
+    def __init__(self, now=0.0):
+        self.now = now
+
+    def advance(self, dt):
+        self.now += dt
+        return self.now

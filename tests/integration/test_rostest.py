@@ -1,0 +1,96 @@
+"""Graph-level tests: each rostest file of aft_ftm, run as rostest runs it (own master).
+
+Every process a rostest starts carries AFT_TEST_TAG in its environment; after the run, pass or
+fail, any process still carrying it is killed and the test fails.
+"""
+import glob
+import json
+import os
+import subprocess
+import tempfile
+import uuid
+
+import psutil
+import pytest
+
+TEST_DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'test')
+ROSTESTS = sorted(os.path.basename(p) for p in glob.glob(os.path.join(TEST_DIR, '*.test')))
+
+
+def tagged(tag):
+    procs = []
+    for proc in psutil.process_iter():
+        try:
+            if proc.environ().get('AFT_TEST_TAG') == tag:
+                procs.append(proc)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+            pass
+    return procs
+
+
+@pytest.mark.parametrize('test_file', ROSTESTS)
+def test_rostest(test_file):
+    tag = uuid.uuid4().hex
+    results = tempfile.mkdtemp(prefix='aft_results_')
+    env = dict(os.environ, AFT_TEST_TAG=tag, AFT_RESULTS_DIR=results)
+    try:
+        run = subprocess.run(['rostest', '--text', 'aft_ftm', test_file], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, timeout=1200)
+        output = run.stdout.decode(errors='replace')
+    finally:
+        leftovers = tagged(tag)
+        for proc in leftovers:
+            try:
+                proc.kill()
+            except psutil.NoSuchProcess:
+                pass
+    for path in sorted(glob.glob(os.path.join(results, '*.json'))):
+        with open(path) as f:
+            print('%s: %s' % (os.path.basename(path)[:-5], json.dumps(json.load(f), sort_keys=True)))
+    assert run.returncode == 0, output[-6000:]
+    assert not leftovers, 'processes left running after %s: %s' % (
+        test_file, [' '.join(p.cmdline()[:4]) for p in leftovers if p.is_running()])
+
+
+# Arguments for the launch files that have required ones, as a user would give them.
+REPLICA = ['site:=master', 'peer:=slave', 'role:=primary']
+LAUNCH_ARGS = {
+    'pbr_replica.launch': REPLICA + ['server:=/master/account', 'get_state:=/m/get_state',
+                                     'set_state:=/m/set_state'],
+    'pbr_proxy.launch': ['service:=/account', 'service_type:=aft_msgs/Account'],
+    'pbr.launch': ['service:=/account', 'service_type:=aft_msgs/Account', 'primary_server:=/a/account',
+                   'primary_get_state:=/a/g', 'primary_set_state:=/a/s', 'backup_server:=/b/account',
+                   'backup_get_state:=/b/g', 'backup_set_state:=/b/s'],
+    'demo_replica_site.launch': REPLICA,
+    'ftm_alone.launch': ['ns:=x', 'server:=/account'],
+}
+
+
+def launch_files():
+    launch_dir = os.path.join(TEST_DIR, '..', 'launch')
+    return sorted(glob.glob(os.path.join(launch_dir, '*.launch'))) + sorted(glob.glob(os.path.join(TEST_DIR, '*.test')))
+
+
+@pytest.mark.parametrize('path', launch_files(), ids=os.path.basename)
+def test_launch_file_loads_and_every_node_exists(path):
+    import roslaunch.config
+    import roslaunch.xmlloader
+    import roslib.packages
+    config = roslaunch.config.ROSLaunchConfig()
+    roslaunch.xmlloader.XmlLoader().load(path, config, argv=LAUNCH_ARGS.get(os.path.basename(path), []),
+                                         verbose=False)
+    nodes = list(config.nodes) + list(config.tests)
+    assert nodes, 'no node in %s' % path
+    for node in nodes:
+        assert roslib.packages.find_node(node.package, node.type), \
+            '%s: node %s/%s has no executable' % (os.path.basename(path), node.package, node.type)
+
+
+def test_a_missing_required_argument_is_named():
+    import roslaunch.config
+    import roslaunch.xmlloader
+    path = os.path.join(TEST_DIR, '..', 'launch', 'pbr_proxy.launch')
+    loader = roslaunch.xmlloader.XmlLoader()
+    loader.ignore_unset_args = False   # roslaunch reads it without setting it
+    with pytest.raises(roslaunch.xmlloader.XmlParseException, match="requires the 'service_type' arg"):
+        loader.load(path, roslaunch.config.ROSLaunchConfig(), argv=['service:=/a'], verbose=False)

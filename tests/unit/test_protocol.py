@@ -1,0 +1,140 @@
+"""Protocol logic: duplicate detection, one request at a time, backup and promotion. No ROS."""
+import pytest
+
+from aft_ftm.errors import RoleError
+from aft_ftm.protocol import Answer, DuplicateCache, Forward, ProtocolCore, Role, check_role_change
+from fakes import reply, request
+
+
+def kinds(actions):
+    return [(type(a).__name__, (a.request if isinstance(a, Forward) else a.reply).id) for a in actions]
+
+
+def test_new_request_is_forwarded_and_its_result_answered_and_cached():
+    core = ProtocolCore(Role.PRIMARY)
+    assert kinds(core.on_request(request(rid=1), 0)) == [('Forward', 1)]
+    actions = core.on_result(reply(rid=1, value='r1'), 0)
+    assert kinds(actions) == [('Answer', 1)] and actions[0].reply.value == 'r1'
+    assert core.stats.executed == 1
+
+
+def test_duplicate_after_execution_is_answered_from_cache_without_executing_again():
+    core = ProtocolCore(Role.PRIMARY)
+    core.on_request(request(rid=1), 0)
+    core.on_result(reply(rid=1, value='r1'), 0)
+    actions = core.on_request(request(rid=1), 1)
+    assert kinds(actions) == [('Answer', 1)]
+    assert actions[0].cached and actions[0].reply.value == 'r1'
+    assert core.stats.executed == 1 and core.stats.cached_answers == 1
+
+
+def test_duplicate_of_executing_or_queued_request_is_joined_not_executed_twice():
+    core = ProtocolCore(Role.PRIMARY)
+    core.on_request(request(rid=1), 0)
+    core.on_request(request(rid=2), 0)
+    assert core.on_request(request(rid=1), 0) == []     # executing
+    assert core.on_request(request(rid=2), 0) == []     # queued
+    assert kinds(core.on_result(reply(rid=1), 0)) == [('Answer', 1), ('Forward', 2)]
+    assert kinds(core.on_result(reply(rid=2), 0)) == [('Answer', 2)]
+    assert core.stats.executed == 2 and core.stats.joined == 2
+
+
+def test_requests_execute_one_at_a_time_in_arrival_order():
+    core = ProtocolCore(Role.PRIMARY)
+    forwarded = []
+    for rid in (5, 3, 9):
+        forwarded += kinds(core.on_request(request(rid=rid), 0))
+    assert forwarded == [('Forward', 5)]
+    assert kinds(core.on_result(reply(rid=5), 0)) == [('Answer', 5), ('Forward', 3)]
+    assert kinds(core.on_result(reply(rid=3), 0)) == [('Answer', 3), ('Forward', 9)]
+
+
+def test_same_id_from_two_origins_are_two_requests():
+    core = ProtocolCore(Role.PRIMARY)
+    core.on_request(request(origin='/a', rid=1), 0)
+    core.on_result(reply(origin='/a', rid=1, value='a'), 0)
+    assert kinds(core.on_request(request(origin='/b', rid=1), 0)) == [('Forward', 1)]
+
+
+def test_stray_result_is_counted_and_changes_nothing():
+    core = ProtocolCore(Role.PRIMARY)
+    core.on_request(request(rid=1), 0)
+    assert core.on_result(reply(rid=7), 0) == []
+    assert core.stats.stray_results == 1
+    assert core.current.id == 1 and core.cache.lookup('/proxy', 7) is None
+
+
+def test_watermark_forgets_replies_the_proxy_can_no_longer_ask_for():
+    core = ProtocolCore(Role.PRIMARY)
+    for rid in (1, 2, 3):
+        core.on_request(request(rid=rid), 0)
+        core.on_result(reply(rid=rid), 0)
+    core.on_request(request(rid=4, oldest_pending=3), 0)
+    assert core.cache.lookup('/proxy', 1) is None and core.cache.lookup('/proxy', 2) is None
+    assert core.cache.lookup('/proxy', 3) is not None
+
+
+def test_backup_executes_nothing_and_stores_checkpointed_replies():
+    core = ProtocolCore(Role.BACKUP)
+    assert core.on_request(request(rid=1), 0) == []
+    core.on_stored(reply(rid=1, value='from primary'), seq=1)
+    assert core.last_stored_seq == 1 and core.stats.executed == 0
+
+
+def test_promoted_backup_answers_executed_requests_from_cache_and_executes_the_rest():
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1, value='done by primary'), seq=1)
+    core.on_stored(reply(rid=2, value='done by primary'), seq=2)
+    assert not core.can_take_over(3) and core.can_take_over(2)
+    assert core.set_role(Role.ALONE, 0) == []
+    # The proxy re-sends its two pending requests: 2 was executed by the old primary, 3 was not.
+    answer = core.on_request(request(rid=2), 0)
+    assert kinds(answer) == [('Answer', 2)] and answer[0].reply.value == 'done by primary'
+    assert kinds(core.on_request(request(rid=3), 0)) == [('Forward', 3)]
+
+
+def test_requests_queued_while_backup_are_deduplicated_at_promotion():
+    core = ProtocolCore(Role.BACKUP)
+    core.on_request(request(rid=1), 0)
+    core.on_request(request(rid=2), 0)
+    core.on_stored(reply(rid=1, value='old primary'), seq=1)
+    assert kinds(core.set_role(Role.ALONE, 0)) == [('Answer', 1), ('Forward', 2)]
+
+
+def test_overdue_request_is_reported_after_timeout_only():
+    core = ProtocolCore(Role.PRIMARY)
+    core.on_request(request(rid=1), now=10.0)
+    assert core.overdue(10.5, timeout=1.0) is None
+    assert core.overdue(11.5, timeout=1.0).id == 1
+
+
+@pytest.mark.parametrize('current,new,allowed', [
+    (Role.BACKUP, Role.ALONE, True),
+    (Role.PRIMARY, Role.ALONE, True),
+    (Role.ALONE, Role.ALONE, True),
+    (Role.ALONE, Role.PRIMARY, False),
+    (Role.ALONE, Role.BACKUP, False),
+    (Role.PRIMARY, Role.BACKUP, False),
+    (Role.BACKUP, Role.PRIMARY, False),
+])
+def test_role_edges(current, new, allowed):
+    if allowed:
+        check_role_change(current, new)
+    else:
+        with pytest.raises(RoleError, match='%s -> %s' % (current.name, new.name)):
+            check_role_change(current, new)
+
+
+def test_refused_role_change_leaves_the_protocol_unchanged():
+    core = ProtocolCore(Role.ALONE)
+    with pytest.raises(RoleError):
+        core.set_role(Role.BACKUP, 0)
+    assert core.role == Role.ALONE
+
+
+def test_cache_capacity_evicts_oldest_and_counts_it():
+    cache = DuplicateCache(capacity=2)
+    for rid in (1, 2, 3):
+        cache.store(reply(rid=rid))
+    assert cache.evicted == 1 and len(cache) == 2
+    assert cache.lookup('/proxy', 1) is None and cache.lookup('/proxy', 3) is not None

@@ -1,0 +1,44 @@
+"""The Proxy's pending table: ids, watermark, re-sends. No ROS."""
+from aft_ftm.proxy import PendingTable
+
+
+def test_ids_are_unique_and_increasing_from_the_first_id():
+    table = PendingTable(first_id=1000)
+    ids = [table.open('/c', b'', 0).id for _ in range(5)]
+    assert ids == [1000, 1001, 1002, 1003, 1004]
+
+
+def test_watermark_is_the_oldest_unanswered_id():
+    table = PendingTable(first_id=1)
+    a, b, c = (table.open('/c', b'', 0) for _ in range(3))
+    assert table.oldest_pending() == 1
+    table.close(b.id, 'rb')
+    assert table.oldest_pending() == 1
+    table.close(a.id, 'ra')
+    assert table.oldest_pending() == 3
+    table.close(c.id, 'rc')
+    assert table.oldest_pending() == 4     # nothing pending: the next id
+
+
+def test_reply_wakes_the_waiting_call_and_a_late_duplicate_is_counted():
+    table = PendingTable(first_id=1)
+    entry = table.open('/c', b'x', 0)
+    assert table.close(entry.id, 'reply') is entry
+    assert entry.done.is_set() and entry.reply == 'reply'
+    assert table.close(entry.id, 'again') is None and table.late_replies == 1
+
+
+def test_due_returns_unanswered_requests_not_sent_for_a_period():
+    table = PendingTable(first_id=1)
+    a = table.open('/c', b'', now=0.0)
+    b = table.open('/c', b'', now=0.4)
+    assert [e.id for e in table.due(now=0.5, period=0.5)] == [a.id]
+    assert a.sends == 2 and a.sent_at == 0.5
+    assert [e.id for e in table.due(now=0.5, period=0)] == [a.id, b.id]    # all, on a new subscriber
+
+
+def test_abandoned_request_is_not_resent():
+    table = PendingTable(first_id=1)
+    entry = table.open('/c', b'', 0)
+    table.abandon(entry.id)
+    assert table.due(now=10, period=0) == [] and len(table) == 0

@@ -1,0 +1,64 @@
+"""Dynamic binding rules, recovery plans, typed parameters. No ROS."""
+import pytest
+
+from aft_ftm import config
+from aft_ftm.errors import ConfigError, RebindError
+from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
+from aft_ftm.protocol import Role
+from aft_ftm.recovery import Step, plan, role_after, same_process
+
+SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
+         'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
+TYPES = {'/ftm/pxy2pro': 'aft_msgs/Request', '/ftm/pro2pxy': 'aft_msgs/Reply', '/chatter': 'std_msgs/String'}
+
+
+@pytest.mark.parametrize('port,direction,topic,activate,error', [
+    ('requests', SUBSCRIBE, '/ftm/pxy2pro', True, None),
+    ('replies', PUBLISH, '/ftm/pro2pxy', True, None),
+    ('requests', SUBSCRIBE, '/not/yet/existing', True, None),   # a new topic takes the port's type
+    ('requests', SUBSCRIBE, '', False, None),                   # unbinding needs no topic
+    ('requests', SUBSCRIBE, '/chatter', True, 'topic /chatter has type std_msgs/String but port '
+                                              "'requests' has type aft_msgs/Request"),
+    ('replies', PUBLISH, '/ftm/pxy2pro', True, 'aft_msgs/Request but port'),
+    ('requests', PUBLISH, '/ftm/pxy2pro', True, "port 'requests' is a subscribe port"),
+    ('nope', SUBSCRIBE, '/ftm/pxy2pro', True, "unknown port 'nope' \\(this node has: replies, requests\\)"),
+    ('requests', 7, '/ftm/pxy2pro', True, 'direction must be'),
+    ('requests', SUBSCRIBE, '', True, 'no topic given'),
+])
+def test_rebind_rules(port, direction, topic, activate, error):
+    if error is None:
+        assert check_rebind(SPECS, port, direction, topic, TYPES, activate) is SPECS[port]
+    else:
+        with pytest.raises(RebindError, match=error):
+            check_rebind(SPECS, port, direction, topic, TYPES, activate)
+
+
+@pytest.mark.parametrize('role,steps,after', [
+    (Role.BACKUP, [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL, Step.BIND_CLIENT], Role.ALONE),
+    (Role.PRIMARY, [Step.FAIL_SILENCE, Step.AFTER_ALONE], Role.ALONE),
+    (Role.ALONE, [], Role.ALONE),
+])
+def test_recovery_plan_per_role(role, steps, after):
+    assert plan(role) == steps
+    assert role_after(role) == after
+
+
+def test_fail_silence_spares_a_pid_reused_after_the_last_heartbeat():
+    assert same_process(create_time=100.0, last_heard_wall=200.0)
+    assert not same_process(create_time=200.5, last_heard_wall=200.0)
+
+
+@pytest.mark.parametrize('convert,value,ok', [
+    (config.positive_float, 0.01, True), (config.positive_float, 0, False),
+    (config.positive_float, 'x', False), (config.positive_float, -1, False),
+    (config.non_negative_int, 3, True), (config.non_negative_int, -3, False),
+    (config.non_negative_int, 2.5, False), (config.non_negative_int, True, False),
+    (config.service_type, 'aft_msgs/Account', True), (config.service_type, 'Account', False),
+    (config.non_empty_str, ' ', False),
+])
+def test_parameter_converters_name_the_parameter_and_value(convert, value, ok):
+    if ok:
+        convert('~p', value)
+    else:
+        with pytest.raises(ConfigError, match=r'~p .*%s' % repr(value).replace('.', r'\.')):
+            convert('~p', value)
