@@ -34,7 +34,8 @@ def test_rostest(test_file):
     results = tempfile.mkdtemp(prefix='aft_results_')
     env = dict(os.environ, AFT_TEST_TAG=tag, AFT_RESULTS_DIR=results)
     try:
-        run = subprocess.run(['rostest', '--text', 'aft_ftm', test_file], env=env, stdout=subprocess.PIPE,
+        # Not --text: with it rostest exits 0 even when tests fail.
+        run = subprocess.run(['rostest', 'aft_ftm', test_file], env=env, stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, timeout=1200)
         output = run.stdout.decode(errors='replace')
     finally:
@@ -47,7 +48,13 @@ def test_rostest(test_file):
     for path in sorted(glob.glob(os.path.join(results, '*.json'))):
         with open(path) as f:
             print('%s: %s' % (os.path.basename(path)[:-5], json.dumps(json.load(f), sort_keys=True)))
-    assert run.returncode == 0, output[-6000:]
+    if run.returncode != 0 or 'RESULT: SUCCESS' not in output:
+        details = ''
+        for xml in glob.glob(os.path.join(os.environ.get('ROS_HOME', os.path.expanduser('~/.ros')),
+                                          'test_results', 'aft_ftm', '*%s*.xml' % test_file[:-5])):
+            with open(xml, errors='replace') as f:
+                details += f.read()[-8000:]
+        pytest.fail('rostest %s failed (exit %d):\n%s\n%s' % (test_file, run.returncode, output[-4000:], details))
     assert not leftovers, 'processes left running after %s: %s' % (
         test_file, [' '.join(p.cmdline()[:4]) for p in leftovers if p.is_running()])
 

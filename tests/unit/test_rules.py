@@ -33,14 +33,23 @@ def test_rebind_rules(port, direction, topic, activate, error):
             check_rebind(SPECS, port, direction, topic, TYPES, activate)
 
 
-@pytest.mark.parametrize('role,steps,after', [
-    (Role.BACKUP, [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL, Step.BIND_CLIENT], Role.ALONE),
-    (Role.PRIMARY, [Step.FAIL_SILENCE, Step.AFTER_ALONE], Role.ALONE),
+@pytest.mark.parametrize('role,waves,after', [
+    (Role.BACKUP, [[Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.BIND_CLIENT], [Step.PROMOTE_PROTOCOL]], Role.ALONE),
+    (Role.PRIMARY, [[Step.FAIL_SILENCE, Step.AFTER_ALONE]], Role.ALONE),
     (Role.ALONE, [], Role.ALONE),
 ])
-def test_recovery_plan_per_role(role, steps, after):
-    assert plan(role) == steps
+def test_recovery_plan_per_role(role, waves, after):
+    assert plan(role) == waves
     assert role_after(role) == after
+
+
+@pytest.mark.parametrize('role', list(Role))
+def test_a_backup_never_executes_before_the_failed_site_is_silent(role):
+    """No two primaries: the Protocol is promoted only in a wave after fail-silence and fencing."""
+    wave_of = {step: i for i, wave in enumerate(plan(role)) for step in wave}
+    if Step.PROMOTE_PROTOCOL in wave_of:
+        assert wave_of[Step.FAIL_SILENCE] < wave_of[Step.PROMOTE_PROTOCOL]
+        assert wave_of[Step.PROMOTE_AFTER] < wave_of[Step.PROMOTE_PROTOCOL]
 
 
 def test_fail_silence_spares_a_pid_reused_after_the_last_heartbeat():

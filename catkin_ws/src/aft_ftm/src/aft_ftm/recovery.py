@@ -12,18 +12,42 @@ class Step(enum.Enum):
     AFTER_ALONE = 'stop checkpointing: release the replies held for the lost backup'
 
 
+# What each step must wait for. Binding the clients' topic early is safe: a Protocol that is
+# still a backup queues the requests it receives (answering only those whose checkpointed reply
+# it holds). The Protocol executes them only once promoted, and it is promoted only once the
+# failed site is silent (no two primaries) and its After is fenced against the old primary.
+PREREQUISITES = {
+    Step.FAIL_SILENCE: (),
+    Step.PROMOTE_AFTER: (),
+    Step.BIND_CLIENT: (),
+    Step.PROMOTE_PROTOCOL: (Step.FAIL_SILENCE, Step.PROMOTE_AFTER),
+    Step.AFTER_ALONE: (),
+}
+
+
 def plan(role):
-    """The steps, in order, when the peer of a replica in ``role`` has failed."""
+    """The steps when the peer of a replica in ``role`` has failed, as waves: the steps of a
+    wave run in parallel, each wave once the previous one is complete."""
     if role == Role.BACKUP:
-        return [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL, Step.BIND_CLIENT]
-    if role == Role.PRIMARY:
-        return [Step.FAIL_SILENCE, Step.AFTER_ALONE]
-    return []   # ALONE: nobody left to lose
+        steps = [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.BIND_CLIENT, Step.PROMOTE_PROTOCOL]
+    elif role == Role.PRIMARY:
+        steps = [Step.FAIL_SILENCE, Step.AFTER_ALONE]
+    else:
+        steps = []   # ALONE: nobody left to lose
+    return waves(steps)
 
 
-# Steps that may run while FAIL_SILENCE is still killing the failed site: none of them lets this
-# replica answer a client. Every other step waits until fail-silence is complete.
-OVERLAP_FAIL_SILENCE = frozenset([Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL, Step.AFTER_ALONE])
+def waves(steps):
+    """Group steps into waves that respect PREREQUISITES (each step in the earliest wave possible)."""
+    done, result, left = set(), [], list(steps)
+    while left:
+        wave = [s for s in left if all(p in done or p not in steps for p in PREREQUISITES[s])]
+        if not wave:
+            raise ValueError('circular prerequisites among %s' % left)
+        result.append(wave)
+        done.update(wave)
+        left = [s for s in left if s not in wave]
+    return result
 
 
 def role_after(role):

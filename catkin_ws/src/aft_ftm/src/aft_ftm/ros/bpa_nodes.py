@@ -97,7 +97,13 @@ class ProceedNode(StageNode):
                 return reply
             try:
                 response = self._call(request.service_type, app_request)
-            except rospy.ServiceException as e:
+            except (rospy.ServiceException, rospy.ROSException) as e:
+                if rospy.is_shutdown():
+                    # This replica is going down: stay silent (fail-silent); the Proxy re-sends the
+                    # request to whichever replica takes over.
+                    rospy.logwarn('%s: shutting down, %s/%d left to the next primary', self.name,
+                                  request.origin, request.id)
+                    return None
                 reply.status, reply.error = Reply.ERROR, str(e)
                 return reply
             reply.payload = serialize(response)

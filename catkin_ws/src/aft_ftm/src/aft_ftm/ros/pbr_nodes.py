@@ -104,6 +104,8 @@ class PbrAfterNode(AfterNode):
             try:
                 state = self.get_state().state
             except (rospy.ServiceException, rospy.ROSException) as e:
+                if rospy.is_shutdown():
+                    return None   # going down: fail-silent, the next primary answers the re-sent request
                 # The reply goes out as an error: the next checkpoint carries the full state again.
                 rospy.logerr('%s: cannot capture the server state after %s/%d: %s', self.name,
                              reply.origin, reply.id, e)

@@ -13,7 +13,7 @@ from std_msgs.msg import String
 
 from .. import config
 from ..protocol import Role
-from ..recovery import OVERLAP_FAIL_SILENCE, Step, plan, role_after, same_process
+from ..recovery import Step, plan, role_after, same_process
 from ..sites import power_off, this_host
 from .params import param
 from .protocol_node import ROLES
@@ -23,8 +23,9 @@ class RecoveryNode(object):
     """Acts on the crash detector's verdicts about the peer replica.
 
     Backup whose primary failed: kill what is left of the primary's site, fence and promote
-    this replica's After, promote its Protocol once it stored every checkpointed reply, and
-    bind the Protocol to the clients' topics through its rebind service. Primary whose
+    this replica's After, bind the Protocol to the clients' topics through its rebind service,
+    all three at once; then promote the Protocol once it stored every checkpointed reply
+    (see aft_ftm.recovery for why this order is safe). Primary whose
     backup failed: kill what is left of the backup's site and tell After to stop
     checkpointing.
 
@@ -91,17 +92,12 @@ class RecoveryNode(object):
                       'role_before': self.role.name, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
             start = self._start = time.monotonic()
-            silencer = None
-            for step in plan(self.role):
-                if step == Step.FAIL_SILENCE:
-                    silencer = threading.Thread(target=self._run_step, args=(step, failure, record))
-                    silencer.start()
-                    continue
-                if silencer is not None and step not in OVERLAP_FAIL_SILENCE:
-                    silencer.join()
-                self._run_step(step, failure, record)
-            if silencer is not None:
-                silencer.join()
+            for wave in plan(self.role):
+                threads = [threading.Thread(target=self._run_step, args=(step, failure, record)) for step in wave]
+                for thread in threads:
+                    thread.start()
+                for thread in threads:
+                    thread.join()
             record['seconds'] = time.monotonic() - start
             record['done_wall'] = time.time()
             self.role = role_after(self.role)
