@@ -6,3 +6,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_ftm', 'src'))
 sys.path.insert(0, HERE)
+
+
+def pytest_terminal_summary(terminalreporter):
+    from reporting import FIGURES
+    if FIGURES:
+        terminalreporter.section('figures reported by the tests')
+        for line in FIGURES:
+            terminalreporter.write_line(line)

@@ -12,6 +12,7 @@ import uuid
 
 import psutil
 import pytest
+from reporting import report
 
 TEST_DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'test')
 ROSTESTS = sorted(os.path.basename(p) for p in glob.glob(os.path.join(TEST_DIR, '*.test')))
@@ -47,7 +48,7 @@ def test_rostest(test_file):
                 pass
     for path in sorted(glob.glob(os.path.join(results, '*.json'))):
         with open(path) as f:
-            print('%s: %s' % (os.path.basename(path)[:-5], json.dumps(json.load(f), sort_keys=True)))
+            report('%s: %s' % (os.path.basename(path)[:-5], json.dumps(json.load(f), sort_keys=True)))
     if run.returncode != 0 or 'RESULT: SUCCESS' not in output:
         details = ''
         for xml in glob.glob(os.path.join(os.environ.get('ROS_HOME', os.path.expanduser('~/.ros')),

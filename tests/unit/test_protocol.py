@@ -2,7 +2,7 @@
 import pytest
 
 from aft_ftm.errors import RoleError
-from aft_ftm.protocol import Answer, DuplicateCache, Forward, ProtocolCore, Role, check_role_change
+from aft_ftm.protocol import DuplicateCache, Forward, ProtocolCore, Role, check_role_change
 from fakes import reply, request
 
 

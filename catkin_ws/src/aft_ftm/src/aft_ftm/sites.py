@@ -117,6 +117,10 @@ class Site(object):
         self.proc.wait()
         return count
 
+    def power_off_fault(self):
+        """power_off() as a fault to inject: returns (processes killed, wall time the site stopped)."""
+        return self.power_off(), self.powered_off_at
+
     def stop(self, grace=5.0):
         """Stop the site cleanly if it can, by force otherwise. Never raises."""
         try:

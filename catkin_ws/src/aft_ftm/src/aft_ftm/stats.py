@@ -14,3 +14,10 @@ def percentile(values, q):
 
 def median(values):
     return percentile(values, 50)
+
+
+def longest_wait(records, instant):
+    """The longest time a call waited for its reply after ``instant`` (e.g. a crash): the outage a
+    client saw. records are (index, sent, replied, ok) with wall-clock times; None if no reply came later."""
+    waits = [replied - max(sent, instant) for _, sent, replied, _ in records if replied > instant]
+    return max(waits) if waits else None

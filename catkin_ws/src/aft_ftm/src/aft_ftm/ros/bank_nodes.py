@@ -70,6 +70,39 @@ def drive(call, count, checker, on_reply=None, pause=0.0):
     return records
 
 
+def account_caller(proxy):
+    """Adapt an aft_msgs/Account service proxy to drive()'s call(op, amount) -> (balance, count, digest)."""
+    def call(op, amount):
+        r = proxy(op=op, amount=amount)
+        return r.balance, r.count, r.digest
+    return call
+
+
+def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003):
+    """drive() count operations; once fault_after replies came back, after a random delay of up to
+    max_delay (so that the fault lands anywhere inside the next request), run fault() in another
+    thread. fault() returns (processes affected, wall-clock time of the fault).
+
+    Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
+    was never injected.
+    """
+    injected = {}
+    reached = threading.Event()
+
+    def inject():
+        if reached.wait(300):
+            time.sleep(rng.uniform(0, max_delay))
+            injected['processes'], injected['wall'] = fault()
+
+    thread = threading.Thread(target=inject, name='fault', daemon=True)
+    thread.start()
+    records = drive(call, count, checker, on_reply=lambda i: reached.set() if i + 1 >= fault_after else None)
+    thread.join(10)
+    if 'wall' not in injected:
+        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))
+    return records, injected
+
+
 class BankClientNode(object):
     """Sends ~count operations to the account service, checks every reply, writes a report.
 
@@ -95,12 +128,7 @@ class BankClientNode(object):
 
     def run(self):
         checker = ReplyChecker()
-
-        def call(op, amount):
-            r = self.proxy(op=op, amount=amount)
-            return r.balance, r.count, r.digest
-
-        records = drive(call, self.count, checker, pause=self.pause)
+        records = drive(account_caller(self.proxy), self.count, checker, pause=self.pause)
         summary = dict(checker.summary(), sent=self.count, answered=self.count - checker.errors,
                        records=records)
         if self.report:
