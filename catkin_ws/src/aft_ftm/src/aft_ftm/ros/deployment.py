@@ -8,7 +8,7 @@ import rosgraph
 from ..sites import Site, wait_until
 
 REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
-                    'before/rebind', 'proceed/rebind', 'crash_detector/rebind',
+                    'before/rebind', 'proceed/rebind', 'crash_detector/rebind', 'recovery/rebind',
                     'bank_server/get_state', 'bank_server/set_state', 'account')
 
 
@@ -36,42 +36,48 @@ def roslaunch(pkg, launch_file, **args):
 
 
 class PbrDeployment(object):
-    """CLIENT, MASTER and SLAVE sites of the bank demo, each its own process tree."""
+    """The bank demo under PBR. By default three sites, CLIENT, MASTER and SLAVE, each its own
+    roslaunch process tree; with one_host=True a single roslaunch of demo_one_host.launch (site
+    'all'), as a user of pbr.launch runs it."""
 
-    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None):
+    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False):
         self.log_dir = log_dir
-        self.env = env
+        self.one_host = one_host
         replica = dict(period=period, timeout=timeout)
-        self.sites = {
-            'master': Site('master', roslaunch('aft_ftm', 'demo_replica_site.launch', site='master', peer='slave',
-                                               role='primary', **replica),
-                           env, os.path.join(log_dir, 'master.log')),
-            'slave': Site('slave', roslaunch('aft_ftm', 'demo_replica_site.launch', site='slave', peer='master',
-                                             role='backup', **replica),
-                          env, os.path.join(log_dir, 'slave.log')),
-            'client': Site('client', roslaunch('aft_ftm', 'demo_client_site.launch'),
-                           env, os.path.join(log_dir, 'client.log')),
-        }
+
+        def site(name, launch_file, **args):
+            return Site(name, roslaunch('aft_ftm', launch_file, **args), env, os.path.join(log_dir, name + '.log'))
+        if one_host:
+            self.sites = {'all': site('all', 'demo_one_host.launch', **replica)}
+        else:
+            self.sites = {
+                'master': site('master', 'demo_replica_site.launch', site='master', peer='slave', role='primary',
+                               **replica),
+                'slave': site('slave', 'demo_replica_site.launch', site='slave', peer='master', role='backup',
+                              **replica),
+                'client': site('client', 'demo_client_site.launch'),
+            }
 
     def start(self, timeout=120.0):
-        """Start both replicas, then the client site; raise RuntimeError naming what did not come up."""
+        """Start the replicas, then the client site; raise RuntimeError naming what did not come up."""
         os.makedirs(self.log_dir, exist_ok=True)
         started = time.monotonic()
-        self.sites['slave'].start()
-        self.sites['master'].start()
+        replicas = ['all'] if self.one_host else ['slave', 'master']
+        for name in replicas:
+            self.sites[name].start()
         for site in ('master', 'slave'):
             missing = wait_for_graph(['/%s/%s' % (site, s) for s in REPLICA_SERVICES],
-                                     [('/%s/failures' % site, '/%s/recovery' % site)],
-                                     timeout - (time.monotonic() - started))
+                                     timeout=timeout - (time.monotonic() - started))
             if missing:
-                raise RuntimeError('site %s did not come up: missing %s (log: %s)'
-                                   % (site, ', '.join(missing), self.sites[site].log_path))
-        self.sites['client'].start()
+                raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
+                                   % (site, ', '.join(missing), self.log_dir))
+        if not self.one_host:
+            self.sites['client'].start()
         missing = wait_for_graph(['/account', '/proxy/rebind'], [('/ftm/pro2pxy', '/proxy')],
                                  timeout - (time.monotonic() - started))
         if missing:
-            raise RuntimeError('client site did not come up: missing %s (log: %s)'
-                               % (', '.join(missing), self.sites['client'].log_path))
+            raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
+                                                                                      self.log_dir))
         return time.monotonic() - started
 
     def stop(self):

@@ -1,21 +1,22 @@
 """Recovery: fail-silence of the failed site, then failover or going on alone."""
 import json
+import os
 import threading
 import time
 
 import psutil
-import rosgraph
-import rosnode
 import rospy
-from aft_msgs.msg import Failure
 from aft_msgs.srv import Rebind, RebindRequest, SetRole
 from std_msgs.msg import String
 
 from .. import config
 from ..protocol import Role
 from ..recovery import Step, plan, role_after, same_process
-from ..sites import power_off, this_host
+from ..sites import power_off, process_tree, this_host
+from ..ports import SUBSCRIBE, PortSpec
+from .fencing import NamespaceFence
 from .params import param
+from .ports import Ports
 from .protocol_node import ROLES
 
 
@@ -35,10 +36,13 @@ class RecoveryNode(object):
         ~client_requests, ~client_replies (str, required for a backup): the Proxies' topics.
         ~peer_namespace (str, required): namespace of the peer site's nodes.
         ~service_timeout (float, 2 s): limit on each service call of a recovery.
+        ~learn_period (float, 2 s): how often the pids of the peer's nodes are learned (for fail-silence).
     Subscribes:
-        failures (aft_msgs/Failure): from this site's crash detector.
+        failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
     Publishes:
         ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations).
+    Services:
+        ~rebind (aft_msgs/Rebind)
     """
 
     def __init__(self):
@@ -50,6 +54,7 @@ class RecoveryNode(object):
         self.client_requests = param('client_requests', config.non_empty_str, required=required)
         self.client_replies = param('client_replies', config.non_empty_str, required=required)
         self.timeout = param('service_timeout', config.positive_float, 2.0)
+        self.learn_period = param('learn_period', config.positive_float, 2.0)
         self.lock = threading.Lock()
         self.recovered = False
 
@@ -79,8 +84,12 @@ class RecoveryNode(object):
         except (rospy.ServiceException, rospy.ROSException) as e:
             rospy.logerr('%s: cannot reach this replica\'s nodes: %s', rospy.get_name(), e)
             return False
+        self.fence = NamespaceFence(self.peer_ns, rospy.get_name())
+        threading.Thread(target=self._learn_peer, name='learn-peer', daemon=True).start()
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
-        self.sub = rospy.Subscriber('failures', Failure, self._on_failure, tcp_nodelay=True)
+        self.ports = Ports([PortSpec('failures', SUBSCRIBE, 'aft_msgs/Failure')], {'failures': self._on_failure})
+        self.ports.bind('failures')
+        self.ports.advertise_service()
         return True
 
     def _on_failure(self, failure):
@@ -149,29 +158,39 @@ class RecoveryNode(object):
             return result.message
         raise ValueError(step)
 
+    def _learn_peer(self):
+        while not rospy.is_shutdown() and not self.recovered:
+            try:
+                self.fence.learn()
+            except Exception as e:   # the master is unreachable for a while: try again later
+                rospy.logwarn_throttle(30, '%s: cannot learn the nodes of %s: %s' % (rospy.get_name(), self.peer_ns, e))
+            rospy.sleep(self.learn_period)
+
     def _fail_silence(self, failure):
-        """Kill the failed site's processes if they are on this host (the heartbeat names them)."""
-        if failure.pid <= 0 or failure.host != this_host():
-            return 'site %s is on host %r: its nodes are asked to shut down' % (failure.site, failure.host)
+        """Kill what is left of the failed site: its launcher's whole process tree when the heartbeat
+        names one on this host, and every node of its name space whose pid was learned."""
+        done = []
+        if failure.pid > 0 and failure.host == this_host():
+            done.append(self._power_off_launcher(failure))
+        killed = self.fence.kill()
+        done.append('%d nodes of %s killed by pid' % (len(killed), self.peer_ns))
+        return '; '.join(done)
+
+    def _power_off_launcher(self, failure):
         try:
             created = psutil.Process(failure.pid).create_time()
         except psutil.NoSuchProcess:
-            return 'site %s (pid %d) already gone' % (failure.site, failure.pid)
-        last_heard = failure.detected.to_sec() - failure.silence
-        if not same_process(created, last_heard):
+            return 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
+        if not same_process(created, failure.detected.to_sec() - failure.silence):
             return 'pid %d now belongs to another process: not killed' % failure.pid
-        return 'killed %d processes of site %s' % (power_off(failure.pid), failure.site)
+        if os.getpid() in [p.pid for p in process_tree(failure.pid)]:
+            return 'launcher %d also runs this replica: only the name space is killed' % failure.pid
+        return '%d processes of the launcher of %s killed' % (power_off(failure.pid), failure.site)
 
     def _clean_master(self):
         """Ask the failed site's remaining nodes to shut down, and unregister the dead ones."""
         try:
-            prefix = self.peer_ns.rstrip('/') + '/'
-            names = [n for n in rosnode.get_node_names() if n.startswith(prefix)]
-            if not names:
-                return
-            _, failed = rosnode.kill_nodes(names)
-            if failed:
-                rosnode.cleanup_master_blacklist(rosgraph.Master(rospy.get_name()), failed)
-            rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), len(names), self.peer_ns)
+            count = self.fence.shut_down_the_rest()
+            rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), count, self.peer_ns)
         except Exception as e:   # best effort: the failover is already done
             rospy.logwarn('%s: could not clean the master of %s: %s', rospy.get_name(), self.peer_ns, e)

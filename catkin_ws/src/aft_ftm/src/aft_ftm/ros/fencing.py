@@ -1,0 +1,101 @@
+"""Fail-silence by name space: kill the nodes of a failed site, learned while they were healthy.
+
+A frozen node (a stopped process, a hung machine) answers no XML-RPC call, so its pid must be
+known before it fails: :class:`NamespaceFence` asks every node under a name space for its pid
+periodically, and at failure kills those that run on this host. Nodes on other hosts can only be
+asked to shut down (a real deployment adds a power switch there).
+"""
+import os
+import signal
+import threading
+import xmlrpc.client
+from urllib.parse import urlparse
+
+import psutil
+import rosgraph
+import rosnode
+
+from ..sites import this_host
+
+
+class _TimeoutTransport(xmlrpc.client.Transport):
+    def __init__(self, timeout):
+        super(_TimeoutTransport, self).__init__()
+        self.timeout = timeout
+
+    def make_connection(self, host):
+        connection = super(_TimeoutTransport, self).make_connection(host)
+        connection.timeout = self.timeout
+        return connection
+
+
+def node_api(uri, timeout):
+    """An XML-RPC proxy to a node's API that gives up after timeout seconds."""
+    return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
+
+
+def is_local(uri):
+    host = urlparse(uri).hostname or ''
+    return host in (this_host(), 'localhost') or host.startswith('127.')
+
+
+class NamespaceFence(object):
+    """The nodes under ``namespace``: learn their pids, kill them, forget them at the master."""
+
+    def __init__(self, namespace, caller_id, timeout=0.5):
+        self.prefix = namespace.rstrip('/') + '/'
+        self.caller_id = caller_id
+        self.timeout = timeout
+        self.master = rosgraph.Master(caller_id)
+        self.known = {}        # node name -> (pid, create_time) for nodes on this host
+        self.remote = {}       # node name -> API uri, for nodes on other hosts
+        self.lock = threading.Lock()
+
+    def node_names(self):
+        pubs, subs, srvs = self.master.getSystemState()
+        names = {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}
+        return sorted(n for n in names if n.startswith(self.prefix))
+
+    def learn(self):
+        """Ask every node under the name space for its pid. Returns the number of local nodes known."""
+        for name in self.node_names():
+            try:
+                uri = self.master.lookupNode(name)
+                if not is_local(uri):
+                    with self.lock:
+                        self.remote[name] = uri
+                    continue
+                code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
+                if code == 1:
+                    created = psutil.Process(pid).create_time()
+                    with self.lock:
+                        self.known[name] = (pid, created)
+            except Exception:   # a node going away while we ask: learned next time, or never needed
+                continue
+        return len(self.known)
+
+    def kill(self):
+        """SIGKILL every known local node still running as the same process. Returns their names."""
+        killed = []
+        with self.lock:
+            known = dict(self.known)
+        for name, (pid, created) in sorted(known.items()):
+            try:
+                proc = psutil.Process(pid)
+                if proc.create_time() != created or pid == os.getpid():
+                    continue   # the pid now belongs to another process
+                proc.send_signal(signal.SIGKILL)
+                killed.append(name)
+            except psutil.NoSuchProcess:
+                continue
+        return killed
+
+    def shut_down_the_rest(self):
+        """Ask the remaining nodes to shut down and unregister the dead ones from the master."""
+        names = self.node_names()
+        if not names:
+            return 0
+        _, failed = rosnode.kill_nodes(names)
+        if failed:
+            rosnode.cleanup_master_blacklist(self.master, failed)
+        return len(names)
