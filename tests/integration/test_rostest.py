@@ -65,12 +65,13 @@ REPLICA = ['site:=master', 'peer:=slave', 'role:=primary']
 LAUNCH_ARGS = {
     'pbr_replica.launch': REPLICA + ['server:=/master/account', 'get_state:=/m/get_state',
                                      'set_state:=/m/set_state'],
-    'pbr_proxy.launch': ['service:=/account', 'service_type:=aft_msgs/Account'],
+    'proxy.launch': ['service:=/account', 'service_type:=aft_msgs/Account'],
     'pbr.launch': ['service:=/account', 'service_type:=aft_msgs/Account', 'primary_server:=/a/account',
                    'primary_get_state:=/a/g', 'primary_set_state:=/a/s', 'backup_server:=/b/account',
                    'backup_get_state:=/b/g', 'backup_set_state:=/b/s'],
     'demo_replica_site.launch': REPLICA,
-    'ftm_alone.launch': ['ns:=x', 'server:=/account'],
+    'mechanism.launch': ['ns:=x', 'mechanism:=tr', 'inp:=/i', 'out:=/o', 'server:=/account'],
+    'demo_mechanism_site.launch': ['mechanism:=ad'],
 }
 
 
@@ -97,7 +98,7 @@ def test_launch_file_loads_and_every_node_exists(path):
 def test_a_missing_required_argument_is_named():
     import roslaunch.config
     import roslaunch.xmlloader
-    path = os.path.join(TEST_DIR, '..', 'launch', 'pbr_proxy.launch')
+    path = os.path.join(TEST_DIR, '..', 'launch', 'proxy.launch')
     loader = roslaunch.xmlloader.XmlLoader()
     loader.ignore_unset_args = False   # roslaunch reads it without setting it
     with pytest.raises(roslaunch.xmlloader.XmlParseException, match="requires the 'service_type' arg"):

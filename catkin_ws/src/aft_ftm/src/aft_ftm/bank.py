@@ -102,3 +102,17 @@ class ReplyChecker(object):
     def summary(self):
         return {'correct': self.correct, 'lost': self.lost, 'duplicated': self.duplicated,
                 'reordered': self.reordered, 'errors': self.errors}
+
+
+# -- example safety assertions for Assertion & Duplex (named bank:... in launch files) ------------
+LIMIT = 1000
+
+
+def amount_within_limit(request):
+    """Request assertion: no single operation moves more than LIMIT."""
+    return request.amount <= LIMIT or 'amount %d is over the limit of %d' % (request.amount, LIMIT)
+
+
+def balance_never_negative(request, response):
+    """Reply assertion: an account is never overdrawn."""
+    return response.balance >= 0 or 'balance %d is negative' % response.balance

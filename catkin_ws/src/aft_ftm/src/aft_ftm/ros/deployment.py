@@ -8,8 +8,19 @@ import rosgraph
 from ..sites import Site, wait_until
 
 REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
-                    'before/rebind', 'proceed/rebind', 'crash_detector/rebind', 'recovery/rebind',
+                    'before/rebind', 'crash_detector/rebind', 'recovery/rebind',
                     'bank_server/get_state', 'bank_server/set_state', 'account')
+GRAPH_SERVICES = ('protocol/rebind', 'before/rebind', 'proceed/rebind', 'after/rebind')
+CLIENT_SERVICES = ('/account', '/proxy/rebind')
+
+
+def replica_services(site, inner='', faulty=False):
+    """The services a replica site of the demo offers once every node is set up."""
+    names = ['/%s/%s' % (site, s) for s in REPLICA_SERVICES]
+    names += ['/%s/%s/%s' % (site, inner, s) for s in GRAPH_SERVICES] if inner else ['/%s/proceed/rebind' % site]
+    if faulty:
+        names.append('/%s/fault_injector/inject' % site)
+    return names
 
 
 def missing_from_graph(services=(), subscriptions=(), caller='/aft_deployment'):
@@ -40,10 +51,16 @@ class PbrDeployment(object):
     roslaunch process tree; with one_host=True a single roslaunch of demo_one_host.launch (site
     'all'), as a user of pbr.launch runs it."""
 
-    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False):
+    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False):
         self.log_dir = log_dir
         self.one_host = one_host
+        self.inner = inner
+        self.faulty = faulty
         replica = dict(period=period, timeout=timeout)
+        if inner or faulty:
+            if one_host:
+                raise ValueError('the one-host demo has no nested mechanism nor fault injector')
+            replica.update(inner=inner, faulty=str(bool(faulty)).lower())
 
         def site(name, launch_file, **args):
             return Site(name, roslaunch('aft_ftm', launch_file, **args), env, os.path.join(log_dir, name + '.log'))
@@ -66,15 +83,14 @@ class PbrDeployment(object):
         for name in replicas:
             self.sites[name].start()
         for site in ('master', 'slave'):
-            missing = wait_for_graph(['/%s/%s' % (site, s) for s in REPLICA_SERVICES],
+            missing = wait_for_graph(replica_services(site, self.inner, self.faulty),
                                      timeout=timeout - (time.monotonic() - started))
             if missing:
                 raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
                                    % (site, ', '.join(missing), self.log_dir))
         if not self.one_host:
             self.sites['client'].start()
-        missing = wait_for_graph(['/account', '/proxy/rebind'], [('/ftm/pro2pxy', '/proxy')],
-                                 timeout - (time.monotonic() - started))
+        missing = wait_for_graph(CLIENT_SERVICES, [('/ftm/pro2pxy', '/proxy')], timeout - (time.monotonic() - started))
         if missing:
             raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
                                                                                       self.log_dir))
@@ -83,6 +99,34 @@ class PbrDeployment(object):
     def stop(self):
         for site in self.sites.values():
             site.stop(grace=3.0)
+
+
+class MechanismDeployment(object):
+    """One site: the bank server, a fault injector (faulty=True), one mechanism and the Proxy."""
+
+    def __init__(self, log_dir, mechanism, faulty=True, executions=3, env=None):
+        self.log_dir = log_dir
+        self.mechanism = mechanism
+        self.faulty = faulty
+        self.sites = {'site': Site('site', roslaunch('aft_ftm', 'demo_mechanism_site.launch', mechanism=mechanism,
+                                                     faulty=str(bool(faulty)).lower(), executions=executions),
+                                   env, os.path.join(log_dir, 'site.log'))}
+
+    def start(self, timeout=120.0):
+        os.makedirs(self.log_dir, exist_ok=True)
+        started = time.monotonic()
+        self.sites['site'].start()
+        services = ['/site/%s/%s' % (self.mechanism, s) for s in GRAPH_SERVICES] + list(CLIENT_SERVICES)
+        if self.faulty:
+            services.append('/site/fault_injector/inject')
+        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout)
+        if missing:
+            raise RuntimeError('the %s site did not come up: missing %s (logs in %s)'
+                               % (self.mechanism, ', '.join(missing), self.log_dir))
+        return time.monotonic() - started
+
+    def stop(self):
+        self.sites['site'].stop(grace=3.0)
 
 
 def free_port():

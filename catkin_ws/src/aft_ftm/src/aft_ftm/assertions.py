@@ -1,0 +1,56 @@
+"""Assertion & Duplex: user safety assertions, named in configuration and loaded at start.
+
+An assertion is an importable callable, named ``package.module:function``:
+  * a request assertion is called as f(request) before the request is executed;
+  * a reply assertion is called as f(request, response) on each reply.
+It passes by returning True or None; it is violated by returning False or a string (the
+detail), or by raising AssertionError. Any other exception is a violation too (a safety check
+that cannot be evaluated must not let a reply through).
+"""
+import importlib
+
+from .errors import ConfigError
+
+
+def load(spec):
+    """Import ``module:function``; returns (spec, callable) or raises ConfigError naming the spec."""
+    if not isinstance(spec, str) or spec.count(':') != 1 or not all(spec.split(':')):
+        raise ConfigError('assertion %r must be named as package.module:function' % (spec,))
+    module_name, attr = spec.split(':')
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as e:   # ImportError, or an error while importing the user's module
+        raise ConfigError('assertion %s: cannot import %s: %s' % (spec, module_name, e))
+    fn = getattr(module, attr, None)
+    if fn is None:
+        raise ConfigError('assertion %s: module %s has no %s' % (spec, module_name, attr))
+    if not callable(fn):
+        raise ConfigError('assertion %s: %s is not callable' % (spec, attr))
+    return spec, fn
+
+
+def load_all(specs, parameter):
+    if specs is None:
+        return []
+    if not isinstance(specs, (list, tuple)):
+        raise ConfigError('parameter %s must be a list of package.module:function, got %r' % (parameter, specs))
+    return [load(s) for s in specs]
+
+
+def check(assertions, *args):
+    """Evaluate assertions on args; returns a list of (name, detail) for those violated."""
+    violations = []
+    for name, fn in assertions:
+        try:
+            verdict = fn(*args)
+        except AssertionError as e:
+            violations.append((name, str(e) or 'assertion failed'))
+            continue
+        except Exception as e:   # a check that cannot be evaluated is a violation
+            violations.append((name, 'raised %s: %s' % (type(e).__name__, e)))
+            continue
+        if verdict is False:
+            violations.append((name, 'returned False'))
+        elif isinstance(verdict, str):
+            violations.append((name, verdict))
+    return violations

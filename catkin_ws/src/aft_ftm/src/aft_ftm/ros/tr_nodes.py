@@ -1,0 +1,135 @@
+"""Time Redundancy (paper Table II): Before saves and restores the server's state, Proceed
+computes, After compares the results and a majority decides."""
+import threading
+
+import rospy
+from aft_msgs.msg import Reply
+from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
+
+from .. import config
+from ..ports import PUBLISH, PortSpec
+from ..voting import Outcome, TimeRedundancyVote
+from .alarms import alarm
+from .bpa_nodes import AfterNode, BeforeNode
+from .params import param
+
+
+class TrBeforeNode(BeforeNode):
+    """TR's Before: saves the server's state before each request; on After's word restores it and
+    executes the request again, or forgets it.
+
+    Services called: get_state, set_state (the server's state manager).
+    Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
+    Publishes: bfr2prd (aft_msgs/Request), port ``out``; aft2pro (aft_msgs/Reply), port ``errors``:
+        an error reply when the state cannot be saved.
+    Services: ~repeat (aft_msgs/Repeat), ~rebind (aft_msgs/Rebind)
+    """
+
+    def __init__(self):
+        super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply')])
+        self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+        self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.held = {}     # (origin, id) -> (request, state saved before it)
+        self.lock = threading.Lock()
+
+    def setup(self, timeout):
+        self.ports.bind('errors', 'aft2pro')
+        try:
+            for name in ('get_state', 'set_state'):
+                rospy.wait_for_service(name, timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: the server state manager (%s) is not available', self.name,
+                         rospy.resolve_name('get_state'))
+            return False
+        rospy.Service('~repeat', Repeat, self._on_repeat)
+        return super(TrBeforeNode, self).setup(timeout)
+
+    def handle(self, request):
+        try:
+            state = self.get_state().state
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
+                                               oldest_pending=request.oldest_pending, status=Reply.ERROR,
+                                               error='time redundancy cannot save the server state: %s' % e))
+            return None
+        with self.lock:
+            self.held[(request.origin, request.id)] = (request, state)
+        return request
+
+    def _on_repeat(self, req):
+        key = (req.origin, req.id)
+        with self.lock:
+            held = self.held.get(key) if req.action == req.REPEAT else self.held.pop(key, None)
+        if held is None:
+            return RepeatResponse(success=False, message='no saved state for %s/%d' % key)
+        request, state = held
+        if req.action in (req.REPEAT, req.RESTORE):
+            result = self.set_state(state)
+            if not result.success:
+                return RepeatResponse(success=False, message='state not restored: %s' % result.message)
+        if req.action == req.REPEAT:
+            self.ports.publish('out', request)
+        return RepeatResponse(success=True, message='')
+
+
+class TrAfterNode(AfterNode):
+    """TR's After: compares the results of repeated executions; a value that reaches a majority of
+    ~executions decides; a disagreement is a transient value fault masked (alarm); no majority is
+    an error reply and the state saved before the request is restored.
+
+    Parameters: ~executions (int >= 2, default 3)
+    Services called: repeat (aft_msgs/Repeat): remap to TR Before's ~repeat.
+    Subscribes: prd2aft (aft_msgs/Reply), port ``inp``.
+    Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
+    Services: ~rebind (aft_msgs/Rebind)
+    """
+
+    def __init__(self):
+        self.voter = TimeRedundancyVote(param('executions', config.non_negative_int, 3))
+        super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
+        self.repeat = rospy.ServiceProxy('repeat', Repeat, persistent=True)
+        self.masked = 0
+
+    def setup(self, timeout):
+        self.ports.bind('alarms')
+        try:
+            rospy.wait_for_service('repeat', timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: TR Before\'s repeat service (%s) is not available', self.name,
+                         rospy.resolve_name('repeat'))
+            return False
+        return super(TrAfterNode, self).setup(timeout)
+
+    def _tell_before(self, reply, action):
+        try:
+            result = self.repeat(origin=reply.origin, id=reply.id, action=action)
+            return result.success, result.message
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            self.repeat = rospy.ServiceProxy('repeat', Repeat, persistent=True)
+            return False, str(e)
+
+    def handle(self, reply):
+        vote = self.voter.add((reply.origin, reply.id), (reply.status, reply.error, bytes(reply.payload)))
+        if vote.outcome == Outcome.REPEAT:
+            ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
+            if ok:
+                return None
+            return self._error(reply, 'cannot execute again: %s' % why)
+        if vote.outcome == Outcome.DECIDED:
+            self._tell_before(reply, Repeat._request_class.FORGET)
+            if vote.masked:
+                self.masked += vote.masked
+                alarm(self.ports, 'tr', 'value_fault_masked', '%d of %d executions disagreed with the majority'
+                      % (vote.masked, vote.executions), reply)
+            return reply
+        ok, why = self._tell_before(reply, Repeat._request_class.RESTORE)
+        detail = 'no majority among %d executions%s' % (vote.executions, '' if ok else
+                                                         '; the state could not be restored: %s' % why)
+        alarm(self.ports, 'tr', 'no_majority', detail, reply)
+        return self._error(reply, detail)
+
+    @staticmethod
+    def _error(reply, detail):
+        return Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
+                     status=Reply.ERROR, error='time redundancy: %s' % detail)
