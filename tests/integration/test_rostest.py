@@ -63,7 +63,7 @@ def test_rostest(test_file):
 # Arguments for the launch files that have required ones, as a user would give them.
 REPLICA = ['site:=master', 'peer:=slave', 'role:=primary']
 LAUNCH_ARGS = {
-    'pbr_replica.launch': REPLICA + ['server:=/master/account', 'get_state:=/m/get_state',
+    'replica.launch': REPLICA + ['mechanism:=lfr', 'server:=/master/account', 'get_state:=/m/get_state',
                                      'set_state:=/m/set_state'],
     'proxy.launch': ['service:=/account', 'service_type:=aft_msgs/Account'],
     'pbr.launch': ['service:=/account', 'service_type:=aft_msgs/Account', 'primary_server:=/a/account',

@@ -49,3 +49,15 @@ def compose(names):
                      frozenset().union(*(m.faults for m in parts)),
                      any(m.deterministic for m in parts), any(m.state_access for m in parts),
                      max((m.bandwidth for m in parts), key=_BANDWIDTH.get), max(m.cpus for m in parts))
+
+
+def check_application(name, deterministic, state_access):
+    """Raise ConfigError if the application's characteristics (A) do not meet mechanism name's needs."""
+    m = mechanism(name)
+    if m.deterministic and not deterministic:
+        raise ConfigError('%s needs a deterministic server, and this one is declared non-deterministic: '
+                          'its replicas would diverge (use pbr, which does not need determinism)' % m.title)
+    if m.state_access and not state_access:
+        raise ConfigError('%s needs access to the server state (getState/setState), and this server '
+                          'declares none (use lfr)' % m.title)
+    return m

@@ -47,16 +47,19 @@ def roslaunch(pkg, launch_file, **args):
 
 
 class PbrDeployment(object):
-    """The bank demo under PBR. By default three sites, CLIENT, MASTER and SLAVE, each its own
+    """The bank demo under PBR (or mechanism='lfr'). By default three sites, CLIENT, MASTER and SLAVE, each its own
     roslaunch process tree; with one_host=True a single roslaunch of demo_one_host.launch (site
     'all'), as a user of pbr.launch runs it."""
 
-    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False):
+    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
+                 mechanism='pbr'):
         self.log_dir = log_dir
         self.one_host = one_host
         self.inner = inner
         self.faulty = faulty
         replica = dict(period=period, timeout=timeout)
+        if mechanism != 'pbr':
+            replica['mechanism'] = mechanism
         if inner or faulty:
             if one_host:
                 raise ValueError('the one-host demo has no nested mechanism nor fault injector')

@@ -32,7 +32,10 @@ class RecoveryNode(object):
 
     Parameters:
         ~role (primary | backup): this replica's role at start.
-        ~protocol, ~after (str, required): node names of this replica's Protocol and After.
+        ~protocol (str, required): node name of this replica's Protocol.
+        ~promote (list of node names, default [after]): the nodes fenced and promoted, in order, before
+            the Protocol (each one's SetRole last_seq is passed to the next): [after] for PBR,
+            [before, after] for LFR.
         ~client_requests, ~client_replies (str, required for a backup): the Proxies' topics.
         ~peer_namespace (str, required): namespace of the peer site's nodes.
         ~service_timeout (float, 2 s): limit on each service call of a recovery.
@@ -48,7 +51,11 @@ class RecoveryNode(object):
     def __init__(self):
         self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ('primary', 'backup')), 'backup')]
         self.protocol = rospy.resolve_name(param('protocol', config.non_empty_str, required=True))
-        self.after = rospy.resolve_name(param('after', config.non_empty_str, required=True))
+        promote = param('promote', lambda n, v: v, ['after'])
+        if not isinstance(promote, list) or not promote or not all(isinstance(x, str) and x for x in promote):
+            raise config.ConfigError('parameter %s must be a non-empty list of node names, got %r'
+                                     % (rospy.resolve_name('~promote'), promote))
+        self.promote = [rospy.resolve_name(n) for n in promote]
         self.peer_ns = rospy.resolve_name(param('peer_namespace', config.non_empty_str, required=True))
         required = self.role == Role.BACKUP
         self.client_requests = param('client_requests', config.non_empty_str, required=required)
@@ -59,8 +66,8 @@ class RecoveryNode(object):
         self.recovered = False
 
     def setup(self, timeout):
-        names = [self.after + '/set_role'] + ([self.protocol + '/set_role', self.protocol + '/rebind']
-                                             if self.role == Role.BACKUP else [])
+        names = [n + '/set_role' for n in self.promote] + (
+            [self.protocol + '/set_role', self.protocol + '/rebind'] if self.role == Role.BACKUP else [])
         for name in names:
             try:
                 rospy.wait_for_service(name, timeout)
@@ -68,11 +75,12 @@ class RecoveryNode(object):
                 rospy.logerr('%s: service %s not available within %.1f s', rospy.get_name(), name, timeout)
                 return False
         # Persistent connections, opened now by no-op calls, so that a failover pays no connection set-up.
-        self.set_role_after = rospy.ServiceProxy(self.after + '/set_role', SetRole, persistent=True)
+        self.set_role_nodes = [rospy.ServiceProxy(n + '/set_role', SetRole, persistent=True) for n in self.promote]
         self.set_role_protocol = rospy.ServiceProxy(self.protocol + '/set_role', SetRole, persistent=True)
         self.rebind_protocol = rospy.ServiceProxy(self.protocol + '/rebind', Rebind, persistent=True)
         try:
-            self.set_role_after(role=self.role.value)
+            for set_role in self.set_role_nodes:
+                set_role(role=self.role.value)
             if self.role == Role.BACKUP:
                 self.set_role_protocol(role=self.role.value, last_seq=0)
                 bound = self.rebind_protocol(port='replies', topic=self.client_replies,
@@ -133,11 +141,14 @@ class RecoveryNode(object):
         if step == Step.FAIL_SILENCE:
             return self._fail_silence(failure)
         if step == Step.PROMOTE_AFTER:
-            result = self.set_role_after(role=Role.ALONE.value)
-            if not result.success:
-                raise RuntimeError('After refused: %s' % result.message)
-            self.last_seq = result.last_seq
-            return 'last checkpoint %d' % result.last_seq
+            last_seq = 0
+            for name, set_role in zip(self.promote, self.set_role_nodes):
+                result = set_role(role=Role.ALONE.value, last_seq=last_seq)
+                if not result.success:
+                    raise RuntimeError('%s refused: %s' % (name, result.message))
+                last_seq = result.last_seq
+            self.last_seq = last_seq
+            return 'last checkpoint %d' % last_seq
         if step == Step.PROMOTE_PROTOCOL:
             result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq)
             if not result.success:
@@ -152,10 +163,11 @@ class RecoveryNode(object):
                 raise RuntimeError('rebind of requests refused: %s' % result.message)
             return result.message
         if step == Step.AFTER_ALONE:
-            result = self.set_role_after(role=Role.ALONE.value)
-            if not result.success:
-                raise RuntimeError('After refused: %s' % result.message)
-            return result.message
+            for name, set_role in zip(self.promote, self.set_role_nodes):
+                result = set_role(role=Role.ALONE.value)
+                if not result.success:
+                    raise RuntimeError('%s refused: %s' % (name, result.message))
+            return 'going on alone'
         raise ValueError(step)
 
     def _learn_peer(self):

@@ -101,12 +101,14 @@ class Sites(unittest.TestCase):
 
 
 class PbrSites(Sites):
+    MECHANISM = 'pbr'
     ONE_HOST = False
     INNER = ''
     FAULTY = False
 
     def make_deployment(self, log_dir):
-        return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY)
+        return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
+                             mechanism=self.MECHANISM)
 
 
 class MechanismSite(Sites):
