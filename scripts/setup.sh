@@ -9,7 +9,7 @@ APT_PACKAGES=(
   ros-core catkin python3-rospy python3-roslaunch python3-rostest python3-rosnode python3-rosservice
   python3-rostopic python3-rosgraph ros-message-generation python3-genpy python3-genmsg python3-gencpp
   python3-genlisp libstd-msgs-dev python3-std-msgs ros-std-msgs python3-std-srvs libstd-srvs-dev
-  python3-psutil python3-yaml python3-venv python3-pip cmake g++ make procps
+  python3-psutil python3-yaml python3-nacl python3-venv python3-pip cmake g++ make procps
 )
 
 missing=()
@@ -41,7 +41,15 @@ fi
 # Debian's rospy and catkin_pkg (system site packages) and the pip packages too.
 log="$ROOT/catkin_ws/catkin_make.log"
 mkdir -p catkin_ws
-if (cd catkin_ws && catkin_make -DPYTHON_EXECUTABLE="$ROOT/.venv/bin/python3" -DCATKIN_ENABLE_TESTING=OFF > "$log" 2>&1); then
+# The message packages list their .msg/.srv files with file(GLOB) at configure time: a file added
+# or removed since the last configure needs CMake to run again.
+sources="$(cd catkin_ws/src && ls -1 */msg/*.msg */srv/*.srv */nodes/* 2>/dev/null | sha256sum | cut -d' ' -f1)"
+force=()
+if [ "$(cat catkin_ws/build/.aft_sources 2>/dev/null)" != "$sources" ]; then
+  force=(--force-cmake)
+fi
+if (cd catkin_ws && catkin_make "${force[@]}" -DPYTHON_EXECUTABLE="$ROOT/.venv/bin/python3" -DCATKIN_ENABLE_TESTING=OFF > "$log" 2>&1); then
+  echo "$sources" > catkin_ws/build/.aft_sources
   echo "setup: catkin workspace built"
 else
   tail -40 "$log"; echo "setup: catkin_make failed (full log: $log)"; exit 1

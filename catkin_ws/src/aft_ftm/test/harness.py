@@ -105,10 +105,11 @@ class PbrSites(Sites):
     ONE_HOST = False
     INNER = ''
     FAULTY = False
+    SEC = False
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
-                             mechanism=self.MECHANISM)
+                             mechanism=self.MECHANISM, sec=self.SEC)
 
 
 class MechanismSite(Sites):

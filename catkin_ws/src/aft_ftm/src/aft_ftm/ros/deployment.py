@@ -5,6 +5,7 @@ import time
 
 import rosgraph
 
+from .. import security
 from ..sites import Site, wait_until
 
 REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
@@ -14,9 +15,11 @@ GRAPH_SERVICES = ('protocol/rebind', 'before/rebind', 'proceed/rebind', 'after/r
 CLIENT_SERVICES = ('/account', '/proxy/rebind')
 
 
-def replica_services(site, inner='', faulty=False):
+def replica_services(site, inner='', faulty=False, sec=False):
     """The services a replica site of the demo offers once every node is set up."""
     names = ['/%s/%s' % (site, s) for s in REPLICA_SERVICES]
+    if sec:
+        names.append('/%s/sec_gate/rebind' % site)
     names += ['/%s/%s/%s' % (site, inner, s) for s in GRAPH_SERVICES] if inner else ['/%s/proceed/rebind' % site]
     if faulty:
         names.append('/%s/fault_injector/inject' % site)
@@ -41,6 +44,32 @@ def wait_for_graph(services=(), subscriptions=(), timeout=60.0):
     return [] if missing else missing_from_graph(services, subscriptions)
 
 
+def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
+    """Unregister from the master every node that no longer answers (as ``rosnode cleanup``).
+
+    A node killed by a signal leaves its registrations behind. If a new process later binds the
+    dead node's XML-RPC port, the master's "new node registered with the same name" shutdown call
+    for the dead node reaches that new process and stops it: so clean up after every stop.
+    """
+    import rosnode
+    from .fencing import node_api
+    try:
+        master = rosgraph.Master(caller)
+        pubs, subs, srvs = master.getSystemState()
+    except Exception:   # no master: nothing to clean
+        return []
+    names = sorted({n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes} - {'/rosout', caller})
+    dead = []
+    for name in names:
+        try:
+            node_api(master.lookupNode(name), timeout).getPid(caller)
+        except Exception:
+            dead.append(name)
+    if dead:
+        rosnode.cleanup_master_blacklist(master, dead)
+    return dead
+
+
 def roslaunch(pkg, launch_file, **args):
     return ['roslaunch', '--wait', '--skip-log-check', pkg, launch_file] + \
            ['%s:=%s' % (k, v) for k, v in sorted(args.items())]
@@ -52,12 +81,21 @@ class PbrDeployment(object):
     'all'), as a user of pbr.launch runs it."""
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
-                 mechanism='pbr'):
+                 mechanism='pbr', sec=False):
         self.log_dir = log_dir
         self.one_host = one_host
         self.inner = inner
         self.faulty = faulty
+        self.sec = sec
         replica = dict(period=period, timeout=timeout)
+        client = {}
+        self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
+        if sec:
+            keys = self.keys_dir
+            for party in ('ca', 'client', 'server'):
+                security.write_party(keys, security.Party.generate(party))
+            replica.update(sec='true', keys_dir=keys)
+            client = dict(sec='true', keys_dir=keys)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
         if inner or faulty:
@@ -75,7 +113,7 @@ class PbrDeployment(object):
                                **replica),
                 'slave': site('slave', 'demo_replica_site.launch', site='slave', peer='master', role='backup',
                               **replica),
-                'client': site('client', 'demo_client_site.launch'),
+                'client': site('client', 'demo_client_site.launch', **client),
             }
 
     def start(self, timeout=120.0):
@@ -83,17 +121,21 @@ class PbrDeployment(object):
         os.makedirs(self.log_dir, exist_ok=True)
         started = time.monotonic()
         replicas = ['all'] if self.one_host else ['slave', 'master']
+        if self.sec:
+            self.sites['client'].start()   # the CA is on the client site: the replicas' gates ask it
         for name in replicas:
             self.sites[name].start()
         for site in ('master', 'slave'):
-            missing = wait_for_graph(replica_services(site, self.inner, self.faulty),
+            missing = wait_for_graph(replica_services(site, self.inner, self.faulty, self.sec),
                                      timeout=timeout - (time.monotonic() - started))
             if missing:
                 raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
                                    % (site, ', '.join(missing), self.log_dir))
-        if not self.one_host:
+        if not self.one_host and not self.sec:
             self.sites['client'].start()
-        missing = wait_for_graph(CLIENT_SERVICES, [('/ftm/pro2pxy', '/proxy')], timeout - (time.monotonic() - started))
+        client_services = list(CLIENT_SERVICES) + (['/aft/ca/certificate', '/sec_gate/rebind'] if self.sec else [])
+        replies = '/sec_plain/pro2pxy' if self.sec else '/ftm/pro2pxy'
+        missing = wait_for_graph(client_services, [(replies, '/proxy')], timeout - (time.monotonic() - started))
         if missing:
             raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
                                                                                       self.log_dir))
@@ -101,7 +143,8 @@ class PbrDeployment(object):
 
     def stop(self):
         for site in self.sites.values():
-            site.stop(grace=3.0)
+            site.stop(grace=10.0)
+        clean_dead_nodes()
 
 
 class MechanismDeployment(object):
@@ -129,7 +172,8 @@ class MechanismDeployment(object):
         return time.monotonic() - started
 
     def stop(self):
-        self.sites['site'].stop(grace=3.0)
+        self.sites['site'].stop(grace=10.0)
+        clean_dead_nodes()
 
 
 def free_port():

@@ -25,6 +25,8 @@ class ProtocolNode(object):
         ~processing_timeout (float, 10 s): an executing request with no result after this long
             is answered with an error.
         ~cache_capacity (int, 100000): safety limit of the reply cache.
+        ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
+            until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
     Subscribes:
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
         aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests.
@@ -40,6 +42,7 @@ class ProtocolNode(object):
         role_name = param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')
         self.processing_timeout = param('processing_timeout', config.positive_float, 10.0)
         capacity = param('cache_capacity', config.non_negative_int, 100000)
+        self.listen_as_backup = param('listen_as_backup', lambda n, v: bool(v), False)
         self.core = ProtocolCore(ROLES[role_name], capacity)
         self.lock = threading.Condition()
         self.ports = Ports(
@@ -60,7 +63,7 @@ class ProtocolNode(object):
         if missing:
             rospy.logerr('%s: Before/After not connected within %.1f s (ports %s)', self.name, timeout, missing)
             return False
-        if self.core.role != Role.BACKUP:
+        if self.core.role != Role.BACKUP or self.listen_as_backup:
             self.ports.bind('requests', 'pxy2pro')
         self.timer = rospy.Timer(rospy.Duration(min(1.0, self.processing_timeout / 4)), self._check_overdue)
         rospy.Service('~set_role', SetRole, self._on_set_role)

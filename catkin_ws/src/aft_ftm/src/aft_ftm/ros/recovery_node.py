@@ -33,6 +33,9 @@ class RecoveryNode(object):
     Parameters:
         ~role (primary | backup): this replica's role at start.
         ~protocol (str, required): node name of this replica's Protocol.
+        ~entry (str, default: the Protocol), ~entry_requests_port (default requests),
+            ~entry_replies_port (default replies): the node and ports bound to the clients' topics
+            (a SEC gate in front of the Protocol: sec_gate, requests_in, replies_out).
         ~promote (list of node names, default [after]): the nodes fenced and promoted, in order, before
             the Protocol (each one's SetRole last_seq is passed to the next): [after] for PBR,
             [before, after] for LFR.
@@ -51,6 +54,9 @@ class RecoveryNode(object):
     def __init__(self):
         self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ('primary', 'backup')), 'backup')]
         self.protocol = rospy.resolve_name(param('protocol', config.non_empty_str, required=True))
+        self.entry = rospy.resolve_name(param('entry', config.non_empty_str, self.protocol))
+        self.entry_requests = param('entry_requests_port', config.non_empty_str, 'requests')
+        self.entry_replies = param('entry_replies_port', config.non_empty_str, 'replies')
         promote = param('promote', lambda n, v: v, ['after'])
         if not isinstance(promote, list) or not promote or not all(isinstance(x, str) and x for x in promote):
             raise config.ConfigError('parameter %s must be a non-empty list of node names, got %r'
@@ -67,7 +73,7 @@ class RecoveryNode(object):
 
     def setup(self, timeout):
         names = [n + '/set_role' for n in self.promote] + (
-            [self.protocol + '/set_role', self.protocol + '/rebind'] if self.role == Role.BACKUP else [])
+            [self.protocol + '/set_role', self.entry + '/rebind'] if self.role == Role.BACKUP else [])
         for name in names:
             try:
                 rospy.wait_for_service(name, timeout)
@@ -77,13 +83,13 @@ class RecoveryNode(object):
         # Persistent connections, opened now by no-op calls, so that a failover pays no connection set-up.
         self.set_role_nodes = [rospy.ServiceProxy(n + '/set_role', SetRole, persistent=True) for n in self.promote]
         self.set_role_protocol = rospy.ServiceProxy(self.protocol + '/set_role', SetRole, persistent=True)
-        self.rebind_protocol = rospy.ServiceProxy(self.protocol + '/rebind', Rebind, persistent=True)
+        self.rebind_entry = rospy.ServiceProxy(self.entry + '/rebind', Rebind, persistent=True)
         try:
             for set_role in self.set_role_nodes:
                 set_role(role=self.role.value)
             if self.role == Role.BACKUP:
                 self.set_role_protocol(role=self.role.value, last_seq=0)
-                bound = self.rebind_protocol(port='replies', topic=self.client_replies,
+                bound = self.rebind_entry(port=self.entry_replies, topic=self.client_replies,
                                              direction=RebindRequest.PUBLISH, activate=True)
                 if not bound.success:
                     rospy.logerr('%s: cannot bind the Protocol replies to %s: %s', rospy.get_name(),
@@ -157,8 +163,8 @@ class RecoveryNode(object):
         if step == Step.BIND_CLIENT:
             # The replies port was bound to the clients' topic at set-up (checked there): its
             # publisher is already connected, so only the requests port is bound now.
-            result = self.rebind_protocol(port='requests', topic=self.client_requests,
-                                          direction=RebindRequest.SUBSCRIBE, activate=True)
+            result = self.rebind_entry(port=self.entry_requests, topic=self.client_requests,
+                                       direction=RebindRequest.SUBSCRIBE, activate=True)
             if not result.success:
                 raise RuntimeError('rebind of requests refused: %s' % result.message)
             return result.message

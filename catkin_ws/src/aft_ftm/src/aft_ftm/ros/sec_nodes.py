@@ -1,0 +1,217 @@
+"""SEC (paper section 5.3.2): a certification authority, and gates that cipher and sign requests
+and replies between the client's Proxy and the server's FTM (SEC_C and SEC_S)."""
+import os
+import threading
+
+import rospy
+from aft_msgs.msg import Reply, Request
+from aft_msgs.srv import Certificate, CertificateResponse
+
+from .. import config, security
+from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..protocol import Role
+from .alarms import alarm
+from .params import param
+from .ports import Ports, wait_for_connections
+from .protocol_node import ROLES
+
+
+class CertificationAuthorityNode(object):
+    """Certifies the public keys of the parties it knows (files <party>.pub next to its ca.key).
+
+    Parameters: ~keys_dir (str, required), ~parties (list of party names, required)
+    Services: ~certificate (aft_msgs/Certificate)
+    """
+
+    def __init__(self):
+        keys_dir = param('keys_dir', config.non_empty_str, required=True)
+        parties = param('parties', lambda n, v: v, required=True)
+        if not isinstance(parties, list) or not parties:
+            raise config.ConfigError('parameter %s must be a non-empty list of party names, got %r'
+                                     % (rospy.resolve_name('~parties'), parties))
+        self.ca = security.read_party(keys_dir, 'ca')
+        self.certificates = {}
+        for name in parties:
+            box, verify = security.read_public(keys_dir, name)
+            self.certificates[name] = (box, verify, security.certify(self.ca, name, box, verify))
+
+    def setup(self, timeout):
+        rospy.Service('~certificate', Certificate, self._on_certificate)
+        rospy.loginfo('%s: certifying %s', rospy.get_name(), ', '.join(sorted(self.certificates)))
+        return True
+
+    def _on_certificate(self, req):
+        cert = self.certificates.get(req.party)
+        if cert is None:
+            return CertificateResponse(found=False, message='no certificate for party %r' % req.party)
+        return CertificateResponse(found=True, box_public=cert[0], verify_public=cert[1], signature=cert[2])
+
+
+class SecGateNode(object):
+    """SEC_C (~side client) or SEC_S (~side server).
+
+    Client side: ciphers each request of the Proxy for ~server_party and signs it; checks and
+    deciphers the replies. Server side: checks each request's signature against the sender's
+    certified key, its signed header against the envelope, and that it is not a replay; deciphers
+    it for the Protocol; ciphers and signs the reply for the requesting party. Rejected messages
+    are dropped with an alarm (a forged message has nobody waiting for it); a client re-sends a
+    request whose reply was rejected.
+
+    Parameters:
+        ~side (client | server), ~party (this side's party name), ~keys_dir (its key files),
+        ~ca_public (path of ca.pub, the CA's public keys: known to all), ~server_party (client side),
+        ~role (server side: primary | backup; a backup starts with requests_in unbound)
+    Services called: certificate (aft_msgs/Certificate): the CA's.
+    Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply)
+    Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm)
+    Services: ~rebind (aft_msgs/Rebind)
+    """
+
+    def __init__(self):
+        self.side = param('side', lambda n, v: config.one_of(n, v, ('client', 'server')), required=True)
+        keys_dir = param('keys_dir', config.non_empty_str, required=True)
+        self.me = security.read_party(keys_dir, param('party', config.non_empty_str, required=True))
+        ca_public = param('ca_public', config.non_empty_str, required=True)
+        self.ca_verify = security.read_public(*_split(ca_public))[1]
+        self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
+        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        self.ports = Ports([PortSpec('requests_in', SUBSCRIBE, 'aft_msgs/Request'),
+                            PortSpec('requests_out', PUBLISH, 'aft_msgs/Request'),
+                            PortSpec('replies_in', SUBSCRIBE, 'aft_msgs/Reply'),
+                            PortSpec('replies_out', PUBLISH, 'aft_msgs/Reply'),
+                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+                           {'requests_in': self._on_request, 'replies_in': self._on_reply},
+                           listeners={'requests_out': _ResendOnConnect(self)})
+        self.sent = {}            # client side: (origin, id) -> sealed request not answered yet
+        self.peers = {}           # party -> (box_public, verify_public), certified
+        self.client_of = {}       # origin -> party (server side)
+        self.replays = security.ReplayGuard()
+        self.lock = threading.Lock()
+        self.rejected = 0
+
+    def setup(self, timeout):
+        try:
+            rospy.wait_for_service('certificate', timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: the certification authority (%s) is not available', rospy.get_name(),
+                         rospy.resolve_name('certificate'))
+            return False
+        self.certificate = rospy.ServiceProxy('certificate', Certificate, persistent=True)
+        if self.side == 'client':
+            try:
+                self._peer(self.server_party)
+            except security.Rejected as e:
+                rospy.logerr('%s: %s', rospy.get_name(), e)
+                return False
+        for name in ('requests_out', 'replies_out', 'replies_in', 'alarms'):
+            self.ports.bind(name)
+        if self.role != Role.BACKUP:
+            self.ports.bind('requests_in')
+        missing = wait_for_connections(self.ports, ['requests_out', 'replies_in'], timeout)
+        if missing:
+            rospy.logwarn('%s: %s not connected yet', rospy.get_name(), missing)
+        self.ports.advertise_service()
+        return True
+
+    def _peer(self, party):
+        """The certified public keys of party (fetched from the CA once, then kept)."""
+        with self.lock:
+            keys = self.peers.get(party)
+        if keys is not None:
+            return keys
+        try:
+            cert = self.certificate(party=party)
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            self.certificate = rospy.ServiceProxy('certificate', Certificate, persistent=True)
+            raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
+        if not cert.found:
+            raise security.Rejected('unknown_party', cert.message)
+        security.check_certificate(self.ca_verify, party, cert.box_public, cert.verify_public, cert.signature)
+        keys = (bytes(cert.box_public), bytes(cert.verify_public))
+        with self.lock:
+            self.peers[party] = keys
+        return keys
+
+    def _reject(self, error, msg):
+        self.rejected += 1
+        alarm(self.ports, 'sec', error.kind, error.detail, msg)
+
+    # -- requests -----------------------------------------------------------------------------
+    def _on_request(self, request):
+        header = {'origin': request.origin, 'id': request.id, 'oldest_pending': request.oldest_pending,
+                  'service_type': request.service_type}
+        try:
+            if self.side == 'client':
+                box, _ = self._peer(self.server_party)
+                payload = security.seal(self.me, box, header, request.payload)
+            else:
+                party = security.sender_of(request.payload)
+                _, verify = self._peer(party)
+                payload = security.open_sealed(self.me, verify, request.payload, header)
+                with self.lock:
+                    self.replays.check(request.origin, request.id)
+                    self.replays.advance(request.origin, request.oldest_pending)
+                    self.client_of[request.origin] = party
+        except security.Rejected as e:
+            self._reject(e, request)
+            return
+        out = Request(id=request.id, origin=request.origin, client=request.client,
+                      service_type=request.service_type, oldest_pending=request.oldest_pending, payload=payload)
+        if self.side == 'client':
+            with self.lock:
+                self.sent[(request.origin, request.id)] = out
+                for key in [k for k in self.sent if k[0] == request.origin and k[1] < request.oldest_pending]:
+                    del self.sent[key]   # answered: the Proxy will not ask again
+        self.ports.publish('requests_out', out)
+
+    def resend(self):
+        """A new server gate subscribed (a backup took over): send it what is not answered yet, at
+        once, as the Proxy does for its own subscribers."""
+        with self.lock:
+            pending = sorted(self.sent.values(), key=lambda r: r.id)
+        for request in pending:
+            self.ports.publish('requests_out', request)
+
+    # -- replies ------------------------------------------------------------------------------
+    def _on_reply(self, reply):
+        header = {'origin': reply.origin, 'id': reply.id, 'status': reply.status, 'error': reply.error}
+        try:
+            if self.side == 'server':
+                with self.lock:
+                    party = self.client_of.get(reply.origin)
+                if party is None:
+                    raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
+                box, _ = self._peer(party)
+                payload = security.seal(self.me, box, header, reply.payload)
+            else:
+                if security.sender_of(reply.payload) != self.server_party:
+                    raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
+                _, verify = self._peer(self.server_party)
+                payload = security.open_sealed(self.me, verify, reply.payload, header)
+        except security.Rejected as e:
+            self._reject(e, reply)
+            return
+        if self.side == 'client':
+            with self.lock:
+                self.sent.pop((reply.origin, reply.id), None)
+        self.ports.publish('replies_out', Reply(id=reply.id, origin=reply.origin, client=reply.client,
+                                                oldest_pending=reply.oldest_pending, status=reply.status,
+                                                error=reply.error, payload=payload))
+
+
+class _ResendOnConnect(rospy.SubscribeListener):
+    def __init__(self, gate):
+        super(_ResendOnConnect, self).__init__()
+        self.gate = gate
+
+    def peer_subscribe(self, topic_name, topic_publish, peer_publish):
+        if self.gate.side == 'client':
+            self.gate.resend()
+
+
+def _split(path):
+    """keys_dir and party name of a public key file path (.../ca.pub)."""
+    directory, name = os.path.split(path)
+    if not name.endswith('.pub'):
+        raise config.ConfigError('%s is not a public key file (<party>.pub)' % path)
+    return directory, name[:-4]
