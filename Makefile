@@ -19,6 +19,7 @@ demo: setup
 
 bench: setup
 	$(ENV) python scripts/bench_pbr --json bench_pbr.json
+	$(ENV) python scripts/bench_mechanisms --json bench_mechanisms.json
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel

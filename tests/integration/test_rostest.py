@@ -103,3 +103,19 @@ def test_a_missing_required_argument_is_named():
     loader.ignore_unset_args = False   # roslaunch reads it without setting it
     with pytest.raises(roslaunch.xmlloader.XmlParseException, match="requires the 'service_type' arg"):
         loader.load(path, roslaunch.config.ROSLaunchConfig(), argv=['service:=/a'], verbose=False)
+
+
+def test_mechanisms_nest_to_any_depth_a_protocol_standing_in_for_each_proceed():
+    import roslaunch.config
+    import roslaunch.xmlloader
+    path = os.path.join(TEST_DIR, '..', 'launch', 'replica.launch')
+    config = roslaunch.config.ROSLaunchConfig()
+    roslaunch.xmlloader.XmlLoader().load(path, config, argv=LAUNCH_ARGS['replica.launch'][:3] + [
+        'server:=/master/account', 'inner:=tr+ad'], verbose=False)
+    nodes = {n.namespace + n.name: n for n in config.nodes}
+    assert '/master/proceed' not in nodes and '/master/tr/proceed' not in nodes
+    assert '/master/tr/ad/proceed' in nodes     # only the innermost calls the server
+    remaps = {name: dict(n.remap_args) for name, n in nodes.items()}
+    assert remaps['/master/tr/protocol'] == {'pxy2pro': '/master/bfr2prd', 'pro2pxy': '/master/prd2aft'}
+    assert remaps['/master/tr/ad/protocol'] == {'pxy2pro': '/master/tr/bfr2prd', 'pro2pxy': '/master/tr/prd2aft'}
+    assert remaps['/master/tr/ad/proceed'] == {'server': '/master/account'}

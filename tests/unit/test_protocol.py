@@ -61,7 +61,7 @@ def test_stray_result_is_counted_and_changes_nothing():
     core.on_request(request(rid=1), 0)
     assert core.on_result(reply(rid=7), 0) == []
     assert core.stats.stray_results == 1
-    assert core.current.id == 1 and core.cache.lookup('/proxy', 7) is None
+    assert core.current.id == 1 and core.cache.lookup(('/proxy', 7, 0)) is None
 
 
 def test_watermark_forgets_replies_the_proxy_can_no_longer_ask_for():
@@ -70,8 +70,8 @@ def test_watermark_forgets_replies_the_proxy_can_no_longer_ask_for():
         core.on_request(request(rid=rid), 0)
         core.on_result(reply(rid=rid), 0)
     core.on_request(request(rid=4, oldest_pending=3), 0)
-    assert core.cache.lookup('/proxy', 1) is None and core.cache.lookup('/proxy', 2) is None
-    assert core.cache.lookup('/proxy', 3) is not None
+    assert core.cache.lookup(('/proxy', 1, 0)) is None and core.cache.lookup(('/proxy', 2, 0)) is None
+    assert core.cache.lookup(('/proxy', 3, 0)) is not None
 
 
 def test_backup_executes_nothing_and_stores_checkpointed_replies():
@@ -137,4 +137,15 @@ def test_cache_capacity_evicts_oldest_and_counts_it():
     for rid in (1, 2, 3):
         cache.store(reply(rid=rid))
     assert cache.evicted == 1 and len(cache) == 2
-    assert cache.lookup('/proxy', 1) is None and cache.lookup('/proxy', 3) is not None
+    assert cache.lookup(('/proxy', 1, 0)) is None and cache.lookup(('/proxy', 3, 0)) is not None
+
+
+def test_a_repeated_execution_is_not_taken_for_a_resend():
+    """TR numbers the executions of one request: a nested Protocol executes each of them."""
+    core = ProtocolCore(Role.ALONE)
+    first, again = request(rid=1), request(rid=1)
+    again.attempt = 1
+    assert kinds(core.on_request(first, 0)) == [('Forward', 1)]
+    core.on_result(reply(rid=1), 0)
+    assert kinds(core.on_request(again, 0)) == [('Forward', 1)]
+    assert core.stats.executed == 2

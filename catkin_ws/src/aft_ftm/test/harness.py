@@ -114,10 +114,11 @@ class PbrSites(Sites):
 
 class MechanismSite(Sites):
     MECHANISM = None
+    INNER = ''
     EXECUTIONS = 3
 
     def make_deployment(self, log_dir):
-        return MechanismDeployment(log_dir, self.MECHANISM, executions=self.EXECUTIONS)
+        return MechanismDeployment(log_dir, self.MECHANISM, executions=self.EXECUTIONS, inner=self.INNER)
 
 
 class AlarmLog(object):

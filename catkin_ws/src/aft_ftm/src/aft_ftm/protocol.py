@@ -15,6 +15,12 @@ import enum
 from .errors import RoleError
 
 
+def key(msg):
+    """What identifies a request (and its reply): its Proxy, its id, and which execution it is
+    (a mechanism that executes a request again numbers the executions, see aft_msgs/Request)."""
+    return (msg.origin, msg.id, getattr(msg, 'attempt', 0))
+
+
 class DuplicateCache(object):
     """Stored replies per (origin, request id).
 
@@ -26,7 +32,7 @@ class DuplicateCache(object):
 
     def __init__(self, capacity=100000):
         self._capacity = capacity
-        self._replies = collections.OrderedDict()   # (origin, id) -> reply, in insertion order
+        self._replies = collections.OrderedDict()   # key -> reply, in insertion order
         self._by_origin = collections.defaultdict(set)
         self.evicted = 0
 
@@ -36,34 +42,34 @@ class DuplicateCache(object):
     def __contains__(self, key):
         return key in self._replies
 
-    def lookup(self, origin, request_id):
-        """Return the stored reply of this request, or None."""
-        return self._replies.get((origin, request_id))
+    def lookup(self, request_key):
+        """Return the stored reply of the request with this key (see key()), or None."""
+        return self._replies.get(request_key)
 
     def store(self, reply):
         """Remember a reply; returns the reply evicted to make room, or None."""
-        key = (reply.origin, reply.id)
-        if key in self._replies:
-            self._replies[key] = reply
+        k = key(reply)
+        if k in self._replies:
+            self._replies[k] = reply
             return None
-        self._replies[key] = reply
-        self._by_origin[reply.origin].add(reply.id)
+        self._replies[k] = reply
+        self._by_origin[reply.origin].add(k)
         if len(self._replies) > self._capacity:
-            (origin, rid), old = self._replies.popitem(last=False)
-            self._by_origin[origin].discard(rid)
+            old_key, old = self._replies.popitem(last=False)
+            self._by_origin[old_key[0]].discard(old_key)
             self.evicted += 1
             return old
         return None
 
     def forget_below(self, origin, watermark):
         """Forget the replies of origin whose id is below watermark (already received)."""
-        ids = self._by_origin.get(origin)
-        if not ids:
+        keys = self._by_origin.get(origin)
+        if not keys:
             return 0
-        old = [rid for rid in ids if rid < watermark]
-        for rid in old:
-            ids.discard(rid)
-            del self._replies[(origin, rid)]
+        old = [k for k in keys if k[1] < watermark]
+        for k in old:
+            keys.discard(k)
+            del self._replies[k]
         return len(old)
 
 
@@ -146,24 +152,23 @@ class ProtocolCore(object):
         """A request arrived from a Proxy."""
         self.stats.requests += 1
         self.cache.forget_below(request.origin, request.oldest_pending)
-        key = (request.origin, request.id)
-        cached = self.cache.lookup(*key)
+        k = key(request)
+        cached = self.cache.lookup(k)
         if cached is not None:
             self.stats.cached_answers += 1
             return [Answer(cached, cached=True)]
-        if key in self.queued_keys or (self.current is not None and
-                                       (self.current.origin, self.current.id) == key):
+        if k in self.queued_keys or (self.current is not None and key(self.current) == k):
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
             return []
         self.queue.append(request)
-        self.queued_keys.add(key)
+        self.queued_keys.add(k)
         return self._dispatch(now)
 
     def on_result(self, reply, now):
         """The result of the executing request came back from After."""
         current = self.current
-        if current is None or (current.origin, current.id) != (reply.origin, reply.id):
+        if current is None or key(current) != key(reply):
             self.stats.stray_results += 1
             return []
         self.cache.store(reply)
@@ -200,9 +205,9 @@ class ProtocolCore(object):
         actions = []
         while self.role != Role.BACKUP and self.current is None and self.queue:
             request = self.queue.popleft()
-            key = (request.origin, request.id)
-            self.queued_keys.discard(key)
-            cached = self.cache.lookup(*key)
+            k = key(request)
+            self.queued_keys.discard(k)
+            cached = self.cache.lookup(k)
             if cached is not None:
                 # Queued while a backup, and executed by the old primary meanwhile.
                 self.stats.cached_answers += 1

@@ -7,6 +7,7 @@ from aft_msgs.msg import Reply
 
 from .. import assertions
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..protocol import key
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .envelope import deserialize, service_class
@@ -19,7 +20,7 @@ def _app_request(request):
 
 def _error(msg, detail):
     return Reply(id=msg.id, origin=msg.origin, client=msg.client, oldest_pending=msg.oldest_pending,
-                 status=Reply.ERROR, error=detail)
+                 attempt=msg.attempt, status=Reply.ERROR, error=detail)
 
 
 class AdBeforeNode(BeforeNode):
@@ -78,8 +79,8 @@ class AdAfterNode(AfterNode):
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                                           extra_callbacks={'requests': self._on_request})
         self.lock = threading.Lock()
-        self.requests = {}   # (origin, id) -> request, until its reply comes
-        self.replies = {}    # (origin, id) -> reply that came before its request
+        self.requests = {}   # key -> request, until its reply comes
+        self.replies = {}    # key -> reply that came before its request
 
     def setup(self, timeout):
         self.ports.bind('requests', 'bfr2aft')
@@ -87,20 +88,20 @@ class AdAfterNode(AfterNode):
         return super(AdAfterNode, self).setup(timeout)
 
     def _on_request(self, request):
-        key = (request.origin, request.id)
+        k = key(request)
         with self.lock:
-            reply = self.replies.pop(key, None)
+            reply = self.replies.pop(k, None)
             if reply is None:
-                self.requests[key] = request
+                self.requests[k] = request
         if reply is not None:
             self.ports.publish('out', self._checked(request, reply))
 
     def handle(self, reply):
-        key = (reply.origin, reply.id)
+        k = key(reply)
         with self.lock:
-            request = self.requests.pop(key, None)
+            request = self.requests.pop(k, None)
             if request is None:
-                self.replies[key] = reply    # checked when its request arrives
+                self.replies[k] = reply    # checked when its request arrives
                 return None
         return self._checked(request, reply)
 

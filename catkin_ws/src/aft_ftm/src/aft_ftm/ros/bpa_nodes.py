@@ -87,7 +87,7 @@ class ProceedNode(StageNode):
 
     def handle(self, request):
         reply = Reply(id=request.id, origin=request.origin, client=request.client,
-                      oldest_pending=request.oldest_pending)
+                      oldest_pending=request.oldest_pending, attempt=request.attempt)
         with self._lock:
             try:
                 cls = service_class(request.service_type)

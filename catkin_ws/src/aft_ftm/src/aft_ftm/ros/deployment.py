@@ -15,12 +15,21 @@ GRAPH_SERVICES = ('protocol/rebind', 'before/rebind', 'proceed/rebind', 'after/r
 CLIENT_SERVICES = ('/account', '/proxy/rebind')
 
 
+def nested_services(outer_ns, inner):
+    """The services of mechanisms nested in an outer one's Proceed (inner: 'tr', 'tr+ad', ...)."""
+    names, ns = [], outer_ns
+    for mechanism in inner.split('+'):
+        ns = '%s/%s' % (ns, mechanism)
+        names += ['%s/%s' % (ns, s) for s in GRAPH_SERVICES if not s.startswith('proceed')]
+    return names + ['%s/proceed/rebind' % ns]
+
+
 def replica_services(site, inner='', faulty=False, sec=False):
     """The services a replica site of the demo offers once every node is set up."""
     names = ['/%s/%s' % (site, s) for s in REPLICA_SERVICES]
     if sec:
         names.append('/%s/sec_gate/rebind' % site)
-    names += ['/%s/%s/%s' % (site, inner, s) for s in GRAPH_SERVICES] if inner else ['/%s/proceed/rebind' % site]
+    names += nested_services('/' + site, inner) if inner else ['/%s/proceed/rebind' % site]
     if faulty:
         names.append('/%s/fault_injector/inject' % site)
     return names
@@ -66,7 +75,10 @@ def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
         except Exception:
             dead.append(name)
     if dead:
-        rosnode.cleanup_master_blacklist(master, dead)
+        import contextlib
+        import io
+        with contextlib.redirect_stdout(io.StringIO()):   # rosnode prints each name
+            rosnode.cleanup_master_blacklist(master, dead)
     return dead
 
 
@@ -150,19 +162,24 @@ class PbrDeployment(object):
 class MechanismDeployment(object):
     """One site: the bank server, a fault injector (faulty=True), one mechanism and the Proxy."""
 
-    def __init__(self, log_dir, mechanism, faulty=True, executions=3, env=None):
+    def __init__(self, log_dir, mechanism, faulty=True, executions=3, env=None, inner=''):
         self.log_dir = log_dir
         self.mechanism = mechanism
         self.faulty = faulty
-        self.sites = {'site': Site('site', roslaunch('aft_ftm', 'demo_mechanism_site.launch', mechanism=mechanism,
-                                                     faulty=str(bool(faulty)).lower(), executions=executions),
+        self.inner = inner
+        args = dict(mechanism=mechanism, faulty=str(bool(faulty)).lower(), executions=executions)
+        if inner:
+            args['inner'] = inner
+        self.sites = {'site': Site('site', roslaunch('aft_ftm', 'demo_mechanism_site.launch', **args),
                                    env, os.path.join(log_dir, 'site.log'))}
 
     def start(self, timeout=120.0):
         os.makedirs(self.log_dir, exist_ok=True)
         started = time.monotonic()
         self.sites['site'].start()
-        services = ['/site/%s/%s' % (self.mechanism, s) for s in GRAPH_SERVICES] + list(CLIENT_SERVICES)
+        ns = '/site/%s' % self.mechanism
+        services = ['%s/%s' % (ns, s) for s in GRAPH_SERVICES if not s.startswith('proceed')] + list(CLIENT_SERVICES)
+        services += nested_services(ns, self.inner) if self.inner else ['%s/proceed/rebind' % ns]
         if self.faulty:
             services.append('/site/fault_injector/inject')
         missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout)

@@ -106,7 +106,7 @@ class ProtocolNode(object):
             rospy.logerr('%s: no result for %s/%d after %.1f s: answering with an error',
                          self.name, request.origin, request.id, self.processing_timeout)
             error = Reply(id=request.id, origin=request.origin, client=request.client,
-                          oldest_pending=request.oldest_pending, status=Reply.ERROR,
+                          oldest_pending=request.oldest_pending, attempt=request.attempt, status=Reply.ERROR,
                           error='no result within %.1f s' % self.processing_timeout)
             self._act(self.core.on_result(error, time.monotonic()))
 

@@ -156,7 +156,8 @@ class SecGateNode(object):
             self._reject(e, request)
             return
         out = Request(id=request.id, origin=request.origin, client=request.client,
-                      service_type=request.service_type, oldest_pending=request.oldest_pending, payload=payload)
+                      service_type=request.service_type, oldest_pending=request.oldest_pending,
+                      attempt=request.attempt, payload=payload)
         if self.side == 'client':
             with self.lock:
                 self.sent[(request.origin, request.id)] = out
@@ -195,7 +196,8 @@ class SecGateNode(object):
             with self.lock:
                 self.sent.pop((reply.origin, reply.id), None)
         self.ports.publish('replies_out', Reply(id=reply.id, origin=reply.origin, client=reply.client,
-                                                oldest_pending=reply.oldest_pending, status=reply.status,
+                                                oldest_pending=reply.oldest_pending, attempt=reply.attempt,
+                                                status=reply.status,
                                                 error=reply.error, payload=payload))
 
 

@@ -3,15 +3,28 @@ computes, After compares the results and a majority decides."""
 import threading
 
 import rospy
-from aft_msgs.msg import Reply
+from aft_msgs.msg import Reply, Request
 from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config
+from ..errors import ConfigError
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .params import param
+
+
+# Execution k (0, 1, ...) of a request that came with attempt a goes out with attempt a * SPAN + k:
+# nested Protocols see each execution as a request of its own, and After restores a.
+SPAN = 100
+
+
+def execution(request, k):
+    """A copy of request numbered as its k-th execution."""
+    return Request(id=request.id, origin=request.origin, client=request.client,
+                   service_type=request.service_type, oldest_pending=request.oldest_pending,
+                   attempt=request.attempt * SPAN + k, payload=request.payload)
 
 
 class TrBeforeNode(BeforeNode):
@@ -29,7 +42,7 @@ class TrBeforeNode(BeforeNode):
         super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply')])
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
-        self.held = {}     # (origin, id) -> (request, state saved before it)
+        self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.lock = threading.Lock()
 
     def setup(self, timeout):
@@ -50,12 +63,13 @@ class TrBeforeNode(BeforeNode):
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
             self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
-                                               oldest_pending=request.oldest_pending, status=Reply.ERROR,
+                                               oldest_pending=request.oldest_pending, attempt=request.attempt,
+                                               status=Reply.ERROR,
                                                error='time redundancy cannot save the server state: %s' % e))
             return None
         with self.lock:
-            self.held[(request.origin, request.id)] = (request, state)
-        return request
+            self.held[(request.origin, request.id)] = [request, state, 1]
+        return execution(request, 0)
 
     def _on_repeat(self, req):
         key = (req.origin, req.id)
@@ -63,13 +77,14 @@ class TrBeforeNode(BeforeNode):
             held = self.held.get(key) if req.action == req.REPEAT else self.held.pop(key, None)
         if held is None:
             return RepeatResponse(success=False, message='no saved state for %s/%d' % key)
-        request, state = held
+        request, state, sent = held
         if req.action in (req.REPEAT, req.RESTORE):
             result = self.set_state(state)
             if not result.success:
                 return RepeatResponse(success=False, message='state not restored: %s' % result.message)
         if req.action == req.REPEAT:
-            self.ports.publish('out', request)
+            held[2] += 1
+            self.ports.publish('out', execution(request, sent))
         return RepeatResponse(success=True, message='')
 
 
@@ -86,7 +101,11 @@ class TrAfterNode(AfterNode):
     """
 
     def __init__(self):
-        self.voter = TimeRedundancyVote(param('executions', config.non_negative_int, 3))
+        executions = param('executions', config.non_negative_int, 3)
+        if executions >= SPAN:
+            raise ConfigError('parameter %s must be below %d, got %d' % (rospy.resolve_name('~executions'),
+                                                                         SPAN, executions))
+        self.voter = TimeRedundancyVote(executions)
         super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.repeat = rospy.ServiceProxy('repeat', Repeat, persistent=True)
         self.masked = 0
@@ -110,7 +129,8 @@ class TrAfterNode(AfterNode):
             return False, str(e)
 
     def handle(self, reply):
-        vote = self.voter.add((reply.origin, reply.id), (reply.status, reply.error, bytes(reply.payload)))
+        reply.attempt //= SPAN   # back to the attempt the request came with
+        vote = self.voter.add((reply.origin, reply.id, reply.attempt), (reply.status, reply.error, bytes(reply.payload)))
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
             if ok:
@@ -132,4 +152,4 @@ class TrAfterNode(AfterNode):
     @staticmethod
     def _error(reply, detail):
         return Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
-                     status=Reply.ERROR, error='time redundancy: %s' % detail)
+                     attempt=reply.attempt, status=Reply.ERROR, error='time redundancy: %s' % detail)
