@@ -104,14 +104,13 @@ class PbrAfterNode(AfterNode):
             try:
                 state = self.get_state().state
             except (rospy.ServiceException, rospy.ROSException) as e:
-                if rospy.is_shutdown():
-                    return None   # going down: fail-silent, the next primary answers the re-sent request
-                # The reply goes out as an error: the next checkpoint carries the full state again.
-                rospy.logerr('%s: cannot capture the server state after %s/%d: %s', self.name,
-                             reply.origin, reply.id, e)
-                self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
-                reply.status, reply.error, reply.payload = reply.ERROR, 'state capture failed: %s' % e, b''
-                return reply
+                # The request ran but cannot be checkpointed: replying would leave the backup behind.
+                # Fail-stop: this replica goes down (its site with it, its nodes being required), the
+                # backup takes over and executes the request the Proxy re-sends.
+                rospy.logfatal('%s: cannot capture the server state after %s/%d (%s): stopping this replica',
+                               self.name, reply.origin, reply.id, e)
+                rospy.signal_shutdown('cannot capture the server state')
+                return None
             seq = self.sender.hold(reply, time.monotonic())
             self.ports.publish('checkpoints', Checkpoint(seq=seq, sender=self.name, reply=reply, state=state))
         return None
