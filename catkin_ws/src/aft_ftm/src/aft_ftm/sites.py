@@ -111,7 +111,7 @@ class Site(object):
 
     def power_off(self):
         """Kill the whole site at once, as a power loss would."""
-        if self.proc is None:
+        if self.proc is None or self.proc.poll() is not None:
             return 0
         count = power_off(self.proc.pid, on_stopped=lambda: setattr(self, 'powered_off_at', time.time()))
         self.proc.wait()
@@ -124,7 +124,8 @@ class Site(object):
     def stop(self, grace=5.0):
         """Stop the site cleanly if it can, by force otherwise. Never raises."""
         try:
-            if self.proc is not None:
+            # Once reaped, the pid may belong to another process: never signal it then.
+            if self.proc is not None and self.proc.poll() is None:
                 terminate_tree(self.proc.pid, grace)
                 power_off(self.proc.pid)
                 try:

@@ -131,6 +131,7 @@ class PbrDeployment(object):
     def start(self, timeout=120.0):
         """Start the replicas, then the client site; raise RuntimeError naming what did not come up."""
         os.makedirs(self.log_dir, exist_ok=True)
+        clean_dead_nodes()   # registrations a killed node left behind would stop our new nodes
         started = time.monotonic()
         replicas = ['all'] if self.one_host else ['slave', 'master']
         if self.sec:
@@ -175,6 +176,7 @@ class MechanismDeployment(object):
 
     def start(self, timeout=120.0):
         os.makedirs(self.log_dir, exist_ok=True)
+        clean_dead_nodes()   # registrations a killed node left behind would stop our new nodes
         started = time.monotonic()
         self.sites['site'].start()
         ns = '/site/%s' % self.mechanism

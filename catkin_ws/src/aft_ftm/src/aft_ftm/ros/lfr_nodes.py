@@ -22,6 +22,15 @@ def _role():
     return ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
 
 
+def _refused(current, new):
+    """A SetRole refusal if current -> new is not an allowed role change, else None."""
+    try:
+        check_role_change(current, new)
+    except RoleError as e:
+        return SetRoleResponse(success=False, message=str(e))
+    return None
+
+
 class LfrBeforeNode(BeforeNode):
     """LFR's Before. Leader: forwards each request to the follower, then to its own Proceed.
     Follower: passes the leader's forwarded requests to its Proceed, in the leader's order; once
@@ -68,10 +77,9 @@ class LfrBeforeNode(BeforeNode):
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
-            try:
-                check_role_change(self.role, role)
-            except RoleError as e:
-                return SetRoleResponse(success=False, message=str(e))
+            refused = _refused(self.role, role)
+            if refused:
+                return refused
             self.role = role
             return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=self.passed)
 
@@ -186,10 +194,9 @@ class LfrAfterNode(AfterNode):
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
-            try:
-                check_role_change(self.role, role)
-            except RoleError as e:
-                return SetRoleResponse(success=False, message=str(e))
+            refused = _refused(self.role, role)
+            if refused:
+                return refused
             released = []
             if self.role == Role.BACKUP and role == Role.ALONE:
                 # Wait for the results of every forwarded request Before passed on (fenced now).
