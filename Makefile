@@ -20,6 +20,8 @@ demo: setup
 bench: setup
 	$(ENV) python scripts/bench_pbr --json bench_pbr.json
 	$(ENV) python scripts/bench_mechanisms --json bench_mechanisms.json
+	$(ENV) python scripts/bench_adaptation --json bench_adaptation.json
+	$(ENV) python scripts/bench_ros_buffering --json bench_ros_buffering.json
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel

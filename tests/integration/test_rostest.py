@@ -70,6 +70,7 @@ LAUNCH_ARGS = {
                    'primary_get_state:=/a/g', 'primary_set_state:=/a/s', 'backup_server:=/b/account',
                    'backup_get_state:=/b/g', 'backup_set_state:=/b/s'],
     'demo_replica_site.launch': REPLICA,
+    'stages.launch': REPLICA,
     'mechanism.launch': ['ns:=x', 'mechanism:=tr', 'inp:=/i', 'out:=/o', 'server:=/account'],
     'demo_mechanism_site.launch': ['mechanism:=ad'],
 }
@@ -119,3 +120,18 @@ def test_mechanisms_nest_to_any_depth_a_protocol_standing_in_for_each_proceed():
     assert remaps['/master/tr/protocol'] == {'pxy2pro': '/master/bfr2prd', 'pro2pxy': '/master/prd2aft'}
     assert remaps['/master/tr/ad/protocol'] == {'pxy2pro': '/master/tr/bfr2prd', 'pro2pxy': '/master/tr/prd2aft'}
     assert remaps['/master/tr/ad/proceed'] == {'server': '/master/account'}
+
+
+@pytest.mark.parametrize('adaptable,replaceable_required', [('false', True), ('true', False)])
+def test_an_adaptable_site_lets_its_stages_be_replaced_without_stopping_the_site(adaptable, replaceable_required):
+    import roslaunch.config
+    import roslaunch.xmlloader
+    path = os.path.join(TEST_DIR, '..', 'launch', 'replica.launch')
+    config = roslaunch.config.ROSLaunchConfig()
+    roslaunch.xmlloader.XmlLoader().load(path, config, argv=REPLICA + [
+        'server:=/master/account', 'adaptable:=' + adaptable], verbose=False)
+    required = {n.namespace + n.name: n.required for n in config.nodes}
+    for name in ('/master/before', '/master/proceed', '/master/after'):
+        assert required[name] == replaceable_required, name
+    for name in ('/master/protocol', '/master/crash_detector', '/master/recovery'):
+        assert required[name], name

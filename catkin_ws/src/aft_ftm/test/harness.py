@@ -106,10 +106,11 @@ class PbrSites(Sites):
     INNER = ''
     FAULTY = False
     SEC = False
+    ADAPTABLE = False
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
-                             mechanism=self.MECHANISM, sec=self.SEC)
+                             mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE)
 
 
 class MechanismSite(Sites):

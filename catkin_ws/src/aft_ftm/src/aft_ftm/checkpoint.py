@@ -35,11 +35,12 @@ class Held(object):
 class CheckpointSender(object):
     """Primary's After: sequence numbers and replies held until acknowledged."""
 
-    def __init__(self, role):
+    def __init__(self, role, first_seq=1):
         if role not in (Role.PRIMARY, Role.ALONE):
             raise RoleError('a checkpoint sender is PRIMARY or ALONE, not %s' % role.name)
         self.role = role
-        self.seq = 0
+        self.first_seq = first_seq   # a replacement After starts above its predecessor's numbers
+        self.seq = first_seq - 1
         self.held = {}          # seq -> Held
         self.acked = 0
         self.refused = 0
@@ -99,10 +100,18 @@ class CheckpointReceiver(object):
         self.sender = None
         self.invalid = None     # why this backup can no longer take over, once it cannot
 
-    def decide(self, seq, sender):
+    def decide(self, seq, sender, first_seq=1, replaces=''):
+        """What to do with checkpoint seq of sender (whose first checkpoint is first_seq, and
+        which declares that it replaces After ``replaces``, if it does)."""
         if self.role != Role.BACKUP or self.invalid:
             return Decision.FENCED
-        if self.sender is not None and sender != self.sender:
+        if self.sender is None:
+            # Nothing followed yet: start at the sender's first checkpoint, never in the middle.
+            return Decision.APPLY if seq == first_seq else Decision.GAP
+        if sender != self.sender:
+            # Only the After that an adaptation put in place of the one followed, from its start.
+            if replaces == self.sender and seq == first_seq and seq > self.last_seq:
+                return Decision.APPLY
             return Decision.FENCED
         if seq <= self.last_seq:
             return Decision.REACK

@@ -145,6 +145,7 @@ class ProtocolCore(object):
         self.current = None
         self.started_at = None
         self.last_stored_seq = 0
+        self.stored_sender = None
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
@@ -176,11 +177,19 @@ class ProtocolCore(object):
         self.started_at = None
         return [Answer(reply)] + self._dispatch(now)
 
-    def on_stored(self, reply, seq):
-        """A backup stores the reply carried by checkpoint ``seq``."""
+    def on_stored(self, reply, seq, sender=None):
+        """A backup stores the reply carried by checkpoint ``seq`` of After ``sender``.
+
+        Sequence numbers are per sending After: when an adaptation replaces the After, the count
+        starts again from the new one's first checkpoint (can_take_over compares with it).
+        """
         self.cache.forget_below(reply.origin, reply.oldest_pending)
         self.cache.store(reply)
-        self.last_stored_seq = max(self.last_stored_seq, seq)
+        if sender != self.stored_sender:
+            self.stored_sender = sender
+            self.last_stored_seq = seq
+        else:
+            self.last_stored_seq = max(self.last_stored_seq, seq)
         self.stats.stored += 1
 
     def overdue(self, now, timeout):

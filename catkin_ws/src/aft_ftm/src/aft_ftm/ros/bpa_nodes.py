@@ -21,6 +21,8 @@ class StageNode(object):
 
     Subclasses set IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC and override handle(msg),
     which returns the message to send on, or None if it will send it later itself.
+    Every stage reads ~bind_input (bool, default true): false starts it with ``inp`` unbound, as
+    the Adaptation Engine launches a replacement that it binds in the pause. ~suspend holds ``inp``.
     """
     IN_TYPE = OUT_TYPE = IN_TOPIC = OUT_TOPIC = None
 
@@ -29,12 +31,24 @@ class StageNode(object):
         callbacks.update(extra_callbacks or {})
         self.ports = Ports([PortSpec('inp', SUBSCRIBE, self.IN_TYPE),
                             PortSpec('out', PUBLISH, self.OUT_TYPE)] + list(extra_ports), callbacks)
+        self.ports.suspension(hold=['inp'], quiescent=self.quiescent, before_suspend=self.before_suspend)
+        self.bind_input = param('bind_input', lambda n, v: bool(v), True)
         self.name = rospy.get_name()
+
+    def quiescent(self):
+        """True when no request is inside this node (checked by ~suspend)."""
+        return True
+
+    def before_suspend(self):
+        """Called when ~suspend is asked, before waiting for quiescence."""
 
     def setup(self, timeout):
         self.ports.bind('out', self.OUT_TOPIC)
-        self.ports.bind('inp', self.IN_TOPIC)
-        missing = wait_for_connections(self.ports, ['out', 'inp'], timeout)
+        connected = ['out']
+        if self.bind_input:
+            self.ports.bind('inp', self.IN_TOPIC)
+            connected.append('inp')
+        missing = wait_for_connections(self.ports, connected, timeout)
         if missing:
             rospy.logerr('%s: ports %s not connected within %.1f s', self.name, missing, timeout)
             return False

@@ -93,7 +93,7 @@ class PbrDeployment(object):
     'all'), as a user of pbr.launch runs it."""
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
-                 mechanism='pbr', sec=False):
+                 mechanism='pbr', sec=False, adaptable=False):
         self.log_dir = log_dir
         self.one_host = one_host
         self.inner = inner
@@ -110,6 +110,8 @@ class PbrDeployment(object):
             client = dict(sec='true', keys_dir=keys)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
+        if adaptable:
+            replica['adaptable'] = 'true'   # Before, Proceed and After replaceable without stopping a site
         if inner or faulty:
             if one_host:
                 raise ValueError('the one-host demo has no nested mechanism nor fault injector')

@@ -138,6 +138,11 @@ class LfrAfterNode(AfterNode):
         rospy.Service('~set_role', SetRole, self._on_set_role)
         return True
 
+    def quiescent(self):
+        """Leader: no reply waiting for the follower (checked by ~suspend)."""
+        with self.lock:
+            return not self.held
+
     def handle(self, reply):
         key = (reply.origin, reply.id)
         with self.lock:

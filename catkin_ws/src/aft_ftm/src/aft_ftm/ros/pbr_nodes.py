@@ -10,11 +10,39 @@ from .. import config
 from ..checkpoint import CheckpointReceiver, CheckpointSender, Decision
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import Role
-from .bpa_nodes import AfterNode
+from ..protocol import Role, check_role_change
+from .bpa_nodes import AfterNode, BeforeNode
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
+
+
+class PbrBeforeNode(BeforeNode):
+    """PBR's Before: a pass-through (PBR has no Before action) that follows the replica's role, so
+    that Recovery promotes Before and After whatever the mechanism (a switch to or from LFR keeps
+    Recovery's list of nodes the same shape).
+
+    Parameters: ~role (primary | backup | alone, default primary)
+    Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.  Publishes: bfr2prd (aft_msgs/Request), port ``out``.
+    Services: ~set_role (aft_msgs/SetRole, last_seq 0: it holds nothing), ~rebind (aft_msgs/Rebind)
+    """
+
+    def __init__(self):
+        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        super(PbrBeforeNode, self).__init__()
+
+    def setup(self, timeout):
+        rospy.Service('~set_role', SetRole, self._on_set_role)
+        return super(PbrBeforeNode, self).setup(timeout)
+
+    def _on_set_role(self, req):
+        role = Role(req.role)
+        try:
+            check_role_change(self.role, role)
+        except RoleError as e:
+            return SetRoleResponse(success=False, message=str(e))
+        self.role = role
+        return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=0)
 
 
 class PbrAfterNode(AfterNode):
@@ -29,6 +57,8 @@ class PbrAfterNode(AfterNode):
         ~connect_timeout (float, 10 s): how long set-up waits for the peer's After.
         ~apply_period (float, 0.01 s; 0 = at once): a backup applies the newest checkpointed state
             to its server at most this often, and always before it takes over.
+        ~replaces (str, default none): the primary After this one replaces (an adaptation's update):
+            the backup then follows this one's checkpoints instead.
     Services called:
         get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
     Subscribes:
@@ -50,6 +80,10 @@ class PbrAfterNode(AfterNode):
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
         self.apply_period = param('apply_period', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v),
                                   0.01)
+        self.replaces = param('replaces', config.non_empty_str, '')
+        # Checkpoints are numbered from the wall clock (microseconds), so that an After replacing
+        # another one (an adaptation) numbers above it: the backup's Protocol compares them.
+        self.first_seq = int(time.time() * 1e6)
         self.pending_state = None   # backup: the newest checkpointed state not yet applied
         super(PbrAfterNode, self).__init__(
             extra_ports=[PortSpec('checkpoints', PUBLISH, 'aft_msgs/Checkpoint'),
@@ -59,7 +93,7 @@ class PbrAfterNode(AfterNode):
                          PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint')],
             extra_callbacks={'acks': self._on_ack, 'peer_checkpoints': self._on_checkpoint})
         self.role = role
-        self.sender = CheckpointSender(role) if role != Role.BACKUP else None
+        self.sender = CheckpointSender(role, self.first_seq) if role != Role.BACKUP else None
         self.receiver = CheckpointReceiver() if role == Role.BACKUP else None
         self.lock = threading.Lock()
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
@@ -96,6 +130,18 @@ class PbrAfterNode(AfterNode):
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
 
+    # -- suspension (adaptation) ---------------------------------------------------
+    def quiescent(self):
+        """Primary: every checkpoint acknowledged (no reply held)."""
+        with self.lock:
+            return self.sender is None or not self.sender.held
+
+    def before_suspend(self):
+        """Backup: apply the newest checkpointed state now, so a replacement After (or another
+        mechanism) finds the server up to date."""
+        with self.lock:
+            self._apply_locked()
+
     # -- primary ----------------------------------------------------------------
     def handle(self, reply):
         with self.lock:
@@ -112,7 +158,8 @@ class PbrAfterNode(AfterNode):
                 rospy.signal_shutdown('cannot capture the server state')
                 return None
             seq = self.sender.hold(reply, time.monotonic())
-            self.ports.publish('checkpoints', Checkpoint(seq=seq, sender=self.name, reply=reply, state=state))
+            self.ports.publish('checkpoints', Checkpoint(seq=seq, first_seq=self.first_seq, sender=self.name,
+                                                         replaces=self.replaces, reply=reply, state=state))
         return None
 
     def _release(self, replies):
@@ -145,7 +192,7 @@ class PbrAfterNode(AfterNode):
             if self.receiver is None:
                 decision = Decision.FENCED
             else:
-                decision = self.receiver.decide(cp.seq, cp.sender)
+                decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces)
             error = ''
             if decision == Decision.GAP:
                 error = 'checkpoint %d received after %d: one is missing' % (cp.seq, self.receiver.last_seq)

@@ -1,14 +1,16 @@
 """Rebindable ports: the dynamic binding service every FTM node offers (paper Fig. 7)."""
 import threading
+import time
 import warnings
 
 import rosgraph
 import rospy
-from aft_msgs.srv import Rebind, RebindResponse
+from aft_msgs.srv import Rebind, RebindResponse, Suspend, SuspendResponse
 import roslib.message
 
 from .. import ports as rules
 from ..errors import RebindError
+from ..suspension import Gate, SuspendError
 
 
 class Ports(object):
@@ -31,6 +33,22 @@ class Ports(object):
         self._topics = {}
         self._lock = threading.RLock()
         self.unbound_publishes = 0
+        # Every subscriber goes through the gate, which holds the inputs while the node is suspended.
+        self.gate = Gate(callbacks, log_error=rospy.logerr)
+        self._hold = []   # by default ~suspend holds nothing and waits until no handler runs
+        self._quiescent = lambda: True
+        self._before_suspend = None
+
+    def suspension(self, hold, quiescent=None, before_suspend=None):
+        """Say what ~suspend holds (input port names) and when the node is quiescent. The ports
+        not held keep flowing while the node is suspending, so that what is inside can finish.
+        ``before_suspend()`` runs first (e.g. apply a pending checkpoint)."""
+        unknown = [n for n in hold if n not in self.specs]
+        if unknown:
+            raise ValueError('cannot hold unknown ports %s' % unknown)
+        self._hold = list(hold)
+        self._quiescent = quiescent or (lambda: True)
+        self._before_suspend = before_suspend
 
     def bind(self, name, topic=None, queue_size=0):
         """Bind port name to topic (default: the port's own name, so it can be remapped)."""
@@ -48,11 +66,14 @@ class Ports(object):
                     handle = rospy.Publisher(resolved, cls, queue_size=qs, tcp_nodelay=True,
                                              subscriber_listener=self._listeners.get(name))
             else:
-                handle = rospy.Subscriber(resolved, cls, self._callbacks[name], queue_size=qs,
+                handle = rospy.Subscriber(resolved, cls, self._deliver, callback_args=name, queue_size=qs,
                                           tcp_nodelay=True)
             self._handles[name] = handle
             self._topics[name] = resolved
         return 'port %s bound to %s' % (name, resolved)
+
+    def _deliver(self, msg, name):
+        self.gate.deliver(name, msg)
 
     def unbind(self, name):
         with self._lock:
@@ -86,30 +107,97 @@ class Ports(object):
         handle = self._handles.get(name)
         return handle.get_num_connections() if handle is not None else 0
 
-    def rebind(self, port, topic, direction, activate, queue_size=0):
-        """Validate then apply a rebind; raises RebindError with nothing changed."""
+    def rebind(self, port, topic, direction, activate, queue_size=0, dry_run=False, connect_timeout=0.0):
+        """Validate then apply a rebind; raises RebindError with nothing changed.
+
+        Returns (message, previous topic). With dry_run, only validates. With connect_timeout > 0,
+        answers once the port is connected to every current peer of the topic (the subscribers of
+        a publish port, the publishers of a subscribe port), or restores the previous binding and
+        refuses past it: a message sent right after the rebind then reaches the new peer.
+        """
         resolved = rospy.resolve_name(topic) if topic else ''
+        t0 = time.monotonic()
         try:
-            types = dict(rosgraph.Master(rospy.get_name()).getTopicTypes())
+            master = rosgraph.Master(rospy.get_name())
+            types = dict(master.getTopicTypes())
         except Exception as e:   # the master cannot be asked: refuse rather than guess
             raise RebindError('cannot check topic types with the ROS master: %s' % e)
-        rules.check_rebind(self.specs, port, direction, resolved, types, activate)
-        if activate:
-            return self.bind(port, resolved, queue_size)
-        return self.unbind(port)
+        spec = rules.check_rebind(self.specs, port, direction, resolved, types, activate)
+        previous = self._topics.get(port, '')
+        if dry_run:
+            return 'rebind of port %s to %s would be accepted' % (port, resolved or '(none)'), previous
+        t1 = time.monotonic()
+        if not activate:
+            m = self.unbind(port)
+            return m + ' [types %.1f ms, unbind %.1f ms]' % ((t1-t0)*1e3, (time.monotonic()-t1)*1e3), previous
+        message = self.bind(port, resolved, queue_size)
+        t2 = time.monotonic()
+        if connect_timeout > 0:
+            missing = self._wait_peers(master, port, spec, resolved, connect_timeout)
+            if missing:
+                if previous:
+                    self.bind(port, previous, queue_size)
+                else:
+                    self.unbind(port)
+                raise RebindError('port %s bound to %s but not connected to %s within %.2f s: binding undone'
+                                  % (port, resolved, ', '.join(missing), connect_timeout))
+            message += ', connected'
+        message += ' [types %.1f ms, bind %.1f ms, wait %.1f]' % ((t1-t0)*1e3, (t2-t1)*1e3, (time.monotonic()-t2)*1e3)
+        return message, previous
+
+    def _wait_peers(self, master, port, spec, topic, timeout):
+        """Wait until the port's handle counts as many connections as the topic has peers."""
+        me = rospy.get_name()
+        try:
+            pubs, subs, _ = master.getSystemState()
+        except Exception as e:
+            return ['the master (%s)' % e]
+        table = subs if spec.direction == rules.PUBLISH else pubs
+        peers = sorted({n for t, nodes in table if t == topic for n in nodes} - {me})
+        deadline = time.monotonic() + timeout
+        while self.connections(port) < len(peers):
+            if time.monotonic() >= deadline:
+                return ['%d of %s' % (len(peers) - self.connections(port), peers)]
+            time.sleep(0.001)
+        return []
 
     def advertise_service(self):
-        """Offer ~rebind (aft_msgs/Rebind)."""
+        """Offer ~rebind (aft_msgs/Rebind), ~suspend and ~resume (aft_msgs/Suspend)."""
+        self._suspend_srv = rospy.Service('~suspend', Suspend, self._handle_suspend)
+        self._resume_srv = rospy.Service('~resume', Suspend, self._handle_resume)
         return rospy.Service('~rebind', Rebind, self._handle_rebind)
 
     def _handle_rebind(self, req):
         try:
-            message = self.rebind(req.port, req.topic, req.direction, req.activate, req.queue_size)
+            message, previous = self.rebind(req.port, req.topic, req.direction, req.activate, req.queue_size,
+                                            req.dry_run, req.connect_timeout)
         except RebindError as e:
             rospy.logerr('rebind refused: %s', e)
             return RebindResponse(success=False, message=str(e))
-        rospy.loginfo('rebind: %s', message)
-        return RebindResponse(success=True, message=message)
+        if not req.dry_run:
+            rospy.loginfo('rebind: %s', message)
+        return RebindResponse(success=True, message=message, previous_topic=previous)
+
+    def suspend(self, timeout):
+        """Hold the inputs and wait until quiescent; returns the messages held. Raises SuspendError."""
+        if self._before_suspend is not None:
+            self._before_suspend()
+        return self.gate.close(self._hold, self._quiescent, timeout)
+
+    def _handle_suspend(self, req):
+        timeout = req.timeout if req.timeout > 0 else 5.0
+        try:
+            held = self.suspend(timeout)
+        except SuspendError as e:
+            rospy.logerr('%s: suspend refused: %s', rospy.get_name(), e)
+            return SuspendResponse(success=False, message=str(e))
+        rospy.loginfo('%s: suspended (quiescent; holding %s)', rospy.get_name(), ', '.join(self._hold) or 'nothing')
+        return SuspendResponse(success=True, message='suspended, quiescent', held=held)
+
+    def _handle_resume(self, _req):
+        delivered = self.gate.open()
+        rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
+        return SuspendResponse(success=True, message='resumed', held=delivered)
 
     def shutdown(self):
         with self._lock:

@@ -27,6 +27,8 @@ class ProtocolNode(object):
         ~cache_capacity (int, 100000): safety limit of the reply cache.
         ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
             until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
+        ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
+            mechanism the Adaptation Engine launches ahead and binds in the pause).
     Subscribes:
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
         aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests.
@@ -35,7 +37,8 @@ class ProtocolNode(object):
         pro2pxy (aft_msgs/Reply), port ``replies``: to the Proxies.
         pro2bfr (aft_msgs/Request), port ``to_before``.
     Services:
-        ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole)
+        ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend and ~resume (aft_msgs/Suspend):
+        suspended, it holds the requests arriving and answers once nothing is executing.
     """
 
     def __init__(self):
@@ -43,6 +46,7 @@ class ProtocolNode(object):
         self.processing_timeout = param('processing_timeout', config.positive_float, 10.0)
         capacity = param('cache_capacity', config.non_negative_int, 100000)
         self.listen_as_backup = param('listen_as_backup', lambda n, v: bool(v), False)
+        self.bind_input = param('bind_input', lambda n, v: bool(v), True)
         self.core = ProtocolCore(ROLES[role_name], capacity)
         self.lock = threading.Condition()
         self.ports = Ports(
@@ -52,7 +56,14 @@ class ProtocolNode(object):
              PortSpec('from_after', SUBSCRIBE, 'aft_msgs/Reply'),
              PortSpec('stored', SUBSCRIBE, 'aft_msgs/Checkpoint')],
             {'requests': self._on_request, 'from_after': self._on_result, 'stored': self._on_stored})
+        # Suspended (adaptation), it holds new requests and is quiescent once nothing executes.
+        self.ports.suspension(hold=['requests'], quiescent=self._quiescent)
         self.name = rospy.get_name()
+
+    def _quiescent(self):
+        with self.lock:
+            # A backup's queue waits for a promotion, not for this component: it is not "inside".
+            return self.core.current is None and (self.core.role == Role.BACKUP or not self.core.queue)
 
     def setup(self, timeout):
         self.ports.bind('replies', 'pro2pxy')
@@ -63,7 +74,7 @@ class ProtocolNode(object):
         if missing:
             rospy.logerr('%s: Before/After not connected within %.1f s (ports %s)', self.name, timeout, missing)
             return False
-        if self.core.role != Role.BACKUP or self.listen_as_backup:
+        if self.bind_input and (self.core.role != Role.BACKUP or self.listen_as_backup):
             self.ports.bind('requests', 'pxy2pro')
         self.timer = rospy.Timer(rospy.Duration(min(1.0, self.processing_timeout / 4)), self._check_overdue)
         rospy.Service('~set_role', SetRole, self._on_set_role)
@@ -95,7 +106,7 @@ class ProtocolNode(object):
 
     def _on_stored(self, checkpoint):
         with self.lock:
-            self.core.on_stored(checkpoint.reply, checkpoint.seq)
+            self.core.on_stored(checkpoint.reply, checkpoint.seq, checkpoint.sender)
             self.lock.notify_all()
 
     def _check_overdue(self, _event):

@@ -6,7 +6,7 @@ import time
 
 import psutil
 import rospy
-from aft_msgs.srv import Rebind, RebindRequest, SetRole
+from aft_msgs.srv import Rebind, RebindRequest, SetNodes, SetNodesResponse, SetRole
 from std_msgs.msg import String
 
 from .. import config
@@ -37,7 +37,7 @@ class RecoveryNode(object):
             ~entry_replies_port (default replies): the node and ports bound to the clients' topics
             (a SEC gate in front of the Protocol: sec_gate, requests_in, replies_out).
         ~promote (list of node names, default [after]): the nodes fenced and promoted, in order, before
-            the Protocol (each one's SetRole last_seq is passed to the next): [after] for PBR,
+            the Protocol (each one's SetRole last_seq is passed to the next): [before, after] for PBR and
             [before, after] for LFR.
         ~client_requests, ~client_replies (str, required for a backup): the Proxies' topics.
         ~peer_namespace (str, required): namespace of the peer site's nodes.
@@ -49,6 +49,9 @@ class RecoveryNode(object):
         ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations).
     Services:
         ~rebind (aft_msgs/Rebind)
+        ~set_promote (aft_msgs/SetNodes): replace the list of nodes to promote (an adaptation
+            replaced Before or After); refused, changing nothing, unless each new node answers a
+            SetRole for this replica's current role.
     """
 
     def __init__(self):
@@ -104,7 +107,40 @@ class RecoveryNode(object):
         self.ports = Ports([PortSpec('failures', SUBSCRIBE, 'aft_msgs/Failure')], {'failures': self._on_failure})
         self.ports.bind('failures')
         self.ports.advertise_service()
+        rospy.Service('~set_promote', SetNodes, self._on_set_promote)
         return True
+
+    def _on_set_promote(self, req):
+        names = [rospy.resolve_name(n) for n in req.nodes]
+        if not names or not all(req.nodes):
+            return SetNodesResponse(success=False, message='give a non-empty list of node names',
+                                    previous=self.promote)
+        proxies = []
+        with self.lock:   # no recovery runs while the list changes
+            for name in names:
+                try:
+                    rospy.wait_for_service(name + '/set_role', self.timeout)
+                    proxy = rospy.ServiceProxy(name + '/set_role', SetRole, persistent=True)
+                    answer = proxy(role=self.role.value)
+                except (rospy.ServiceException, rospy.ROSException) as e:
+                    return SetNodesResponse(success=False, previous=self.promote,
+                                            message='%s/set_role cannot be called: %s' % (name, e))
+                if not answer.success:
+                    return SetNodesResponse(success=False, previous=self.promote,
+                                            message='%s refused role %s: %s' % (name, self.role.name, answer.message))
+                proxies.append(proxy)
+            previous, self.promote, self.set_role_nodes = self.promote, names, proxies
+        rospy.loginfo('%s: nodes to promote are now %s (were %s)', rospy.get_name(), names, previous)
+        return SetNodesResponse(success=True, message='promote %s' % ', '.join(names), previous=previous)
+
+    def _set_role(self, index, **request):
+        """Call set_role of promote node index; reconnect once if the persistent connection broke."""
+        try:
+            return self.set_role_nodes[index](**request)
+        except (rospy.ServiceException, rospy.ROSException):
+            self.set_role_nodes[index] = rospy.ServiceProxy(self.promote[index] + '/set_role', SetRole,
+                                                            persistent=True)
+            return self.set_role_nodes[index](**request)
 
     def _on_failure(self, failure):
         with self.lock:
@@ -148,8 +184,8 @@ class RecoveryNode(object):
             return self._fail_silence(failure)
         if step == Step.PROMOTE_AFTER:
             last_seq = 0
-            for name, set_role in zip(self.promote, self.set_role_nodes):
-                result = set_role(role=Role.ALONE.value, last_seq=last_seq)
+            for index, name in enumerate(self.promote):
+                result = self._set_role(index, role=Role.ALONE.value, last_seq=last_seq)
                 if not result.success:
                     raise RuntimeError('%s refused: %s' % (name, result.message))
                 last_seq = result.last_seq
@@ -169,8 +205,8 @@ class RecoveryNode(object):
                 raise RuntimeError('rebind of requests refused: %s' % result.message)
             return result.message
         if step == Step.AFTER_ALONE:
-            for name, set_role in zip(self.promote, self.set_role_nodes):
-                result = set_role(role=Role.ALONE.value)
+            for index, name in enumerate(self.promote):
+                result = self._set_role(index, role=Role.ALONE.value)
                 if not result.success:
                     raise RuntimeError('%s refused: %s' % (name, result.message))
             return 'going on alone'

@@ -1,0 +1,326 @@
+"""Adaptation scripts: what changes in a running FTM, and in which order (paper section 6.1).
+
+A script is a small declarative YAML file: which nodes to suspend, which to launch, which ports
+to rebind, which nodes Recovery promotes from now on, which nodes to retire (kill). The engine
+turns it into steps in one of two orders:
+
+- ``paper``: the paper's order. Suspend, kill, launch, rebind, resume: the pause includes the
+  start-up of the new processes (about a second per roslaunch).
+- ``prepared``: launch the new nodes first, their inputs unbound, and wait until they are set up
+  and their publishers connected; then suspend, rebind, resume; then kill the old nodes. The pause
+  covers only quiescence, rebinding and resuming.
+
+Example (PBR -> PBR+TR, the paper's worked example)::
+
+    name: compose-pbr-tr
+    kind: compose
+    description: Time Redundancy stands in for Proceed on each replica.
+    args: {site: [master, slave]}
+    each: site                      # entries naming $(arg site) are repeated for each site
+    suspend: [/$(arg site)/protocol]
+    launch:
+      - file: aft_ftm/mechanism.launch
+        args: {ns: /$(arg site)/tr, mechanism: tr, bind_input: false, ...}
+    bind:
+      - {node: /$(arg site)/proceed, port: inp, unbind: true}
+      - {node: /$(arg site)/tr/protocol, port: requests, topic: /$(arg site)/bfr2prd}
+    retire: [/$(arg site)/proceed]
+
+This module parses and checks scripts and plans steps; it never touches ROS (see
+:mod:`aft_ftm.ros.adaptation_engine`).
+"""
+import collections
+import re
+
+import yaml
+
+from .errors import AftError
+
+KINDS = ('update', 'switch', 'compose')
+MODES = ('prepared', 'paper')
+TOP_KEYS = ('name', 'kind', 'description', 'args', 'each', 'suspend', 'launch', 'bind', 'promote', 'retire')
+LAUNCH_KEYS = ('file', 'args')
+BIND_KEYS = ('node', 'port', 'topic', 'direction', 'unbind')
+PROMOTE_KEYS = ('recovery', 'nodes')
+DIRECTIONS = ('subscribe', 'publish')
+_ARG = re.compile(r'\$\(arg ([A-Za-z_][A-Za-z0-9_]*)\)')
+_NAME = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)+$')
+
+
+class ScriptError(AftError):
+    """An adaptation script is malformed or does not fit the live system; nothing was changed."""
+
+
+class StepError(AftError):
+    """A step of an adaptation failed; the engine rolls back what was done."""
+
+
+Launch = collections.namedtuple('Launch', 'file args')             # args: ordered (name, value) pairs
+Bind = collections.namedtuple('Bind', 'node port topic direction activate')
+Promote = collections.namedtuple('Promote', 'recovery nodes')
+
+
+class Script(object):
+    """A parsed, expanded and checked script: every name absolute, every $(arg) substituted."""
+
+    def __init__(self, name, kind, description, suspend, launch, bind, promote, retire, args):
+        self.name = name
+        self.kind = kind
+        self.description = description
+        self.suspend = suspend       # [node]
+        self.launch = launch         # [Launch]
+        self.bind = bind             # [Bind]
+        self.promote = promote       # [Promote]
+        self.retire = retire         # [node]
+        self.args = args             # the argument values used
+
+    def nodes_touched(self, launched=()):
+        """Every node the adaptation acts on: suspended, rebound, promoted by, retired, launched."""
+        names = set(self.suspend) | set(self.retire) | {b.node for b in self.bind}
+        names |= {p.recovery for p in self.promote} | set(launched)
+        return sorted(names)
+
+
+def _fail(where, what):
+    raise ScriptError('%s: %s' % (where, what))
+
+
+def _check_keys(where, mapping, allowed):
+    if not isinstance(mapping, dict):
+        _fail(where, 'must be a mapping, got %r' % (mapping,))
+    unknown = sorted(set(mapping) - set(allowed))
+    if unknown:
+        _fail(where, 'unknown key%s %s (allowed: %s)' % ('s' if len(unknown) > 1 else '', ', '.join(unknown),
+                                                          ', '.join(allowed)))
+
+
+def parse_overrides(items):
+    """Command-line ``name:=value`` pairs -> dict. A value with commas is a list."""
+    result = {}
+    for item in items:
+        if ':=' not in item:
+            raise ScriptError('argument %r must be written name:=value' % item)
+        key, value = item.split(':=', 1)
+        if not key:
+            raise ScriptError('argument %r has no name' % item)
+        result[key] = value.split(',') if ',' in value else value
+    return result
+
+
+def load(text, overrides=None, source='script'):
+    """Parse a script's YAML text, substitute its arguments and check its form.
+
+    ``overrides`` maps argument names to values (command line). Raises ScriptError naming the
+    problem (and where it is) when anything is wrong.
+    """
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ScriptError('%s: not valid YAML: %s' % (source, e))
+    _check_keys(source, data, TOP_KEYS)
+    name = data.get('name')
+    if not isinstance(name, str) or not name:
+        _fail(source, 'missing "name" (a non-empty string)')
+    kind = data.get('kind')
+    if kind not in KINDS:
+        _fail(source, '"kind" must be one of %s, got %r' % (', '.join(KINDS), kind))
+    args = dict(data.get('args') or {})
+    if not isinstance(data.get('args') or {}, dict):
+        _fail(source, '"args" must be a mapping of names to default values')
+    for key, value in (overrides or {}).items():
+        if key not in args:
+            _fail(source, 'unknown argument %r (the script declares: %s)' % (key, ', '.join(sorted(args)) or 'none'))
+        args[key] = value
+    each = data.get('each')
+    values = [None]
+    if each is not None:
+        if each not in args:
+            _fail(source, '"each" names %r, which is not an argument' % (each,))
+        values = args[each] if isinstance(args[each], list) else [args[each]]
+        if not values or not all(isinstance(v, str) and v for v in values):
+            _fail(source, 'argument %r of "each" must be a non-empty list of names, got %r' % (each, args[each]))
+
+    def expand(section, entries):
+        """Substitute arguments; an entry naming the "each" argument is repeated per value."""
+        if entries is None:
+            return []
+        if not isinstance(entries, list):
+            _fail(source, '"%s" must be a list' % section)
+        out = []
+        for i, entry in enumerate(entries):
+            where = '%s: %s[%d]' % (source, section, i)
+            repeat = each is not None and ('$(arg %s)' % each) in yaml.safe_dump(entry)
+            for value in (values if repeat else [None]):
+                bound = dict(args)
+                if repeat:
+                    bound[each] = value
+                out.append((where, _substitute(entry, bound, where)))
+        return out
+
+    suspend = [_node(w, n) for w, n in expand('suspend', data.get('suspend'))]
+    retire = [_node(w, n) for w, n in expand('retire', data.get('retire'))]
+    launch = [_launch(w, e) for w, e in expand('launch', data.get('launch'))]
+    bind = [_bind(w, e) for w, e in expand('bind', data.get('bind'))]
+    promote = [_promote(w, e) for w, e in expand('promote', data.get('promote'))]
+    if not (suspend or launch or bind or promote or retire):
+        _fail(source, 'the script changes nothing (no suspend, launch, bind, promote or retire)')
+    if (bind or retire) and not suspend:
+        _fail(source, 'rebinding or retiring nodes needs a suspension first: name the entry nodes in "suspend"')
+    for where, values_ in (('suspend', suspend), ('retire', retire)):
+        duplicates = sorted({n for n in values_ if values_.count(n) > 1})
+        if duplicates:
+            _fail(source, '"%s" names %s more than once' % (where, ', '.join(duplicates)))
+    return Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args)
+
+
+def _substitute(value, args, where):
+    if isinstance(value, str):
+        def one(match):
+            key = match.group(1)
+            if key not in args:
+                _fail(where, 'unknown argument $(arg %s)' % key)
+            bound = args[key]
+            if isinstance(bound, list):
+                _fail(where, '$(arg %s) is a list: only the "each" argument is repeated' % key)
+            return str(bound)
+        return _ARG.sub(one, value)
+    if isinstance(value, list):
+        return [_substitute(v, args, where) for v in value]
+    if isinstance(value, dict):
+        return {k: _substitute(v, args, where) for k, v in value.items()}
+    return value
+
+
+def _node(where, name):
+    if not isinstance(name, str) or not _NAME.match(name):
+        _fail(where, 'a node must be named by an absolute ROS name like /master/protocol, got %r' % (name,))
+    return name
+
+
+def _launch(where, entry):
+    _check_keys(where, entry, LAUNCH_KEYS)
+    path = entry.get('file')
+    if not isinstance(path, str) or not path.endswith('.launch'):
+        _fail(where, '"file" must name a .launch file (package/file.launch or a path), got %r' % (path,))
+    args = entry.get('args') or {}
+    if not isinstance(args, dict):
+        _fail(where, '"args" must be a mapping')
+    pairs = []
+    for key in sorted(args):
+        value = args[key]
+        if isinstance(value, bool):
+            value = 'true' if value else 'false'
+        elif isinstance(value, list):
+            value = '[%s]' % ', '.join(str(v) for v in value)
+        pairs.append((str(key), str(value)))
+    return Launch(path, tuple(pairs))
+
+
+def _bind(where, entry):
+    _check_keys(where, entry, BIND_KEYS)
+    node = _node(where, entry.get('node'))
+    port = entry.get('port')
+    if not isinstance(port, str) or not port:
+        _fail(where, 'missing "port" (the node\'s port name)')
+    direction = entry.get('direction', 'subscribe')
+    if direction not in DIRECTIONS:
+        _fail(where, '"direction" must be subscribe or publish, got %r' % (direction,))
+    unbind = entry.get('unbind', False)
+    if not isinstance(unbind, bool):
+        _fail(where, '"unbind" must be true or false')
+    topic = entry.get('topic', '')
+    if unbind and topic:
+        _fail(where, 'give either "topic" (bind) or "unbind: true", not both')
+    if not unbind:
+        topic = _node(where + ' topic', topic) if topic else _fail(where, 'missing "topic" to bind %s to' % port)
+    return Bind(node, port, topic, direction, not unbind)
+
+
+def _promote(where, entry):
+    _check_keys(where, entry, PROMOTE_KEYS)
+    nodes = entry.get('nodes')
+    if not isinstance(nodes, list) or not nodes:
+        _fail(where, '"nodes" must be a non-empty list of node names')
+    return Promote(_node(where, entry.get('recovery')), tuple(_node(where, n) for n in nodes))
+
+
+# -- planning -----------------------------------------------------------------------------------
+
+Step = collections.namedtuple('Step', 'action target detail')
+# action: launch | wait_launched | suspend | kill | rebind | promote | resume
+
+
+def plan(script, mode):
+    """The steps of script in mode 'paper' or 'prepared' (see the module documentation).
+
+    A rebind of a node retired earlier in the same plan is left out (the node is gone), so the
+    paper's order does not unbind the Proceed it has already killed.
+    """
+    if mode not in MODES:
+        raise ScriptError('mode must be one of %s, got %r' % (', '.join(MODES), mode))
+    launch = [Step('launch', l.file, l) for l in script.launch]
+    wait = [Step('wait_launched', '%d launch file(s)' % len(script.launch), None)] if script.launch else []
+    suspend = [Step('suspend', n, None) for n in script.suspend]
+    resume = [Step('resume', n, None) for n in reversed(script.suspend)]
+    kill = [Step('kill', n, None) for n in script.retire]
+    promote = [Step('promote', p.recovery, p) for p in script.promote]
+    if mode == 'paper':
+        gone = set(script.retire)
+        rebind = [Step('rebind', b.node, b) for b in script.bind if b.node not in gone]
+        resume = [s for s in resume if s.target not in gone]
+        return suspend + kill + launch + wait + rebind + promote + resume
+    rebind = [Step('rebind', b.node, b) for b in script.bind]
+    return launch + wait + suspend + rebind + promote + resume + kill
+
+
+PARALLEL = ('launch', 'rebind', 'promote', 'resume', 'kill')
+
+
+def groups(steps):
+    """Consecutive steps of one action that can run together (all but suspensions, whose order
+    the script gives), as lists, in order."""
+    out = []
+    for step in steps:
+        if out and step.action == out[-1][0].action and step.action in PARALLEL:
+            out[-1].append(step)
+        else:
+            out.append([step])
+    return out
+
+
+def pause_bounds(steps):
+    """Indexes (first, last) of the steps between the first suspend and the last resume."""
+    actions = [s.action for s in steps]
+    if 'suspend' not in actions:
+        return None
+    first = actions.index('suspend')
+    last = len(actions) - 1 - actions[::-1].index('resume')
+    return first, last
+
+
+def undo_plan(done):
+    """What to do, in order, to take back the steps done (a list of (Step, undo info)).
+
+    Every suspended node is resumed last, whatever else happened, so that no client waits on a
+    half-adapted system: launched nodes are stopped, killed ones started again from their recorded
+    command line, rebinds and promotions restored to what they replaced.
+    """
+    undo = []
+    suspended = []
+    for step, info in reversed(done):
+        if step.action == 'suspend':
+            suspended.append(step.target)
+        elif step.action == 'resume':
+            # A node resumed before the failure is suspended again only if something after it is
+            # undone: simpler and safe to leave it running (nothing of its own changed).
+            continue
+        elif step.action == 'launch':
+            undo.append(Step('stop_launch', step.target, info))
+        elif step.action == 'kill':
+            undo.append(Step('respawn', step.target, info))
+        elif step.action == 'rebind':
+            undo.append(Step('restore_binding', step.target, (step.detail, info)))
+        elif step.action == 'promote':
+            undo.append(Step('restore_promote', step.target, info))
+    undo += [Step('resume', node, None) for node in suspended]
+    return undo

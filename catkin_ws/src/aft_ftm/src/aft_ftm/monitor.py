@@ -1,0 +1,266 @@
+"""The monitoring engine's logic: keeps the change model (F, A, R) up to date from events and
+decides when the running composition must be adapted, and to what.
+
+Pure logic: no rospy; ``now`` (seconds) is passed in with every event. The ROS adapter feeds
+the events (operator declarations, heartbeats, bandwidth measurements, alarms, timer ticks),
+asks :meth:`MonitorCore.decide` for a decision, carries it out and reports the outcome with
+:meth:`MonitorCore.adapted` or :meth:`MonitorCore.adaptation_failed`.
+
+The monitor adapts only when the running composition becomes inconsistent with the model
+(F not covered, or an A or R need not met), never merely because a cheaper one exists.
+"""
+import collections
+import enum
+import numbers
+
+from . import change_model, mechanisms
+from .change_model import ChangeModel, Resources
+from .errors import AftError, ConfigError
+
+
+class TransitionError(AftError):
+    """An event the monitor's state machine does not allow in its current state (a caller bug)."""
+
+
+class MonitorState(enum.Enum):
+    WATCHING = 0   # the running composition is consistent, or the selection keeps it anyway
+    ADAPTING = 1   # a decision was handed out; waiting for adapted() or adaptation_failed()
+    FAILED = 2     # the last adaptation failed: the old composition runs, retried on a model change
+
+
+# Allowed edges, and why each exists.
+_EDGES = {
+    (MonitorState.WATCHING, MonitorState.ADAPTING),  # decide(): running composition inconsistent
+    (MonitorState.ADAPTING, MonitorState.WATCHING),  # adapted(): the target runs now
+    (MonitorState.ADAPTING, MonitorState.FAILED),    # adaptation_failed(): the old one still runs
+    (MonitorState.FAILED, MonitorState.WATCHING),    # decide(): the model changed since the failure
+}
+
+
+class Decision(collections.namedtuple('Decision', ['from_', 'to', 'reason', 'model', 'selection'])):
+    """Adapt from the running composition ``from_`` to ``to`` (tuples of names, outermost first)."""
+    __slots__ = ()
+
+    def to_dict(self):
+        return {'from': list(self.from_), 'to': list(self.to), 'reason': self.reason,
+                'model': self.model.to_dict(), 'selection': self.selection.to_dict()}
+
+
+def _composition(value, what):
+    if isinstance(value, str) or not isinstance(value, (tuple, list)):
+        raise ConfigError('%s must be a tuple of mechanism names, got %r' % (what, value))
+    for name in value:
+        mechanisms.mechanism(name)
+    return tuple(value)
+
+
+def _time(now):
+    if isinstance(now, bool) or not isinstance(now, numbers.Real):
+        raise ConfigError('now must be a number of seconds, got %r' % (now,))
+    return now
+
+
+class MonitorCore(object):
+    """The change model of one replicated server and the adaptation state machine.
+
+    ``sites``: the replica sites' names; a site never heard counts as alive until ``lost_after``
+    seconds after construction, and a site not heard for longer than ``lost_after`` is lost for
+    good (fail-silence: a later heartbeat does not bring it back). R.cpus = sites alive.
+    """
+
+    def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
+                 high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW):
+        sites = list(sites) if not isinstance(sites, str) else [sites]
+        if not sites or len(set(sites)) != len(sites) or not all(isinstance(s, str) and s for s in sites):
+            raise ConfigError('sites must be distinct non-empty names, got %r' % (sites,))
+        if isinstance(lost_after, bool) or not isinstance(lost_after, numbers.Real) or not lost_after > 0:
+            raise ConfigError('lost_after must be a number of seconds > 0, got %r' % (lost_after,))
+        change_model.bandwidth_level(None, high, low)   # validates the thresholds
+        now = _time(now)
+        self.high, self.low = high, low
+        self.lost_after = lost_after
+        self.sites = sites
+        self.started_at = now
+        self.declared = change_model.check_faults(declared_faults)
+        self.observed = frozenset()
+        self.application = application
+        self.bytes_per_s = None
+        self.last_heard = dict((s, None) for s in sites)
+        self.lost = set()
+        self.running = _composition(running, 'running')
+        self.state = MonitorState.WATCHING
+        self.pending = None         # the Decision being carried out, while ADAPTING
+        self.failed_model = None    # the model signature when the last adaptation failed
+        self.history = []           # [(now, description)]
+        self._last_note = None
+        self.model()                # validates the application
+        self._note(now, 'watching %s with %s' % (change_model.composition_name(self.running),
+                                                self.model().to_dict()))
+
+    # -- state machine ------------------------------------------------------------------------------
+    def _change_state(self, new, why, now):
+        if (self.state, new) not in _EDGES:
+            raise TransitionError('monitor cannot go from %s to %s (%s)' % (self.state.name, new.name, why))
+        self._note(now, '%s -> %s: %s' % (self.state.name, new.name, why))
+        self.state = new
+
+    def _note(self, now, text):
+        self.history.append((now, text))
+
+    # -- the model ----------------------------------------------------------------------------------
+    def alive_sites(self):
+        return [s for s in self.sites if s not in self.lost]
+
+    def model(self):
+        return ChangeModel(self.declared | self.observed, self.application,
+                           Resources(len(self.alive_sites()), self.bytes_per_s))
+
+    def _signature(self):
+        """The model as the selection sees it (bandwidth as a level, not a measurement), so that
+        a failed adaptation is retried on a change that matters, not on every measurement."""
+        m = self.model()
+        return (m.faults, m.application, m.resources.cpus,
+                change_model.bandwidth_level(m.resources.bandwidth, self.high, self.low))
+
+    # -- events -------------------------------------------------------------------------------------
+    def declare_faults(self, faults, now):
+        """The operator declares the fault model (replaces the declared part; observed faults stay)."""
+        faults = change_model.check_faults(faults)
+        self.declared = faults
+        self._note(_time(now), 'fault model declared: %s' % change_model.kinds_text(faults))
+
+    def declare_application(self, application, now):
+        if not isinstance(application, change_model.Application):
+            raise ConfigError('application must be an Application, got %r' % (application,))
+        self.application = application
+        self._note(_time(now), 'application declared: %s' % application.to_dict())
+
+    def heartbeat(self, site, now):
+        """A heartbeat from site. Returns False if the site was already lost for good (ignored)."""
+        now = _time(now)
+        if site not in self.last_heard:
+            raise ConfigError('heartbeat from unknown site %r (known: %s)' % (site, ', '.join(self.sites)))
+        if site in self.lost:
+            self._note(now, 'heartbeat from %s, lost for good: ignored (fail-silence broken)' % site)
+            return False
+        self.last_heard[site] = now
+        return True
+
+    def bandwidth(self, bytes_per_s, now):
+        """A measurement of the bandwidth available between sites (None: unknown)."""
+        now = _time(now)
+        before = change_model.bandwidth_level(self.bytes_per_s, self.high, self.low)
+        self.bytes_per_s = change_model.Resources(0, bytes_per_s).bandwidth   # validates
+        after = change_model.bandwidth_level(self.bytes_per_s, self.high, self.low)
+        if after != before:
+            self._note(now, "bandwidth %s: now supports '%s' mechanisms (was '%s')"
+                       % (change_model.bandwidth_text(self.bytes_per_s), after, before))
+
+    def alarm(self, mechanism, kind, now):
+        """An alarm raised by a mechanism; returns the fault kind it shows (added to F) or None."""
+        now = _time(now)
+        fault = change_model.observed_fault(mechanism, kind)
+        if fault is None:
+            self._note(now, 'alarm %s/%s shows no fault kind: F unchanged' % (mechanism, kind))
+        elif fault not in self.observed:
+            self.observed = self.observed | {fault}
+            self._note(now, 'alarm %s/%s: %s observed, added to F' % (mechanism, kind, fault))
+        return fault
+
+    def tick(self, now):
+        """Declare lost the sites silent for longer than lost_after. Returns the newly lost."""
+        now = _time(now)
+        newly = []
+        for site in self.alive_sites():
+            since = self.last_heard[site]
+            if now - (self.started_at if since is None else since) > self.lost_after:
+                newly.append(site)
+                self.lost.add(site)
+                self._note(now, 'site %s %s for more than %gs: lost for good'
+                           % (site, 'never heard' if since is None else 'silent', self.lost_after))
+        return newly
+
+    # -- decisions ----------------------------------------------------------------------------------
+    def decide(self, now):
+        """None, or the Decision to adapt (handed out once; none while ADAPTING)."""
+        now = _time(now)
+        self.tick(now)
+        if self.state == MonitorState.ADAPTING:
+            return None
+        if self.state == MonitorState.FAILED:
+            if self._signature() == self.failed_model:
+                return None
+            self._change_state(MonitorState.WATCHING, 'the model changed since the failed adaptation', now)
+        model = self.model()
+        ok, why = change_model.consistent(self.running, model, self.high, self.low)
+        if ok:
+            return None
+        selection = change_model.select(model, self.high, self.low)
+        if selection.mechanisms == self.running:
+            note = '%s is inconsistent (%s) but remains the best choice: %s' % (
+                selection.name, why, selection.reason)
+            if note != self._last_note:   # noted once, not at every tick
+                self._last_note = note
+                self._note(now, note)
+            return None
+        self._last_note = None
+        self.pending = Decision(self.running, selection.mechanisms,
+                                '%s is inconsistent: %s; selected %s: %s' % (
+                                    change_model.composition_name(self.running), why,
+                                    selection.name, selection.reason),
+                                model, selection)
+        self._change_state(MonitorState.ADAPTING, self.pending.reason, now)
+        return self.pending
+
+    def adapted(self, target, now):
+        """The adaptation is done: target runs now."""
+        target = _composition(target, 'target')
+        now = _time(now)
+        if self.state != MonitorState.ADAPTING:
+            raise TransitionError('adapted(%r) while %s: no adaptation was under way' % (target, self.state.name))
+        if target != self.pending.to:
+            self._note(now, 'adapted to %s instead of the decided %s' % (
+                change_model.composition_name(target), change_model.composition_name(self.pending.to)))
+        self.running = target
+        self.pending = None
+        self._change_state(MonitorState.WATCHING, 'running %s' % change_model.composition_name(target), now)
+
+    def adaptation_failed(self, error, now):
+        """The adaptation failed: the old composition still runs; no retry until the model changes."""
+        now = _time(now)
+        if self.state != MonitorState.ADAPTING:
+            raise TransitionError('adaptation_failed(%r) while %s: no adaptation was under way'
+                                  % (error, self.state.name))
+        self.failed_model = self._signature()
+        target = change_model.composition_name(self.pending.to)
+        self.pending = None
+        self._change_state(MonitorState.FAILED, 'adaptation to %s failed: %s; still running %s' % (
+            target, error, change_model.composition_name(self.running)), now)
+
+
+# -- from a decision to a shipped adaptation script ------------------------------------------------
+
+class Transition(collections.namedtuple('Transition', ['script', 'overrides', 'suffix'])):
+    """The script (shipped name) and arguments that carry out a decision; ``suffix`` is the one
+    the replicas' Before and After carry afterwards (a switch starts them under new names)."""
+    __slots__ = ()
+
+
+def transition(from_, to, alive_sites, suffix=''):
+    """The adaptation script for from_ -> to, or raise ConfigError naming what is not supported.
+
+    ``alive_sites``: the replica sites alive (the first one is the primary); ``suffix``: the suffix
+    of the running Before and After (none as deployed).
+    """
+    names = (change_model.composition_name(from_), change_model.composition_name(to))
+    if len(alive_sites) >= 2 and set(names) == {'pbr', 'lfr'}:
+        new = '_' + to[0]
+        return Transition('switch', ['to:=%s' % to[0], 'old:=%s' % suffix, 'new:=%s' % new,
+                                     'primary:=%s' % alive_sites[0], 'backup:=%s' % alive_sites[1]], new)
+    if from_ in (('pbr',), ('lfr',)) and to in (('tr',), ('ad',)):
+        # One site left: the replication shell goes on alone; the mechanism stands in for its Proceed.
+        return Transition('compose', ['mechanism:=%s' % to[0], 'site:=%s' % ','.join(alive_sites)], suffix)
+    if len(from_) == 1 and to[:1] == from_ and len(to) == 2 and to[1] in ('tr', 'ad'):
+        return Transition('compose', ['mechanism:=%s' % to[1], 'site:=%s' % ','.join(alive_sites)], suffix)
+    raise ConfigError('no shipped adaptation for %s -> %s (scripts: switch pbr <-> lfr, compose a '
+                      'tr or ad into a replication)' % names)

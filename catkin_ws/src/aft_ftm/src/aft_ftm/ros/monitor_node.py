@@ -1,0 +1,171 @@
+"""The Monitoring Engine: publishes the change model (F, A, R) and adapts the FTM when the
+running composition is no longer consistent with it (paper section 4.2)."""
+import json
+import queue
+import threading
+import time
+
+import rospy
+from aft_msgs.msg import Alarm, Application, Heartbeat
+from std_msgs.msg import Float64, String
+
+from .. import change_model, config, mechanisms
+from ..adaptation import ScriptError
+from ..change_model import Application as AppModel
+from ..errors import ConfigError
+from ..monitor import MonitorCore, transition
+from .params import param
+
+
+def _names(name, value):
+    if isinstance(value, str):
+        value = [v.strip() for v in value.split(',') if v.strip()]
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError('parameter %s must be a list of names, got %r' % (name, value))
+    return value
+
+
+class MonitorNode(object):
+    """Keeps (F, A, R) up to date, selects the cheapest consistent mechanism from Table I, and when
+    the running one is no longer consistent, runs the matching adaptation script and logs why.
+
+    Parameters:
+        ~faults (list, default [crash]): F as declared by the operator (fault kinds of aft_ftm.mechanisms).
+        ~deterministic, ~state_access (bool, default true): A as declared at start.
+        ~sites (list, default [master, slave]): the replica sites, primary first.
+        ~running (str, default pbr): the composition running at start, e.g. pbr or pbr+tr.
+        ~lost_after (float, 2 s): a site silent this long is lost for good (R: CPUs).
+        ~bandwidth_high, ~bandwidth_low (float, 1e6 and 1e4 B/s): what a link must carry for
+            mechanisms needing high / low bandwidth (Table I).
+        ~mode (prepared | paper, default prepared): the order adaptations run in.
+        ~period (float, 0.1 s): how often the model is checked.
+    Subscribes:
+        <ftm_ns>/heartbeat/<site> (aft_msgs/Heartbeat): R, the sites alive.
+        alarms (aft_msgs/Alarm): faults observed by the mechanisms extend F.
+        ~declare_faults (std_msgs/String, comma-separated kinds): the operator changes F.
+        ~application (aft_msgs/Application): the application declares A (a new version).
+        ~bandwidth (std_msgs/Float64, bytes/s): available bandwidth between the sites, from a link monitor.
+    Publishes:
+        ~model (std_msgs/String, JSON, latched): F, A, R, the running composition and the selection.
+        ~events (std_msgs/String, JSON, latched): each decision, adaptation report or failure.
+    """
+
+    def __init__(self):
+        faults = param('faults', _names, ['crash'])
+        deterministic = param('deterministic', lambda n, v: bool(v), True)
+        state_access = param('state_access', lambda n, v: bool(v), True)
+        self.sites = param('sites', _names, ['master', 'slave'])
+        running = tuple(param('running', config.non_empty_str, 'pbr').split('+'))
+        lost_after = param('lost_after', config.positive_float, 2.0)
+        high = param('bandwidth_high', config.positive_float, 1e6)
+        low = param('bandwidth_low', config.positive_float, 1e4)
+        self.mode = param('mode', lambda n, v: config.one_of(n, v, ('prepared', 'paper')), 'prepared')
+        self.period = param('period', config.positive_float, 0.1)
+        self.ftm_ns = param('ftm_ns', config.non_empty_str, '/ftm')
+        try:
+            for name in running:
+                mechanisms.mechanism(name)
+            self.core = MonitorCore(faults, AppModel(deterministic, state_access), self.sites, running,
+                                    time.monotonic(), lost_after, high, low)
+        except ConfigError as e:
+            raise ConfigError('%s: %s' % (rospy.get_name(), e))
+        self.lock = threading.Lock()
+        self.suffix = ''
+        self.work = queue.Queue()
+        self.engine = None
+
+    def setup(self, timeout):
+        from .adaptation_engine import Engine
+        self.engine = Engine(log=lambda text: rospy.loginfo('%s: %s', rospy.get_name(), text))
+        self.model_pub = rospy.Publisher('~model', String, queue_size=1, latch=True)
+        self.events = rospy.Publisher('~events', String, queue_size=100, latch=True)
+        for site in self.sites:
+            rospy.Subscriber('%s/heartbeat/%s' % (self.ftm_ns, site), Heartbeat, self._on_heartbeat, site)
+        rospy.Subscriber('alarms', Alarm, self._on_alarm)
+        rospy.Subscriber('~declare_faults', String, self._on_faults)
+        rospy.Subscriber('~application', Application, self._on_application)
+        rospy.Subscriber('~bandwidth', Float64, self._on_bandwidth)
+        threading.Thread(target=self._adapter, name='adapter', daemon=True).start()
+        self.timer = rospy.Timer(rospy.Duration(self.period), self._tick)
+        rospy.on_shutdown(self.engine.stop_all)
+        return True
+
+    # -- events -------------------------------------------------------------------------------
+    def _on_heartbeat(self, _msg, site):
+        with self.lock:
+            self.core.heartbeat(site, time.monotonic())
+
+    def _on_alarm(self, msg):
+        with self.lock:
+            fault = self.core.alarm(msg.mechanism, msg.kind, time.monotonic())
+        if fault:
+            rospy.logwarn('%s: %s alarm %s: F now includes %s', rospy.get_name(), msg.mechanism, msg.kind, fault)
+
+    def _on_faults(self, msg):
+        faults = [f.strip() for f in msg.data.split(',') if f.strip()]
+        try:
+            with self.lock:
+                self.core.declare_faults(faults, time.monotonic())
+        except ConfigError as e:
+            rospy.logerr('%s: declaration refused, F unchanged: %s', rospy.get_name(), e)
+
+    def _on_application(self, msg):
+        with self.lock:
+            self.core.declare_application(AppModel(msg.deterministic, msg.state_access), time.monotonic())
+        rospy.logwarn('%s: the application declares deterministic=%s state_access=%s', rospy.get_name(),
+                      msg.deterministic, msg.state_access)
+
+    def _on_bandwidth(self, msg):
+        try:
+            with self.lock:
+                self.core.bandwidth(msg.data, time.monotonic())
+        except ConfigError as e:
+            rospy.logerr('%s: bandwidth measurement refused: %s', rospy.get_name(), e)
+
+    # -- decisions ----------------------------------------------------------------------------
+    def _tick(self, _event):
+        with self.lock:
+            decision = self.core.decide(time.monotonic())
+            model = self.core.model()
+            running = change_model.composition_name(self.core.running)
+            alive = self.core.alive_sites()
+        self.model_pub.publish(String(data=json.dumps({
+            'model': model.to_dict(), 'running': running, 'alive_sites': alive,
+            'selection': change_model.select(model, self.core.high, self.core.low).to_dict()}, sort_keys=True)))
+        if decision is not None:
+            self.work.put((decision, alive))
+
+    def _event(self, record):
+        rospy.logwarn('%s: %s', rospy.get_name(), json.dumps(record, sort_keys=True))
+        self.events.publish(String(data=json.dumps(record, sort_keys=True)))
+
+    def _adapter(self):
+        """Carries out decisions one at a time, off the ROS callback threads."""
+        while not rospy.is_shutdown():
+            try:
+                decision, alive = self.work.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            record = {'event': 'decision', 'decision': decision.to_dict()}
+            try:
+                if not decision.to:
+                    raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
+                                      % decision.selection.reason)
+                move = transition(decision.from_, decision.to, alive, self.suffix)
+                record['script'], record['args'] = move.script, move.overrides
+                self._event(record)
+                from .adapt_command import load_script
+                report = self.engine.run(load_script(move.script, move.overrides), self.mode)
+                ok = report['ok']
+                error = report['error']
+                record = {'event': 'adapted' if ok else 'adaptation_failed', 'report': report}
+            except (ConfigError, ScriptError) as e:
+                ok, error = False, str(e)
+                record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
+            with self.lock:
+                if ok:
+                    self.core.adapted(decision.to, time.monotonic())
+                    self.suffix = move.suffix
+                else:
+                    self.core.adaptation_failed(error, time.monotonic())
+            self._event(record)

@@ -1,0 +1,168 @@
+"""Adaptation scripts without a master: parsing, checking, planning both orders, rollback plans."""
+import glob
+import os
+
+import pytest
+
+from aft_ftm import adaptation
+from aft_ftm.adaptation import ScriptError, Step
+
+SHIPPED = sorted(glob.glob(os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm',
+                                        'adaptations', '*.yaml')))
+
+COMPOSE = """
+name: compose
+kind: compose
+args: {site: [master, slave], mechanism: tr}
+each: site
+suspend: [/$(arg site)/protocol]
+launch:
+  - file: aft_ftm/mechanism.launch
+    args: {ns: /$(arg site)/$(arg mechanism), bind_input: false}
+bind:
+  - {node: /$(arg site)/proceed, port: inp, unbind: true}
+  - {node: /$(arg site)/$(arg mechanism)/protocol, port: requests, topic: /$(arg site)/bfr2prd}
+retire: [/$(arg site)/proceed]
+"""
+
+
+def actions(steps):
+    return [(s.action, s.target) for s in steps]
+
+
+def test_each_repeats_the_entries_that_name_its_argument_per_value():
+    script = adaptation.load(COMPOSE)
+    assert script.suspend == ['/master/protocol', '/slave/protocol']
+    assert [l.args for l in script.launch] == [(('bind_input', 'false'), ('ns', '/master/tr')),
+                                                (('bind_input', 'false'), ('ns', '/slave/tr'))]
+    assert [(b.node, b.activate) for b in script.bind] == [
+        ('/master/proceed', False), ('/slave/proceed', False),
+        ('/master/tr/protocol', True), ('/slave/tr/protocol', True)]
+
+
+def test_command_line_arguments_override_the_defaults_and_a_comma_makes_a_list():
+    overrides = adaptation.parse_overrides(['site:=slave', 'mechanism:=ad'])
+    script = adaptation.load(COMPOSE, overrides)
+    assert script.suspend == ['/slave/protocol']
+    assert script.bind[-1].node == '/slave/ad/protocol'
+    assert adaptation.parse_overrides(['site:=a,b']) == {'site': ['a', 'b']}
+
+
+def test_the_prepared_order_launches_before_the_pause_and_kills_after_it():
+    steps = adaptation.plan(adaptation.load(COMPOSE, {'site': 'master'}), 'prepared')
+    assert actions(steps) == [
+        ('launch', 'aft_ftm/mechanism.launch'), ('wait_launched', '1 launch file(s)'),
+        ('suspend', '/master/protocol'),
+        ('rebind', '/master/proceed'), ('rebind', '/master/tr/protocol'),
+        ('resume', '/master/protocol'),
+        ('kill', '/master/proceed')]
+    first, last = adaptation.pause_bounds(steps)
+    assert {s.action for s in steps[first:last + 1]} == {'suspend', 'rebind', 'resume'}
+
+
+def test_the_paper_order_kills_and_launches_in_the_pause_and_does_not_rebind_a_killed_node():
+    steps = adaptation.plan(adaptation.load(COMPOSE, {'site': 'master'}), 'paper')
+    assert actions(steps) == [
+        ('suspend', '/master/protocol'), ('kill', '/master/proceed'),
+        ('launch', 'aft_ftm/mechanism.launch'), ('wait_launched', '1 launch file(s)'),
+        ('rebind', '/master/tr/protocol'), ('resume', '/master/protocol')]
+
+
+def test_a_retired_node_that_was_suspended_is_not_resumed_in_the_paper_order():
+    text = COMPOSE.replace('suspend: [/$(arg site)/protocol]', 'suspend: [/$(arg site)/protocol, /$(arg site)/proceed]')
+    steps = adaptation.plan(adaptation.load(text, {'site': 'master'}), 'paper')
+    assert ('resume', '/master/proceed') not in actions(steps)
+    assert ('resume', '/master/proceed') in actions(adaptation.plan(adaptation.load(text, {'site': 'master'}),
+                                                                    'prepared'))
+
+
+def test_steps_of_one_action_are_grouped_to_run_together_but_suspensions_stay_in_order():
+    steps = adaptation.plan(adaptation.load(COMPOSE), 'prepared')
+    shapes = [(g[0].action, len(g)) for g in adaptation.groups(steps)]
+    assert shapes == [('launch', 2), ('wait_launched', 1), ('suspend', 1), ('suspend', 1), ('rebind', 4),
+                      ('resume', 2), ('kill', 2)]
+
+
+BAD = [
+    ('name: x\nkind: compose\nsuspend: [/a/protocol]\nsuspnd: []\n', 'unknown key suspnd'),
+    ('name: x\nkind: shuffle\nsuspend: [/a/p]\n', '"kind" must be one of update, switch, compose'),
+    ('kind: compose\nsuspend: [/a/p]\n', 'missing "name"'),
+    ('name: x\nkind: compose\n', 'changes nothing'),
+    ('name: x\nkind: compose\nretire: [/a/proceed]\n', 'needs a suspension first'),
+    ('name: x\nkind: compose\nsuspend: [a/protocol]\n', 'absolute ROS name'),
+    ('name: x\nkind: compose\nsuspend: [/$(arg site)/p]\n', 'unknown argument $(arg site)'),
+    ('name: x\nkind: compose\nsuspend: [/a/p]\nlaunch: [{file: tr.xml}]\n', 'must name a .launch file'),
+    ('name: x\nkind: compose\nsuspend: [/a/p]\nbind: [{node: /a/p, port: inp}]\n', 'missing "topic"'),
+    ('name: x\nkind: compose\nsuspend: [/a/p]\nbind: [{node: /a/p, port: inp, topic: /t, unbind: true}]\n',
+     'not both'),
+    ('name: x\nkind: compose\nsuspend: [/a/p]\nbind: [{node: /a/p, port: inp, topic: /t, direction: sideways}]\n',
+     '"direction" must be subscribe or publish'),
+    ('name: x\nkind: compose\nsuspend: [/a/p, /a/p]\n', 'names /a/p more than once'),
+    ('name: x\nkind: compose\nargs: {s: [a]}\neach: t\nsuspend: [/a/p]\n', '"each" names \'t\''),
+    ('name: x\nkind: compose\nsuspend: [/a/p]\npromote: [{recovery: /a/recovery, nodes: []}]\n',
+     '"nodes" must be a non-empty list'),
+    ('name: [unclosed\n', 'not valid YAML'),
+    ('- just\n- a list\n', 'must be a mapping'),
+]
+
+
+@pytest.mark.parametrize('text,message', BAD, ids=[m for _, m in BAD])
+def test_a_malformed_script_is_rejected_with_a_message_naming_the_problem(text, message):
+    with pytest.raises(ScriptError) as error:
+        adaptation.load(text, source='bad.yaml')
+    assert message in str(error.value) and 'bad.yaml' in str(error.value)
+
+
+def test_an_unknown_command_line_argument_is_rejected():
+    with pytest.raises(ScriptError, match="unknown argument 'sites'"):
+        adaptation.load(COMPOSE, {'sites': 'master'})
+    with pytest.raises(ScriptError, match='name:=value'):
+        adaptation.parse_overrides(['site=master'])
+
+
+def test_an_unknown_mode_is_rejected():
+    with pytest.raises(ScriptError, match='mode must be one of prepared, paper'):
+        adaptation.plan(adaptation.load(COMPOSE), 'fast')
+
+
+def test_rollback_undoes_in_reverse_order_and_resumes_every_suspended_node_last():
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    steps = adaptation.plan(script, 'prepared')
+    launch, _, suspend, unbind, bind = steps[:5]
+    done = [(launch, 'site'), (steps[1], 1), (suspend, 0), (unbind, ('/master/bfr2prd', '')), (bind, ('', ''))]
+    undo = adaptation.undo_plan(done)
+    assert actions(undo) == [('restore_binding', '/master/tr/protocol'), ('restore_binding', '/master/proceed'),
+                             ('stop_launch', 'aft_ftm/mechanism.launch'), ('resume', '/master/protocol')]
+    assert undo[1].detail == (unbind.detail, ('/master/bfr2prd', ''))
+
+
+def test_rollback_of_a_kill_starts_the_node_again_and_of_a_promotion_restores_the_list():
+    kill = Step('kill', '/master/proceed', None)
+    promote = Step('promote', '/master/recovery', None)
+    undo = adaptation.undo_plan([(Step('suspend', '/master/protocol', None), 0), (kill, {'pid': 7}),
+                                 (promote, ['/master/after'])])
+    assert actions(undo) == [('restore_promote', '/master/recovery'), ('respawn', '/master/proceed'),
+                             ('resume', '/master/protocol')]
+    assert undo[0].detail == ['/master/after'] and undo[1].detail == {'pid': 7}
+
+
+def test_nothing_done_means_nothing_to_undo():
+    assert adaptation.undo_plan([]) == []
+
+
+@pytest.mark.parametrize('path', SHIPPED, ids=os.path.basename)
+def test_every_shipped_script_loads_and_plans_in_both_orders(path):
+    with open(path) as f:
+        script = adaptation.load(f.read(), source=path)
+    for mode in adaptation.MODES:
+        steps = adaptation.plan(script, mode)
+        assert adaptation.pause_bounds(steps) is not None
+        assert {s.action for s in steps} >= {'suspend', 'resume', 'launch', 'rebind', 'kill'}
+
+
+def test_the_three_kinds_of_adaptation_ship():
+    kinds = set()
+    for path in SHIPPED:
+        with open(path) as f:
+            kinds.add(adaptation.load(f.read()).kind)
+    assert kinds == set(adaptation.KINDS)
