@@ -125,14 +125,14 @@ def test_an_unknown_mode_is_rejected():
         adaptation.plan(adaptation.load(COMPOSE), 'fast')
 
 
-def test_rollback_undoes_in_reverse_order_and_resumes_every_suspended_node_last():
+def test_rollback_undoes_in_reverse_order_resumes_then_stops_what_it_launched():
     script = adaptation.load(COMPOSE, {'site': 'master'})
     steps = adaptation.plan(script, 'prepared')
     launch, _, suspend, unbind, bind = steps[:5]
     done = [(launch, 'site'), (steps[1], 1), (suspend, 0), (unbind, ('/master/bfr2prd', '')), (bind, ('', ''))]
     undo = adaptation.undo_plan(done)
     assert actions(undo) == [('restore_binding', '/master/tr/protocol'), ('restore_binding', '/master/proceed'),
-                             ('stop_launch', 'aft_ftm/mechanism.launch'), ('resume', '/master/protocol')]
+                             ('resume', '/master/protocol'), ('stop_launch', 'aft_ftm/mechanism.launch')]
     assert undo[1].detail == (unbind.detail, ('/master/bfr2prd', ''))
 
 

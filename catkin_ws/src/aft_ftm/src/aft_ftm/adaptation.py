@@ -301,26 +301,21 @@ def pause_bounds(steps):
 def undo_plan(done):
     """What to do, in order, to take back the steps done (a list of (Step, undo info)).
 
-    Every suspended node is resumed last, whatever else happened, so that no client waits on a
-    half-adapted system: launched nodes are stopped, killed ones started again from their recorded
-    command line, rebinds and promotions restored to what they replaced.
+    Bindings and Recovery's list are restored and killed nodes started again (from their recorded
+    command line) in reverse order; then every suspended node is resumed, so that clients wait no
+    longer than that; the nodes launched, now bound to nothing, are stopped last.
     """
-    undo = []
-    suspended = []
+    undo, stops, suspended = [], [], []
     for step, info in reversed(done):
         if step.action == 'suspend':
             suspended.append(step.target)
-        elif step.action == 'resume':
-            # A node resumed before the failure is suspended again only if something after it is
-            # undone: simpler and safe to leave it running (nothing of its own changed).
-            continue
         elif step.action == 'launch':
-            undo.append(Step('stop_launch', step.target, info))
+            stops.append(Step('stop_launch', step.target, info))
         elif step.action == 'kill':
             undo.append(Step('respawn', step.target, info))
         elif step.action == 'rebind':
             undo.append(Step('restore_binding', step.target, (step.detail, info)))
         elif step.action == 'promote':
             undo.append(Step('restore_promote', step.target, info))
-    undo += [Step('resume', node, None) for node in suspended]
-    return undo
+        # A resume before the failure needs no undo: that node runs as before, nothing of its own changed.
+    return undo + [Step('resume', node, None) for node in suspended] + stops

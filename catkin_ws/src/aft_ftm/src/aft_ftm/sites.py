@@ -94,13 +94,28 @@ class Site(object):
         self._log = None
         self.powered_off_at = None   # wall-clock time at which power_off() stopped the whole site
 
-    def start(self):
+    def start(self, niceness=0):
+        """Start the command; with niceness > 0 it (and what it starts) runs at a lower priority."""
         if self.log_path:
             self._log = open(self.log_path, 'ab')
         out = self._log if self._log else subprocess.DEVNULL
         self.proc = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True)
+                                     stdin=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=(lambda: os.nice(niceness)) if niceness else None)
         return self
+
+    def set_niceness(self, niceness):
+        """Give every process of the site this niceness. Returns the processes that refused
+        (lowering it needs privileges)."""
+        refused = []
+        for proc in process_tree(self.pid) if self.alive() else []:
+            try:
+                proc.nice(niceness)
+            except psutil.AccessDenied:
+                refused.append(proc.pid)
+            except psutil.NoSuchProcess:
+                pass
+        return refused
 
     @property
     def pid(self):

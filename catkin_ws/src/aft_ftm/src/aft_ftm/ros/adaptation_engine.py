@@ -62,12 +62,13 @@ class Engine(object):
     """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints)."""
 
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
-                 connect_timeout=2.0, log_dir=None):
+                 connect_timeout=2.0, log_dir=None, launch_niceness=10):
         self.log = log or (lambda text: rospy.loginfo(text))
         self.quiesce_timeout = quiesce_timeout
         self.launch_timeout = launch_timeout
         self.service_timeout = service_timeout
         self.connect_timeout = connect_timeout
+        self.launch_niceness = launch_niceness
         self.log_dir = log_dir or os.path.join(rospkg.get_log_dir(), 'aft_adaptations')
         self.sites = []            # roslaunch processes started by this engine and still running
         self.respawned = []        # nodes started again from their command line by a rollback
@@ -298,7 +299,9 @@ class Engine(object):
         log = os.path.join(self.log_dir, '%s_%d.log' % (os.path.basename(path)[:-7], int(time.time() * 1e3)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [path]
-        site = Site('adaptation', argv, log_path=log).start()
+        # Started at a low priority: the imports and set-up of new nodes (a second of CPU each)
+        # must not starve the running replicas, whose crash detectors allow 30 ms of silence.
+        site = Site('adaptation', argv, log_path=log).start(niceness=self.launch_niceness)
         site.nodes = names
         self.sites.append(site)
         self._sites_of_run.append(site)
@@ -322,6 +325,12 @@ class Engine(object):
                 raise StepError('not set up within %.0f s: %s (see %s)' % (
                     self.launch_timeout, ', '.join(n for _, n in pending), pending[0][0].log_path))
             time.sleep(0.02)
+        refused = []
+        for site in self._sites_of_run:   # set up: back to the priority of the nodes they join
+            refused += site.set_niceness(0)
+        if refused:
+            self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
+                     % (self.launch_niceness, refused))
         return len(self._launched_names)
 
     def _wired(self, node):

@@ -75,8 +75,13 @@ class CrashDetectorNode(object):
             now = time.monotonic()
             if now >= next_beat:
                 self.seq += 1
-                self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
-                                                          seq=self.seq, stamp=rospy.Time.now()))
+                try:
+                    self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
+                                                              seq=self.seq, stamp=rospy.Time.now()))
+                except rospy.ROSException:
+                    if rospy.is_shutdown():
+                        return   # the node is going down: its topics are closed
+                    raise
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
             with self.lock:
                 verdict = self.monitor.check(now)

@@ -73,6 +73,7 @@ class RecoveryNode(object):
         self.learn_period = param('learn_period', config.positive_float, 2.0)
         self.lock = threading.Lock()
         self.recovered = False
+        self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
 
     def setup(self, timeout):
         names = [n + '/set_role' for n in self.promote] + (
@@ -192,6 +193,9 @@ class RecoveryNode(object):
             self.last_seq = last_seq
             return 'last checkpoint %d' % last_seq
         if step == Step.PROMOTE_PROTOCOL:
+            if self.last_seq is None:
+                # Never a Protocol serving clients without its After fenced against the old primary.
+                raise RuntimeError('not promoted: the After was not promoted (see PROMOTE_AFTER)')
             result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq)
             if not result.success:
                 raise RuntimeError('Protocol refused: %s' % result.message)
