@@ -24,7 +24,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation
 from ..adaptation import ScriptError, StepError
 from ..sites import Site, terminate_tree, wait_dead, wait_until
-from .deployment import roslaunch
+from .deployment import roslaunch, wired
 from .fencing import node_api
 
 
@@ -183,11 +183,12 @@ class Engine(object):
                 self.log('FAILED: %s: rolling back' % report['error'])
                 report['rollback'] = self._roll_back(done)
                 report['rolled_back'] = True
+                pause_end = self._resumed_at   # clients wait until the rollback resumed them
                 break
             if group[-1].action == 'resume' and not any(s.action == 'resume' for s in steps[steps.index(group[-1]) + 1:]):
                 pause_end = time.monotonic()
         if pause_start is not None and pause_end is None:
-            pause_end = time.monotonic()   # rolled back: the pause lasted until everything resumed
+            pause_end = time.monotonic()
         report['pause_s'] = (pause_end - pause_start) if pause_start is not None else 0.0
         report['duration_s'] = time.monotonic() - t0
         report['nodes_touched'] = script.nodes_touched(self._launched_names)
@@ -318,7 +319,7 @@ class Engine(object):
                     raise StepError('the roslaunch of %s exited (a node failed to start): see %s'
                                     % (', '.join(site.nodes), site.log_path))
             _, services = self._graph()
-            pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and self._wired(n))]
+            pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and wired(n))]
             if not pending:
                 break
             if time.monotonic() > deadline:
@@ -332,28 +333,6 @@ class Engine(object):
             self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
                      % (self.launch_niceness, refused))
         return len(self._launched_names)
-
-    def _wired(self, node):
-        """True when node's publishers are connected to every subscriber of their topics."""
-        try:
-            pubs, subs, _ = self.master.getSystemState()
-            code, _, bus = node_api(self.master.lookupNode(node), 1.0).getBusInfo(rospy.get_name())
-        except Exception:
-            return False
-        if code != 1:
-            return False
-        connected = {}
-        for info in bus:
-            # [id, destination, direction, transport, topic, connected, ...]
-            if info[2] == 'o':
-                connected.setdefault(info[4], set()).add(info[1])
-        subscribers = dict((t, set(n)) for t, n in subs)
-        for topic, publishers in pubs:
-            if node in publishers:
-                wanted = subscribers.get(topic, set()) - {node}
-                if len(connected.get(topic, ())) < len(wanted):
-                    return False
-        return True
 
     def _kill(self, node):
         """rosnode kill, after recording how to start the node again (for a rollback)."""
@@ -378,7 +357,10 @@ class Engine(object):
     # -- rollback -------------------------------------------------------------------------------
     def _roll_back(self, done):
         results = []
+        self._resumed_at = None
         for step in adaptation.undo_plan(done):
+            if step.action == 'stop_launch' and self._resumed_at is None:
+                self._resumed_at = time.monotonic()
             try:
                 detail = self._undo(step)
                 ok = True

@@ -44,13 +44,14 @@ class BankServerNode(StateManager):
         self.account.set_state(data)
 
 
-def drive(call, count, checker, on_reply=None, pause=0.0):
-    """Send count operations through call(op, amount) -> (balance, count, digest), checking each.
+def drive(call, count, checker, on_reply=None, pause=0.0, first=0):
+    """Send operations first .. first+count-1 through call(op, amount) -> (balance, count, digest),
+    checking each.
 
     Returns a list of (index, sent_wall, replied_wall, ok) records; failed calls count as errors.
     """
     records = []
-    for i in range(count):
+    for i in range(first, first + count):
         op, amount = operation(i)
         expected = checker.expect(op, amount)
         sent = time.time()
@@ -78,7 +79,7 @@ def account_caller(proxy):
     return call
 
 
-def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003):
+def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003, first=0):
     """drive() count operations; once fault_after replies came back, after a random delay of up to
     max_delay (so that the fault lands anywhere inside the next request), run fault() in another
     thread. fault() returns (processes affected, wall-clock time of the fault).
@@ -96,7 +97,8 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
 
     thread = threading.Thread(target=inject, name='fault', daemon=True)
     thread.start()
-    records = drive(call, count, checker, on_reply=lambda i: reached.set() if i + 1 >= fault_after else None)
+    records = drive(call, count, checker, first=first,
+                    on_reply=lambda i: reached.set() if i + 1 - first >= fault_after else None)
     thread.join(10)
     if 'wall' not in injected:
         raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))

@@ -343,7 +343,6 @@ def run_config(child_argv, work_dir, name, payload_bytes, queue_size, stop_s, ra
     from ..sites import wait_until
     topic = '/bench_buffering/%s' % name
     out_path = os.path.join(work_dir, name + '.json')
-    pad = payload_text(0, payload_bytes)   # same size for every message
     period = 1.0 / rate
     pub = rospy.Publisher(topic, String, queue_size=queue_size)
     child = SubscriberProcess(child_argv + ['--topic', topic, '--queue-size', str(queue_size), '--out', out_path,

@@ -47,6 +47,27 @@ def missing_from_graph(services=(), subscriptions=(), caller='/aft_deployment'):
             ['%s subscribed by %s' % s for s in subscriptions if s not in have_subs])
 
 
+def wired(node, caller='/aft_deployment'):
+    """True when every publisher of node is connected to every subscriber the master knows for its
+    topic (a subscription registered is not yet a connection: the subscriber connects afterwards)."""
+    from .fencing import node_api
+    try:
+        master = rosgraph.Master(caller)
+        pubs, subs, _ = master.getSystemState()
+        code, _, bus = node_api(master.lookupNode(node), 1.0).getBusInfo(caller)
+    except Exception:   # not up yet, or going away
+        return False
+    if code != 1:
+        return False
+    connected = {}
+    for info in bus:   # [id, destination, direction, transport, topic, connected, ...]
+        if info[2] == 'o':
+            connected.setdefault(info[4], set()).add(info[1])
+    subscribers = {t: set(n) for t, n in subs}
+    return all(len(connected.get(topic, ())) >= len(subscribers.get(topic, set()) - {node})
+               for topic, publishers in pubs if node in publishers)
+
+
 def wait_for_graph(services=(), subscriptions=(), timeout=60.0):
     """Wait until everything is registered; returns what is still missing (empty on success)."""
     missing = wait_until(lambda: not missing_from_graph(services, subscriptions), timeout, 0.05)
@@ -154,6 +175,10 @@ class PbrDeployment(object):
         if missing:
             raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
                                                                                       self.log_dir))
+        # Registered is not connected: the first reply must find the Proxy connected.
+        entry = '/master/%s' % ('sec_gate' if self.sec else 'protocol')
+        if not wait_until(lambda: wired(entry), max(5.0, timeout - (time.monotonic() - started)), 0.05):
+            raise RuntimeError('%s is not connected to its subscribers (logs in %s)' % (entry, self.log_dir))
         return time.monotonic() - started
 
     def stop(self):

@@ -54,6 +54,10 @@ class TrBeforeNode(BeforeNode):
             rospy.logerr('%s: the server state manager (%s) is not available', self.name,
                          rospy.resolve_name('get_state'))
             return False
+        try:
+            self.get_state()   # read-only: opens the persistent connection now, not on the first request
+        except (rospy.ServiceException, rospy.ROSException):
+            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         rospy.Service('~repeat', Repeat, self._on_repeat)
         return super(TrBeforeNode, self).setup(timeout)
 
@@ -118,6 +122,8 @@ class TrAfterNode(AfterNode):
             rospy.logerr('%s: TR Before\'s repeat service (%s) is not available', self.name,
                          rospy.resolve_name('repeat'))
             return False
+        # Forgetting a request Before never saw changes nothing: it opens the persistent connection now.
+        self._tell_before(Reply(origin='', id=0), Repeat._request_class.FORGET)
         return super(TrAfterNode, self).setup(timeout)
 
     def _tell_before(self, reply, action):
