@@ -76,11 +76,18 @@ def test_a_retired_node_that_was_suspended_is_not_resumed_in_the_paper_order():
                                                                     'prepared'))
 
 
-def test_steps_of_one_action_are_grouped_to_run_together_but_suspensions_stay_in_order():
+def test_steps_of_one_action_are_grouped_to_run_together_and_so_are_the_copies_of_one_suspension():
     steps = adaptation.plan(adaptation.load(COMPOSE), 'prepared')
     shapes = [(g[0].action, len(g)) for g in adaptation.groups(steps)]
-    assert shapes == [('launch', 2), ('wait_launched', 1), ('suspend', 1), ('suspend', 1), ('rebind', 4),
-                      ('resume', 2), ('kill', 2)]
+    assert shapes == [('launch', 2), ('wait_launched', 1), ('suspend', 2), ('rebind', 4), ('resume', 2),
+                      ('kill', 2)]
+
+
+def test_suspensions_named_by_different_entries_follow_the_scripts_order():
+    text = COMPOSE.replace('suspend: [/$(arg site)/protocol]', 'suspend: [/master/protocol, /slave/after]')
+    steps = adaptation.plan(adaptation.load(text), 'prepared')
+    suspends = [[s.target for s in g] for g in adaptation.groups(steps) if g[0].action == 'suspend']
+    assert suspends == [['/master/protocol'], ['/slave/after']]
 
 
 BAD = [
@@ -166,3 +173,24 @@ def test_the_three_kinds_of_adaptation_ship():
         with open(path) as f:
             kinds.add(adaptation.load(f.read()).kind)
     assert kinds == set(adaptation.KINDS)
+
+
+def test_two_steps_on_one_node_are_not_run_together():
+    text = COMPOSE.replace("  - {node: /$(arg site)/proceed, port: inp, unbind: true}",
+                           "  - {node: /$(arg site)/proceed, port: inp, unbind: true}\n"
+                           "  - {node: /$(arg site)/proceed, port: out, unbind: true, direction: publish}")
+    steps = adaptation.plan(adaptation.load(text, {'site': 'master'}), 'prepared')
+    rebinds = [[s.target for s in g] for g in adaptation.groups(steps) if g[0].action == 'rebind']
+    assert rebinds == [['/master/proceed'], ['/master/proceed', '/master/tr/protocol']]
+
+
+def test_each_repeats_an_entry_however_long_its_values():
+    long_value = 'x' * 200
+    text = COMPOSE.replace('bind_input: false}', 'bind_input: false, note: %s}' % long_value)
+    script = adaptation.load(text)
+    assert [dict(l.args)['ns'] for l in script.launch] == ['/master/tr', '/slave/tr']
+
+
+def test_a_failed_suspension_is_resumed_by_the_rollback():
+    suspend = Step('suspend', '/master/protocol', None)
+    assert actions(adaptation.undo_plan([(suspend, None)])) == [('resume', '/master/protocol')]

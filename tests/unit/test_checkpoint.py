@@ -91,3 +91,35 @@ def test_late_refusal_of_an_acknowledged_checkpoint_makes_the_primary_go_alone()
     sender.hold(reply(rid=2), now=0)
     released, lost = sender.on_ack(1, ok=False)
     assert lost and [r.id for r in released] == [2] and sender.role == Role.ALONE
+
+
+# -- an adaptation replaces an After: the backup follows the new one from its first checkpoint -------
+
+@pytest.mark.parametrize('seq,sender,first_seq,replaces,expected', [
+    (1000, '/master/after_v2', 1000, '/master/after', Decision.APPLY),     # declared replacement, from its start
+    (1001, '/master/after_v2', 1000, '/master/after', Decision.FENCED),    # not from its first checkpoint
+    (1000, '/master/after_v2', 1000, '/master/other', Decision.FENCED),    # replaces someone else
+    (1000, '/master/after_v2', 1000, '', Decision.FENCED),                 # declares nothing
+    (3, '/master/after_v2', 3, '/master/after', Decision.FENCED),          # numbers below what we hold
+    (1000, '/master/after', 1000, '', Decision.APPLY),                     # the same After started again
+    (1001, '/master/after', 1000, '', Decision.GAP),                       # ... but not from its start
+])
+def test_a_replacement_after_is_followed_only_from_its_first_checkpoint(seq, sender, first_seq, replaces,
+                                                                          expected):
+    receiver = CheckpointReceiver()
+    receiver.accept(1, '/master/after')
+    receiver.accept(4, '/master/after')
+    assert receiver.decide(seq, sender, first_seq, replaces) == expected
+
+
+def test_a_fresh_backup_starts_at_the_senders_first_checkpoint_never_in_the_middle():
+    assert CheckpointReceiver().decide(1000, '/master/after', 1000) == Decision.APPLY
+    assert CheckpointReceiver().decide(1001, '/master/after', 1000) == Decision.GAP
+
+
+def test_a_replacement_sender_numbers_above_the_one_it_replaces():
+    old = CheckpointSender(Role.PRIMARY, first_seq=1000)
+    for i in range(5):
+        old.hold(reply(rid=i), now=0)
+    new = CheckpointSender(Role.PRIMARY, first_seq=2000)
+    assert new.hold(reply(rid=9), now=0) == 2000 > old.seq

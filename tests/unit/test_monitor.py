@@ -6,7 +6,7 @@ import pytest
 from aft_ftm.change_model import Application, select
 from aft_ftm.errors import ConfigError
 from aft_ftm.mechanisms import CRASH, SAFETY_VIOLATION, TRANSIENT_VALUE
-from aft_ftm.monitor import MonitorCore, MonitorState, TransitionError
+from aft_ftm.monitor import MonitorCore, MonitorState, TransitionError, transition
 from fakes import FakeClock
 
 SITES = ['master', 'slave']
@@ -213,3 +213,30 @@ def test_history_records_the_adaptation():
     text = [t for _, t in core.history]
     assert any('WATCHING -> ADAPTING' in t for t in text) and any('ADAPTING -> WATCHING' in t for t in text)
     assert all(now == clock.now for now, _ in core.history)
+
+
+# -- from a decision to a shipped script -----------------------------------------------------------
+
+
+@pytest.mark.parametrize('from_,to,alive,suffix,script,overrides,new_suffix', [
+    (('pbr',), ('lfr',), ['master', 'slave'], '', 'switch',
+     ['to:=lfr', 'old:=', 'new:=_lfr', 'primary:=master', 'backup:=slave'], '_lfr'),
+    (('lfr',), ('pbr',), ['master', 'slave'], '_lfr', 'switch',
+     ['to:=pbr', 'old:=_lfr', 'new:=_pbr', 'primary:=master', 'backup:=slave'], '_pbr'),
+    (('pbr',), ('tr',), ['slave'], '', 'compose', ['mechanism:=tr', 'site:=slave'], ''),
+    (('pbr',), ('pbr', 'ad'), ['master', 'slave'], '_pbr', 'compose', ['mechanism:=ad', 'site:=master,slave'],
+     '_pbr'),
+])
+def test_each_supported_decision_maps_to_a_shipped_script(from_, to, alive, suffix, script, overrides, new_suffix):
+    move = transition(from_, to, alive, suffix)
+    assert (move.script, move.overrides, move.suffix) == (script, overrides, new_suffix)
+
+
+@pytest.mark.parametrize('from_,to,alive', [
+    (('pbr',), ('lfr', 'tr'), ['master', 'slave']),   # a switch and a composition at once
+    (('pbr',), ('lfr',), ['master']),                  # a switch needs both replicas
+    (('tr',), ('pbr',), ['master', 'slave']),          # adding a replica needs a state transfer
+])
+def test_a_decision_without_a_shipped_script_is_refused_naming_it(from_, to, alive):
+    with pytest.raises(ConfigError, match='no shipped adaptation for'):
+        transition(from_, to, alive)

@@ -149,3 +149,13 @@ def test_a_repeated_execution_is_not_taken_for_a_resend():
     core.on_result(reply(rid=1), 0)
     assert kinds(core.on_request(again, 0)) == [('Forward', 1)]
     assert core.stats.executed == 2
+
+
+def test_stored_checkpoint_numbers_are_counted_per_sending_after():
+    """An adaptation replaced the primary's After: take-over waits for the new one's numbers."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1), seq=5000, sender='/master/after')
+    core.on_stored(reply(rid=2), seq=5001, sender='/master/after')
+    core.on_stored(reply(rid=3), seq=40, sender='/master/after_lfr')
+    assert core.last_stored_seq == 40
+    assert core.can_take_over(40) and not core.can_take_over(41)

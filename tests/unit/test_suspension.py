@@ -1,5 +1,6 @@
 """The gate that suspends a node: quiescence first, then every held message delivered in order."""
 import threading
+import time
 
 import pytest
 
@@ -37,6 +38,8 @@ def test_suspension_waits_until_nothing_is_inside_while_results_still_flow():
     closed = []
     thread = threading.Thread(target=lambda: closed.append(node.gate.close(['inp'], node.quiescent, 5.0)))
     thread.start()
+    while node.gate.state == GateState.OPEN:   # the suspension has begun
+        time.sleep(0.001)
     node.gate.deliver('inp', 2)            # arrives while suspending: held
     assert node.handled == [1] and thread.is_alive()
     node.gate.deliver('results', 1)        # not held: what is inside can finish

@@ -149,7 +149,7 @@ def load(text, overrides=None, source='script'):
         out = []
         for i, entry in enumerate(entries):
             where = '%s: %s[%d]' % (source, section, i)
-            repeat = each is not None and ('$(arg %s)' % each) in yaml.safe_dump(entry)
+            repeat = each is not None and _mentions(entry, '$(arg %s)' % each)
             for value in (values if repeat else [None]):
                 bound = dict(args)
                 if repeat:
@@ -157,7 +157,11 @@ def load(text, overrides=None, source='script'):
                 out.append((where, _substitute(entry, bound, where)))
         return out
 
-    suspend = [_node(w, n) for w, n in expand('suspend', data.get('suspend'))]
+    expanded = expand('suspend', data.get('suspend'))
+    suspend = [_node(w, n) for w, n in expanded]
+    # The copies of one entry (one per value of "each": different sites) may be suspended together;
+    # different entries are suspended in the script's order.
+    suspend_entry = {n: w for (w, _), n in zip(expanded, suspend)}
     retire = [_node(w, n) for w, n in expand('retire', data.get('retire'))]
     launch = [_launch(w, e) for w, e in expand('launch', data.get('launch'))]
     bind = [_bind(w, e) for w, e in expand('bind', data.get('bind'))]
@@ -170,7 +174,20 @@ def load(text, overrides=None, source='script'):
         duplicates = sorted({n for n in values_ if values_.count(n) > 1})
         if duplicates:
             _fail(source, '"%s" names %s more than once' % (where, ', '.join(duplicates)))
-    return Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args)
+    script = Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args)
+    script.suspend_entry = suspend_entry
+    return script
+
+
+def _mentions(value, text):
+    """True if text occurs in any string of value (nested lists and mappings)."""
+    if isinstance(value, str):
+        return text in value
+    if isinstance(value, list):
+        return any(_mentions(v, text) for v in value)
+    if isinstance(value, dict):
+        return any(_mentions(v, text) for v in value.values())
+    return False
 
 
 def _substitute(value, args, where):
@@ -260,7 +277,8 @@ def plan(script, mode):
         raise ScriptError('mode must be one of %s, got %r' % (', '.join(MODES), mode))
     launch = [Step('launch', l.file, l) for l in script.launch]
     wait = [Step('wait_launched', '%d launch file(s)' % len(script.launch), None)] if script.launch else []
-    suspend = [Step('suspend', n, None) for n in script.suspend]
+    entry = getattr(script, 'suspend_entry', {})
+    suspend = [Step('suspend', n, entry.get(n, n)) for n in script.suspend]
     resume = [Step('resume', n, None) for n in reversed(script.suspend)]
     kill = [Step('kill', n, None) for n in script.retire]
     promote = [Step('promote', p.recovery, p) for p in script.promote]
@@ -277,11 +295,15 @@ PARALLEL = ('launch', 'rebind', 'promote', 'resume', 'kill')
 
 
 def groups(steps):
-    """Consecutive steps of one action that can run together (all but suspensions, whose order
-    the script gives), as lists, in order."""
+    """Consecutive steps of one action that can run together, as lists, in order. Suspensions
+    follow the script's order, except the copies of one entry (one per site); two steps on one
+    node are not run together (its services answer one call at a time)."""
     out = []
     for step in steps:
-        if out and step.action == out[-1][0].action and step.action in PARALLEL:
+        together = step.action in PARALLEL or (step.action == 'suspend' and step.detail == out[-1][0].detail
+                                                if out else False)
+        if out and step.action == out[-1][0].action and together and \
+                (step.action == 'launch' or step.target not in {s.target for s in out[-1]}):
             out[-1].append(step)
         else:
             out.append([step])

@@ -108,10 +108,13 @@ class CheckpointReceiver(object):
         if self.sender is None:
             # Nothing followed yet: start at the sender's first checkpoint, never in the middle.
             return Decision.APPLY if seq == first_seq else Decision.GAP
+        if replaces and replaces == self.sender and seq == first_seq and seq > self.last_seq:
+            # The After an adaptation put in place of the one followed, from its first checkpoint.
+            return Decision.APPLY
+        if sender == self.sender and seq == first_seq and seq > self.last_seq:
+            # The same After started again (a rollback respawned it): it numbers from the clock.
+            return Decision.APPLY
         if sender != self.sender:
-            # Only the After that an adaptation put in place of the one followed, from its start.
-            if replaces == self.sender and seq == first_seq and seq > self.last_seq:
-                return Decision.APPLY
             return Decision.FENCED
         if seq <= self.last_seq:
             return Decision.REACK

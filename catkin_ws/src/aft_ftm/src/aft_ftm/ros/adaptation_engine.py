@@ -10,6 +10,7 @@ reverse order and resumes everything it suspended, and reports it.
 Uses the master API, the nodes' services and XML-RPC, psutil and roslaunch processes; it needs
 an initialised rospy node (the ``adapt`` command and the monitor are ones).
 """
+import itertools
 import os
 import threading
 import time
@@ -25,7 +26,7 @@ from .. import adaptation
 from ..adaptation import ScriptError, StepError
 from ..sites import Site, terminate_tree, wait_dead, wait_until
 from .deployment import roslaunch, wired
-from .fencing import node_api
+from .fencing import is_local, node_api
 
 
 def resolve_launch_file(spec):
@@ -71,6 +72,7 @@ class Engine(object):
         self.launch_niceness = launch_niceness
         self.log_dir = log_dir or os.path.join(rospkg.get_log_dir(), 'aft_adaptations')
         self.sites = []            # roslaunch processes started by this engine and still running
+        self._launch_count = itertools.count()
         self.respawned = []        # nodes started again from their command line by a rollback
 
     # -- the graph ----------------------------------------------------------------------------
@@ -125,10 +127,20 @@ class Engine(object):
         for node in script.retire:
             if node not in nodes:
                 raise ScriptError('unknown node %s (to retire): it is not running' % node)
+            try:
+                uri = self.master.lookupNode(node)
+            except Exception as e:
+                raise ScriptError('node %s (to retire) cannot be looked up: %s' % (node, e))
+            if not is_local(uri):
+                raise ScriptError('node %s (to retire) runs on another host (%s): the engine kills, and '
+                                  'restarts on a rollback, only nodes of its own host' % (node, uri))
         for bind in script.bind:
             need(bind.node, 'rebind', 'to rebind its port %s' % bind.port)
             if bind.node not in launched:
-                self._rebind(bind, dry_run=True)
+                try:
+                    self._rebind(bind, dry_run=True)
+                except (StepError, rospy.ServiceException, rospy.ROSException) as e:
+                    raise ScriptError('%s does not answer its rebind service: %s' % (bind.node, e))
         for promote in script.promote:
             need(promote.recovery, 'set_promote', 'to change the nodes it promotes')
             for node in promote.nodes:
@@ -166,14 +178,30 @@ class Engine(object):
         self._sites_of_run = []
         done = []
         pause_start = pause_end = None
+        report['cleanup_errors'] = []
+        last_resume = max([i for i, s in enumerate(steps) if s.action == 'resume'] or [-1])
         for group in adaptation.groups(steps):
+            if pause_end is not None and steps.index(group[0]) > last_resume:
+                # Resumed: the new configuration serves. What is left (killing the old nodes) is
+                # cleanup; undoing the adaptation now would rebind a live graph, so failures here
+                # are reported, not rolled back.
+                for step, s0, error, info in self._run_group(group):
+                    report['steps'].append(self._record(step, s0, error is None,
+                                                        self._describe(step, info) if error is None else error))
+                    if error is not None:
+                        report['cleanup_errors'].append('%s %s: %s' % (step.action, step.target, error))
+                        self.log('cleanup step %s %s failed: %s (the adaptation stands)' % (
+                            step.action, step.target, error))
+                continue
             if group[0].action == 'suspend' and pause_start is None:
                 self._connect(steps)   # persistent connections, opened before the pause
                 pause_start = time.monotonic()
             results = self._run_group(group)
             failed = [r for r in results if r[2] is not None]
             for step, s0, error, info in results:
-                if error is None:
+                if error is None or step.action == 'suspend':
+                    # A suspension that failed may still have closed the node's gate (its answer
+                    # lost): the rollback resumes it too, which is harmless on a running node.
                     done.append((step, info))
                 report['steps'].append(self._record(step, s0, error is None,
                                                     self._describe(step, info) if error is None else error))
@@ -207,6 +235,7 @@ class Engine(object):
             try:
                 results[i] = (step, s0, None, self._do(step))
             except (StepError, ScriptError, rospy.ServiceException, rospy.ROSException) as e:
+                self._forget_proxies(step.target)   # rospy keeps a broken persistent connection
                 results[i] = (step, s0, str(e), None)
             except Exception as e:   # an unexpected error is still a failed step, rolled back
                 results[i] = (step, s0, '%s: %s' % (type(e).__name__, e), None)
@@ -226,14 +255,19 @@ class Engine(object):
         for step in steps:
             try:
                 if step.action in ('suspend', 'resume'):
-                    self._proxy(step.target + '/suspend', Suspend)
-                    self._proxy(step.target + '/resume', Suspend)()
+                    # Probes: they answer and change nothing, whoever has the node suspended.
+                    self._proxy(step.target + '/suspend', Suspend)(probe=True)
+                    self._proxy(step.target + '/resume', Suspend)(probe=True)
                 elif step.action == 'rebind' and step.target in self._graph_nodes():
                     self._rebind(step.detail, dry_run=True)
                 elif step.action == 'promote':
                     self._proxy(step.target + '/set_promote', SetNodes)
             except Exception:   # not reachable yet (paper order: launched in the pause): connect then
                 self._proxies.pop(step.target + '/rebind', None)
+
+    def _forget_proxies(self, node):
+        for name in [n for n in getattr(self, '_proxies', {}) if n.startswith(node + '/')]:
+            self._proxies.pop(name).close()
 
     def _graph_nodes(self):
         if not hasattr(self, '_nodes_cache') or time.monotonic() - self._nodes_cache[0] > 0.5:
@@ -252,10 +286,10 @@ class Engine(object):
                 self._proxies[name] = proxy
         return proxy
 
-    @staticmethod
-    def _record(step, s0, ok, detail):
+    def _record(self, step, s0, ok, detail):
+        """A step's outcome; ``wall`` is when it started (wall clock), ``ms`` how long it took."""
         return {'action': step.action, 'target': step.target, 'ok': ok, 'detail': detail,
-                'ms': (time.monotonic() - s0) * 1e3}
+                'ms': (time.monotonic() - s0) * 1e3, 'wall': time.time() - (time.monotonic() - s0)}
 
     @staticmethod
     def _describe(step, info):
@@ -297,7 +331,8 @@ class Engine(object):
     def _launch(self, entry):
         path, names = self._launch_configs[entry]
         os.makedirs(self.log_dir, exist_ok=True)
-        log = os.path.join(self.log_dir, '%s_%d.log' % (os.path.basename(path)[:-7], int(time.time() * 1e3)))
+        log = os.path.join(self.log_dir, '%s_%d_%d.log' % (os.path.basename(path)[:-7], int(time.time() * 1e3),
+                                                           next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [path]
         # Started at a low priority: the imports and set-up of new nodes (a second of CPU each)

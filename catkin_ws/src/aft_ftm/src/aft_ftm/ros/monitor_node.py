@@ -162,6 +162,9 @@ class MonitorNode(object):
             except (ConfigError, ScriptError) as e:
                 ok, error = False, str(e)
                 record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
+            except Exception as e:   # never leave the monitor ADAPTING forever: report and go on
+                ok, error = False, '%s: %s' % (type(e).__name__, e)
+                record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
             with self.lock:
                 if ok:
                     self.core.adapted(decision.to, time.monotonic())

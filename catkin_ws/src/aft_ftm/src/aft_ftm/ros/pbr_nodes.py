@@ -199,6 +199,10 @@ class PbrAfterNode(AfterNode):
             elif decision == Decision.FENCED:
                 error = ('%s is no longer a backup of %s%s' % (self.name, cp.sender, ': ' + self.receiver.invalid
                          if self.receiver is not None and self.receiver.invalid else ''))
+            if error and self.receiver is not None and not self.receiver.invalid:
+                # A backup that refuses a checkpoint no longer mirrors the primary that sent it (which
+                # goes on alone): it must never take over with what it has.
+                self.receiver.failed(cp.seq, error)
             if error:
                 rospy.logerr('%s: checkpoint %d refused: %s', self.name, cp.seq, error)
             # Acknowledged once held. A promotion takes this lock and applies the state first.

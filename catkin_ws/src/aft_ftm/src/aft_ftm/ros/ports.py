@@ -24,6 +24,8 @@ class Ports(object):
     full) and subscriber queues are unbounded. It also saves a thread hand-off per hop.
     """
 
+    CHECK_VALID = 10.0   # s: how long a dry run's type check stands for the same rebind
+
     def __init__(self, specs, callbacks, queue_size=None, listeners=None):
         self.specs = {s.name: s for s in specs}
         self._callbacks = callbacks
@@ -38,6 +40,7 @@ class Ports(object):
         self._hold = []   # by default ~suspend holds nothing and waits until no handler runs
         self._quiescent = lambda: True
         self._before_suspend = None
+        self._checked = {}   # (port, topic, direction, activate) -> when a dry run accepted it
 
     def suspension(self, hold, quiescent=None, before_suspend=None):
         """Say what ~suspend holds (input port names) and when the node is quiescent. The ports
@@ -117,14 +120,23 @@ class Ports(object):
         """
         resolved = rospy.resolve_name(topic) if topic else ''
         t0 = time.monotonic()
-        try:
-            master = rosgraph.Master(rospy.get_name())
-            types = dict(master.getTopicTypes())
-        except Exception as e:   # the master cannot be asked: refuse rather than guess
-            raise RebindError('cannot check topic types with the ROS master: %s' % e)
-        spec = rules.check_rebind(self.specs, port, direction, resolved, types, activate)
+        master = rosgraph.Master(rospy.get_name())
+        key = (port, resolved, direction, activate)
+        checked = self._checked.get(key)
+        if not dry_run and checked is not None and t0 - checked < self.CHECK_VALID:
+            # The same rebind passed a dry run moments ago (an adaptation checks everything before
+            # its pause): the master is not asked again in the pause.
+            spec = rules.check_rebind(self.specs, port, direction, resolved, {}, activate)
+        else:
+            try:
+                types = dict(master.getTopicTypes())
+            except Exception as e:   # the master cannot be asked: refuse rather than guess
+                raise RebindError('cannot check topic types with the ROS master: %s' % e)
+            spec = rules.check_rebind(self.specs, port, direction, resolved, types, activate)
+        self._checked.pop(key, None)
         previous = self._topics.get(port, '')
         if dry_run:
+            self._checked[key] = t0
             return 'rebind of port %s to %s would be accepted' % (port, resolved or '(none)'), previous
         t1 = time.monotonic()
         if not activate:
@@ -185,6 +197,8 @@ class Ports(object):
         return self.gate.close(self._hold, self._quiescent, timeout)
 
     def _handle_suspend(self, req):
+        if req.probe:
+            return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
         timeout = req.timeout if req.timeout > 0 else 5.0
         try:
             held = self.suspend(timeout)
@@ -194,7 +208,9 @@ class Ports(object):
         rospy.loginfo('%s: suspended (quiescent; holding %s)', rospy.get_name(), ', '.join(self._hold) or 'nothing')
         return SuspendResponse(success=True, message='suspended, quiescent', held=held)
 
-    def _handle_resume(self, _req):
+    def _handle_resume(self, req):
+        if req.probe:
+            return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
         delivered = self.gate.open()
         rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
         return SuspendResponse(success=True, message='resumed', held=delivered)
