@@ -194,3 +194,9 @@ def test_each_repeats_an_entry_however_long_its_values():
 def test_a_failed_suspension_is_resumed_by_the_rollback():
     suspend = Step('suspend', '/master/protocol', None)
     assert actions(adaptation.undo_plan([(suspend, None)])) == [('resume', '/master/protocol')]
+
+
+def test_only_the_kills_after_the_last_resume_are_cleanup_never_rolled_back():
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    assert actions(adaptation.cleanup_steps(adaptation.plan(script, 'prepared'))) == [('kill', '/master/proceed')]
+    assert adaptation.cleanup_steps(adaptation.plan(script, 'paper')) == []   # its kill is in the pause

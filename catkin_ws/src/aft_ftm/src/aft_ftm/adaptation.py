@@ -310,6 +310,13 @@ def groups(steps):
     return out
 
 
+def cleanup_steps(steps):
+    """The steps after the last resume (the prepared order's kills). The new configuration serves
+    by then: a failure there is reported, never rolled back (undoing would rebind a live graph)."""
+    resumes = [i for i, s in enumerate(steps) if s.action == 'resume']
+    return steps[resumes[-1] + 1:] if resumes else []
+
+
 def pause_bounds(steps):
     """Indexes (first, last) of the steps between the first suspend and the last resume."""
     actions = [s.action for s in steps]

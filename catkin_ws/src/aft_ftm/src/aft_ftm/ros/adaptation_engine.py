@@ -179,9 +179,9 @@ class Engine(object):
         done = []
         pause_start = pause_end = None
         report['cleanup_errors'] = []
-        last_resume = max([i for i, s in enumerate(steps) if s.action == 'resume'] or [-1])
+        cleanup = adaptation.cleanup_steps(steps)
         for group in adaptation.groups(steps):
-            if pause_end is not None and steps.index(group[0]) > last_resume:
+            if group[0] in cleanup:
                 # Resumed: the new configuration serves. What is left (killing the old nodes) is
                 # cleanup; undoing the adaptation now would rebind a live graph, so failures here
                 # are reported, not rolled back.
