@@ -1,0 +1,161 @@
+"""The Traffic Jam Pilot's control logic (second paper, section III.B), without rospy.
+
+- :class:`SafetyDistance`: the gap to keep grows with speed (a standstill gap plus a time gap).
+- :class:`PidController`: controllerPid, an acceleration command that keeps the safety distance,
+  within the comfort limits on acceleration and deceleration (a too severe braking may injure the
+  passengers), with anti-windup.
+- :class:`CommandArbiter`: commandManager, which passes controllerPid's command to the actuator
+  unless Emergency Braking (independent of the TJP, on the ultrasonic sensor) asks to stop: that
+  has priority, and holds until the obstacle is gone and an operator-set delay has passed.
+
+Units: metres, seconds, m/s, m/s^2. ``now`` is passed in; nothing here sleeps.
+"""
+import enum
+
+from .errors import TjpConfigError
+
+
+def _positive(name, value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise TjpConfigError('%s must be a number > 0, got %r' % (name, value))
+    return float(value)
+
+
+def _non_negative(name, value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+        raise TjpConfigError('%s must be a number >= 0, got %r' % (name, value))
+    return float(value)
+
+
+class SafetyDistance(object):
+    """d(v) = standstill + time_gap * v: the faster the follower, the larger the gap it keeps."""
+
+    def __init__(self, standstill=2.0, time_gap=1.5):
+        self.standstill = _positive('standstill', standstill)
+        self.time_gap = _positive('time_gap', time_gap)
+
+    def __call__(self, speed):
+        return self.standstill + self.time_gap * max(0.0, speed)
+
+
+class PidController(object):
+    """controllerPid: an acceleration command from the gap error (gap - safety distance).
+
+    The proportional and integral terms act on the gap error; the derivative term on the relative
+    speed (the leader's speed minus ours), measured as the change of the gap between two cycles
+    (the safety distance's own change with our speed would otherwise feed back the command). The
+    command is clamped to [-max_decel, max_accel], the comfort limits; the integral stops growing
+    while the command is clamped (anti-windup).
+    """
+
+    def __init__(self, kp=0.8, ki=0.01, kd=0.6, max_accel=1.5, max_decel=3.0, integral_limit=20.0):
+        self.kp = _non_negative('kp', kp)
+        self.ki = _non_negative('ki', ki)
+        self.kd = _non_negative('kd', kd)
+        self.max_accel = _positive('max_accel', max_accel)
+        self.max_decel = _positive('max_decel', max_decel)
+        self.integral_limit = _positive('integral_limit', integral_limit)
+        self.integral = 0.0
+        self.last_gap = None
+        self.last_time = None
+
+    def reset(self):
+        self.integral, self.last_gap, self.last_time = 0.0, None, None
+
+    def update(self, gap, safety_distance, now):
+        """The acceleration command (m/s^2) for the measured gap at time now."""
+        error = gap - safety_distance
+        dt = None if self.last_time is None else now - self.last_time
+        closing = 0.0 if not dt or dt <= 0 else (gap - self.last_gap) / dt
+        raw = self.kp * error + self.ki * self.integral + self.kd * closing
+        command = min(self.max_accel, max(-self.max_decel, raw))
+        if dt and dt > 0 and command == raw:   # not saturated: integrate (anti-windup)
+            self.integral = min(self.integral_limit, max(-self.integral_limit, self.integral + error * dt))
+        self.last_gap, self.last_time = gap, now
+        return command
+
+    def state(self):
+        """What a backup replica needs to take over smoothly (PBR's getState)."""
+        return {'integral': self.integral, 'last_gap': self.last_gap, 'last_time': self.last_time}
+
+    def set_state(self, state):
+        """Raise TjpConfigError on a malformed state: nothing changes then."""
+        try:
+            integral = float(state['integral'])
+            last_gap = None if state['last_gap'] is None else float(state['last_gap'])
+            last_time = None if state['last_time'] is None else float(state['last_time'])
+        except (KeyError, TypeError, ValueError) as e:
+            raise TjpConfigError('bad controller state %r: %s' % (state, e))
+        if abs(integral) > self.integral_limit:
+            raise TjpConfigError('bad controller state: integral %g outside +-%g' % (integral, self.integral_limit))
+        self.integral, self.last_gap, self.last_time = integral, last_gap, last_time
+
+
+class Mode(enum.Enum):
+    TJP = 0          # controllerPid drives
+    EMERGENCY = 1    # Emergency Braking has priority: full braking
+    SAFE_STOP = 2    # a non-recoverable failure (simulator, master, sensor): brake to a stop and stay
+
+
+# Allowed mode changes and what causes each.
+MODE_EDGES = {
+    (Mode.TJP, Mode.EMERGENCY): 'an obstacle closer than the emergency distance',
+    (Mode.EMERGENCY, Mode.TJP): 'no obstacle for the release delay',
+    (Mode.TJP, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
+    (Mode.EMERGENCY, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
+}
+
+
+class CommandArbiter(object):
+    """commandManager: which command reaches the actuator."""
+
+    def __init__(self, emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0, stop_decel=3.0,
+                 hold=0.3):
+        self.emergency_distance = _positive('emergency_distance', emergency_distance)
+        self.hold = _non_negative('hold', hold)
+        self.last = None    # (command, when) of the last command controllerPid sent
+        self.release_delay = _non_negative('release_delay', release_delay)
+        self.emergency_decel = _positive('emergency_decel', emergency_decel)
+        self.stop_decel = _positive('stop_decel', stop_decel)
+        self.mode = Mode.TJP
+        self.clear_since = None
+        self.reason = ''
+
+    def _change(self, mode, reason):
+        if self.mode == mode:
+            return
+        if (self.mode, mode) not in MODE_EDGES:
+            raise TjpConfigError('mode change %s -> %s is not allowed' % (self.mode.name, mode.name))
+        self.mode, self.reason = mode, reason
+
+    def obstacle(self, distance, now):
+        """An ultrasonic reading (m; None or inf: nothing in range)."""
+        if self.mode == Mode.SAFE_STOP:
+            return
+        close = distance is not None and distance < self.emergency_distance
+        if close:
+            self.clear_since = None
+            self._change(Mode.EMERGENCY, 'obstacle at %.2f m' % distance)
+        elif self.mode == Mode.EMERGENCY:
+            if self.clear_since is None:
+                self.clear_since = now
+            if now - self.clear_since >= self.release_delay:
+                self._change(Mode.TJP, 'obstacle gone for %.1f s' % self.release_delay)
+
+    def safe_stop(self, reason):
+        """A failure the TJP cannot survive: brake to a stop and stay stopped."""
+        self._change(Mode.SAFE_STOP, reason)
+
+    def command(self, tjp_command, now):
+        """The acceleration sent to the actuator, given controllerPid's latest (None: none came
+        since the last cycle). Without a new command, the last one is held for ``hold`` seconds
+        (a failover of controllerPid's board), then the car brakes to a stop."""
+        if tjp_command is not None:
+            self.last = (tjp_command, now)
+        if self.mode == Mode.EMERGENCY:
+            return -self.emergency_decel
+        if self.mode == Mode.SAFE_STOP:
+            return -self.stop_decel
+        if self.last is not None and now - self.last[1] <= self.hold:
+            return self.last[0]
+        return -self.stop_decel

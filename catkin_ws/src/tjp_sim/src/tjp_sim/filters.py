@@ -1,0 +1,72 @@
+"""Sensor-value fault tolerance of the TJP (second paper, Fig. 6), without rospy.
+
+- :class:`SlidingAverage`: the IMU speed, averaged over a sliding window, with time redundancy:
+  a reading far from the window's median is a transient value fault, masked (not averaged in) and
+  counted, unless the readings keep disagreeing (then the speed really changed: the window follows).
+- :func:`vote`: three lasers measure the gap; the value at least two agree on (within a
+  tolerance) wins and a disagreeing laser is named; with no two agreeing there is no majority.
+"""
+import collections
+
+from .errors import TjpConfigError
+
+
+class SlidingAverage(object):
+    """Mean of the last ``size`` accepted readings; outliers (farther than ``tolerance`` from the
+    window's median) are masked unless ``persist`` of them in a row agree with each other."""
+
+    def __init__(self, size=5, tolerance=1.0, persist=3):
+        if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+            raise TjpConfigError('window size must be an integer >= 1, got %r' % (size,))
+        if not isinstance(tolerance, (int, float)) or isinstance(tolerance, bool) or not tolerance > 0:
+            raise TjpConfigError('tolerance must be a number > 0, got %r' % (tolerance,))
+        if isinstance(persist, bool) or not isinstance(persist, int) or persist < 2:
+            raise TjpConfigError('persist must be an integer >= 2, got %r' % (persist,))
+        self.size, self.tolerance, self.persist = size, float(tolerance), persist
+        self.window = collections.deque(maxlen=size)
+        self.suspects = []
+        self.masked = 0
+
+    def _median(self):
+        values = sorted(self.window)
+        mid = len(values) // 2
+        return values[mid] if len(values) % 2 else (values[mid - 1] + values[mid]) / 2.0
+
+    def add(self, value):
+        """Take a reading; returns (filtered value, masked: whether this reading was masked)."""
+        if self.window and abs(value - self._median()) > self.tolerance:
+            self.suspects = (self.suspects + [value])[-self.persist:]
+            if len(self.suspects) == self.persist and max(self.suspects) - min(self.suspects) <= 2 * self.tolerance:
+                # They agree among themselves: the speed really changed. Follow it; the earlier
+                # ones, counted as masked, were not faults after all.
+                self.masked -= self.persist - 1
+                self.window.clear()
+                self.window.extend(self.suspects)
+                self.suspects = []
+                return self.value(), False
+            self.masked += 1
+            return self.value(), True
+        self.suspects = []
+        self.window.append(value)
+        return self.value(), False
+
+    def value(self):
+        return sum(self.window) / len(self.window) if self.window else None
+
+
+Vote = collections.namedtuple('Vote', 'value faulty ok')   # faulty: indexes of disagreeing sensors
+
+
+def vote(values, tolerance=0.2):
+    """Majority of three (or more) readings: the mean of the largest group agreeing within
+    tolerance, if it is a majority; ``faulty`` lists the others. ok=False: no majority."""
+    readings = [(i, v) for i, v in enumerate(values) if v is not None]
+    best = []
+    for _, anchor in readings:
+        group = [(i, v) for i, v in readings if abs(v - anchor) <= tolerance]
+        if len(group) > len(best):
+            best = group
+    if 2 * len(best) <= len(values):
+        return Vote(None, [], False)
+    members = {i for i, _ in best}
+    return Vote(sum(v for _, v in best) / len(best), [i for i in range(len(values)) if i not in members], True)

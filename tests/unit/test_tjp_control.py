@@ -1,0 +1,106 @@
+"""The TJP's control logic without a master: safety distance, controllerPid, commandManager."""
+import pytest
+
+from tjp_sim.control import CommandArbiter, Mode, PidController, SafetyDistance
+from tjp_sim.errors import TjpConfigError
+
+
+@pytest.mark.parametrize('speed,expected', [(0.0, 2.0), (5.0, 9.5), (9.7, 16.55), (-1.0, 2.0)])
+def test_the_safety_distance_grows_with_speed(speed, expected):
+    assert SafetyDistance(standstill=2.0, time_gap=1.5)(speed) == pytest.approx(expected)
+
+
+def simulate(leader_speed, seconds, dt=0.05, gap=20.0, speed=5.0, pid=None):
+    """A follower driven by the controller behind a leader at leader_speed(t).
+    Returns (smallest gap / safety distance, largest |acceleration|, final gap, final speed)."""
+    pid = pid or PidController()
+    safety = SafetyDistance()
+    worst, peak, t = float('inf'), 0.0, 0.0
+    while t < seconds:
+        accel = pid.update(gap, safety(speed), t)
+        peak = max(peak, abs(accel))
+        speed = max(0.0, speed + accel * dt)
+        gap += (leader_speed(t) - speed) * dt
+        worst = min(worst, gap / safety(speed))
+        t += dt
+    return worst, peak, gap, speed
+
+
+def test_the_controller_settles_at_the_safety_distance_behind_a_steady_leader():
+    _, peak, gap, speed = simulate(lambda t: 8.0, 120.0)
+    assert speed == pytest.approx(8.0, abs=0.05)
+    assert gap == pytest.approx(SafetyDistance()(8.0), abs=0.3)
+    assert peak <= 3.0
+
+
+def test_behind_a_braking_leader_the_gap_never_collapses_and_comfort_limits_hold():
+    def leader(t):   # stop-and-go: 9 m/s, braking at 2 m/s^2 to a stop, then going again
+        if t < 10:
+            return 9.0
+        if t < 14.5:
+            return max(0.0, 9.0 - 2.0 * (t - 10))
+        if t < 25:
+            return 0.0
+        return min(9.0, 1.0 * (t - 25))
+    worst, peak, _, _ = simulate(leader, 60.0, gap=SafetyDistance()(9.0), speed=9.0)
+    assert worst > 0.9      # never closer than 90 % of the safety distance (and so never a collision)
+    assert peak <= 3.0 + 1e-9
+
+
+def test_the_command_is_clamped_to_the_comfort_limits_and_the_integral_does_not_wind_up():
+    pid = PidController(max_accel=1.5, max_decel=3.0)
+    assert pid.update(200.0, 10.0, 0.0) == 1.5
+    for i in range(1, 200):
+        assert pid.update(200.0, 10.0, i * 0.05) == 1.5
+    assert pid.integral == 0.0        # saturated all along: nothing integrated
+    assert pid.update(0.5, 10.0, 10.0) == -3.0
+
+
+def test_the_controller_state_moves_to_a_backup_and_a_corrupt_one_is_refused():
+    primary, backup = PidController(), PidController()
+    for i in range(20):
+        primary.update(15.0 - i * 0.1, 10.0, i * 0.05)
+    backup.set_state(primary.state())
+    assert backup.update(12.0, 10.0, 1.0) == primary.update(12.0, 10.0, 1.0)
+    for bad in ({'integral': 'x', 'last_gap': None, 'last_time': None},
+                {'integral': 1e9, 'last_gap': 0, 'last_time': 0}, {}):
+        before = backup.state()
+        with pytest.raises(TjpConfigError, match='bad controller state'):
+            backup.set_state(bad)
+        assert backup.state() == before
+
+
+def test_emergency_braking_has_priority_and_releases_only_after_the_delay():
+    arbiter = CommandArbiter(emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0)
+    assert arbiter.command(1.0, 0.0) == 1.0
+    arbiter.obstacle(1.2, 0.1)
+    assert arbiter.mode == Mode.EMERGENCY and arbiter.command(1.0, 0.1) == -6.0
+    arbiter.obstacle(None, 0.2)
+    assert arbiter.command(1.0, 0.5) == -6.0      # clear for 0.3 s only
+    arbiter.obstacle(None, 1.3)
+    assert arbiter.mode == Mode.TJP and arbiter.command(0.5, 1.3) == 0.5
+
+
+def test_a_failover_of_the_controller_holds_the_last_command_briefly_then_brakes():
+    arbiter = CommandArbiter(hold=0.3, stop_decel=3.0)
+    assert arbiter.command(0.8, 0.0) == 0.8
+    assert arbiter.command(None, 0.2) == 0.8      # the backup board has not spoken yet
+    assert arbiter.command(None, 0.5) == -3.0     # nothing for too long: stop
+    assert arbiter.command(0.4, 0.6) == 0.4
+
+
+def test_a_safe_stop_stays_whatever_comes():
+    arbiter = CommandArbiter()
+    arbiter.safe_stop('the simulator stopped publishing')
+    arbiter.obstacle(0.5, 1.0)
+    arbiter.obstacle(None, 10.0)
+    assert arbiter.mode == Mode.SAFE_STOP and arbiter.command(1.0, 10.0) == -arbiter.stop_decel
+
+
+@pytest.mark.parametrize('kwargs,message', [
+    ({'standstill': 0}, 'standstill must be a number > 0'),
+    ({'time_gap': -1}, 'time_gap must be a number > 0'),
+])
+def test_bad_parameters_are_named(kwargs, message):
+    with pytest.raises(TjpConfigError, match=message):
+        SafetyDistance(**kwargs)

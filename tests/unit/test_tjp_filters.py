@@ -1,0 +1,71 @@
+"""The TJP's sensor fault tolerance without a master: IMU sliding average with TR, laser voting, FMECA."""
+import pytest
+
+from tjp_sim import fmeca
+from tjp_sim.errors import TjpConfigError
+from tjp_sim.filters import SlidingAverage, vote
+
+
+def test_a_transient_value_fault_is_masked_and_counted():
+    imu = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    for _ in range(5):
+        imu.add(8.0)
+    value, masked = imu.add(30.0)            # a bit flip in one reading
+    assert masked and value == pytest.approx(8.0) and imu.masked == 1
+    assert imu.add(8.1) == (pytest.approx(8.02), False)
+
+
+def test_a_real_change_of_speed_is_followed_not_masked():
+    imu = SlidingAverage(size=5, tolerance=0.5, persist=3)
+    for _ in range(5):
+        imu.add(8.0)
+    for _ in range(2):
+        assert imu.add(3.0)[1]                # suspect at first...
+    value, masked = imu.add(3.0)              # ...three agreeing readings: the car did slow down
+    assert not masked and value == pytest.approx(3.0) and imu.masked == 0
+
+
+def test_a_gradual_ramp_is_tracked():
+    imu = SlidingAverage(size=5, tolerance=0.5)
+    values = [imu.add(0.1 * i)[0] for i in range(50)]
+    assert values[-1] == pytest.approx(4.7, abs=0.01) and imu.masked == 0
+
+
+@pytest.mark.parametrize('readings,value,faulty,ok', [
+    ([10.0, 10.1, 9.9], 10.0, [], True),
+    ([10.0, 10.1, 25.0], 10.05, [2], True),      # one laser spikes
+    ([0.0, 10.1, 10.0], 10.05, [0], True),       # one laser stuck at zero
+    ([10.0, None, 10.2], 10.1, [1], True),       # one laser crashed
+    ([5.0, 10.0, 15.0], None, [], False),        # no majority
+    ([5.0, None, None], None, [], False),
+])
+def test_three_lasers_vote(readings, value, faulty, ok):
+    result = vote(readings, tolerance=0.2)
+    assert (result.ok, result.faulty) == (ok, faulty)
+    if ok:
+        assert result.value == pytest.approx(value)
+
+
+def test_the_fmeca_ships_every_row_of_the_paper_each_with_a_mechanism_and_a_scenario():
+    rows = fmeca.load()
+    assert len(rows) == 9
+    assert {(r.entity, r.failure_mode) for r in rows} >= {('controllerPid board', 'crash'), ('IMU', 'inconsistent data'),
+                                                         ('laser', 'inconsistent data')}
+    assert all(r.risk == r.frequency * r.gravity and r.scenario for r in rows)
+    assert fmeca.markdown(rows).splitlines()[2].startswith('| laser | inconsistent data')   # highest risk first
+
+
+@pytest.mark.parametrize('text,message', [
+    ('rows: []', 'non-empty list'),
+    ('rows: [{entity: a}]', 'row 1: missing field failure_mode'),
+    ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 5, gravity: 1, mechanism: pbr, scenario: s}]',
+     'frequency must be an integer from 1 to 4'),
+    ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 1, gravity: 1, mechanism: magic, scenario: s}]',
+     'mechanism must be one of'),
+    ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 1, gravity: 1, mechanism: pbr, scenario: s, x: 1}]',
+     'unknown field x'),
+    ('rows: [unclosed', 'not valid YAML'),
+])
+def test_a_malformed_fmeca_is_refused_naming_the_problem(text, message):
+    with pytest.raises(TjpConfigError, match=message):
+        fmeca.parse(text)
