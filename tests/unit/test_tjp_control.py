@@ -72,6 +72,7 @@ def test_the_controller_state_moves_to_a_backup_and_a_corrupt_one_is_refused():
 
 def test_emergency_braking_has_priority_and_releases_only_after_the_delay():
     arbiter = CommandArbiter(emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0)
+    assert arbiter.braking_distance(6.0) == pytest.approx(1.5 + 0.6 + 3.0)
     assert arbiter.command(1.0, 0.0) == 1.0
     arbiter.obstacle(1.2, 0.1)
     assert arbiter.mode == Mode.EMERGENCY and arbiter.command(1.0, 0.1) == -6.0

@@ -100,7 +100,7 @@ class Mode(enum.Enum):
 # Allowed mode changes and what causes each.
 MODE_EDGES = {
     (Mode.TJP, Mode.EMERGENCY): 'an obstacle closer than the emergency distance',
-    (Mode.EMERGENCY, Mode.TJP): 'no obstacle for the release delay',
+    (Mode.EMERGENCY, Mode.TJP): 'nothing in the ultrasonic range for the release delay',
     (Mode.TJP, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
     (Mode.EMERGENCY, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
 }
@@ -109,7 +109,7 @@ MODE_EDGES = {
 class CommandArbiter(object):
     """commandManager: which command reaches the actuator."""
 
-    def __init__(self, emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0, stop_decel=3.0,
+    def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, stop_decel=3.0,
                  hold=0.3):
         self.emergency_distance = _positive('emergency_distance', emergency_distance)
         self.hold = _non_negative('hold', hold)
@@ -128,14 +128,20 @@ class CommandArbiter(object):
             raise TjpConfigError('mode change %s -> %s is not allowed' % (self.mode.name, mode.name))
         self.mode, self.reason = mode, reason
 
-    def obstacle(self, distance, now):
-        """An ultrasonic reading (m; None or inf: nothing in range)."""
+    def braking_distance(self, speed):
+        """How close an obstacle may come before Emergency Braking must start at this speed: the
+        stopping distance at full braking, a reaction time of one 0.1 s cycle, and the margin."""
+        return self.emergency_distance + 0.1 * speed + speed * speed / (2 * self.emergency_decel)
+
+    def obstacle(self, distance, now, speed=0.0):
+        """An ultrasonic reading (m; None: nothing in range) while driving at speed (m/s)."""
         if self.mode == Mode.SAFE_STOP:
             return
-        close = distance is not None and distance < self.emergency_distance
-        if close:
+        if distance is not None and distance < self.braking_distance(speed):
             self.clear_since = None
             self._change(Mode.EMERGENCY, 'obstacle at %.2f m' % distance)
+        elif distance is not None and self.mode == Mode.EMERGENCY:
+            self.clear_since = None   # stopped short of it: wait until the obstacle has gone
         elif self.mode == Mode.EMERGENCY:
             if self.clear_since is None:
                 self.clear_since = now
