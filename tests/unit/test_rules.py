@@ -64,6 +64,8 @@ def test_fail_silence_spares_a_pid_reused_after_the_last_heartbeat():
     (config.non_negative_int, 2.5, False), (config.non_negative_int, True, False),
     (config.service_type, 'aft_msgs/Account', True), (config.service_type, 'Account', False),
     (config.non_empty_str, ' ', False),
+    (config.niceness, -5, True), (config.niceness, 20, False), (config.niceness, -21, False),
+    (config.niceness, 'high', False),
 ])
 def test_parameter_converters_name_the_parameter_and_value(convert, value, ok):
     if ok:

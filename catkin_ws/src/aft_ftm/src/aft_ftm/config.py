@@ -48,3 +48,10 @@ def service_type(name, value):
     if len(parts) != 2 or not all(parts):
         raise ConfigError('parameter %s must be a type name like package/Type, got %r' % (name, value))
     return value
+
+
+def niceness(name, value):
+    """Return value if it is a process niceness, an integer from -20 to 19."""
+    if isinstance(value, bool) or not isinstance(value, int) or not -20 <= value <= 19:
+        raise ConfigError('parameter %s must be an integer from -20 to 19, got %r' % (name, value))
+    return value

@@ -63,7 +63,7 @@ class Engine(object):
     """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints)."""
 
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
-                 connect_timeout=2.0, log_dir=None, launch_niceness=10):
+                 connect_timeout=2.0, log_dir=None, launch_niceness=5):
         self.log = log or (lambda text: rospy.loginfo(text))
         self.quiesce_timeout = quiesce_timeout
         self.launch_timeout = launch_timeout
@@ -335,8 +335,9 @@ class Engine(object):
                                                            next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [path]
-        # Started at a low priority: the imports and set-up of new nodes (a second of CPU each)
-        # must not starve the running replicas, whose crash detectors allow 30 ms of silence.
+        # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
+        # must not starve the running replicas. Not much lower: under full load a niceness of 10
+        # left a new node unable to finish its set-up in 30 s.
         site = Site('adaptation', argv, log_path=log).start(niceness=self.launch_niceness)
         site.nodes = names
         self.sites.append(site)

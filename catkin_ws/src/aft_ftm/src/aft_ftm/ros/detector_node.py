@@ -23,6 +23,9 @@ class CrashDetectorNode(object):
         ~startup_grace (float, 0 = never): declare a never-heard peer failed after this long.
         ~site_pid (int, default: this node's parent, i.e. the site's roslaunch): sent in heartbeats
             so that the peer's Recovery can enforce fail-silence on the same host.
+        ~niceness (int, default -5): the detector's own process priority. A failure detector must not
+            be starved by the load it watches (its peer would declare this site failed); lowering
+            it needs privileges: without them it warns and runs at the default.
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``
         failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
@@ -42,6 +45,7 @@ class CrashDetectorNode(object):
                                      % (rospy.resolve_name('~timeout'), timeout, self.period))
         grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
+        self.niceness = param('niceness', config.niceness, -5)
         self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic())
         self.lock = threading.Lock()
         self.host = this_host()
@@ -52,6 +56,11 @@ class CrashDetectorNode(object):
         self.seq = 0
 
     def setup(self, timeout):
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, self.niceness)
+        except OSError as e:
+            rospy.logwarn('%s: cannot set niceness %d (%s): heartbeats may be late under load',
+                          rospy.get_name(), self.niceness, e)
         for name in ('heartbeat', 'failures', 'peer_heartbeat'):
             self.ports.bind(name)
         self.ports.advertise_service()
