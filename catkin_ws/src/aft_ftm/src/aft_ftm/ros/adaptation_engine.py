@@ -89,13 +89,6 @@ class Engine(object):
         nodes = {n for _, names in list(pubs) + list(subs) + list(srvs) for n in names}
         return nodes, {name for name, _ in srvs}
 
-    def _service(self, name, cls):
-        try:
-            rospy.wait_for_service(name, self.service_timeout)
-        except rospy.ROSException:
-            raise StepError('service %s is not available' % name)
-        return rospy.ServiceProxy(name, cls)
-
     # -- validation -----------------------------------------------------------------------------
     def validate(self, script, mode):
         """Check script against the live graph; returns the plan. Raises ScriptError naming the
@@ -159,7 +152,7 @@ class Engine(object):
                 'unbind %s.%s' % (bind.node, bind.port)
             error = ScriptError if dry_run else StepError
             raise error('cannot %s: %s' % (what, answer.message))
-        return answer.previous_topic, answer.message[answer.message.find(' ['):] if ' [' in answer.message else ''
+        return answer.previous_topic
 
     # -- running --------------------------------------------------------------------------------
     def run(self, script, mode='prepared'):
@@ -296,7 +289,7 @@ class Engine(object):
         if step.action == 'rebind':
             b = step.detail
             return ('%s -> %s' % (b.port, b.topic) if b.activate else '%s unbound' % b.port) + \
-                (' (was %s)' % info[0] if info[0] else '') + info[1]
+                (' (was %s)' % info if info else '')
         if step.action == 'launch':
             return 'pid %d' % info.pid
         if step.action == 'kill':
@@ -433,12 +426,12 @@ class Engine(object):
                 raise StepError('%s started again (pid %d) but not set up within 30 s' % (step.target, site.pid))
             return 'started again, pid %d' % site.pid
         if step.action == 'restore_binding':
-            bind, (previous, _) = step.detail
+            bind, previous = step.detail
             restore = adaptation.Bind(bind.node, bind.port, previous, bind.direction, bool(previous))
             self._rebind(restore)
             return 'port %s %s' % (bind.port, 'bound to %s again' % previous if previous else 'unbound again')
         if step.action == 'restore_promote':
-            answer = self._service(step.target + '/set_promote', SetNodes)(nodes=list(step.detail))
+            answer = self._proxy(step.target + '/set_promote', SetNodes)(nodes=list(step.detail))
             if not answer.success:
                 raise StepError(answer.message)
             return 'promotes %s again' % list(step.detail)

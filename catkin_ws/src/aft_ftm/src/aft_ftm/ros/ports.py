@@ -138,12 +138,9 @@ class Ports(object):
         if dry_run:
             self._checked[key] = t0
             return 'rebind of port %s to %s would be accepted' % (port, resolved or '(none)'), previous
-        t1 = time.monotonic()
         if not activate:
-            m = self.unbind(port)
-            return m + ' [types %.1f ms, unbind %.1f ms]' % ((t1-t0)*1e3, (time.monotonic()-t1)*1e3), previous
+            return self.unbind(port), previous
         message = self.bind(port, resolved, queue_size)
-        t2 = time.monotonic()
         if connect_timeout > 0:
             missing = self._wait_peers(master, port, spec, resolved, connect_timeout)
             if missing:
@@ -154,7 +151,6 @@ class Ports(object):
                 raise RebindError('port %s bound to %s but not connected to %s within %.2f s: binding undone'
                                   % (port, resolved, ', '.join(missing), connect_timeout))
             message += ', connected'
-        message += ' [types %.1f ms, bind %.1f ms, wait %.1f]' % ((t1-t0)*1e3, (t2-t1)*1e3, (time.monotonic()-t2)*1e3)
         return message, previous
 
     def _wait_peers(self, master, port, spec, topic, timeout):
