@@ -1,7 +1,7 @@
 """The TJP's control logic without a master: safety distance, controllerPid, commandManager."""
 import pytest
 
-from tjp_sim.control import CommandArbiter, Mode, PidController, SafetyDistance
+from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance
 from tjp_sim.errors import TjpConfigError
 
 
@@ -71,31 +71,53 @@ def test_the_controller_state_moves_to_a_backup_and_a_corrupt_one_is_refused():
 
 
 def test_emergency_braking_has_priority_and_releases_only_after_the_delay():
-    arbiter = CommandArbiter(emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0)
-    assert arbiter.braking_distance(6.0) == pytest.approx(1.5 + 0.6 + 3.0)
+    braking = EmergencyBraking(emergency_distance=1.5, release_delay=1.0, emergency_decel=6.0)
+    arbiter = CommandArbiter(emergency_decel=6.0)
+    assert braking.braking_distance(6.0) == pytest.approx(1.5 + 0.6 + 3.0)
     assert arbiter.command(1.0, 0.0) == 1.0
-    arbiter.obstacle(1.2, 0.1)
-    assert arbiter.mode == Mode.EMERGENCY and arbiter.command(1.0, 0.1) == -6.0
-    arbiter.obstacle(None, 0.2)
+    arbiter.emergency(braking.update(1.2, 0.1))
+    assert arbiter.command(1.0, 0.1) == -6.0 and arbiter.mode == Mode.EMERGENCY
+    arbiter.emergency(braking.update(None, 0.2))
     assert arbiter.command(1.0, 0.5) == -6.0      # clear for 0.3 s only
-    arbiter.obstacle(None, 1.3)
-    assert arbiter.mode == Mode.TJP and arbiter.command(0.5, 1.3) == 0.5
+    arbiter.emergency(braking.update(None, 1.3))
+    assert arbiter.command(0.5, 1.3) == 0.5 and arbiter.mode == Mode.TJP
+    assert braking.activations == 1
+
+
+def test_an_obstacle_still_there_keeps_the_car_braked_however_long():
+    braking = EmergencyBraking(release_delay=0.5)
+    assert braking.update(0.8, 0.0)
+    assert all(braking.update(0.8, t) for t in (1.0, 5.0, 30.0))
+
+
+def test_time_redundancy_masks_a_single_false_detection_but_confirms_a_real_obstacle():
+    braking = EmergencyBraking(confirm=3, period=0.04)
+    # A false detection: one reading, then nothing again.
+    assert not braking.update(0.9, 0.00, speed=5.0)
+    assert not braking.update(None, 0.04, speed=5.0)
+    assert braking.masked == 1 and braking.activations == 0
+    # A real obstacle stays: braking starts at the third reading.
+    assert [braking.update(0.9, t, speed=5.0) for t in (0.08, 0.12, 0.16)] == [False, False, True]
+    # The confirmation readings are paid for in the braking distance.
+    assert braking.braking_distance(5.0) == pytest.approx(EmergencyBraking(confirm=1).braking_distance(5.0)
+                                                          + 2 * 0.04 * 5.0)
 
 
 def test_a_failover_of_the_controller_holds_the_last_command_briefly_then_brakes():
     arbiter = CommandArbiter(hold=0.3, stop_decel=3.0)
     assert arbiter.command(0.8, 0.0) == 0.8
-    assert arbiter.command(None, 0.2) == 0.8      # the backup board has not spoken yet
+    assert arbiter.command(None, 0.2) == 0.8 and arbiter.mode == Mode.HOLD   # the backup has not spoken yet
     assert arbiter.command(None, 0.5) == -3.0     # nothing for too long: stop
-    assert arbiter.command(0.4, 0.6) == 0.4
+    assert arbiter.command(0.4, 0.6) == 0.4 and arbiter.mode == Mode.TJP
+    assert arbiter.holds == 1
 
 
 def test_a_safe_stop_stays_whatever_comes():
     arbiter = CommandArbiter()
     arbiter.safe_stop('the simulator stopped publishing')
-    arbiter.obstacle(0.5, 1.0)
-    arbiter.obstacle(None, 10.0)
-    assert arbiter.mode == Mode.SAFE_STOP and arbiter.command(1.0, 10.0) == -arbiter.stop_decel
+    arbiter.emergency(True)
+    arbiter.emergency(False)
+    assert arbiter.command(1.0, 10.0) == -arbiter.stop_decel and arbiter.mode == Mode.SAFE_STOP
 
 
 @pytest.mark.parametrize('kwargs,message', [
@@ -105,3 +127,12 @@ def test_a_safe_stop_stays_whatever_comes():
 def test_bad_parameters_are_named(kwargs, message):
     with pytest.raises(TjpConfigError, match=message):
         SafetyDistance(**kwargs)
+
+
+@pytest.mark.parametrize('kwargs,message', [
+    ({'confirm': 0}, 'confirm must be an integer >= 1'),
+    ({'release_delay': -1}, 'release_delay must be a number >= 0'),
+])
+def test_bad_emergency_braking_parameters_are_named(kwargs, message):
+    with pytest.raises(TjpConfigError, match=message):
+        EmergencyBraking(**kwargs)

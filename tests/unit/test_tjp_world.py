@@ -2,7 +2,7 @@
 TJP's control logic keeps the follower safe behind a stop-and-go leader."""
 import pytest
 
-from tjp_sim.control import CommandArbiter, PidController, SafetyDistance
+from tjp_sim.control import CommandArbiter, EmergencyBraking, PidController, SafetyDistance
 from tjp_sim.errors import TjpConfigError
 from tjp_sim.filters import vote
 from tjp_sim.world import World, check_profile, profile_speed
@@ -52,14 +52,14 @@ def test_driving_into_the_leader_is_a_collision():
 
 def drive(world, seconds, pid=None, pedestrian_at=None, emergency_braking=True):
     """The TJP loop on the true sensors: lasers voted, controllerPid, commandManager, Emergency Braking."""
-    pid, safety, arbiter = pid or PidController(), SafetyDistance(), CommandArbiter()
+    pid, safety, arbiter, braking = pid or PidController(), SafetyDistance(), CommandArbiter(), EmergencyBraking()
     worst = float('inf')
     while world.t < seconds:
         if pedestrian_at is not None and world.t >= pedestrian_at[0]:
             world.pedestrian_steps_in(ahead=pedestrian_at[1])
             pedestrian_at = None
         if emergency_braking:
-            arbiter.obstacle(world.ultrasonic(), world.t, world.imu_speed())
+            arbiter.emergency(braking.update(world.ultrasonic(), world.t, world.imu_speed()))
         gap = vote(world.lasers()).value
         command = pid.update(gap, safety(world.imu_speed()), world.t) if gap is not None else None
         world.step(arbiter.command(command, world.t))

@@ -4,9 +4,10 @@
 - :class:`PidController`: controllerPid, an acceleration command that keeps the safety distance,
   within the comfort limits on acceleration and deceleration (a too severe braking may injure the
   passengers), with anti-windup.
+- :class:`EmergencyBraking`: independent of the TJP, on the ultrasonic sensor; it brakes when an
+  obstacle is inside the stopping distance and holds until the obstacle is gone for a delay.
 - :class:`CommandArbiter`: commandManager, which passes controllerPid's command to the actuator
-  unless Emergency Braking (independent of the TJP, on the ultrasonic sensor) asks to stop: that
-  has priority, and holds until the obstacle is gone and an operator-set delay has passed.
+  unless Emergency Braking asks to stop (that has priority) or an alarm asked for a safe stop.
 
 Units: metres, seconds, m/s, m/s^2. ``now`` is passed in; nothing here sleeps.
 """
@@ -91,35 +92,99 @@ class PidController(object):
         self.integral, self.last_gap, self.last_time = integral, last_gap, last_time
 
 
-class Mode(enum.Enum):
+class Mode(enum.IntEnum):
     TJP = 0          # controllerPid drives
     EMERGENCY = 1    # Emergency Braking has priority: full braking
     SAFE_STOP = 2    # a non-recoverable failure (simulator, master, sensor): brake to a stop and stay
+    HOLD = 3         # controllerPid is silent (its board failed over): its last command is held
+
+
+class EmergencyBraking(object):
+    """Emergency Braking, independent of the TJP, on the ultrasonic sensor.
+
+    It brakes when an obstacle is closer than the stopping distance at full braking (plus a margin
+    and the reaction time), and releases once nothing has been in range for ``release_delay``.
+    With time redundancy (``confirm`` > 1) an obstacle must be seen in ``confirm`` readings in a
+    row before it brakes: a single false detection (the FMECA's inconsistent ultrasonic data) is
+    masked, at the price of (confirm - 1) readings of reaction time, which the braking distance
+    includes.
+    """
+
+    def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, confirm=1, period=0.04):
+        self.emergency_distance = _positive('emergency_distance', emergency_distance)
+        self.release_delay = _non_negative('release_delay', release_delay)
+        self.emergency_decel = _positive('emergency_decel', emergency_decel)
+        if isinstance(confirm, bool) or not isinstance(confirm, int) or confirm < 1:
+            raise TjpConfigError('confirm must be an integer >= 1, got %r' % (confirm,))
+        self.confirm = confirm
+        self.period = _positive('period', period)
+        self.active = False
+        self.seen = 0            # readings in a row with an obstacle inside the braking distance
+        self.clear_since = None
+        self.masked = 0          # detections not confirmed (masked by time redundancy)
+        self.activations = 0
+        self.reason = ''
+
+    def braking_distance(self, speed):
+        """How close an obstacle may come before braking must start at this speed: the stopping
+        distance at full braking, a reaction time of one 0.1 s cycle plus the confirmation
+        readings, and the margin."""
+        reaction = 0.1 + (self.confirm - 1) * self.period
+        return self.emergency_distance + reaction * speed + speed * speed / (2 * self.emergency_decel)
+
+    def update(self, distance, now, speed=0.0):
+        """An ultrasonic reading (m; None: nothing in range) while driving at speed (m/s).
+        Returns whether Emergency Braking is active."""
+        if distance is not None and distance < self.braking_distance(speed):
+            self.seen += 1
+            self.clear_since = None
+            if not self.active and self.seen >= self.confirm:
+                self.active, self.reason = True, 'obstacle at %.2f m' % distance
+                self.activations += 1
+            return self.active
+        if self.seen and not self.active:
+            self.masked += 1     # seen, then gone before it was confirmed: a false detection
+        self.seen = 0
+        if distance is not None and self.active:
+            self.clear_since = None   # stopped short of it: wait until the obstacle has gone
+        elif self.active:
+            if self.clear_since is None:
+                self.clear_since = now
+            if now - self.clear_since >= self.release_delay:
+                self.active, self.reason = False, 'obstacle gone for %.1f s' % self.release_delay
+        return self.active
 
 
 # Allowed mode changes and what causes each.
 MODE_EDGES = {
-    (Mode.TJP, Mode.EMERGENCY): 'an obstacle closer than the emergency distance',
-    (Mode.EMERGENCY, Mode.TJP): 'nothing in the ultrasonic range for the release delay',
+    (Mode.TJP, Mode.EMERGENCY): 'Emergency Braking is active',
+    (Mode.HOLD, Mode.EMERGENCY): 'Emergency Braking is active',
+    (Mode.EMERGENCY, Mode.TJP): 'Emergency Braking released',
+    (Mode.TJP, Mode.HOLD): 'no command from controllerPid this cycle',
+    (Mode.HOLD, Mode.TJP): 'controllerPid speaks again',
     (Mode.TJP, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
+    (Mode.HOLD, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
     (Mode.EMERGENCY, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
 }
 
 
 class CommandArbiter(object):
-    """commandManager: which command reaches the actuator."""
+    """commandManager: which command reaches the actuator.
 
-    def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, stop_decel=3.0,
-                 hold=0.3):
-        self.emergency_distance = _positive('emergency_distance', emergency_distance)
+    Emergency Braking has priority over controllerPid; a safe stop (an alarm) over both, for good.
+    Without a new command from controllerPid, its last one is held for ``hold`` seconds (the time a
+    failover to the backup board takes), then the car brakes to a stop at ``stop_decel``.
+    """
+
+    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0):
         self.hold = _non_negative('hold', hold)
-        self.last = None    # (command, when) of the last command controllerPid sent
-        self.release_delay = _non_negative('release_delay', release_delay)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
         self.stop_decel = _positive('stop_decel', stop_decel)
+        self.last = None    # (command, when) of the last command controllerPid sent
         self.mode = Mode.TJP
-        self.clear_since = None
+        self.emergency_active = False
         self.reason = ''
+        self.holds = 0      # cycles in which controllerPid's last command was held
 
     def _change(self, mode, reason):
         if self.mode == mode:
@@ -128,40 +193,32 @@ class CommandArbiter(object):
             raise TjpConfigError('mode change %s -> %s is not allowed' % (self.mode.name, mode.name))
         self.mode, self.reason = mode, reason
 
-    def braking_distance(self, speed):
-        """How close an obstacle may come before Emergency Braking must start at this speed: the
-        stopping distance at full braking, a reaction time of one 0.1 s cycle, and the margin."""
-        return self.emergency_distance + 0.1 * speed + speed * speed / (2 * self.emergency_decel)
-
-    def obstacle(self, distance, now, speed=0.0):
-        """An ultrasonic reading (m; None: nothing in range) while driving at speed (m/s)."""
-        if self.mode == Mode.SAFE_STOP:
-            return
-        if distance is not None and distance < self.braking_distance(speed):
-            self.clear_since = None
-            self._change(Mode.EMERGENCY, 'obstacle at %.2f m' % distance)
-        elif distance is not None and self.mode == Mode.EMERGENCY:
-            self.clear_since = None   # stopped short of it: wait until the obstacle has gone
-        elif self.mode == Mode.EMERGENCY:
-            if self.clear_since is None:
-                self.clear_since = now
-            if now - self.clear_since >= self.release_delay:
-                self._change(Mode.TJP, 'obstacle gone for %.1f s' % self.release_delay)
+    def emergency(self, active):
+        """Emergency Braking's latest decision."""
+        self.emergency_active = bool(active)
 
     def safe_stop(self, reason):
         """A failure the TJP cannot survive: brake to a stop and stay stopped."""
         self._change(Mode.SAFE_STOP, reason)
 
     def command(self, tjp_command, now):
-        """The acceleration sent to the actuator, given controllerPid's latest (None: none came
-        since the last cycle). Without a new command, the last one is held for ``hold`` seconds
-        (a failover of controllerPid's board), then the car brakes to a stop."""
+        """The acceleration sent to the actuator this cycle, given controllerPid's latest command
+        (None: none came since the last cycle). The mode after the call says whose it is."""
         if tjp_command is not None:
             self.last = (tjp_command, now)
-        if self.mode == Mode.EMERGENCY:
-            return -self.emergency_decel
         if self.mode == Mode.SAFE_STOP:
             return -self.stop_decel
-        if self.last is not None and now - self.last[1] <= self.hold:
+        if self.emergency_active:
+            self._change(Mode.EMERGENCY, 'Emergency Braking is active')
+            return -self.emergency_decel
+        fresh = self.last is not None and now - self.last[1] <= self.hold
+        if self.mode == Mode.EMERGENCY:
+            self._change(Mode.TJP, 'Emergency Braking released')
+        if tjp_command is not None:
+            self._change(Mode.TJP, 'controllerPid speaks')
+            return tjp_command
+        if fresh:
+            self._change(Mode.HOLD, 'no command from controllerPid this cycle')
+            self.holds += 1
             return self.last[0]
         return -self.stop_decel

@@ -1,0 +1,235 @@
+"""Scenario files of the car case study: the road, the faults and what must hold, without rospy.
+
+A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults in brackets):
+
+- ``name`` (the file's name), ``description`` ['']
+- ``duration``: simulated seconds; ``seed`` [1]: every random draw derives from it;
+  ``rate`` [2.0]: how many times faster than real time the simulation runs
+- ``profile``: the leader's driving profile, a built-in name (:data:`PROFILES`) or [[time, speed], ...]
+  (speeds up to 35 km/h); ``initial_speed`` [the profile's first speed]; ``initial_gap``
+  [the safety distance at that speed]
+- ``mechanisms`` [all of :data:`MECHANISMS`]: the fault tolerance mechanisms attached
+- ``faults`` [[]]: each one a mapping with ``kind`` and ``at`` (sim s, or [low, high] for a time
+  drawn from the seed); sensor faults (:mod:`tjp_sim.faults`) name a ``sensor`` of :data:`SENSORS`
+  and (except crash) an ``until``; ``power_loss`` names a ``board`` (primary or backup);
+  ``simulator_crash`` and ``master_crash`` take nothing more
+- ``events`` [[]]: ``pedestrian`` (``at``, ``ahead`` m in front of the bumper [3.0], ``leaves`` sim s
+  [never]); ``adapt`` (``at``, ``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}])
+- ``expect`` [{}]: ``min_gap_fraction`` [0.5]: the gap never goes below this fraction of the safety
+  distance; ``stop_within`` [none]: after a safe stop the car stands still within this many seconds
+- ``control`` [none]: the control experiment, ``disable`` (a mechanism) and ``hazard`` (one of
+  :data:`HAZARDS`): with that mechanism removed, the same faults must cause that hazard
+
+:func:`parse` raises ScenarioError naming the key and the value at the first problem.
+"""
+import os
+import random
+
+import yaml
+
+from .control import SafetyDistance
+from .errors import TjpConfigError
+from .faults import VALUE_KINDS
+from .world import check_profile
+
+
+class ScenarioError(TjpConfigError):
+    pass
+
+
+MECHANISMS = ('pbr', 'tr_imu', 'tr_ultrasonic', 'triplication_vote', 'alarm_and_stop')
+SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
+BOARDS = ('primary', 'backup')
+PROCESS_FAULTS = ('power_loss', 'simulator_crash', 'master_crash')
+HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
+PROFILES = {
+    # Stop-and-go: cruising, hard braking to a standstill (4 m/s^2), waiting, starting again.
+    'stop_and_go': [[0, 8.0], [8, 8.0], [10, 0.0], [14, 0.0], [20, 8.0], [28, 8.0], [30, 0.0], [34, 0.0],
+                    [40, 9.0], [48, 9.0], [50, 2.0], [54, 2.0], [60, 9.0]],
+    'steady': [[0, 6.0]],
+    'slow_creep': [[0, 3.0], [10, 3.0], [12, 0.0], [16, 0.0], [20, 4.0]],
+}
+KEYS = {'name', 'description', 'duration', 'seed', 'rate', 'profile', 'initial_speed', 'initial_gap',
+        'mechanisms', 'faults', 'events', 'expect', 'control'}
+DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'scenarios')
+
+
+def _number(where, value, low=None, high=None, positive=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ScenarioError('%s must be a number, got %r' % (where, value))
+    if positive and not value > 0:
+        raise ScenarioError('%s must be > 0, got %r' % (where, value))
+    if low is not None and value < low or high is not None and value > high:
+        raise ScenarioError('%s must be within %s .. %s, got %r' % (where, low, high, value))
+    return float(value)
+
+
+def _keys(where, item, required, optional):
+    if not isinstance(item, dict):
+        raise ScenarioError('%s must be a mapping, got %r' % (where, item))
+    unknown = sorted(set(item) - set(required) - set(optional))
+    if unknown:
+        raise ScenarioError('%s: unknown key %s (allowed: %s)' % (where, ', '.join(unknown),
+                                                                 ', '.join(sorted(set(required) | set(optional)))))
+    missing = [k for k in required if k not in item]
+    if missing:
+        raise ScenarioError('%s: missing key %s' % (where, ', '.join(missing)))
+
+
+def _time(where, value, duration, rng):
+    """A time in the run: a number, or [low, high] drawn from the scenario's seed."""
+    if isinstance(value, list):
+        if len(value) != 2:
+            raise ScenarioError('%s must be a time or [low, high], got %r' % (where, value))
+        low, high = (_number(where, v, 0, duration) for v in value)
+        if low > high:
+            raise ScenarioError('%s: low %g is after high %g' % (where, low, high))
+        return rng.uniform(low, high)
+    return _number(where, value, 0, duration)
+
+
+def _fault(where, item, duration, rng):
+    kind = item.get('kind') if isinstance(item, dict) else None
+    extra = {'stuck': ['value'], 'offset': ['offset'], 'noise': ['sigma'], 'spikes': ['probability', 'magnitude'],
+             'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'simulator_crash': [],
+             'master_crash': []}
+    if kind not in extra:
+        raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
+    sensor = kind in VALUE_KINDS or kind == 'crash'
+    required = ['kind', 'at'] + extra[kind] + (['sensor'] if sensor else []) + (['until'] if kind in VALUE_KINDS else [])
+    _keys(where, item, required, [])
+    fault = dict(item, at=_time(where + '.at', item['at'], duration, rng))
+    if sensor and item['sensor'] not in SENSORS:
+        raise ScenarioError('%s: sensor must be one of %s, got %r' % (where, ', '.join(SENSORS), item['sensor']))
+    if kind == 'false_detection' and item['sensor'] != 'ultrasonic':
+        raise ScenarioError('%s: a false detection is a fault of the ultrasonic sensor, not %s' % (where, item['sensor']))
+    if 'until' in item:
+        fault['until'] = _number(where + '.until', item['until'], 0, duration)
+        if fault['until'] <= fault['at']:
+            raise ScenarioError('%s: until %g must come after at %g' % (where, fault['until'], fault['at']))
+    for key in ('value', 'offset'):
+        if key in item:
+            fault[key] = _number('%s.%s' % (where, key), item[key])
+    for key in ('sigma', 'magnitude', 'distance'):
+        if key in item:
+            fault[key] = _number('%s.%s' % (where, key), item[key], positive=True)
+    if 'probability' in item:
+        fault['probability'] = _number(where + '.probability', item['probability'], 0, 1)
+    if kind == 'power_loss' and item['board'] not in BOARDS:
+        raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
+    return fault
+
+
+def _event(where, item, duration, rng):
+    kind = item.get('kind') if isinstance(item, dict) else None
+    if kind == 'pedestrian':
+        _keys(where, item, ['kind', 'at'], ['ahead', 'leaves'])
+        event = {'kind': kind, 'at': _time(where + '.at', item['at'], duration, rng),
+                 'ahead': _number(where + '.ahead', item.get('ahead', 3.0), positive=True), 'leaves': None}
+        if item.get('leaves') is not None:
+            event['leaves'] = _number(where + '.leaves', item['leaves'], 0, duration)
+            if event['leaves'] <= event['at']:
+                raise ScenarioError('%s: leaves %g must come after at %g' % (where, event['leaves'], event['at']))
+        return event
+    if kind == 'adapt':
+        _keys(where, item, ['kind', 'at', 'script'], ['args'])
+        args = item.get('args', {})
+        if not isinstance(item['script'], str) or not item['script']:
+            raise ScenarioError('%s.script must be the name of an adaptation script, got %r' % (where, item['script']))
+        if not isinstance(args, dict) or not all(isinstance(k, str) for k in args):
+            raise ScenarioError('%s.args must be a mapping of names to values, got %r' % (where, args))
+        return {'kind': kind, 'at': _time(where + '.at', item['at'], duration, rng), 'script': item['script'],
+                'args': {k: str(v) for k, v in args.items()}}
+    raise ScenarioError('%s: kind must be pedestrian or adapt, got %r' % (where, kind))
+
+
+def parse(text, source='scenario'):
+    """The scenario of a YAML text, as a dict with every default filled in."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ScenarioError('%s: not valid YAML: %s' % (source, e))
+    _keys(source, data, ['duration', 'profile'], KEYS)
+    duration = _number(source + ': duration', data['duration'], positive=True)
+    seed = data.get('seed', 1)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ScenarioError('%s: seed must be an integer, got %r' % (source, seed))
+    rng = random.Random('%d/scenario' % seed)
+    profile = data['profile']
+    if isinstance(profile, str):
+        if profile not in PROFILES:
+            raise ScenarioError('%s: profile must be one of %s or a list of [time, speed], got %r'
+                                % (source, ', '.join(PROFILES), profile))
+        profile = PROFILES[profile]
+    try:
+        profile = check_profile(profile)
+    except TjpConfigError as e:
+        raise ScenarioError('%s: profile: %s' % (source, e))
+    mechanisms = data.get('mechanisms', list(MECHANISMS))
+    if not isinstance(mechanisms, list) or any(m not in MECHANISMS for m in mechanisms):
+        raise ScenarioError('%s: mechanisms must be a list of %s, got %r' % (source, ', '.join(MECHANISMS), mechanisms))
+    scenario = {
+        'name': str(data.get('name', os.path.splitext(os.path.basename(source))[0])),
+        'description': str(data.get('description', '')),
+        'duration': duration, 'seed': seed,
+        'rate': _number(source + ': rate', data.get('rate', 2.0), 0.1, 20),
+        'profile': [list(p) for p in profile],
+        'initial_speed': _number(source + ': initial_speed', data.get('initial_speed', profile[0][1]), 0, 35 / 3.6),
+        'mechanisms': list(mechanisms),
+    }
+    scenario['initial_gap'] = _number(source + ': initial_gap',
+                                      data.get('initial_gap', SafetyDistance()(scenario['initial_speed'])), positive=True)
+    for key, check in (('faults', _fault), ('events', _event)):
+        items = data.get(key, [])
+        if not isinstance(items, list):
+            raise ScenarioError('%s: %s must be a list, got %r' % (source, key, items))
+        scenario[key] = [check('%s: %s[%d]' % (source, key, i), item, duration, rng) for i, item in enumerate(items)]
+    if any(f['kind'] == 'power_loss' and f['board'] == 'backup' for f in scenario['faults']) and \
+            'pbr' not in mechanisms:
+        raise ScenarioError('%s: a power loss of the backup board needs the pbr mechanism (there is no backup)' % source)
+    expect = data.get('expect', {})
+    _keys(source + ': expect', expect, [], ['min_gap_fraction', 'stop_within'])
+    scenario['expect'] = {
+        'min_gap_fraction': _number(source + ': expect.min_gap_fraction', expect.get('min_gap_fraction', 0.5), 0, 1),
+        'stop_within': (None if expect.get('stop_within') is None else
+                        _number(source + ': expect.stop_within', expect['stop_within'], positive=True)),
+    }
+    control = data.get('control')
+    if control is not None:
+        _keys(source + ': control', control, ['disable', 'hazard'], [])
+        if control['disable'] not in mechanisms:
+            raise ScenarioError('%s: control.disable must be one of the scenario\'s mechanisms (%s), got %r'
+                                % (source, ', '.join(mechanisms), control['disable']))
+        if control['hazard'] not in HAZARDS:
+            raise ScenarioError('%s: control.hazard must be one of %s, got %r' % (source, ', '.join(HAZARDS),
+                                                                                 control['hazard']))
+        control = dict(control)
+    scenario['control'] = control
+    return scenario
+
+
+def path_of(name):
+    """A scenario's file: a path, or the name of one shipped in the package."""
+    if os.path.sep in name or name.endswith('.yaml'):
+        return name
+    return os.path.join(DIR, name + '.yaml')
+
+
+def load(name):
+    path = path_of(name)
+    try:
+        with open(path) as f:
+            text = f.read()
+    except OSError as e:
+        shipped = sorted(n[:-5] for n in os.listdir(DIR) if n.endswith('.yaml')) if os.path.isdir(DIR) else []
+        raise ScenarioError('cannot read scenario %s (%s); shipped scenarios: %s' % (path, e.strerror, ', '.join(shipped)))
+    return parse(text, source=os.path.basename(path))
+
+
+def without(scenario, mechanism):
+    """The control experiment's scenario: the same one with a mechanism removed."""
+    if mechanism not in scenario['mechanisms']:
+        raise ScenarioError('scenario %s has no mechanism %s to remove (it has %s)'
+                            % (scenario['name'], mechanism, ', '.join(scenario['mechanisms'])))
+    return dict(scenario, mechanisms=[m for m in scenario['mechanisms'] if m != mechanism],
+                name='%s-without-%s' % (scenario['name'], mechanism))
