@@ -57,39 +57,48 @@ class PidController(object):
         self.max_decel = _positive('max_decel', max_decel)
         self.integral_limit = _positive('integral_limit', integral_limit)
         self.integral = 0.0
+        self.closing = 0.0
         self.last_gap = None
         self.last_time = None
 
     def reset(self):
-        self.integral, self.last_gap, self.last_time = 0.0, None, None
+        self.integral, self.closing, self.last_gap, self.last_time = 0.0, 0.0, None, None
 
     def update(self, gap, safety_distance, now):
-        """The acceleration command (m/s^2) for the measured gap at time now."""
+        """The acceleration command (m/s^2) for the gap measured at time now (the measurement's
+        time, not the cycle's: a derivative over the cycle's time would see the sensor's sampling
+        as noise). A gap not measured again since the last call keeps the last closing speed."""
         error = gap - safety_distance
         dt = None if self.last_time is None else now - self.last_time
-        closing = 0.0 if not dt or dt <= 0 else (gap - self.last_gap) / dt
-        raw = self.kp * error + self.ki * self.integral + self.kd * closing
+        if dt and dt > 0:
+            self.closing = (gap - self.last_gap) / dt
+        raw = self.kp * error + self.ki * self.integral + self.kd * self.closing
         command = min(self.max_accel, max(-self.max_decel, raw))
         if dt and dt > 0 and command == raw:   # not saturated: integrate (anti-windup)
             self.integral = min(self.integral_limit, max(-self.integral_limit, self.integral + error * dt))
-        self.last_gap, self.last_time = gap, now
+        if dt is None or dt > 0:
+            self.last_gap, self.last_time = gap, now
         return command
 
     def state(self):
         """What a backup replica needs to take over smoothly (PBR's getState)."""
-        return {'integral': self.integral, 'last_gap': self.last_gap, 'last_time': self.last_time}
+        return {'integral': self.integral, 'closing': self.closing, 'last_gap': self.last_gap,
+                'last_time': self.last_time}
 
     def set_state(self, state):
         """Raise TjpConfigError on a malformed state: nothing changes then."""
         try:
             integral = float(state['integral'])
+            closing = float(state.get('closing', 0.0))
             last_gap = None if state['last_gap'] is None else float(state['last_gap'])
             last_time = None if state['last_time'] is None else float(state['last_time'])
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise TjpConfigError('bad controller state %r: %s' % (state, e))
         if abs(integral) > self.integral_limit:
             raise TjpConfigError('bad controller state: integral %g outside +-%g' % (integral, self.integral_limit))
-        self.integral, self.last_gap, self.last_time = integral, last_gap, last_time
+        if closing != closing or abs(closing) > 100.0:
+            raise TjpConfigError('bad controller state: closing speed %r is not a speed' % closing)
+        self.integral, self.closing, self.last_gap, self.last_time = integral, closing, last_gap, last_time
 
 
 class Mode(enum.IntEnum):
@@ -160,7 +169,7 @@ MODE_EDGES = {
     (Mode.TJP, Mode.EMERGENCY): 'Emergency Braking is active',
     (Mode.HOLD, Mode.EMERGENCY): 'Emergency Braking is active',
     (Mode.EMERGENCY, Mode.TJP): 'Emergency Braking released',
-    (Mode.TJP, Mode.HOLD): 'no command from controllerPid this cycle',
+    (Mode.TJP, Mode.HOLD): 'controllerPid is late',
     (Mode.HOLD, Mode.TJP): 'controllerPid speaks again',
     (Mode.TJP, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
     (Mode.HOLD, Mode.SAFE_STOP): 'an alarm asked for a controlled stop',
@@ -172,12 +181,15 @@ class CommandArbiter(object):
     """commandManager: which command reaches the actuator.
 
     Emergency Braking has priority over controllerPid; a safe stop (an alarm) over both, for good.
-    Without a new command from controllerPid, its last one is held for ``hold`` seconds (the time a
-    failover to the backup board takes), then the car brakes to a stop at ``stop_decel``.
+    controllerPid's latest command is used while it is at most ``late`` old (its period and a
+    margin); past that controllerPid is late (HOLD): its last command is held until it is ``hold``
+    old (the time a failover to the backup board takes), then the car brakes at ``stop_decel``
+    until controllerPid speaks again.
     """
 
-    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0):
+    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15):
         self.hold = _non_negative('hold', hold)
+        self.late = _positive('late', late)   # controllerPid silent this long is late (its period + margin)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
         self.stop_decel = _positive('stop_decel', stop_decel)
         self.last = None    # (command, when) of the last command controllerPid sent
@@ -211,14 +223,16 @@ class CommandArbiter(object):
         if self.emergency_active:
             self._change(Mode.EMERGENCY, 'Emergency Braking is active')
             return -self.emergency_decel
-        fresh = self.last is not None and now - self.last[1] <= self.hold
         if self.mode == Mode.EMERGENCY:
             self._change(Mode.TJP, 'Emergency Braking released')
-        if tjp_command is not None:
+        if self.last is None:
+            return -self.stop_decel      # controllerPid never spoke: stand still
+        silent = now - self.last[1]
+        if silent <= self.late:
             self._change(Mode.TJP, 'controllerPid speaks')
-            return tjp_command
-        if fresh:
-            self._change(Mode.HOLD, 'no command from controllerPid this cycle')
+            return self.last[0]
+        self._change(Mode.HOLD, 'controllerPid silent for %.2f s' % silent)
+        if silent <= self.hold:
             self.holds += 1
             return self.last[0]
         return -self.stop_decel

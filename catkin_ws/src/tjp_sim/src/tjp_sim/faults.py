@@ -8,7 +8,8 @@ through :meth:`SensorFaults.apply` before publishing it. Kinds of value fault, e
 - ``stuck``: the sensor reads ``value`` whatever is there;
 - ``offset``: the reading is off by ``offset``;
 - ``noise``: a noise burst, Gaussian of standard deviation ``sigma``;
-- ``spikes``: each reading, with ``probability``, jumps by +-``magnitude``;
+- ``spikes``: each reading, with ``probability``, jumps by ``magnitude``, in a random ``direction``
+  (both, the default) or always ``up`` or ``down`` (a dropout towards zero);
 - ``false_detection``: the ultrasonic sees an obstacle at ``distance`` that is not there;
 - ``crash``: the sensor falls silent for good (``until`` does not apply).
 
@@ -64,7 +65,8 @@ class SensorFaults(object):
             elif kind == 'noise':
                 reading, faulty = reading + rng.gauss(0.0, fault['sigma']), True
             elif kind == 'spikes' and rng.random() < fault['probability']:
-                reading, faulty = reading + rng.choice((-1.0, 1.0)) * fault['magnitude'], True
+                sign = {'up': 1.0, 'down': -1.0}.get(fault.get('direction', 'both')) or rng.choice((-1.0, 1.0))
+                reading, faulty = reading + sign * fault['magnitude'], True
         if faulty and reading is not SILENT and reading is not None:
             reading = max(0.0, reading)    # a range or a speed is never negative
         if faulty:

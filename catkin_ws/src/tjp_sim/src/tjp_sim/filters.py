@@ -5,6 +5,8 @@
   counted, unless the readings keep disagreeing (then the speed really changed: the window follows).
 - :func:`vote`: three lasers measure the gap; the value at least two agree on (within a
   tolerance) wins and a disagreeing laser is named; with no two agreeing there is no majority.
+- :class:`LaserVoter`: the readings of the three lasers grouped by sensing instant, a silent
+  (crashed) laser noticed, and each group voted.
 """
 import collections
 
@@ -70,3 +72,54 @@ def vote(values, tolerance=0.2):
         return Vote(None, [], False)
     members = {i for i, _ in best}
     return Vote(sum(v for _, v in best) / len(best), [i for i in range(len(values)) if i not in members], True)
+
+
+class LaserVoter(object):
+    """Groups the three lasers' readings of one sensing instant (same stamp) and votes on each group.
+
+    A group is voted as soon as every laser gave its reading, or, when a laser is silent, once a
+    reading of a later instant arrives (the silent laser counts as missing: two agreeing lasers
+    still make a majority of three). A laser missing from ``silent_after`` groups in a row is
+    reported silent (crashed) once.
+    """
+
+    def __init__(self, count=3, tolerance=0.2, silent_after=5):
+        self.count, self.tolerance, self.silent_after = count, tolerance, silent_after
+        self.groups = {}             # stamp -> {index: value}
+        self.missing_in_a_row = [0] * count
+        self.reported_silent = set()
+        self.voted = 0
+
+    def add(self, index, stamp, value):
+        """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
+        for every group decided by it, oldest first."""
+        if not 0 <= index < self.count:
+            raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
+        self.groups.setdefault(stamp, {})[index] = value
+        decided = []
+        for when in sorted(self.groups):
+            group = self.groups[when]
+            if len(group) < self.count and when >= stamp:
+                break
+            del self.groups[when]
+            decided.append(self._decide(when, group))
+        return decided
+
+    def _decide(self, stamp, group):
+        newly_silent = []
+        for i in range(self.count):
+            if i in group:
+                self.missing_in_a_row[i] = 0
+                self.reported_silent.discard(i)
+            else:
+                self.missing_in_a_row[i] += 1
+                if self.missing_in_a_row[i] >= self.silent_after and i not in self.reported_silent:
+                    self.reported_silent.add(i)
+                    newly_silent.append(i)
+        values = [group.get(i) for i in range(self.count)]
+        # Nothing in range (None from a laser that answered) is a reading too: it agrees with None.
+        if all(i in group for i in range(self.count)) and all(v is None for v in values):
+            self.voted += 1
+            return stamp, Vote(None, [], True), newly_silent
+        self.voted += 1
+        return stamp, vote(values, self.tolerance), newly_silent

@@ -97,7 +97,9 @@ def _fault(where, item, duration, rng):
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
     sensor = kind in VALUE_KINDS or kind == 'crash'
     required = ['kind', 'at'] + extra[kind] + (['sensor'] if sensor else []) + (['until'] if kind in VALUE_KINDS else [])
-    _keys(where, item, required, [])
+    _keys(where, item, required, ['direction'] if kind == 'spikes' else [])
+    if item.get('direction', 'both') not in ('both', 'up', 'down'):
+        raise ScenarioError('%s: direction must be both, up or down, got %r' % (where, item['direction']))
     fault = dict(item, at=_time(where + '.at', item['at'], duration, rng))
     if sensor and item['sensor'] not in SENSORS:
         raise ScenarioError('%s: sensor must be one of %s, got %r' % (where, ', '.join(SENSORS), item['sensor']))

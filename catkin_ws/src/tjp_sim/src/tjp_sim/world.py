@@ -134,6 +134,13 @@ class World(object):
             self.pedestrian = pybullet.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape,
                                                        basePosition=[x, 0.0, 0.9], physicsClientId=self.client)
 
+    def pedestrian_distance(self):
+        """The true distance from the follower's bumper to the pedestrian (m), None when none."""
+        if self.pedestrian is None:
+            return None
+        position, _ = pybullet.getBasePositionAndOrientation(self.pedestrian, physicsClientId=self.client)
+        return position[0] - 0.2 - (self.follower_x + CAR_LENGTH / 2)
+
     def pedestrian_leaves(self):
         if self.pedestrian is not None:
             pybullet.removeBody(self.pedestrian, physicsClientId=self.client)

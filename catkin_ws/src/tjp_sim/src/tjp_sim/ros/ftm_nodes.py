@@ -1,0 +1,192 @@
+"""The fault tolerance mechanisms of the car's FMECA (second paper, Fig. 6) as ROS nodes, each
+put between a sensor and the TJP without changing the TJP (a remapping at launch, or a rebind at
+run time by the adaptation engine):
+
+- :class:`ImuTrNode`: time redundancy on the IMU speed, an average over a sliding window;
+- :class:`LaserVoteNode`: triplicated lasers and majority voting;
+- :class:`AlarmManagerNode`: alarm message and controlled stop when the simulator, the ROS master
+  or a sensor without redundancy stops.
+"""
+import math
+import threading
+import time
+
+import rosgraph
+import rospy
+from aft_msgs.msg import Alarm
+from std_msgs.msg import String
+
+from aft_ftm import config
+from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec
+from aft_ftm.ros.params import param
+
+from ..errors import TjpConfigError
+from ..filters import LaserVoter, SlidingAverage
+from .tjp_nodes import PortedNode, _range, number
+
+
+class ImuTrNode(PortedNode):
+    """Time redundancy on the IMU: each speed passed on is the mean of a sliding window of readings;
+    a reading far from the window's median is a transient value fault: masked and reported.
+
+    Parameters: ~window (int, 5), ~tolerance (float, 1.0 m/s), ~persist (int, 3): readings agreeing
+        among themselves that far from the window make it follow (the speed really changed)
+    Subscribes: inp (geometry_msgs/TwistStamped), port ``inp``
+    Publishes: out (geometry_msgs/TwistStamped), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        try:
+            self.filter = SlidingAverage(param('window', config.non_negative_int, 5),
+                                         param('tolerance', config.positive_float, 1.0),
+                                         param('persist', config.non_negative_int, 3))
+        except TjpConfigError as e:
+            raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
+        super(ImuTrNode, self).__init__(
+            [PortSpec('inp', SUBSCRIBE, 'geometry_msgs/TwistStamped'), PortSpec('out', PUBLISH, 'geometry_msgs/TwistStamped'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+            {'inp': self._on_reading})
+
+    def _on_reading(self, msg):
+        raw = msg.twist.linear.x
+        with self.lock:
+            value, masked = self.filter.add(raw)
+        if masked:
+            self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='value_fault_masked',
+                                               detail='IMU speed %.2f m/s, window mean %.2f m/s' % (raw, value),
+                                               stamp=msg.header.stamp))
+        msg.twist.linear.x = value
+        self.ports.publish('out', msg)
+
+
+class LaserVoteNode(PortedNode):
+    """Triplicated lasers, majority vote: one laser stuck, offset, noisy or silent is masked.
+
+    Parameters: ~tolerance (float, 0.2 m): readings this close agree; ~silent_after (int, 5):
+        instants missed in a row before a laser is reported silent
+    Subscribes: laser_0, laser_1, laser_2 (sensor_msgs/Range), ports of the same names
+    Publishes: out (sensor_msgs/Range): the voted gap, port ``out``; alarms (aft_msgs/Alarm), port ``alarms``:
+        a laser disagreeing (laser_disagrees), a laser silent (laser_silent), no majority (no_majority,
+        nothing is published for that instant: the TJP keeps its last gap)
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        self.voter = LaserVoter(tolerance=param('tolerance', config.positive_float, 0.2),
+                                silent_after=param('silent_after', config.non_negative_int, 5))
+        ports = [PortSpec('laser_%d' % i, SUBSCRIBE, 'sensor_msgs/Range') for i in range(3)]
+        super(LaserVoteNode, self).__init__(
+            ports + [PortSpec('out', PUBLISH, 'sensor_msgs/Range'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+            {'laser_%d' % i: (lambda msg, i=i: self._on_laser(i, msg)) for i in range(3)})
+        self.template = {}
+
+    def _on_laser(self, index, msg):
+        with self.lock:
+            self.template = msg
+            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg))
+        for stamp, result, silent in decided:
+            when = rospy.Time(nsecs=stamp)
+            for i in silent:
+                self._alarm('laser_silent', 'laser %d gave no reading for %d instants' % (i, self.voter.silent_after), when)
+            if not result.ok:
+                self._alarm('no_majority', 'no two lasers agree within %.2f m' % self.voter.tolerance, when)
+                continue
+            for i in result.faulty:
+                self._alarm('laser_disagrees', 'laser %d disagrees with the majority (%.2f m)'
+                            % (i, result.value if result.value is not None else float('inf')), when)
+            out = msg.__class__()
+            out.header.stamp = when
+            out.header.frame_id = 'laser_voted'
+            out.radiation_type, out.field_of_view = msg.radiation_type, msg.field_of_view
+            out.min_range, out.max_range = msg.min_range, msg.max_range
+            out.range = float('inf') if result.value is None else result.value
+            self.ports.publish('out', out)
+
+    def _alarm(self, kind, detail, stamp):
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='vote', kind=kind, detail=detail, stamp=stamp))
+
+
+class AlarmManagerNode(PortedNode):
+    """Alarm message and controlled stop (the FMECA's answer to a crash without redundancy).
+
+    Watches, on the wall clock: the simulator's /clock, and the ROS master; on ROS time (the
+    simulator's): the inputs named in ~watch. When one stops, it raises an alarm and asks
+    commandManager for a controlled stop, once.
+
+    Parameters:
+        ~watch (dict port -> timeout in s of ROS time, default {imu: 0.3, ultrasonic: 0.3, gap: 0.5})
+        ~clock_timeout (float, 0.5 s of wall clock), ~master_period (float, 0.25 s of wall clock)
+    Subscribes: clock (rosgraph_msgs/Clock), port ``clock``; imu (geometry_msgs/TwistStamped),
+        ultrasonic (sensor_msgs/Range), gap (aft_msgs/Measure): ports of the same names (liveness only)
+    Publishes: alarms (aft_msgs/Alarm), port ``alarms``; safe_stop (std_msgs/String), port ``safe_stop``
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    TYPES = {'imu': 'geometry_msgs/TwistStamped', 'ultrasonic': 'sensor_msgs/Range', 'gap': 'aft_msgs/Measure'}
+
+    def __init__(self):
+        watch = param('watch', lambda n, v: v, {'imu': 0.3, 'ultrasonic': 0.3, 'gap': 0.5})
+        if not isinstance(watch, dict) or any(k not in self.TYPES for k in watch) or \
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in watch.values()):
+            raise config.ConfigError('parameter %s must map some of %s to timeouts > 0, got %r'
+                                     % (rospy.resolve_name('~watch'), ', '.join(self.TYPES), watch))
+        self.watch = {k: float(v) for k, v in watch.items()}
+        self.clock_timeout = param('clock_timeout', config.positive_float, 0.5)
+        self.master_period = param('master_period', config.positive_float, 0.25)
+        specs = [PortSpec('clock', SUBSCRIBE, 'rosgraph_msgs/Clock'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
+                 PortSpec('safe_stop', PUBLISH, 'std_msgs/String')]
+        specs += [PortSpec(k, SUBSCRIBE, self.TYPES[k]) for k in self.watch]
+        callbacks = {'clock': self._on_clock}
+        callbacks.update({k: (lambda _msg, k=k: self._heard(k)) for k in self.watch})
+        super(AlarmManagerNode, self).__init__(specs, callbacks)
+        self.last_clock_wall = None
+        self.last_heard = {}
+        self.stopped = None
+
+    def setup(self, timeout):
+        self.bind_all()
+        threading.Thread(target=self._loop, name='alarm_manager', daemon=True).start()
+        return True
+
+    def _on_clock(self, msg):
+        with self.lock:
+            self.last_clock_wall = time.monotonic()
+
+    def _heard(self, port):
+        with self.lock:
+            self.last_heard[port] = rospy.get_time()
+
+    def _loop(self):
+        master = rosgraph.Master(self.name)
+        next_master = 0.0
+        while not rospy.is_shutdown() and self.stopped is None:
+            wall = time.monotonic()
+            reason = None
+            with self.lock:
+                now = rospy.get_time()
+                if self.last_clock_wall is not None and wall - self.last_clock_wall > self.clock_timeout:
+                    reason = ('simulator_crash', 'no clock from the simulator for %.2f s' % (wall - self.last_clock_wall))
+                elif now > 0:
+                    for port, timeout in sorted(self.watch.items()):
+                        since = self.last_heard.setdefault(port, now)   # watched from the first tick on
+                        if now - since > timeout:
+                            reason = ('%s_silent' % port, 'nothing on %s for %.2f s' % (self.ports.topic(port), now - since))
+                            break
+            if reason is None and wall >= next_master:
+                next_master = wall + self.master_period
+                try:
+                    master.getPid()
+                except Exception as e:   # any failure to reach it: refused, reset, timeout
+                    reason = ('master_crash', 'the ROS master does not answer: %s' % e)
+            if reason is not None:
+                self._stop(*reason)
+                return
+            time.sleep(0.02)
+
+    def _stop(self, kind, detail):
+        self.stopped = kind
+        rospy.logerr('%s: %s: %s; controlled stop', self.name, kind, detail)
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='alarm_and_stop', kind=kind, detail=detail,
+                                           stamp=rospy.Time.now()))
+        self.ports.publish('safe_stop', String(data='%s: %s' % (kind, detail)))

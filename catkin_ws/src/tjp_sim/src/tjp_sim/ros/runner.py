@@ -1,0 +1,326 @@
+"""Running one scenario of the car case study, start to finish, on a ROS master of its own.
+
+The run's processes, each a site (aft_ftm.sites) so that a fault can kill exactly one of them:
+the master, the recorder (rosbag), the car (car.launch: simulator, TJP, Emergency Braking,
+mechanisms) and one or two boards (board.launch: controllerPid, and with PBR its After and crash
+detector). The runner is itself a ROS node on simulated time: it injects the faults that kill
+processes (a board's power loss, the simulator's or the master's crash) and runs adaptations, at
+their scenario times. Afterwards it reads the bag back, and writes the summary (JSON) and the plot.
+
+A scenario's own master makes every run independent, and lets a scenario kill the master.
+"""
+import json
+import os
+import signal
+import socket
+import threading
+import time
+import uuid
+import warnings
+
+import rosbag
+import rosgraph
+import rospy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from aft_ftm.ros.deployment import wired
+from aft_ftm.sites import Site, process_tree, wait_dead, wait_until
+
+from .. import scenario as scenarios
+from .. import summary as summaries
+
+TOPICS = ['/car/state', '/car/command', '/tjp/pid_command', '/tjp/events', '/aft/alarms', '/tjp/gap',
+          '/tjp/safety_distance', '/tjp/speed', '/sensors/imu', '/sensors/laser_0', '/sensors/laser_1',
+          '/sensors/laser_2', '/sensors/ultrasonic', '/tjp/emergency', '/tjp/safe_stop']
+CAR_NODES = ['/car_sim', '/tjp/measure_manager', '/tjp/distance_security_calculator', '/tjp/command_manager',
+             '/tjp/emergency_braking']
+MECHANISM_NODES = {'tr_imu': ['/ftm/imu_tr'], 'triplication_vote': ['/ftm/laser_vote'],
+                   'alarm_and_stop': ['/ftm/alarm_manager'], 'pbr': ['/ftm/watchdog'], 'tr_ultrasonic': []}
+RECORDER = '/tjp_record'
+RUNNER = '/tjp_scenario_runner'
+
+
+class RunError(Exception):
+    pass
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def board_nodes(board, pbr):
+    return ['/%s/controller_pid' % board] + (['/%s/cycle_after' % board, '/%s/crash_detector' % board] if pbr else [])
+
+
+class ScenarioRun(object):
+    """One run of a scenario (a dict from tjp_sim.scenario) into directory out."""
+
+    def __init__(self, scenario, path, out, gui=False, log=print, setup_timeout=90.0):
+        self.scenario, self.path, self.out, self.gui, self.log = scenario, path, out, gui, log
+        self.setup_timeout = setup_timeout
+        self.pbr = 'pbr' in scenario['mechanisms']
+        self.sites = {}
+        self.port = free_port()
+        self.env = dict(os.environ, ROS_MASTER_URI='http://127.0.0.1:%d' % self.port,
+                        ROS_LOG_DIR=os.path.join(out, 'logs'))
+        self.bag = os.path.join(out, 'run.bag')
+        self.done = set()
+        self.threads = []
+        self.adaptations = []
+
+    # -- processes -------------------------------------------------------------------------------
+    def _site(self, name, argv):
+        site = Site(name, argv, env=self.env, log_path=os.path.join(self.out, 'logs', name + '.log'))
+        self.sites[name] = site.start()
+        return site
+
+    def _launch_args(self):
+        args = ['scenario:=%s' % os.path.abspath(self.path), 'gui:=%s' % str(self.gui).lower()]
+        args += ['%s:=%s' % (m, str(m in self.scenario['mechanisms']).lower()) for m in scenarios.MECHANISMS]
+        return args
+
+    def expected_nodes(self):
+        nodes = CAR_NODES + board_nodes('board_a', self.pbr) + (board_nodes('board_b', True) if self.pbr else [])
+        for mechanism in self.scenario['mechanisms']:
+            nodes += MECHANISM_NODES[mechanism]
+        return nodes
+
+    def start(self):
+        os.makedirs(os.path.join(self.out, 'logs'), exist_ok=True)
+        self._site('master', ['rosmaster', '--core', '-p', str(self.port)])
+        master = rosgraph.Master(RUNNER, master_uri=self.env['ROS_MASTER_URI'])
+        if not wait_until(lambda: self._answers(master), 20.0):
+            raise RunError('the ROS master on port %d did not start' % self.port)
+        master.setParam('/use_sim_time', True)
+        master.setParam('/run_id', str(uuid.uuid4()))   # the launches started at once must share one
+        self._site('recorder', ['/usr/lib/rosbag/record', '-O', self.bag, '--tcpnodelay', '__name:=' + RECORDER[1:]]
+                   + TOPICS)
+        self._site('car', ['roslaunch', 'tjp_sim', 'car.launch'] + self._launch_args())
+        if self.pbr:
+            self._site('board_a', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_a', 'peer:=board_b',
+                                   'role:=primary'])
+            self._site('board_b', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_b', 'peer:=board_a',
+                                   'role:=backup'])
+        else:
+            self._site('board_a', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_a', 'pbr:=false'])
+        # The runner's own node, on simulated time, on this run's master.
+        os.environ.update(ROS_MASTER_URI=self.env['ROS_MASTER_URI'])
+        rospy.init_node(RUNNER[1:], disable_signals=True)
+        with warnings.catch_warnings():   # queue_size=None is chosen: publish synchronously, drop nothing
+            warnings.simplefilter('ignore')
+            self.events = rospy.Publisher('/tjp/events', String, queue_size=None, tcp_nodelay=True)
+        t0 = time.monotonic()
+        missing = self._wait_ready(master)
+        if missing:
+            raise RunError('the car did not come up within %.0f s: %s (logs in %s)'
+                           % (self.setup_timeout, ', '.join(missing[:6]), os.path.join(self.out, 'logs')))
+        self.log('scenario %s: %d nodes up and connected in %.1f s' % (self.scenario['name'],
+                                                                       len(self.expected_nodes()), time.monotonic() - t0))
+
+    @staticmethod
+    def _answers(master):
+        try:
+            master.getPid()
+            return True
+        except Exception:   # not up yet
+            return False
+
+    def _wait_ready(self, master):
+        nodes = self.expected_nodes()
+        services = ['%s/rebind' % n for n in nodes if n != '/car_sim'] + ['/car_sim/start']
+
+        def missing():
+            try:
+                _, subs, srvs = master.getSystemState()
+            except Exception as e:
+                return ['master: %s' % e]
+            have = {name for name, _ in srvs}
+            gone = [s for s in services if s not in have]
+            recording = {t for t, nodes in subs if RECORDER in nodes}
+            gone += ['recorder on %s' % t for t in ('/car/state', '/tjp/events') if t not in recording]
+            if not gone:
+                gone = ['%s not connected' % n for n in nodes + [RECORDER] if not wired(n, RUNNER)]
+            if not gone and self.events.get_num_connections() < 1:
+                gone = ['recorder not connected to the runner']
+            return gone
+        deadline = time.monotonic() + self.setup_timeout
+        while time.monotonic() < deadline:
+            dead = [name for name, site in self.sites.items() if not site.alive()]
+            if dead:
+                return ['%s exited' % ', '.join(dead)]
+            gone = missing()
+            if not gone:
+                return []
+            time.sleep(0.1)
+        return missing()
+
+    # -- the run ---------------------------------------------------------------------------------
+    def event(self, kind, **fields):
+        fields.update(t=round(rospy.get_time(), 4), kind=kind)
+        self.events.publish(String(data=json.dumps(fields)))
+        self.log('  t=%6.2f s  %s %s' % (fields['t'], kind, ' '.join('%s=%s' % kv for kv in sorted(fields.items())
+                                                                         if kv[0] not in ('t', 'kind'))))
+
+    def run(self):
+        """Start the simulation and act on the scenario's process faults and adaptations until the end."""
+        start = rospy.ServiceProxy('/car_sim/start', Trigger)
+        start()
+        duration, rate = self.scenario['duration'], self.scenario['rate']
+        wall_limit = time.monotonic() + duration / rate * 4 + 60
+        last_t, last_change = -1.0, time.monotonic()
+        actions = [('fault', i, f) for i, f in enumerate(self.scenario['faults']) if f['kind'] in scenarios.PROCESS_FAULTS]
+        actions += [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt']
+        ended = 'the scenario ended'
+        while True:
+            t = rospy.get_time()
+            wall = time.monotonic()
+            if t != last_t:
+                last_t, last_change = t, wall
+            for key, i, item in actions:
+                if item['at'] <= t and (key, i) not in self.done:
+                    self.done.add((key, i))
+                    self._act(item)
+            if t >= duration - 0.021:
+                break
+            stalled = wall - last_change
+            if stalled > (3.0 if ('simulator_crash' in self.done_kinds()) else 10.0):
+                ended = 'the clock stopped at t=%.2f s' % t
+                break
+            if wall > wall_limit:
+                ended = 'the wall-clock limit was reached at t=%.2f s' % t
+                break
+            time.sleep(0.005)
+        for thread in self.threads:
+            thread.join(60.0)
+        time.sleep(0.3)   # the last messages on their way to the recorder (wall clock: sim time may have stopped)
+        self.log('scenario %s: %s' % (self.scenario['name'], ended))
+        return ended
+
+    def done_kinds(self):
+        return {item['kind'] for key, i, item in
+                [(k, i, (self.scenario['faults'] if k == 'fault' else self.scenario['events'])[i]) for k, i in self.done]}
+
+    def _act(self, item):
+        kind = item['kind']
+        if kind == 'power_loss':
+            board = 'board_a' if item['board'] == 'primary' else 'board_b'
+            self.event('fault', fault='power_loss', target=board)
+            killed, _ = self.sites[board].power_off_fault()
+            self.log('    board %s powered off (%d processes)' % (board, killed))
+        elif kind == 'simulator_crash':
+            self.event('fault', fault='simulator_crash', target='car_sim')
+            procs = [p for p in process_tree(self.sites['car'].pid) if any('car_sim' in a for a in p.cmdline()[:3])]
+            for proc in procs:
+                proc.kill()
+            wait_dead(procs, 5.0)
+        elif kind == 'master_crash':
+            self.event('fault', fault='master_crash', target='rosmaster')
+            self.sites['master'].power_off()
+        elif kind == 'adapt':
+            thread = threading.Thread(target=self._adapt, args=(item,), daemon=True)
+            self.threads.append(thread)
+            thread.start()
+
+    def _adapt(self, item):
+        from aft_ftm.adaptation import ScriptError
+        from aft_ftm.ros.adaptation_engine import Engine
+        try:
+            script = load_script(item['script'], item['args'])
+            report = Engine(log=lambda line: None).run(script, 'prepared')
+            self.event('adaptation', script=item['script'], ok=bool(report['ok']), pause=report['pause_s'],
+                       duration=report['duration_s'], error=report.get('error', ''))
+            self.adaptations.append(report)
+        except ScriptError as e:
+            self.event('adaptation', script=item['script'], ok=False, pause=0.0, duration=0.0, error=str(e))
+
+    # -- the end ---------------------------------------------------------------------------------
+    def stop(self):
+        """Stop every process of the run; never raises. The recorder is stopped with SIGINT (it
+        closes the bag) after the others, the master last."""
+        for name in [n for n in self.sites if n not in ('recorder', 'master')] + ['recorder', 'master']:
+            site = self.sites.get(name)
+            if site is None:
+                continue
+            if name == 'recorder' and site.alive():
+                try:
+                    os.kill(site.pid, signal.SIGINT)
+                    site.proc.wait(timeout=10)
+                except Exception:   # shutdown paths never raise
+                    pass
+            site.stop(grace=5.0)
+        try:
+            rospy.signal_shutdown('scenario done')
+        except Exception:
+            pass
+
+    def leftovers(self):
+        """Processes of the run still alive (there should be none after stop())."""
+        return [s.name for s in self.sites.values() if s.alive()]
+
+
+def load_script(name, args):
+    """An adaptation script: a path, or the name of one shipped in tjp_sim/adaptations or aft_ftm's."""
+    from aft_ftm.ros import adapt_command
+    shipped = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'adaptations', name + '.yaml')
+    spec = shipped if os.path.isfile(shipped) else name
+    return adapt_command.load_script(spec, ['%s:=%s' % kv for kv in sorted(args.items())])
+
+
+def read_bag(path):
+    """The run's records (tjp_sim.summary's input) from the bag."""
+    if not os.path.exists(path) and os.path.exists(path + '.active'):
+        raise RunError('the recorder did not close %s (a .active file remains)' % path)
+    run = {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': []}
+    with rosbag.Bag(path) as bag:
+        for topic, msg, _ in bag.read_messages(topics=['/car/state', '/car/command', '/tjp/pid_command',
+                                                       '/aft/alarms', '/tjp/events']):
+            if topic == '/car/state':
+                run['states'].append((msg.stamp.to_sec(), msg.gap, msg.follower_speed, msg.leader_speed, msg.accel,
+                                      msg.obstacle, msg.collided))
+            elif topic == '/car/command':
+                run['commands'].append((msg.stamp.to_sec(), msg.accel, msg.mode, msg.source))
+            elif topic == '/tjp/pid_command':
+                run['pid_commands'].append((msg.stamp.to_sec(), msg.source))
+            elif topic == '/aft/alarms':
+                run['alarms'].append((msg.stamp.to_sec(), msg.source, msg.mechanism, msg.kind, msg.detail))
+            else:
+                run['events'].append(json.loads(msg.data))
+    for key in run:
+        run[key].sort(key=lambda r: r['t'] if isinstance(r, dict) else r[0])
+    return run
+
+
+def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
+    """Run scenario name (a file or shipped name), with mechanism disable removed if given (the
+    control experiment). Returns the summary (with its verdict and hazards); writes summary.json,
+    run.bag and plot.png into out."""
+    path = scenarios.path_of(name)
+    scenario = scenarios.load(name)
+    if disable:
+        scenario = scenarios.without(scenario, disable)
+    os.makedirs(out, exist_ok=True)
+    runner = ScenarioRun(scenario, path, out, gui=gui, log=log)
+    try:
+        runner.start()
+        ended = runner.run()
+    finally:
+        runner.stop()
+    left = runner.leftovers()
+    if left:
+        raise RunError('processes of the run still alive after stopping: %s' % ', '.join(left))
+    record = read_bag(runner.bag)
+    summary = summaries.summarize(record, scenario['expect'])
+    summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
+                   hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction']),
+                   bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
+    if plot:
+        from ..plot import plot as draw
+        summary['plot'] = draw(record, os.path.join(out, 'plot.png'), title='%s (seed %d)' % (scenario['name'],
+                                                                                              scenario['seed']),
+                               min_gap_fraction=scenario['expect']['min_gap_fraction'])
+    with open(os.path.join(out, 'summary.json'), 'w') as f:
+        json.dump(summary, f, indent=1, default=str)
+    return summary

@@ -1,0 +1,47 @@
+"""The ``scenario`` command: run one scenario of the car case study and print its summary."""
+import argparse
+import json
+import os
+import sys
+import time
+
+from .. import scenario as scenarios
+from .. import summary as summaries
+from ..errors import TjpError
+
+
+def main(argv):
+    parser = argparse.ArgumentParser(prog='scenario', description=__doc__)
+    parser.add_argument('scenario', help='a scenario file, or the name of one shipped in tjp_sim/scenarios')
+    parser.add_argument('--without', metavar='MECHANISM', choices=scenarios.MECHANISMS,
+                        help='the control experiment: run it with this mechanism removed')
+    parser.add_argument('--out', help='directory for run.bag, plot.png, summary.json and the logs '
+                                      '(default /tmp/tjp_runs/<scenario>-<time>)')
+    parser.add_argument('--gui', action='store_true', help="open pybullet's window")
+    parser.add_argument('--no-plot', action='store_true', help='do not draw plot.png')
+    parser.add_argument('--json', action='store_true', help='print the summary as JSON instead of text')
+    options = parser.parse_args(argv)
+    try:
+        scenario = scenarios.load(options.scenario)
+        if options.without:
+            scenarios.without(scenario, options.without)
+    except TjpError as e:
+        print('scenario: rejected: %s' % e, file=sys.stderr)
+        return 2
+    out = options.out or os.path.join('/tmp/tjp_runs', '%s%s-%s' % (
+        scenario['name'], '-without-' + options.without if options.without else '', time.strftime('%Y%m%d-%H%M%S')))
+    from .runner import RunError, run_scenario
+    log = (lambda line: print(line, file=sys.stderr)) if options.json else print
+    try:
+        summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,
+                               plot=not options.no_plot, log=log)
+    except (RunError, TjpError) as e:
+        print('scenario: the run failed: %s' % e, file=sys.stderr)
+        return 2
+    if options.json:
+        print(json.dumps(summary, indent=1, default=str))
+    else:
+        print(summaries.text(summary))
+        print('hazards: %s' % (', '.join(summary['hazards']) or 'none'))
+        print('record: %s%s' % (summary['bag'], ('\nplot:   %s' % summary['plot']) if summary.get('plot') else ''))
+    return 0 if summary['verdict']['ok'] else 1

@@ -1,0 +1,286 @@
+"""The Traffic Jam Pilot's ROS nodes (second paper, section III.B), named as in the paper.
+
+Each is thin: the logic is in :mod:`tjp_sim.control`. Their ports are rebindable (aft_ftm's
+``~rebind``), so that a fault tolerance mechanism can be put between a sensor and the TJP at run
+time, and each offers ``~suspend``/``~resume`` for the adaptation engine. Time is ROS time: the
+simulator's clock (``/use_sim_time``).
+"""
+import json
+import math
+import threading
+
+import rospy
+from aft_msgs.msg import Alarm, CarCommand, Measure
+from aft_msgs.srv import GetState, GetStateResponse, SetState, SetStateResponse
+from std_msgs.msg import Bool, String
+
+from aft_ftm import config
+from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec
+from aft_ftm.ros.cycle_nodes import Terminate
+from aft_ftm.ros.params import param
+from aft_ftm.ros.ports import Ports
+
+from ..control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance
+from ..errors import TjpConfigError
+
+
+def number(name, value):
+    """A parameter that must be a finite number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float('inf'):
+        raise config.ConfigError('parameter %s must be a number >= 0, got %r' % (name, value))
+    return float(value)
+
+
+def _range(msg):
+    """A sensor_msgs/Range reading in metres, None when nothing is in range (REP 117: +inf)."""
+    return None if math.isinf(msg.range) or math.isnan(msg.range) else msg.range
+
+
+class PortedNode(object):
+    """A node whose subscriptions and publications are aft_ftm ports (rebindable, suspendable)."""
+
+    def __init__(self, specs, callbacks):
+        self.name = rospy.get_name()
+        self.lock = threading.Lock()
+        self.ports = Ports(specs, callbacks)
+        self.ports.suspension([s.name for s in specs if s.direction == SUBSCRIBE])
+
+    def bind_all(self):
+        for name, spec in self.ports.specs.items():
+            if spec.direction == PUBLISH:
+                self.ports.bind(name)
+        for name, spec in self.ports.specs.items():
+            if spec.direction == SUBSCRIBE:
+                self.ports.bind(name)
+        self.ports.advertise_service()
+
+    def setup(self, timeout):
+        self.bind_all()
+        return True
+
+
+class MeasureManagerNode(PortedNode):
+    """measureManager: the car's speed from the IMU.
+
+    Subscribes: imu (geometry_msgs/TwistStamped, linear.x), port ``imu``
+    Publishes: speed (aft_msgs/Measure), port ``speed``
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        super(MeasureManagerNode, self).__init__(
+            [PortSpec('imu', SUBSCRIBE, 'geometry_msgs/TwistStamped'), PortSpec('speed', PUBLISH, 'aft_msgs/Measure')],
+            {'imu': self._on_imu})
+        self.refused = 0
+
+    def _on_imu(self, msg):
+        speed = msg.twist.linear.x
+        if math.isnan(speed) or math.isinf(speed):
+            self.refused += 1
+            rospy.logerr_throttle(1.0, '%s: IMU speed %r refused (%d so far)' % (self.name, speed, self.refused))
+            return
+        self.ports.publish('speed', Measure(stamp=msg.header.stamp, value=speed, source=self.name))
+
+
+class DistanceSecurityCalculatorNode(PortedNode):
+    """distanceSecurityCalculator: the gap to the car ahead and the safety distance for our speed.
+
+    Parameters: ~standstill (float, 2 m), ~time_gap (float, 1.5 s): d(v) = standstill + time_gap * v
+    Subscribes: laser (sensor_msgs/Range), port ``laser``; speed (aft_msgs/Measure), port ``speed``
+    Publishes: gap (aft_msgs/Measure), port ``gap``; safety_distance (aft_msgs/Measure), port ``safety_distance``
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        try:
+            self.safety = SafetyDistance(param('standstill', config.positive_float, 2.0),
+                                         param('time_gap', config.positive_float, 1.5))
+        except TjpConfigError as e:
+            raise config.ConfigError(str(e))
+        super(DistanceSecurityCalculatorNode, self).__init__(
+            [PortSpec('laser', SUBSCRIBE, 'sensor_msgs/Range'), PortSpec('speed', SUBSCRIBE, 'aft_msgs/Measure'),
+             PortSpec('gap', PUBLISH, 'aft_msgs/Measure'), PortSpec('safety_distance', PUBLISH, 'aft_msgs/Measure')],
+            {'laser': self._on_laser, 'speed': self._on_speed})
+
+    def _on_laser(self, msg):
+        gap = _range(msg)
+        # Nothing within the laser's range: the road ahead is free up to its range.
+        self.ports.publish('gap', Measure(stamp=msg.header.stamp, value=msg.max_range if gap is None else gap,
+                                          source=self.name))
+
+    def _on_speed(self, msg):
+        self.ports.publish('safety_distance', Measure(stamp=msg.stamp, value=self.safety(msg.value), source=self.name))
+
+
+class ControllerPidNode(PortedNode):
+    """controllerPid: the acceleration command that keeps the safety distance, each cycle.
+
+    A publish/subscribe node replicated with PBR: at the end of each cycle it calls the Terminate
+    statement (aft_ftm.ros.cycle_nodes.Terminate), which gives its After the state to checkpoint.
+
+    Parameters: ~period (float, 0.1 s of ROS time); ~kp, ~ki, ~kd (0.8, 0.01, 0.6);
+        ~max_accel, ~max_decel (1.5, 3.0 m/s^2): the comfort limits
+    Subscribes: gap, safety_distance (aft_msgs/Measure), ports ``gap``, ``safety_distance``
+    Publishes: command (aft_msgs/CarCommand), port ``command``; cycle_end (aft_msgs/CycleEnd)
+    Services: ~get_state, ~set_state (aft_msgs/GetState, SetState), ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        self.period = param('period', config.positive_float, 0.1)
+        try:
+            self.pid = PidController(kp=param('kp', number, 0.8), ki=param('ki', number, 0.01),
+                                     kd=param('kd', number, 0.6), max_accel=param('max_accel', config.positive_float, 1.5),
+                                     max_decel=param('max_decel', config.positive_float, 3.0))
+        except TjpConfigError as e:
+            raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
+        super(ControllerPidNode, self).__init__(
+            [PortSpec('gap', SUBSCRIBE, 'aft_msgs/Measure'), PortSpec('safety_distance', SUBSCRIBE, 'aft_msgs/Measure'),
+             PortSpec('command', PUBLISH, 'aft_msgs/CarCommand')],
+            {'gap': self._on_gap, 'safety_distance': self._on_safety})
+        self.gap = self.safety = None
+        self.cycle = 0
+
+    def setup(self, timeout):
+        self.terminate = Terminate(self._state_bytes)
+        rospy.Service('~get_state', GetState, lambda _req: GetStateResponse(state=self._state_bytes()))
+        rospy.Service('~set_state', SetState, self._on_set_state)
+        self.bind_all()
+        self.timer = rospy.Timer(rospy.Duration(self.period), self._cycle)
+        return True
+
+    def _on_gap(self, msg):
+        with self.lock:
+            self.gap, self.gap_time = msg.value, msg.stamp.to_sec()
+
+    def _on_safety(self, msg):
+        with self.lock:
+            self.safety = msg.value
+
+    def _state_bytes(self):
+        with self.lock:
+            return json.dumps(self.pid.state()).encode()
+
+    def _on_set_state(self, req):
+        try:
+            state = json.loads(bytes(req.state).decode())
+            with self.lock:
+                self.pid.set_state(state)
+        except (ValueError, TjpConfigError) as e:
+            rospy.logerr('%s: state refused: %s', self.name, e)
+            return SetStateResponse(success=False, message=str(e))
+        return SetStateResponse(success=True, message='')
+
+    def _cycle(self, event):
+        with self.lock:
+            if self.gap is None or self.safety is None:
+                return    # no measurement yet: nothing to command
+            command = self.pid.update(self.gap, self.safety, self.gap_time)
+            self.cycle += 1
+            cycle = self.cycle
+        self.ports.publish('command', CarCommand(stamp=rospy.Time.now(), accel=command, mode=CarCommand.TJP,
+                                                 cycle=cycle, source=self.name))
+        self.terminate()
+
+
+class EmergencyBrakingNode(PortedNode):
+    """Emergency Braking, independent of the TJP: brakes for a close obstacle (ultrasonic sensor).
+
+    Parameters: ~confirm (int, 1): readings in a row that confirm an obstacle (time redundancy
+        when > 1); ~period (float, 0.04 s): the ultrasonic's period; ~emergency_distance (1 m);
+        ~release_delay (1 s); ~emergency_decel (6 m/s^2)
+    Subscribes: ultrasonic (sensor_msgs/Range), port ``ultrasonic``; imu (geometry_msgs/TwistStamped),
+        port ``imu``: its own reading of the speed, not the TJP's
+    Publishes: emergency (std_msgs/Bool), port ``emergency``: its decision at each reading;
+        alarms (aft_msgs/Alarm), port ``alarms``: a false detection masked
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        try:
+            self.braking = EmergencyBraking(
+                emergency_distance=param('emergency_distance', config.positive_float, 1.0),
+                release_delay=param('release_delay', number, 1.0),
+                emergency_decel=param('emergency_decel', config.positive_float, 6.0),
+                confirm=param('confirm', config.non_negative_int, 1),
+                period=param('period', config.positive_float, 0.04))
+        except TjpConfigError as e:
+            raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
+        super(EmergencyBrakingNode, self).__init__(
+            [PortSpec('ultrasonic', SUBSCRIBE, 'sensor_msgs/Range'), PortSpec('imu', SUBSCRIBE, 'geometry_msgs/TwistStamped'),
+             PortSpec('emergency', PUBLISH, 'std_msgs/Bool'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+            {'ultrasonic': self._on_ultrasonic, 'imu': self._on_imu})
+        self.speed = 0.0
+
+    def _on_imu(self, msg):
+        with self.lock:
+            self.speed = msg.twist.linear.x
+
+    def _on_ultrasonic(self, msg):
+        with self.lock:
+            masked = self.braking.masked
+            active = self.braking.update(_range(msg), msg.header.stamp.to_sec(), self.speed)
+            masked = self.braking.masked > masked
+        if masked:
+            self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='false_detection_masked',
+                                               detail='an obstacle seen in fewer than %d readings in a row'
+                                               % self.braking.confirm, stamp=msg.header.stamp))
+        self.ports.publish('emergency', Bool(data=active))
+
+
+class CommandManagerNode(PortedNode):
+    """commandManager: the command the actuator gets, each cycle.
+
+    Emergency Braking has priority over controllerPid; a safe stop (an alarm) over both. Without
+    a new command from controllerPid (its board failing over), the last one is held ``~hold``.
+
+    Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2)
+    Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; emergency (std_msgs/Bool),
+        port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``
+    Publishes: command (aft_msgs/CarCommand), port ``command``
+    Services: ~rebind, ~suspend, ~resume
+    """
+
+    def __init__(self):
+        self.period = param('period', config.positive_float, 0.05)
+        try:
+            self.arbiter = CommandArbiter(hold=param('hold', config.positive_float, 0.3),
+                                          emergency_decel=param('emergency_decel', config.positive_float, 6.0),
+                                          stop_decel=param('stop_decel', config.positive_float, 3.0))
+        except TjpConfigError as e:
+            raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
+        super(CommandManagerNode, self).__init__(
+            [PortSpec('pid_command', SUBSCRIBE, 'aft_msgs/CarCommand'), PortSpec('emergency', SUBSCRIBE, 'std_msgs/Bool'),
+             PortSpec('safe_stop', SUBSCRIBE, 'std_msgs/String'), PortSpec('command', PUBLISH, 'aft_msgs/CarCommand')],
+            {'pid_command': self._on_pid, 'emergency': self._on_emergency, 'safe_stop': self._on_safe_stop})
+        self.pending = None
+        self.cycle = 0
+
+    def setup(self, timeout):
+        self.bind_all()
+        self.timer = rospy.Timer(rospy.Duration(self.period), lambda _e: self._send())
+        return True
+
+    def _on_pid(self, msg):
+        with self.lock:
+            self.pending = msg.accel
+
+    def _on_emergency(self, msg):
+        with self.lock:
+            self.arbiter.emergency(msg.data)
+
+    def _on_safe_stop(self, msg):
+        with self.lock:
+            first = self.arbiter.mode != Mode.SAFE_STOP
+            self.arbiter.safe_stop(msg.data)
+        if first:
+            rospy.logerr('%s: controlled stop: %s', self.name, msg.data)
+            self._send()    # at once: the clock may have stopped with the simulator
+
+    def _send(self):
+        with self.lock:
+            accel = self.arbiter.command(self.pending, rospy.get_time())
+            self.pending = None
+            self.cycle += 1
+            msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(self.arbiter.mode), cycle=self.cycle,
+                             source=self.name)
+        self.ports.publish('command', msg)
