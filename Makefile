@@ -1,5 +1,5 @@
 SHELL := /bin/bash
-.PHONY: setup test unit integration demo bench clean
+.PHONY: setup test unit integration demo demo-pbr bench clean
 ENV := . scripts/env.sh &&
 
 setup:
@@ -15,6 +15,9 @@ integration: setup
 	$(ENV) python -m pytest -q -p no:cacheprovider -s tests/integration
 
 demo: setup
+	$(ENV) python scripts/demo_tjp
+
+demo-pbr: setup
 	$(ENV) python scripts/demo_pbr
 
 bench: setup

@@ -14,8 +14,10 @@ import psutil
 import pytest
 from reporting import report
 
-TEST_DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'test')
-ROSTESTS = sorted(os.path.basename(p) for p in glob.glob(os.path.join(TEST_DIR, '*.test')))
+SRC = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src')
+TEST_DIR = os.path.join(SRC, 'aft_ftm', 'test')
+ROSTESTS = [(pkg, os.path.basename(p)) for pkg in ('aft_ftm', 'tjp_sim')
+            for p in sorted(glob.glob(os.path.join(SRC, pkg, 'test', '*.test')))]
 
 
 def tagged(tag):
@@ -29,15 +31,15 @@ def tagged(tag):
     return procs
 
 
-@pytest.mark.parametrize('test_file', ROSTESTS)
-def test_rostest(test_file):
+@pytest.mark.parametrize('package,test_file', ROSTESTS, ids=['%s/%s' % t for t in ROSTESTS])
+def test_rostest(package, test_file):
     tag = uuid.uuid4().hex
     results = tempfile.mkdtemp(prefix='aft_results_')
     env = dict(os.environ, AFT_TEST_TAG=tag, AFT_RESULTS_DIR=results)
     try:
         # Not --text: with it rostest exits 0 even when tests fail.
-        run = subprocess.run(['rostest', 'aft_ftm', test_file], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, timeout=1200)
+        run = subprocess.run(['rostest', package, test_file], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, timeout=1800)
         output = run.stdout.decode(errors='replace')
     finally:
         leftovers = tagged(tag)
@@ -52,7 +54,7 @@ def test_rostest(test_file):
     if run.returncode != 0 or 'RESULT: SUCCESS' not in output:
         details = ''
         for xml in glob.glob(os.path.join(os.environ.get('ROS_HOME', os.path.expanduser('~/.ros')),
-                                          'test_results', 'aft_ftm', '*%s*.xml' % test_file[:-5])):
+                                          'test_results', package, '*%s*.xml' % test_file[:-5])):
             with open(xml, errors='replace') as f:
                 details += f.read()[-8000:]
         pytest.fail('rostest %s failed (exit %d):\n%s\n%s' % (test_file, run.returncode, output[-4000:], details))
@@ -73,12 +75,17 @@ LAUNCH_ARGS = {
     'stages.launch': REPLICA,
     'mechanism.launch': ['ns:=x', 'mechanism:=tr', 'inp:=/i', 'out:=/o', 'server:=/account'],
     'demo_mechanism_site.launch': ['mechanism:=ad'],
+    'car.launch': ['scenario:=board_power_loss'],
+    'board.launch': ['board:=board_a', 'peer:=board_b'],
 }
 
 
 def launch_files():
-    launch_dir = os.path.join(TEST_DIR, '..', 'launch')
-    return sorted(glob.glob(os.path.join(launch_dir, '*.launch'))) + sorted(glob.glob(os.path.join(TEST_DIR, '*.test')))
+    paths = []
+    for pkg in ('aft_ftm', 'tjp_sim'):
+        paths += sorted(glob.glob(os.path.join(SRC, pkg, 'launch', '*.launch')))
+        paths += sorted(glob.glob(os.path.join(SRC, pkg, 'test', '*.test')))
+    return paths
 
 
 @pytest.mark.parametrize('path', launch_files(), ids=os.path.basename)

@@ -271,3 +271,9 @@ def test_the_plot_is_a_png_even_with_faults_a_failover_a_collision_and_no_comman
             data = f.read()
         assert data[:8] == b'\x89PNG\r\n\x1a\n'
         assert len(data) > 10000
+
+
+def test_no_stop_is_a_hazard_only_where_a_controlled_stop_is_expected():
+    s = summarize(steady_run())
+    assert 'no_stop' in hazards(s, 0.5, stop_expected=True)
+    assert 'no_stop' not in hazards(s, 0.5, stop_expected=False)

@@ -14,7 +14,8 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   and (except crash) an ``until``; ``power_loss`` names a ``board`` (primary or backup);
   ``simulator_crash`` and ``master_crash`` take nothing more
 - ``events`` [[]]: ``pedestrian`` (``at``, ``ahead`` m in front of the bumper [3.0], ``leaves`` sim s
-  [never]); ``adapt`` (``at``, ``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}])
+  [never]); ``adapt`` (``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}], and
+  either ``at`` a time or ``on_alarm``: the first alarm of that kind, e.g. implausible_gap)
 - ``expect`` [{}]: ``min_gap_fraction`` [0.5]: the gap never goes below this fraction of the safety
   distance; ``stop_within`` [none]: after a safe stop the car stands still within this many seconds
 - ``control`` [none]: the control experiment, ``disable`` (a mechanism) and ``hazard`` (one of
@@ -67,7 +68,7 @@ def _number(where, value, low=None, high=None, positive=False):
 def _keys(where, item, required, optional):
     if not isinstance(item, dict):
         raise ScenarioError('%s must be a mapping, got %r' % (where, item))
-    unknown = sorted(set(item) - set(required) - set(optional))
+    unknown = sorted((str(k) for k in set(item) - set(required) - set(optional)))
     if unknown:
         raise ScenarioError('%s: unknown key %s (allowed: %s)' % (where, ', '.join(unknown),
                                                                  ', '.join(sorted(set(required) | set(optional)))))
@@ -134,14 +135,20 @@ def _event(where, item, duration, rng):
                 raise ScenarioError('%s: leaves %g must come after at %g' % (where, event['leaves'], event['at']))
         return event
     if kind == 'adapt':
-        _keys(where, item, ['kind', 'at', 'script'], ['args'])
+        _keys(where, item, ['kind', 'script'], ['args', 'at', 'on_alarm'])
+        if ('at' in item) == ('on_alarm' in item):
+            raise ScenarioError('%s: an adaptation runs either at a time (at) or on an alarm (on_alarm), not %s'
+                                % (where, 'both' if 'at' in item else 'neither'))
+        if 'on_alarm' in item and (not isinstance(item['on_alarm'], str) or not item['on_alarm']):
+            raise ScenarioError('%s.on_alarm must be the kind of an alarm (e.g. implausible_gap), got %r'
+                                % (where, item['on_alarm']))
         args = item.get('args', {})
         if not isinstance(item['script'], str) or not item['script']:
             raise ScenarioError('%s.script must be the name of an adaptation script, got %r' % (where, item['script']))
         if not isinstance(args, dict) or not all(isinstance(k, str) for k in args):
             raise ScenarioError('%s.args must be a mapping of names to values, got %r' % (where, args))
-        return {'kind': kind, 'at': _time(where + '.at', item['at'], duration, rng), 'script': item['script'],
-                'args': {k: str(v) for k, v in args.items()}}
+        return {'kind': kind, 'at': _time(where + '.at', item['at'], duration, rng) if 'at' in item else None,
+                'on_alarm': item.get('on_alarm'), 'script': item['script'], 'args': {k: str(v) for k, v in args.items()}}
     raise ScenarioError('%s: kind must be pedestrian or adapt, got %r' % (where, kind))
 
 

@@ -4,7 +4,8 @@ A run is a dict of plain lists recorded during the run (sim time ``t`` in second
 by ``t``):
 
 - ``states``: ``(t, gap, follower_speed, leader_speed, accel, obstacle, collided)``, the ground truth
-  every 0.02 s; ``obstacle`` is the distance to a pedestrian, ``inf`` when there is none;
+  every 0.02 s; ``obstacle`` is the true distance to the nearest thing ahead (the leader or a
+  pedestrian);
   ``collided`` stays True once set. Required, and not empty.
 - ``commands``: ``(t, accel, mode, source)``, what commandManager sent to the car; ``mode`` is a
   :class:`tjp_sim.control.Mode` (0 TJP, 1 EMERGENCY, 2 SAFE_STOP, 3 HOLD).
@@ -22,6 +23,7 @@ The lists other than ``states`` may be missing or empty: nothing of that kind ha
 """
 import bisect
 
+from .world import ULTRASONIC_RANGE
 from .control import Mode, SafetyDistance
 from .errors import TjpConfigError, TjpError
 
@@ -155,7 +157,8 @@ def summarize(run, expect=None):
     below = sum(b[0] - a[0] for a, b in zip(states, states[1:]) if a[1] < safety(a[2]))
     collided = [s[0] for s in states if s[6]]
     starts = _emergency_starts(commands)
-    unjustified = [c for c in starts if _state_at(states, times, c[0])[5] == float('inf')]
+    # Unjustified: nothing was within the ultrasonic sensor's range, so the detection was false.
+    unjustified = [c for c in starts if _state_at(states, times, c[0])[5] > ULTRASONIC_RANGE]
     safe_stop_at = next((c[0] for c in commands if c[2] == Mode.SAFE_STOP), None)
     stopped_at = None
     if safe_stop_at is not None:
@@ -192,8 +195,9 @@ def summarize(run, expect=None):
     return summary
 
 
-def hazards(summary, min_gap_fraction):
-    """The sorted names (of :data:`HAZARDS`) of the hazards a summary shows."""
+def hazards(summary, min_gap_fraction, stop_expected=True):
+    """The sorted names (of :data:`HAZARDS`) of the hazards a summary shows. ``no_stop`` is one only
+    where a controlled stop is expected (a failure the TJP cannot survive happened)."""
     present = {
         'collision': summary['collision'],
         'gap_violation': summary['min_gap_ratio'] < min_gap_fraction,
@@ -201,7 +205,7 @@ def hazards(summary, min_gap_fraction):
         # The TJP no longer drives: controllerPid silent, or the car stopped for good by an alarm.
         'service_lost': summary['longest_pid_silence'] > SERVICE_LOST_AFTER or summary['safe_stop_at'] is not None,
         # A failure the TJP cannot survive went unanswered: no controlled stop was even commanded.
-        'no_stop': summary['safe_stop_at'] is None,
+        'no_stop': stop_expected and summary['safe_stop_at'] is None,
     }
     return sorted(name for name, shown in present.items() if shown)
 

@@ -86,6 +86,8 @@ class World(object):
         """Advance one step with the follower's commanded acceleration (clamped to the car's limits)."""
         accel = min(self.max_accel, max(-self.max_decel, accel))
         self.t += self.dt
+        if self.collided:
+            accel = -self.follower_v / self.dt   # a crash stops the car where it is
         self.follower_v = max(0.0, self.follower_v + accel * self.dt)
         self.follower_x += self.follower_v * self.dt
         self.leader_v = profile_speed(self.profile, self.t)

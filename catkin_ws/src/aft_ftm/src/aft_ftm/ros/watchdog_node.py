@@ -6,7 +6,6 @@ import threading
 import time
 
 import rospy
-from aft_msgs.msg import Heartbeat
 from aft_msgs.srv import SetRole
 from std_msgs.msg import String
 

@@ -7,7 +7,6 @@ run time by the adaptation engine):
 - :class:`AlarmManagerNode`: alarm message and controlled stop when the simulator, the ROS master
   or a sensor without redundancy stops.
 """
-import math
 import threading
 import time
 
@@ -22,15 +21,17 @@ from aft_ftm.ros.params import param
 
 from ..errors import TjpConfigError
 from ..filters import LaserVoter, SlidingAverage
-from .tjp_nodes import PortedNode, _range, number
+from .tjp_nodes import PortedNode, _range
 
 
 class ImuTrNode(PortedNode):
     """Time redundancy on the IMU: each speed passed on is the mean of a sliding window of readings;
     a reading far from the window's median is a transient value fault: masked and reported.
 
-    Parameters: ~window (int, 5), ~tolerance (float, 1.0 m/s), ~persist (int, 3): readings agreeing
-        among themselves that far from the window make it follow (the speed really changed)
+    Parameters: ~window (int, 5), ~tolerance (float, 1.0 m/s), ~persist (int, 5): readings in a row
+        agreeing among themselves that far from the window make it follow (the speed really changed:
+        a car cannot change its speed by 1 m/s in one 20 ms reading, so only a fault lasting 5 readings
+        is taken for a change)
     Subscribes: inp (geometry_msgs/TwistStamped), port ``inp``
     Publishes: out (geometry_msgs/TwistStamped), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``
     Services: ~rebind, ~suspend, ~resume
@@ -40,7 +41,7 @@ class ImuTrNode(PortedNode):
         try:
             self.filter = SlidingAverage(param('window', config.non_negative_int, 5),
                                          param('tolerance', config.positive_float, 1.0),
-                                         param('persist', config.non_negative_int, 3))
+                                         param('persist', config.non_negative_int, 5))
         except TjpConfigError as e:
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(ImuTrNode, self).__init__(

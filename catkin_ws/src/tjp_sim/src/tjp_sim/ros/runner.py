@@ -21,6 +21,7 @@ import warnings
 import rosbag
 import rosgraph
 import rospy
+from aft_msgs.msg import Alarm
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -112,6 +113,8 @@ class ScenarioRun(object):
         with warnings.catch_warnings():   # queue_size=None is chosen: publish synchronously, drop nothing
             warnings.simplefilter('ignore')
             self.events = rospy.Publisher('/tjp/events', String, queue_size=None, tcp_nodelay=True)
+        self.alarm_kinds = set()
+        rospy.Subscriber('/aft/alarms', Alarm, lambda msg: self.alarm_kinds.add(msg.kind), tcp_nodelay=True)
         t0 = time.monotonic()
         missing = self._wait_ready(master)
         if missing:
@@ -172,7 +175,8 @@ class ScenarioRun(object):
         wall_limit = time.monotonic() + duration / rate * 4 + 60
         last_t, last_change = -1.0, time.monotonic()
         actions = [('fault', i, f) for i, f in enumerate(self.scenario['faults']) if f['kind'] in scenarios.PROCESS_FAULTS]
-        actions += [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt']
+        actions += [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt' and e['at'] is not None]
+        triggers = [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt' and e['on_alarm']]
         ended = 'the scenario ended'
         while True:
             t = rospy.get_time()
@@ -182,6 +186,11 @@ class ScenarioRun(object):
             for key, i, item in actions:
                 if item['at'] <= t and (key, i) not in self.done:
                     self.done.add((key, i))
+                    self._act(item)
+            for key, i, item in triggers:
+                if item['on_alarm'] in self.alarm_kinds and (key, i) not in self.done:
+                    self.done.add((key, i))
+                    self.log('    alarm %s: adaptation %s' % (item['on_alarm'], item['script']))
                     self._act(item)
             if t >= duration - 0.021:
                 break
@@ -230,8 +239,8 @@ class ScenarioRun(object):
         try:
             script = load_script(item['script'], item['args'])
             report = Engine(log=lambda line: None).run(script, 'prepared')
-            self.event('adaptation', script=item['script'], ok=bool(report['ok']), pause=report['pause_s'],
-                       duration=report['duration_s'], error=report.get('error', ''))
+            self.event('adaptation', script=item['script'], ok=bool(report['ok']), pause=round(report['pause_s'], 5),
+                       duration=round(report['duration_s'], 3), error=report.get('error', ''))
             self.adaptations.append(report)
         except ScriptError as e:
             self.event('adaptation', script=item['script'], ok=False, pause=0.0, duration=0.0, error=str(e))
@@ -293,6 +302,12 @@ def read_bag(path):
     return run
 
 
+def stop_expected(scenario):
+    """Whether the scenario's faults call for a controlled stop (the FMECA's alarm-and-stop rows)."""
+    control = scenario['control'] or {}
+    return scenario['expect']['stop_within'] is not None or control.get('hazard') == 'no_stop'
+
+
 def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
     """Run scenario name (a file or shipped name), with mechanism disable removed if given (the
     control experiment). Returns the summary (with its verdict and hazards); writes summary.json,
@@ -314,7 +329,7 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
     record = read_bag(runner.bag)
     summary = summaries.summarize(record, scenario['expect'])
     summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
-                   hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction']),
+                   hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
     if plot:
         from ..plot import plot as draw

@@ -113,10 +113,11 @@ class CarSimNode(object):
             now = rospy.Time.from_sec(self.world.t)
             self.clock.publish(Clock(clock=now))
             self._publish_sensors(now, steps)
-            obstacle = self.world.pedestrian_distance()
+            pedestrian = self.world.pedestrian_distance()
+            obstacle = self.world.gap() if pedestrian is None else min(pedestrian, self.world.gap())
             self.state.publish(CarState(stamp=now, gap=self.world.gap(), follower_speed=self.world.follower_v,
                                         leader_speed=self.world.leader_v, accel=applied,
-                                        obstacle=float('inf') if obstacle is None else obstacle,
+                                        obstacle=obstacle,
                                         collided=self.world.collided))
             if self.world.t >= next_report:
                 next_report += 1.0

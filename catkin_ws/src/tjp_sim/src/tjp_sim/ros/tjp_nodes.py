@@ -12,7 +12,7 @@ import threading
 import rospy
 from aft_msgs.msg import Alarm, CarCommand, Measure
 from aft_msgs.srv import GetState, GetStateResponse, SetState, SetStateResponse
-from std_msgs.msg import Bool, String
+from std_msgs.msg import Bool
 
 from aft_ftm import config
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -85,9 +85,15 @@ class MeasureManagerNode(PortedNode):
 class DistanceSecurityCalculatorNode(PortedNode):
     """distanceSecurityCalculator: the gap to the car ahead and the safety distance for our speed.
 
-    Parameters: ~standstill (float, 2 m), ~time_gap (float, 1.5 s): d(v) = standstill + time_gap * v
+    It also checks the gap's plausibility (the FMECA's error message for inconsistent laser data):
+    a gap changing faster than ``~max_rate`` between two readings cannot be the car ahead; it is
+    reported on ``alarms`` (it is still passed on: masking is the voter's job, when composed).
+
+    Parameters: ~standstill (float, 2 m), ~time_gap (float, 1.5 s): d(v) = standstill + time_gap * v;
+        ~max_rate (float, 30 m/s): the fastest plausible change of the gap
     Subscribes: laser (sensor_msgs/Range), port ``laser``; speed (aft_msgs/Measure), port ``speed``
-    Publishes: gap (aft_msgs/Measure), port ``gap``; safety_distance (aft_msgs/Measure), port ``safety_distance``
+    Publishes: gap (aft_msgs/Measure), port ``gap``; safety_distance (aft_msgs/Measure), port ``safety_distance``;
+        alarms (aft_msgs/Alarm), port ``alarms``: implausible_gap
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -97,16 +103,26 @@ class DistanceSecurityCalculatorNode(PortedNode):
                                          param('time_gap', config.positive_float, 1.5))
         except TjpConfigError as e:
             raise config.ConfigError(str(e))
+        self.max_rate = param('max_rate', config.positive_float, 30.0)
         super(DistanceSecurityCalculatorNode, self).__init__(
             [PortSpec('laser', SUBSCRIBE, 'sensor_msgs/Range'), PortSpec('speed', SUBSCRIBE, 'aft_msgs/Measure'),
-             PortSpec('gap', PUBLISH, 'aft_msgs/Measure'), PortSpec('safety_distance', PUBLISH, 'aft_msgs/Measure')],
+             PortSpec('gap', PUBLISH, 'aft_msgs/Measure'), PortSpec('safety_distance', PUBLISH, 'aft_msgs/Measure'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'laser': self._on_laser, 'speed': self._on_speed})
+        self.last = None   # (time, gap) of the last reading
 
     def _on_laser(self, msg):
         gap = _range(msg)
         # Nothing within the laser's range: the road ahead is free up to its range.
-        self.ports.publish('gap', Measure(stamp=msg.header.stamp, value=msg.max_range if gap is None else gap,
-                                          source=self.name))
+        gap = msg.max_range if gap is None else gap
+        now = msg.header.stamp.to_sec()
+        with self.lock:
+            last, self.last = self.last, (now, gap)
+        if last is not None and now > last[0] and abs(gap - last[1]) / (now - last[0]) > self.max_rate:
+            self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='implausible_gap',
+                                               detail='gap %.2f m -> %.2f m in %.3f s' % (last[1], gap, now - last[0]),
+                                               stamp=msg.header.stamp))
+        self.ports.publish('gap', Measure(stamp=msg.header.stamp, value=gap, source=self.name))
 
     def _on_speed(self, msg):
         self.ports.publish('safety_distance', Measure(stamp=msg.stamp, value=self.safety(msg.value), source=self.name))
