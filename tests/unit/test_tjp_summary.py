@@ -215,7 +215,10 @@ def test_fault_injection_masking_failovers_and_adaptations_are_reported():
 
     lines = text(s).splitlines()
     assert len({line.index(' : ') for line in lines if ' : ' in line}) == 1   # labels aligned
-    assert any('t=2.30 s to backup: detected in 250 ms, switched in 40 ms' in line for line in lines)
+    assert any('t=2.30 s, board backup failed: detected in 250 ms, switched in 40 ms' in line for line in lines)
+    failed = dict(failover, ok=False, problems=['/board_b/cycle_after: unable to contact master'])
+    assert any('SWITCH FAILED: /board_b/cycle_after: unable to contact master' in line
+               for line in text(summarize(steady_run(events=[failed]))).splitlines())
     assert any('12 injected, 3 masked' in line for line in lines)
     assert any('ultrasonic: 2' in line for line in lines)
 
@@ -277,3 +280,10 @@ def test_no_stop_is_a_hazard_only_where_a_controlled_stop_is_expected():
     s = summarize(steady_run())
     assert 'no_stop' in hazards(s, 0.5, stop_expected=True)
     assert 'no_stop' not in hazards(s, 0.5, stop_expected=False)
+
+
+def test_the_peak_deceleration_is_the_braking_not_the_crash():
+    states = [(0.0, 5.0, 5.0, 5.0, -2.5, 5.0, False), (0.02, 1.0, 5.0, 0.0, -3.0, 1.0, False),
+              (0.04, 0.0, 0.0, 0.0, -250.0, 0.0, True), (0.06, 0.0, 0.0, 0.0, 0.0, 0.0, True)]
+    s = summarize(steady_run(states=states))
+    assert s['collision'] and s['collision_at'] == 0.04 and s['peak_decel'] == 3.0

@@ -175,7 +175,8 @@ def summarize(run, expect=None):
         'time_below_safety': below,
         'collision': bool(collided),
         'collision_at': collided[0] if collided else None,
-        'peak_decel': max(0.0, max(-s[4] for s in states)),
+        # Braking the car did (a comfort and safety figure), not the crash that stopped it.
+        'peak_decel': max([0.0] + [-s[4] for s in states if not collided or s[0] < collided[0]]),
         'emergency_activations': len(starts),
         'unjustified_emergencies': len(unjustified),
         'safe_stop_at': safe_stop_at,
@@ -241,8 +242,10 @@ def text(summary):
     lines.append(('longest pid silence', '%.3f s' % s['longest_pid_silence'], []))
     lines.append(('pid sources', ', '.join(s['pid_sources']) or 'none', []))
     lines.append(('failovers', '%d' % len(s['failovers']), [
-        '%s to %s: detected in %s, switched in %s' % (
-            _at(f.get('t')), f.get('board', '?'), _ms(f.get('silence')), _ms(f.get('switch')))
+        '%s, board %s failed: detected in %s, %s' % (
+            _at(f.get('t')), f.get('board', '?'), _ms(f.get('silence')),
+            'switched in %s' % _ms(f.get('switch')) if f.get('ok', True) else
+            'SWITCH FAILED: %s' % '; '.join(f.get('problems') or ['?']))
         for f in s['failovers']]))
     lines.append(('faults', '%d' % len(s['faults']), [
         '%s: %s on %s' % (_at(f.get('t')), f.get('fault', '?'), f.get('target', '-')) for f in s['faults']]))

@@ -23,7 +23,8 @@ class WatchdogNode(object):
 
     1. enforces its fail-silence: a board that only stalled must not come back as a second primary,
        so the process tree of its launcher is killed (if it runs on this host);
-    2. promotes the backup: SetRole ALONE on each node of ``~promote``, in order;
+    2. promotes the backup: SetRole ALONE on each node of ``~promote``, in order, over connections
+       opened at set-up (a failover does not need the ROS master);
     3. publishes the failover, with the detection time (the silence) and the switch time.
 
     It acts once: after a failover the remaining board runs alone.
@@ -77,6 +78,16 @@ class WatchdogNode(object):
                 rospy.logerr('%s: %s/set_role is not available', rospy.get_name(), node)
                 return False
             self.proxies[node] = rospy.ServiceProxy(node + '/set_role', SetRole, persistent=True)
+            # Open the connection now, with a call that changes nothing (the backup stays a backup):
+            # a failover must not need the ROS master, which may be gone by then.
+            try:
+                answer = self.proxies[node](role=Role.BACKUP.value, last_seq=0)
+            except (rospy.ServiceException, rospy.ROSException) as e:
+                rospy.logerr('%s: %s/set_role does not answer: %s', rospy.get_name(), node, e)
+                return False
+            if not answer.success:
+                rospy.logerr('%s: %s is not a backup: %s', rospy.get_name(), node, answer.message)
+                return False
         self.ports.advertise_service()
         threading.Thread(target=self._loop, name='watchdog', daemon=True).start()
         return True
