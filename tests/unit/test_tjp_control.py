@@ -112,12 +112,23 @@ def test_a_failover_of_the_controller_holds_the_last_command_briefly_then_brakes
     assert arbiter.holds == 1
 
 
-def test_a_safe_stop_stays_whatever_comes():
-    arbiter = CommandArbiter()
+def test_a_safe_stop_stays_whatever_comes_but_emergency_braking_still_brakes_harder():
+    arbiter = CommandArbiter(emergency_decel=6.0, stop_decel=3.0)
     arbiter.safe_stop('the simulator stopped publishing')
     arbiter.emergency(True)
+    assert arbiter.command(1.0, 9.0) == -6.0 and arbiter.mode == Mode.SAFE_STOP
     arbiter.emergency(False)
-    assert arbiter.command(1.0, 10.0) == -arbiter.stop_decel and arbiter.mode == Mode.SAFE_STOP
+    assert arbiter.command(1.0, 10.0) == -3.0 and arbiter.mode == Mode.SAFE_STOP
+
+
+def test_any_state_the_controller_reaches_can_be_set_into_a_backup():
+    # A laser jumping from 10 m to 40 m (or the leader leaving the lasers' range) must not give
+    # a state the backup refuses: that would invalidate the backup for good.
+    primary, backup = PidController(), PidController()
+    for now, gap in ((0.0, 10.0), (0.04, 10.0), (0.08, 40.0), (0.12, 100.0), (0.16, 2.0)):
+        primary.update(gap, 12.0, now)
+        backup.set_state(primary.state())
+        assert backup.state() == primary.state()
 
 
 @pytest.mark.parametrize('kwargs,message', [

@@ -144,15 +144,43 @@ def test_the_voter_decides_each_instant_once_every_laser_spoke():
 
 
 def test_a_silent_laser_is_outvoted_then_reported_once():
-    voter = LaserVoter(silent_after=3)
+    voter = LaserVoter(silent_after=3, max_lag=2)
     decided = []
-    for stamp in range(1, 7):
+    for stamp in range(1, 8):
         decided += voter.add(1, stamp, 10.0)
         decided += voter.add(2, stamp, 10.0)
-    # Each instant is decided when the next one starts, laser 0 missing from it.
+    # An instant is decided once two later ones wait: a crashed laser never sends again.
     assert [d[0] for d in decided] == [1, 2, 3, 4, 5]
     assert all(d[1].ok and d[1].value == 10.0 for d in decided)
     assert [d[2] for d in decided] == [[], [], [0], [], []]
+    assert all(d[1].faulty == [] for d in decided)    # silent is not the same as disagreeing
+
+
+def test_a_laser_late_by_an_instant_is_still_voted_with_its_group():
+    voter = LaserVoter()
+    voter.add(0, 1, 10.0)
+    voter.add(1, 1, 10.0)
+    assert voter.add(0, 2, 10.1) == []      # laser 0 is ahead; laser 2's reading of instant 1 is late
+    [(stamp, result, _)] = voter.add(2, 1, 10.0)
+    assert stamp == 1 and result.ok and result.faulty == []
+    assert voter.late == 0
+
+
+def test_a_laser_that_skipped_an_instant_lets_it_be_decided_and_a_too_late_reading_is_counted():
+    voter = LaserVoter()
+    voter.add(0, 1, 10.0)
+    voter.add(1, 1, 10.0)
+    [(stamp, result, _)] = voter.add(2, 2, 10.0)    # laser 2 skipped instant 1
+    assert stamp == 1 and result.ok and result.value == 10.0
+    assert voter.add(2, 1, 10.0) == [] and voter.late == 1
+
+
+def test_nothing_in_range_is_a_reading_that_can_win_the_vote():
+    voter = LaserVoter()
+    voter.add(0, 1, None)
+    voter.add(1, 1, None)
+    [(_, result, _)] = voter.add(2, 1, 37.0)
+    assert result.ok and result.value is None and result.faulty == [2]
 
 
 def test_two_faulty_lasers_leave_no_majority():

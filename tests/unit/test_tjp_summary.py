@@ -199,14 +199,14 @@ def test_fault_injection_masking_failovers_and_adaptations_are_reported():
         adaptation,
         {'t': 3.5, 'kind': 'pedestrian', 'action': 'in'},
     ]
-    alarms = [(1.1, '/vote', 'triplication_vote', 'laser_disagrees', 'laser_1'),
-              (1.2, '/vote', 'triplication_vote', 'laser_disagrees', 'laser_1'),
-              (1.3, '/tr', 'tr_ultrasonic', 'detection_masked', ''),
-              (2.1, '/pbr', 'pbr', 'failover', 'backup')]
+    alarms = [(1.1, '/vote', 'vote', 'laser_disagrees', 'laser_1'),
+              (1.2, '/vote', 'vote', 'laser_disagrees', 'laser_1'),
+              (1.3, '/tr', 'tr', 'false_detection_masked', ''),
+              (2.1, '/ftm/alarm_manager', 'alarm_and_stop', 'imu_silent', '')]
     s = summarize(steady_run(events=events, alarms=alarms))
     assert s['faults_injected'] == {'laser_1': 10, 'ultrasonic': 2, 'total': 12}
     assert s['faults_masked'] == 3
-    assert s['alarms'] == ['pbr/failover', 'tr_ultrasonic/detection_masked', 'triplication_vote/laser_disagrees']
+    assert s['alarms'] == ['alarm_and_stop/imu_silent', 'tr/false_detection_masked', 'vote/laser_disagrees']
     assert [f['fault'] for f in s['faults']] == ['spikes', 'power_loss']
     assert s['faults'][1] == fault
     assert s['failovers'] == [failover]

@@ -28,6 +28,9 @@ def _non_negative(name, value):
     return float(value)
 
 
+MAX_CLOSING = 50.0   # m/s: no two cars below 35 km/h close in or draw apart faster
+
+
 class SafetyDistance(object):
     """d(v) = standstill + time_gap * v: the faster the follower, the larger the gap it keeps."""
 
@@ -71,7 +74,9 @@ class PidController(object):
         error = gap - safety_distance
         dt = None if self.last_time is None else now - self.last_time
         if dt and dt > 0:
-            self.closing = (gap - self.last_gap) / dt
+            # A jump of the gap (a wrong reading, the leader leaving the lasers' range) is not a
+            # speed: the closing speed is bounded by what cars in a traffic jam can do.
+            self.closing = min(MAX_CLOSING, max(-MAX_CLOSING, (gap - self.last_gap) / dt))
         raw = self.kp * error + self.ki * self.integral + self.kd * self.closing
         command = min(self.max_accel, max(-self.max_decel, raw))
         if dt and dt > 0 and command == raw:   # not saturated: integrate (anti-windup)
@@ -96,7 +101,7 @@ class PidController(object):
             raise TjpConfigError('bad controller state %r: %s' % (state, e))
         if abs(integral) > self.integral_limit:
             raise TjpConfigError('bad controller state: integral %g outside +-%g' % (integral, self.integral_limit))
-        if closing != closing or abs(closing) > 100.0:
+        if closing != closing or abs(closing) > MAX_CLOSING:
             raise TjpConfigError('bad controller state: closing speed %r is not a speed' % closing)
         self.integral, self.closing, self.last_gap, self.last_time = integral, closing, last_gap, last_time
 
@@ -219,7 +224,8 @@ class CommandArbiter(object):
         if tjp_command is not None:
             self.last = (tjp_command, now)
         if self.mode == Mode.SAFE_STOP:
-            return -self.stop_decel
+            # Emergency Braking still has priority over the gentler controlled stop.
+            return -self.emergency_decel if self.emergency_active else -self.stop_decel
         if self.emergency_active:
             self._change(Mode.EMERGENCY, 'Emergency Braking is active')
             return -self.emergency_decel

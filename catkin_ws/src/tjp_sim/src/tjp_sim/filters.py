@@ -77,31 +77,52 @@ def vote(values, tolerance=0.2):
 class LaserVoter(object):
     """Groups the three lasers' readings of one sensing instant (same stamp) and votes on each group.
 
-    A group is voted as soon as every laser gave its reading, or, when a laser is silent, once a
-    reading of a later instant arrives (the silent laser counts as missing: two agreeing lasers
-    still make a majority of three). A laser missing from ``silent_after`` groups in a row is
-    reported silent (crashed) once.
+    Each laser's readings may arrive late or out of order relative to the others' (each topic has
+    its own connection and thread). A group is decided once every laser gave its reading for it,
+    or once every missing laser has already sent a later reading (it skipped this instant), or once
+    ``max_lag`` later instants are waiting (a crashed laser never sends again). A missing laser counts
+    as missing: two agreeing lasers still make a majority of three. A laser missing from
+    ``silent_after`` decided instants in a row is reported silent (crashed) once. A reading of an
+    instant already decided is late: counted in ``late``, not voted.
+
+    "Nothing in range" (None) from a laser that answered is a reading like any other: it agrees with
+    another None. Only lasers that gave a reading can be named faulty.
     """
 
-    def __init__(self, count=3, tolerance=0.2, silent_after=5):
-        self.count, self.tolerance, self.silent_after = count, tolerance, silent_after
+    NOTHING = 1e9   # stands for "nothing in range" in the vote
+
+    def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2):
+        self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
         self.groups = {}             # stamp -> {index: value}
+        self.latest = [None] * count  # the newest stamp heard from each laser
+        self.decided_up_to = None
         self.missing_in_a_row = [0] * count
         self.reported_silent = set()
         self.voted = 0
+        self.late = 0
 
     def add(self, index, stamp, value):
         """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
         for every group decided by it, oldest first."""
         if not 0 <= index < self.count:
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
+        if self.decided_up_to is not None and stamp <= self.decided_up_to:
+            self.late += 1
+            return []
         self.groups.setdefault(stamp, {})[index] = value
+        if self.latest[index] is None or stamp > self.latest[index]:
+            self.latest[index] = stamp
         decided = []
-        for when in sorted(self.groups):
+        while self.groups:
+            when = min(self.groups)
             group = self.groups[when]
-            if len(group) < self.count and when >= stamp:
+            missing = [i for i in range(self.count) if i not in group]
+            skipped = all(self.latest[i] is not None and self.latest[i] > when for i in missing)
+            waiting = sum(1 for t in self.groups if t > when)
+            if missing and not skipped and waiting < self.max_lag:
                 break
             del self.groups[when]
+            self.decided_up_to = when
             decided.append(self._decide(when, group))
         return decided
 
@@ -116,10 +137,9 @@ class LaserVoter(object):
                 if self.missing_in_a_row[i] >= self.silent_after and i not in self.reported_silent:
                     self.reported_silent.add(i)
                     newly_silent.append(i)
-        values = [group.get(i) for i in range(self.count)]
-        # Nothing in range (None from a laser that answered) is a reading too: it agrees with None.
-        if all(i in group for i in range(self.count)) and all(v is None for v in values):
-            self.voted += 1
-            return stamp, Vote(None, [], True), newly_silent
+        values = [None if i not in group else (self.NOTHING if group[i] is None else group[i])
+                  for i in range(self.count)]
+        result = vote(values, self.tolerance)
         self.voted += 1
-        return stamp, vote(values, self.tolerance), newly_silent
+        value = None if result.value is None or result.value >= self.NOTHING else result.value
+        return stamp, Vote(value, [i for i in result.faulty if i in group], result.ok), newly_silent

@@ -132,7 +132,8 @@ class CycleAfterNode(object):
         rospy.Service('~set_role', SetRole, self._on_set_role)
         self.ports.advertise_service()
         if self.sender is not None:
-            rospy.Timer(rospy.Duration(self.ack_timeout / 4.0), self._check_acks)
+            # On the wall clock, as the acknowledgments' deadlines: simulated time may run at any rate.
+            threading.Thread(target=self._watch_acks, name='acks', daemon=True).start()
         return True
 
     # -- outputs and cycles ----------------------------------------------------------------------
@@ -165,7 +166,12 @@ class CycleAfterNode(object):
         if lost:
             rospy.logerr('%s: the backup refused checkpoint %d (%s): going on alone', self.name, ack.seq, ack.error)
 
-    def _check_acks(self, _event):
+    def _watch_acks(self):
+        while not rospy.is_shutdown() and self.role == Role.PRIMARY:
+            time.sleep(self.ack_timeout / 4.0)
+            self._check_acks()
+
+    def _check_acks(self):
         with self.lock:
             if self.sender is None or self.sender.role != Role.PRIMARY:
                 return
@@ -178,28 +184,31 @@ class CycleAfterNode(object):
 
     # -- backup ----------------------------------------------------------------------------------
     def _on_checkpoint(self, cp):
+        # Checkpoints arrive one at a time (one subscription, one thread), in order. The node's
+        # set_state is called outside the lock, so that a slow node never delays a promotion.
         with self.lock:
             if self.receiver is None:
                 return
             decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces)
-            error = ''
-            if decision == Decision.APPLY:
-                try:
-                    answer = self.set_state(state=cp.state)
-                    ok, error = answer.success, answer.message
-                except (rospy.ServiceException, rospy.ROSException) as e:
-                    ok, error = False, 'set_state failed: %s' % e
+            if decision == Decision.GAP:
+                self.receiver.failed(cp.seq, 'a checkpoint is missing before it')
+        error = ''
+        if decision == Decision.APPLY:
+            try:
+                answer = self.set_state(state=cp.state)
+                ok, error = answer.success, answer.message
+            except (rospy.ServiceException, rospy.ROSException) as e:
+                ok, error = False, 'set_state failed: %s' % e
+            with self.lock:
                 if ok:
                     self.receiver.accept(cp.seq, cp.sender)
                 else:
                     self.receiver.failed(cp.seq, error)
-            elif decision == Decision.REACK:
-                ok = True
-            else:
-                ok = False
-                error = '%s: checkpoint %d of %s refused (%s)' % (self.name, cp.seq, cp.sender, decision.name)
-                if decision == Decision.GAP:
-                    self.receiver.failed(cp.seq, 'a checkpoint is missing before it')
+        elif decision == Decision.REACK:
+            ok = True
+        else:
+            ok = False
+            error = '%s: checkpoint %d of %s refused (%s)' % (self.name, cp.seq, cp.sender, decision.name)
         if not ok:
             rospy.logerr(error)
         self.ports.publish('acks', CheckpointAck(seq=cp.seq, ok=ok, error=error))

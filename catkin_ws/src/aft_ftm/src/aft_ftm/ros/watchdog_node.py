@@ -109,6 +109,24 @@ class WatchdogNode(object):
                 return
             time.sleep(tick)
 
+    @staticmethod
+    def _call(proxy, timeout, **request):
+        """A service call limited to timeout seconds (rospy's calls have no limit of their own).
+        Returns (answer, error)."""
+        result = {}
+
+        def call():
+            try:
+                result['answer'] = proxy(**request)
+            except Exception as e:   # any failure of the call is a failed promotion, reported
+                result['error'] = str(e) or type(e).__name__
+        thread = threading.Thread(target=call, daemon=True)
+        thread.start()
+        thread.join(timeout)
+        if thread.is_alive():
+            return None, 'no answer within %.1f s' % timeout
+        return result.get('answer'), result.get('error')
+
     def _failover(self, verdict):
         started = time.monotonic()
         info = verdict.last_info
@@ -118,10 +136,9 @@ class WatchdogNode(object):
             killed = power_off(info.pid)
         promoted, problems = [], []
         for node in self.promote:
-            try:
-                answer = self.proxies[node](role=Role.ALONE.value, last_seq=0)
-            except Exception as e:   # any failure of the call is a failed promotion, reported
-                problems.append('%s: %s' % (node, e))
+            answer, error = self._call(self.proxies[node], self.service_timeout, role=Role.ALONE.value, last_seq=0)
+            if error:
+                problems.append('%s: %s' % (node, error))
                 break
             if not answer.success:
                 problems.append('%s refused: %s' % (node, answer.message))

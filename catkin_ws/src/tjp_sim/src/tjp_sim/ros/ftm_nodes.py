@@ -28,10 +28,10 @@ class ImuTrNode(PortedNode):
     """Time redundancy on the IMU: each speed passed on is the mean of a sliding window of readings;
     a reading far from the window's median is a transient value fault: masked and reported.
 
-    Parameters: ~window (int, 5), ~tolerance (float, 1.0 m/s), ~persist (int, 5): readings in a row
-        agreeing among themselves that far from the window make it follow (the speed really changed:
-        a car cannot change its speed by 1 m/s in one 20 ms reading, so only a fault lasting 5 readings
-        is taken for a change)
+    Parameters: ~window (int, 5), ~tolerance (float, 1.0 m/s), ~persist (int, 10): readings in a row
+        agreeing among themselves that far from the window make it follow (the speed really changed,
+        e.g. a crash). A car cannot change its speed by 1 m/s in one 20 ms reading, so a burst of
+        faulty readings shorter than 10 (200 ms) is masked, whatever they agree on.
     Subscribes: inp (geometry_msgs/TwistStamped), port ``inp``
     Publishes: out (geometry_msgs/TwistStamped), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``
     Services: ~rebind, ~suspend, ~resume
@@ -41,7 +41,7 @@ class ImuTrNode(PortedNode):
         try:
             self.filter = SlidingAverage(param('window', config.non_negative_int, 5),
                                          param('tolerance', config.positive_float, 1.0),
-                                         param('persist', config.non_negative_int, 5))
+                                         param('persist', config.non_negative_int, 10))
         except TjpConfigError as e:
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(ImuTrNode, self).__init__(
@@ -80,12 +80,15 @@ class LaserVoteNode(PortedNode):
         super(LaserVoteNode, self).__init__(
             ports + [PortSpec('out', PUBLISH, 'sensor_msgs/Range'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'laser_%d' % i: (lambda msg, i=i: self._on_laser(i, msg)) for i in range(3)})
-        self.template = {}
 
     def _on_laser(self, index, msg):
         with self.lock:
-            self.template = msg
+            late = self.voter.late
             decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg))
+            late = self.voter.late - late
+        if late:
+            rospy.logwarn_throttle(1.0, '%s: a reading of laser %d came after its instant was voted (%d so far)'
+                                   % (self.name, index, self.voter.late))
         for stamp, result, silent in decided:
             when = rospy.Time(nsecs=stamp)
             for i in silent:

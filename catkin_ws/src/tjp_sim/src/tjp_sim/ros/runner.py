@@ -18,6 +18,7 @@ import time
 import uuid
 import warnings
 
+import psutil
 import rosbag
 import rosgraph
 import rospy
@@ -71,6 +72,7 @@ class ScenarioRun(object):
         self.done = set()
         self.threads = []
         self.adaptations = []
+        self.engines = []    # adaptation engines: what they launched is stopped with the run
 
     # -- processes -------------------------------------------------------------------------------
     def _site(self, name, argv):
@@ -169,8 +171,10 @@ class ScenarioRun(object):
 
     def run(self):
         """Start the simulation and act on the scenario's process faults and adaptations until the end."""
-        start = rospy.ServiceProxy('/car_sim/start', Trigger)
-        start()
+        try:
+            rospy.ServiceProxy('/car_sim/start', Trigger)()
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            raise RunError('the simulator did not start: %s' % e)
         duration, rate = self.scenario['duration'], self.scenario['rate']
         wall_limit = time.monotonic() + duration / rate * 4 + 60
         last_t, last_change = -1.0, time.monotonic()
@@ -221,7 +225,13 @@ class ScenarioRun(object):
             self.log('    board %s powered off (%d processes)' % (board, killed))
         elif kind == 'simulator_crash':
             self.event('fault', fault='simulator_crash', target='car_sim')
-            procs = [p for p in process_tree(self.sites['car'].pid) if any('car_sim' in a for a in p.cmdline()[:3])]
+            procs = []
+            for proc in process_tree(self.sites['car'].pid):
+                try:
+                    if any('car_sim' in a for a in proc.cmdline()[:3]):
+                        procs.append(proc)
+                except psutil.Error:   # gone meanwhile
+                    pass
             for proc in procs:
                 proc.kill()
             wait_dead(procs, 5.0)
@@ -238,7 +248,9 @@ class ScenarioRun(object):
         from aft_ftm.ros.adaptation_engine import Engine
         try:
             script = load_script(item['script'], item['args'])
-            report = Engine(log=lambda line: None).run(script, 'prepared')
+            engine = Engine(log=lambda line: None)
+            self.engines.append(engine)
+            report = engine.run(script, 'prepared')
             self.event('adaptation', script=item['script'], ok=bool(report['ok']), pause=round(report['pause_s'], 5),
                        duration=round(report['duration_s'], 3), error=report.get('error', ''))
             self.adaptations.append(report)
@@ -249,6 +261,8 @@ class ScenarioRun(object):
     def stop(self):
         """Stop every process of the run; never raises. The recorder is stopped with SIGINT (it
         closes the bag) after the others, the master last."""
+        for engine in self.engines:
+            engine.stop_all()
         for name in [n for n in self.sites if n not in ('recorder', 'master')] + ['recorder', 'master']:
             site = self.sites.get(name)
             if site is None:
@@ -267,7 +281,8 @@ class ScenarioRun(object):
 
     def leftovers(self):
         """Processes of the run still alive (there should be none after stop())."""
-        return [s.name for s in self.sites.values() if s.alive()]
+        launched = [site for engine in self.engines for site in engine.sites + engine.respawned]
+        return [s.name for s in list(self.sites.values()) + launched if s.alive()]
 
 
 def load_script(name, args):
@@ -283,7 +298,11 @@ def read_bag(path):
     if not os.path.exists(path) and os.path.exists(path + '.active'):
         raise RunError('the recorder did not close %s (a .active file remains)' % path)
     run = {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': []}
-    with rosbag.Bag(path) as bag:
+    try:
+        bag = rosbag.Bag(path)
+    except (OSError, rosbag.ROSBagException) as e:
+        raise RunError('cannot read the record %s: %s' % (path, e))
+    with bag:
         for topic, msg, _ in bag.read_messages(topics=['/car/state', '/car/command', '/tjp/pid_command',
                                                        '/aft/alarms', '/tjp/events']):
             if topic == '/car/state':
@@ -327,7 +346,10 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
     if left:
         raise RunError('processes of the run still alive after stopping: %s' % ', '.join(left))
     record = read_bag(runner.bag)
-    summary = summaries.summarize(record, scenario['expect'])
+    try:
+        summary = summaries.summarize(record, scenario['expect'])
+    except ValueError as e:   # no car state recorded, malformed rows
+        raise RunError('%s (logs in %s)' % (e, os.path.join(out, 'logs')))
     summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])

@@ -2,6 +2,7 @@
 import argparse
 import json
 import os
+import signal
 import sys
 import time
 
@@ -31,6 +32,11 @@ def main(argv):
     out = options.out or os.path.join('/tmp/tjp_runs', '%s%s-%s' % (
         scenario['name'], '-without-' + options.without if options.without else '', time.strftime('%Y%m%d-%H%M%S')))
     from .runner import RunError, run_scenario
+
+    def terminated(signum, _frame):
+        # SIGTERM (a test's timeout, a supervisor): stop every process of the run on the way out.
+        raise RunError('terminated by signal %d' % signum)
+    signal.signal(signal.SIGTERM, terminated)
     log = (lambda line: print(line, file=sys.stderr)) if options.json else print
     try:
         summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,

@@ -125,6 +125,12 @@ class CarSimNode(object):
         self._event('injected', counts=dict(self.faults.injected))
         self._event('end', commands=self.commands)
         rospy.loginfo('%s: scenario %s done (%.1f s simulated)', rospy.get_name(), self.scenario['name'], self.world.t)
+        # The simulator is still alive: its clock stands still but keeps being published, so that
+        # the end of a scenario is not taken for a simulator crash.
+        last = rospy.Time.from_sec(self.world.t)
+        while not rospy.is_shutdown():
+            self.clock.publish(Clock(clock=last))
+            time.sleep(0.1)
 
     def _scripted_events(self):
         t = self.world.t
