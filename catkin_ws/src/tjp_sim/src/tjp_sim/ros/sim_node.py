@@ -31,7 +31,7 @@ class CarSimNode(object):
     scenario's), and publishes /clock, so that every node runs on simulated time.
 
     Before ``~start`` is called it publishes the clock at t = 0 only (the nodes come up without the
-    car moving). It stops stepping at the scenario's duration.
+    car moving). It stops stepping at the scenario's duration, then keeps publishing its last clock.
 
     Parameters:
         ~scenario (str, required): a scenario file or shipped name (tjp_sim.scenario)
