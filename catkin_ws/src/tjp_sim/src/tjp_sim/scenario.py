@@ -12,7 +12,9 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
 - ``faults`` [[]]: each one a mapping with ``kind`` and ``at`` (sim s, or [low, high] for a time
   drawn from the seed); sensor faults (:mod:`tjp_sim.faults`) name a ``sensor`` of :data:`SENSORS`
   and (except crash) an ``until``; ``power_loss`` names a ``board`` (primary or backup);
-  ``simulator_crash`` and ``master_crash`` take nothing more
+  ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
+  (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`
+- ``managed_tjp`` [false]: those TJP nodes run under aft_ftm's service manager
 - ``events`` [[]]: ``pedestrian`` (``at``, ``ahead`` m in front of the bumper [3.0], ``leaves`` sim s
   [never]); ``adapt`` (``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}], and
   either ``at`` a time or ``on_alarm``: the first alarm of that kind, e.g. implausible_gap)
@@ -41,7 +43,8 @@ class ScenarioError(TjpConfigError):
 MECHANISMS = ('pbr', 'tr_imu', 'tr_ultrasonic', 'triplication_vote', 'alarm_and_stop')
 SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
 BOARDS = ('primary', 'backup')
-PROCESS_FAULTS = ('power_loss', 'simulator_crash', 'master_crash')
+PROCESS_FAULTS = ('power_loss', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang')
+MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {
     # Stop-and-go: cruising, hard braking to a standstill (4 m/s^2), waiting, starting again.
@@ -51,7 +54,7 @@ PROFILES = {
     'slow_creep': [[0, 3.0], [10, 3.0], [12, 0.0], [16, 0.0], [20, 4.0]],
 }
 KEYS = {'name', 'description', 'duration', 'seed', 'rate', 'profile', 'initial_speed', 'initial_gap',
-        'mechanisms', 'faults', 'events', 'expect', 'control'}
+        'mechanisms', 'faults', 'events', 'expect', 'control', 'managed_tjp'}
 DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'scenarios')
 
 
@@ -93,7 +96,7 @@ def _fault(where, item, duration, rng):
     kind = item.get('kind') if isinstance(item, dict) else None
     extra = {'stuck': ['value'], 'offset': ['offset'], 'noise': ['sigma'], 'spikes': ['probability', 'magnitude'],
              'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'simulator_crash': [],
-             'master_crash': []}
+             'master_crash': [], 'node_crash': ['node'], 'node_hang': ['node']}
     if kind not in extra:
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
     sensor = kind in VALUE_KINDS or kind == 'crash'
@@ -118,6 +121,8 @@ def _fault(where, item, duration, rng):
             fault[key] = _number('%s.%s' % (where, key), item[key], positive=True)
     if 'probability' in item:
         fault['probability'] = _number(where + '.probability', item['probability'], 0, 1)
+    if kind in ('node_crash', 'node_hang') and item['node'] not in MANAGED_NODES:
+        raise ScenarioError('%s: node must be one of %s, got %r' % (where, ', '.join(MANAGED_NODES), item['node']))
     if kind == 'power_loss' and item['board'] not in BOARDS:
         raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
     return fault
@@ -185,7 +190,10 @@ def parse(text, source='scenario'):
         'profile': [list(p) for p in profile],
         'initial_speed': _number(source + ': initial_speed', data.get('initial_speed', profile[0][1]), 0, 35 / 3.6),
         'mechanisms': list(mechanisms),
+        'managed_tjp': data.get('managed_tjp', False),
     }
+    if not isinstance(scenario['managed_tjp'], bool):
+        raise ScenarioError('%s: managed_tjp must be true or false, got %r' % (source, scenario['managed_tjp']))
     scenario['initial_gap'] = _number(source + ': initial_gap',
                                       data.get('initial_gap', SafetyDistance()(scenario['initial_speed'])), positive=True)
     for key, check in (('faults', _fault), ('events', _event)):

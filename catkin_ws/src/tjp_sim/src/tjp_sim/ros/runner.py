@@ -34,7 +34,7 @@ from .. import summary as summaries
 
 TOPICS = ['/car/state', '/car/command', '/tjp/pid_command', '/tjp/events', '/aft/alarms', '/tjp/gap',
           '/tjp/safety_distance', '/tjp/speed', '/sensors/imu', '/sensors/laser_0', '/sensors/laser_1',
-          '/sensors/laser_2', '/sensors/ultrasonic', '/tjp/emergency', '/tjp/safe_stop']
+          '/sensors/laser_2', '/sensors/ultrasonic', '/tjp/emergency', '/tjp/safe_stop', '/tjp/service_manager/events']
 CAR_NODES = ['/car_sim', '/tjp/measure_manager', '/tjp/distance_security_calculator', '/tjp/command_manager',
              '/tjp/emergency_braking']
 MECHANISM_NODES = {'tr_imu': ['/ftm/imu_tr'], 'triplication_vote': ['/ftm/laser_vote'],
@@ -83,12 +83,14 @@ class ScenarioRun(object):
     def _launch_args(self):
         args = ['scenario:=%s' % os.path.abspath(self.path), 'gui:=%s' % str(self.gui).lower()]
         args += ['%s:=%s' % (m, str(m in self.scenario['mechanisms']).lower()) for m in scenarios.MECHANISMS]
-        return args
+        return args + ['managed_tjp:=%s' % str(self.scenario['managed_tjp']).lower()]
 
     def expected_nodes(self):
         nodes = CAR_NODES + board_nodes('board_a', self.pbr) + (board_nodes('board_b', True) if self.pbr else [])
         for mechanism in self.scenario['mechanisms']:
             nodes += MECHANISM_NODES[mechanism]
+        if self.scenario['managed_tjp']:
+            nodes.append('/tjp/service_manager')
         return nodes
 
     def start(self):
@@ -135,7 +137,7 @@ class ScenarioRun(object):
 
     def _wait_ready(self, master):
         nodes = self.expected_nodes()
-        services = ['%s/rebind' % n for n in nodes if n != '/car_sim'] + ['/car_sim/start']
+        services = ['%s/rebind' % n for n in nodes if n not in ('/car_sim', '/tjp/service_manager')] + ['/car_sim/start']
 
         def missing():
             try:
@@ -235,6 +237,14 @@ class ScenarioRun(object):
             for proc in procs:
                 proc.kill()
             wait_dead(procs, 5.0)
+        elif kind in ('node_crash', 'node_hang'):
+            self.event('fault', fault=kind, target=item['node'])
+            for proc in process_tree(self.sites['car'].pid):
+                try:
+                    if '__name:=%s' % item['node'] in proc.cmdline():
+                        proc.send_signal(signal.SIGKILL if kind == 'node_crash' else signal.SIGSTOP)
+                except psutil.Error:   # gone meanwhile
+                    pass
         elif kind == 'master_crash':
             self.event('fault', fault='master_crash', target='rosmaster')
             self.sites['master'].power_off()
@@ -297,14 +307,14 @@ def read_bag(path):
     """The run's records (tjp_sim.summary's input) from the bag."""
     if not os.path.exists(path) and os.path.exists(path + '.active'):
         raise RunError('the recorder did not close %s (a .active file remains)' % path)
-    run = {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': []}
+    run = {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': [], 'service_events': []}
     try:
         bag = rosbag.Bag(path)
     except (OSError, rosbag.ROSBagException) as e:
         raise RunError('cannot read the record %s: %s' % (path, e))
     with bag:
         for topic, msg, _ in bag.read_messages(topics=['/car/state', '/car/command', '/tjp/pid_command',
-                                                       '/aft/alarms', '/tjp/events']):
+                                                       '/aft/alarms', '/tjp/events', '/tjp/service_manager/events']):
             if topic == '/car/state':
                 run['states'].append((msg.stamp.to_sec(), msg.gap, msg.follower_speed, msg.leader_speed, msg.accel,
                                       msg.obstacle, msg.collided))
@@ -314,10 +324,12 @@ def read_bag(path):
                 run['pid_commands'].append((msg.stamp.to_sec(), msg.source))
             elif topic == '/aft/alarms':
                 run['alarms'].append((msg.stamp.to_sec(), msg.source, msg.mechanism, msg.kind, msg.detail))
-            else:
+            elif topic == '/tjp/events':
                 run['events'].append(json.loads(msg.data))
+            else:
+                run['service_events'].append(json.loads(msg.data))
     for key in run:
-        run[key].sort(key=lambda r: r['t'] if isinstance(r, dict) else r[0])
+        run[key].sort(key=lambda r: r['wall'] if key == 'service_events' else r['t'] if key == 'events' else r[0])
     return run
 
 
@@ -346,10 +358,16 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
     if left:
         raise RunError('processes of the run still alive after stopping: %s' % ', '.join(left))
     record = read_bag(runner.bag)
+    managed = record.pop('service_events')
     try:
         summary = summaries.summarize(record, scenario['expect'])
     except ValueError as e:   # no car state recorded, malformed rows
         raise RunError('%s (logs in %s)' % (e, os.path.join(out, 'logs')))
+    spawned = [e['service'] for e in managed if e['event'] == 'spawned']
+    summary['service_manager'] = {
+        'faults': [{'service': e['service'], 'kind': e['kind'], 'detail': e['detail']} for e in managed
+                   if e['event'] == 'fault'],
+        'restarts': len(spawned) - len(set(spawned))}
     summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])

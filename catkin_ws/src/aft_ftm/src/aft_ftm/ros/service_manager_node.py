@@ -1,0 +1,314 @@
+"""The service manager as a ROS node: spawns the configured services as child processes, watches
+them, and carries out the decisions of aft_ftm.services.Supervisor."""
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+
+import psutil
+import rospy
+from aft_msgs.msg import SafeState, ServiceHeartbeat
+from aft_msgs.srv import ServiceCommand, ServiceCommandResponse
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import String
+from std_srvs.srv import Trigger, TriggerResponse
+
+from .. import config as params
+from ..services import Sample, ServiceConfigError, State, Supervisor, parse_config
+from .params import param
+from .service_heartbeat import TOPIC
+
+LEVELS = {State.RUNNING: DiagnosticStatus.OK, State.STARTING: DiagnosticStatus.WARN,
+          State.RESTARTING: DiagnosticStatus.WARN, State.STOPPED: DiagnosticStatus.STALE,
+          State.ERROR: DiagnosticStatus.ERROR, State.FAILED: DiagnosticStatus.ERROR}
+
+
+class Child(object):
+    """A service's process (a session of its own, so that everything it starts goes with it) and
+    what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
+
+    def __init__(self, popen, cpu_window):
+        self.popen = popen
+        self.proc = psutil.Process(popen.pid)
+        self.cpu_window = cpu_window
+        self.cpu_marks = []   # (wall time, cpu seconds)
+
+    @property
+    def pid(self):
+        return self.popen.pid
+
+    def sample(self, resources):
+        code = self.popen.poll()
+        if code is not None:
+            return Sample(False, code, False, None, None)
+        if not resources:
+            return Sample(True, None, False, None, None)
+        try:
+            with self.proc.oneshot():
+                stopped = self.proc.status() in (psutil.STATUS_STOPPED, psutil.STATUS_TRACING_STOP)
+                times = self.proc.cpu_times()
+                rss = self.proc.memory_info().rss
+        except psutil.NoSuchProcess:
+            return Sample(False, self.popen.poll(), False, None, None)
+        now = time.monotonic()
+        self.cpu_marks.append((now, times.user + times.system))
+        while len(self.cpu_marks) > 2 and now - self.cpu_marks[1][0] >= self.cpu_window:
+            self.cpu_marks.pop(0)
+        cpu = None
+        first = self.cpu_marks[0]
+        if now - first[0] >= self.cpu_window:
+            cpu = 100.0 * (self.cpu_marks[-1][1] - first[1]) / (now - first[0])
+        return Sample(True, None, stopped, cpu, rss)
+
+    def kill(self, timeout):
+        """SIGKILL the whole session at once (a faulty service is not asked), and reap it."""
+        try:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        try:
+            self.popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+
+    def terminate(self, timeout):
+        """SIGTERM the session, SIGKILL it after timeout (an operator's stop)."""
+        try:
+            os.killpg(self.popen.pid, signal.SIGTERM)
+            self.popen.wait(timeout)
+        except ProcessLookupError:
+            return
+        except subprocess.TimeoutExpired:
+            self.kill(timeout)
+
+
+class ServiceManagerNode(object):
+    """Spawns, watches, restarts, terminates and escalates (see aft_ftm.services).
+
+    Parameters:
+        ~config (str, required): the configuration file (YAML; keys in aft_ftm.services)
+        ~resource_period (float, 0.1 s): how often CPU, memory and stopped processes are measured
+            (exit status, heartbeats and reported errors are checked every manager period)
+        ~heartbeat_topic (str, /aft/service_heartbeat): where the services' heartbeats come
+    Subscribes:
+        (~heartbeat_topic) (aft_msgs/ServiceHeartbeat): every service's heartbeats
+    Publishes:
+        safe_state (aft_msgs/SafeState, latched): the safe-state command
+        /diagnostics (diagnostic_msgs/DiagnosticArray): every service's health, each second and on changes
+        ~events (std_msgs/String): one JSON record per fault detected and per decision
+    Services:
+        ~start, ~stop, ~restart, ~status (aft_msgs/ServiceCommand), ~clear_safe_state (std_srvs/Trigger)
+    """
+
+    def __init__(self):
+        path = param('config', params.non_empty_str, required=True)
+        try:
+            with open(path) as f:
+                self.config = parse_config(f.read(), source=path)
+        except OSError as e:
+            raise params.ConfigError('cannot read the configuration %s: %s' % (path, e.strerror))
+        except ServiceConfigError as e:
+            raise params.ConfigError(str(e))
+        self.resource_period = param('resource_period', params.positive_float, 0.1)
+        self.period = self.config['manager']['period']
+        self.supervisor = Supervisor(self.config)
+        self.children = {}
+        self.lock = threading.RLock()
+        self.total_memory = psutil.virtual_memory().total
+        self.heartbeats = 0
+        self.unknown_heartbeats = 0
+
+    def setup(self, timeout):
+        self.safe_pub = rospy.Publisher('safe_state', SafeState, queue_size=1, latch=True)
+        self.diag_pub = rospy.Publisher('/diagnostics', DiagnosticArray, queue_size=10)
+        self.events_pub = rospy.Publisher('~events', String, queue_size=100)
+        rospy.Subscriber(param('heartbeat_topic', params.non_empty_str, TOPIC), ServiceHeartbeat, self._on_heartbeat,
+                         queue_size=1000, tcp_nodelay=True)
+        self.safe_pub.publish(SafeState(active=False, reason='', stamp=rospy.Time.now()))
+        for verb in ('start', 'stop', 'restart', 'status'):
+            rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
+        rospy.Service('~clear_safe_state', Trigger, self._on_clear)
+        rospy.on_shutdown(self.shutdown)
+        now = time.monotonic()
+        with self.lock:
+            for name, service in self.supervisor.services.items():
+                if service.config['autostart']:
+                    self._spawn(name, now)
+        threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
+        return True
+
+    # -- processes -------------------------------------------------------------------------------
+    def _spawn(self, name, now):
+        service = self.supervisor[name]
+        cfg, manager = service.config, self.config['manager']
+        state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
+        env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file,
+                   AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
+        try:
+            popen = subprocess.Popen(cfg['command'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+            self.children[name] = Child(popen, cfg['cpu_window'])
+        except (OSError, psutil.Error) as e:
+            self.supervisor.spawn_failed(name, now, str(e))
+            self._event('spawn_failed', name, str(e), now)
+            return
+        service.spawned(now)
+        self._event('spawned', name, 'pid %d' % popen.pid, now)
+
+    def _kill(self, name):
+        child = self.children.pop(name, None)
+        if child is not None:
+            child.kill(self.config['manager']['kill_timeout'])
+
+    def _run_program(self, name, kind):
+        cfg = self.supervisor[name].config
+        env = dict(os.environ, AFT_SERVICE=name, AFT_FAULT=kind)
+        try:
+            subprocess.Popen(cfg['program'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+        except OSError as e:
+            rospy.logerr('%s: the failure program of %s cannot run: %s', rospy.get_name(), name, e)
+
+    def _act(self, decision, now):
+        for verb, name in decision.actions:
+            if verb == 'kill':
+                self._kill(name)
+            elif verb == 'spawn':
+                self._spawn(name, now)
+            elif verb == 'run':
+                self._run_program(name, decision.kind)
+            elif verb == 'alert':
+                rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
+        if decision.escalate:
+            self._publish_safe_state()
+
+    # -- the loop --------------------------------------------------------------------------------
+    def _loop(self):
+        next_resources = next_diagnostics = 0.0
+        tick = time.monotonic()
+        while not rospy.is_shutdown():
+            now = time.monotonic()
+            resources = now >= next_resources
+            if resources:
+                next_resources = now + self.resource_period
+            with self.lock:
+                for name in list(self.supervisor.services):
+                    child = self.children.get(name)
+                    if child is None:
+                        continue
+                    try:
+                        decision = self.supervisor.check(name, child.sample(resources), now, self.total_memory)
+                        if decision is not None:
+                            self._event('fault', name, decision.detail, now, kind=decision.kind,
+                                        actions=decision.actions, escalate=decision.escalate)
+                            self._act(decision, time.monotonic())
+                    except Exception as e:   # the manager must outlive any one service's trouble
+                        rospy.logerr('%s: while checking %s: %s: %s', rospy.get_name(), name, type(e).__name__, e)
+            if now >= next_diagnostics:
+                next_diagnostics = now + 1.0
+                self._publish_diagnostics()
+            tick = max(tick + self.period, time.monotonic() - self.period)
+            time.sleep(max(0.0, tick - time.monotonic()))
+
+    def _on_heartbeat(self, beat):
+        now = time.monotonic()
+        with self.lock:
+            if beat.name not in self.supervisor.services:
+                self.unknown_heartbeats += 1
+                rospy.logwarn_throttle(5.0, '%s: heartbeat from %r, which is not a configured service (%d so far)'
+                                       % (rospy.get_name(), beat.name, self.unknown_heartbeats))
+                return
+            self.heartbeats += 1
+            service = self.supervisor[beat.name]
+            was = service.state
+            service.heard(now, beat.status, beat.detail)
+            if was == State.STARTING and service.state == State.RUNNING:
+                self._event('running', beat.name, 'heard from', now, started_at=service.started_at)
+
+    # -- reporting -------------------------------------------------------------------------------
+    def _event(self, event, name, detail, now, **extra):
+        record = dict(extra, event=event, service=name, detail=detail, wall=time.time(), monotonic=now)
+        self.events_pub.publish(String(data=json.dumps(record, default=str)))
+
+    def _publish_safe_state(self):
+        reason = self.supervisor.safe_state
+        if reason:
+            rospy.logerr('%s: SAFE STATE: %s', rospy.get_name(), reason)
+        self.safe_pub.publish(SafeState(active=reason is not None, reason=reason or '', stamp=rospy.Time.now()))
+        self._publish_diagnostics()
+
+    def status(self, name=None):
+        with self.lock:
+            out = {}
+            for n, s in self.supervisor.services.items():
+                if name and n != name:
+                    continue
+                child = self.children.get(n)
+                out[n] = {'state': s.state.name.lower(), 'reason': s.reason, 'pid': child.pid if child else None,
+                          'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
+                          'errors': dict(s.errors), 'critical': s.config['critical']}
+            return {'services': out, 'safe_state': self.supervisor.safe_state}
+
+    def _publish_diagnostics(self):
+        status = self.status()
+        array = DiagnosticArray()
+        array.header.stamp = rospy.Time.now()
+        for name, s in status['services'].items():
+            state = State[s['state'].upper()]
+            array.status.append(DiagnosticStatus(
+                level=LEVELS[state], name='service_manager: %s' % name, message='%s: %s' % (s['state'], s['reason']),
+                hardware_id=str(s['pid'] or ''),
+                values=[KeyValue(key='starts', value=str(s['starts'])),
+                        KeyValue(key='restarts_in_window', value=str(s['restarts_in_window'])),
+                        KeyValue(key='critical', value=str(s['critical']).lower())] +
+                [KeyValue(key='errors.%s' % k, value=str(v)) for k, v in sorted(s['errors'].items())]))
+        safe = status['safe_state']
+        array.status.append(DiagnosticStatus(level=DiagnosticStatus.ERROR if safe else DiagnosticStatus.OK,
+                                             name='service_manager', message='SAFE STATE: %s' % safe if safe else 'normal',
+                                             values=[KeyValue(key='heartbeats', value=str(self.heartbeats))]))
+        self.diag_pub.publish(array)
+
+    # -- operators -------------------------------------------------------------------------------
+    def _on_command(self, verb, req):
+        if verb == 'status':
+            if req.name and req.name not in self.supervisor.services:
+                return ServiceCommandResponse(success=False, message='unknown service %r (services: %s)'
+                                              % (req.name, ', '.join(self.supervisor.services)))
+            return ServiceCommandResponse(success=True, message='', status=json.dumps(self.status(req.name or None)))
+        if req.name not in self.supervisor.services:
+            return ServiceCommandResponse(success=False, message='unknown service %r (services: %s)'
+                                          % (req.name, ', '.join(self.supervisor.services)))
+        now = time.monotonic()
+        with self.lock:
+            ok, actions, message = getattr(self.supervisor, verb)(req.name, now)
+            for action, name in actions:
+                if action == 'kill' and verb == 'stop':
+                    # An operator's stop asks first (SIGTERM), off the manager's loop.
+                    child = self.children.pop(name, None)
+                    if child is not None:
+                        threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),
+                                         daemon=True).start()
+                elif action == 'kill':
+                    self._kill(name)
+                elif action == 'spawn':
+                    self._spawn(name, now)
+            self._event('command', req.name, message, now, verb=verb, accepted=ok)
+        return ServiceCommandResponse(success=ok, message=message, status=json.dumps(self.status(req.name)))
+
+    def _on_clear(self, _req):
+        with self.lock:
+            ok, message = self.supervisor.clear_safe_state(time.monotonic())
+            if ok:
+                self._publish_safe_state()
+        rospy.logwarn('%s: clear safe state: %s', rospy.get_name(), message)
+        return TriggerResponse(success=ok, message=message)
+
+    def shutdown(self):
+        """Stop every service (SIGTERM, then SIGKILL). Never raises."""
+        with self.lock:
+            children, self.children = list(self.children.values()), {}
+        for child in children:
+            try:
+                child.terminate(self.config['manager']['kill_timeout'])
+            except Exception:   # shutdown paths never raise
+                pass

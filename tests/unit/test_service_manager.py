@@ -1,0 +1,289 @@
+"""The service manager's policies without processes or a master: configuration checking, the
+state machine, detection with a fake clock, restart limits, dependencies, escalation, and state
+restoration with its sanity check."""
+import json
+
+import pytest
+
+from aft_ftm.services import (EDGES, Sample, ServiceConfigError, State, Supervisor, detect, documentation,
+                              parse_config)
+from aft_ftm.state_store import StateStore, from_environment
+
+ALIVE = Sample(alive=True, exit_code=None, stopped=False, cpu_percent=5.0, rss=50e6)
+GB = 1e9
+
+
+def config(services, manager=''):
+    text = (('manager:\n' + manager) if manager else '') + 'services:\n' + services
+    return parse_config(text, source='test.yaml')
+
+
+def running(supervisor, name, now=0.0):
+    supervisor[name].spawned(now)
+    supervisor[name].heard(now + 0.01, 'ok')
+    assert supervisor[name].state == State.RUNNING
+
+
+# -- configuration -------------------------------------------------------------------------------
+def test_defaults_fill_every_key():
+    c = config('  a: {command: rosrun pkg a}\n')
+    a = c['services']['a']
+    assert a['command'] == ['rosrun', 'pkg', 'a'] and a['on_failure'] == 'restart' and a['restart_limit'] == 3
+    assert a['heartbeat_timeout'] is None and a['critical'] is False and a['restart_with'] == []
+    assert c['manager']['period'] == 0.01
+
+
+@pytest.mark.parametrize('limit,expected', [('80%', 80.0), (150, 150.0)])
+def test_cpu_limits_are_percent_of_a_core(limit, expected):
+    assert config('  a: {command: x, cpu_limit: %r}\n' % limit)['services']['a']['cpu_limit'] == expected
+
+
+@pytest.mark.parametrize('limit,expected', [('200MB', ('bytes', 200e6)), ('1GiB', ('bytes', 1024.0 ** 3)),
+                                            (1000, ('bytes', 1000.0)), ('10%', ('percent', 10.0))])
+def test_memory_limits_are_bytes_or_a_percentage(limit, expected):
+    assert config('  a: {command: x, memory_limit: %r}\n' % limit)['services']['a']['memory_limit'] == expected
+
+
+@pytest.mark.parametrize('services,message', [
+    ('  a: {command: x, colour: red}\n', 'services.a: unknown key colour'),
+    ('  a: {period: 1}\n', 'services.a: missing key command'),
+    ('  a: {command: x, heartbeat_timeout: -1}\n', 'services.a.heartbeat_timeout must be a number > 0'),
+    ('  a: {command: x, restart_limit: -2}\n', 'services.a.restart_limit must be an integer >= 0'),
+    ('  a: {command: x, cpu_limit: lots}\n', 'services.a.cpu_limit must be a percentage'),
+    ('  a: {command: x, memory_limit: -5MB}\n', 'services.a.memory_limit must be bytes'),
+    ('  a: {command: x, memory_limit: 150%}\n', 'cannot exceed 100'),
+    ('  a: {command: x, on_failure: reboot}\n', 'on_failure must be one of restart, terminate, run, alert'),
+    ('  a: {command: x, on_failure: run}\n', 'on_failure run needs a program'),
+    ('  a: {command: x, restart_with: [ghost]}\n', "restart_with names 'ghost', which is not a service"),
+    ('  a: {command: x, terminate_with: [a]}\n', 'terminate_with names the service itself'),
+    ('  a: {command: x, restart_with: [b]}\n  b: {command: y, restart_with: [c]}\n  c: {command: z, restart_with: [a]}\n',
+     'restart_with makes a cycle: a -> b -> c -> a'),
+    ('  a: {command: x, restart_with: [b], terminate_with: [b]}\n  b: {command: y}\n',
+     'b both restarted and terminated'),
+    ('  1a: {command: x}\n', "service name '1a'"),
+    ('  a: {command: []}\n', 'must be a command'),
+    ('  a: {command: x, critical: yes please}\n', 'critical must be true or false'),
+])
+def test_a_bad_configuration_is_refused_naming_the_problem(services, message):
+    with pytest.raises(ServiceConfigError, match=message):
+        config(services)
+
+
+@pytest.mark.parametrize('text,message', [
+    ('services: {}\n', 'non-empty mapping'),
+    ('servics:\n  a: {command: x}\n', 'must be a mapping with a services key'),
+    ('services:\n  a: {command: x}\nextra: 1\n', 'unknown key extra'),
+    ('manager: {period: 0}\nservices:\n  a: {command: x}\n', 'manager.period must be a number > 0'),
+    ('services: [\n', 'not valid YAML'),
+])
+def test_a_bad_file_is_refused(text, message):
+    with pytest.raises(ServiceConfigError, match=message):
+        parse_config(text, source='f.yaml')
+
+
+def test_every_key_is_documented_with_its_default():
+    doc = documentation()
+    for key in ('command', 'heartbeat_timeout', 'memory_limit', 'restart_window', 'terminate_with', 'period'):
+        assert '.%s`' % key in doc
+    assert '| `services.NAME.restart_limit` | 3 |' in doc
+
+
+# -- detection -----------------------------------------------------------------------------------
+SERVICE = config('  a: {command: x, heartbeat_timeout: 0.05, cpu_limit: 80%, memory_limit: 100MB}\n')['services']['a']
+
+
+@pytest.mark.parametrize('sample,last_heard,reported,expected', [
+    (ALIVE, 0.98, None, None),
+    (ALIVE._replace(alive=False, exit_code=-11), 0.98, None, 'exit'),
+    (ALIVE._replace(stopped=True), 0.98, None, 'hang'),
+    (ALIVE, 0.9, None, 'heartbeat_timeout'),
+    (ALIVE, 0.98, 'joint limit exceeded', 'reported_error'),
+    (ALIVE._replace(cpu_percent=95.0), 0.98, None, 'cpu_limit'),
+    (ALIVE._replace(cpu_percent=None), 0.98, None, None),          # not a whole window yet
+    (ALIVE._replace(rss=150e6), 0.98, None, 'memory_limit'),
+])
+def test_each_kind_of_fault_is_detected(sample, last_heard, reported, expected):
+    found = detect(SERVICE, sample, 1.0, last_heard, reported, 0.0, 8 * GB)
+    assert (found[0] if found else None) == expected
+
+
+def test_a_memory_limit_in_percent_is_of_the_machine():
+    c = config('  a: {command: x, memory_limit: 10%}\n')['services']['a']
+    assert detect(c, ALIVE._replace(rss=0.9 * GB), 1.0, None, None, 0.0, 16 * GB) is None
+    assert detect(c, ALIVE._replace(rss=0.9 * GB), 1.0, None, None, 0.0, 8 * GB)[0] == "memory_limit"
+
+
+# -- the state machine and the policies ----------------------------------------------------------
+def test_a_service_is_running_once_heard_and_a_silent_one_fails_to_start():
+    sup = Supervisor(config('  a: {command: x, heartbeat_timeout: 0.1, start_timeout: 2}\n'))
+    sup['a'].spawned(0.0)
+    assert sup.check('a', ALIVE, 1.0, GB) is None and sup['a'].state == State.STARTING
+    decision = sup.check('a', ALIVE, 2.5, GB)
+    assert decision.kind == 'start_timeout' and sup['a'].state == State.RESTARTING
+
+
+def test_without_heartbeats_alive_past_the_start_grace_is_running():
+    sup = Supervisor(config('  a: {command: x, start_grace: 0.5}\n'))
+    sup['a'].spawned(0.0)
+    assert sup.check('a', ALIVE, 0.2, GB) is None and sup['a'].state == State.STARTING
+    assert sup.check('a', ALIVE, 0.6, GB) is None and sup['a'].state == State.RUNNING
+
+
+def test_a_heartbeat_timeout_with_a_fake_clock():
+    sup = Supervisor(config('  a: {command: x, heartbeat_timeout: 0.05}\n'))
+    running(sup, 'a')
+    for t in (0.02, 0.04, 0.06):
+        sup['a'].heard(t, 'ok')
+        assert sup.check('a', ALIVE, t + 0.01, GB) is None
+    decision = sup.check('a', ALIVE, 0.12, GB)
+    assert decision.kind == 'heartbeat_timeout' and decision.actions == [('kill', 'a'), ('spawn', 'a')]
+
+
+def test_restarts_within_the_limit_then_the_limit_escalates_to_the_safe_state():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 2, restart_window: 10}\n'))
+    dead = ALIVE._replace(alive=False, exit_code=1)
+    for t in (0.0, 1.0):
+        running(sup, 'a', t)
+        decision = sup.check('a', dead, t + 0.5, GB)
+        assert decision.actions == [('kill', 'a'), ('spawn', 'a')] and decision.escalate is None
+    running(sup, 'a', 2.0)
+    decision = sup.check('a', dead, 2.5, GB)
+    assert sup['a'].state == State.FAILED and decision.actions == [('kill', 'a')]
+    assert 'restart limit exhausted' in decision.escalate and sup.safe_state == decision.escalate
+    assert sup['a'].errors['exit'] == 3
+
+
+def test_restarts_older_than_the_window_do_not_count():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1, restart_window: 5}\n'))
+    dead = ALIVE._replace(alive=False, exit_code=1)
+    for t in (0.0, 10.0, 20.0):
+        running(sup, 'a', t)
+        assert sup.check('a', dead, t + 1, GB).escalate is None
+
+
+def test_the_trajectory_sender_terminates_the_generator_first_then_restarts_its_dependants():
+    sup = Supervisor(config('  tg: {command: x}\n  pub: {command: z}\n'
+                            '  c4g: {command: y, terminate_with: [tg], restart_with: [pub]}\n'))
+    for name in ('tg', 'pub', 'c4g'):
+        running(sup, name)
+    decision = sup.fault('c4g', 'exit', 'segfault', 1.0)
+    assert decision.actions == [('kill', 'tg'), ('kill', 'c4g'), ('spawn', 'c4g'), ('kill', 'pub'), ('spawn', 'pub')]
+    assert sup['tg'].state == State.STOPPED and sup['c4g'].state == sup['pub'].state == State.RESTARTING
+
+
+@pytest.mark.parametrize('action,critical,state,actions,escalates', [
+    ('terminate', False, State.STOPPED, [('kill', 'a')], False),
+    ('terminate', True, State.STOPPED, [('kill', 'a')], True),
+    ('run', False, State.STOPPED, [('kill', 'a'), ('run', 'a')], False),
+    ('alert', False, State.RUNNING, [('alert', 'a')], False),
+    ('restart', True, State.RESTARTING, [('kill', 'a'), ('spawn', 'a')], False),
+])
+def test_each_failure_action(action, critical, state, actions, escalates):
+    program = ', program: [echo, x]' if action == 'run' else ''
+    sup = Supervisor(config('  a: {command: x, on_failure: %s, critical: %s%s}\n'
+                            % (action, str(critical).lower(), program)))
+    running(sup, 'a')
+    decision = sup.fault('a', 'cpu_limit', 'CPU 95%', 1.0)
+    assert sup['a'].state == state and decision.actions == actions
+    assert (decision.escalate is not None) == escalates == (sup.safe_state is not None)
+
+
+def test_a_service_whose_failure_stops_the_movement_escalates_even_when_restarted():
+    sup = Supervisor(config('  tg: {command: x, safe_state_on_failure: true}\n'))
+    running(sup, 'tg')
+    decision = sup.fault('tg', 'exit', 'status 1', 1.0)
+    assert decision.actions == [('kill', 'tg'), ('spawn', 'tg')] and 'movement stopped' in decision.escalate
+    assert sup['tg'].state == State.RESTARTING
+
+
+def test_the_safe_state_stays_until_an_operator_clears_it_with_critical_services_running():
+    sup = Supervisor(config('  a: {command: x, on_failure: terminate, critical: true}\n  b: {command: y}\n'))
+    running(sup, 'a')
+    running(sup, 'b')
+    sup.fault('a', 'exit', 'status 1', 1.0)
+    assert sup.safe_state is not None
+    ok, message = sup.clear_safe_state(2.0)
+    assert not ok and 'critical services not running: a' in message
+    ok, actions, _ = sup.start('a', 3.0)
+    assert ok and actions == [('spawn', 'a')]
+    running(sup, 'a', 3.0)
+    assert sup.clear_safe_state(4.0)[0] and sup.safe_state is None
+    assert sup.escalations == 1
+
+
+def test_operator_commands_follow_the_state_machine():
+    sup = Supervisor(config('  a: {command: x}\n'))
+    assert sup.stop('a', 0.0) == (False, [], 'a is already stopped')
+    assert sup.start('a', 0.0)[:2] == (True, [('spawn', 'a')])
+    running(sup, 'a')
+    assert sup.start('a', 1.0) == (False, [], 'a is already running')
+    assert sup.restart('a', 1.0)[:2] == (True, [('kill', 'a'), ('spawn', 'a')])
+    sup['a'].spawned(1.1)
+    assert sup.stop('a', 2.0)[:2] == (True, [('kill', 'a')]) and sup['a'].state == State.STOPPED
+    sup.spawn_failed('a', 3.0, 'gone')
+    assert sup['a'].state == State.FAILED
+    assert sup.restart('a', 3.5) == (False, [], 'a has failed: start it instead')
+
+
+def test_a_service_that_cannot_be_spawned_fails_and_a_critical_one_escalates():
+    sup = Supervisor(config('  a: {command: x, critical: true}\n'))
+    sup.spawn_failed('a', 0.0, 'no such file')
+    assert sup['a'].state == State.FAILED and 'cannot be spawned' in sup.safe_state
+
+
+def test_every_state_change_is_an_edge_of_the_machine():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1}\n'))
+    running(sup, 'a')
+    sup.fault('a', 'exit', '', 1.0)
+    running(sup, 'a', 1.1)
+    sup.fault('a', 'exit', '', 2.0)
+    assert all((old, new) in EDGES for _, old, new, _ in sup['a'].history)
+    assert sup['a'].state == State.FAILED
+
+
+# -- state restoration -----------------------------------------------------------------------------
+def in_range(state):
+    return None if 0 <= state.get('position', -1) <= 10 else 'position %r outside 0 .. 10' % state.get('position')
+
+
+def test_a_saved_state_is_restored_after_its_checks(tmp_path):
+    store = StateStore(str(tmp_path / 'a.json'), in_range)
+    assert store.load() == (None, 'no saved state')
+    store.save({'position': 4.5, 'tool': 'gripper'})
+    assert store.load() == ({'position': 4.5, 'tool': 'gripper'}, None)
+
+
+@pytest.mark.parametrize('corrupt,why', [
+    (lambda text: text.replace('4.5', '4.6'), 'checksum mismatch'),
+    (lambda text: text[:len(text) // 2], 'not a state record'),
+    (lambda text: '', 'not a state record'),
+])
+def test_a_corrupt_state_falls_back_to_a_clean_start_saying_why(tmp_path, corrupt, why):
+    path = tmp_path / 'a.json'
+    store = StateStore(str(path), in_range)
+    store.save({'position': 4.5})
+    path.write_text(corrupt(path.read_text()))
+    state, reason = store.load()
+    assert state is None and why in reason
+
+
+def test_a_state_out_of_range_is_not_restored(tmp_path):
+    store = StateStore(str(tmp_path / 'a.json'), in_range)
+    store.save({'position': 42})
+    assert store.load() == (None, 'saved state out of range: position 42 outside 0 .. 10')
+
+
+def test_the_manager_tells_a_service_where_its_state_is_and_whether_to_restore_it(tmp_path):
+    store, restore = from_environment('/default', environ={'AFT_STATE_FILE': str(tmp_path / 's.json'),
+                                                           'AFT_RESTORE_STATE': '1'})
+    assert store.path == str(tmp_path / 's.json') and restore
+    store, restore = from_environment('/default', environ={})
+    assert store.path == '/default' and not restore
+
+
+def test_saving_replaces_the_file_whole(tmp_path):
+    store = StateStore(str(tmp_path / 'a.json'))
+    for i in range(20):
+        store.save({'i': i})
+    assert json.loads(json.loads((tmp_path / 'a.json').read_text())['state']) == {'i': 19}
+    assert [p.name for p in tmp_path.iterdir()] == ['a.json']   # no temporary file left
