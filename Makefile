@@ -25,6 +25,7 @@ bench: setup
 	$(ENV) python scripts/bench_mechanisms --json bench_mechanisms.json
 	$(ENV) python scripts/bench_adaptation --json bench_adaptation.json
 	$(ENV) python scripts/bench_ros_buffering --json bench_ros_buffering.json
+	$(ENV) python scripts/bench_service_manager --json bench_service_manager.json
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel

@@ -25,6 +25,23 @@ LEVELS = {State.RUNNING: DiagnosticStatus.OK, State.STARTING: DiagnosticStatus.W
           State.ERROR: DiagnosticStatus.ERROR, State.FAILED: DiagnosticStatus.ERROR}
 
 
+def resolve_rosrun(command, where):
+    """``rosrun PKG TYPE ARGS`` as the node's own executable and ARGS, found once, at start: rosrun
+    looks the package up at every start, which added about 300 ms to each restart. A node that
+    does not exist is a configuration error."""
+    if len(command) < 3 or os.path.basename(command[0]) != 'rosrun':
+        return command
+    import roslib.packages
+    import rospkg
+    try:
+        found = roslib.packages.find_node(command[1], command[2])
+    except rospkg.ResourceNotFound:
+        found = None
+    if not found:
+        raise params.ConfigError('%s: rosrun %s %s: no such node' % (where, command[1], command[2]))
+    return [found[0]] + command[3:]
+
+
 class Child(object):
     """A service's process (a session of its own, so that everything it starts goes with it) and
     what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
@@ -111,6 +128,10 @@ class ServiceManagerNode(object):
             raise params.ConfigError('cannot read the configuration %s: %s' % (path, e.strerror))
         except ServiceConfigError as e:
             raise params.ConfigError(str(e))
+        for name, service in self.config['services'].items():
+            for key in ('command', 'program'):
+                if service[key]:
+                    service[key] = resolve_rosrun(service[key], 'services.%s.%s' % (name, key))
         self.resource_period = param('resource_period', params.positive_float, 0.1)
         self.period = self.config['manager']['period']
         self.supervisor = Supervisor(self.config)
@@ -154,7 +175,7 @@ class ServiceManagerNode(object):
             self._event('spawn_failed', name, str(e), now)
             return
         service.spawned(now)
-        self._event('spawned', name, 'pid %d' % popen.pid, now)
+        self._event('spawned', name, 'pid %d' % popen.pid, now, starts=service.starts, pid=popen.pid)
 
     def _kill(self, name):
         child = self.children.pop(name, None)

@@ -363,11 +363,10 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
         summary = summaries.summarize(record, scenario['expect'])
     except ValueError as e:   # no car state recorded, malformed rows
         raise RunError('%s (logs in %s)' % (e, os.path.join(out, 'logs')))
-    spawned = [e['service'] for e in managed if e['event'] == 'spawned']
     summary['service_manager'] = {
         'faults': [{'service': e['service'], 'kind': e['kind'], 'detail': e['detail']} for e in managed
                    if e['event'] == 'fault'],
-        'restarts': len(spawned) - len(set(spawned))}
+        'restarted': [e['service'] for e in managed if e['event'] == 'spawned' and e.get('starts', 1) > 1]}
     summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
