@@ -231,14 +231,84 @@ def test_a_service_that_cannot_be_spawned_fails_and_a_critical_one_escalates():
     assert sup['a'].state == State.FAILED and 'cannot be spawned' in sup.safe_state
 
 
-def test_every_state_change_is_an_edge_of_the_machine():
-    sup = Supervisor(config('  a: {command: x, restart_limit: 1}\n'))
+def test_an_alert_is_raised_once_per_fault_until_it_clears():
+    sup = Supervisor(config('  a: {command: x, on_failure: alert, cpu_limit: 50%}\n'))
     running(sup, 'a')
-    sup.fault('a', 'exit', '', 1.0)
-    running(sup, 'a', 1.1)
-    sup.fault('a', 'exit', '', 2.0)
-    assert all((old, new) in EDGES for _, old, new, _ in sup['a'].history)
-    assert sup['a'].state == State.FAILED
+    hot = ALIVE._replace(cpu_percent=90.0)
+    assert sup.check('a', hot, 1.0, GB).actions == [('alert', 'a')]
+    assert all(sup.check('a', hot, 1.0 + i * 0.01, GB) is None for i in range(1, 100))
+    assert sup.check('a', ALIVE, 3.0, GB) is None                  # it cleared...
+    assert sup.check('a', hot, 4.0, GB).actions == [('alert', 'a')]  # ...so it is alerted again
+    assert sup['a'].errors['cpu_limit'] == 2 and sup['a'].state == State.RUNNING
+
+
+def test_an_ok_heartbeat_withdraws_a_reported_error():
+    sup = Supervisor(config('  a: {command: x, on_failure: alert}\n'))
+    running(sup, 'a')
+    sup['a'].heard(1.0, 'error', 'sensor lost')
+    assert sup.check('a', ALIVE, 1.01, GB).kind == 'reported_error'
+    sup['a'].heard(1.02, 'ok')
+    assert sup.check('a', ALIVE, 1.03, GB) is None and not sup['a'].alerted
+
+
+def test_a_service_terminated_or_out_of_restarts_terminates_what_must_not_run_without_it():
+    for action, extra in (('terminate', ''), ('restart', ', restart_limit: 0')):
+        sup = Supervisor(config('  tg: {command: x}\n  c4g: {command: y, on_failure: %s, terminate_with: [tg]%s}\n'
+                                % (action, extra)))
+        running(sup, 'tg')
+        running(sup, 'c4g')
+        decision = sup.fault('c4g', 'exit', '', 1.0)
+        assert decision.actions[:2] == [('kill', 'tg'), ('kill', 'c4g')] and sup['tg'].state == State.STOPPED
+
+
+def test_dependants_are_restarted_transitively_but_stopped_ones_stay_stopped():
+    sup = Supervisor(config('  a: {command: x, restart_with: [b, c]}\n  b: {command: y, restart_with: [d]}\n'
+                            '  c: {command: z, autostart: false}\n  d: {command: w}\n'))
+    for name in ('a', 'b', 'd'):
+        running(sup, name)
+    decision = sup.fault('a', 'exit', '', 1.0)
+    assert [x for x in decision.actions if x[0] == 'spawn'] == [('spawn', 'a'), ('spawn', 'b'), ('spawn', 'd')]
+    assert sup['c'].state == State.STOPPED
+
+
+def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_state_machine():
+    """Random sequences (seeded) over services with dependencies: every decision is carried out as the
+    manager would, and no call ever meets a state it does not expect."""
+    import random
+    rng = random.Random(7)
+    c = config('  tg: {command: x, critical: true}\n  pub: {command: y, on_failure: alert}\n'
+               '  c4g: {command: z, terminate_with: [tg], restart_with: [pub], restart_limit: 2, restart_window: 5}\n'
+               '  oms: {command: w, on_failure: terminate}\n')
+    for _ in range(30):
+        sup = Supervisor(c)
+        now = 0.0
+        for name in sup.services:
+            sup[name].spawned(now)
+        for _ in range(200):
+            now += rng.uniform(0.0, 0.5)
+            name = rng.choice(list(sup.services))
+            s = sup[name]
+            move = rng.choice(('heard', 'error', 'exit', 'check', 'start', 'stop', 'restart', 'spawn_failed', 'clear'))
+            actions = []
+            if move == 'heard':
+                s.heard(now, 'ok')
+            elif move == 'error':
+                s.heard(now, 'error', 'x')
+            elif move in ('exit', 'check'):
+                sample = ALIVE._replace(alive=False, exit_code=1) if move == 'exit' else ALIVE
+                decision = sup.check(name, sample, now, GB) if s.state in (State.STARTING, State.RUNNING) else None
+                actions = decision.actions if decision else []
+            elif move in ('start', 'stop', 'restart'):
+                actions = getattr(sup, move)(name, now)[1]
+            elif move == 'spawn_failed' and s.state in (State.STOPPED, State.RESTARTING):
+                sup.spawn_failed(name, now, 'no such file')
+            elif move == 'clear':
+                sup.clear_safe_state(now)
+            for verb, target in actions:     # as the manager carries them out
+                if verb == 'spawn':
+                    sup[target].spawned(now)
+        for s in sup.services.values():
+            assert all((old, new) in EDGES for _, old, new, _ in s.history)
 
 
 # -- state restoration -----------------------------------------------------------------------------

@@ -49,6 +49,7 @@ EDGES = {
     (State.ERROR, State.RUNNING): 'failure action alert on a service still running: it goes on',
     (State.RESTARTING, State.STARTING): 'killed and spawned again',
     (State.RESTARTING, State.FAILED): 'it could not be spawned again',
+    (State.RESTARTING, State.STOPPED): 'terminated with a dependency while it was restarting',
     (State.STARTING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
     (State.RUNNING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
     (State.RUNNING, State.RESTARTING): 'restarted by an operator or with a dependency',
@@ -156,8 +157,8 @@ def _text(where, value):
 REQUIRED = object()
 SERVICE_KEYS = collections.OrderedDict([
     ('command', (REQUIRED, _command, 'the start command, a string or a list of arguments')),
-    ('period', (None, _optional(_positive), "the service's own period (s), for the timing analysis")),
-    ('spare', (0.0, _non_negative, 'spare time (s) the service may have left from its previous period')),
+    ('period', (None, _optional(_positive), "the service's own period (s); informational, shown by ~status")),
+    ('spare', (0.0, _non_negative, 'spare time (s) left from its previous period; informational, shown by ~status')),
     ('heartbeat_timeout', (None, _optional(_positive), 'silence (s) after which the service is declared hung; '
                                                       'null: the service sends no heartbeat')),
     ('start_timeout', (5.0, _positive, 'a service not heard (or, without heartbeats, not alive) this long (s) '
@@ -173,9 +174,10 @@ SERVICE_KEYS = collections.OrderedDict([
                                             'its environment)')),
     ('restart_limit', (3, _count, 'restarts allowed within restart_window; one more fault escalates')),
     ('restart_window', (60.0, _positive, 'the window (s) of restart_limit')),
-    ('restart_with', ([], _names, 'services restarted after this one is restarted (its dependants)')),
-    ('terminate_with', ([], _names, 'services terminated before this one is restarted, and left stopped '
-                                    '(e.g. the trajectory generator when the trajectory sender fails)')),
+    ('restart_with', ([], _names, 'services restarted after this one is restarted (its dependants, and '
+                                  'theirs); those stopped stay stopped')),
+    ('terminate_with', ([], _names, 'services terminated when this one fails (before it restarts), and left '
+                                    'stopped (e.g. the trajectory generator when the trajectory sender fails)')),
     ('critical', (False, _flag, 'a critical service that cannot be recovered puts the system in the safe state')),
     ('safe_state_on_failure', (False, _flag, 'any failure of it puts the system in the safe state, even one a '
                                              'restart recovers (the paper\'s "stop manipulator movement")')),
@@ -333,6 +335,7 @@ class Service(object):
         self.errors = collections.Counter()    # fault kind -> count
         self.starts = 0
         self.history = []                      # (now, from, to, reason)
+        self.alerted = set()                   # fault kinds alerted and still present (alerted once)
 
     def _change(self, state, now, reason):
         if state == self.state:
@@ -355,7 +358,9 @@ class Service(object):
         self.last_heard = now
         if status == 'error':
             self.reported_error = detail or 'error'
-        elif self.state == State.STARTING and self.reported_error is None:
+            return
+        self.reported_error = None     # an ok heartbeat: no error reported any more
+        if self.state == State.STARTING:
             self._change(State.RUNNING, now, 'heard from')
 
     def restarts_in_window(self, now):
@@ -402,7 +407,12 @@ class Supervisor(object):
         if s.state != State.RUNNING:
             return None
         found = detect(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
-        return self.fault(name, found[0], found[1], now) if found else None
+        if found is None:
+            s.alerted.clear()
+            return None
+        if found[0] in s.alerted:
+            return None        # alerted already; alerted again only once the condition has cleared
+        return self.fault(name, found[0], found[1], now)
 
     def fault(self, name, kind, detail, now):
         """A fault of service name: count it, decide and return what to do."""
@@ -416,21 +426,22 @@ class Supervisor(object):
             if s.restarts_in_window(now) >= s.config['restart_limit']:
                 s._change(State.FAILED, now, 'restart limit exhausted: %d restarts within %.0f s'
                           % (s.config['restart_limit'], s.config['restart_window']))
-                actions.append(('kill', name))
+                actions += self._terminate_with(name, now) + [('kill', name)]
                 escalate = '%s: restart limit exhausted after %s' % (name, kind)
             else:
                 s.restarts.append(now)
                 actions += self._restart(name, now, 'failure action restart after %s' % kind)
         elif action == 'alert':
             if kind in ('exit', 'start_timeout'):
-                s._change(State.STOPPED, now, 'alerted; the process is gone')
+                s._change(State.STOPPED, now, 'alerted; it is not running')
+                actions += self._terminate_with(name, now) + [('kill', name)]
             else:
-                s.reported_error = None
+                s.alerted.add(kind)
                 s._change(State.RUNNING, now, 'alerted; left running')
             actions.append(('alert', name))
         else:   # terminate, or run: terminate then run the program
             s._change(State.STOPPED, now, 'failure action %s after %s' % (action, kind))
-            actions.append(('kill', name))
+            actions += self._terminate_with(name, now) + [('kill', name)]
             if action == 'run':
                 actions.append(('run', name))
         if escalate is None and s.config['critical'] and s.state in (State.STOPPED, State.FAILED):
@@ -441,24 +452,28 @@ class Supervisor(object):
             self._escalate(escalate, now)
         return Decision(name, kind, detail, actions, escalate)
 
-    def _restart(self, name, now, why):
-        """Actions restarting name: terminate its terminate_with first, restart it, then its dependants."""
-        s = self.services[name]
+    def _terminate_with(self, name, now):
+        """Actions terminating the services that must not run without name (left stopped)."""
         actions = []
-        for other in s.config['terminate_with']:
+        for other in self.services[name].config['terminate_with']:
             o = self.services[other]
             if o.state in (State.STARTING, State.RUNNING, State.ERROR, State.RESTARTING):
-                o._change(State.STOPPED, now, 'terminated before %s restarts' % name)
+                o._change(State.STOPPED, now, 'terminated with %s' % name)
                 actions.append(('kill', other))
+        return actions
+
+    def _restart(self, name, now, why, seen=None):
+        """Actions restarting name: terminate its terminate_with first, restart it, then its dependants
+        (restart_with, followed transitively) that are running or starting; stopped ones stay stopped."""
+        seen = set() if seen is None else seen
+        seen.add(name)
+        s = self.services[name]
+        actions = self._terminate_with(name, now)
         s._change(State.RESTARTING, now, why)
         actions += [('kill', name), ('spawn', name)]
         for other in s.config['restart_with']:
-            o = self.services[other]
-            if o.state in (State.FAILED,):
-                continue
-            if o.state != State.RESTARTING:
-                o._change(State.RESTARTING, now, 'restarted with %s' % name)
-                actions += [('kill', other), ('spawn', other)]
+            if other not in seen and self.services[other].state in (State.STARTING, State.RUNNING):
+                actions += self._restart(other, now, 'restarted with %s' % name, seen)
         return actions
 
     def _escalate(self, reason, now):

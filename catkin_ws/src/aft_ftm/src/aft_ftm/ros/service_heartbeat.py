@@ -15,10 +15,11 @@ class Heartbeat(object):
     def __init__(self, name=None, topic=None):
         self.name = name or os.environ.get('AFT_SERVICE') or rospy.get_name().lstrip('/')
         self.seq = 0
+        self.pid = os.getpid()
         self.publisher = rospy.Publisher(topic or os.environ.get('AFT_HEARTBEAT_TOPIC', TOPIC), ServiceHeartbeat,
                                          queue_size=10, tcp_nodelay=True)
 
     def beat(self, status='ok', detail=''):
         self.seq += 1
-        self.publisher.publish(ServiceHeartbeat(name=self.name, status=status, detail=detail, seq=self.seq,
-                                                stamp=rospy.Time.now()))
+        self.publisher.publish(ServiceHeartbeat(name=self.name, pid=self.pid, status=status, detail=detail,
+                                                seq=self.seq, stamp=rospy.Time.now()))

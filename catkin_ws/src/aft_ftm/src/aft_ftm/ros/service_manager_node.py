@@ -80,15 +80,28 @@ class Child(object):
         return Sample(True, None, stopped, cpu, rss)
 
     def kill(self, timeout):
-        """SIGKILL the whole session at once (a faulty service is not asked), and reap it."""
+        """SIGKILL the whole session at once (a faulty service is not asked). It is reaped here if it
+        dies within 0.2 s (it almost always does), else by a thread, so the manager's loop never waits long."""
         try:
             os.killpg(self.popen.pid, signal.SIGKILL)
-        except ProcessLookupError:
+        except (ProcessLookupError, PermissionError):
             pass
         try:
-            self.popen.wait(timeout)
+            self.popen.wait(min(timeout, 0.2))
         except subprocess.TimeoutExpired:
-            pass
+            threading.Thread(target=self.popen.wait, daemon=True).start()
+
+    def alive(self):
+        return self.popen.poll() is None
+
+    def owns(self, pid):
+        """Whether pid is this service's process or one of its descendants."""
+        if pid == self.popen.pid:
+            return True
+        try:
+            return any(p.pid == pid for p in self.proc.children(recursive=True))
+        except psutil.Error:
+            return False
 
     def terminate(self, timeout):
         """SIGTERM the session, SIGKILL it after timeout (an operator's stop)."""
@@ -110,10 +123,12 @@ class ServiceManagerNode(object):
             (exit status, heartbeats and reported errors are checked every manager period)
         ~heartbeat_topic (str, /aft/service_heartbeat): where the services' heartbeats come
     Subscribes:
-        (~heartbeat_topic) (aft_msgs/ServiceHeartbeat): every service's heartbeats
+        (~heartbeat_topic) (aft_msgs/ServiceHeartbeat): every service's heartbeats (passed to the services
+            as AFT_HEARTBEAT_TOPIC); a beat from a process the manager has replaced is ignored
     Publishes:
         safe_state (aft_msgs/SafeState, latched): the safe-state command
-        /diagnostics (diagnostic_msgs/DiagnosticArray): every service's health, each second and on changes
+        /diagnostics (diagnostic_msgs/DiagnosticArray): every service's health, each second and when the
+            safe state changes
         ~events (std_msgs/String): one JSON record per fault detected and per decision
     Services:
         ~start, ~stop, ~restart, ~status (aft_msgs/ServiceCommand), ~clear_safe_state (std_srvs/Trigger)
@@ -133,6 +148,7 @@ class ServiceManagerNode(object):
                 if service[key]:
                     service[key] = resolve_rosrun(service[key], 'services.%s.%s' % (name, key))
         self.resource_period = param('resource_period', params.positive_float, 0.1)
+        self.heartbeat_topic = rospy.resolve_name(param('heartbeat_topic', params.non_empty_str, TOPIC))
         self.period = self.config['manager']['period']
         self.supervisor = Supervisor(self.config)
         self.children = {}
@@ -140,23 +156,29 @@ class ServiceManagerNode(object):
         self.total_memory = psutil.virtual_memory().total
         self.heartbeats = 0
         self.unknown_heartbeats = 0
+        self.stale_heartbeats = 0     # from a process the manager has replaced: ignored
+        self.stopping = {}            # name -> Child being stopped by an operator (SIGTERM, then SIGKILL)
+        self.published_safe = None    # the safe state last published (its reason, None: not in it)
+        self.pid_file = os.path.join(self.config['manager']['state_dir'],
+                                     'manager%s.pids' % rospy.get_name().replace('/', '_'))
 
     def setup(self, timeout):
         self.safe_pub = rospy.Publisher('safe_state', SafeState, queue_size=1, latch=True)
         self.diag_pub = rospy.Publisher('/diagnostics', DiagnosticArray, queue_size=10)
         self.events_pub = rospy.Publisher('~events', String, queue_size=100)
-        rospy.Subscriber(param('heartbeat_topic', params.non_empty_str, TOPIC), ServiceHeartbeat, self._on_heartbeat,
-                         queue_size=1000, tcp_nodelay=True)
+        rospy.Subscriber(self.heartbeat_topic, ServiceHeartbeat, self._on_heartbeat, queue_size=1000, tcp_nodelay=True)
         self.safe_pub.publish(SafeState(active=False, reason='', stamp=rospy.Time.now()))
         for verb in ('start', 'stop', 'restart', 'status'):
             rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         rospy.on_shutdown(self.shutdown)
+        self._kill_orphans()
         now = time.monotonic()
         with self.lock:
             for name, service in self.supervisor.services.items():
                 if service.config['autostart']:
                     self._spawn(name, now)
+            self._sync_safe_state()
         threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
         return True
 
@@ -165,22 +187,61 @@ class ServiceManagerNode(object):
         service = self.supervisor[name]
         cfg, manager = service.config, self.config['manager']
         state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
-        env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file,
+        env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file, AFT_HEARTBEAT_TOPIC=self.heartbeat_topic,
                    AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
+        popen = None
         try:
             popen = subprocess.Popen(cfg['command'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
             self.children[name] = Child(popen, cfg['cpu_window'])
         except (OSError, psutil.Error) as e:
+            if popen is not None:   # started but cannot be watched: not left running unwatched
+                try:
+                    os.killpg(popen.pid, signal.SIGKILL)
+                except OSError:
+                    pass
+                threading.Thread(target=popen.wait, daemon=True).start()
             self.supervisor.spawn_failed(name, now, str(e))
             self._event('spawn_failed', name, str(e), now)
             return
+        finally:
+            self._record_pids()
         service.spawned(now)
         self._event('spawned', name, 'pid %d' % popen.pid, now, starts=service.starts, pid=popen.pid)
+
+    def _record_pids(self):
+        """The process groups of the running services, so that a manager started after this one was
+        killed can stop what it left behind."""
+        try:
+            os.makedirs(os.path.dirname(self.pid_file), exist_ok=True)
+            with open(self.pid_file, 'w') as f:
+                json.dump({n: {'pid': c.pid, 'cmdline': c.proc.cmdline()} for n, c in self.children.items()
+                           if c.alive()}, f)
+        except (OSError, psutil.Error) as e:
+            rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
+                                   % (rospy.get_name(), self.pid_file, e))
+
+    def _kill_orphans(self):
+        """Kill the services an earlier manager of the same name left running (it was killed)."""
+        try:
+            with open(self.pid_file) as f:
+                recorded = json.load(f)
+        except (OSError, ValueError):
+            return
+        for name, entry in recorded.items():
+            try:
+                proc = psutil.Process(entry['pid'])
+                if proc.cmdline() == entry['cmdline']:
+                    rospy.logwarn('%s: killing %s (pid %d), left running by an earlier manager',
+                                  rospy.get_name(), name, entry['pid'])
+                    os.killpg(entry['pid'], signal.SIGKILL)
+            except (psutil.Error, OSError, KeyError, TypeError):
+                pass
 
     def _kill(self, name):
         child = self.children.pop(name, None)
         if child is not None:
             child.kill(self.config['manager']['kill_timeout'])
+            self._record_pids()
 
     def _run_program(self, name, kind):
         cfg = self.supervisor[name].config
@@ -192,15 +253,25 @@ class ServiceManagerNode(object):
 
     def _act(self, decision, now):
         for verb, name in decision.actions:
-            if verb == 'kill':
-                self._kill(name)
-            elif verb == 'spawn':
-                self._spawn(name, now)
-            elif verb == 'run':
-                self._run_program(name, decision.kind)
-            elif verb == 'alert':
-                rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
-        if decision.escalate:
+            try:
+                if verb == 'kill':
+                    self._kill(name)
+                elif verb == 'spawn':
+                    self._spawn(name, now)
+                elif verb == 'run':
+                    self._run_program(name, decision.kind)
+                elif verb == 'alert':
+                    rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
+            except Exception as e:   # one failed action must not leave the others undone
+                rospy.logerr('%s: %s %s failed: %s: %s', rospy.get_name(), verb, name, type(e).__name__, e)
+                if verb == 'spawn' and self.supervisor[name].state in (State.RESTARTING, State.STARTING):
+                    self.supervisor.spawn_failed(name, now, str(e))
+        self._sync_safe_state()
+
+    def _sync_safe_state(self):
+        """Publish the safe state whenever the supervisor's has changed (whatever changed it)."""
+        if self.supervisor.safe_state != self.published_safe:
+            self.published_safe = self.supervisor.safe_state
             self._publish_safe_state()
 
     # -- the loop --------------------------------------------------------------------------------
@@ -218,7 +289,10 @@ class ServiceManagerNode(object):
                     if child is None:
                         continue
                     try:
+                        was = self.supervisor[name].state
                         decision = self.supervisor.check(name, child.sample(resources), now, self.total_memory)
+                        if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
+                            child.cpu_marks = []   # its CPU is judged from now on, not its start-up
                         if decision is not None:
                             self._event('fault', name, decision.detail, now, kind=decision.kind,
                                         actions=decision.actions, escalate=decision.escalate)
@@ -239,11 +313,16 @@ class ServiceManagerNode(object):
                 rospy.logwarn_throttle(5.0, '%s: heartbeat from %r, which is not a configured service (%d so far)'
                                        % (rospy.get_name(), beat.name, self.unknown_heartbeats))
                 return
+            child = self.children.get(beat.name)
+            if child is None or (beat.pid and not child.owns(beat.pid)):
+                self.stale_heartbeats += 1     # a replaced (or stopped) process's last words
+                return
             self.heartbeats += 1
             service = self.supervisor[beat.name]
             was = service.state
             service.heard(now, beat.status, beat.detail)
             if was == State.STARTING and service.state == State.RUNNING:
+                child.cpu_marks = []
                 self._event('running', beat.name, 'heard from', now, started_at=service.started_at)
 
     # -- reporting -------------------------------------------------------------------------------
@@ -267,7 +346,8 @@ class ServiceManagerNode(object):
                 child = self.children.get(n)
                 out[n] = {'state': s.state.name.lower(), 'reason': s.reason, 'pid': child.pid if child else None,
                           'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
-                          'errors': dict(s.errors), 'critical': s.config['critical']}
+                          'errors': dict(s.errors), 'critical': s.config['critical'],
+                          'period': s.config['period'], 'spare': s.config['spare']}
             return {'services': out, 'safe_state': self.supervisor.safe_state}
 
     def _publish_diagnostics(self):
@@ -301,12 +381,17 @@ class ServiceManagerNode(object):
                                           % (req.name, ', '.join(self.supervisor.services)))
         now = time.monotonic()
         with self.lock:
+            stopping = self.stopping.get(req.name)
+            if verb in ('start', 'restart') and stopping is not None and stopping.alive():
+                return ServiceCommandResponse(success=False, message='%s is still stopping: try again' % req.name,
+                                              status=json.dumps(self.status(req.name)))
             ok, actions, message = getattr(self.supervisor, verb)(req.name, now)
             for action, name in actions:
                 if action == 'kill' and verb == 'stop':
                     # An operator's stop asks first (SIGTERM), off the manager's loop.
                     child = self.children.pop(name, None)
                     if child is not None:
+                        self.stopping[name] = child
                         threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),
                                          daemon=True).start()
                 elif action == 'kill':
@@ -314,22 +399,34 @@ class ServiceManagerNode(object):
                 elif action == 'spawn':
                     self._spawn(name, now)
             self._event('command', req.name, message, now, verb=verb, accepted=ok)
+            self._sync_safe_state()
         return ServiceCommandResponse(success=ok, message=message, status=json.dumps(self.status(req.name)))
 
     def _on_clear(self, _req):
         with self.lock:
             ok, message = self.supervisor.clear_safe_state(time.monotonic())
-            if ok:
-                self._publish_safe_state()
+            self._sync_safe_state()
         rospy.logwarn('%s: clear safe state: %s', rospy.get_name(), message)
         return TriggerResponse(success=ok, message=message)
 
     def shutdown(self):
-        """Stop every service (SIGTERM, then SIGKILL). Never raises."""
+        """Stop every service, those being stopped too: SIGTERM to all, then SIGKILL to those still
+        running after kill_timeout. Never raises."""
         with self.lock:
-            children, self.children = list(self.children.values()), {}
-        for child in children:
-            try:
-                child.terminate(self.config['manager']['kill_timeout'])
-            except Exception:   # shutdown paths never raise
-                pass
+            children = list(self.children.values()) + list(self.stopping.values())
+            self.children, self.stopping = {}, {}
+        try:
+            for child in children:
+                try:
+                    os.killpg(child.pid, signal.SIGTERM)
+                except (ProcessLookupError, PermissionError):
+                    pass
+            deadline = time.monotonic() + self.config['manager']['kill_timeout']
+            for child in children:
+                try:
+                    child.popen.wait(max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    child.kill(0.2)
+            os.unlink(self.pid_file)
+        except Exception:   # shutdown paths never raise
+            pass

@@ -12,7 +12,7 @@ import threading
 import rospy
 from aft_msgs.msg import Alarm, CarCommand, Measure
 from aft_msgs.srv import GetState, GetStateResponse, SetState, SetStateResponse
-from std_msgs.msg import Bool
+from std_msgs.msg import Bool, String
 
 from aft_ftm import config
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -251,7 +251,9 @@ class CommandManagerNode(PortedNode):
 
     Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2)
     Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; emergency (std_msgs/Bool),
-        port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``
+        port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``;
+        service_safe_state (aft_msgs/SafeState), port ``service_safe_state``: the service manager's safe
+        state, obeyed as a safe stop
     Publishes: command (aft_msgs/CarCommand), port ``command``
     Services: ~rebind, ~suspend, ~resume
     """
@@ -266,8 +268,10 @@ class CommandManagerNode(PortedNode):
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(CommandManagerNode, self).__init__(
             [PortSpec('pid_command', SUBSCRIBE, 'aft_msgs/CarCommand'), PortSpec('emergency', SUBSCRIBE, 'std_msgs/Bool'),
-             PortSpec('safe_stop', SUBSCRIBE, 'std_msgs/String'), PortSpec('command', PUBLISH, 'aft_msgs/CarCommand')],
-            {'pid_command': self._on_pid, 'emergency': self._on_emergency, 'safe_stop': self._on_safe_stop})
+             PortSpec('safe_stop', SUBSCRIBE, 'std_msgs/String'), PortSpec('command', PUBLISH, 'aft_msgs/CarCommand'),
+             PortSpec('service_safe_state', SUBSCRIBE, 'aft_msgs/SafeState')],
+            {'pid_command': self._on_pid, 'emergency': self._on_emergency, 'safe_stop': self._on_safe_stop,
+             'service_safe_state': self._on_service_safe_state})
         self.pending = None
         self.cycle = 0
 
@@ -291,6 +295,10 @@ class CommandManagerNode(PortedNode):
         if first:
             rospy.logerr('%s: controlled stop: %s', self.name, msg.data)
             self._send()    # at once: the clock may have stopped with the simulator
+
+    def _on_service_safe_state(self, msg):
+        if msg.active:
+            self._on_safe_stop(String(data='service manager: %s' % msg.reason))
 
     def _send(self):
         with self.lock:
