@@ -33,7 +33,7 @@ from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role, check_role_change
 from .params import param
-from .ports import Ports
+from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
 
 
@@ -119,12 +119,7 @@ class CycleAfterNode(object):
                 return False
         peers = {Role.PRIMARY: ['checkpoints', 'peer_acks'], Role.BACKUP: ['peer_checkpoints', 'acks'],
                  Role.ALONE: []}[self.role]
-        # On the wall clock: a node on simulated time sets up before the simulation's clock runs.
-        deadline = time.monotonic() + self.connect_timeout
-        missing = peers
-        while missing and time.monotonic() < deadline and not rospy.is_shutdown():
-            time.sleep(0.01)
-            missing = [n for n in peers if self.ports.connections(n) < 1]
+        missing = wait_for_connections(self.ports, peers, self.connect_timeout)
         if missing:
             rospy.logerr('%s: the peer After is not connected on %s within %.1f s', self.name,
                          [self.ports.topic(n) for n in missing], self.connect_timeout)

@@ -218,13 +218,15 @@ class Ports(object):
 
 
 def wait_for_connections(ports, names, timeout):
-    """Wait until every named port has at least one connection. Returns the names still missing."""
-    deadline = rospy.get_time() + timeout
+    """Wait until every named port has at least one connection. Returns the names still missing.
+
+    On the wall clock: a node on simulated time sets up before the simulation's clock runs (ROS
+    time stands at 0 and rospy.sleep would never return)."""
+    deadline = time.monotonic() + timeout
     missing = list(names)
-    rate = 0.01
     while not rospy.is_shutdown():
         missing = [n for n in names if ports.connections(n) < 1]
-        if not missing or rospy.get_time() >= deadline:
+        if not missing or time.monotonic() >= deadline:
             return missing
-        rospy.sleep(rate)
+        time.sleep(0.01)
     return missing
