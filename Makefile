@@ -21,11 +21,7 @@ demo-pbr: setup
 	$(ENV) python scripts/demo_pbr
 
 bench: setup
-	$(ENV) python scripts/bench_pbr --json bench_pbr.json
-	$(ENV) python scripts/bench_mechanisms --json bench_mechanisms.json
-	$(ENV) python scripts/bench_adaptation --json bench_adaptation.json
-	$(ENV) python scripts/bench_ros_buffering --json bench_ros_buffering.json
-	$(ENV) python scripts/bench_service_manager --json bench_service_manager.json
+	$(ENV) python scripts/bench_report $(if $(QUICK),--quick)
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel

@@ -10,25 +10,14 @@ import subprocess
 import tempfile
 import uuid
 
-import psutil
 import pytest
+from leftovers import kill_tagged
 from reporting import report
 
 SRC = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src')
 TEST_DIR = os.path.join(SRC, 'aft_ftm', 'test')
 ROSTESTS = [(pkg, os.path.basename(p)) for pkg in ('aft_ftm', 'tjp_sim')
             for p in sorted(glob.glob(os.path.join(SRC, pkg, 'test', '*.test')))]
-
-
-def tagged(tag):
-    procs = []
-    for proc in psutil.process_iter():
-        try:
-            if proc.environ().get('AFT_TEST_TAG') == tag:
-                procs.append(proc)
-        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
-            pass
-    return procs
 
 
 @pytest.mark.parametrize('package,test_file', ROSTESTS, ids=['%s/%s' % t for t in ROSTESTS])
@@ -42,12 +31,7 @@ def test_rostest(package, test_file):
                              stderr=subprocess.STDOUT, timeout=1800)
         output = run.stdout.decode(errors='replace')
     finally:
-        leftovers = tagged(tag)
-        for proc in leftovers:
-            try:
-                proc.kill()
-            except psutil.NoSuchProcess:
-                pass
+        leftovers = kill_tagged(tag)
     for path in sorted(glob.glob(os.path.join(results, '*.json'))):
         with open(path) as f:
             report('%s: %s' % (os.path.basename(path)[:-5], json.dumps(json.load(f), sort_keys=True)))

@@ -1,4 +1,4 @@
-"""Power-off of a site's whole process tree, with real processes (no ROS)."""
+"""Power-off of a site's whole process tree, with real processes (no ROS); what a roslaunch log says of its end."""
 import os
 import subprocess
 import sys
@@ -6,7 +6,7 @@ import time
 
 import psutil
 
-from aft_ftm.sites import Site, power_off, process_tree
+from aft_ftm.sites import Site, launch_failure, power_off, process_tree
 
 # A parent whose children start their own sessions, as roslaunch's nodes do.
 TREE = ('import os, subprocess, sys, time\n'
@@ -48,3 +48,29 @@ def test_power_off_of_a_missing_process_is_a_no_op():
     proc = subprocess.Popen([sys.executable, '-c', 'pass'])
     proc.wait()
     assert power_off(proc.pid) == 0
+
+
+ROSLAUNCH_REQUIRED_DIED = """process[slave/tr/protocol-1]: started with pid [6816]
+process[slave/tr/before-2]: started with pid [6857]
+[WARN] [1795434903.627303]: wait_for_service(/slave/bank_server/get_state): failed to contact, will keep trying
+[ERROR] [1795434933.118673]: /slave/tr/protocol: Before/After not connected within 30.0 s (ports ['to_before'])
+[FATAL] [1795434933.120193]: /slave/tr/protocol: set-up failed, exiting
+[ERROR] [1795434933.792961]: /slave/tr/before: the server state manager (/slave/bank_server/get_state) is not available
+================================================================================REQUIRED process [slave/tr/protocol-1] has died!
+process has died [pid 6816, exit code 1, cmd /x/protocol __name:=protocol].
+log file: /x/slave-tr-protocol-1*.log
+Initiating shutdown!
+[slave/tr/before-2] killing on exit
+"""
+
+
+def test_launch_failure_names_the_node_that_died_its_exit_code_and_the_last_errors():
+    why = launch_failure(ROSLAUNCH_REQUIRED_DIED, errors=1)
+    assert why == ('/slave/tr/protocol died (exit code 1); last error: /slave/tr/before: the server state '
+                   'manager (/slave/bank_server/get_state) is not available')
+
+
+def test_launch_failure_of_a_killed_node_and_of_a_launch_that_says_nothing():
+    killed = '[master/before_pbr-1] process has died [pid 12, exit code -9, cmd /x/before].\n'
+    assert launch_failure(killed) == '/master/before_pbr died (exit code -9)'
+    assert launch_failure('process[a-1]: started with pid [1]\n') == ''

@@ -116,10 +116,12 @@ class PbrSites(Sites):
     FAULTY = False
     SEC = False
     ADAPTABLE = False
+    DETECTION_TIMEOUT = 0.03   # the crash detectors' timeout (s), heartbeats every 10 ms
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
-                             mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE)
+                             mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE,
+                             timeout=self.DETECTION_TIMEOUT)
 
 
 class MechanismSite(Sites):

@@ -6,6 +6,7 @@ of its own, so a process group is not enough to find them: the process tree is.
 kills it, which is as abrupt as a power loss for everything on the site.
 """
 import os
+import re
 import signal
 import subprocess
 import time
@@ -153,6 +154,36 @@ class Site(object):
             if self._log:
                 self._log.close()
                 self._log = None
+
+
+_DIED = re.compile(r'process \[?([^\]\s]+?)(?:-\d+)?\]? has died|\[([^\]\s]+?)-\d+\] process has died')
+_EXIT_CODE = re.compile(r'exit code (-?\d+)')
+_ERROR = re.compile(r'\[(?:FATAL|ERROR)\] \[[\d.]+\]: (.*)')
+
+
+def launch_failure(text, errors=2):
+    """Why a roslaunch ended, from its output: the nodes that died with their exit codes, then its
+    last errors. '' if the output says nothing of it."""
+    died, codes, messages = [], [], []
+    for line in text.splitlines():
+        match = _DIED.search(line)
+        if match:
+            name = '/' + (match.group(1) or match.group(2)).lstrip('/')
+            if name not in died:
+                died.append(name)
+        match = _EXIT_CODE.search(line)
+        if match and 'has died' in line:
+            codes.append(match.group(1))
+        match = _ERROR.search(line)
+        if match:
+            messages.append(match.group(1).strip())
+    parts = []
+    if died:
+        parts.append('%s died%s' % (', '.join(died), ' (exit code %s)' % ', '.join(codes) if codes else ''))
+    if messages:
+        parts.append('last error%s: %s' % ('s' if len(messages[-errors:]) > 1 else '',
+                                           '; '.join(messages[-errors:])))
+    return '; '.join(parts)
 
 
 def wait_until(predicate, timeout, interval=0.02):

@@ -24,7 +24,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
 from .. import adaptation
 from ..adaptation import ScriptError, StepError
-from ..sites import Site, terminate_tree, wait_dead, wait_until
+from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from .deployment import roslaunch, wired
 from .fencing import is_local, node_api
 
@@ -345,8 +345,8 @@ class Engine(object):
         while pending:
             for site, _ in pending:
                 if not site.alive():
-                    raise StepError('the roslaunch of %s exited (a node failed to start): see %s'
-                                    % (', '.join(site.nodes), site.log_path))
+                    raise StepError('the roslaunch of %s exited (a node failed to start%s): see %s'
+                                    % (', '.join(site.nodes), self._why_launch_ended(site), site.log_path))
             _, services = self._graph()
             pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and wired(n))]
             if not pending:
@@ -362,6 +362,15 @@ class Engine(object):
             self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
                      % (self.launch_niceness, refused))
         return len(self._launched_names)
+
+    @staticmethod
+    def _why_launch_ended(site):
+        try:
+            with open(site.log_path) as f:
+                why = launch_failure(f.read())
+        except (OSError, TypeError):   # no log kept
+            return ''
+        return ': ' + why if why else ''
 
     def _kill(self, node):
         """rosnode kill, after recording how to start the node again (for a rollback)."""

@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 
+from .. import machine
 from ..stats import median
 
 SEQ_DIGITS = 12
@@ -415,27 +416,7 @@ def run_config(child_argv, work_dir, name, payload_bytes, queue_size, stop_s, ra
 
 def machine_description():
     """Lines describing the machine and the ROS version, for the top of the report."""
-    import platform
-    try:
-        ros_comm = subprocess.run(['rosversion', 'ros_comm'], capture_output=True, text=True, timeout=10)
-        ros_comm = ros_comm.stdout.strip() if ros_comm.returncode == 0 else 'not found (%s)' % (
-            ros_comm.stdout + ros_comm.stderr).strip()
-    except (OSError, subprocess.SubprocessError) as e:
-        ros_comm = 'not found (%s)' % e
-    try:
-        import rospkg
-        rospy_version = rospkg.RosPack().get_manifest('rospy').version
-    except Exception as e:   # report, do not fail, on a machine without rospkg's view of rospy
-        rospy_version = 'unknown (%s)' % e
-
-    def sysctl(name):
-        try:
-            with open('/proc/sys/' + name.replace('.', '/')) as f:
-                return ' '.join(f.read().split())
-        except OSError:
-            return 'n/a'
-    return ['ros_comm (rosversion ros_comm): %s; rospy package: %s; Python %s' % (
-                ros_comm, rospy_version, platform.python_version()),
-            'CPUs: %d; %s %s' % (os.cpu_count(), platform.system(), platform.release()),
-            'TCP buffers (min default max): net.ipv4.tcp_rmem %s, tcp_wmem %s' % (
-                sysctl('net.ipv4.tcp_rmem'), sysctl('net.ipv4.tcp_wmem'))]
+    m = machine.describe()
+    return ['ROS: %s; rospy package: %s; Python %s' % (m['ros_comm'], m['rospy'], m['python']),
+            'CPUs: %d; %s' % (m['cpus'], m['system']),
+            'TCP buffers (min default max): net.ipv4.tcp_rmem %s, tcp_wmem %s' % (m['tcp_rmem'], m['tcp_wmem'])]

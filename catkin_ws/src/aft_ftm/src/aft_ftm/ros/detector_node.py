@@ -46,7 +46,8 @@ class CrashDetectorNode(object):
         grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
-        self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic())
+        # A check later than one period after the previous one: this detector itself was stalled.
+        self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic(), stall_after=self.period)
         self.lock = threading.Lock()
         self.host = this_host()
         self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),

@@ -1,0 +1,100 @@
+"""`make bench`'s report, built for real in quick mode (every benchmark with a few samples, one car
+row): every section present, every claim measured whose benchmark ran, numbers that add up. Its
+figures are not asserted as timings (a quick run on a shared machine proves the report builds).
+
+Every process the run starts carries AFT_TEST_TAG; pass or fail, any still alive is killed after.
+"""
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import uuid
+
+import pytest
+from leftovers import kill_tagged
+from reporting import report as report_figure
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_ftm', 'src'))
+from aft_ftm import report  # noqa: E402
+
+BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master')
+
+
+@pytest.fixture(scope='module')
+def quick_report():
+    out = tempfile.mkdtemp(prefix='aft_bench_report_')
+    tag = uuid.uuid4().hex
+    try:
+        run = subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'bench_report'), '--quick', '--out', out],
+                             env=dict(os.environ, AFT_TEST_TAG=tag), stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, timeout=900)
+    finally:
+        leftovers = kill_tagged(tag)
+    output = run.stdout.decode(errors='replace')
+    assert not leftovers, 'processes left running by the quick report: %s' % [p.pid for p in leftovers]
+    assert run.returncode == 0, 'bench_report --quick failed (exit %d):\n%s' % (run.returncode, output[-5000:])
+    with open(os.path.join(out, 'report.md')) as f:
+        text = f.read()
+    with open(os.path.join(out, 'figures.json')) as f:
+        figures = json.load(f)
+    report_figure('quick report: %.0f s; %s' % (figures['elapsed_s'], ', '.join(
+        '%s %.0f s' % (name, s['seconds']) for name, s in figures['steps'].items())))
+    return out, text, figures
+
+
+def test_every_section_and_the_machine(quick_report):
+    _, text, figures = quick_report
+    for title in report.SECTIONS:
+        assert '\n## %s\n' % title in text, 'section %r missing' % title
+    assert figures['machine']['cpus'] >= 1 and figures['machine']['python']
+    assert figures['mode'] == 'quick'
+    for name in BENCHES:
+        assert figures['steps'][name]['ok'], '%s failed: %s' % (name, figures['steps'][name])
+        assert name in figures
+
+
+def test_every_claim_measured_where_its_benchmark_ran(quick_report):
+    _, text, figures = quick_report
+    ran = {row['scenario'] for row in figures['car']['rows']}
+    car_claims = {'pbr_boards': {'board_power_loss'}, 'tr_imu': {'imu_value_faults'},
+                  'laser_vote': {'laser_value_faults', 'laser_crash'},
+                  'alarm_stop': {'simulator_crash', 'master_crash', 'imu_crash', 'ultrasonic_crash'}}
+    for claim in report.claims(figures):
+        measured = claim['verdict'] != report.NOT_MEASURED
+        expected = bool(car_claims[claim['key']] & ran) if claim['key'] in car_claims else True
+        assert measured == expected, claim
+        assert claim['claim'] in text
+    assert figures['car']['rows'] and all(r['with'].get('hazards') is not None and r['without'].get('hazards')
+                                          is not None for r in figures['car']['rows'])
+
+
+def test_numbers_add_up(quick_report):
+    _, text, figures = quick_report
+    failed = [c for c in report.consistency(figures) if not c[1]]
+    assert not failed, failed
+    assert ' checks, 0 failed.' in text
+    runs = figures['adaptation']['runs']
+    assert runs and all(r['requests'] > 0 for r in runs)
+    for r in runs:   # lost is a count: requests sent minus correct replies, run by run
+        assert r['lost'] == r['requests'] - r['checker']['correct']
+    for mode in ('prepared', 'paper'):
+        mine = [r for r in runs if r['mode'] == mode]
+        sent, answered = sum(r['requests'] for r in mine), sum(r['checker']['correct'] for r in mine)
+        row = next(line for line in text.split('\n') if line.startswith('| %s | %s |' % (mine[0]['adaptation'], mode)))
+        assert [c.strip() for c in row.split('|')][6:9] == [str(sent), str(answered), str(sent - answered)]
+    down = figures['master']['master_down']
+    for block in (down['established_service'], down['ftm_failover']):
+        assert block['lost'] == block['sent'] - block['answered'] and block['sent'] > 0
+    fo = figures['pbr']['failover']
+    assert len(figures['pbr']['failover_samples']) == fo['crashes'] > 0
+
+
+def test_plots(quick_report):
+    out, text, figures = quick_report
+    for name in ('latency', 'failover', 'adaptation', 'car'):
+        assert figures['plots'].get(name) == name + '.png', 'plot %s not drawn' % name
+        with open(os.path.join(out, name + '.png'), 'rb') as f:
+            assert f.read(8) == b'\x89PNG\r\n\x1a\n'
+        assert '(%s.png)' % name in text
