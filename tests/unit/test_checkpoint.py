@@ -1,7 +1,7 @@
 """PBR checkpoint logic: replies held until acknowledged, ordering, gaps and fencing. No ROS."""
 import pytest
 
-from aft_ftm.checkpoint import CheckpointReceiver, CheckpointSender, Decision
+from aft_ftm.checkpoint import CheckpointReceiver, CheckpointSender, Decision, Follow, Need
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Role
 from fakes import reply
@@ -22,13 +22,14 @@ def test_duplicate_ack_releases_nothing_more():
     assert sender.on_ack(seq, ok=True) == ([], False)
 
 
-def test_refused_checkpoint_releases_the_reply_and_goes_alone():
+def test_refused_checkpoint_holds_the_replies_until_the_witness_excluded_the_backup():
     sender = CheckpointSender(Role.PRIMARY)
     sender.hold(reply(rid=1), now=0)
     sender.hold(reply(rid=2), now=0)
-    released, lost = sender.on_ack(1, ok=False)
-    assert lost and sorted(r.id for r in released) == [1, 2]
-    assert sender.role == Role.ALONE and not sender.needs_checkpoint()
+    released, need = sender.on_ack(1, ok=False)
+    assert need == Need.EXCLUDE and released == [] and sender.role == Role.PRIMARY
+    assert sorted(r.id for r in sender.excluded(epoch=3)) == [1, 2]
+    assert sender.role == Role.ALONE and not sender.needs_checkpoint() and sender.epoch == 3
 
 
 def test_backup_lost_releases_held_replies_in_order():
@@ -89,8 +90,9 @@ def test_late_refusal_of_an_acknowledged_checkpoint_makes_the_primary_go_alone()
     sender = CheckpointSender(Role.PRIMARY)
     sender.on_ack(sender.hold(reply(rid=1), now=0), ok=True)
     sender.hold(reply(rid=2), now=0)
-    released, lost = sender.on_ack(1, ok=False)
-    assert lost and [r.id for r in released] == [2] and sender.role == Role.ALONE
+    released, need = sender.on_ack(1, ok=False)
+    assert need == Need.EXCLUDE and released == [] and sender.role == Role.PRIMARY
+    assert [r.id for r in sender.excluded(epoch=2)] == [2] and sender.role == Role.ALONE
 
 
 # -- an adaptation replaces an After: the backup follows the new one from its first checkpoint -------
@@ -123,3 +125,81 @@ def test_a_replacement_sender_numbers_above_the_one_it_replaces():
         old.hold(reply(rid=i), now=0)
     new = CheckpointSender(Role.PRIMARY, first_seq=2000)
     assert new.hold(reply(rid=9), now=0) == 2000 > old.seq
+
+
+# -- with a witness: deposed primaries, joins, stray and stale checkpoints ------------------------
+
+def test_a_deposed_primary_never_releases_what_it_holds():
+    sender = CheckpointSender(Role.PRIMARY, epoch=2)
+    sender.hold(reply(rid=1), now=0)
+    assert sender.depose('slave is the primary of epoch 3') == 1
+    assert sender.on_ack(1, ok=True) == ([], Need.NOTHING)
+    assert sender.excluded(epoch=4) == [] and not sender.needs_checkpoint()
+    assert not sender.overdue(100.0, timeout=1.0)
+
+
+def test_a_join_holds_every_reply_from_the_state_transfer_on_then_asks_to_admit():
+    sender = CheckpointSender(Role.ALONE, first_seq=10, epoch=3)
+    assert not sender.needs_checkpoint()
+    full = sender.join('/slave/after', now=1.0)
+    assert full == 10 and sender.role == Role.PRIMARY and not sender.admitted
+    seq = sender.hold(reply(rid=5), now=1.001)
+    assert sender.overdue(3.0, timeout=1.0)
+    assert sender.on_ack(full, ok=True) == ([], Need.ADMIT)
+    released, need = sender.on_ack(seq, ok=True)
+    assert [r.id for r in released] == [5] and need == Need.NOTHING
+    sender.admit(epoch=4)
+    assert sender.admitted and sender.epoch == 4 and sender.joiner is None
+
+
+def test_a_refused_state_transfer_asks_to_exclude_the_joiner():
+    sender = CheckpointSender(Role.ALONE)
+    full = sender.join('/slave/after', now=0)
+    assert sender.on_ack(full, ok=False) == ([], Need.EXCLUDE)
+
+
+def joined(epoch=2):
+    receiver = CheckpointReceiver(join=True, epoch=epoch)
+    receiver.expect = '/master/'
+    assert receiver.decide(500, '/master/after', 100, epoch=epoch, full=True) == Decision.APPLY_FULL
+    receiver.accept(500, '/master/after', epoch)
+    return receiver
+
+
+def test_a_joining_backup_follows_only_from_a_state_transfer_of_its_primary():
+    receiver = CheckpointReceiver(join=True)
+    receiver.expect = '/master/'
+    assert receiver.decide(100, '/master/after', 100, epoch=1) == Decision.JOINING
+    assert receiver.decide(100, '/intruder/after', 100, epoch=1, full=True) == Decision.STRAY
+    with pytest.raises(RoleError, match='holds no state'):
+        receiver.promote()
+    receiver = joined()
+    assert receiver.state == Follow.FOLLOWING and receiver.invalid is None
+    assert receiver.decide(501, '/master/after', 100, epoch=2) == Decision.APPLY
+
+
+def test_a_stray_or_stale_checkpoint_is_refused_and_changes_nothing():
+    receiver = joined(epoch=3)
+    assert receiver.decide(501, '/master/after_forged', 100, epoch=3) == Decision.STRAY
+    assert receiver.decide(501, '/master/after', 100, epoch=2) == Decision.STALE
+    assert receiver.decide(9999, '/intruder/after', 9999, epoch=9, full=True) == Decision.STRAY
+    assert receiver.state == Follow.FOLLOWING and receiver.invalid is None
+    assert receiver.decide(501, '/master/after', 100, epoch=3) == Decision.APPLY
+    assert receiver.promote() == 500
+
+
+def test_a_backup_that_lost_a_checkpoint_rejoins_and_cannot_take_over_meanwhile():
+    receiver = joined()
+    assert receiver.decide(503, '/master/after', 100, epoch=2) == Decision.GAP
+    receiver.failed(503, 'one is missing')
+    assert receiver.state == Follow.JOINING
+    with pytest.raises(RoleError, match='checkpoint 503'):
+        receiver.promote()
+    assert receiver.decide(600, '/master/after', 100, epoch=2, full=True) == Decision.APPLY_FULL
+    receiver.accept(600, '/master/after', 2)
+    assert receiver.promote() == 600
+
+
+def test_the_initial_primary_is_promoted_from_joining_without_any_state_transfer():
+    receiver = CheckpointReceiver(join=True)
+    assert receiver.promote(initial=True) == 0 and receiver.state == Follow.PROMOTED

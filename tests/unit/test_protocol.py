@@ -112,7 +112,7 @@ def test_overdue_request_is_reported_after_timeout_only():
     (Role.BACKUP, Role.ALONE, True),
     (Role.PRIMARY, Role.ALONE, True),
     (Role.ALONE, Role.ALONE, True),
-    (Role.ALONE, Role.PRIMARY, False),
+    (Role.ALONE, Role.PRIMARY, True),      # a backup joined
     (Role.ALONE, Role.BACKUP, False),
     (Role.PRIMARY, Role.BACKUP, False),
     (Role.BACKUP, Role.PRIMARY, False),

@@ -9,12 +9,23 @@ re-sent request from its cache) or has not (and executes it, from the same state
 Backup side (:class:`CheckpointReceiver`): acknowledges a checkpoint as soon as it holds it,
 and applies it to its server afterwards, off the primary's critical path (every checkpoint
 carries the whole state, so applying the newest one is enough; a promotion applies it first).
-A backup whose setState fails is invalid: it says so to the primary (which goes on alone) and
-refuses to take over, so that it never serves from a wrong state. It accepts checkpoints in
-sequence order,
-acknowledges duplicates again without re-applying them, refuses a gap (a lost
-checkpoint makes the backup unusable, so it says so instead of going on silently), and
-is fenced once promoted: a deposed primary's late checkpoints are refused.
+It accepts checkpoints in sequence order, acknowledges duplicates again without re-applying
+them, and refuses a gap (a lost checkpoint makes the backup unusable, so it says so instead of
+going on silently). Once promoted it is fenced: a deposed primary's late checkpoints are refused.
+
+With a witness (aft_ftm.witness), every checkpoint and acknowledgment carries the configuration
+epoch, and the rules become those of a system that heals:
+- The primary never goes on alone by itself: when its backup is lost, slow or refusing, the
+  sender asks (``Need.EXCLUDE``) and releases its held replies only once the witness excluded
+  the backup (:meth:`CheckpointSender.excluded`). A refusal means it was deposed
+  (:meth:`CheckpointSender.depose`): it never releases them, and its replica fail-stops.
+- A backup starts empty (JOINING) and follows a primary only from a full checkpoint, a state
+  transfer with the replies clients may ask for again (:meth:`CheckpointSender.join`); once it
+  acknowledged it, the sender asks the witness to admit it (``Need.ADMIT``). A backup that can no
+  longer mirror its primary (a gap, a state its server refused) goes back to JOINING: it re-joins
+  instead of being lost for good, and it can never take over in between.
+- A checkpoint from an After it does not follow (STRAY) or of an older epoch (STALE) is refused
+  and reported, and changes nothing: one stray message cannot disable a backup.
 """
 import enum
 
@@ -32,21 +43,34 @@ class Held(object):
         self.since = since
 
 
-class CheckpointSender(object):
-    """Primary's After: sequence numbers and replies held until acknowledged."""
+class Need(enum.IntEnum):
+    """What the sender needs from the witness before it can go on (false when nothing)."""
+    NOTHING = 0
+    EXCLUDE = 1     # the backup is lost, slow or refusing: exclude it, then release the held replies
+    ADMIT = 2       # a joined backup holds our state: make it the backup of a new epoch
 
-    def __init__(self, role, first_seq=1):
+
+class CheckpointSender(object):
+    """Primary's After: sequence numbers, replies held until acknowledged, joins."""
+
+    def __init__(self, role, first_seq=1, epoch=0):
         if role not in (Role.PRIMARY, Role.ALONE):
             raise RoleError('a checkpoint sender is PRIMARY or ALONE, not %s' % role.name)
         self.role = role
+        self.epoch = epoch
         self.first_seq = first_seq   # a replacement After starts above its predecessor's numbers
         self.seq = first_seq - 1
         self.held = {}          # seq -> Held
         self.acked = 0
         self.refused = 0
+        self.joiner = None      # the joining After, while its state transfer is not acknowledged
+        self.join_seq = None    # the seq of that state transfer (a full checkpoint)
+        self.join_since = None
+        self.admitted = role == Role.PRIMARY   # the witness knows our backup (always true without one)
+        self.deposed = None     # why the witness refused us: nothing is ever released again
 
     def needs_checkpoint(self):
-        return self.role == Role.PRIMARY
+        return self.role == Role.PRIMARY and not self.deposed
 
     def hold(self, reply, now):
         """Register a checkpoint for reply; returns its sequence number."""
@@ -54,56 +78,155 @@ class CheckpointSender(object):
         self.held[self.seq] = Held(self.seq, reply, now)
         return self.seq
 
+    def join(self, joiner, now):
+        """A backup asks for a state transfer: returns the seq of the full checkpoint to send it.
+
+        From now on every reply is held until the joiner acknowledges it, so that whatever is
+        released, the joiner holds; it becomes the backup once the witness admits it (Need.ADMIT)."""
+        if self.deposed:
+            raise RoleError('deposed: %s' % self.deposed)
+        check_role_change(self.role, Role.PRIMARY)
+        self.role = Role.PRIMARY
+        self.admitted = False
+        self.joiner = joiner
+        self.seq += 1
+        self.join_seq = self.seq
+        self.join_since = now
+        return self.seq
+
     def on_ack(self, seq, ok):
-        """The backup answered checkpoint seq. Returns (released replies, backup_lost)."""
+        """The backup answered checkpoint seq. Returns (released replies, Need)."""
+        if self.deposed or self.role != Role.PRIMARY:
+            return [], Need.NOTHING
+        if seq == self.join_seq:
+            self.join_seq = self.join_since = None
+            if ok:
+                return [], Need.ADMIT
+            self.refused += 1
+            return [], Need.EXCLUDE
         held = self.held.pop(seq, None)
         if held is None:
             if ok:
-                return [], False        # duplicate or late ack
+                return [], Need.NOTHING     # duplicate or late ack
             # The backup failed to apply a checkpoint it had acknowledged: it is no longer valid.
             self.refused += 1
-            return self.go_alone(), True
+            return [], Need.EXCLUDE
         if ok:
             self.acked += 1
-            return [held.reply], False
-        # The backup could not apply it: it no longer mirrors us. Release and go alone.
+            return [held.reply], Need.NOTHING
+        # The backup could not apply it: it no longer mirrors us. Exclude it before going on.
         self.refused += 1
         self.held[seq] = held
-        return self.go_alone(), True
+        return [], Need.EXCLUDE
+
+    def admit(self, epoch):
+        """The witness made the joiner our backup in ``epoch``."""
+        self.admitted = True
+        self.joiner = None
+        self.epoch = max(self.epoch, epoch)
+
+    def excluded(self, epoch):
+        """The witness excluded the backup (or there was none): release every held reply, in order,
+        and send no more checkpoints."""
+        if self.deposed:
+            return []
+        self.epoch = max(self.epoch, epoch)
+        return self.go_alone()
 
     def go_alone(self):
         """The backup is gone: release every held reply, send no more checkpoints."""
         check_role_change(self.role, Role.ALONE)
         self.role = Role.ALONE
+        self.joiner = self.join_seq = self.join_since = None
         released = [self.held[s].reply for s in sorted(self.held)]
         self.held.clear()
         return released
 
+    def depose(self, reason):
+        """The witness refused us: another site serves. Returns how many replies are withheld for good."""
+        self.deposed = reason
+        return len(self.held)
+
     def overdue(self, now, timeout):
-        """True if some reply has waited for its acknowledgment longer than timeout."""
+        """True if some reply (or a state transfer) has waited for its acknowledgment longer than timeout."""
+        if self.deposed:
+            return False
+        if self.join_since is not None and now - self.join_since > timeout:
+            return True
         return any(now - h.since > timeout for h in self.held.values())
 
 
 class Decision(enum.Enum):
     APPLY = 0       # new, in order: acknowledge, store the reply, apply the state
     REACK = 1       # already applied: acknowledge again, change nothing
-    GAP = 2         # a checkpoint is missing: refuse, the backup is no longer consistent
+    GAP = 2         # a checkpoint is missing: refuse, the backup no longer mirrors its primary
     FENCED = 3      # we are no longer a backup: refuse
+    APPLY_FULL = 4  # a state transfer: start (again) following the sender here
+    STRAY = 5       # from an After this backup does not follow: refuse, report, change nothing
+    STALE = 6       # of an epoch older than this backup's: a deposed primary; refuse, report, change nothing
+    JOINING = 7     # no state yet and not a state transfer: refuse (its sender must not count on us)
+
+
+# Decisions that refuse a checkpoint without saying anything about this backup's own state.
+HARMLESS = (Decision.STRAY, Decision.STALE)
+
+
+class Follow(enum.Enum):
+    """Where a backup After is in its life."""
+    JOINING = 0     # holds no state of any primary: asks for a state transfer
+    FOLLOWING = 1   # mirrors ``sender``: may take over
+    PROMOTED = 2    # took over: fenced against every primary's checkpoints
+
+
+FOLLOW_EDGES = {
+    (Follow.JOINING, Follow.FOLLOWING): 'a state transfer (or, without joins, the first checkpoint) arrived',
+    (Follow.FOLLOWING, Follow.JOINING): 'a gap or a refused state: it must be transferred again',
+    (Follow.FOLLOWING, Follow.PROMOTED): 'the primary failed: this backup takes over',
+    (Follow.JOINING, Follow.PROMOTED): 'the witness made this site the first primary: it serves its own state',
+}
 
 
 class CheckpointReceiver(object):
-    """Backup's After: ordering, duplicates, and fencing of a deposed primary."""
+    """Backup's After: ordering, duplicates, joins and fencing of a deposed primary.
 
-    def __init__(self):
+    ``join`` False is the first-start mode of a deployment without a witness (and of the car's
+    boards): the backup follows its sender from the sender's first checkpoint, and a backup that
+    lost a checkpoint is invalid for good.
+    """
+
+    def __init__(self, join=False, epoch=0):
         self.role = Role.BACKUP
+        self.join = join
+        self.state = Follow.JOINING
+        self.epoch = epoch
         self.last_seq = 0
         self.sender = None
-        self.invalid = None     # why this backup can no longer take over, once it cannot
+        self.invalid = 'holds no state yet' if join else None   # why it cannot take over, while it cannot
+        self.expect = ''        # join: a state transfer is accepted from an After whose name starts so
 
-    def decide(self, seq, sender, first_seq=1, replaces=''):
-        """What to do with checkpoint seq of sender (whose first checkpoint is first_seq, and
-        which declares that it replaces After ``replaces``, if it does)."""
-        if self.role != Role.BACKUP or self.invalid:
+    def _change(self, new, why=None):
+        if new != self.state and (self.state, new) not in FOLLOW_EDGES:
+            raise RoleError('backup %s -> %s is not allowed' % (self.state.name, new.name))
+        self.state = new
+        if new == Follow.JOINING:
+            self.invalid = why or 'holds no state yet'
+        elif new == Follow.FOLLOWING:
+            self.invalid = None
+
+    def decide(self, seq, sender, first_seq=1, replaces='', epoch=0, full=False):
+        """What to do with checkpoint seq of sender (whose first checkpoint is first_seq, which
+        declares that it replaces After ``replaces``, if it does, in configuration ``epoch``)."""
+        if self.role != Role.BACKUP or self.state == Follow.PROMOTED:
+            return Decision.FENCED
+        if epoch and epoch < self.epoch:
+            return Decision.STALE
+        if self.join:
+            if full and (not self.expect or sender.startswith(self.expect)) and (
+                    self.state == Follow.JOINING or sender == self.sender and seq > self.last_seq):
+                return Decision.APPLY_FULL
+            if self.state == Follow.JOINING:
+                return Decision.JOINING if not self.expect or sender.startswith(self.expect) else Decision.STRAY
+        elif self.invalid and self.sender is not None:
             return Decision.FENCED
         if self.sender is None:
             # Nothing followed yet: start at the sender's first checkpoint, never in the middle.
@@ -115,29 +238,41 @@ class CheckpointReceiver(object):
             # The same After started again (a rollback respawned it): it numbers from the clock.
             return Decision.APPLY
         if sender != self.sender:
-            return Decision.FENCED
+            return Decision.STRAY if self.join else Decision.FENCED
         if seq <= self.last_seq:
             return Decision.REACK
         if seq != self.last_seq + 1:
             return Decision.GAP
         return Decision.APPLY
 
-    def accept(self, seq, sender):
+    def accept(self, seq, sender, epoch=0):
         """Checkpoint seq is held (its reply stored, its state to be applied)."""
+        if self.state == Follow.JOINING:
+            self._change(Follow.FOLLOWING)
         self.last_seq = seq
         self.sender = sender
+        self.epoch = max(self.epoch, epoch)
 
     def failed(self, seq, reason):
-        """Checkpoint seq could not be applied: this backup is invalid for good."""
-        self.invalid = 'checkpoint %d could not be applied: %s' % (seq, reason)
+        """Checkpoint seq could not be applied (or one is missing): this backup no longer mirrors its
+        primary. With joins it asks for a state transfer again; without, it is invalid for good."""
+        why = 'checkpoint %d could not be applied: %s' % (seq, reason)
+        if self.join and self.state == Follow.FOLLOWING:
+            self._change(Follow.JOINING, why)
+            self.sender = None
+            self.last_seq = 0
+        else:
+            self.invalid = self.invalid or why
 
-    def promote(self):
+    def promote(self, initial=False):
         """Stop accepting checkpoints; returns the last accepted sequence number.
 
-        Raises RoleError if this backup is invalid (a checkpoint could not be applied).
+        Raises RoleError if this backup holds no valid state (unless ``initial``: the witness made
+        this site the first primary, which serves from its own server's state).
         """
-        if self.invalid:
+        if self.invalid and not (initial and self.state == Follow.JOINING):
             raise RoleError('this backup cannot take over: %s' % self.invalid)
         check_role_change(self.role, Role.ALONE)
+        self._change(Follow.PROMOTED)
         self.role = Role.ALONE
         return self.last_seq

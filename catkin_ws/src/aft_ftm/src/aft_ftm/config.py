@@ -55,3 +55,24 @@ def niceness(name, value):
     if isinstance(value, bool) or not isinstance(value, int) or not -20 <= value <= 19:
         raise ConfigError('parameter %s must be an integer from -20 to 19, got %r' % (name, value))
     return value
+
+
+def boolean(name, value):
+    """Return value as a bool: True/False, or the strings true/false/1/0 (``bool('false')`` is True,
+    so never convert a parameter with bool())."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in ('true', 'false', '1', '0'):
+        return value.strip().lower() in ('true', '1')
+    raise ConfigError('parameter %s must be true or false, got %r' % (name, value))
+
+
+def positive_int(name, value):
+    """Return value if it is an int > 0, or raise ConfigError naming the parameter."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError('parameter %s must be an integer, got %r' % (name, value))
+    if value <= 0:
+        raise ConfigError('parameter %s must be > 0, got %r' % (name, value))
+    return value

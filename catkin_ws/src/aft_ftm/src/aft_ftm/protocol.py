@@ -21,6 +21,11 @@ def key(msg):
     return (msg.origin, msg.id, getattr(msg, 'attempt', 0))
 
 
+def reply_size(reply):
+    """Bytes a stored reply costs: its payload and error text, and a fixed overhead."""
+    return len(getattr(reply, 'payload', b'') or b'') + len(getattr(reply, 'error', '') or '') + 64
+
+
 class DuplicateCache(object):
     """Stored replies per (origin, request id).
 
@@ -30,8 +35,10 @@ class DuplicateCache(object):
     counted in ``evicted`` (the adapter logs it), never silently.
     """
 
-    def __init__(self, capacity=100000):
+    def __init__(self, capacity=100000, max_bytes=0):
         self._capacity = capacity
+        self.max_bytes = max_bytes      # 0: no bound in bytes
+        self.bytes = 0
         self._replies = collections.OrderedDict()   # key -> reply, in insertion order
         self._by_origin = collections.defaultdict(set)
         self.evicted = 0
@@ -46,17 +53,28 @@ class DuplicateCache(object):
         """Return the stored reply of the request with this key (see key()), or None."""
         return self._replies.get(request_key)
 
+    def full(self):
+        """True when the cache holds max_bytes or more: a new request must be refused, not executed."""
+        return bool(self.max_bytes) and self.bytes >= self.max_bytes
+
+    def replies(self):
+        """Every stored reply, oldest first (a state transfer carries them)."""
+        return list(self._replies.values())
+
     def store(self, reply):
         """Remember a reply; returns the reply evicted to make room, or None."""
         k = key(reply)
         if k in self._replies:
+            self.bytes += reply_size(reply) - reply_size(self._replies[k])
             self._replies[k] = reply
             return None
         self._replies[k] = reply
+        self.bytes += reply_size(reply)
         self._by_origin[reply.origin].add(k)
         if len(self._replies) > self._capacity:
             old_key, old = self._replies.popitem(last=False)
             self._by_origin[old_key[0]].discard(old_key)
+            self.bytes -= reply_size(old)
             self.evicted += 1
             return old
         return None
@@ -69,7 +87,7 @@ class DuplicateCache(object):
         old = [k for k in keys if k[1] < watermark]
         for k in old:
             keys.discard(k)
-            del self._replies[k]
+            self.bytes -= reply_size(self._replies.pop(k))
         return len(old)
 
 
@@ -84,6 +102,7 @@ class Role(enum.Enum):
 ROLE_EDGES = {
     (Role.BACKUP, Role.ALONE): 'the primary failed: the backup takes over',
     (Role.PRIMARY, Role.ALONE): 'the backup failed: the primary goes on without checkpoints',
+    (Role.ALONE, Role.PRIMARY): 'a backup joined: every reply is checkpointed to it again',
 }
 
 
@@ -120,6 +139,18 @@ class Answer(object):
         return 'Answer(%s/%s%s)' % (self.reply.origin, self.reply.id, ', cached' if self.cached else '')
 
 
+class Refuse(object):
+    """Action: answer this request with a definite "not executed" error (nothing was changed)."""
+    __slots__ = ('request', 'reason')
+
+    def __init__(self, request, reason):
+        self.request = request
+        self.reason = reason
+
+    def __repr__(self):
+        return 'Refuse(%s/%s: %s)' % (self.request.origin, self.request.id, self.reason)
+
+
 class ProtocolStats(object):
     def __init__(self):
         self.requests = 0            # requests received (including duplicates)
@@ -128,6 +159,7 @@ class ProtocolStats(object):
         self.joined = 0              # duplicates of a request still queued or executing
         self.stray_results = 0       # results that match no executing request
         self.stored = 0              # replies stored from checkpoints (backup)
+        self.refused = 0             # new requests refused, not executed (the reply cache is full)
 
 
 class ProtocolCore(object):
@@ -137,9 +169,10 @@ class ProtocolCore(object):
     Each method returns the list of actions (Forward, Answer) for the adapter to carry out.
     """
 
-    def __init__(self, role, cache_capacity=100000):
+    def __init__(self, role, cache_capacity=100000, cache_bytes=0):
         self.role = role
-        self.cache = DuplicateCache(cache_capacity)
+        self.epoch = 0              # the configuration epoch, stamped on every answer
+        self.cache = DuplicateCache(cache_capacity, cache_bytes)
         self.queue = collections.deque()
         self.queued_keys = set()
         self.current = None
@@ -157,11 +190,16 @@ class ProtocolCore(object):
         cached = self.cache.lookup(k)
         if cached is not None:
             self.stats.cached_answers += 1
-            return [Answer(cached, cached=True)]
+            return [self._answer(cached, cached=True)]
         if k in self.queued_keys or (self.current is not None and key(self.current) == k):
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
             return []
+        if self.cache.full():
+            # Bounded memory: push back (the client may retry) rather than grow or forget a reply.
+            self.stats.refused += 1
+            return [Refuse(request, 'not executed: the reply cache holds %d bytes (bound %d) of replies its '
+                                    'clients have not confirmed' % (self.cache.bytes, self.cache.max_bytes))]
         self.queue.append(request)
         self.queued_keys.add(k)
         return self._dispatch(now)
@@ -172,10 +210,11 @@ class ProtocolCore(object):
         if current is None or key(current) != key(reply):
             self.stats.stray_results += 1
             return []
+        self.epoch = max(self.epoch, getattr(reply, 'epoch', 0))
         self.cache.store(reply)
         self.current = None
         self.started_at = None
-        return [Answer(reply)] + self._dispatch(now)
+        return [self._answer(reply)] + self._dispatch(now)
 
     def on_stored(self, reply, seq, sender=None):
         """A backup stores the reply carried by checkpoint ``seq`` of After ``sender``.
@@ -183,14 +222,21 @@ class ProtocolCore(object):
         Sequence numbers are per sending After: when an adaptation replaces the After, the count
         starts again from the new one's first checkpoint (can_take_over compares with it).
         """
-        self.cache.forget_below(reply.origin, reply.oldest_pending)
-        self.cache.store(reply)
+        if reply is not None:
+            self.cache.forget_below(reply.origin, reply.oldest_pending)
+            self.cache.store(reply)
         if sender != self.stored_sender:
             self.stored_sender = sender
             self.last_stored_seq = seq
         else:
             self.last_stored_seq = max(self.last_stored_seq, seq)
         self.stats.stored += 1
+
+    def on_state_transfer(self, replies, seq, sender):
+        """A backup joined: the replies its primary's clients may ask for again, as of checkpoint seq."""
+        for reply in replies:
+            self.on_stored(reply, seq, sender)
+        self.on_stored(None, seq, sender)
 
     def overdue(self, now, timeout):
         """The executing request if it has been executing for longer than timeout, else None."""
@@ -203,11 +249,17 @@ class ProtocolCore(object):
         """True when the replies of every checkpoint up to last_seq are stored."""
         return self.last_stored_seq >= last_seq
 
-    def set_role(self, role, now):
+    def set_role(self, role, now, epoch=0):
         """Change role (guarded); a new primary starts executing queued requests."""
         check_role_change(self.role, role)
         self.role = role
+        self.epoch = max(self.epoch, epoch)
         return self._dispatch(now)
+
+    def _answer(self, reply, cached=False):
+        if hasattr(reply, 'epoch'):
+            reply.epoch = self.epoch    # answered in this configuration (a cached reply too)
+        return Answer(reply, cached)
 
     # -- internals --------------------------------------------------------------
     def _dispatch(self, now):
@@ -220,7 +272,7 @@ class ProtocolCore(object):
             if cached is not None:
                 # Queued while a backup, and executed by the old primary meanwhile.
                 self.stats.cached_answers += 1
-                actions.append(Answer(cached, cached=True))
+                actions.append(self._answer(cached, cached=True))
                 continue
             self.current = request
             self.started_at = now

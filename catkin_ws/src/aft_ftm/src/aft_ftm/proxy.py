@@ -5,6 +5,12 @@ reuses an id still remembered by a Protocol's duplicate cache.
 """
 import threading
 
+from .errors import AftError
+
+
+class Full(AftError):
+    """The pending table is at its bound in bytes: the request is not sent (nothing was executed)."""
+
 
 class Pending(object):
     """One request waiting for its reply."""
@@ -23,20 +29,41 @@ class Pending(object):
 class PendingTable(object):
     """Requests sent and not yet answered. Thread-safe: service calls run in parallel."""
 
-    def __init__(self, first_id):
+    def __init__(self, first_id, max_bytes=0):
         self._lock = threading.Lock()
         self._next = first_id
         self._pending = {}
+        self.max_bytes = max_bytes    # 0: no bound
+        self.bytes = 0
         self.late_replies = 0     # replies to requests already answered (duplicates)
+        self.stale_replies = 0    # replies from a configuration older than one already seen
         self.resends = 0
+        self.refused = 0
+        self.epoch = 0            # the newest configuration epoch a reply came from
 
     def open(self, client, payload, now):
-        """Register a new request; returns its Pending entry."""
+        """Register a new request; returns its Pending entry. Raises Full at the bound in bytes."""
         with self._lock:
+            size = len(payload) + 64
+            if self.max_bytes and self.bytes + size > self.max_bytes:
+                self.refused += 1
+                raise Full('not executed: %d requests (%d bytes) wait for their replies, the bound is %d bytes'
+                           % (len(self._pending), self.bytes, self.max_bytes))
             entry = Pending(self._next, client, payload, now)
             self._pending[entry.id] = entry
+            self.bytes += size
             self._next += 1
             return entry
+
+    def fresh(self, epoch):
+        """A reply of configuration epoch arrived: False (and counted) if it is older than one already seen,
+        the answer of a replica that no longer serves. 0: a mechanism without epochs."""
+        with self._lock:
+            if epoch and epoch < self.epoch:
+                self.stale_replies += 1
+                return False
+            self.epoch = max(self.epoch, epoch)
+            return True
 
     def close(self, request_id, reply):
         """A reply arrived. Returns the entry it answers, or None for a late duplicate."""
@@ -45,6 +72,7 @@ class PendingTable(object):
             if entry is None:
                 self.late_replies += 1
                 return None
+            self.bytes -= len(entry.payload) + 64
         entry.reply = reply
         entry.done.set()
         return entry
@@ -52,7 +80,10 @@ class PendingTable(object):
     def abandon(self, request_id):
         """The caller gave up (timeout): stop re-sending it."""
         with self._lock:
-            return self._pending.pop(request_id, None)
+            entry = self._pending.pop(request_id, None)
+            if entry is not None:
+                self.bytes -= len(entry.payload) + 64
+            return entry
 
     def oldest_pending(self):
         """Every id below this one has been answered (or abandoned)."""

@@ -5,6 +5,8 @@ from .protocol import Role
 
 
 class Step(enum.Enum):
+    WITNESS_PROMOTE = "the witness's vote: this backup may take over (the old primary is deposed)"
+    WITNESS_EXCLUDE = "the witness's vote: this primary may go on alone (the backup is excluded)"
     FAIL_SILENCE = 'kill whatever is left of the failed site'
     PROMOTE_AFTER = "fence the After against the old primary's checkpoints and make it ALONE"
     PROMOTE_PROTOCOL = "make the Protocol ALONE once it stored every checkpointed reply"
@@ -16,25 +18,50 @@ class Step(enum.Enum):
 # still a backup queues the requests it receives (answering only those whose checkpointed reply
 # it holds). The Protocol executes them only once promoted, and it is promoted only once the
 # failed site is silent (no two primaries) and its After is fenced against the old primary.
+# With a witness, nothing happens before its vote: a backup that was excluded must not kill the
+# primary (the only replica holding the state), and a deposed primary must not kill the new one.
+WITNESS = (Step.WITNESS_PROMOTE, Step.WITNESS_EXCLUDE)
 PREREQUISITES = {
-    Step.FAIL_SILENCE: (),
-    Step.PROMOTE_AFTER: (),
-    Step.BIND_CLIENT: (),
+    Step.WITNESS_PROMOTE: (),
+    Step.WITNESS_EXCLUDE: (),
+    Step.FAIL_SILENCE: WITNESS,
+    Step.PROMOTE_AFTER: WITNESS,
+    Step.BIND_CLIENT: WITNESS,
     Step.PROMOTE_PROTOCOL: (Step.FAIL_SILENCE, Step.PROMOTE_AFTER),
-    Step.AFTER_ALONE: (),
+    Step.AFTER_ALONE: WITNESS,
 }
 
+# Steps whose failure ends the plan: the rest must not run without them.
+GATES = frozenset(WITNESS)
 
-def plan(role):
+
+def plan(role, witness=False):
     """The steps when the peer of a replica in ``role`` has failed, as waves: the steps of a
-    wave run in parallel, each wave once the previous one is complete."""
+    wave run in parallel, each wave once the previous one is complete. ``role`` None: this site is
+    in no configuration of the witness (excluded or deposed): nothing to do."""
     if role == Role.BACKUP:
         steps = [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.BIND_CLIENT, Step.PROMOTE_PROTOCOL]
+        steps = ([Step.WITNESS_PROMOTE] if witness else []) + steps
     elif role == Role.PRIMARY:
-        steps = [Step.FAIL_SILENCE, Step.AFTER_ALONE]
+        steps = ([Step.WITNESS_EXCLUDE] if witness else []) + [Step.FAIL_SILENCE, Step.AFTER_ALONE]
     else:
         steps = []   # ALONE: nobody left to lose
     return waves(steps)
+
+
+def start_plan():
+    """The steps when the witness names this site the first primary at start: it serves from its own
+    server's state (nothing to fence, nobody to wait for)."""
+    return waves([Step.PROMOTE_AFTER, Step.BIND_CLIENT, Step.PROMOTE_PROTOCOL])
+
+
+def role_in(configuration_primary, configuration_backup, site):
+    """This site's role in a witness configuration: ALONE, PRIMARY, BACKUP, or None (not in it)."""
+    if site == configuration_primary:
+        return Role.PRIMARY if configuration_backup else Role.ALONE
+    if site and site == configuration_backup:
+        return Role.BACKUP
+    return None
 
 
 def waves(steps):

@@ -11,7 +11,10 @@ from aft_msgs.msg import Reply
 
 from .. import config
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from .alarms import alarm
+from .deadline import CallTimeout, Deadline
 from .envelope import deserialize, serialize, service_class
+from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
 
@@ -76,21 +79,40 @@ class BeforeNode(StageNode):
 class ProceedNode(StageNode):
     """Proceed: calls the real server with the application's request and passes the reply on.
 
+    A call that fails without an answer from the server (it hangs past ``~server_timeout``, or its
+    connection broke: the server died or was replaced) has an unknown outcome: the server may
+    apply the request later, or its state may be gone. Proceed then never answers an error. In a
+    replica (``~site`` set) the replica fail-stops: the site stops heartbeating, its peer fences it
+    (which kills the hung server) and executes the request, once. Outside a replica it raises an
+    alarm and answers only when the call returns.
+
     Parameters:
-        ~server_timeout (float, 5 s): how long to wait for an unavailable server before replying an error.
+        ~server_timeout (float, 5 s): the longest a call of the server may take.
+        ~site (str, default ''): the replica site this Proceed belongs to ('' : none).
     Services called:
         server (the application's type): remap to the server replica's service (paper: prd2srv).
-    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``.  Publishes: prd2aft (aft_msgs/Reply), port ``out``.
+    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``.  Publishes: prd2aft (aft_msgs/Reply), port ``out``;
+        fail_stop (aft_msgs/Failure), port ``fail_stop`` (to the site's crash detector); alarms
+        (aft_msgs/Alarm), port ``alarms`` (/aft/alarms).
     Services: ~rebind (aft_msgs/Rebind)
     """
     IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Request', 'aft_msgs/Reply', 'bfr2prd', 'prd2aft'
 
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
-        super(ProceedNode, self).__init__()
+        self.site = param('site', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        super(ProceedNode, self).__init__(extra_ports=[PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
+                                                       PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.server_name = rospy.resolve_name('server')
         self._proxies = {}
         self._lock = threading.Lock()
+        self._deadline = Deadline('server-call')
+        self.failed = None    # why this replica fail-stopped: nothing more is executed
+
+    def setup(self, timeout):
+        self.ports.bind('fail_stop')
+        self.ports.bind('alarms', '/aft/alarms')
+        return super(ProceedNode, self).setup(timeout)
 
     def _proxy(self, type_name):
         proxy = self._proxies.get(type_name)
@@ -103,40 +125,64 @@ class ProceedNode(StageNode):
         reply = Reply(id=request.id, origin=request.origin, client=request.client,
                       oldest_pending=request.oldest_pending, attempt=request.attempt)
         with self._lock:
+            if self.failed:
+                return None   # fail-stopped: the next primary executes it
             try:
                 cls = service_class(request.service_type)
                 app_request = deserialize(cls._request_class, request.payload)
-            except Exception as e:   # a malformed request is answered, not dropped
-                reply.status, reply.error = Reply.ERROR, 'cannot decode the request: %s' % e
+            except Exception as e:   # a malformed request is answered (not executed), not dropped
+                reply.status, reply.error = Reply.ERROR, 'not executed: cannot decode the request: %s' % e
                 return reply
             try:
-                response = self._call(request.service_type, app_request)
-            except (rospy.ServiceException, rospy.ROSException) as e:
-                if rospy.is_shutdown():
-                    # This replica is going down: stay silent (fail-silent); the Proxy re-sends the
-                    # request to whichever replica takes over.
-                    rospy.logwarn('%s: shutting down, %s/%d left to the next primary', self.name,
-                                  request.origin, request.id)
-                    return None
+                response = self._call(request, app_request)
+            except rospy.ServiceException as e:
+                # The server answered, with an application error: that is the request's outcome.
                 reply.status, reply.error = Reply.ERROR, str(e)
                 return reply
+            if response is None:
+                return None
             reply.payload = serialize(response)
         return reply
 
-    def _call(self, type_name, app_request):
+    def _call(self, request, app_request):
+        """The server's response; raises ServiceException for the server's own error answer; None when
+        the outcome is unknown and this replica fail-stopped (or is shutting down)."""
         try:
-            return self._proxy(type_name)(app_request)
+            return self._deadline.call(self._proxy(request.service_type), self.server_timeout, app_request)
+        except CallTimeout as e:
+            problem = 'the server %s did not answer %s/%d within %.3f s (it hangs)' % (
+                self.server_name, request.origin, request.id, self.server_timeout)
+            late = e.future
         except rospy.ServiceException as e:
             if 'responded with an error' in str(e):
-                raise   # the server answered, with an application error
-            first_error = e
-        # The connection was lost: reconnect once the server is back, then retry once.
-        self._proxies.pop(type_name, None)
+                raise
+            problem = 'the connection to the server %s broke during %s/%d: %s' % (
+                self.server_name, request.origin, request.id, e)
+            late = None
+        except rospy.ROSException as e:
+            problem = 'the server %s cannot be called for %s/%d: %s' % (
+                self.server_name, request.origin, request.id, e)
+            late = None
+        self._proxies.pop(request.service_type, None)
+        if rospy.is_shutdown():
+            # This replica is going down: stay silent (fail-silent); the Proxy re-sends the
+            # request to whichever replica takes over.
+            rospy.logwarn('%s: shutting down, %s/%d left to the next primary', self.name, request.origin, request.id)
+            return None
+        if self.site:
+            self.failed = problem
+            fail_stop(self.ports, self.site, problem)
+            return None
+        # Not in a replica: nobody else can execute it.
+        if late is not None:
+            alarm(self.ports, 'proceed', 'server_hangs', problem + ': the request is answered once the server does')
+            return late.result()
+        # The connection broke (a server restarted): reconnect once it is back, then call once more.
         try:
             rospy.wait_for_service(self.server_name, self.server_timeout)
         except rospy.ROSException:
-            raise rospy.ServiceException('server %s unavailable: %s' % (self.server_name, first_error))
-        return self._proxy(type_name)(app_request)
+            raise rospy.ServiceException('not executed: server %s unavailable (%s)' % (self.server_name, problem))
+        return self._proxy(request.service_type)(app_request)
 
 
 class AfterNode(StageNode):

@@ -156,7 +156,8 @@ class CycleAfterNode(object):
             if self.sender is None or self.sender.role != Role.PRIMARY:
                 return
             _, lost = self.sender.on_ack(ack.seq, ack.ok)
-            if lost:
+            if lost:   # outputs are never held here (a control loop cannot wait): no witness to ask
+                self.sender.go_alone()
                 self.role = Role.ALONE
         if lost:
             rospy.logerr('%s: the backup refused checkpoint %d (%s): going on alone', self.name, ack.seq, ack.error)

@@ -127,15 +127,21 @@ def start_retrying(deployment, attempts=2, log=print):
             deployment.stop()
 
 
+class _NoPair(object):
+    backup = ''
+
+
 class PbrDeployment(object):
     """The bank demo under PBR (or mechanism='lfr'). By default three sites, CLIENT, MASTER and SLAVE, each its own
     roslaunch process tree; with one_host=True a single roslaunch of demo_one_host.launch (site
     'all'), as a user of pbr.launch runs it."""
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
-                 mechanism='pbr', sec=False, adaptable=False):
+                 mechanism='pbr', sec=False, adaptable=False, witness=True):
         self.log_dir = log_dir
         self.one_host = one_host
+        self.witness = witness and mechanism == 'pbr'
+        self.launch_args = {}
         self.inner = inner
         self.faulty = faulty
         self.sec = sec
@@ -150,6 +156,12 @@ class PbrDeployment(object):
             client = dict(sec='true', keys_dir=keys)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
+        if not self.witness and mechanism == 'pbr':
+            replica['witness'] = ''
+            client['witness'] = 'false'
+        elif mechanism != 'pbr':
+            client['witness'] = 'false'
+        self.replica_args = dict(replica)
         if adaptable:
             replica['adaptable'] = 'true'   # Before, Proceed and After replaceable without stopping a site
         if inner or faulty:
@@ -157,7 +169,10 @@ class PbrDeployment(object):
                 raise ValueError('the one-host demo has no nested mechanism nor fault injector')
             replica.update(inner=inner, faulty=str(bool(faulty)).lower())
 
+        self.env = env
+
         def site(name, launch_file, **args):
+            self.launch_args[name] = (launch_file, args)
             return Site(name, roslaunch('aft_ftm', launch_file, **args), env, os.path.join(log_dir, name + '.log'))
         if one_host:
             self.sites = {'all': site('all', 'demo_one_host.launch', **replica)}
@@ -176,8 +191,9 @@ class PbrDeployment(object):
         clean_dead_nodes()   # registrations a killed node left behind would stop our new nodes
         started = time.monotonic()
         replicas = ['all'] if self.one_host else ['slave', 'master']
-        if self.sec:
-            self.sites['client'].start()   # the CA is on the client site: the replicas' gates ask it
+        if not self.one_host:
+            # The witness and the CA are on the client site: the replicas ask them at set-up.
+            self.sites['client'].start()
         for name in replicas:
             self.sites[name].start()
         for site in ('master', 'slave'):
@@ -186,8 +202,6 @@ class PbrDeployment(object):
             if missing:
                 raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
                                    % (site, ', '.join(missing), self.log_dir))
-        if not self.one_host and not self.sec:
-            self.sites['client'].start()
         client_services = list(CLIENT_SERVICES) + (['/aft/ca/certificate', '/sec_gate/rebind'] if self.sec else [])
         replies = '/sec_plain/pro2pxy' if self.sec else '/ftm/pro2pxy'
         missing = wait_for_graph(client_services, [(replies, '/proxy')], timeout - (time.monotonic() - started))
@@ -198,7 +212,24 @@ class PbrDeployment(object):
         entry = '/master/%s' % ('sec_gate' if self.sec else 'protocol')
         if not wait_until(lambda: wired(entry), max(5.0, timeout - (time.monotonic() - started)), 0.05):
             raise RuntimeError('%s is not connected to its subscribers (logs in %s)' % (entry, self.log_dir))
+        if self.witness and not wait_until(lambda: (witness_status() or _NoPair).backup, max(5.0, timeout - (
+                time.monotonic() - started)), 0.05):
+            raise RuntimeError('the backup did not join the primary: witness %s (logs in %s)'
+                               % (witness_status(), self.log_dir))
         return time.monotonic() - started
+
+    def relaunch(self, name, **overrides):
+        """Start site name again (a repaired machine coming back), with its launch arguments and overrides
+        (e.g. role='backup'). Returns the new Site; it joins the primary by itself."""
+        launch_file, args = self.launch_args[name]
+        args = dict(args, **overrides)
+        old = self.sites[name]
+        old.stop(grace=2.0)
+        clean_dead_nodes()   # the dead site's registrations would stall the new nodes' connections
+        site = Site(name, roslaunch('aft_ftm', launch_file, **args), self.env,
+                    os.path.join(self.log_dir, '%s.%d.log' % (name, int(time.time() * 1000))))
+        self.sites[name] = site
+        return site.start()
 
     def stop(self):
         for site in self.sites.values():
@@ -239,6 +270,16 @@ class MechanismDeployment(object):
     def stop(self):
         self.sites['site'].stop(grace=10.0)
         clean_dead_nodes()
+
+
+def witness_status(service='/aft/witness/request'):
+    """The witness's configuration (aft_msgs/WitnessResponse: epoch, primary, backup), or None."""
+    import rospy
+    from aft_msgs.srv import Witness
+    try:
+        return rospy.ServiceProxy(service, Witness)(op=0, site='deployment')
+    except Exception:   # not up yet, or gone
+        return None
 
 
 def free_port():

@@ -4,14 +4,16 @@ import threading
 import time
 
 import rospy
-from aft_msgs.msg import Failure, Heartbeat
+from aft_msgs.msg import Configuration, Failure, Heartbeat
 
 from .. import config
-from ..detector import HeartbeatMonitor
+from ..detector import HeartbeatMonitor, PeerState
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..sites import this_host
+from .alarms import alarm
 from .params import param
 from .ports import Ports
+from .witness_client import CONFIGURATION_TOPIC
 
 
 class CrashDetectorNode(object):
@@ -26,11 +28,17 @@ class CrashDetectorNode(object):
         ~niceness (int, default -5): the detector's own process priority. A failure detector must not
             be starved by the load it watches (its peer would declare this site failed); lowering
             it needs privileges: without them it warns and runs at the default.
+        ~follow_witness (bool, default false): watch the peer again when the witness's configuration
+            (/aft/witness/configuration) names it once more (it re-joined after a failure).
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``
         failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
+        alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): this site fail-stopped; a peer declared
+            failed is heard again (it came back); it is watched again.
     Subscribes:
         peer_heartbeat (aft_msgs/Heartbeat), port ``peer_heartbeat``
+        fail_stop (aft_msgs/Failure), port ``fail_stop``: a node of this site cannot serve correctly any
+            more: the heartbeats stop for good, so that the peer fences this site and takes over.
     Services:
         ~rebind (aft_msgs/Rebind)
     """
@@ -46,15 +54,21 @@ class CrashDetectorNode(object):
         grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
+        self.follow_witness = param('follow_witness', config.boolean, False)
+        self.timeout, self.grace = timeout, grace
         # A check later than one period after the previous one: this detector itself was stalled.
         self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic(), stall_after=self.period)
         self.lock = threading.Lock()
         self.host = this_host()
         self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),
                             PortSpec('failures', PUBLISH, 'aft_msgs/Failure'),
-                            PortSpec('peer_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat')],
-                           {'peer_heartbeat': self._on_heartbeat}, queue_size=10)
+                            PortSpec('peer_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
+                            PortSpec('fail_stop', SUBSCRIBE, 'aft_msgs/Failure'),
+                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+                           {'peer_heartbeat': self._on_heartbeat, 'fail_stop': self._on_fail_stop}, queue_size=10)
         self.seq = 0
+        self.stopped = None        # why this site fail-stopped: no heartbeat is sent any more
+        self.peer_back_told = False
 
     def setup(self, timeout):
         try:
@@ -62,19 +76,42 @@ class CrashDetectorNode(object):
         except OSError as e:
             rospy.logwarn('%s: cannot set niceness %d (%s): heartbeats may be late under load',
                           rospy.get_name(), self.niceness, e)
-        for name in ('heartbeat', 'failures', 'peer_heartbeat'):
+        for name in ('heartbeat', 'failures', 'peer_heartbeat', 'fail_stop'):
             self.ports.bind(name)
+        self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
+        if self.follow_witness:
+            self.configuration = rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration,
+                                                  tcp_nodelay=True)
         self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
         self.thread.start()
         return True
 
     def _on_heartbeat(self, beat):
         with self.lock:
-            zombie = self.monitor.beat(time.monotonic(), beat)
-        if zombie:
-            rospy.logerr_throttle(1.0, '%s: heartbeat from %s, which was declared failed: fail-silence is broken'
-                                  % (rospy.get_name(), beat.site))
+            back = self.monitor.beat(time.monotonic(), beat) and not self.peer_back_told
+            self.peer_back_told = self.peer_back_told or back
+        if back:
+            alarm(self.ports, 'pbr', 'peer_back', 'site %s, declared failed, is heard again (pid %d on %s): it must '
+                  're-join before it may serve or be promoted' % (beat.site, beat.pid, beat.host))
+
+    def _on_fail_stop(self, failure):
+        with self.lock:
+            first = self.stopped is None
+            self.stopped = self.stopped or failure.reason
+        if first:
+            alarm(self.ports, 'pbr', 'fail_stop', 'site %s stops heartbeating: %s' % (self.site, failure.reason))
+
+    def _on_configuration(self, conf):
+        """The peer is in the witness's configuration again (it re-joined): watch it afresh."""
+        if self.peer not in (conf.primary, conf.backup):
+            return
+        with self.lock:
+            if self.monitor.state != PeerState.FAILED:
+                return
+            self.monitor = HeartbeatMonitor(self.timeout, self.grace, time.monotonic(), stall_after=self.period)
+            self.peer_back_told = False
+        alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
 
     def _loop(self):
         """Send a heartbeat every period; check the peer five times as often, so that a
@@ -83,7 +120,7 @@ class CrashDetectorNode(object):
         next_beat = next_tick = time.monotonic()
         while not rospy.is_shutdown():
             now = time.monotonic()
-            if now >= next_beat:
+            if now >= next_beat and self.stopped is None:
                 self.seq += 1
                 try:
                     self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
@@ -95,7 +132,7 @@ class CrashDetectorNode(object):
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
             with self.lock:
                 verdict = self.monitor.check(now)
-            if verdict is not None:
+            if verdict is not None and self.stopped is None:   # a fail-stopped site takes nothing over
                 self._report(verdict)
             next_tick = max(next_tick + tick, time.monotonic())
             time.sleep(max(0.0, next_tick - time.monotonic()))

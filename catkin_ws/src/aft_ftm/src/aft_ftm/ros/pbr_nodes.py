@@ -1,20 +1,26 @@
 """Primary-Backup Replication (paper section 5.2.2): the After of each replica."""
+import os
 import threading
 import time
 
 import rospy
-from aft_msgs.msg import Checkpoint, CheckpointAck
+from aft_msgs.msg import Checkpoint, CheckpointAck, Join
 from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 
 from .. import config
-from ..checkpoint import CheckpointReceiver, CheckpointSender, Decision
+from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import Role, check_role_change
+from ..protocol import DuplicateCache, Role, check_role_change
+from ..witness import Grant, Op
+from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
+from .deadline import CallTimeout, Deadline
+from .fail_stop import fail_stop
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
+from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
 
 
 class PbrBeforeNode(BeforeNode):
@@ -50,28 +56,48 @@ class PbrAfterNode(AfterNode):
     the backup's After and passes the reply on once the backup acknowledged it. As backup: sets
     its server's state from each checkpoint, stores the reply in its Protocol, acknowledges.
 
+    With a witness (``~witness``), see aft_ftm.checkpoint and aft_ftm.witness: a primary whose
+    backup is lost, slow or refusing releases its held replies only once the witness excluded the
+    backup, and fail-stops if the witness deposed it; a backup starts empty and joins (asks for a
+    state transfer, every ``~join_period``), and joins again whenever it stops mirroring its
+    primary (a gap, a refused state, excluded by the witness). A checkpoint from an After it does
+    not follow, or of an older epoch, is refused with an alarm and changes nothing.
+
     Parameters:
-        ~role (primary | backup | alone, default primary)
-        ~ack_timeout (float, 1 s): a checkpoint not acknowledged for this long means the backup is
-            lost: held replies are released and the replica goes on ALONE.
+        ~role (primary | backup | alone, default primary): with a witness every site starts as backup
+            and Recovery promotes the one the witness names.
+        ~ack_timeout (float, 1 s): a checkpoint (or a state transfer) not acknowledged for this long
+            means the backup is lost: it is excluded (with the witness's grant) and held replies released.
         ~connect_timeout (float, 10 s): how long set-up waits for the peer's After.
         ~apply_period (float, 0.01 s; 0 = at once): a backup applies the newest checkpointed state
             to its server at most this often, and always before it takes over.
         ~replaces (str, default none): the primary After this one replaces (an adaptation's update):
             the backup then follows this one's checkpoints instead.
+        ~witness (str, default ''): the witness's aft_msgs/Witness service ('' : no witness).
+        ~site, ~peer (str, required with a witness): this replica's site and the other one.
+        ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
+        ~join_period (float, 0.5 s): a joining backup asks for a state transfer this often.
+        ~state_timeout (float, 5 s): the longest a get_state or set_state call may take.
+        ~cache_bytes (int, 64 MiB): bound of the replies kept for a state transfer (those clients
+            have not confirmed); the Protocol's reply cache has the same bound and refuses first.
     Services called:
         get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
+        the witness (aft_msgs/Witness).
     Subscribes:
         prd2aft (aft_msgs/Reply), port ``inp``
         acks (aft_msgs/CheckpointAck), port ``acks``: the backup's acknowledgments
         peer_checkpoints (aft_msgs/Checkpoint), port ``peer_checkpoints``: the primary's checkpoints
+        join_requests (aft_msgs/Join), port ``join_requests``: a backup asking for a state transfer
+        /aft/witness/configuration (aft_msgs/Configuration): deposed or excluded by the witness
     Publishes:
         aft2pro (aft_msgs/Reply), port ``out``
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``: to the backup's After
         peer_acks (aft_msgs/CheckpointAck), port ``peer_acks``: to the primary's After
         aft2pro_s (aft_msgs/Checkpoint), port ``stored``: replies for this replica's Protocol
+        join (aft_msgs/Join), port ``join``: to the primary's After
+        fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``
     Services:
-        ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole)
+        ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
     """
 
     def __init__(self):
@@ -81,6 +107,14 @@ class PbrAfterNode(AfterNode):
         self.apply_period = param('apply_period', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v),
                                   0.01)
         self.replaces = param('replaces', config.non_empty_str, '')
+        self.witness_service = param('witness', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        with_witness = bool(self.witness_service)
+        self.site = param('site', config.non_empty_str, required=with_witness) or ''
+        self.peer = param('peer', config.non_empty_str, required=with_witness) or ''
+        self.site_pid = param('site_pid', config.non_negative_int, site_launcher_pid())
+        self.join_period = param('join_period', config.positive_float, 0.5)
+        self.state_timeout = param('state_timeout', config.positive_float, 5.0)
+        cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         # Checkpoints are numbered from the wall clock (microseconds), so that an After replacing
         # another one (an adaptation) numbers above it: the backup's Protocol compares them.
         self.first_seq = int(time.time() * 1e6)
@@ -90,32 +124,50 @@ class PbrAfterNode(AfterNode):
                          PortSpec('acks', SUBSCRIBE, 'aft_msgs/CheckpointAck'),
                          PortSpec('peer_checkpoints', SUBSCRIBE, 'aft_msgs/Checkpoint'),
                          PortSpec('peer_acks', PUBLISH, 'aft_msgs/CheckpointAck'),
-                         PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint')],
-            extra_callbacks={'acks': self._on_ack, 'peer_checkpoints': self._on_checkpoint})
+                         PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint'),
+                         PortSpec('join', PUBLISH, 'aft_msgs/Join'),
+                         PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
+                         PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
+                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+            extra_callbacks={'acks': self._on_ack, 'peer_checkpoints': self._on_checkpoint,
+                             'join_requests': self._on_join})
         self.role = role
         self.sender = CheckpointSender(role, self.first_seq) if role != Role.BACKUP else None
-        self.receiver = CheckpointReceiver() if role == Role.BACKUP else None
+        self.receiver = CheckpointReceiver(join=with_witness) if role == Role.BACKUP else None
+        if self.receiver is not None and self.peer:
+            self.receiver.expect = '/%s/' % self.peer
+        self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
+        self.joiner = None          # (site, incarnation) of the backup being joined
         self.lock = threading.Lock()
+        self.witness_lock = threading.Lock()   # one witness request at a time
+        self.witness = WitnessClient(self.witness_service, self.site, self.site_pid) if with_witness else None
+        self.state_calls = Deadline('state')
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.told = set()           # alarms raised once per kind and sender
 
     def setup(self, timeout):
-        for name in ('checkpoints', 'peer_acks', 'acks', 'peer_checkpoints'):
+        for name in ('checkpoints', 'peer_acks', 'acks', 'peer_checkpoints', 'join', 'join_requests', 'fail_stop'):
             self.ports.bind(name)
         self.ports.bind('stored', 'aft2pro_s')
+        self.ports.bind('alarms', '/aft/alarms')
+        if self.witness is not None and not self.witness.setup(timeout):
+            return False
         try:
-            rospy.wait_for_service('get_state' if self.role != Role.BACKUP else 'set_state', timeout)
+            rospy.wait_for_service('get_state', timeout)
+            rospy.wait_for_service('set_state', timeout)
         except rospy.ROSException:
-            rospy.logerr('%s: the server state manager (%s) is not available', self.name,
-                         rospy.resolve_name('get_state' if self.role != Role.BACKUP else 'set_state'))
+            rospy.logerr('%s: the server state manager (%s, %s) is not available', self.name,
+                         rospy.resolve_name('get_state'), rospy.resolve_name('set_state'))
             return False
-        peer_ports = {Role.PRIMARY: ['checkpoints', 'acks'], Role.BACKUP: ['peer_checkpoints', 'peer_acks'],
-                      Role.ALONE: []}[self.role]
-        missing = wait_for_connections(self.ports, peer_ports, self.connect_timeout)
-        if missing:
-            rospy.logerr('%s: the peer After is not connected on %s within %.1f s', self.name,
-                         [self.ports.topic(n) for n in missing], self.connect_timeout)
-            return False
+        if self.witness is None:
+            peer_ports = {Role.PRIMARY: ['checkpoints', 'acks'], Role.BACKUP: ['peer_checkpoints', 'peer_acks'],
+                          Role.ALONE: []}[self.role]
+            missing = wait_for_connections(self.ports, peer_ports, self.connect_timeout)
+            if missing:
+                rospy.logerr('%s: the peer After is not connected on %s within %.1f s', self.name,
+                             [self.ports.topic(n) for n in missing], self.connect_timeout)
+                return False
         if self.role == Role.BACKUP:
             missing = wait_for_connections(self.ports, ['stored'], timeout)
             if missing:
@@ -124,8 +176,11 @@ class PbrAfterNode(AfterNode):
         if not super(PbrAfterNode, self).setup(timeout):
             return False
         self.timer = rospy.Timer(rospy.Duration(min(0.1, self.ack_timeout / 4)), self._check_acks)
-        if self.role == Role.BACKUP and self.apply_period > 0:
+        if self.apply_period > 0:
             self.applier = rospy.Timer(rospy.Duration(self.apply_period), self._apply_pending)
+        if self.witness is not None:
+            self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
+            self.configuration = self.witness.subscribe(self._on_configuration)
         rospy.Service('~set_role', SetRole, self._on_set_role)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
@@ -142,24 +197,53 @@ class PbrAfterNode(AfterNode):
         with self.lock:
             self._apply_locked()
 
+    # -- helpers ------------------------------------------------------------------------
+    def _tell(self, kind, detail, key=None):
+        """An alarm, once per (kind, key): a flood of stray messages raises one."""
+        if key is not None:
+            if (kind, key) in self.told:
+                return
+            self.told.add((kind, key))
+        alarm(self.ports, 'pbr', kind, detail)
+
+    def _remember(self, reply):
+        self.recent.forget_below(reply.origin, reply.oldest_pending)
+        self.recent.store(reply)
+
+    def _capture(self):
+        """The server's state, tried twice within ~state_timeout each; None if it cannot be had."""
+        error = None
+        for _ in range(2):
+            try:
+                return self.state_calls.call(self.get_state, self.state_timeout).state, None
+            except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+                error = e
+                self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+        return None, error
+
     # -- primary ----------------------------------------------------------------
     def handle(self, reply):
         with self.lock:
-            if self.sender is None or not self.sender.needs_checkpoint():
+            if self.sender is None or self.sender.deposed:
+                return None   # a backup has nothing to reply; a deposed primary answers nothing
+            reply.epoch = self.sender.epoch
+            self._remember(reply)
+            if not self.sender.needs_checkpoint():
                 return reply
-            try:
-                state = self.get_state().state
-            except (rospy.ServiceException, rospy.ROSException) as e:
+            state, error = self._capture()
+            if state is None:
                 # The request ran but cannot be checkpointed: replying would leave the backup behind.
-                # Fail-stop: this replica goes down (its site with it, its nodes being required), the
-                # backup takes over and executes the request the Proxy re-sends.
-                rospy.logfatal('%s: cannot capture the server state after %s/%d (%s): stopping this replica',
-                               self.name, reply.origin, reply.id, e)
-                rospy.signal_shutdown('cannot capture the server state')
+                # Fail-stop: this site falls silent, the backup takes over and executes the request
+                # that the Proxy re-sends.
+                self.sender.depose('cannot capture the server state')
+                problem = 'cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error)
+            else:
+                seq = self.sender.hold(reply, time.monotonic())
+                self.ports.publish('checkpoints', Checkpoint(
+                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
+                    state=state, epoch=self.sender.epoch))
                 return None
-            seq = self.sender.hold(reply, time.monotonic())
-            self.ports.publish('checkpoints', Checkpoint(seq=seq, first_seq=self.first_seq, sender=self.name,
-                                                         replaces=self.replaces, reply=reply, state=state))
+        self._fail_stop(problem)
         return None
 
     def _release(self, replies):
@@ -167,52 +251,197 @@ class PbrAfterNode(AfterNode):
             self.ports.publish('out', reply)
 
     def _on_ack(self, ack):
+        if ack.to and ack.to != self.name:
+            return   # another After's (both run side by side while an adaptation replaces one)
         with self.lock:
             if self.sender is None:
                 return
-            released, lost = self.sender.on_ack(ack.seq, ack.ok)
+            released, need = self.sender.on_ack(ack.seq, ack.ok)
             self._release(released)
-            if lost:
-                self.role = Role.ALONE
-        if lost:
-            rospy.logerr('%s: the backup refused checkpoint %d (%s): going on ALONE', self.name, ack.seq, ack.error)
+        if need:
+            self._resolve(need, 'the backup refused checkpoint %d: %s' % (ack.seq, ack.error) if not ack.ok
+                          else 'the backup holds the state transfer %d' % ack.seq)
 
     def _check_acks(self, _event):
         with self.lock:
-            if self.sender is None or not self.sender.overdue(time.monotonic(), self.ack_timeout):
+            need = Need.NOTHING
+            if self.sender is not None and self.sender.overdue(time.monotonic(), self.ack_timeout):
+                need = Need.EXCLUDE
+            elif self.sender is not None and self.sender.role == Role.PRIMARY and not self.sender.admitted \
+                    and self.sender.join_seq is None and self.joiner is not None:
+                need = Need.ADMIT   # the witness could not be reached earlier: ask again
+        if need == Need.EXCLUDE:
+            self._resolve(need, 'no acknowledgment from the backup for %.1f s' % self.ack_timeout)
+        elif need == Need.ADMIT:
+            self._resolve(need, 'the backup holds the state transfer')
+
+    def _resolve(self, need, why):
+        """Ask the witness what the sender needs, and carry out its answer."""
+        if not self.witness_lock.acquire(blocking=False):
+            return   # being asked already; the timer asks again if still needed
+        try:
+            if need == Need.EXCLUDE:
+                self._exclude(why)
+            elif need == Need.ADMIT:
+                self._admit()
+        finally:
+            self.witness_lock.release()
+
+    def _ask(self, op, **kwargs):
+        """The witness's Grant (granted locally without a witness), or None if it cannot be reached."""
+        if self.witness is None:
+            return Grant(True, 'no witness', 0, self.site, '')
+        try:
+            return self.witness.request(op, **kwargs)
+        except WitnessUnreachable as e:
+            alarm(self.ports, 'pbr', 'witness_unreachable', '%s cannot reach the witness (%s): %s not done, '
+                  'replies stay held and it is asked again' % (self.site or self.name, e, op.name))
+            return None
+
+    def _exclude(self, why):
+        grant = self._ask(Op.EXCLUDE)
+        if grant is None:
+            return
+        if not grant.granted:
+            self._deposed(grant.message)
+            return
+        with self.lock:
+            if self.sender is None or self.sender.role == Role.ALONE and not self.sender.held:
                 return
-            rospy.logerr('%s: no acknowledgment from the backup for %.1f s: going on ALONE', self.name,
-                         self.ack_timeout)
-            self._release(self.sender.go_alone())
+            released = self.sender.excluded(grant.epoch)
             self.role = Role.ALONE
+            self.joiner = None
+            self._release(released)
+        self._tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site or self.name, grant.epoch, why,
+                                                                       grant.message))
+
+    def _admit(self):
+        with self.lock:
+            joiner = self.joiner
+        if joiner is None:
+            return
+        grant = self._ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
+        if grant is None:
+            return
+        if not grant.granted:
+            if grant.primary != self.site:
+                self._deposed(grant.message)
+            else:
+                self._exclude('the witness refused to admit %s: %s' % (joiner[0], grant.message))
+            return
+        with self.lock:
+            if self.sender is not None:
+                self.sender.admit(grant.epoch)
+            self.joiner = None
+        self.told.clear()
+        rospy.loginfo('%s: %s is the backup again (epoch %d)', self.name, joiner[0], grant.epoch)
+
+    def _deposed(self, why):
+        with self.lock:
+            withheld = self.sender.depose(why) if self.sender is not None else 0
+        self._fail_stop('deposed by the witness (%s): %d replies withheld' % (why, withheld))
+
+    def _fail_stop(self, problem):
+        if self.site:
+            fail_stop(self.ports, self.site, problem)
+        else:
+            rospy.logfatal('%s: %s: stopping this replica', self.name, problem)
+            rospy.signal_shutdown(problem)
+
+    # -- joins (primary side) ---------------------------------------------------------
+    def _on_join(self, join):
+        if join.site == self.site:
+            return
+        need = Need.NOTHING
+        with self.lock:
+            sender = self.sender
+            if sender is None or sender.deposed:
+                return
+            if sender.role == Role.PRIMARY:
+                if sender.joiner != join.after and join.last_seq == 0:
+                    need = Need.EXCLUDE   # our backup started again: it holds nothing any more
+            else:
+                state, error = self._capture()
+                if state is None:
+                    self._tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
+                    return
+                seq = sender.join(join.after, time.monotonic())
+                self.role = Role.PRIMARY
+                self.joiner = (join.site, join.incarnation)
+                cache = self.recent.replies()
+                self.ports.publish('checkpoints', Checkpoint(
+                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, epoch=sender.epoch,
+                    full=True, state=state, cache=cache))
+                rospy.loginfo('%s: state transfer %d to %s (%d bytes of state, %d replies)', self.name, seq,
+                              join.site, len(state), len(cache))
+        if need:
+            self._resolve(need, '%s asks to join again: it restarted' % join.site)
 
     # -- backup -----------------------------------------------------------------
+    def _ask_to_join(self, _event):
+        with self.lock:
+            if self.role != Role.BACKUP or self.receiver is None or self.receiver.state != Follow.JOINING:
+                return
+        if not self.ports.connections('peer_checkpoints'):
+            return   # the state transfer would be lost: ask once the primary's checkpoints reach us
+        self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=self.witness.incarnation,
+                                        last_seq=0, stamp=rospy.Time.now()))
+
     def _on_checkpoint(self, cp):
         with self.lock:
             if self.receiver is None:
                 decision = Decision.FENCED
             else:
-                decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces)
+                decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces, cp.epoch, cp.full)
             error = ''
             if decision == Decision.GAP:
                 error = 'checkpoint %d received after %d: one is missing' % (cp.seq, self.receiver.last_seq)
+            elif decision == Decision.JOINING:
+                error = '%s holds no state yet: it is joining' % self.name
+            elif decision == Decision.STRAY:
+                error = '%s does not follow %s' % (self.name, cp.sender)
+            elif decision == Decision.STALE:
+                error = 'checkpoint of epoch %d, older than epoch %d' % (cp.epoch, self.receiver.epoch)
             elif decision == Decision.FENCED:
                 error = ('%s is no longer a backup of %s%s' % (self.name, cp.sender, ': ' + self.receiver.invalid
                          if self.receiver is not None and self.receiver.invalid else ''))
-            if error and self.receiver is not None and not self.receiver.invalid:
-                # A backup that refuses a checkpoint no longer mirrors the primary that sent it (which
-                # goes on alone): it must never take over with what it has.
+            tell = None
+            if decision in HARMLESS:
+                tell = ('%s_checkpoint' % decision.name.lower(), 'checkpoint %d from %s refused, nothing changed: %s'
+                        % (cp.seq, cp.sender, error), cp.sender)
+            elif error and decision != Decision.JOINING and self.receiver is not None \
+                    and self.receiver.state == Follow.FOLLOWING:
+                # A backup that refuses its primary's checkpoint no longer mirrors it: it must never take
+                # over with what it has (with a witness it joins again).
                 self.receiver.failed(cp.seq, error)
-            if error:
-                rospy.logerr('%s: checkpoint %d refused: %s', self.name, cp.seq, error)
+                tell = ('backup_invalid', '%s cannot take over: %s%s' % (
+                    self.site or self.name, error, '; it joins again' if self.receiver.join else ''), None)
+            elif error and (self.receiver is None or decision == Decision.FENCED):
+                tell = ('stale_checkpoint', 'checkpoint %d from %s refused: %s' % (cp.seq, cp.sender, error),
+                        cp.sender)
             # Acknowledged once held. A promotion takes this lock and applies the state first.
-            self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=not error, error=error))
+            epoch = self.receiver.epoch if self.receiver is not None else self.sender.epoch
+            if decision in (Decision.APPLY, Decision.APPLY_FULL):
+                self.receiver.accept(cp.seq, cp.sender, cp.epoch)
+                epoch = self.receiver.epoch
+            self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=not error, error=error, epoch=epoch,
+                                                          to=cp.sender))
             if decision == Decision.APPLY:
-                self.receiver.accept(cp.seq, cp.sender)
-                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, reply=cp.reply))
+                self._remember(cp.reply)
+                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, reply=cp.reply, epoch=cp.epoch))
+            elif decision == Decision.APPLY_FULL:
+                for reply in cp.cache:
+                    self._remember(reply)
+                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, full=True, cache=cp.cache,
+                                                        epoch=cp.epoch))
+            if decision in (Decision.APPLY, Decision.APPLY_FULL):
                 self.pending_state = (cp.seq, cp.state)
-                if self.apply_period == 0:
+                if self.apply_period == 0 or decision == Decision.APPLY_FULL:
                     self._apply_locked()
+        if tell is not None:
+            self._tell(*tell)
+        if decision == Decision.APPLY_FULL:
+            rospy.loginfo('%s: joined %s at checkpoint %d (epoch %d)', self.name, cp.sender, cp.seq, cp.epoch)
 
     def _apply_pending(self, _event=None):
         with self.lock:
@@ -220,20 +449,44 @@ class PbrAfterNode(AfterNode):
 
     def _apply_locked(self):
         """Apply the newest checkpointed state to the server; on failure the backup is invalid."""
-        if self.pending_state is None or self.receiver is None or self.receiver.invalid:
+        if self.pending_state is None or self.receiver is None or self.receiver.state != Follow.FOLLOWING \
+                or self.receiver.invalid:
             return
         seq, state = self.pending_state
         try:
-            result = self.set_state(state)
+            result = self.state_calls.call(self.set_state, self.state_timeout, state)
             error = '' if result.success else 'the server refused the state: %s' % result.message
-        except (rospy.ServiceException, rospy.ROSException) as e:
+        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
             self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
             error = 'cannot set the server state: %s' % e
         self.pending_state = None
         if error:
+            sender = self.receiver.sender
             self.receiver.failed(seq, error)
             rospy.logerr('%s: %s', self.name, self.receiver.invalid)
-            self.ports.publish('peer_acks', CheckpointAck(seq=seq, ok=False, error=self.receiver.invalid))
+            self.ports.publish('peer_acks', CheckpointAck(seq=seq, ok=False, error=self.receiver.invalid,
+                                                          epoch=self.receiver.epoch, to=sender or ''))
+            alarm(self.ports, 'pbr', 'backup_invalid', '%s cannot take over: %s' % (
+                self.site or self.name, self.receiver.invalid))
+
+    # -- the witness's configuration ----------------------------------------------------
+    def _on_configuration(self, conf):
+        deposed = excluded = False
+        with self.lock:
+            if self.sender is not None and not self.sender.deposed and conf.epoch > self.sender.epoch \
+                    and conf.primary != self.site:
+                deposed = True
+            elif self.receiver is not None and self.role == Role.BACKUP and conf.epoch > self.receiver.epoch \
+                    and self.site not in (conf.primary, conf.backup) and self.receiver.state == Follow.FOLLOWING:
+                self.receiver.failed(self.receiver.last_seq, 'excluded by the witness at epoch %d (%s)'
+                                     % (conf.epoch, conf.reason))
+                self.pending_state = None
+                excluded = True
+        if deposed:
+            self._deposed('%s is the primary of epoch %d (%s)' % (conf.primary, conf.epoch, conf.reason))
+        if excluded:
+            self._tell('excluded', '%s was excluded at epoch %d (%s): it cannot take over and joins again'
+                       % (self.site, conf.epoch, conf.reason))
 
     # -- role changes -----------------------------------------------------------
     def _on_set_role(self, req):
@@ -242,17 +495,20 @@ class PbrAfterNode(AfterNode):
             try:
                 if self.role == Role.BACKUP and role == Role.ALONE:
                     self._apply_locked()
-                    last_seq = self.receiver.promote()
-                    self.sender = CheckpointSender(Role.ALONE)
+                    last_seq = self.receiver.promote(initial=req.initial)
+                    self.sender = CheckpointSender(Role.ALONE, self.first_seq, max(req.epoch, self.receiver.epoch))
                 elif self.role == Role.PRIMARY and role == Role.ALONE:
-                    self._release(self.sender.go_alone())
+                    self._release(self.sender.excluded(req.epoch))
+                    self.joiner = None
                     last_seq = self.sender.seq
                 elif self.role == role:
+                    if self.sender is not None:
+                        self.sender.epoch = max(self.sender.epoch, req.epoch)
                     last_seq = self.receiver.last_seq if self.receiver else self.sender.seq
                 else:
                     raise RoleError('role change %s -> %s is not allowed' % (self.role.name, role.name))
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
             self.role = role
-        rospy.loginfo('%s: role is now %s (last checkpoint %d)', self.name, role.name, last_seq)
+        rospy.loginfo('%s: role is now %s (last checkpoint %d, epoch %d)', self.name, role.name, last_seq, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)

@@ -9,7 +9,9 @@ from aft_msgs.srv import SetRole, SetRoleResponse
 from .. import config
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import Answer, Forward, ProtocolCore, Role
+from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
+from .alarms import alarm
+from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
 
@@ -22,9 +24,14 @@ class ProtocolNode(object):
 
     Parameters:
         ~role (primary | backup | alone, default primary): a backup starts with ``requests`` unbound.
-        ~processing_timeout (float, 10 s): an executing request with no result after this long
-            is answered with an error.
-        ~cache_capacity (int, 100000): safety limit of the reply cache.
+        ~processing_timeout (float, 30 s): an executing request with no result after this long has an
+            unknown outcome: in a replica (~site set) the replica fail-stops, so that its peer takes
+            over and executes it once; elsewhere an alarm is raised and the request stays unanswered.
+            A backstop: Proceed's ~server_timeout normally acts first.
+        ~site (str, default ''): the replica site this Protocol belongs to.
+        ~cache_capacity (int, 100000): safety limit of the reply cache (entries).
+        ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
+            "not executed" (the client may retry) until clients confirm replies, never forgotten.
         ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
             until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
         ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
@@ -36,6 +43,7 @@ class ProtocolNode(object):
     Publishes:
         pro2pxy (aft_msgs/Reply), port ``replies``: to the Proxies.
         pro2bfr (aft_msgs/Request), port ``to_before``.
+        fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend and ~resume (aft_msgs/Suspend):
         suspended, it holds the requests arriving and answers once nothing is executing.
@@ -43,18 +51,23 @@ class ProtocolNode(object):
 
     def __init__(self):
         role_name = param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')
-        self.processing_timeout = param('processing_timeout', config.positive_float, 10.0)
+        self.processing_timeout = param('processing_timeout', config.positive_float, 30.0)
+        self.site = param('site', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
         capacity = param('cache_capacity', config.non_negative_int, 100000)
-        self.listen_as_backup = param('listen_as_backup', lambda n, v: bool(v), False)
-        self.bind_input = param('bind_input', lambda n, v: bool(v), True)
-        self.core = ProtocolCore(ROLES[role_name], capacity)
+        cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
+        self.listen_as_backup = param('listen_as_backup', config.boolean, False)
+        self.bind_input = param('bind_input', config.boolean, True)
+        self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes)
+        self.hung = None   # the request whose outcome is unknown, once one is
         self.lock = threading.Condition()
         self.ports = Ports(
             [PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
              PortSpec('replies', PUBLISH, 'aft_msgs/Reply'),
              PortSpec('to_before', PUBLISH, 'aft_msgs/Request'),
              PortSpec('from_after', SUBSCRIBE, 'aft_msgs/Reply'),
-             PortSpec('stored', SUBSCRIBE, 'aft_msgs/Checkpoint')],
+             PortSpec('stored', SUBSCRIBE, 'aft_msgs/Checkpoint'),
+             PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'requests': self._on_request, 'from_after': self._on_result, 'stored': self._on_stored})
         # Suspended (adaptation), it holds new requests and is quiescent once nothing executes.
         self.ports.suspension(hold=['requests'], quiescent=self._quiescent)
@@ -70,6 +83,8 @@ class ProtocolNode(object):
         self.ports.bind('to_before', 'pro2bfr')
         self.ports.bind('from_after', 'aft2pro')
         self.ports.bind('stored', 'aft2pro_s')
+        self.ports.bind('fail_stop')
+        self.ports.bind('alarms', '/aft/alarms')
         missing = wait_for_connections(self.ports, ['to_before', 'from_after'], timeout)
         if missing:
             rospy.logerr('%s: Before/After not connected within %.1f s (ports %s)', self.name, timeout, missing)
@@ -88,6 +103,12 @@ class ProtocolNode(object):
                 self.ports.publish('to_before', action.request)
             elif isinstance(action, Answer):
                 self.ports.publish('replies', action.reply)
+            elif isinstance(action, Refuse):
+                r = action.request
+                self.ports.publish('replies', Reply(id=r.id, origin=r.origin, client=r.client,
+                                                    oldest_pending=r.oldest_pending, attempt=r.attempt,
+                                                    status=Reply.ERROR, error=action.reason, epoch=self.core.epoch))
+                rospy.logwarn_throttle(5, '%s: %s/%d %s' % (self.name, r.origin, r.id, action.reason))
 
     def _on_request(self, request):
         with self.lock:
@@ -106,20 +127,26 @@ class ProtocolNode(object):
 
     def _on_stored(self, checkpoint):
         with self.lock:
-            self.core.on_stored(checkpoint.reply, checkpoint.seq, checkpoint.sender)
+            if checkpoint.full:
+                self.core.on_state_transfer(checkpoint.cache, checkpoint.seq, checkpoint.sender)
+            else:
+                self.core.on_stored(checkpoint.reply, checkpoint.seq, checkpoint.sender)
+            self.core.epoch = max(self.core.epoch, checkpoint.epoch)
             self.lock.notify_all()
 
     def _check_overdue(self, _event):
         with self.lock:
             request = self.core.overdue(time.monotonic(), self.processing_timeout)
-            if request is None:
+            if request is None or self.hung is not None:
                 return
-            rospy.logerr('%s: no result for %s/%d after %.1f s: answering with an error',
-                         self.name, request.origin, request.id, self.processing_timeout)
-            error = Reply(id=request.id, origin=request.origin, client=request.client,
-                          oldest_pending=request.oldest_pending, attempt=request.attempt, status=Reply.ERROR,
-                          error='no result within %.1f s' % self.processing_timeout)
-            self._act(self.core.on_result(error, time.monotonic()))
+            self.hung = request
+        problem = 'no result for %s/%d after %.1f s: its outcome is unknown' % (
+            request.origin, request.id, self.processing_timeout)
+        if self.site:
+            fail_stop(self.ports, self.site, problem)
+        else:
+            alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known',
+                  request)
 
     def _on_set_role(self, req):
         role = Role(req.role)
@@ -128,7 +155,7 @@ class ProtocolNode(object):
                 return SetRoleResponse(success=False, message='replies up to checkpoint %d not stored (have %d)'
                                        % (req.last_seq, self.core.last_stored_seq))
             try:
-                actions = self.core.set_role(role, time.monotonic())
+                actions = self.core.set_role(role, time.monotonic(), req.epoch)
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
             self._act(actions)

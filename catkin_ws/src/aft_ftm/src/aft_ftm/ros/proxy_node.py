@@ -6,7 +6,8 @@ from aft_msgs.msg import Reply, Request
 
 from .. import config
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..proxy import PendingTable
+from ..proxy import Full, PendingTable
+from .alarms import alarm
 from .envelope import deserialize, serialize, service_class
 from .params import param
 from .ports import Ports, wait_for_connections
@@ -27,10 +28,18 @@ class ProxyNode(object):
     """Offers the application's service to an unmodified client and forwards each call as an
     aft_msgs/Request, re-sending it until a reply comes back.
 
+    A call is answered only with a definite outcome: the reply, an error the server (or a mechanism)
+    returned, or "not executed" (nothing changed, safe to retry). A reply from a configuration
+    older than one already heard (a deposed primary) is refused with an alarm, and the request
+    keeps waiting for the replica that serves.
+
     Parameters:
         ~service_type (str, required): the application's service type, e.g. aft_msgs/Account.
         ~resend_period (float, 0.5 s): re-send a request not answered for this long.
-        ~timeout (float, 30 s): give up a call (the client gets an error) after this long.
+        ~timeout (float, 0 = none): give up a call after this long; the client then gets an error
+            saying the outcome is UNKNOWN (the request may still execute). 0 waits for the outcome.
+        ~max_pending_bytes (int, 64 MiB): bound of the requests waiting for replies; past it a call is
+            answered "not executed" at once instead of the Proxy growing.
     Services:
         service (the application's type): remap it to the name the client calls.
         ~rebind (aft_msgs/Rebind)
@@ -43,13 +52,15 @@ class ProxyNode(object):
     def __init__(self):
         self.service_type = param('service_type', config.service_type, required=True)
         self.resend_period = param('resend_period', config.positive_float, 0.5)
-        self.timeout = param('timeout', config.positive_float, 30.0)
+        self.timeout = param('timeout', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
         self.cls = service_class(self.service_type)
-        self.table = PendingTable(first_id=int(time.time() * 1e6))
+        self.table = PendingTable(first_id=int(time.time() * 1e6),
+                                  max_bytes=param('max_pending_bytes', config.non_negative_int, 64 << 20))
         self.name = rospy.get_name()
         self.ports = Ports(
             [PortSpec('requests', PUBLISH, 'aft_msgs/Request'),
-             PortSpec('replies', SUBSCRIBE, 'aft_msgs/Reply')],
+             PortSpec('replies', SUBSCRIBE, 'aft_msgs/Reply'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'replies': self._on_reply}, listeners={'requests': _ResendOnConnect(self)})
         self.calls = 0
         self.errors = 0
@@ -57,6 +68,7 @@ class ProxyNode(object):
     def setup(self, timeout):
         self.ports.bind('replies')
         self.ports.bind('requests')
+        self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
         missing = wait_for_connections(self.ports, ['requests'], timeout)
         if missing:
@@ -69,17 +81,23 @@ class ProxyNode(object):
 
     def _request(self, entry):
         return Request(id=entry.id, origin=self.name, client=entry.client, service_type=self.service_type,
-                       oldest_pending=self.table.oldest_pending(), payload=entry.payload)
+                       oldest_pending=self.table.oldest_pending(), payload=entry.payload, epoch=self.table.epoch)
 
     def _on_call(self, req):
         client = req._connection_header.get('callerid', '') if hasattr(req, '_connection_header') else ''
-        entry = self.table.open(client, serialize(req), time.monotonic())
+        try:
+            entry = self.table.open(client, serialize(req), time.monotonic())
+        except Full as e:
+            self.errors += 1
+            rospy.logwarn_throttle(5, '%s: %s' % (self.name, e))
+            raise rospy.ServiceException(str(e))
         self.calls += 1
         self.ports.publish('requests', self._request(entry))
-        if not entry.done.wait(self.timeout):
+        if not entry.done.wait(self.timeout or None):
             self.table.abandon(entry.id)
             self.errors += 1
-            raise rospy.ServiceException('no reply to request %d within %.1f s (is a Protocol bound to %s?)'
+            raise rospy.ServiceException('outcome UNKNOWN: no reply to request %d within %.1f s (it may still '
+                                         'execute; is a Protocol bound to %s?)'
                                          % (entry.id, self.timeout, self.ports.topic('requests')))
         reply = entry.reply
         if reply.status != Reply.OK:
@@ -90,6 +108,10 @@ class ProxyNode(object):
     def _on_reply(self, reply):
         if reply.origin != self.name:
             return   # another Proxy's reply on a shared topic
+        if not self.table.fresh(reply.epoch):
+            alarm(self.ports, 'pbr', 'stale_reply', 'reply to %d from epoch %d refused: epoch %d answers now'
+                  % (reply.id, reply.epoch, self.table.epoch))
+            return
         self.table.close(reply.id, reply)
 
     def resend(self, all_pending=False):

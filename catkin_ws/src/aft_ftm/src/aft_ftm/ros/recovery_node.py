@@ -11,13 +11,16 @@ from std_msgs.msg import String
 
 from .. import config
 from ..protocol import Role
-from ..recovery import Step, plan, role_after, same_process
+from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
 from ..sites import power_off, process_tree, this_host
-from ..ports import SUBSCRIBE, PortSpec
+from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..witness import Op
+from .alarms import alarm
 from .fencing import NamespaceFence
 from .params import param
 from .ports import Ports
 from .protocol_node import ROLES
+from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
 
 
 class RecoveryNode(object):
@@ -29,6 +32,15 @@ class RecoveryNode(object):
     (see aft_ftm.recovery for why this order is safe). Primary whose
     backup failed: kill what is left of the backup's site and tell After to stop
     checkpointing.
+
+    With a witness (``~witness``) every step waits for its vote: a backup is promoted only if the
+    witness grants it the next epoch, a primary goes on alone only once the witness excluded the
+    backup; a refused or unreachable witness changes nothing (an alarm says so, and an unreachable
+    one is asked again every ``~witness_retry``). At start the site registers: if the witness names
+    it the first primary it promotes its own nodes (they all start as backups), otherwise its After
+    joins the primary. Its role then follows the witness's configuration: re-armed whenever the
+    site is primary or backup of a pair again (after a re-join), so a deployment survives any
+    number of failures, one at a time.
 
     Parameters:
         ~role (primary | backup): this replica's role at start.
@@ -43,10 +55,18 @@ class RecoveryNode(object):
         ~peer_namespace (str, required): namespace of the peer site's nodes.
         ~service_timeout (float, 2 s): limit on each service call of a recovery.
         ~learn_period (float, 2 s): how often the pids of the peer's nodes are learned (for fail-silence).
+        ~witness (str, default ''): the witness's aft_msgs/Witness service ('' : none).
+        ~site (str, required with a witness): this site's name.
+        ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
+        ~witness_retry (float, 0.5 s): how soon an unreachable witness is asked again.
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
+        /aft/witness/configuration (aft_msgs/Configuration): this site's role.
     Publishes:
-        ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations).
+        ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations), per start
+            and per configuration change.
+        alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): a promotion refused, the witness
+            unreachable, this site excluded or deposed.
     Services:
         ~rebind (aft_msgs/Rebind)
         ~set_promote (aft_msgs/SetNodes): replace the list of nodes to promote (an adaptation
@@ -66,13 +86,23 @@ class RecoveryNode(object):
                                      % (rospy.resolve_name('~promote'), promote))
         self.promote = [rospy.resolve_name(n) for n in promote]
         self.peer_ns = rospy.resolve_name(param('peer_namespace', config.non_empty_str, required=True))
-        required = self.role == Role.BACKUP
+        required = self.role == Role.BACKUP or bool(rospy.get_param('~witness', ''))
         self.client_requests = param('client_requests', config.non_empty_str, required=required)
         self.client_replies = param('client_replies', config.non_empty_str, required=required)
         self.timeout = param('service_timeout', config.positive_float, 2.0)
         self.learn_period = param('learn_period', config.positive_float, 2.0)
+        witness = param('witness', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
+        self.retry = param('witness_retry', config.positive_float, 0.5)
+        self.witness = WitnessClient(witness, self.site, param('site_pid', config.non_negative_int,
+                                                               site_launcher_pid())) if witness else None
+        self.claim = self.role != Role.BACKUP   # launched as the first primary
+        if self.witness is not None:
+            self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
         self.lock = threading.Lock()
         self.recovered = False
+        self.epoch = 0         # the witness's epoch last seen
+        self.granted = 0       # the epoch the witness granted to the recovery under way
         self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
 
     def setup(self, timeout):
@@ -105,11 +135,64 @@ class RecoveryNode(object):
         self.fence = NamespaceFence(self.peer_ns, rospy.get_name())
         threading.Thread(target=self._learn_peer, name='learn-peer', daemon=True).start()
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
-        self.ports = Ports([PortSpec('failures', SUBSCRIBE, 'aft_msgs/Failure')], {'failures': self._on_failure})
+        self.ports = Ports([PortSpec('failures', SUBSCRIBE, 'aft_msgs/Failure'),
+                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')], {'failures': self._on_failure})
+        self.ports.bind('alarms', '/aft/alarms')
+        if self.witness is not None and not (self.witness.setup(timeout) and self._register(timeout)):
+            return False
         self.ports.bind('failures')
         self.ports.advertise_service()
         rospy.Service('~set_promote', SetNodes, self._on_set_promote)
+        if self.witness is not None:
+            self.configuration = self.witness.subscribe(self._on_configuration)
         return True
+
+    def _register(self, timeout):
+        """Ask the witness whether this site serves; if it is the first primary, promote its nodes."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                grant = self.witness.request(Op.REGISTER, claim=self.claim)
+            except WitnessUnreachable as e:
+                rospy.logerr('%s: %s', rospy.get_name(), e)
+                return False
+            if grant.granted or grant.primary or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)   # no primary yet: the first primary's site registers first
+        self.epoch = grant.epoch
+        record = {'event': 'start', 'site': self.site, 'epoch': grant.epoch, 'primary': grant.primary,
+                  'backup': grant.backup, 'witness': grant.message, 'steps': [], 'ok': True}
+        if grant.granted and grant.primary == self.site:
+            self.granted = grant.epoch
+            self._start = time.monotonic()
+            self._run_plan(start_plan(), None, record)
+            if not record['ok']:
+                rospy.logerr('%s: could not take the first primary role: %s', rospy.get_name(), record['steps'])
+                return False
+            self.role = Role.ALONE
+        record['role_after'] = self.role.name
+        rospy.loginfo('%s: registered with the witness at epoch %d: %s', rospy.get_name(), grant.epoch, grant.message)
+        self.events.publish(String(data=json.dumps(record)))
+        return True
+
+    def _on_configuration(self, conf):
+        """Follow the witness: this site's role in each new configuration; re-armed in a pair."""
+        with self.lock:
+            if conf.epoch <= self.epoch:
+                return
+            self.epoch = conf.epoch
+            before = self.role
+            self.role = role_in(conf.primary, conf.backup, self.site)
+            if self.role in (Role.PRIMARY, Role.BACKUP):
+                self.recovered = False
+        record = {'event': 'configuration', 'epoch': conf.epoch, 'primary': conf.primary, 'backup': conf.backup,
+                  'reason': conf.reason, 'role_before': before.name if before else None,
+                  'role_after': self.role.name if self.role else None}
+        self.events.publish(String(data=json.dumps(record)))
+        if self.role is None and before is not None:
+            alarm(self.ports, 'pbr', 'out_of_configuration', '%s is in no configuration of epoch %d (primary %r, '
+                  'backup %r: %s): it neither serves nor takes over until it re-joins'
+                  % (self.site, conf.epoch, conf.primary, conf.backup, conf.reason))
 
     def _on_set_promote(self, req):
         names = [rospy.resolve_name(n) for n in req.nodes]
@@ -144,29 +227,44 @@ class RecoveryNode(object):
             return self.set_role_nodes[index](**request)
 
     def _on_failure(self, failure):
+        retry = False
         with self.lock:
             if self.recovered:
                 return
             self.recovered = True
             record = {'failed_site': failure.site, 'reason': failure.reason, 'silence': failure.silence,
-                      'role_before': self.role.name, 'steps': [], 'ok': True,
+                      'role_before': self.role.name if self.role else None, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
-            start = self._start = time.monotonic()
-            for wave in plan(self.role):
-                threads = [threading.Thread(target=self._run_step, args=(step, failure, record)) for step in wave]
-                for thread in threads:
-                    thread.start()
-                for thread in threads:
-                    thread.join()
-            record['seconds'] = time.monotonic() - start
+            self._start = time.monotonic()
+            self._run_plan(plan(self.role, self.witness is not None), failure, record)
+            record['seconds'] = time.monotonic() - self._start
             record['done_wall'] = time.time()
-            self.role = role_after(self.role)
-            record['role_after'] = self.role.name
-        rospy.logwarn('%s: recovered from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
+            witness_steps = [st for st in record['steps'] if st['step'] in {g.name for g in GATES}]
+            if witness_steps and not witness_steps[0]['ok']:
+                retry = 'unreachable' in witness_steps[0]['detail']
+                self.recovered = not retry
+            else:
+                self.role = role_after(self.role) if self.role else None
+            record['role_after'] = self.role.name if self.role else None
+        rospy.logwarn('%s: recovery from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
                       record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
-                                                          for s in record['steps']))
+                                                          for s in record['steps']) or 'nothing to do')
         self.events.publish(String(data=json.dumps(record)))
-        threading.Thread(target=self._clean_master, daemon=True).start()
+        if retry:
+            threading.Timer(self.retry, self._on_failure, [failure]).start()
+        elif record['ok'] and record['steps']:
+            threading.Thread(target=self._clean_master, daemon=True).start()
+
+    def _run_plan(self, waves, failure, record):
+        """Run the waves of a plan; a failed gate (the witness's vote) ends it."""
+        for wave in waves:
+            threads = [threading.Thread(target=self._run_step, args=(step, failure, record)) for step in wave]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+            if any(not st['ok'] for st in record['steps'] if Step[st['step']] in GATES):
+                return
 
     def _run_step(self, step, failure, record):
         t0 = time.monotonic()
@@ -181,12 +279,28 @@ class RecoveryNode(object):
                                 'start': t0 - self._start, 'seconds': time.monotonic() - t0})
 
     def _do(self, step, failure):
+        if step in (Step.WITNESS_PROMOTE, Step.WITNESS_EXCLUDE):
+            op = Op.PROMOTE if step == Step.WITNESS_PROMOTE else Op.EXCLUDE
+            try:
+                grant = self.witness.request(op)
+            except WitnessUnreachable as e:
+                alarm(self.ports, 'pbr', 'witness_unreachable', '%s cannot reach the witness (%s): it does not %s; '
+                      'asked again in %.1f s' % (self.site, e, 'take over' if op == Op.PROMOTE else 'go on alone',
+                                                 self.retry))
+                raise RuntimeError('witness unreachable: %s' % e)
+            if not grant.granted:
+                alarm(self.ports, 'pbr', 'promotion_refused' if op == Op.PROMOTE else 'deposed',
+                      '%s: the witness refused %s: %s' % (self.site, op.name, grant.message))
+                raise RuntimeError('the witness refused %s: %s' % (op.name, grant.message))
+            self.granted = grant.epoch
+            return 'epoch %d: %s' % (grant.epoch, grant.message)
         if step == Step.FAIL_SILENCE:
             return self._fail_silence(failure)
         if step == Step.PROMOTE_AFTER:
             last_seq = 0
             for index, name in enumerate(self.promote):
-                result = self._set_role(index, role=Role.ALONE.value, last_seq=last_seq)
+                result = self._set_role(index, role=Role.ALONE.value, last_seq=last_seq, epoch=self.granted,
+                                        initial=failure is None)
                 if not result.success:
                     raise RuntimeError('%s refused: %s' % (name, result.message))
                 last_seq = result.last_seq
@@ -196,7 +310,7 @@ class RecoveryNode(object):
             if self.last_seq is None:
                 # Never a Protocol serving clients without its After fenced against the old primary.
                 raise RuntimeError('not promoted: the After was not promoted (see PROMOTE_AFTER)')
-            result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq)
+            result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq, epoch=self.granted)
             if not result.success:
                 raise RuntimeError('Protocol refused: %s' % result.message)
             return result.message
@@ -210,16 +324,17 @@ class RecoveryNode(object):
             return result.message
         if step == Step.AFTER_ALONE:
             for index, name in enumerate(self.promote):
-                result = self._set_role(index, role=Role.ALONE.value)
+                result = self._set_role(index, role=Role.ALONE.value, epoch=self.granted)
                 if not result.success:
                     raise RuntimeError('%s refused: %s' % (name, result.message))
             return 'going on alone'
         raise ValueError(step)
 
     def _learn_peer(self):
-        while not rospy.is_shutdown() and not self.recovered:
+        while not rospy.is_shutdown():
             try:
-                self.fence.learn()
+                if not self.recovered:   # re-armed after a re-join: the peer's new pids are learned
+                    self.fence.learn()
             except Exception as e:   # the master is unreachable for a while: try again later
                 rospy.logwarn_throttle(30, '%s: cannot learn the nodes of %s: %s' % (rospy.get_name(), self.peer_ns, e))
             rospy.sleep(self.learn_period)

@@ -1,0 +1,77 @@
+"""A replica's side of the witness: its site's incarnation and calls with a deadline."""
+import os
+
+import psutil
+import rospy
+from aft_msgs.msg import Configuration
+from aft_msgs.srv import Witness as WitnessSrv
+
+from ..errors import AftError
+from ..witness import Grant, Op
+from .deadline import CallTimeout, Deadline
+
+CONFIGURATION_TOPIC = '/aft/witness/configuration'
+
+
+class WitnessUnreachable(AftError):
+    """The witness did not answer: nothing may be assumed granted."""
+
+
+def site_launcher_pid():
+    """The pid of this node's site launcher: AFT_SITE_PID when set (a node an adaptation launched into
+    a site), else the parent process (the site's roslaunch)."""
+    value = os.environ.get('AFT_SITE_PID', '')
+    return int(value) if value.isdigit() else os.getppid()
+
+
+def incarnation(pid):
+    """One start of a site: its launcher's pid and start time ('' if it is gone)."""
+    try:
+        return '%d@%.3f' % (pid, psutil.Process(pid).create_time())
+    except psutil.NoSuchProcess:
+        return ''
+
+
+class WitnessClient(object):
+    """Calls ``service`` (aft_msgs/Witness) for ``site`` over a persistent connection opened at set-up,
+    each call limited to ``timeout`` (a frozen witness must not freeze the replica)."""
+
+    def __init__(self, service, site, site_pid, timeout=1.0):
+        self.service = service
+        self.site = site
+        self.incarnation = incarnation(site_pid)
+        self.timeout = timeout
+        self.deadline = Deadline('witness')
+        self.proxy = None
+
+    def setup(self, timeout):
+        try:
+            rospy.wait_for_service(self.service, timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: the witness %s is not available within %.1f s', rospy.get_name(), self.service, timeout)
+            return False
+        self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
+        return True
+
+    def request(self, op, peer='', peer_incarnation='', claim=False):
+        """One request; returns a Grant, or raises WitnessUnreachable."""
+        try:
+            answer = self.deadline.call(self._call, self.timeout, op, peer, peer_incarnation, claim)
+        except CallTimeout as e:
+            self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
+            raise WitnessUnreachable('witness %s: %s' % (self.service, e))
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
+            raise WitnessUnreachable('witness %s: %s' % (self.service, e))
+        return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
+
+    def _call(self, op, peer, peer_incarnation, claim):
+        return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
+                          peer_incarnation=peer_incarnation, claim=claim)
+
+    def subscribe(self, callback):
+        """callback(aft_msgs/Configuration) on every configuration (the latest at once: latched)."""
+        return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, callback, tcp_nodelay=True)
+
+
+__all__ = ['Op', 'WitnessClient', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid', 'CONFIGURATION_TOPIC']

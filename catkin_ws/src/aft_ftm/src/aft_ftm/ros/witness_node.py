@@ -1,0 +1,81 @@
+"""The witness node: the configuration record of aft_ftm.witness, offered as a service."""
+import threading
+
+import rospy
+from aft_msgs.msg import Configuration
+from aft_msgs.srv import Witness as WitnessSrv, WitnessResponse
+
+from .. import config
+from ..errors import ConfigError
+from ..state_store import StateStore
+from ..witness import Op, Witness
+
+
+class WitnessNode(object):
+    """Grants each configuration epoch to at most one primary (see aft_ftm.witness). Run it on the
+    clients' machine or a third one, never on a replica's: a replica that loses its peer must still
+    be able to reach it, and a site that cannot reach it stops serving rather than guess.
+
+    Parameters:
+        ~initial_primary (str, default ''): the site that serves first; '' : the first site that
+            registers claiming it (replica.launch role:=primary).
+        ~state_file (str, default ''): where the record is kept (written, with a checksum, before
+            each grant is answered), so that a witness that restarts never grants an epoch twice.
+            '' keeps it in memory only: do not restart such a witness while replicas run. A file
+            that exists but is corrupt stops the witness at start (exit 2) rather than forget.
+    Services:
+        ~request (aft_msgs/Witness)
+    Publishes:
+        ~configuration (aft_msgs/Configuration, latched): the current configuration, on every change.
+    """
+
+    def __init__(self):
+        from .params import param
+        initial = param('initial_primary', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        path = param('state_file', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        store = StateStore(path, check=self._check) if path else None
+        if store is not None:
+            state, why = store.load()
+            if state is None and why != 'no saved state':
+                raise ConfigError('witness state file %s: %s (refusing to start: it could grant an epoch twice)'
+                                  % (path, why))
+        self.witness = Witness(initial, store)
+        self.lock = threading.Lock()
+
+    @staticmethod
+    def _check(state):
+        if not isinstance(state.get('epoch'), int) or state['epoch'] < 0:
+            return 'epoch %r' % (state.get('epoch'),)
+        if not isinstance(state.get('incarnations'), dict):
+            return 'incarnations %r' % (state.get('incarnations'),)
+        return None
+
+    def setup(self, timeout):
+        self.publisher = rospy.Publisher('~configuration', Configuration, queue_size=10, latch=True)
+        self._publish()
+        rospy.Service('~request', WitnessSrv, self._on_request)
+        rospy.loginfo('%s: ready at epoch %d (%s)', rospy.get_name(), self.witness.epoch, self.witness.reason)
+        return True
+
+    def _publish(self):
+        w = self.witness
+        self.publisher.publish(Configuration(epoch=w.epoch, primary=w.primary, backup=w.backup, reason=w.reason,
+                                             stamp=rospy.Time.now()))
+
+    def _on_request(self, req):
+        try:
+            op = Op(req.op)
+        except ValueError:
+            return WitnessResponse(granted=False, message='unknown operation %d' % req.op,
+                                   epoch=self.witness.epoch, primary=self.witness.primary, backup=self.witness.backup)
+        with self.lock:
+            before = self.witness.epoch
+            grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation, req.claim)
+            if self.witness.epoch != before:
+                self._publish()
+        log = rospy.loginfo if grant.granted else rospy.logwarn
+        if op != Op.STATUS:
+            log('%s: %s %s: %s (%s)', rospy.get_name(), op.name, req.site, 'granted' if grant.granted else 'refused',
+                grant.message)
+        return WitnessResponse(granted=grant.granted, message=grant.message, epoch=grant.epoch,
+                               primary=grant.primary, backup=grant.backup)

@@ -1,0 +1,195 @@
+"""The witness: grants each configuration epoch to at most one primary.
+
+Two replicas cannot tell a dead peer from a slow one. Each may then believe it is the only one
+left: the backup promotes itself while the primary, which only paused, goes on alone. A third
+party breaks the tie, as a quorum device does for a two-node cluster. This witness holds one
+record, the configuration: its epoch, the site that may serve (primary) and the site that may be
+promoted (backup). Every change makes a new epoch, and each request is granted only against the
+current record, so at most one site holds the right to serve in any epoch:
+
+- PROMOTE (the backup takes over): granted only to the backup of the current configuration. The
+  old primary is deposed: it is neither primary nor backup any more.
+- EXCLUDE (the primary goes on alone): granted only to the primary. The backup is excluded and
+  can never be promoted until it re-joins (a join transfers the state again).
+- ADMIT (a joined site becomes the backup): granted only to the primary, naming the joined site
+  and its incarnation.
+- REGISTER (a site starts): tells whether it may serve. Only the initial primary (configured, or
+  the first site that registers claiming it), in the first epoch and first incarnation, serves
+  from its own state; every other start must join. A backup
+  of the current configuration that starts again (a new incarnation) holds no state any more: it
+  is excluded at once.
+
+Invariants (checked by tests/unit/test_replication_sim.py after every step):
+- the epoch only grows; each epoch names at most one primary;
+- a site that is refused changes nothing;
+- a promotion is granted only to a site that was admitted (or is the initial primary's backup
+  never: the first backup is always admitted after a join).
+
+Incarnations identify one start of a site (its launcher's pid and start time): a site that
+restarted is a new incarnation, whose server holds none of the old one's state.
+
+``store`` (optional) persists the record before a grant is answered, so that a witness that
+restarts never grants an epoch twice; without it a restarted witness starts from epoch 0 and
+must not be restarted while replicas run (the README says so).
+"""
+import enum
+
+
+class Op(enum.Enum):
+    STATUS = 0
+    PROMOTE = 1
+    EXCLUDE = 2
+    ADMIT = 3
+    REGISTER = 4
+
+
+class Grant(object):
+    """A witness's answer: granted or not, why, and the configuration after it."""
+    __slots__ = ('granted', 'message', 'epoch', 'primary', 'backup')
+
+    def __init__(self, granted, message, epoch, primary, backup):
+        self.granted = granted
+        self.message = message
+        self.epoch = epoch
+        self.primary = primary
+        self.backup = backup
+
+    def __repr__(self):
+        return 'Grant(%s, %r, epoch %d, primary %r, backup %r)' % (
+            self.granted, self.message, self.epoch, self.primary, self.backup)
+
+
+class Witness(object):
+    """The configuration record and the rules that change it. Not thread-safe: the node serialises calls."""
+
+    def __init__(self, initial_primary='', store=None):
+        self.initial_primary = initial_primary   # '' : the first site that registers claiming it
+        self.store = store
+        self.epoch = 0
+        self.primary = ''
+        self.backup = ''
+        self.incarnations = {}      # site -> the incarnation that holds its role in this epoch
+        self.reason = ''
+        self.history = []           # (epoch, primary, backup, reason): every configuration made
+        if store is not None:
+            self._load(store.load())
+
+    # -- queries ----------------------------------------------------------------------------
+    def status(self):
+        return self._grant(True, 'epoch %d' % self.epoch)
+
+    def role_of(self, site):
+        """'primary', 'backup' or '' for site in the current configuration."""
+        return 'primary' if site == self.primary else 'backup' if site == self.backup and site else ''
+
+    # -- requests ---------------------------------------------------------------------------
+    def request(self, op, site, incarnation='', peer='', peer_incarnation='', claim=False):
+        """Carry out one request; returns a Grant. Refusals change nothing."""
+        if not site:
+            return self._grant(False, 'a request must name its site')
+        if op == Op.STATUS:
+            return self.status()
+        if op == Op.REGISTER:
+            return self._register(site, incarnation, claim)
+        if op == Op.PROMOTE:
+            return self._promote(site, incarnation)
+        if op == Op.EXCLUDE:
+            return self._exclude(site, incarnation)
+        if op == Op.ADMIT:
+            return self._admit(site, incarnation, peer, peer_incarnation)
+        return self._grant(False, 'unknown operation %r' % (op,))
+
+    def _register(self, site, incarnation, claim):
+        if self.epoch == 0:
+            first = self.initial_primary or (site if claim else '')
+            if not first:
+                return self._grant(False, 'no primary yet: %s waits for the initial primary to register' % site)
+            self._change(first, '', 'initial configuration', {})
+        if site == self.primary:
+            known = self.incarnations.get(site)
+            if known is None and self.epoch == 1 and not self.backup:
+                self.incarnations[site] = incarnation
+                self._save()
+                return self._grant(True, '%s is the initial primary of epoch 1: serve' % site)
+            if known == incarnation:
+                return self._grant(True, '%s is the primary of epoch %d: serve' % (site, self.epoch))
+            return self._grant(False, '%s restarted (incarnation %s, primary was %s): it holds no state; '
+                                      'join the backup once it is promoted' % (site, incarnation, known))
+        if site == self.backup and self.incarnations.get(site) != incarnation:
+            self._change(self.primary, '', 'backup %s restarted: excluded' % site,
+                         {self.primary: self.incarnations.get(self.primary)})
+            return self._grant(False, '%s restarted: excluded from epoch %d; join %s'
+                               % (site, self.epoch, self.primary))
+        if site == self.backup:
+            return self._grant(True, '%s is the backup of epoch %d' % (site, self.epoch))
+        return self._grant(False, '%s is not in epoch %d: join %s' % (site, self.epoch, self.primary))
+
+    def _promote(self, site, incarnation):
+        if site != self.backup or not site:
+            return self._grant(False, '%s is not the backup of epoch %d (primary %r, backup %r): not promoted'
+                               % (site, self.epoch, self.primary, self.backup))
+        if self.incarnations.get(site) != incarnation:
+            return self._grant(False, '%s incarnation %s is not the admitted one (%s): not promoted'
+                               % (site, incarnation, self.incarnations.get(site)))
+        deposed = self.primary
+        self._change(site, '', '%s promoted, %s deposed' % (site, deposed), {site: incarnation})
+        return self._grant(True, '%s is the primary of epoch %d; %s is deposed' % (site, self.epoch, deposed))
+
+    def _exclude(self, site, incarnation):
+        refused = self._not_primary(site, incarnation)
+        if refused:
+            return refused
+        if not self.backup:
+            return self._grant(True, '%s is already alone in epoch %d' % (site, self.epoch))
+        excluded = self.backup
+        self._change(site, '', '%s excluded by %s' % (excluded, site), {site: incarnation})
+        return self._grant(True, '%s is alone in epoch %d; %s is excluded until it re-joins'
+                           % (site, self.epoch, excluded))
+
+    def _admit(self, site, incarnation, peer, peer_incarnation):
+        refused = self._not_primary(site, incarnation)
+        if refused:
+            return refused
+        if not peer or peer == site:
+            return self._grant(False, 'ADMIT must name another site, got %r' % (peer,))
+        if self.backup == peer and self.incarnations.get(peer) == peer_incarnation:
+            return self._grant(True, '%s is already the backup of epoch %d' % (peer, self.epoch))
+        self._change(site, peer, '%s admitted %s' % (site, peer), {site: incarnation, peer: peer_incarnation})
+        return self._grant(True, '%s is the backup of epoch %d' % (peer, self.epoch))
+
+    # -- internals --------------------------------------------------------------------------
+    def _not_primary(self, site, incarnation):
+        if site != self.primary:
+            return self._grant(False, '%s is not the primary of epoch %d (primary %r): deposed'
+                               % (site, self.epoch, self.primary))
+        if self.incarnations.get(site) != incarnation:
+            return self._grant(False, '%s incarnation %s is not the one serving (%s): deposed'
+                               % (site, incarnation, self.incarnations.get(site)))
+        return None
+
+    def _change(self, primary, backup, reason, incarnations):
+        """The one place where the configuration changes: a new epoch, saved before it is told."""
+        self.epoch += 1
+        self.primary, self.backup, self.reason = primary, backup, reason
+        self.incarnations = {k: v for k, v in incarnations.items() if k and v is not None}
+        self.history.append((self.epoch, primary, backup, reason))
+        self._save()
+
+    def _save(self):
+        if self.store is not None:
+            self.store.save({'epoch': self.epoch, 'primary': self.primary, 'backup': self.backup,
+                             'reason': self.reason, 'incarnations': self.incarnations,
+                             'initial_primary': self.initial_primary})
+
+    def _load(self, loaded):
+        state, why = loaded
+        if state is None:
+            self.reason = 'fresh witness (%s)' % why
+            return
+        self.epoch = int(state['epoch'])
+        self.primary, self.backup = state['primary'], state['backup']
+        self.incarnations = dict(state['incarnations'])
+        self.reason = 'restored: %s' % state['reason']
+
+    def _grant(self, granted, message):
+        return Grant(granted, message, self.epoch, self.primary, self.backup)
