@@ -203,3 +203,15 @@ def test_a_backup_that_lost_a_checkpoint_rejoins_and_cannot_take_over_meanwhile(
 def test_the_initial_primary_is_promoted_from_joining_without_any_state_transfer():
     receiver = CheckpointReceiver(join=True)
     assert receiver.promote(initial=True) == 0 and receiver.state == Follow.PROMOTED
+
+
+def test_a_late_refusal_from_the_excluded_backup_does_not_abort_its_re_join():
+    """Found by test_healing: the backup, paused, refused an old checkpoint while joining again; that late
+    refusal reached the primary after it had started the state transfer and made it abort the join."""
+    sender = CheckpointSender(Role.PRIMARY, first_seq=10, epoch=2)
+    old = sender.hold(reply(rid=1), now=0)
+    assert [r.id for r in sender.excluded(epoch=3)] == [1]
+    full = sender.join('/slave/after', now=2.0)
+    assert sender.on_ack(old, ok=False) == ([], Need.NOTHING)
+    assert sender.role == Role.PRIMARY and sender.join_seq == full
+    assert sender.on_ack(full, ok=True) == ([], Need.ADMIT)

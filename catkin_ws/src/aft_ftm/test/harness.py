@@ -117,11 +117,12 @@ class PbrSites(Sites):
     SEC = False
     ADAPTABLE = False
     DETECTION_TIMEOUT = 0.03   # the crash detectors' timeout (s), heartbeats every 10 ms
+    SERVER_TIMEOUT = None      # Proceed's server timeout (s); None: the launch files' default
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
                              mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE,
-                             timeout=self.DETECTION_TIMEOUT)
+                             timeout=self.DETECTION_TIMEOUT, server_timeout=self.SERVER_TIMEOUT)
 
 
 class MechanismSite(Sites):
@@ -142,6 +143,15 @@ class AlarmLog(object):
 
     def kinds(self, kind):
         return [a for a in self.alarms if a.kind == kind]
+
+    def wait_connected(self, publishers, timeout=10.0):
+        """Wait until at least publishers alarm publishers are connected to this log."""
+        from aft_ftm.sites import wait_until
+        return wait_until(lambda: self.sub.get_num_connections() >= publishers, timeout)
+
+    def wait_for(self, kind, timeout=10.0):
+        from aft_ftm.sites import wait_until
+        return wait_until(lambda: self.kinds(kind), timeout)
 
     def close(self):
         self.sub.unregister()

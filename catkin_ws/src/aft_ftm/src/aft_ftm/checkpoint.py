@@ -68,6 +68,7 @@ class CheckpointSender(object):
         self.join_since = None
         self.admitted = role == Role.PRIMARY   # the witness knows our backup (always true without one)
         self.deposed = None     # why the witness refused us: nothing is ever released again
+        self.session = first_seq   # acks of checkpoints below this were for an earlier backup: ignored
 
     def needs_checkpoint(self):
         return self.role == Role.PRIMARY and not self.deposed
@@ -90,14 +91,14 @@ class CheckpointSender(object):
         self.admitted = False
         self.joiner = joiner
         self.seq += 1
-        self.join_seq = self.seq
+        self.join_seq = self.session = self.seq
         self.join_since = now
         return self.seq
 
     def on_ack(self, seq, ok):
         """The backup answered checkpoint seq. Returns (released replies, Need)."""
-        if self.deposed or self.role != Role.PRIMARY:
-            return [], Need.NOTHING
+        if self.deposed or self.role != Role.PRIMARY or seq < self.session:
+            return [], Need.NOTHING   # a late answer of a backup excluded since: says nothing of this one
         if seq == self.join_seq:
             self.join_seq = self.join_since = None
             if ok:

@@ -5,7 +5,7 @@ import threading
 import time
 
 import rospy
-from aft_msgs.srv import Account, AccountResponse
+from aft_msgs.srv import Account, AccountResponse, InjectFault, InjectFaultResponse
 
 from .. import config
 from ..bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, operation
@@ -18,16 +18,25 @@ class BankServerNode(StateManager):
 
     Services:
         account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
+        ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
+            (fault injection for the tests: a state capture failing once, or for good)
     """
 
     def __init__(self):
         self.account = AccountLogic()
         self.state_lock = threading.RLock()
+        self.capture_faults = 0
 
     def setup(self, timeout):
         self.advertise_state_services()
         rospy.Service('account', Account, self._on_request)
+        rospy.Service('~fail_state_captures', InjectFault, self._on_fail_captures)
         return True
+
+    def _on_fail_captures(self, req):
+        with self.state_lock:
+            self.capture_faults = req.count
+        return InjectFaultResponse(success=True, message='the next %d state captures fail' % req.count)
 
     def _on_request(self, req):
         with self.state_lock:
@@ -38,6 +47,9 @@ class BankServerNode(StateManager):
         return AccountResponse(balance=balance, count=count, digest=digest)
 
     def get_state(self):
+        if self.capture_faults > 0:
+            self.capture_faults -= 1
+            raise rospy.ServiceException('injected fault: the state cannot be captured')
         return self.account.get_state()
 
     def set_state(self, data):

@@ -145,6 +145,8 @@ class PbrAfterNode(AfterNode):
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
         self.told = set()           # alarms raised once per kind and sender
+        self.configuration_seen = None   # the witness's newest configuration
+        self.followed_since = 0.0   # when the last state transfer was accepted
 
     def setup(self, timeout):
         for name in ('checkpoints', 'peer_acks', 'acks', 'peer_checkpoints', 'join', 'join_requests', 'fail_stop'):
@@ -379,9 +381,25 @@ class PbrAfterNode(AfterNode):
 
     # -- backup -----------------------------------------------------------------
     def _ask_to_join(self, _event):
+        stuck = None
         with self.lock:
-            if self.role != Role.BACKUP or self.receiver is None or self.receiver.state != Follow.JOINING:
+            if self.role != Role.BACKUP or self.receiver is None:
                 return
+            if self.receiver.state == Follow.FOLLOWING:
+                # Joined, but never admitted (the primary gave the join up, or the witness refused it):
+                # nobody counts on this backup; it must not think it is one. Join again.
+                conf = self.configuration_seen
+                waited = time.monotonic() - self.followed_since
+                if conf is not None and self.site not in (conf.primary, conf.backup) \
+                        and waited > max(2 * self.ack_timeout, 4 * self.join_period):
+                    self.receiver.failed(self.receiver.last_seq, 'not admitted by the witness %.1f s after its '
+                                         'state transfer (epoch %d)' % (waited, conf.epoch))
+                    self.pending_state = None
+                    stuck = self.receiver.invalid
+            if self.receiver.state != Follow.JOINING:
+                return
+        if stuck:
+            self._tell('backup_invalid', '%s: %s; it joins again' % (self.site, stuck))
         if not self.ports.connections('peer_checkpoints'):
             return   # the state transfer would be lost: ask once the primary's checkpoints reach us
         self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=self.witness.incarnation,
@@ -434,6 +452,8 @@ class PbrAfterNode(AfterNode):
                     self._remember(reply)
                 self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, full=True, cache=cp.cache,
                                                         epoch=cp.epoch))
+            if decision == Decision.APPLY_FULL:
+                self.followed_since = time.monotonic()
             if decision in (Decision.APPLY, Decision.APPLY_FULL):
                 self.pending_state = (cp.seq, cp.state)
                 if self.apply_period == 0 or decision == Decision.APPLY_FULL:
@@ -473,6 +493,8 @@ class PbrAfterNode(AfterNode):
     def _on_configuration(self, conf):
         deposed = excluded = False
         with self.lock:
+            if self.configuration_seen is None or conf.epoch >= self.configuration_seen.epoch:
+                self.configuration_seen = conf
             if self.sender is not None and not self.sender.deposed and conf.epoch > self.sender.epoch \
                     and conf.primary != self.site:
                 deposed = True

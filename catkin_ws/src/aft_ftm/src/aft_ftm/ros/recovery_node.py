@@ -250,6 +250,11 @@ class RecoveryNode(object):
                       record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
                                                           for s in record['steps']) or 'nothing to do')
         self.events.publish(String(data=json.dumps(record)))
+        if record['role_before'] is None and self.witness is not None:
+            # Excluded or deposed: the peer's failure leaves nobody with the state. Never silent.
+            alarm(self.ports, 'pbr', 'promotion_refused', '%s failed and %s cannot take over: it is in no '
+                  'configuration of the witness (epoch %d); nobody serves until a replica holding the state returns'
+                  % (failure.site, self.site, self.epoch))
         if retry:
             threading.Timer(self.retry, self._on_failure, [failure]).start()
         elif record['ok'] and record['steps']:
