@@ -240,3 +240,15 @@ def test_each_supported_decision_maps_to_a_shipped_script(from_, to, alive, suff
 def test_a_decision_without_a_shipped_script_is_refused_naming_it(from_, to, alive):
     with pytest.raises(ConfigError, match='no shipped adaptation for'):
         transition(from_, to, alive)
+
+
+def test_a_lost_site_that_re_joins_counts_again():
+    core = MonitorCore({'crash'}, Application(deterministic=True, state_access=True), ['master', 'slave'],
+                       ['pbr'], now=0.0, lost_after=1.0)
+    core.heartbeat('master', 0.5)
+    core.heartbeat('slave', 0.5)
+    core.heartbeat('master', 2.0)
+    assert core.tick(2.0) == ['slave'] and core.model().resources.cpus == 1
+    assert not core.heartbeat('slave', 2.1)      # heard again, but holds no state yet: still lost
+    assert core.rejoined('slave', 3.0) and core.model().resources.cpus == 2
+    assert not core.rejoined('slave', 3.1)

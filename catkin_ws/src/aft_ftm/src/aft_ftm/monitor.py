@@ -64,8 +64,9 @@ class MonitorCore(object):
     """The change model of one replicated server and the adaptation state machine.
 
     ``sites``: the replica sites' names; a site never heard counts as alive until ``lost_after``
-    seconds after construction, and a site not heard for longer than ``lost_after`` is lost for
-    good (fail-silence: a later heartbeat does not bring it back). R.cpus = sites alive.
+    seconds after construction, and a site not heard for longer than ``lost_after`` is lost
+    (fail-silence: a later heartbeat does not bring it back) until it re-joins: the witness admits
+    it again once it holds the primary's state (:meth:`rejoined`). R.cpus = sites alive.
     """
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
@@ -144,6 +145,19 @@ class MonitorCore(object):
             self._note(now, 'heartbeat from %s, lost for good: ignored (fail-silence broken)' % site)
             return False
         self.last_heard[site] = now
+        return True
+
+    def rejoined(self, site, now):
+        """The witness admitted site again (it re-joined with a state transfer): it counts as alive,
+        and R changes back. Returns True if it had been lost."""
+        now = _time(now)
+        if site not in self.last_heard:
+            raise ConfigError('unknown site %r (known: %s)' % (site, ', '.join(self.sites)))
+        if site not in self.lost:
+            return False
+        self.lost.discard(site)
+        self.last_heard[site] = now
+        self._note(now, 'site %s re-joined: %d sites alive again' % (site, len(self.alive_sites())))
         return True
 
     def bandwidth(self, bytes_per_s, now):

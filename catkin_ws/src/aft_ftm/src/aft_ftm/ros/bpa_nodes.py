@@ -35,7 +35,7 @@ class StageNode(object):
         self.ports = Ports([PortSpec('inp', SUBSCRIBE, self.IN_TYPE),
                             PortSpec('out', PUBLISH, self.OUT_TYPE)] + list(extra_ports), callbacks)
         self.ports.suspension(hold=['inp'], quiescent=self.quiescent, before_suspend=self.before_suspend)
-        self.bind_input = param('bind_input', lambda n, v: bool(v), True)
+        self.bind_input = param('bind_input', config.boolean, True)
         self.name = rospy.get_name()
 
     def quiescent(self):

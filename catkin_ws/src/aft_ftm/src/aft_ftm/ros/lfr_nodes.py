@@ -103,7 +103,7 @@ class LfrAfterNode(AfterNode):
     """
 
     def __init__(self):
-        mechanisms.check_application('lfr', param('server_deterministic', lambda n, v: bool(v), required=True),
+        mechanisms.check_application('lfr', param('server_deterministic', config.boolean, required=True),
                                      state_access=False)
         self.role = _role()
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)

@@ -6,7 +6,7 @@ import threading
 import time
 
 import rospy
-from aft_msgs.msg import Alarm, Application, Heartbeat
+from aft_msgs.msg import Alarm, Application, Configuration, Heartbeat
 from std_msgs.msg import Float64, String
 
 from .. import change_model, config, mechanisms
@@ -15,6 +15,7 @@ from ..change_model import Application as AppModel
 from ..errors import ConfigError
 from ..monitor import MonitorCore, transition
 from .params import param
+from .witness_client import CONFIGURATION_TOPIC
 
 
 def _names(name, value):
@@ -52,8 +53,8 @@ class MonitorNode(object):
 
     def __init__(self):
         faults = param('faults', _names, ['crash'])
-        deterministic = param('deterministic', lambda n, v: bool(v), True)
-        state_access = param('state_access', lambda n, v: bool(v), True)
+        deterministic = param('deterministic', config.boolean, True)
+        state_access = param('state_access', config.boolean, True)
         self.sites = param('sites', _names, ['master', 'slave'])
         running = tuple(param('running', config.non_empty_str, 'pbr').split('+'))
         lost_after = param('lost_after', config.positive_float, 2.0)
@@ -85,6 +86,7 @@ class MonitorNode(object):
         rospy.Subscriber('~declare_faults', String, self._on_faults)
         rospy.Subscriber('~application', Application, self._on_application)
         rospy.Subscriber('~bandwidth', Float64, self._on_bandwidth)
+        rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration)
         threading.Thread(target=self._adapter, name='adapter', daemon=True).start()
         self.timer = rospy.Timer(rospy.Duration(self.period), self._tick)
         rospy.on_shutdown(self.engine.stop_all)
@@ -94,6 +96,15 @@ class MonitorNode(object):
     def _on_heartbeat(self, _msg, site):
         with self.lock:
             self.core.heartbeat(site, time.monotonic())
+
+    def _on_configuration(self, conf):
+        """A lost site the witness admits again (it re-joined): R changes back."""
+        for site in (conf.primary, conf.backup):
+            if site in self.sites:
+                with self.lock:
+                    back = self.core.rejoined(site, time.monotonic())
+                if back:
+                    self._event({'event': 'site re-joined', 'site': site, 'epoch': conf.epoch})
 
     def _on_alarm(self, msg):
         with self.lock:

@@ -1,0 +1,60 @@
+"""rosrun aft_ftm rejoin SITE [--launch 'COMMAND'] [--timeout S] [--witness SERVICE]
+
+Brings a replica site back into its PBR pair: optionally starts it (COMMAND, e.g. its roslaunch,
+detached in a session of its own so that it outlives this command), then waits until the witness
+names SITE the backup of the serving primary, which happens once its state transfer is
+acknowledged. A site re-joins by itself when it starts; this command tells when it has.
+Exit status: 0 re-joined, 1 not within the timeout, 2 bad use or no witness.
+"""
+import argparse
+import shlex
+import subprocess
+import sys
+import time
+
+import rospy
+from aft_msgs.srv import Witness
+
+from ..witness import Op
+
+
+def status(service):
+    return rospy.ServiceProxy(service, Witness)(op=Op.STATUS.value, site='rejoin')
+
+
+def main(argv):
+    parser = argparse.ArgumentParser(prog='rejoin', description=__doc__.split('\n\n')[1])
+    parser.add_argument('site')
+    parser.add_argument('--launch', default='', help='command that starts the site (e.g. its roslaunch)')
+    parser.add_argument('--timeout', type=float, default=60.0, help='seconds to wait for the join (60)')
+    parser.add_argument('--witness', default='/aft/witness/request', help='the witness service')
+    args = parser.parse_args(rospy.myargv(argv))
+    try:
+        rospy.wait_for_service(args.witness, 5.0)
+        before = status(args.witness)
+    except (rospy.ROSException, rospy.ServiceException) as e:
+        print('rejoin: the witness %s cannot be reached: %s' % (args.witness, e), file=sys.stderr)
+        return 2
+    if before.primary == args.site:
+        print('rejoin: %s is the primary of epoch %d: nothing to re-join' % (args.site, before.epoch))
+        return 0
+    started = time.monotonic()
+    if args.launch:
+        subprocess.Popen(shlex.split(args.launch), start_new_session=True, stdin=subprocess.DEVNULL,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        print('rejoin: started %s' % args.launch)
+    print('rejoin: waiting for %s to join %s (epoch %d)' % (args.site, before.primary, before.epoch))
+    while time.monotonic() - started < args.timeout:
+        try:
+            now = status(args.witness)
+        except rospy.ServiceException:
+            now = None
+        if now is not None and now.backup == args.site:
+            print('rejoin: %s is the backup of %s at epoch %d, %.2f s after the start'
+                  % (args.site, now.primary, now.epoch, time.monotonic() - started))
+            return 0
+        time.sleep(0.05)
+    print('rejoin: %s did not re-join within %.0f s (witness: epoch %d, primary %r, backup %r)'
+          % (args.site, args.timeout, now.epoch if now else 0, now.primary if now else '', now.backup if now else ''),
+          file=sys.stderr)
+    return 1
