@@ -19,7 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_ftm', 'src'))
 from aft_ftm import report  # noqa: E402
 
-BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master')
+BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing')
 
 
 @pytest.fixture(scope='module')
@@ -89,6 +89,11 @@ def test_numbers_add_up(quick_report):
         assert block['lost'] == block['sent'] - block['answered'] and block['sent'] > 0
     fo = figures['pbr']['failover']
     assert len(figures['pbr']['failover_samples']) == fo['crashes'] > 0
+    heal = figures['healing']
+    assert all(r['exactly_once'] for runs in heal['failover'].values() for r in runs) and heal['joins']['exactly_once']
+    assert len(heal['failover']['witness']) == len(heal['failover']['no_witness']) == heal['crashes'] > 0
+    assert all(r['vote_s'] is None for r in heal['failover']['no_witness'])
+    assert all(r['vote_s'] is not None for r in heal['failover']['witness'])
 
 
 def test_plots(quick_report):

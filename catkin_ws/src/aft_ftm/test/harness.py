@@ -103,8 +103,18 @@ class Sites(unittest.TestCase):
                          'the surviving server state differs from a failure-free sequential run')
 
     def recovery_event(self, site):
-        msg = rospy.wait_for_message('/%s/recovery/events' % site, String, timeout=10)
-        return json.loads(msg.data)
+        """The site's last failover record (Recovery's ~events, latched: other records carry it)."""
+        from aft_ftm.sites import wait_until
+        found = {}
+
+        def last():
+            data = json.loads(rospy.wait_for_message('/%s/recovery/events' % site, String, timeout=10).data)
+            found['record'] = data if 'failed_site' in data else data.get('last_recovery')
+            return found['record']
+        wait_until(last, 10.0, 0.1)
+        if not found.get('record'):
+            raise AssertionError('%s/recovery recorded no failover' % site)
+        return found['record']
 
 
 

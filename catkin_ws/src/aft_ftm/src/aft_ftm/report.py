@@ -23,6 +23,7 @@ SECTIONS = [
     'Service manager',
     'Car scenarios: FMECA rows with and without their mechanism',
     'The ROS master as a single point of failure',
+    'Healing: the witness, re-joins, state transfer, memory',
     'Consistency checks',
     'Steps',
 ]
@@ -38,6 +39,7 @@ COMMANDS = {
     'buffering': 'scripts/bench_ros_buffering',
     'service_manager': 'scripts/bench_service_manager',
     'master': 'scripts/bench_master',
+    'healing': 'scripts/bench_healing',
     'car': 'rosrun tjp_sim scenario NAME [--without MECHANISM] --json',
 }
 
@@ -472,6 +474,17 @@ def targets(f):
         out.append(('prepared PBR -> PBR+TR: pause < 50 ms (engine; client gap in brackets)',
                     '%s (%s)' % (ms(compose['engine_pause_s']), ms(compose['client_pause_s'])),
                     compose['engine_pause_s'] < 0.05))
+    heal = get(f, 'healing.summary') or {}
+    if heal.get('failover_median_s_witness') is not None:
+        out.append(('failover median < 50 ms with the witness (its vote inside Recovery in brackets)',
+                    '%s (%s; without the witness %s)' % (ms(heal['failover_median_s_witness']),
+                                                          ms(heal.get('witness_vote_median_s'), 2),
+                                                          ms(heal.get('failover_median_s_no_witness'))),
+                    heal['failover_median_s_witness'] < 0.05))
+    if heal.get('join_pause_max_s') is not None:
+        out.append(('client pause of a join < 50 ms (state transfer to admission; worst of the run)',
+                    '%s (median %s)' % (ms(heal['join_pause_max_s']), ms(heal.get('join_pause_median_s'))),
+                    heal['join_pause_max_s'] < 0.05))
     totals = _adaptation_totals(f)
     if totals:
         out.append(('no request lost or duplicated in any adaptation', '%d lost, %d duplicated of %d'
@@ -682,6 +695,46 @@ def car_lines(f):
     return lines
 
 
+def healing_lines(f):
+    h = get(f, 'healing')
+    if not h or 'failover' not in h:
+        return [_missing(f, 'healing')]
+    lines = ['Failover (MASTER powered off at a random request; fresh deployments of each kind, interleaved):', '']
+    rows = []
+    for kind, label in (('witness', 'with the witness'), ('no_witness', 'without (the rules of issue 2)')):
+        runs = h['failover'].get(kind) or []
+        values = sorted(r['failover_s'] for r in runs if r['failover_s'] is not None)
+        votes = sorted(r['vote_s'] for r in runs if r.get('vote_s') is not None)
+        rows.append([label, len(runs), ms(values[len(values) // 2]) if values else 'n/a',
+                     ms(values[-1]) if values else 'n/a', ms(votes[len(votes) // 2], 2) if votes else '-',
+                     'yes' if runs and all(r['exactly_once'] for r in runs) else '**no**'])
+    lines += table(['', 'crashes', 'failover median', 'max', "witness's vote (median)", 'exactly once'], rows)
+    joins = get(h, 'joins.joins') or []
+    if joins:
+        lines += ['', 'Re-joins (the backup powered off, started again, re-joined while the client calls; the pause is '
+                  'the longest client wait from the state transfer to the admission, the start-up wait the longest '
+                  'while the new site\'s processes start on the same CPUs):', '']
+        lines += table(['join', 'start to admitted', 'transfer acknowledged', 'pause', 'start-up wait'],
+                       [[i + 1, num(j['join_s'], '%.2f s'), ms(j['transfer_acknowledged_s']), ms(j['pause_s']),
+                         ms(j['longest_wait_s'])] for i, j in enumerate(joins)])
+    sizes = h.get('sizes') or {}
+    if sizes:
+        lines += ['', 'State transfer against the size of the server state (the request cost grows with it: every '
+                  'checkpoint carries the whole state, see issue 18):', '']
+        lines += table(['state', 'transfer acknowledged', 'pause', 'one request'],
+                       [['%d bytes' % int(k), ms(v['transfer_acknowledged_s']), ms(v['pause_s']), ms(v['request_s'])]
+                        for k, v in sorted(sizes.items(), key=lambda kv: int(kv[0]))])
+    mem = h.get('memory') or {}
+    if mem.get('after_all'):
+        lines += ['', 'Memory (RSS) of every process after 1 000 and after %d requests (%.0f requests/s):'
+                  % (mem['requests'], mem.get('requests_per_s') or 0), '']
+        lines += table(['process', 'after 1 000', 'after %d' % mem['requests'], 'growth'],
+                       [[node, '%.1f MB' % (mem['after_1000'].get(node, 0) / 1e6), '%.1f MB' % (rss / 1e6),
+                         '%+.1f MB' % ((rss - mem['after_1000'].get(node, rss)) / 1e6)]
+                        for node, rss in sorted(mem['after_all'].items())])
+    return lines
+
+
 def master_lines(f):
     m = get(f, 'master')
     if not m or 'master_down' not in m:
@@ -807,7 +860,7 @@ def build(f):
     builders = [(_claims_lines, None), (_targets_lines, None), (latency_lines, 'mechanisms'),
                 (resources_lines, 'mechanisms'), (failover_lines, 'pbr'), (adaptation_lines, 'adaptation'),
                 (buffering_lines, 'buffering'), (service_manager_lines, 'service_manager'), (car_lines, 'car'),
-                (master_lines, 'master'), (_consistency_lines, None), (_steps_lines, None)]
+                (master_lines, 'master'), (healing_lines, 'healing'), (_consistency_lines, None), (_steps_lines, None)]
     for title, (builder, key) in zip(SECTIONS, builders):
         try:
             body = builder(f)

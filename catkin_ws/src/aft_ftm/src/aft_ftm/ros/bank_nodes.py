@@ -9,6 +9,7 @@ from aft_msgs.srv import Account, AccountResponse, InjectFault, InjectFaultRespo
 
 from .. import config
 from ..bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, operation
+from ..errors import StateError
 from .params import param
 from .state_manager import StateManager
 
@@ -16,6 +17,9 @@ from .state_manager import StateManager
 class BankServerNode(StateManager):
     """A bank account served as a ROS service.
 
+    Parameters:
+        ~ballast_bytes (int, 0): bytes of inert state carried with the account (benchmarks of large
+            states: scripts/bench_healing); a state whose ballast is not that long is refused.
     Services:
         account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
         ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
@@ -26,6 +30,7 @@ class BankServerNode(StateManager):
         self.account = AccountLogic()
         self.state_lock = threading.RLock()
         self.capture_faults = 0
+        self.ballast = b'\xa5' * param('ballast_bytes', config.non_negative_int, 0)
 
     def setup(self, timeout):
         self.advertise_state_services()
@@ -50,9 +55,17 @@ class BankServerNode(StateManager):
         if self.capture_faults > 0:
             self.capture_faults -= 1
             raise rospy.ServiceException('injected fault: the state cannot be captured')
+        if self.ballast:
+            return self.account.get_state() + b'\0' + self.ballast
         return self.account.get_state()
 
     def set_state(self, data):
+        if self.ballast:
+            data = bytes(data)
+            account, _, ballast = data.partition(b'\0')
+            if len(ballast) != len(self.ballast):
+                raise StateError('state ballast of %d bytes, expected %d' % (len(ballast), len(self.ballast)))
+            data = account
         self.account.set_state(data)
 
 

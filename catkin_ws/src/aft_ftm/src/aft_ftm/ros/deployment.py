@@ -137,7 +137,7 @@ class PbrDeployment(object):
     'all'), as a user of pbr.launch runs it."""
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
-                 mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None):
+                 mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness and mechanism == 'pbr'
@@ -148,6 +148,8 @@ class PbrDeployment(object):
         replica = dict(period=period, timeout=timeout)
         if server_timeout is not None:
             replica['server_timeout'] = server_timeout
+        if ballast_bytes:
+            replica['ballast_bytes'] = ballast_bytes
         client = {}
         self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
         if sec:

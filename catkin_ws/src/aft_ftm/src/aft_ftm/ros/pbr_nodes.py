@@ -1,4 +1,5 @@
 """Primary-Backup Replication (paper section 5.2.2): the After of each replica."""
+import json
 import os
 import threading
 import time
@@ -6,6 +7,7 @@ import time
 import rospy
 from aft_msgs.msg import Checkpoint, CheckpointAck, Join
 from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
+from std_msgs.msg import String
 
 from .. import config
 from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
@@ -96,6 +98,8 @@ class PbrAfterNode(AfterNode):
         aft2pro_s (aft_msgs/Checkpoint), port ``stored``: replies for this replica's Protocol
         join (aft_msgs/Join), port ``join``: to the primary's After
         fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``
+        ~events (std_msgs/String, latched): one JSON record per state transfer this After sent (joiner,
+            bytes of state, replies, seconds until acknowledged and until admitted)
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
     """
@@ -138,6 +142,7 @@ class PbrAfterNode(AfterNode):
             self.receiver.expect = '/%s/' % self.peer
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
         self.joiner = None          # (site, incarnation) of the backup being joined
+        self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
         self.witness_lock = threading.Lock()   # one witness request at a time
         self.witness = WitnessClient(self.witness_service, self.site, self.site_pid) if with_witness else None
@@ -183,6 +188,7 @@ class PbrAfterNode(AfterNode):
         if self.witness is not None:
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
             self.configuration = self.witness.subscribe(self._on_configuration)
+        self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         rospy.Service('~set_role', SetRole, self._on_set_role)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
@@ -260,6 +266,8 @@ class PbrAfterNode(AfterNode):
                 return
             released, need = self.sender.on_ack(ack.seq, ack.ok)
             self._release(released)
+            if need == Need.ADMIT and self.join_record is not None:
+                self.join_record['acknowledged_s'] = time.monotonic() - self.join_record['t0']
         if need:
             self._resolve(need, 'the backup refused checkpoint %d: %s' % (ack.seq, ack.error) if not ack.ok
                           else 'the backup holds the state transfer %d' % ack.seq)
@@ -335,6 +343,10 @@ class PbrAfterNode(AfterNode):
             if self.sender is not None:
                 self.sender.admit(grant.epoch)
             self.joiner = None
+            record, self.join_record = self.join_record, None
+        if record is not None:
+            record.update(admitted_s=time.monotonic() - record.pop('t0'), admitted_wall=time.time(), epoch=grant.epoch)
+            self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.told.clear()
         rospy.loginfo('%s: %s is the backup again (epoch %d)', self.name, joiner[0], grant.epoch)
 
@@ -371,6 +383,8 @@ class PbrAfterNode(AfterNode):
                 self.role = Role.PRIMARY
                 self.joiner = (join.site, join.incarnation)
                 cache = self.recent.replies()
+                self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
+                                    'replies': len(cache), 't0': time.monotonic(), 'sent_wall': time.time()}
                 self.ports.publish('checkpoints', Checkpoint(
                     seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, epoch=sender.epoch,
                     full=True, state=state, cache=cache))

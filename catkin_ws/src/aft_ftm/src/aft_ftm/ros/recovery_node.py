@@ -7,6 +7,7 @@ import time
 import psutil
 import rospy
 from aft_msgs.srv import Rebind, RebindRequest, SetNodes, SetNodesResponse, SetRole
+from aft_msgs.msg import Alarm
 from std_msgs.msg import String
 
 from .. import config
@@ -62,9 +63,10 @@ class RecoveryNode(object):
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
         /aft/witness/configuration (aft_msgs/Configuration): this site's role.
+        /aft/alarms (aft_msgs/Alarm): the alarms of this site's nodes, recorded on ~events too.
     Publishes:
-        ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations), per start
-            and per configuration change.
+        ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations), per start,
+            per configuration change, and per alarm of this site's nodes (``"event": "alarm"``).
         alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): a promotion refused, the witness
             unreachable, this site excluded or deposed.
     Services:
@@ -101,6 +103,7 @@ class RecoveryNode(object):
             self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
         self.lock = threading.Lock()
         self.recovered = False
+        self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
         self.granted = 0       # the epoch the witness granted to the recovery under way
         self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
@@ -145,7 +148,23 @@ class RecoveryNode(object):
         rospy.Service('~set_promote', SetNodes, self._on_set_promote)
         if self.witness is not None:
             self.configuration = self.witness.subscribe(self._on_configuration)
+        self.alarm_log = rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
         return True
+
+    def _on_alarm(self, msg):
+        """Every alarm of this site's nodes (a degraded state) is also an event of this site."""
+        if msg.source.startswith(rospy.get_namespace()) and msg.source != rospy.get_name():
+            self._event({'event': 'alarm', 'kind': msg.kind, 'source': msg.source, 'detail': msg.detail,
+                         'stamp': msg.stamp.to_sec()})
+
+    def _event(self, record):
+        """Publish one record on ~events. The topic is latched (a late subscriber gets the last record
+        only), so every other record carries the last recovery as ``last_recovery``."""
+        if 'failed_site' in record:
+            self.last_recovery = record
+        else:
+            record = dict(record, last_recovery=self.last_recovery)
+        self.events.publish(String(data=json.dumps(record)))
 
     def _register(self, timeout):
         """Ask the witness whether this site serves; if it is the first primary, promote its nodes."""
@@ -172,7 +191,7 @@ class RecoveryNode(object):
             self.role = Role.ALONE
         record['role_after'] = self.role.name
         rospy.loginfo('%s: registered with the witness at epoch %d: %s', rospy.get_name(), grant.epoch, grant.message)
-        self.events.publish(String(data=json.dumps(record)))
+        self._event(record)
         return True
 
     def _on_configuration(self, conf):
@@ -188,7 +207,7 @@ class RecoveryNode(object):
         record = {'event': 'configuration', 'epoch': conf.epoch, 'primary': conf.primary, 'backup': conf.backup,
                   'reason': conf.reason, 'role_before': before.name if before else None,
                   'role_after': self.role.name if self.role else None}
-        self.events.publish(String(data=json.dumps(record)))
+        self._event(record)
         if self.role is None and before is not None:
             alarm(self.ports, 'pbr', 'out_of_configuration', '%s is in no configuration of epoch %d (primary %r, '
                   'backup %r: %s): it neither serves nor takes over until it re-joins'
@@ -249,7 +268,7 @@ class RecoveryNode(object):
         rospy.logwarn('%s: recovery from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
                       record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
                                                           for s in record['steps']) or 'nothing to do')
-        self.events.publish(String(data=json.dumps(record)))
+        self._event(record)
         if record['role_before'] is None and self.witness is not None:
             # Excluded or deposed: the peer's failure leaves nobody with the state. Never silent.
             alarm(self.ports, 'pbr', 'promotion_refused', '%s failed and %s cannot take over: it is in no '
