@@ -1,0 +1,99 @@
+"""The witness's rules: each epoch granted to at most one primary; refusals change nothing. No ROS."""
+import pytest
+
+from aft_ftm.state_store import StateStore
+from aft_ftm.witness import Op, Witness
+
+
+def pair(store=None):
+    """master serving, slave admitted: epoch 2."""
+    w = Witness(store=store)
+    assert w.request(Op.REGISTER, 'master', 'm1', claim=True).granted
+    assert not w.request(Op.REGISTER, 'slave', 's1').granted
+    assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s1').granted
+    assert (w.epoch, w.primary, w.backup) == (2, 'master', 'slave')
+    return w
+
+
+def test_the_first_claimant_serves_from_its_own_state_and_nobody_else_does():
+    w = Witness()
+    assert not w.request(Op.REGISTER, 'slave', 's1').granted      # no primary yet: it waits
+    assert w.epoch == 0
+    assert w.request(Op.REGISTER, 'master', 'm1', claim=True).granted
+    assert not w.request(Op.REGISTER, 'other', 'o1', claim=True).granted
+    assert (w.epoch, w.primary, w.backup) == (1, 'master', '')
+
+
+def test_only_the_backup_is_promoted_and_the_old_primary_is_deposed():
+    w = pair()
+    assert not w.request(Op.PROMOTE, 'master', 'm1').granted
+    assert not w.request(Op.PROMOTE, 'slave', 's-old').granted     # another incarnation of the backup
+    grant = w.request(Op.PROMOTE, 'slave', 's1')
+    assert grant.granted and (grant.epoch, grant.primary, grant.backup) == (3, 'slave', '')
+    assert not w.request(Op.EXCLUDE, 'master', 'm1').granted        # deposed: it must fail-stop
+    assert not w.request(Op.PROMOTE, 'slave', 's1').granted         # no backup left to promote
+
+
+@pytest.mark.parametrize('first,second', [(Op.EXCLUDE, Op.PROMOTE), (Op.PROMOTE, Op.EXCLUDE)])
+def test_a_primary_and_its_backup_suspecting_each_other_one_wins(first, second):
+    """Both slow, both suspect the other: whoever asks first gets the next epoch, the other is refused."""
+    w = pair()
+    asker = {Op.EXCLUDE: ('master', 'm1'), Op.PROMOTE: ('slave', 's1')}
+    assert w.request(first, *asker[first]).granted
+    refused = w.request(second, *asker[second])
+    assert not refused.granted and refused.epoch == 3
+    assert w.primary == asker[first][0] and w.backup == ''
+
+
+def test_an_excluded_backup_can_never_be_promoted_until_it_rejoins():
+    w = pair()
+    assert w.request(Op.EXCLUDE, 'master', 'm1').granted
+    assert not w.request(Op.PROMOTE, 'slave', 's1').granted
+    assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s2').granted
+    assert w.request(Op.PROMOTE, 'slave', 's2').granted
+
+
+def test_a_primary_that_restarted_holds_no_state_and_may_not_serve():
+    w = pair()
+    refused = w.request(Op.REGISTER, 'master', 'm2', claim=True)
+    assert not refused.granted and 'restarted' in refused.message
+    assert (w.epoch, w.primary) == (2, 'master')                    # its backup is promoted when detected
+    assert w.request(Op.REGISTER, 'master', 'm1').granted           # another node of the same start
+
+
+def test_a_backup_that_restarted_is_excluded_at_once():
+    w = pair()
+    grant = w.request(Op.REGISTER, 'slave', 's2')
+    assert not grant.granted and (w.epoch, w.backup) == (3, '')
+    assert not w.request(Op.PROMOTE, 'slave', 's2').granted
+
+
+def test_admit_names_another_site_and_is_idempotent():
+    w = pair()
+    assert not w.request(Op.ADMIT, 'master', 'm1', peer='master', peer_incarnation='m1').granted
+    assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s1').granted
+    assert w.epoch == 2
+    assert not w.request(Op.ADMIT, 'slave', 's1', peer='master', peer_incarnation='m1').granted
+
+
+def test_epochs_only_grow_and_each_names_one_primary():
+    w = pair()
+    w.request(Op.PROMOTE, 'slave', 's1')
+    w.request(Op.ADMIT, 'slave', 's1', peer='master', peer_incarnation='m2')
+    w.request(Op.EXCLUDE, 'slave', 's1')
+    epochs = [h[0] for h in w.history]
+    assert epochs == sorted(set(epochs)) and all(h[1] for h in w.history)
+
+
+def test_a_restarted_witness_with_its_file_never_grants_an_epoch_twice(tmp_path):
+    store = StateStore(str(tmp_path / 'witness.json'))
+    pair(store)
+    again = Witness(store=store)
+    assert (again.epoch, again.primary, again.backup) == (2, 'master', 'slave')
+    assert not again.request(Op.REGISTER, 'master', 'm9', claim=True).granted
+    assert again.request(Op.PROMOTE, 'slave', 's1').epoch == 3
+
+
+def test_a_request_without_a_site_is_refused():
+    w = pair()
+    assert not w.request(Op.PROMOTE, '', '').granted and w.epoch == 2
