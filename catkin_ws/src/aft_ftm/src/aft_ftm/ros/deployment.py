@@ -161,7 +161,7 @@ class PbrDeployment(object):
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
         if not self.witness and mechanism == 'pbr':
-            replica['witness'] = ''
+            replica['witness'] = 'none'   # roslaunch drops an empty name:= value
             client['witness'] = 'false'
         elif mechanism != 'pbr':
             client['witness'] = 'false'

@@ -1,6 +1,5 @@
 """Primary-Backup Replication (paper section 5.2.2): the After of each replica."""
 import json
-import os
 import threading
 import time
 
