@@ -110,7 +110,8 @@ def test_mechanisms_nest_to_any_depth_a_protocol_standing_in_for_each_proceed():
     remaps = {name: dict(n.remap_args) for name, n in nodes.items()}
     assert remaps['/master/tr/protocol'] == {'pxy2pro': '/master/bfr2prd', 'pro2pxy': '/master/prd2aft'}
     assert remaps['/master/tr/ad/protocol'] == {'pxy2pro': '/master/tr/bfr2prd', 'pro2pxy': '/master/tr/prd2aft'}
-    assert remaps['/master/tr/ad/proceed'] == {'server': '/master/account'}
+    # ... and a hung server there fail-stops the whole replica site.
+    assert remaps['/master/tr/ad/proceed'] == {'server': '/master/account', 'fail_stop': '/master/fail_stop'}
 
 
 @pytest.mark.parametrize('adaptable,replaceable_required', [('false', True), ('true', False)])

@@ -86,10 +86,11 @@ def terminate_tree(pid, grace=5.0):
 class Site(object):
     """A command started as a site (for example ``roslaunch --wait pkg file.launch args``)."""
 
-    def __init__(self, name, argv, env=None, log_path=None):
+    def __init__(self, name, argv, env=None, log_path=None, cwd=None):
         self.name = name
         self.argv = list(argv)
         self.env = env
+        self.cwd = cwd             # working directory of the command (None: this process's)
         self.log_path = log_path
         self.proc = None
         self._log = None
@@ -100,7 +101,7 @@ class Site(object):
         if self.log_path:
             self._log = open(self.log_path, 'ab')
         out = self._log if self._log else subprocess.DEVNULL
-        self.proc = subprocess.Popen(self.argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+        self.proc = subprocess.Popen(self.argv, env=self.env, cwd=self.cwd, stdout=out, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True,
                                      preexec_fn=(lambda: os.nice(niceness)) if niceness else None)
         return self

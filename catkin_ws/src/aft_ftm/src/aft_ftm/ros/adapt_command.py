@@ -1,7 +1,16 @@
-"""The ``adapt`` command: run an adaptation script against the live system."""
+"""The ``adapt`` command: run an adaptation script against the live system.
+
+SIGINT (Ctrl-C) or SIGTERM while it runs rolls the adaptation back (the step in progress ends
+first): suspended nodes resumed, launched nodes stopped, killed nodes started again, bindings
+restored; then it exits with status 1, saying it was interrupted and what was undone. A second
+signal does not cut the rollback short. If the command is killed (SIGKILL) or stopped
+(SIGSTOP) instead, the nodes it suspended resume by themselves once their lease runs out.
+"""
 import argparse
+import functools
 import json
 import os
+import signal
 import sys
 
 import rospkg
@@ -29,6 +38,28 @@ def load_script(spec, overrides=()):
         return adaptation.load(f.read(), adaptation.parse_overrides(overrides), source=path)
 
 
+def _on_signal(engine, signum, _frame):
+    """First signal: interrupt the engine (it rolls back). Later ones: say the rollback goes on.
+    Writes with os.write: print is not safe in a signal handler (the main thread may be printing)."""
+    name = signal.Signals(signum).name
+    if engine.interrupt(name):
+        text = 'adapt: %s: interrupting the adaptation, rolling back what was done\n' % name
+    else:
+        text = 'adapt: %s: the rollback goes on until every suspended node is resumed (SIGKILL would ' \
+               'leave them to their lease)\n' % name
+    os.write(sys.stderr.fileno(), text.encode())
+
+
+def _say_interrupted(report):
+    undone = ['%s %s%s' % (s['action'], s['target'], '' if s['ok'] else ' (FAILED: %s)' % s['detail'])
+              for s in report.get('rollback', [])]
+    if report['rolled_back']:
+        what = 'rolled back: %s' % ('; '.join(undone) if undone else 'nothing had been changed')
+    else:   # interrupted in the cleanup: the new configuration already served
+        what = 'the adaptation was in place, nothing undone; left: %s' % '; '.join(report['cleanup_errors'])
+    print('adapt: interrupted (%s): %s' % (report['interrupted'], what), file=sys.stderr, flush=True)
+
+
 def main(argv):
     parser = argparse.ArgumentParser(prog='adapt', description=__doc__)
     parser.add_argument('script', help='path or shipped name (compose, switch, update_after)')
@@ -36,6 +67,9 @@ def main(argv):
                         help='prepared (default): launch before the pause; paper: launch during it')
     parser.add_argument('--check', action='store_true', help='validate against the live system, change nothing')
     parser.add_argument('--json', help='write the report to this file')
+    parser.add_argument('--lease', type=float, default=5.0,
+                        help='lease of each suspension (s, default 5): renewed while the command runs; a node '
+                             'resumes by itself if the command dies or stops for longer')
     options, rest = parser.parse_known_args(argv)
     overrides = [a for a in rest if ':=' in a and not a.startswith('__')]
     unknown = [a for a in rest if ':=' not in a]
@@ -46,9 +80,11 @@ def main(argv):
     except ScriptError as e:
         print('adapt: script rejected, nothing changed: %s' % e, file=sys.stderr)
         return 2
+    if not options.lease > 0:
+        parser.error('--lease must be > 0 s, got %r' % options.lease)
     rospy.init_node('aft_adapt', anonymous=True, disable_signals=True)
     from .adaptation_engine import Engine
-    engine = Engine(log=print)
+    engine = Engine(log=functools.partial(print, flush=True), lease=options.lease)
     try:
         if options.check:
             steps = engine.validate(script, options.mode)
@@ -56,6 +92,8 @@ def main(argv):
             for step in steps:
                 print('  %-13s %s' % (step.action, step.target))
             return 0
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, functools.partial(_on_signal, engine))
         report = engine.run(script, options.mode)
     except ScriptError as e:
         print('adapt: script rejected, nothing changed: %s' % e, file=sys.stderr)
@@ -63,4 +101,7 @@ def main(argv):
     if options.json:
         with open(options.json, 'w') as f:
             json.dump(report, f, indent=1)
+    if report['interrupted']:
+        _say_interrupted(report)
+        return 1
     return 0 if report['ok'] else 1

@@ -7,6 +7,18 @@ node itself answers a dry run, naming both types when a topic has the wrong one)
 the planned steps (:func:`aft_ftm.adaptation.plan`); when one fails, it undoes what was done in
 reverse order and resumes everything it suspended, and reports it.
 
+An adaptation cannot strand the system:
+
+- every suspension carries a lease (``lease``), renewed from a thread of the engine's own while
+  it holds nodes suspended (:class:`LeaseKeeper`): a live engine keeps its pause through a long
+  step (the paper order's launch), a dead or stopped one leaves nodes that resume by themselves;
+  a node that resumed by itself (its lease ran out) fails the adaptation, which is rolled back;
+- :meth:`Engine.interrupt` (the ``adapt`` command's SIGINT and SIGTERM) stops it between steps,
+  or in the wait for launched nodes, and rolls back what was done;
+- the nodes it launches (and the nodes a rollback starts again) run under a guard
+  (:mod:`aft_ftm.ros.guarded_launch`) that stops them when the launcher of the site they join
+  stops (:mod:`aft_ftm.site_guard`); they outlive the engine, as before.
+
 Uses the master API, the nodes' services and XML-RPC, psutil and roslaunch processes; it needs
 an initialised rospy node (the ``adapt`` command and the monitor are ones).
 """
@@ -22,11 +34,12 @@ import rospkg
 import rospy
 from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
-from .. import adaptation
+from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from .deployment import roslaunch, wired
 from .fencing import is_local, node_api
+from .guarded_launch import guarded
 
 
 def resolve_launch_file(spec):
@@ -59,12 +72,122 @@ def launch_nodes(path, args):
     return [rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes], config
 
 
+def owners_of_process(pid):
+    """The site launchers (aft_ftm.site_guard.Owner) a node's process belongs to: those its
+    environment names (a node an adaptation launched or started again), else the nearest roslaunch
+    above it. Empty if there is none, or the process cannot be read."""
+    try:
+        proc = psutil.Process(pid)
+        try:
+            text = proc.environ().get(site_guard.OWNERS_ENV)
+        except psutil.AccessDenied:
+            text = None
+        if text:
+            return site_guard.parse_owners(text)
+        chain = [(p.pid, p.create_time(), p.cmdline()) for p in [proc] + proc.parents()]
+    except (psutil.Error, site_guard.GuardError):
+        return []
+    owner = site_guard.launcher_among(chain)
+    return [owner] if owner is not None else []
+
+
+class LeaseKeeper(object):
+    """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds,
+    from a thread of its own (with service connections of its own: rospy's are not shared
+    across threads), so that no step, however long, loses the engine its pause.
+
+    A node that refuses a renewal is no longer suspended (its lease ran out: the engine was
+    stopped, or starved, for longer than the lease; or its buffer filled): it is reported by
+    :meth:`lost` and no longer renewed. A renewal that cannot be sent (connection lost) is tried
+    again at the next period."""
+
+    def __init__(self, lease, log):
+        self.lease = lease
+        self.period = lease / 4.0
+        self._log = log
+        self._lock = threading.Lock()
+        self._held = set()
+        self._lost = {}              # node -> why it is no longer suspended
+        self._stop = threading.Event()
+        self._proxies = {}           # used by the keeper's thread only
+        self._thread = threading.Thread(target=self._run, name='lease_keeper', daemon=True)
+
+    def hold(self, node):
+        """node is suspended by the engine (with this lease): keep it so."""
+        with self._lock:
+            self._held.add(node)
+            if not self._thread.is_alive() and not self._stop.is_set():
+                self._thread.start()
+
+    def release(self, node):
+        """node is about to be resumed by the engine: renew it no more."""
+        with self._lock:
+            self._held.discard(node)
+
+    def lost(self):
+        with self._lock:
+            return dict(self._lost)
+
+    def stop(self):
+        """Renew nothing more (the nodes still held then resume by themselves). Never raises."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        if not self._thread.is_alive():
+            for proxy in self._proxies.values():
+                proxy.close()
+            self._proxies.clear()
+
+    def _run(self):
+        while not self._stop.wait(self.period):
+            with self._lock:
+                nodes = sorted(self._held)
+            for node in nodes:
+                why = self._renew(node)
+                if why is None:
+                    continue
+                with self._lock:
+                    if node not in self._held:   # resumed by the engine meanwhile: nothing lost
+                        continue
+                    self._held.discard(node)
+                    self._lost[node] = why
+                self._log('%s is no longer suspended: %s' % (node, why))
+
+    def _renew(self, node):
+        """None if renewed (or not reachable now); why not, if the node refused."""
+        try:
+            proxy = self._proxies.get(node)
+            if proxy is None:
+                proxy = self._proxies[node] = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
+            answer = proxy(renew=True, lease=self.lease)
+        except Exception as e:   # rospy raises several kinds for a lost connection: try again later
+            stale = self._proxies.pop(node, None)
+            if stale is not None:
+                stale.close()
+            self._log('warning: lease renewal of %s not sent (%s): trying again in %.2f s' % (node, e, self.period))
+            return None
+        return None if answer.success else answer.message
+
+
 class Engine(object):
-    """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints)."""
+    """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints).
+
+    ``lease`` (s): the lease of each suspension (renewed while held). ``guard_poll`` and
+    ``guard_grace`` (s): how often a launched node's guard looks at its site's launcher, and
+    how long the launch has to stop after SIGINT before it is killed."""
 
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
-                 connect_timeout=2.0, log_dir=None, launch_niceness=5):
+                 connect_timeout=2.0, log_dir=None, launch_niceness=5, lease=5.0, guard_poll=0.2,
+                 guard_grace=5.0):
+        if not lease > 0:
+            raise ValueError('the lease must be > 0 s, got %r' % (lease,))
         self.log = log or (lambda text: rospy.loginfo(text))
+        self.lease = lease
+        self.guard_poll = guard_poll
+        self.guard_grace = guard_grace
+        self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
+        self._keeper = None        # the LeaseKeeper of the run in progress
+        self._launch_owners = {}   # launch entry -> the launchers of the sites its nodes join
         self.quiesce_timeout = quiesce_timeout
         self.launch_timeout = launch_timeout
         self.service_timeout = service_timeout
@@ -74,6 +197,28 @@ class Engine(object):
         self.sites = []            # roslaunch processes started by this engine and still running
         self._launch_count = itertools.count()
         self.respawned = []        # nodes started again from their command line by a rollback
+
+    def interrupt(self, why):
+        """Stop the run in progress and roll it back (from a signal handler, or another thread):
+        the step in progress ends first (a wait for launched nodes ends at once). It holds for the
+        engine's later runs too: an interrupted engine changes nothing more. Returns False if it
+        was already interrupted (a second signal: the rollback goes on)."""
+        first = not self._interrupted
+        self._interrupted = self._interrupted or why
+        return first
+
+    @property
+    def interrupted(self):
+        return self._interrupted
+
+    def _stop_reason(self):
+        """Why the run must stop and roll back now ('' if it goes on)."""
+        if self._interrupted:
+            return 'interrupted (%s)' % self._interrupted
+        lost = self._keeper.lost() if self._keeper is not None else {}
+        if lost:
+            return 'suspension lost: %s' % '; '.join('%s: %s' % item for item in sorted(lost.items()))
+        return ''
 
     # -- the graph ----------------------------------------------------------------------------
     @property
@@ -107,6 +252,14 @@ class Engine(object):
                                   'name stops the first): choose other names' % (entry.file, ', '.join(clash)))
             self._launch_configs[entry] = (path, names)
             launched += names
+        self._launch_owners = {}
+        for entry in script.launch:
+            names = self._launch_configs[entry][1]
+            owners = self._site_owners(names, nodes)
+            self._launch_owners[entry] = owners
+            if not owners:
+                self.log('warning: no site launcher on this host runs nodes of the namespace of %s: they will '
+                         'not stop with a site (stop them by hand)' % ', '.join(names))
 
         def need(node, service, why):
             if node in launched:
@@ -154,10 +307,37 @@ class Engine(object):
             raise error('cannot %s: %s' % (what, answer.message))
         return answer.previous_topic
 
+    # -- sites ----------------------------------------------------------------------------------
+    def _site_owners(self, names, running):
+        """The launchers of the sites new nodes join: of the running nodes nearest in the name
+        space (:func:`aft_ftm.site_guard.neighbours`), on this host. Empty if none is found."""
+        owners, found = [], {}
+        for name in names:
+            candidates = tuple(site_guard.neighbours(name, running, exclude=names))
+            if candidates not in found:
+                found[candidates] = self._owners_of_nodes(candidates)
+            owners += [o for o in found[candidates] if o not in owners]
+        return owners
+
+    def _owners_of_nodes(self, nodes, tries=3):
+        for node in nodes[:tries]:
+            try:
+                uri = self.master.lookupNode(node)
+                if not is_local(uri):
+                    continue
+                code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
+            except Exception:   # gone meanwhile, or not answering: try the next one
+                continue
+            owners = owners_of_process(pid) if code == 1 else []
+            if owners:
+                return owners
+        return []
+
     # -- running --------------------------------------------------------------------------------
     def run(self, script, mode='prepared'):
         """Validate, then run the script. Returns a report (dict). Raises ScriptError (invalid:
-        nothing changed); a failed step is rolled back and reported with ok=False.
+        nothing changed); a failed step, a lost suspension or an interrupt (:meth:`interrupt`)
+        is rolled back and reported with ok=False (``interrupted`` names the interrupt).
 
         Consecutive steps of the same action run in parallel, except suspensions, which follow
         the script's order (a backup's After is suspended after the primary's Protocol is
@@ -166,48 +346,14 @@ class Engine(object):
         t0 = time.monotonic()
         steps = self.validate(script, mode)
         report = {'script': script.name, 'kind': script.kind, 'mode': mode, 'ok': True, 'steps': [],
-                  'rolled_back': False, 'error': '', 'validated_s': time.monotonic() - t0}
+                  'rolled_back': False, 'error': '', 'interrupted': '', 'validated_s': time.monotonic() - t0}
         self.log('adaptation %s (%s, %s order): %d steps' % (script.name, script.kind, mode, len(steps)))
         self._sites_of_run = []
-        done = []
-        pause_start = pause_end = None
-        report['cleanup_errors'] = []
-        cleanup = adaptation.cleanup_steps(steps)
-        for group in adaptation.groups(steps):
-            if group[0] in cleanup:
-                # Resumed: the new configuration serves. What is left (killing the old nodes) is
-                # cleanup; undoing the adaptation now would rebind a live graph, so failures here
-                # are reported, not rolled back.
-                for step, s0, error, info in self._run_group(group):
-                    report['steps'].append(self._record(step, s0, error is None,
-                                                        self._describe(step, info) if error is None else error))
-                    if error is not None:
-                        report['cleanup_errors'].append('%s %s: %s' % (step.action, step.target, error))
-                        self.log('cleanup step %s %s failed: %s (the adaptation stands)' % (
-                            step.action, step.target, error))
-                continue
-            if group[0].action == 'suspend' and pause_start is None:
-                self._connect(steps)   # persistent connections, opened before the pause
-                pause_start = time.monotonic()
-            results = self._run_group(group)
-            failed = [r for r in results if r[2] is not None]
-            for step, s0, error, info in results:
-                if error is None or step.action == 'suspend':
-                    # A suspension that failed may still have closed the node's gate (its answer
-                    # lost): the rollback resumes it too, which is harmless on a running node.
-                    done.append((step, info))
-                report['steps'].append(self._record(step, s0, error is None,
-                                                    self._describe(step, info) if error is None else error))
-            if failed:
-                step, _, error, _ = failed[0]
-                report.update(ok=False, error='step %s %s failed: %s' % (step.action, step.target, error))
-                self.log('FAILED: %s: rolling back' % report['error'])
-                report['rollback'] = self._roll_back(done)
-                report['rolled_back'] = True
-                pause_end = self._resumed_at   # clients wait until the rollback resumed them
-                break
-            if group[-1].action == 'resume' and not any(s.action == 'resume' for s in steps[steps.index(group[-1]) + 1:]):
-                pause_end = time.monotonic()
+        self._keeper = LeaseKeeper(self.lease, self.log)
+        try:
+            pause_start, pause_end = self._run_steps(steps, report)
+        finally:
+            self._keeper.stop()
         if pause_start is not None and pause_end is None:
             pause_end = time.monotonic()
         report['pause_s'] = (pause_end - pause_start) if pause_start is not None else 0.0
@@ -218,6 +364,62 @@ class Engine(object):
             script.name, 'done' if report['ok'] else 'ROLLED BACK', report['pause_s'] * 1e3,
             report['duration_s'], len(report['nodes_touched'])))
         return report
+
+    def _run_steps(self, steps, report):
+        """Run the planned steps into report; returns (pause start, pause end or None)."""
+        done = []
+        pause_start = pause_end = None
+        report['cleanup_errors'] = []
+        cleanup = adaptation.cleanup_steps(steps)
+        for group in adaptation.groups(steps):
+            self.log('step %s: %s' % (group[0].action, ', '.join(str(s.target) for s in group)))
+            if group[0] in cleanup:
+                # Resumed: the new configuration serves. What is left (killing the old nodes) is
+                # cleanup; undoing the adaptation now would rebind a live graph, so failures here
+                # are reported, not rolled back; an interrupt leaves the rest undone.
+                if self._interrupted:
+                    report['interrupted'] = self._interrupted
+                    report['cleanup_errors'] += ['%s %s: not done (interrupted)' % (s.action, s.target) for s in group]
+                    continue
+                for step, s0, error, info in self._run_group(group):
+                    report['steps'].append(self._record(step, s0, error is None,
+                                                        self._describe(step, info) if error is None else error))
+                    if error is not None:
+                        report['cleanup_errors'].append('%s %s: %s' % (step.action, step.target, error))
+                        self.log('cleanup step %s %s failed: %s (the adaptation stands)' % (
+                            step.action, step.target, error))
+                continue
+            stop = self._stop_reason()
+            if stop:
+                error = '%s before step %s %s' % (stop, group[0].action, group[0].target)
+            else:
+                if group[0].action == 'suspend' and pause_start is None:
+                    self._connect(steps)   # persistent connections, opened before the pause
+                    pause_start = time.monotonic()
+                results = self._run_group(group)
+                for step, s0, failure, info in results:
+                    if failure is None or step.action == 'suspend':
+                        # A suspension that failed may still have closed the node's gate (its answer
+                        # lost): the rollback resumes it too, which is harmless on a running node.
+                        done.append((step, info))
+                    report['steps'].append(self._record(step, s0, failure is None,
+                                                        self._describe(step, info) if failure is None else failure))
+                failed = [r for r in results if r[2] is not None]
+                error = 'step %s %s failed: %s' % (failed[0][0].action, failed[0][0].target, failed[0][2]) \
+                    if failed else ''
+                if failed and self._interrupted:
+                    error = 'interrupted (%s) during step %s %s' % (self._interrupted, failed[0][0].action,
+                                                                    failed[0][0].target)
+            if error:
+                report.update(ok=False, error=error, interrupted=self._interrupted)
+                self.log('FAILED: %s: rolling back' % error)
+                report['rollback'] = self._roll_back(done)
+                report['rolled_back'] = True
+                pause_end = self._resumed_at   # clients wait until the rollback resumed them
+                break
+            if group[-1].action == 'resume' and not any(s.action == 'resume' for s in steps[steps.index(group[-1]) + 1:]):
+                pause_end = time.monotonic()
+        return pause_start, pause_end
 
     def _run_group(self, group):
         """Run steps (in parallel if more than one); returns [(step, start, error or None, info)]."""
@@ -299,11 +501,13 @@ class Engine(object):
     def _do(self, step):
         action = step.action
         if action == 'suspend':
-            answer = self._proxy(step.target + '/suspend', Suspend)(timeout=self.quiesce_timeout)
+            answer = self._proxy(step.target + '/suspend', Suspend)(timeout=self.quiesce_timeout, lease=self.lease)
             if not answer.success:
                 raise StepError('%s could not be suspended: %s' % (step.target, answer.message))
+            self._keeper.hold(step.target)
             return answer.held
         if action == 'resume':
+            self._keeper.release(step.target)
             answer = self._proxy(step.target + '/resume', Suspend)()
             return answer.held
         if action == 'kill':
@@ -328,6 +532,8 @@ class Engine(object):
                                                            next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [path]
+        # Under a guard: the nodes stop when the launcher of the site they join stops.
+        argv = guarded(argv, self._launch_owners.get(entry, []), self.guard_poll, self.guard_grace)
         # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
         # must not starve the running replicas. Not much lower: under full load a niceness of 10
         # left a new node unable to finish its set-up in 30 s.
@@ -339,16 +545,24 @@ class Engine(object):
 
     def _wait_launched(self):
         """Wait until every launched node is set up (its ~rebind offered, or registered if it has
-        none) and its publishers are connected to every subscriber the master knows."""
-        deadline = time.monotonic() + self.launch_timeout
+        none) and its publishers are connected to every subscriber the master knows, but for
+        subscribers that do not answer after a while (see :meth:`_wired`)."""
+        started = time.monotonic()
+        deadline = started + self.launch_timeout
         pending = [(site, name) for site in self._sites_of_run for name in site.nodes]
+        silent = {}
         while pending:
+            stop = self._stop_reason()
+            if stop:   # seconds of waiting: an interrupt or a lost suspension does not wait for its end
+                raise StepError(stop)
             for site, _ in pending:
                 if not site.alive():
                     raise StepError('the roslaunch of %s exited (a node failed to start%s): see %s'
                                     % (', '.join(site.nodes), self._why_launch_ended(site), site.log_path))
             _, services = self._graph()
-            pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and wired(n))]
+            lenient = time.monotonic() - started > self.SILENT_AFTER
+            pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and
+                                                          self._wired(n, silent if lenient else None))]
             if not pending:
                 break
             if time.monotonic() > deadline:
@@ -362,6 +576,40 @@ class Engine(object):
             self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
                      % (self.launch_niceness, refused))
         return len(self._launched_names)
+
+    SILENT_AFTER = 2.0   # s: from then on, a launched node is not kept waiting by subscribers that do not answer
+
+    def _wired(self, node, silent=None):
+        """wired(node); with ``silent`` (a dict kept over one wait), the subscribers node is not
+        connected to and that do not answer their XML-RPC API are not waited for. A site powered
+        off leaves its nodes registered until someone cleans the master: a new publisher never
+        connects to them. Nothing is unregistered here (a node slow to answer may be alive)."""
+        if wired(node):
+            return True
+        if silent is None:
+            return False
+        try:
+            master = self.master
+            pubs, subs, _ = master.getSystemState()
+            code, _, bus = node_api(master.lookupNode(node), 1.0).getBusInfo(rospy.get_name())
+        except Exception:   # not up yet, or going away
+            return False
+        if code != 1:
+            return False
+        connected = {}
+        for info in bus:   # [id, destination, direction, transport, topic, connected, ...]
+            if info[2] == 'o':
+                connected.setdefault(info[4], set()).add(info[1])
+        subscribers = {topic: set(names) for topic, names in subs}
+        missing = {sub for topic, publishers in pubs if node in publishers
+                   for sub in subscribers.get(topic, set()) - {node} - connected.get(topic, set())}
+        for sub in missing - set(silent):
+            try:
+                node_api(master.lookupNode(sub), 0.5).getPid(rospy.get_name())
+            except Exception:   # no answer: a registration left behind
+                silent[sub] = True
+                self.log('warning: %s does not answer: %s is not kept waiting for it' % (sub, node))
+        return not (missing - set(silent))
 
     @staticmethod
     def _why_launch_ended(site):
@@ -379,7 +627,8 @@ class Engine(object):
             uri = self.master.lookupNode(node)
             code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
             proc = psutil.Process(pid)
-            record = {'pid': pid, 'cmdline': proc.cmdline(), 'cwd': proc.cwd(), 'env': proc.environ()}
+            record = {'pid': pid, 'cmdline': proc.cmdline(), 'cwd': proc.cwd(), 'env': proc.environ(),
+                      'owners': owners_of_process(pid)}   # started again, it stops with its site too
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
         _, failed = rosnode.kill_nodes([node])
@@ -405,12 +654,14 @@ class Engine(object):
             except Exception as e:   # keep undoing the rest: each failure is reported
                 detail, ok = str(e), False
             results.append({'action': step.action, 'target': step.target, 'ok': ok, 'detail': detail})
-            self.log('  rollback %s %s: %s%s' % (step.action, step.target, 'ok' if ok else 'FAILED ', detail))
+            self.log('  rollback %s %s: %s%s' % (step.action, step.target, 'ok: ' if ok else 'FAILED: ', detail))
         return results
 
     def _undo(self, step):
         if step.action == 'resume':
-            return 'resumed, %d held messages delivered' % self._do(step)
+            self._keeper.release(step.target)
+            answer = self._proxy(step.target + '/resume', Suspend)()
+            return '%s, %d held messages delivered' % (answer.message, answer.held)
         if step.action == 'stop_launch':
             site = step.detail
             terminate_tree(site.pid, grace=5.0)
@@ -420,15 +671,11 @@ class Engine(object):
             return 'stopped %s' % ', '.join(site.nodes)
         if step.action == 'respawn':
             record = step.detail
-            site = Site('respawn', record['cmdline'], env=record['env'],
+            argv = guarded(record['cmdline'], record.get('owners', []), self.guard_poll, self.guard_grace)
+            site = Site('respawn', argv, env=record['env'], cwd=record['cwd'],
                         log_path=os.path.join(self.log_dir, 'respawn_%d.log' % record['pid']))
             os.makedirs(self.log_dir, exist_ok=True)
-            prev = os.getcwd()
-            os.chdir(record['cwd'])
-            try:
-                site.start()
-            finally:
-                os.chdir(prev)
+            site.start()
             self.respawned.append(site)
             if not wait_until(lambda: step.target + '/rebind' in self._graph()[1] or
                               (step.target in self._graph()[0] and not self._offers_rebind(record)), 30.0, 0.05):

@@ -1,16 +1,32 @@
-"""Rebindable ports: the dynamic binding service every FTM node offers (paper Fig. 7)."""
+"""Rebindable ports: the dynamic binding service every FTM node offers (paper Fig. 7), and the
+suspension (``~suspend``/``~resume``) the Adaptation Engine uses, with its lease and its bounded
+buffer (:mod:`aft_ftm.suspension`)."""
 import threading
 import time
 import warnings
 
 import rosgraph
 import rospy
+from aft_msgs.msg import Alarm
 from aft_msgs.srv import Rebind, RebindResponse, Suspend, SuspendResponse
 import roslib.message
 
+from .. import config
 from .. import ports as rules
 from ..errors import RebindError
-from ..suspension import Gate, SuspendError
+from ..suspension import Gate, GateState, SuspendError
+from .params import param
+
+# The suspension's parameters, the same for every FTM node: name -> (default, converter, doc).
+SUSPENSION_PARAMS = {
+    'suspend_lease': (10.0, config.positive_float,
+                      'lease of a suspension asked with lease 0 (s): resumes by itself (and raises an alarm) '
+                      'unless resumed or renewed within it'),
+    'suspend_buffer_bytes': (64 * 1024 * 1024, config.positive_int,
+                             'bound of the held buffer (bytes, estimated from the messages\' fields): the '
+                             'message that would exceed it ends the suspension early (alarm), none is dropped'),
+}
+ALARMS_TOPIC = '/aft/alarms'   # where a node without an ``alarms`` port raises its suspension alarms
 
 
 class Ports(object):
@@ -22,6 +38,22 @@ class Ports(object):
     By default (``queue_size=None``) nothing is ever dropped by a queue: publishers write
     synchronously to their connections (a rospy publisher queue drops its oldest message when
     full) and subscriber queues are unbounded. It also saves a thread hand-off per hop.
+
+    The suspension's ROS interface, common to every FTM node (read once, here, at construction):
+
+    Parameters:
+        ~suspend_lease (float > 0, default 10 s): the lease of a ~suspend asked with lease 0.
+            A suspended node resumes by itself unless resumed or renewed within its lease.
+        ~suspend_buffer_bytes (int > 0, default 67108864 = 64 MiB): bound of the messages held
+            while suspended (their size estimated from their fields): the message that would
+            exceed it ends the suspension early, delivering every held message in order; none
+            is dropped.
+    Publishes:
+        alarms (aft_msgs/Alarm), the node's ``alarms`` port if it has one, else /aft/alarms:
+            mechanism ``suspension``, kind ``lease_expired`` or ``buffer_full``, when the node
+            ends a suspension on its own (also logged).
+    Services:
+        ~suspend, ~resume (aft_msgs/Suspend): see :meth:`advertise_service`.
     """
 
     CHECK_VALID = 10.0   # s: how long a dry run's type check stands for the same rebind
@@ -35,8 +67,13 @@ class Ports(object):
         self._topics = {}
         self._lock = threading.RLock()
         self.unbound_publishes = 0
+        values = {name: param(name, convert, default) for name, (default, convert, _) in SUSPENSION_PARAMS.items()}
+        self.suspend_lease = values['suspend_lease']
         # Every subscriber goes through the gate, which holds the inputs while the node is suspended.
-        self.gate = Gate(callbacks, log_error=rospy.logerr)
+        self.gate = Gate(callbacks, log_error=rospy.logerr, max_bytes=values['suspend_buffer_bytes'],
+                         on_self_resume=self._self_resumed)
+        self._alarm_pub = None   # created by advertise_service() if the node has no alarms port
+        self._lease_wakeup = threading.Event()
         self._hold = []   # by default ~suspend holds nothing and waits until no handler runs
         self._quiescent = lambda: True
         self._before_suspend = None
@@ -170,7 +207,16 @@ class Ports(object):
         return []
 
     def advertise_service(self):
-        """Offer ~rebind (aft_msgs/Rebind), ~suspend and ~resume (aft_msgs/Suspend)."""
+        """Offer ~rebind (aft_msgs/Rebind), ~suspend and ~resume (aft_msgs/Suspend).
+
+        ~suspend holds the inputs and answers once quiescent, under a lease (the request's, or
+        ``~suspend_lease`` for 0); with ``renew`` it only extends the lease of a suspended node
+        (refused if the node is not suspended: its lease expired, say). A thread of the node's
+        own, on the wall clock (a node on simulated time must resume too when its clock stands),
+        resumes it when the lease runs out."""
+        if 'alarms' not in self.specs:   # created now, so that subscribers are connected by the time it speaks
+            self._alarm_pub = rospy.Publisher(ALARMS_TOPIC, Alarm, queue_size=10, tcp_nodelay=True)
+        threading.Thread(target=self._watch_lease, name='suspend_lease', daemon=True).start()
         self._suspend_srv = rospy.Service('~suspend', Suspend, self._handle_suspend)
         self._resume_srv = rospy.Service('~resume', Suspend, self._handle_resume)
         return rospy.Service('~rebind', Rebind, self._handle_rebind)
@@ -186,30 +232,77 @@ class Ports(object):
             rospy.loginfo('rebind: %s', message)
         return RebindResponse(success=True, message=message, previous_topic=previous)
 
-    def suspend(self, timeout):
-        """Hold the inputs and wait until quiescent; returns the messages held. Raises SuspendError."""
+    def suspend(self, timeout, lease=None):
+        """Hold the inputs and wait until quiescent; returns the messages held. Raises SuspendError.
+        ``lease`` (s): resume by itself unless resumed or renewed within it (None: ~suspend_lease)."""
         if self._before_suspend is not None:
             self._before_suspend()
-        return self.gate.close(self._hold, self._quiescent, timeout)
+        held = self.gate.close(self._hold, self._quiescent, timeout, lease=lease or self.suspend_lease)
+        self._lease_wakeup.set()
+        return held
 
     def _handle_suspend(self, req):
         if req.probe:
             return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
+        lease = req.lease if req.lease > 0 else self.suspend_lease
+        if req.renew:
+            try:
+                held = self.gate.renew(lease, time.monotonic())
+            except SuspendError as e:
+                rospy.logwarn('%s: lease renewal refused: %s', rospy.get_name(), e)
+                return SuspendResponse(success=False, message=str(e))
+            self._lease_wakeup.set()
+            return SuspendResponse(success=True, message='lease renewed: %.3g s' % lease, held=held)
         timeout = req.timeout if req.timeout > 0 else 5.0
         try:
-            held = self.suspend(timeout)
+            held = self.suspend(timeout, lease)
         except SuspendError as e:
             rospy.logerr('%s: suspend refused: %s', rospy.get_name(), e)
             return SuspendResponse(success=False, message=str(e))
-        rospy.loginfo('%s: suspended (quiescent; holding %s)', rospy.get_name(), ', '.join(self._hold) or 'nothing')
-        return SuspendResponse(success=True, message='suspended, quiescent', held=held)
+        rospy.loginfo('%s: suspended (quiescent; holding %s; lease %.3g s)', rospy.get_name(),
+                      ', '.join(self._hold) or 'nothing', lease)
+        return SuspendResponse(success=True, message='suspended, quiescent, lease %.3g s' % lease, held=held)
+
+    def _watch_lease(self):
+        """Resume the node when its lease runs out. Sleeps until the deadline (woken when a
+        suspension starts or is renewed); an idle node wakes once a second, to see rospy shut down."""
+        while not rospy.is_shutdown():
+            self._lease_wakeup.clear()
+            left = self.gate.lease_left(time.monotonic())
+            if left is None:
+                self._lease_wakeup.wait(1.0)
+            elif left > 0:
+                self._lease_wakeup.wait(min(left, 1.0))
+            else:
+                try:
+                    self.gate.expire(time.monotonic())
+                except Exception as e:   # the watch must go on: a later suspension needs it too
+                    rospy.logerr('%s: resuming on an expired lease failed: %s', rospy.get_name(), e)
+
+    def _self_resumed(self, event, detail):
+        """The gate ended a suspension on its own (lease expired, buffer full): log and alarm."""
+        rospy.logerr('%s: suspension ended by the node itself: %s', rospy.get_name(), detail)
+        msg = Alarm(source=rospy.get_name(), mechanism='suspension', kind=event.value, detail=detail,
+                    stamp=rospy.Time.now())
+        try:
+            if self._alarm_pub is not None:
+                self._alarm_pub.publish(msg)
+            else:
+                self.publish('alarms', msg)
+        except Exception as e:   # rospy shutting down: the log above still says it
+            rospy.logerr('%s: cannot publish the alarm: %s', rospy.get_name(), e)
 
     def _handle_resume(self, req):
         if req.probe:
             return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
+        before = self.gate.state
         delivered = self.gate.open()
-        rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
-        return SuspendResponse(success=True, message='resumed', held=delivered)
+        if before in (GateState.CLOSED, GateState.CLOSING):
+            rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
+            return SuspendResponse(success=True, message='resumed', held=delivered)
+        # Harmless (a rollback resumes every node it may have suspended), but said.
+        ended = ': the last suspension ended so: %s' % self.gate.last_end if self.gate.last_end else ''
+        return SuspendResponse(success=True, message='was not suspended (%s)%s' % (before.name, ended), held=delivered)
 
     def shutdown(self):
         with self._lock:

@@ -36,6 +36,8 @@ class ProtocolNode(object):
             until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
         ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
             mechanism the Adaptation Engine launches ahead and binds in the pause).
+        ~suspend_lease (float, 10 s), ~suspend_buffer_bytes (int, 64 MiB): the lease of a suspension
+            and the bound of what it holds (every FTM node: see aft_ftm.ros.ports.Ports).
     Subscribes:
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
         aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests.

@@ -7,6 +7,7 @@ from aft_msgs.msg import Configuration
 from aft_msgs.srv import Witness as WitnessSrv
 
 from ..errors import AftError
+from ..site_guard import OWNERS_ENV, GuardError, parse_owners
 from ..witness import Grant, Op
 from .deadline import CallTimeout, Deadline
 
@@ -18,10 +19,16 @@ class WitnessUnreachable(AftError):
 
 
 def site_launcher_pid():
-    """The pid of this node's site launcher: AFT_SITE_PID when set (a node an adaptation launched into
-    a site), else the parent process (the site's roslaunch)."""
-    value = os.environ.get('AFT_SITE_PID', '')
-    return int(value) if value.isdigit() else os.getppid()
+    """The pid of this node's site launcher: the first owner of AFT_SITE_OWNERS when set (a node an
+    adaptation launched into a site, see aft_ftm.site_guard), else the parent process (the site's
+    roslaunch). So a replacement After speaks to the witness as the same incarnation of its site."""
+    owners = os.environ.get(OWNERS_ENV, '')
+    if owners:
+        try:
+            return parse_owners(owners)[0].pid
+        except GuardError:
+            pass
+    return os.getppid()
 
 
 def incarnation(pid):

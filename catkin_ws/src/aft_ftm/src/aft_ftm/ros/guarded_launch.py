@@ -1,0 +1,131 @@
+"""A launch that belongs to a site it was not started by: it stops when the site's launcher goes.
+
+``python -m aft_ftm.ros.guarded_launch --owner PID:CREATE_TIME [--owner ...] [--poll S] [--grace S] -- COMMAND ...``
+
+Runs COMMAND (a ``roslaunch``, or the command line of a node started again) as its child, with
+the owners in its environment (:data:`aft_ftm.site_guard.OWNERS_ENV`, so that a later adaptation
+finds the site of these nodes too), and every ``--poll`` seconds (0.2) looks whether each owner is
+still the process it was. Once one is gone, or when the guard gets SIGINT or SIGTERM (the engine's
+rollback, an operator), it sends SIGINT to COMMAND (roslaunch stops its nodes as on Ctrl-C) and
+kills whatever of the launch still runs ``--grace`` seconds (5) later. If COMMAND ends by itself,
+what it left running is killed and the guard exits with its status.
+
+The guard is a child subreaper, so that nodes orphaned by a roslaunch that died stay in its tree,
+and COMMAND gets SIGTERM if the guard itself dies (Linux). It is no ROS node (it never talks to
+the master); the decisions are :class:`aft_ftm.site_guard.Guard`'s, this module only acts.
+Exit status: COMMAND's (128 + signal if a signal ended it), 1 if an owner was gone at the start.
+"""
+import argparse
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+
+from ..site_guard import OWNERS_ENV, Action, Guard, GuardError, encode_owners, parse_owners, same_process
+from ..sites import process_tree, wait_dead
+
+PR_SET_PDEATHSIG = 1
+PR_SET_CHILD_SUBREAPER = 36
+
+
+def guarded(argv, owners, poll=0.2, grace=5.0):
+    """The command line running argv under a guard of these owners (argv itself if none)."""
+    if not owners:
+        return list(argv)
+    command = [sys.executable, '-m', 'aft_ftm.ros.guarded_launch', '--poll', str(poll), '--grace', str(grace)]
+    for owner in owners:
+        command += ['--owner', owner.encode()]
+    return command + ['--'] + list(argv)
+
+
+def create_time_of(pid):
+    """The create time of process pid; None if there is none, or it is a zombie (it ran its course)."""
+    try:
+        proc = psutil.Process(pid)
+        if proc.status() == psutil.STATUS_ZOMBIE:
+            return None
+        return proc.create_time()
+    except psutil.NoSuchProcess:
+        return None
+
+
+def _prctl(option, value):
+    """Linux prctl(2); False where it is not available."""
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl(option, value, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _die_with(parent):
+    """preexec_fn of the child: SIGTERM when the guard dies (and at once if it already has)."""
+    def preexec():
+        _prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:
+            os._exit(1)
+    return preexec
+
+
+def _say(text):
+    print('[guarded_launch %d] %s' % (os.getpid(), text), flush=True)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog='guarded_launch', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--owner', action='append', required=True, help='pid:create_time of a site launcher')
+    parser.add_argument('--poll', type=float, default=0.2, help='seconds between looks at the owners (0.2)')
+    parser.add_argument('--grace', type=float, default=5.0, help='seconds to stop after SIGINT, then killed (5)')
+    parser.add_argument('command', nargs=argparse.REMAINDER, help='-- then the command')
+    options = parser.parse_args(argv)
+    command = options.command[1:] if options.command[:1] == ['--'] else options.command
+    try:
+        owners = [o for text in options.owner for o in parse_owners(text)]
+        guard = Guard(options.grace)
+    except GuardError as e:
+        parser.error(str(e))
+    if not command or not options.poll > 0:
+        parser.error('a command (after --) and a poll > 0 are needed')
+
+    def owners_alive():
+        return all(same_process(o, create_time_of(o.pid)) for o in owners)
+    if not owners_alive():
+        _say('a launcher of the site (%s) is already gone: %s not started' % (encode_owners(owners), command[0]))
+        return 1
+    asked = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: asked.append(signum))
+    _prctl(PR_SET_CHILD_SUBREAPER, 1)
+    env = dict(os.environ)
+    env[OWNERS_ENV] = encode_owners(owners)
+    child = subprocess.Popen(command, env=env, preexec_fn=_die_with(os.getpid()))
+    _say('pid %d (%s) belongs to the site of launcher %s: it stops with it' % (child.pid, command[0],
+                                                                               encode_owners(owners)))
+
+    def tree():   # every process of the launch still running (zombies ran their course)
+        return wait_dead(process_tree(os.getpid())[1:], 0)
+    while True:
+        decision = guard.poll(time.monotonic(), bool(asked), child.poll() is None, owners_alive,
+                              lambda: bool(tree()))
+        if decision.reason:
+            _say(decision.reason)
+        for action in decision.actions:
+            if action == Action.INTERRUPT and child.poll() is None:
+                child.send_signal(signal.SIGINT)
+            elif action == Action.KILL:
+                for proc in tree():
+                    try:
+                        proc.kill()
+                    except psutil.NoSuchProcess:
+                        pass
+            elif action == Action.EXIT:
+                code = child.poll()
+                return 1 if code is None else (128 - code if code < 0 else code)
+        time.sleep(options.poll)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
