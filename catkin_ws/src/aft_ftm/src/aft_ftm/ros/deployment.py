@@ -220,6 +220,11 @@ class PbrDeployment(object):
                 time.monotonic() - started)), 0.05):
             raise RuntimeError('the backup did not join the primary: witness %s (logs in %s)'
                                % (witness_status(), self.log_dir))
+        status = witness_status() if self.witness else None
+        if status is not None and (status.epoch, status.primary, status.backup) != (2, 'master', 'slave'):
+            # A detector timed out while the sites were starting (a loaded machine): not the pair asked for.
+            raise RuntimeError('the pair did not hold through the start: epoch %d, primary %r, backup %r (logs in %s)'
+                               % (status.epoch, status.primary, status.backup, self.log_dir))
         return time.monotonic() - started
 
     def relaunch(self, name, **overrides):
