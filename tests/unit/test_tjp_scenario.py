@@ -37,6 +37,16 @@ def test_defaults_are_filled_in():
     ('faults: [{kind: false_detection, sensor: imu, at: 1, until: 2, distance: 1}]\n', 'fault of the ultrasonic'),
     ('faults: [{kind: power_loss, board: tertiary, at: 1}]\n', 'board must be one of'),
     ('mechanisms: [tr_imu]\nfaults: [{kind: power_loss, board: backup, at: 1}]\n', 'needs the pbr mechanism'),
+    ('faults: [{kind: board_back, at: 3}]\n', 'missing key board'),
+    ('faults: [{kind: board_back, board: [board_a], at: 3}]\n', 'board must be one of .*got \\[.board_a.\\]'),
+    ('faults: [{kind: board_back, board: board_a, at: 3}]\n', 'board_back of board_a at 3 s: it was not powered off'),
+    ('faults: [{kind: power_loss, board: board_a, at: 5}, {kind: board_back, board: primary, at: 5}]\n',
+     'board_back of board_a at 5 s must come after its power_loss at 5 s'),
+    ('faults: [{kind: power_loss, board: board_a, at: 5}, {kind: power_loss, board: primary, at: 9}]\n',
+     'power_loss of board_a at 9 s: it is off since 5 s'),
+    ('faults: [{kind: board_back, board: board_a, at: 3, role: primary}]\n', 'unknown key role'),
+    ('mechanisms: [tr_imu]\nfaults: [{kind: power_loss, board: board_b, at: 1}, '
+     '{kind: board_back, board: board_b, at: 2}]\n', 'a power_loss of board_b needs the pbr mechanism'),
     ('events: [{kind: parade, at: 1}]\n', 'kind must be pedestrian or adapt'),
     ('events: [{kind: pedestrian, at: 5, leaves: 3}]\n', 'leaves 3 must come after at 5'),
     ('events: [{kind: adapt, script: laser_vote}]\n', 'either at a time .* not neither'),
@@ -67,6 +77,22 @@ def test_a_random_fault_time_comes_from_the_seed():
     text = BASE + 'seed: %d\nfaults: [{kind: power_loss, board: primary, at: [5, 15]}]\n'
     times = [scenarios.parse(text % seed)['faults'][0]['at'] for seed in (1, 1, 2)]
     assert times[0] == times[1] != times[2] and all(5 <= t <= 15 for t in times)
+
+
+def test_a_board_lost_and_brought_back_is_named_by_its_board_and_may_fail_again_once_back():
+    s = parse('faults: [{kind: power_loss, board: primary, at: 5}, {kind: board_back, board: board_a, at: 8},\n'
+              '         {kind: power_loss, board: backup, at: 12}, {kind: power_loss, board: board_a, at: 15}]\n')
+    assert [(f['kind'], f['board'], f['at']) for f in s['faults']] == [
+        ('power_loss', 'board_a', 5.0), ('board_back', 'board_a', 8.0), ('power_loss', 'board_b', 12.0),
+        ('power_loss', 'board_a', 15.0)]
+    assert 'board_back' in scenarios.PROCESS_FAULTS   # carried out by the runner, not the simulator
+
+
+def test_the_shipped_rejoin_scenario_brings_board_a_back_between_the_two_power_losses():
+    s = scenarios.load('board_rejoin')
+    assert [(f['kind'], f['board']) for f in s['faults']] == [('power_loss', 'board_a'), ('board_back', 'board_a'),
+                                                             ('power_loss', 'board_b')]
+    assert 'pbr' in s['mechanisms'] and s['control'] is None
 
 
 def test_the_control_experiment_removes_exactly_one_mechanism():

@@ -287,3 +287,18 @@ def test_the_peak_deceleration_is_the_braking_not_the_crash():
               (0.04, 0.0, 0.0, 0.0, -250.0, 0.0, True), (0.06, 0.0, 0.0, 0.0, 0.0, 0.0, True)]
     s = summarize(steady_run(states=states))
     assert s['collision'] and s['collision_at'] == 0.04 and s['peak_decel'] == 3.0
+
+
+def test_who_drove_when_and_the_rejoins_are_reported():
+    pid_commands = [(round(i * 0.1, 3), BOARD_A if i < 10 or i >= 30 else BOARD_B) for i in range(40)]
+    rejoin = {'t': 2.5, 'kind': 'rejoin', 'board': 'board_a', 'primary': 'board_b', 'since_back': 0.27}
+    events = [{'t': 1.0, 'kind': 'failover', 'silence': 0.05, 'switch': 0.004, 'board': 'board_a'},
+              {'t': 1.5, 'kind': 'fault', 'fault': 'board_back', 'target': 'board_a'},
+              {'t': 2.0, 'kind': 'board_back', 'board': 'board_a'}, rejoin,
+              {'t': 3.0, 'kind': 'failover', 'silence': 0.05, 'switch': 0.004, 'board': 'board_b'}]
+    s = summarize(steady_run(pid_commands=pid_commands, events=events))
+    assert s['pid_handovers'] == [[0.0, BOARD_A], [1.0, BOARD_B], [3.0, BOARD_A]]
+    assert s['rejoins'] == [rejoin] and len(s['failovers']) == 2
+    assert any('t=2.50 s, board board_a re-joined (the backup of board_b), 270 ms after it came back' in line
+               for line in text(s).splitlines())
+    assert summarize(steady_run())['rejoins'] == []

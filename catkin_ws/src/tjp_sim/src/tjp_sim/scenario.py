@@ -11,7 +11,10 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
 - ``mechanisms`` [all of :data:`MECHANISMS`]: the fault tolerance mechanisms attached
 - ``faults`` [[]]: each one a mapping with ``kind`` and ``at`` (sim s, or [low, high] for a time
   drawn from the seed); sensor faults (:mod:`tjp_sim.faults`) name a ``sensor`` of :data:`SENSORS`
-  and (except crash) an ``until``; ``power_loss`` names a ``board`` (primary or backup);
+  and (except crash) an ``until``; ``power_loss`` and ``board_back`` (the board started again, as
+  a backup: it re-joins the primary) name a ``board``, board_a or board_b (or ``primary`` and
+  ``backup``, the boards' roles at the start: board_a and board_b); a board's power losses and
+  returns alternate, a power loss first;
   ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
   (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`
 - ``managed_tjp`` [false]: those TJP nodes run under aft_ftm's service manager
@@ -42,8 +45,9 @@ class ScenarioError(TjpConfigError):
 
 MECHANISMS = ('pbr', 'tr_imu', 'tr_ultrasonic', 'triplication_vote', 'alarm_and_stop')
 SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
-BOARDS = ('primary', 'backup')
-PROCESS_FAULTS = ('power_loss', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang')
+# The boards of controllerPid, and the names that designate them (the roles are those at the start).
+BOARDS = {'board_a': 'board_a', 'board_b': 'board_b', 'primary': 'board_a', 'backup': 'board_b'}
+PROCESS_FAULTS = ('power_loss', 'board_back', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang')
 MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {
@@ -95,7 +99,8 @@ def _time(where, value, duration, rng):
 def _fault(where, item, duration, rng):
     kind = item.get('kind') if isinstance(item, dict) else None
     extra = {'stuck': ['value'], 'offset': ['offset'], 'noise': ['sigma'], 'spikes': ['probability', 'magnitude'],
-             'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'simulator_crash': [],
+             'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'board_back': ['board'],
+             'simulator_crash': [],
              'master_crash': [], 'node_crash': ['node'], 'node_hang': ['node']}
     if kind not in extra:
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
@@ -123,9 +128,33 @@ def _fault(where, item, duration, rng):
         fault['probability'] = _number(where + '.probability', item['probability'], 0, 1)
     if kind in ('node_crash', 'node_hang') and item['node'] not in MANAGED_NODES:
         raise ScenarioError('%s: node must be one of %s, got %r' % (where, ', '.join(MANAGED_NODES), item['node']))
-    if kind == 'power_loss' and item['board'] not in BOARDS:
-        raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
+    if kind in ('power_loss', 'board_back'):
+        if not isinstance(item['board'], str) or item['board'] not in BOARDS:
+            raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
+        fault['board'] = BOARDS[item['board']]
     return fault
+
+
+def _check_boards(source, faults, mechanisms):
+    """Each board's power losses and returns alternate, a power loss first; board_b exists with pbr only."""
+    for board in sorted(set(BOARDS.values())):
+        steps = sorted(((f['at'], f['kind']) for f in faults if f['kind'] in ('power_loss', 'board_back')
+                        and f['board'] == board), key=lambda step: (step[0], step[1] != 'power_loss'))
+        if steps and board != 'board_a' and 'pbr' not in mechanisms:
+            raise ScenarioError('%s: a %s of %s needs the pbr mechanism (without it there is no backup board)'
+                                % (source, steps[0][1], board))
+        off = None
+        for at, kind in steps:
+            if kind == 'power_loss' and off is not None:
+                raise ScenarioError('%s: power_loss of %s at %g s: it is off since %g s (bring it back first with '
+                                    'board_back)' % (source, board, at, off))
+            if kind == 'board_back' and off is None:
+                raise ScenarioError('%s: board_back of %s at %g s: it was not powered off before (a power_loss of it '
+                                    'must come first)' % (source, board, at))
+            if kind == 'board_back' and at <= off:
+                raise ScenarioError('%s: board_back of %s at %g s must come after its power_loss at %g s'
+                                    % (source, board, at, off))
+            off = at if kind == 'power_loss' else None
 
 
 def _event(where, item, duration, rng):
@@ -201,9 +230,7 @@ def parse(text, source='scenario'):
         if not isinstance(items, list):
             raise ScenarioError('%s: %s must be a list, got %r' % (source, key, items))
         scenario[key] = [check('%s: %s[%d]' % (source, key, i), item, duration, rng) for i, item in enumerate(items)]
-    if any(f['kind'] == 'power_loss' and f['board'] == 'backup' for f in scenario['faults']) and \
-            'pbr' not in mechanisms:
-        raise ScenarioError('%s: a power loss of the backup board needs the pbr mechanism (there is no backup)' % source)
+    _check_boards(source, scenario['faults'], mechanisms)
     expect = data.get('expect', {})
     _keys(source + ': expect', expect, [], ['min_gap_fraction', 'stop_within'])
     scenario['expect'] = {

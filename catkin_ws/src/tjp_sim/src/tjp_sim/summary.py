@@ -12,7 +12,8 @@ by ``t``):
 - ``pid_commands``: ``(t, source)``, each command of controllerPid and the node that published it.
 - ``alarms``: ``(t, source, mechanism, kind, detail)``.
 - ``events``: dicts with at least ``t`` and ``kind``; the kinds read here are ``fault``,
-  ``injected``, ``failover``, ``adaptation`` and ``pedestrian`` (others are ignored).
+  ``injected``, ``failover``, ``rejoin`` (a board brought back re-joined as the backup),
+  ``adaptation`` and ``pedestrian`` (others are ignored).
 
 The lists other than ``states`` may be missing or empty: nothing of that kind happened.
 
@@ -96,6 +97,15 @@ def _longest_silence(pid_commands, end):
     gaps = [b - a for a, b in zip(times, times[1:])]
     gaps.append(max(0.0, end - times[-1]))
     return max(gaps)
+
+
+def _handovers(pid_commands):
+    """[t, source] each time controllerPid's commands come from another node (the first included)."""
+    changes = []
+    for row in pid_commands:
+        if not changes or changes[-1][1] != row[1]:
+            changes.append([row[0], row[1]])
+    return changes
 
 
 def _number(name, value):
@@ -184,7 +194,9 @@ def summarize(run, expect=None):
         'holds': sum(1 for c in commands if c[2] == Mode.HOLD),
         'longest_pid_silence': end - start if silence is None else silence,
         'pid_sources': sorted({row[1] for row in pid_commands}),
+        'pid_handovers': _handovers(pid_commands),
         'failovers': _events(run, 'failover'),
+        'rejoins': _events(run, 'rejoin'),
         'faults': _events(run, 'fault'),
         'faults_injected': counts,
         'faults_masked': sum(1 for a in alarms if a[3].endswith('_masked') or a[3] == 'laser_disagrees'),
@@ -247,6 +259,10 @@ def text(summary):
             'switched in %s' % _ms(f.get('switch')) if f.get('ok', True) else
             'SWITCH FAILED: %s' % '; '.join(f.get('problems') or ['?']))
         for f in s['failovers']]))
+    lines.append(('re-joins', '%d' % len(s['rejoins']), [
+        '%s, board %s re-joined (the backup of %s), %s after it came back' % (
+            _at(r.get('t')), r.get('board', '?'), r.get('primary', '?'), _ms(r.get('since_back')))
+        for r in s['rejoins']]))
     lines.append(('faults', '%d' % len(s['faults']), [
         '%s: %s on %s' % (_at(f.get('t')), f.get('fault', '?'), f.get('target', '-')) for f in s['faults']]))
     injected = s['faults_injected']

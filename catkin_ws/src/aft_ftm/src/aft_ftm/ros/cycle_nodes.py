@@ -5,15 +5,20 @@ cycle is captured instead, by a Terminate statement the node calls at the end of
 its main loop (:class:`Terminate`, a library function as in the paper). It publishes the node's
 state after the cycle on ``cycle_end``. The node's outputs are remapped to its After.
 
-:class:`CycleAfterNode` is PBR's After for such a node, on each replica:
+:class:`CycleAfterNode` is PBR's After for such a node, on each replica (the logic, without
+rospy, is :class:`aft_ftm.cycle_replica.CycleReplica`):
 
 - primary: passes every output on at once (a control loop cannot wait for a round trip), and at
-  each cycle end checkpoints the state to the backup's After, which acknowledges it;
+  each cycle end checkpoints the whole state to the backup's After, which acknowledges it; every
+  checkpoint is a state transfer (``full``);
 - backup: its own node runs on the same inputs, but its outputs are not the system's (they are
   counted, not passed on); each checkpoint's state is set into its node (its ~set_state), so that
-  the node continues from the primary's state when it takes over;
+  the node continues from the primary's state when it takes over. A backup that holds no state
+  (it started, came back after a power loss, or its primary stopped checkpointing to it) asks to
+  join on ``join``, every ``~join_period``, and follows from the next checkpoint;
 - ``~set_role`` ALONE (the watchdog, at failover): the backup passes its node's outputs on from
-  then on; the primary goes on without checkpoints.
+  then on; a primary goes on without checkpoints. A replica running alone becomes primary again
+  when a backup asks to join it.
 
 If the primary dies between a cycle's output and that cycle's checkpoint, the backup resumes from
 the previous cycle's state: one cycle is computed again, which for a controller means one more
@@ -24,14 +29,15 @@ import time
 
 import rospy
 import roslib.message
-from aft_msgs.msg import Checkpoint, CheckpointAck, CycleEnd
+from aft_msgs.msg import Alarm, Checkpoint, CheckpointAck, CycleEnd, Join
 from aft_msgs.srv import SetRole, SetRoleResponse, SetState
 
 from .. import config
-from ..checkpoint import CheckpointReceiver, CheckpointSender, Decision
+from ..checkpoint import Decision
+from ..cycle_replica import CycleReplica
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import Role, check_role_change
+from ..protocol import Role
 from .params import param
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
@@ -63,17 +69,29 @@ class CycleAfterNode(object):
         ~role (primary | backup | alone, default primary)
         ~msg_type (str, required): the type of the node's output, e.g. aft_msgs/CarCommand
         ~ack_timeout (float, 0.5 s): a checkpoint unacknowledged this long means the backup is lost:
-            the primary goes on alone.
+            the primary goes on alone (alarm ``backup_lost``) until a backup joins.
         ~connect_timeout (float, 10 s): how long set-up waits for the peer's After.
+        ~peer_after (str, default '' = any): a backup follows only an After whose name starts so.
+        ~join_period (float, 0.25 s): a backup that holds no state asks to join this often.
+        ~stale_after (float, 1 s), ~stale_cycles (int, 3): a backup whose own node ran this many cycles
+            over this long without a checkpoint no longer mirrors its primary: it joins again
+            (alarm ``backup_invalid``).
+        ~site (str, default: the node's name): the replica's site, in join requests.
+        ~suspend_lease (float, 10 s), ~suspend_buffer_bytes (int, 64 MiB): the lease of a suspension
+            and the bound of what it holds (every FTM node: see aft_ftm.ros.ports.Ports).
     Subscribes:
         raw (~msg_type), port ``raw``: the node's outputs
         cycle_end (aft_msgs/CycleEnd), port ``cycle_end``: the node's Terminate statements
         peer_checkpoints (aft_msgs/Checkpoint), port ``peer_checkpoints``: the primary's checkpoints
         peer_acks (aft_msgs/CheckpointAck), port ``peer_acks``: the backup's acknowledgments
+        join_requests (aft_msgs/Join), port ``join_requests``: the peer backup asking to join
     Publishes:
         out (~msg_type), port ``out``: the replicated node's outputs, for the rest of the system
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
         acks (aft_msgs/CheckpointAck), port ``acks``
+        join (aft_msgs/Join), port ``join``: this backup asking to join, while it holds no state
+        alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
+            goes on alone) and ``backup_invalid`` (a backup no longer mirrors its primary)
     Services called:
         set_state (aft_msgs/SetState): the node's state manager (backup)
     Services:
@@ -82,16 +100,21 @@ class CycleAfterNode(object):
 
     def __init__(self):
         self.name = rospy.get_name()
-        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
         msg_type = param('msg_type', config.service_type, required=True)
         if roslib.message.get_message_class(msg_type) is None:
             raise config.ConfigError('parameter %s: unknown message type %s'
                                      % (rospy.resolve_name('~msg_type'), msg_type))
-        self.ack_timeout = param('ack_timeout', config.positive_float, 0.5)
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
+        self.site = param('site', config.non_empty_str, self.name)
         self.first_seq = int(time.time() * 1e6)   # numbered from the clock, as PBR's After
-        self.sender = CheckpointSender(self.role, self.first_seq) if self.role != Role.BACKUP else None
-        self.receiver = CheckpointReceiver() if self.role == Role.BACKUP else None
+        self.replica = CycleReplica(
+            self.name, role, self.first_seq, expect=param('peer_after', lambda n, v: '' if v == '' else
+                                                          config.non_empty_str(n, v), ''),
+            ack_timeout=param('ack_timeout', config.positive_float, 0.5),
+            join_period=param('join_period', config.positive_float, 0.25),
+            stale_after=param('stale_after', config.positive_float, 1.0),
+            stale_cycles=param('stale_cycles', config.positive_int, 3))
         self.lock = threading.Lock()
         self.forwarded = 0
         self.withheld = 0        # a backup's own outputs, not passed on
@@ -101,24 +124,30 @@ class CycleAfterNode(object):
                             PortSpec('checkpoints', PUBLISH, 'aft_msgs/Checkpoint'),
                             PortSpec('acks', PUBLISH, 'aft_msgs/CheckpointAck'),
                             PortSpec('peer_checkpoints', SUBSCRIBE, 'aft_msgs/Checkpoint'),
-                            PortSpec('peer_acks', SUBSCRIBE, 'aft_msgs/CheckpointAck')],
+                            PortSpec('peer_acks', SUBSCRIBE, 'aft_msgs/CheckpointAck'),
+                            PortSpec('join', PUBLISH, 'aft_msgs/Join'),
+                            PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
+                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'raw': self._on_output, 'cycle_end': self._on_cycle_end,
-                            'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack})
+                            'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack,
+                            'join_requests': self._on_join})
         self.ports.suspension(['raw', 'cycle_end'])
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
 
     def setup(self, timeout):
-        for name in ('out', 'checkpoints', 'acks', 'peer_checkpoints', 'peer_acks', 'raw', 'cycle_end'):
+        for name in ('out', 'checkpoints', 'acks', 'join', 'alarms', 'peer_checkpoints', 'peer_acks', 'join_requests',
+                     'raw', 'cycle_end'):
             self.ports.bind(name)
-        if self.role == Role.BACKUP:
+        role = self.replica.role
+        if role == Role.BACKUP:
             try:
                 rospy.wait_for_service('set_state', timeout)
             except rospy.ROSException:
                 rospy.logerr('%s: the node\'s state manager (%s) is not available', self.name,
                              rospy.resolve_name('set_state'))
                 return False
-        peers = {Role.PRIMARY: ['checkpoints', 'peer_acks'], Role.BACKUP: ['peer_checkpoints', 'acks'],
-                 Role.ALONE: []}[self.role]
+        peers = {Role.PRIMARY: ['checkpoints', 'peer_acks', 'join_requests'],
+                 Role.BACKUP: ['peer_checkpoints', 'acks', 'join'], Role.ALONE: []}[role]
         missing = wait_for_connections(self.ports, peers, self.connect_timeout)
         if missing:
             rospy.logerr('%s: the peer After is not connected on %s within %.1f s', self.name,
@@ -126,15 +155,23 @@ class CycleAfterNode(object):
             return False
         rospy.Service('~set_role', SetRole, self._on_set_role)
         self.ports.advertise_service()
-        if self.sender is not None:
-            # On the wall clock, as the acknowledgments' deadlines: simulated time may run at any rate.
-            threading.Thread(target=self._watch_acks, name='acks', daemon=True).start()
+        # On the wall clock, as the acknowledgments' deadlines: simulated time may run at any rate.
+        threading.Thread(target=self._tick, name='pbr', daemon=True).start()
         return True
+
+    def _report(self, notes):
+        for note in notes:
+            if note.alarm:
+                rospy.logwarn('%s: pbr %s: %s', self.name, note.kind, note.detail)
+                self.ports.publish('alarms', Alarm(source=self.name, mechanism='pbr', kind=note.kind,
+                                                   detail=note.detail, stamp=rospy.Time.now()))
+            else:
+                rospy.loginfo('%s: %s', self.name, note.detail)
 
     # -- outputs and cycles ----------------------------------------------------------------------
     def _on_output(self, msg):
         with self.lock:
-            passing = self.role != Role.BACKUP
+            passing = self.replica.passes_outputs()
             if passing:
                 self.forwarded += 1
             else:
@@ -143,85 +180,76 @@ class CycleAfterNode(object):
             self.ports.publish('out', msg)
 
     def _on_cycle_end(self, end):
+        # Cycle ends arrive one at a time (one subscription, one thread): checkpoints leave in order.
         with self.lock:
-            if self.sender is None or not self.sender.needs_checkpoint():
-                return
-            seq = self.sender.hold(end.cycle, time.monotonic())
-            self.checkpoints += 1
-            checkpoint = Checkpoint(seq=seq, first_seq=self.first_seq, sender=self.name, state=end.state)
-        self.ports.publish('checkpoints', checkpoint)
+            out, notes = self.replica.cycle_end(end.state, time.monotonic())
+            if out is not None:
+                self.checkpoints += 1
+        self._report(notes)
+        if out is not None:
+            self.ports.publish('checkpoints', Checkpoint(seq=out.seq, first_seq=out.first_seq, sender=self.name,
+                                                         state=out.state, full=True))
 
     def _on_ack(self, ack):
         with self.lock:
-            if self.sender is None or self.sender.role != Role.PRIMARY:
-                return
-            _, lost = self.sender.on_ack(ack.seq, ack.ok)
-            if lost:   # outputs are never held here (a control loop cannot wait): no witness to ask
-                self.sender.go_alone()
-                self.role = Role.ALONE
-        if lost:
-            rospy.logerr('%s: the backup refused checkpoint %d (%s): going on alone', self.name, ack.seq, ack.error)
+            notes = self.replica.on_ack(ack.seq, ack.ok, ack.error, ack.to)
+        self._report(notes)
 
-    def _watch_acks(self):
-        while not rospy.is_shutdown() and self.role == Role.PRIMARY:
-            time.sleep(self.ack_timeout / 4.0)
-            self._check_acks()
-
-    def _check_acks(self):
+    def _on_join(self, join):
+        if join.after == self.name:
+            return
+        if self.ports.connections('peer_acks') < 1:
+            # Its acknowledgments could not reach us yet: it asks again in a join period.
+            rospy.loginfo('%s: %s asks to join; waiting until its acknowledgments are connected', self.name, join.after)
+            return
         with self.lock:
-            if self.sender is None or self.sender.role != Role.PRIMARY:
-                return
-            if not self.sender.overdue(time.monotonic(), self.ack_timeout):
-                return
-            self.sender.go_alone()
-            self.role = Role.ALONE
-        rospy.logerr('%s: a checkpoint was not acknowledged within %.2f s: the backup is lost, going on alone',
-                     self.name, self.ack_timeout)
+            notes = self.replica.on_join(join.after)
+        self._report(notes)
+
+    def _tick(self):
+        period = min(self.replica.ack_timeout / 4.0, self.replica.join_period / 2.0)
+        while not rospy.is_shutdown():
+            time.sleep(period)
+            with self.lock:
+                ask, notes = self.replica.check(time.monotonic())
+                last_seq = self.replica.receiver.last_seq if ask else 0
+            self._report(notes)
+            if ask:
+                self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=str(self.first_seq),
+                                                last_seq=last_seq, stamp=rospy.Time.now()))
 
     # -- backup ----------------------------------------------------------------------------------
     def _on_checkpoint(self, cp):
         # Checkpoints arrive one at a time (one subscription, one thread), in order. The node's
         # set_state is called outside the lock, so that a slow node never delays a promotion.
         with self.lock:
-            if self.receiver is None:
-                return
-            decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces)
-            if decision == Decision.GAP:
-                self.receiver.failed(cp.seq, 'a checkpoint is missing before it')
+            decision, notes = self.replica.on_checkpoint(cp.seq, cp.sender, cp.first_seq, cp.full)
+        self._report(notes)
         error = ''
-        if decision == Decision.APPLY:
+        if decision in (Decision.APPLY, Decision.APPLY_FULL):
             try:
                 answer = self.set_state(state=cp.state)
                 ok, error = answer.success, answer.message
             except (rospy.ServiceException, rospy.ROSException) as e:
                 ok, error = False, 'set_state failed: %s' % e
             with self.lock:
-                if ok:
-                    self.receiver.accept(cp.seq, cp.sender)
-                else:
-                    self.receiver.failed(cp.seq, error)
+                notes = self.replica.applied(cp.seq, cp.sender, ok, error, time.monotonic())
+            self._report(notes)
         elif decision == Decision.REACK:
             ok = True
         else:
             ok = False
             error = '%s: checkpoint %d of %s refused (%s)' % (self.name, cp.seq, cp.sender, decision.name)
-        if not ok:
             rospy.logerr(error)
-        self.ports.publish('acks', CheckpointAck(seq=cp.seq, ok=ok, error=error))
+        self.ports.publish('acks', CheckpointAck(seq=cp.seq, ok=ok, error=error, to=cp.sender))
 
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
             try:
-                check_role_change(self.role, role)
-                last_seq = 0
-                if self.receiver is not None and role == Role.ALONE:
-                    last_seq = self.receiver.promote()
-                elif self.sender is not None and role == Role.ALONE and self.sender.role == Role.PRIMARY:
-                    self.sender.go_alone()
+                last_seq = self.replica.set_role(role, int(time.time() * 1e6))
             except RoleError as e:
                 rospy.logerr('%s: role change refused: %s', self.name, e)
                 return SetRoleResponse(success=False, message=str(e))
-            self.role = role
-        rospy.logwarn('%s: now %s (last checkpoint %d)', self.name, role.name, last_seq)
-        return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)
+        rospy.logwarn('%s: now %s (last checkpoint %d)', self.name, self.replica.role.name, last_seq)
+        return SetRoleResponse(success=True, message='role %s' % self.replica.role.name, last_seq=last_seq)

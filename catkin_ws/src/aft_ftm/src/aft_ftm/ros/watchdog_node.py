@@ -1,16 +1,18 @@
-"""The watchdog of a replicated pub/sub node (the second paper's Arduino, section III.D): it
-watches the primary board's heartbeats and, when they stop, switches to the backup."""
+"""The watchdog of a replicated pub/sub node (the second paper's Arduino, section III.D): it watches
+every board by role and, when the primary board's heartbeats stop, switches to the backup; a board
+brought back re-joins and becomes the backup again. The logic is aft_ftm.board_watch (no rospy)."""
 import json
 import os
 import threading
 import time
 
 import rospy
+from aft_msgs.msg import Alarm
 from aft_msgs.srv import SetRole
 from std_msgs.msg import String
 
 from .. import config
-from ..detector import HeartbeatMonitor
+from ..board_watch import BoardWatch, Connect, Failover, Report, boards_param
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from ..sites import power_off, this_host
@@ -19,95 +21,182 @@ from .ports import Ports
 
 
 class WatchdogNode(object):
-    """Declares the watched board failed after ``~timeout`` of silence, then:
+    """Watches each board's heartbeats and its After's acknowledgments (aft_ftm.board_watch). When
+    the primary is silent for ``~timeout`` and a backup can take over:
 
-    1. enforces its fail-silence: a board that only stalled must not come back as a second primary,
-       so the process tree of its launcher is killed (if it runs on this host);
-    2. promotes the backup: SetRole ALONE on each node of ``~promote``, in order, over connections
-       opened at set-up (a failover does not need the ROS master);
-    3. publishes the failover, with the detection time (the silence) and the switch time.
+    1. its fail-silence is enforced: a board that only stalled must not come back as a second
+       primary, so the process tree of its launcher is stopped, then killed (if it runs on this host);
+    2. as soon as it is stopped, the backup is promoted: SetRole ALONE on each of its nodes, in order, over connections opened
+       before the failure (a failover does not need the ROS master). Only a board that acknowledged
+       a checkpoint of the primary is ever promoted;
+    3. the failover is published, with the detection time (the silence) and the switch time.
 
-    It acts once: after a failover the remaining board runs alone.
+    A silent primary with no backup, or a silent backup, is reported and left running (it is not
+    promoted while silent). A board heard from a new launcher (it was started again) holds no state:
+    it is not promoted until its After acknowledged a checkpoint of the primary; the watchdog then
+    opens its connections to that board's nodes, and it is the backup. Every such step raises an alarm.
 
     Parameters:
-        ~watched (str, required): the watched board's site name (as in its heartbeats)
-        ~promote (list of node names, required): the backup's nodes to promote, in order
-        ~timeout (float, 0.05 s): the silence that declares the board failed
+        ~boards (dict, required): {board: [node to promote, ...]} for each board (two or more), by
+            the board's site name (as in its heartbeats)
+        ~primary (str, required): the board that starts as the primary; the others start as backups
+        ~timeout (float, 0.05 s): the silence that declares a board failed
+        ~stall_after (float, ~timeout / 5): a check of the heartbeats later than this after the previous
+            one was the watchdog's own stall, not held against the boards (aft_ftm.detector)
         ~startup_grace (float, 0 = never): declare a board never heard failed after this long
-        ~service_timeout (float, 2 s): limit on each promotion call
+        ~service_timeout (float, 2 s): limit on each promotion call and on opening a re-joined board's
+            connections
         ~niceness (int, -5): a watchdog must not be starved by the load it watches
+        ~suspend_lease (float, 10 s), ~suspend_buffer_bytes (int, 64 MiB): the lease of a suspension
+            and the bound of what it holds (every FTM node: see aft_ftm.ros.ports.Ports).
     Subscribes:
-        heartbeat (aft_msgs/Heartbeat), port ``heartbeat``: the watched board's crash detector
+        heartbeat/<board> (aft_msgs/Heartbeat), port ``heartbeat/<board>``: each board's crash detector
+        acks/<board> (aft_msgs/CheckpointAck), port ``acks/<board>``: each board's After's acknowledgments
     Publishes:
-        events (std_msgs/String), port ``events``: one JSON record per failover
+        events (std_msgs/String), port ``events``: one JSON record per failover (kind ``failover``),
+            board brought back (``board_back``) and re-join (``rejoin``)
+        alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``board_failed`` (a failover),
+            ``failover_failed``, ``primary_silent``, ``board_silent``, ``board_back``, ``board_rejoined``,
+            ``backup_unreachable``, ``backup_restarted``
     Services:
         ~rebind (aft_msgs/Rebind), ~suspend/~resume (aft_msgs/Suspend)
     """
 
     def __init__(self):
-        self.watched = param('watched', config.non_empty_str, required=True)
-        promote = param('promote', lambda n, v: v, required=True)
-        if not isinstance(promote, list) or not promote or not all(isinstance(x, str) and x for x in promote):
-            raise config.ConfigError('parameter %s must be a non-empty list of node names, got %r'
-                                     % (rospy.resolve_name('~promote'), promote))
-        self.promote = [rospy.resolve_name(n) for n in promote]
+        self.boards = {board: [rospy.resolve_name(n) for n in nodes]
+                       for board, nodes in param('boards', boards_param, required=True).items()}
+        self.first = param('primary', lambda n, v: config.one_of(n, v, self.boards), required=True)
         self.timeout = param('timeout', config.positive_float, 0.05)
-        grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
+        self.stall_after = param('stall_after', config.positive_float, self.timeout / 5.0)
+        self.grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
         self.service_timeout = param('service_timeout', config.positive_float, 2.0)
         self.niceness = param('niceness', config.niceness, -5)
-        self.monitor = HeartbeatMonitor(self.timeout, grace, time.monotonic())
         self.lock = threading.Lock()
-        self.done = False
         self.host = this_host()
-        self.ports = Ports([PortSpec('heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
-                            PortSpec('events', PUBLISH, 'std_msgs/String')],
-                           {'heartbeat': self._on_heartbeat}, queue_size=10)
-        self.proxies = {}
+        self.watch = None            # BoardWatch, from set-up on
+        self.proxies = {}            # board -> {node: persistent SetRole proxy}
+        specs = [PortSpec('events', PUBLISH, 'std_msgs/String'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')]
+        callbacks = {}
+        for board in self.boards:
+            specs += [PortSpec('heartbeat/' + board, SUBSCRIBE, 'aft_msgs/Heartbeat'),
+                      PortSpec('acks/' + board, SUBSCRIBE, 'aft_msgs/CheckpointAck')]
+            callbacks['heartbeat/' + board] = lambda beat, board=board: self._on_heartbeat(board, beat)
+            callbacks['acks/' + board] = lambda ack, board=board: self._on_ack(board, ack)
+        self.ports = Ports(specs, callbacks, queue_size=10)
 
     def setup(self, timeout):
         try:
             os.setpriority(os.PRIO_PROCESS, 0, self.niceness)
         except OSError as e:
             rospy.logwarn('%s: cannot set niceness %d (%s)', rospy.get_name(), self.niceness, e)
-        for name in ('events', 'heartbeat'):
+        for board in self.boards:
+            if board != self.first:
+                proxies, error = self._open(self.boards[board], timeout)
+                if error:
+                    rospy.logerr('%s: board %s: %s', rospy.get_name(), board, error)
+                    return False
+                self.proxies[board] = proxies
+        with self.lock:
+            self.watch = BoardWatch(self.boards, self.first, self.timeout, time.monotonic(), self.grace,
+                                    connected=set(self.proxies), stall_after=self.stall_after)
+        for name in sorted(self.ports.specs):
             self.ports.bind(name)
-        for node in self.promote:
-            try:
-                rospy.wait_for_service(node + '/set_role', timeout)
-            except rospy.ROSException:
-                rospy.logerr('%s: %s/set_role is not available', rospy.get_name(), node)
-                return False
-            self.proxies[node] = rospy.ServiceProxy(node + '/set_role', SetRole, persistent=True)
-            # Open the connection now, with a call that changes nothing (the backup stays a backup):
-            # a failover must not need the ROS master, which may be gone by then.
-            try:
-                answer = self.proxies[node](role=Role.BACKUP.value, last_seq=0)
-            except (rospy.ServiceException, rospy.ROSException) as e:
-                rospy.logerr('%s: %s/set_role does not answer: %s', rospy.get_name(), node, e)
-                return False
-            if not answer.success:
-                rospy.logerr('%s: %s is not a backup: %s', rospy.get_name(), node, answer.message)
-                return False
         self.ports.advertise_service()
         threading.Thread(target=self._loop, name='watchdog', daemon=True).start()
         return True
 
-    def _on_heartbeat(self, beat):
-        if beat.site != self.watched:
+    def _open(self, nodes, timeout):
+        """Persistent SetRole connections to nodes, each opened with a call that changes nothing (a
+        backup stays a backup): a failover must not need the ROS master, which may be gone by then.
+        Returns (proxies, error)."""
+        proxies = {}
+        for node in nodes:
+            try:
+                rospy.wait_for_service(node + '/set_role', timeout)
+            except rospy.ROSException:
+                self._close(proxies)
+                return {}, '%s/set_role is not available' % node
+            proxies[node] = rospy.ServiceProxy(node + '/set_role', SetRole, persistent=True)
+            answer, error = self._call(proxies[node], timeout, role=Role.BACKUP.value, last_seq=0)
+            if error or not answer.success:
+                self._close(proxies)
+                return {}, ('%s/set_role does not answer: %s' % (node, error) if error else
+                            '%s is not a backup: %s' % (node, answer.message))
+        return proxies, ''
+
+    @staticmethod
+    def _close(proxies):
+        for proxy in proxies.values():
+            try:
+                proxy.close()
+            except Exception:   # a dead board's connection: closing it must never fail the caller
+                pass
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def _on_heartbeat(self, board, beat):
+        if beat.site != board:
+            rospy.logwarn_throttle(10.0, '%s: a heartbeat of site %s on the topic of board %s: ignored'
+                                   % (rospy.get_name(), beat.site, board))
             return
         with self.lock:
-            self.monitor.beat(time.monotonic(), beat)
+            actions = self.watch.beat(board, time.monotonic(), beat.host, beat.pid, beat)
+        self._carry_out(actions)
+
+    def _on_ack(self, board, ack):
+        with self.lock:
+            actions = self.watch.ack(board, ack.ok, ack.to, time.monotonic())
+        self._carry_out(actions)
 
     def _loop(self):
         tick = self.timeout / 10.0
-        while not rospy.is_shutdown() and not self.done:
+        while not rospy.is_shutdown():
             with self.lock:
-                verdict = self.monitor.check(time.monotonic())
-            if verdict is not None:
-                self.done = True
-                self._failover(verdict)
-                return
+                actions = self.watch.check(time.monotonic())
+            self._carry_out(actions)
             time.sleep(tick)
+
+    # -- actions ---------------------------------------------------------------------------------
+    def _carry_out(self, actions):
+        for action in actions:
+            if isinstance(action, Failover):
+                self._failover(action)
+            elif isinstance(action, Connect):
+                threading.Thread(target=self._connect, args=(action,), daemon=True).start()
+            elif isinstance(action, Report):
+                self._report(action)
+
+    def _report(self, report):
+        if report.alarm:
+            rospy.logwarn('%s: pbr %s: %s', rospy.get_name(), report.kind, report.detail)
+            self.ports.publish('alarms', Alarm(source=rospy.get_name(), mechanism='pbr', kind=report.kind,
+                                               detail=report.detail, stamp=rospy.Time.now()))
+        else:
+            rospy.loginfo('%s: %s', rospy.get_name(), report.detail)
+        if report.record is not None:
+            self._publish(dict(report.record))
+
+    def _publish(self, record):
+        record['t'] = rospy.get_time()
+        self.ports.publish('events', String(data=json.dumps(record)))
+
+    def _power_off(self, board, verdict, on_stopped):
+        """Enforce the fail-silence of a failed board: on_stopped() runs once every process of it is
+        stopped (it can send nothing more), before they are killed. Returns the number of processes."""
+        self._close(self.proxies.pop(board, {}))
+        info = verdict.last_info
+        if info is not None and info.host == self.host and info.pid > 0:
+            return power_off(info.pid, on_stopped=on_stopped)
+        on_stopped()
+        return 0
+
+    def _connect(self, action):
+        proxies, error = self._open(action.nodes, self.service_timeout)
+        with self.lock:
+            if not error:
+                self._close(self.proxies.get(action.board, {}))
+                self.proxies[action.board] = proxies
+            actions = self.watch.connected(action.board, error, time.monotonic())
+        self._carry_out(actions)
 
     @staticmethod
     def _call(proxy, timeout, **request):
@@ -127,30 +216,41 @@ class WatchdogNode(object):
             return None, 'no answer within %.1f s' % timeout
         return result.get('answer'), result.get('error')
 
-    def _failover(self, verdict):
-        started = time.monotonic()
-        info = verdict.last_info
-        rospy.logwarn('%s: board %s failed: %s', rospy.get_name(), self.watched, verdict.reason)
-        killed = 0
-        if info is not None and info.host == self.host and info.pid > 0:
-            killed = power_off(info.pid)
-        promoted, problems = [], []
-        for node in self.promote:
-            answer, error = self._call(self.proxies[node], self.service_timeout, role=Role.ALONE.value, last_seq=0)
-            if error:
-                problems.append('%s: %s' % (node, error))
-                break
-            if not answer.success:
-                problems.append('%s refused: %s' % (node, answer.message))
-                break
-            promoted.append(node)
-        switch = time.monotonic() - started
-        record = {'t': rospy.get_time(), 'kind': 'failover', 'board': self.watched, 'reason': verdict.reason,
-                  'silence': verdict.silence, 'switch': switch, 'killed': killed, 'promoted': promoted,
-                  'ok': not problems, 'problems': problems}
+    def _failover(self, failover):
+        started = time.monotonic()   # nothing is logged before the switch: with the master gone, logging is slow
+        verdict = failover.verdict
+        promoted, problems, switched = [], [], []
+
+        def promote():
+            # The failed board is stopped (it can publish nothing more): the backup may take over now,
+            # while the stopped processes are killed.
+            proxies = self.proxies.get(failover.to, {})
+            for node in failover.nodes:
+                if node not in proxies:
+                    problems.append('%s: no connection open to it' % node)
+                    break
+                answer, error = self._call(proxies[node], self.service_timeout, role=Role.ALONE.value, last_seq=0)
+                if error:
+                    problems.append('%s: %s' % (node, error))
+                    break
+                if not answer.success:
+                    problems.append('%s refused: %s' % (node, answer.message))
+                    break
+                promoted.append(node)
+            switched.append(time.monotonic() - started)
+        killed = self._power_off(failover.board, verdict, promote)
+        switch = switched[0]
+        with self.lock:
+            self.watch.promoted(failover.to, problems, time.monotonic())
+        self._publish({'kind': 'failover', 'board': failover.board, 'to': failover.to, 'reason': verdict.reason,
+                       'silence': verdict.silence, 'switch': switch, 'killed': killed, 'promoted': promoted,
+                       'ok': not problems, 'problems': problems})
         if problems:
-            rospy.logerr('%s: failover incomplete: %s', rospy.get_name(), '; '.join(problems))
+            self._report(Report('failover_failed', 'board %s failed (%s) and nobody took over: %s'
+                                % (failover.board, verdict.reason, '; '.join(problems)), True, None))
         else:
-            rospy.logwarn('%s: switched to the backup in %.1f ms (silence %.1f ms)', rospy.get_name(),
+            rospy.logwarn('%s: switched to board %s in %.1f ms (silence %.1f ms)', rospy.get_name(), failover.to,
                           switch * 1e3, verdict.silence * 1e3)
-        self.ports.publish('events', String(data=json.dumps(record)))
+            self._report(Report('board_failed', 'board %s failed (%s): powered off, board %s took over in %.1f ms and '
+                                'goes on without a backup until a board re-joins'
+                                % (failover.board, verdict.reason, failover.to, switch * 1e3), True, None))

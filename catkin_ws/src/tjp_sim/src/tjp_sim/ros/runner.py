@@ -4,8 +4,9 @@ The run's processes, each a site (aft_ftm.sites) so that a fault can kill exactl
 the master, the recorder (rosbag), the car (car.launch: simulator, TJP, Emergency Braking,
 mechanisms) and one or two boards (board.launch: controllerPid, and with PBR its After and crash
 detector). The runner is itself a ROS node on simulated time: it injects the faults that kill
-processes (a board's power loss, the simulator's or the master's crash) and runs adaptations, at
-their scenario times. Afterwards it reads the bag back, and writes the summary (JSON) and the plot.
+processes (a board's power loss, the simulator's or the master's crash), starts a board again (it
+re-joins as the backup) and runs adaptations, at their scenario times. Afterwards it reads the bag
+back, and writes the summary (JSON) and the plot.
 
 A scenario's own master makes every run independent, and lets a scenario kill the master.
 """
@@ -105,13 +106,9 @@ class ScenarioRun(object):
         self._site('recorder', ['/usr/lib/rosbag/record', '-O', self.bag, '--tcpnodelay', '__name:=' + RECORDER[1:]]
                    + TOPICS)
         self._site('car', ['roslaunch', 'tjp_sim', 'car.launch'] + self._launch_args())
+        self._site('board_a', self._board_argv('board_a', 'primary'))
         if self.pbr:
-            self._site('board_a', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_a', 'peer:=board_b',
-                                   'role:=primary'])
-            self._site('board_b', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_b', 'peer:=board_a',
-                                   'role:=backup'])
-        else:
-            self._site('board_a', ['roslaunch', 'tjp_sim', 'board.launch', 'board:=board_a', 'pbr:=false'])
+            self._site('board_b', self._board_argv('board_b', 'backup'))
         # The runner's own node, on simulated time, on this run's master.
         os.environ.update(ROS_MASTER_URI=self.env['ROS_MASTER_URI'])
         rospy.init_node(RUNNER[1:], disable_signals=True)
@@ -127,6 +124,13 @@ class ScenarioRun(object):
                            % (self.setup_timeout, ', '.join(missing[:6]), os.path.join(self.out, 'logs')))
         self.log('scenario %s: %d nodes up and connected in %.1f s' % (self.scenario['name'],
                                                                        len(self.expected_nodes()), time.monotonic() - t0))
+
+    def _board_argv(self, board, role):
+        """The command that starts a board: with PBR in ``role``, paired with the other board."""
+        if not self.pbr:
+            return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'pbr:=false']
+        peer = 'board_b' if board == 'board_a' else 'board_a'
+        return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'peer:=%s' % peer, 'role:=%s' % role]
 
     @staticmethod
     def _answers(master):
@@ -217,11 +221,25 @@ class ScenarioRun(object):
 
     def _act(self, item):
         kind = item['kind']
-        if kind == 'power_loss':
-            board = 'board_a' if item['board'] == 'primary' else 'board_b'
+        if kind in ('power_loss', 'board_back') and item['board'] not in self.sites:
+            self.event('fault', fault=kind, target=item['board'], skipped='the board does not run without pbr')
+        elif kind == 'power_loss':
+            board = item['board']
             self.event('fault', fault='power_loss', target=board)
             killed, _ = self.sites[board].power_off_fault()
             self.log('    board %s powered off (%d processes)' % (board, killed))
+        elif kind == 'board_back':
+            # Powered on again: the board's launch starts afresh, as a backup (it holds no state and
+            # re-joins the primary); without PBR it drives alone again.
+            board = item['board']
+            self.event('fault', fault='board_back', target=board)
+            old = self.sites[board]
+            if old.alive():
+                self.log('    board %s is still running: not started again' % board)
+                return
+            old.stop()
+            self._site(board, self._board_argv(board, 'backup'))
+            self.log('    board %s started again (as a backup)' % board)
         elif kind == 'simulator_crash':
             self.event('fault', fault='simulator_crash', target='car_sim')
             self.simulator_killed = True

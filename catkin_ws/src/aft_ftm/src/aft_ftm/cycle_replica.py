@@ -1,0 +1,209 @@
+"""The logic of PBR's After for a publish/subscribe node (:mod:`aft_ftm.ros.cycle_nodes`), without rospy.
+
+Every checkpoint of a pub/sub node carries the node's whole state after one cycle, so every one
+is a state transfer (``full``): a backup follows its primary from whichever checkpoint reaches it
+first, a backup that starts while the primary runs follows from the next cycle end, and a lost
+checkpoint costs nothing once the next one arrives.
+
+The replica's role (:data:`aft_ftm.protocol.ROLE_EDGES`) lives in its CheckpointSender (PRIMARY,
+ALONE) or, for a backup, its CheckpointReceiver (BACKUP, then ALONE once promoted, which then takes
+a sender of its own); they guard every change.
+
+- PRIMARY checkpoints each cycle's state. A checkpoint refused, or not acknowledged within
+  ``ack_timeout``, means the backup is lost: ALONE, reported (``backup_lost``). Outputs are never
+  held (a control loop cannot wait), so nothing else changes.
+- ALONE sends no checkpoint. A join request (a backup that started, came back after a power loss,
+  or no longer mirrors it) makes it PRIMARY again at the next cycle end ('a backup joined'), and
+  that cycle's checkpoint is the joiner's state transfer. The joiner is its backup once it
+  acknowledged it. A PRIMARY asked to join by its own backup first goes ALONE: that backup no
+  longer mirrors it, and the checkpoints it never answered must not count against the joiner.
+- BACKUP follows its primary: a CheckpointReceiver with joins, taking state transfers only from
+  an After whose name starts with ``expect``. While it holds no state (JOINING) it asks to join
+  every ``join_period`` and can never take over. A FOLLOWING backup whose own node ran
+  ``stale_cycles`` cycles over at least ``stale_after`` seconds without a checkpoint no longer
+  mirrors its primary (which went on alone): it goes back to JOINING, reported
+  (``backup_invalid``), and asks again. So does one whose node refused a state.
+- ``set_role`` ALONE (the watchdog, at failover): a following backup takes over, and may take a
+  backup of its own later; a JOINING one refuses (it holds no state). PRIMARY is never asked for:
+  a replica becomes primary again when a backup joins it.
+
+Invariants: a backup passes no output on; only a backup that applied a checkpoint of its primary
+takes over; every change that leaves the pair without a valid backup is a Note with ``alarm``.
+``now`` is always passed in (seconds, one monotonic clock).
+"""
+import collections
+
+from .checkpoint import CheckpointReceiver, CheckpointSender, Decision, Follow, Need
+from .errors import RoleError
+from .protocol import Role, check_role_change
+
+
+class Note(object):
+    """Something to report: always logged, and raised as an alarm (mechanism ``pbr``) if ``alarm``."""
+    __slots__ = ('kind', 'detail', 'alarm')
+
+    def __init__(self, kind, detail, alarm=False):
+        self.kind = kind
+        self.detail = detail
+        self.alarm = alarm
+
+    def __repr__(self):
+        return 'Note(%s%s: %s)' % (self.kind, ', alarm' if self.alarm else '', self.detail)
+
+
+# A checkpoint to send: always a state transfer (full), of the sender numbered from first_seq.
+Outgoing = collections.namedtuple('Outgoing', 'seq first_seq state')
+
+
+class CycleReplica(object):
+    """One replica's After of a pub/sub node (see the module's docstring)."""
+
+    def __init__(self, name, role, first_seq, expect='', ack_timeout=0.5, join_period=0.25,
+                 stale_after=1.0, stale_cycles=3):
+        for what, value in (('ack_timeout', ack_timeout), ('join_period', join_period),
+                            ('stale_after', stale_after), ('stale_cycles', stale_cycles)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+                raise ValueError('%s must be a number > 0, got %r' % (what, value))
+        self.name = name
+        self.ack_timeout = ack_timeout
+        self.join_period = join_period
+        self.stale_after = stale_after
+        self.stale_cycles = stale_cycles
+        self.sender = CheckpointSender(role, first_seq) if role != Role.BACKUP else None
+        self.receiver = None
+        if role == Role.BACKUP:
+            self.receiver = CheckpointReceiver(join=True)
+            self.receiver.expect = expect
+        self.joiner = None          # sender: the After that asked to join, taken at the next cycle end
+        self.last_ask = None        # backup: when it last asked to join
+        self.last_applied = None    # backup: when it last applied a checkpoint
+        self.own_cycles = 0         # backup: its own node's cycles since then
+        self.transfers = 0          # sender: state transfers sent to joiners
+
+    @property
+    def role(self):
+        return self.sender.role if self.sender is not None else self.receiver.role
+
+    @property
+    def following(self):
+        """A backup that holds its primary's state (it may take over)."""
+        return self.receiver is not None and self.receiver.role == Role.BACKUP and \
+            self.receiver.state == Follow.FOLLOWING
+
+    def passes_outputs(self):
+        return self.role != Role.BACKUP
+
+    # -- every replica ---------------------------------------------------------------------------
+    def cycle_end(self, state, now):
+        """The node ended a cycle with ``state`` (bytes). Returns (the Outgoing checkpoint or None, notes)."""
+        if self.sender is None:
+            return None, self._own_cycle(now)
+        if self.joiner is not None and not self.sender.deposed:
+            joiner, self.joiner = self.joiner, None
+            if self.sender.role == Role.PRIMARY:
+                self.sender.go_alone()   # our backup asks to join: it no longer mirrors us
+            seq = self.sender.join(joiner, now)
+            self.transfers += 1
+            return Outgoing(seq, self.sender.first_seq, state), [
+                Note('join', '%s asked to join: its state transfer is checkpoint %d' % (joiner, seq))]
+        if not self.sender.needs_checkpoint():
+            return None, []
+        return Outgoing(self.sender.hold(None, now), self.sender.first_seq, state), []
+
+    def check(self, now):
+        """The timed duties. Returns (whether to send a join request now, notes)."""
+        if self.sender is not None:
+            if self.sender.role == Role.PRIMARY and self.sender.overdue(now, self.ack_timeout):
+                self.sender.go_alone()
+                return False, [Note('backup_lost', 'a checkpoint was not acknowledged within %.2f s: the backup is '
+                                    'lost; %s goes on alone until a backup joins' % (self.ack_timeout, self.name),
+                                    alarm=True)]
+            return False, []
+        if self.receiver.role == Role.BACKUP and self.receiver.state == Follow.JOINING and \
+                (self.last_ask is None or now - self.last_ask >= self.join_period):
+            self.last_ask = now
+            return True, []
+        return False, []
+
+    def set_role(self, role, first_seq):
+        """A role change asked from outside (the watchdog). ``first_seq`` numbers the checkpoints of a
+        promoted backup. Returns the last checkpoint applied (0 if none); RoleError changes nothing."""
+        if role == Role.PRIMARY and self.role != Role.PRIMARY:
+            raise RoleError('%s becomes primary when a backup asks to join it, not on request' % self.name)
+        if role == Role.ALONE and self.receiver is not None and self.receiver.role == Role.BACKUP:
+            last_seq = self.receiver.promote()   # RoleError if it holds no state
+            self.sender = CheckpointSender(Role.ALONE, first_seq)
+            return last_seq
+        if role == Role.ALONE and self.sender is not None and self.sender.role == Role.PRIMARY:
+            self.sender.go_alone()
+            return 0
+        check_role_change(self.role, role)   # the same role: nothing to do; anything else is refused
+        return 0
+
+    # -- primary side ----------------------------------------------------------------------------
+    def on_join(self, after):
+        """A backup After asks for a state transfer. Returns notes."""
+        if self.sender is None:
+            return [Note('join_ignored', '%s asks to join, but %s is a backup' % (after, self.name))]
+        if self.sender.join_seq is not None and self.sender.joiner == after:
+            return []   # its state transfer is on its way
+        self.joiner = after
+        return []
+
+    def on_ack(self, seq, ok, error, to):
+        """The backup answered checkpoint seq (``to``: the After it answers, '' if it does not say).
+        Returns notes."""
+        if self.sender is None or (to and to != self.name):
+            return []
+        joiner = self.sender.joiner
+        _, need = self.sender.on_ack(seq, ok)
+        if need == Need.ADMIT:
+            self.sender.admit(0)
+            return [Note('joined', '%s holds our state (checkpoint %d): it is our backup' % (joiner, seq))]
+        if need == Need.EXCLUDE:
+            self.sender.go_alone()
+            return [Note('backup_lost', 'the backup refused checkpoint %d (%s): %s goes on alone until a backup '
+                         'joins' % (seq, error or 'no reason given', self.name), alarm=True)]
+        return []
+
+    # -- backup side -----------------------------------------------------------------------------
+    def on_checkpoint(self, seq, sender, first_seq, full):
+        """A checkpoint arrived. Returns (Decision, notes). On APPLY and APPLY_FULL the caller sets the
+        state into its node, then calls :meth:`applied`."""
+        if self.receiver is None:
+            return Decision.FENCED, []
+        decision = self.receiver.decide(seq, sender, first_seq, full=full)
+        if decision == Decision.GAP:
+            return decision, self._invalid(seq, 'a checkpoint is missing before it')
+        return decision, []
+
+    def applied(self, seq, sender, ok, error, now):
+        """The node took the state of checkpoint seq (ok), or refused it (error). Returns notes."""
+        if not ok:
+            return self._invalid(seq, error)
+        joining = self.receiver.state == Follow.JOINING
+        self.receiver.accept(seq, sender)
+        self.last_applied, self.own_cycles = now, 0
+        if joining:
+            return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]
+        return []
+
+    def _own_cycle(self, now):
+        if not self.following:
+            return []
+        self.own_cycles += 1
+        if self.own_cycles >= self.stale_cycles and now - self.last_applied >= self.stale_after:
+            return self._invalid(self.receiver.last_seq, 'no checkpoint for %.2f s, over %d cycles of its own node'
+                                 % (now - self.last_applied, self.own_cycles))
+        return []
+
+    def _invalid(self, seq, why):
+        """This backup no longer mirrors its primary: JOINING again, asking at once."""
+        following = self.receiver.state == Follow.FOLLOWING
+        self.receiver.failed(seq, why)
+        self.last_ask = None
+        if following:
+            return [Note('backup_invalid', '%s no longer mirrors its primary (%s): it cannot take over and asks to '
+                         'join again' % (self.name, why), alarm=True)]
+        return [Note('join_failed', '%s could not take checkpoint %d (%s): it asks to join again'
+                     % (self.name, seq, why))]

@@ -1,0 +1,221 @@
+"""PBR's After for a pub/sub node (the car's controllerPid), with a fake clock and no ROS: a backup
+follows from whichever checkpoint it gets first, a replica running alone takes a backup that asks to
+join, a backup that holds no state never takes over, and the controller's state survives two
+failovers with a re-join in between."""
+import pytest
+
+from aft_ftm.checkpoint import Decision, Follow
+from aft_ftm.cycle_replica import CycleReplica
+from aft_ftm.errors import RoleError
+from aft_ftm.protocol import Role
+from fakes import FakeClock
+
+A, B = '/board_a/cycle_after', '/board_b/cycle_after'
+
+
+def replica(name, role, first_seq=1000, expect='', **kw):
+    return CycleReplica(name, role, first_seq, expect=expect, **kw)
+
+
+def alarms(notes):
+    return [n.kind for n in notes if n.alarm]
+
+
+def deliver(backup, out, sender, now, node_accepts=True):
+    """A checkpoint reaches the backup; returns (ok, notes) as its acknowledgment says."""
+    decision, notes = backup.on_checkpoint(out.seq, sender, out.first_seq, True)
+    if decision in (Decision.APPLY, Decision.APPLY_FULL):
+        notes += backup.applied(out.seq, sender, node_accepts, '' if node_accepts else 'state refused', now)
+        return node_accepts, notes
+    return decision == Decision.REACK, notes
+
+
+def test_every_checkpoint_is_a_state_transfer_so_a_late_backup_follows_from_the_next_one():
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, expect='/board_a/')
+    for cycle in range(5):
+        out, _ = primary.cycle_end(b'state %d' % cycle, now=cycle * 0.1)   # nobody listens yet
+    ok, notes = deliver(backup, out, A, now=0.5)
+    assert ok and backup.following and [n.kind for n in notes] == ['following']
+    assert backup.receiver.last_seq == out.seq
+    # A lost checkpoint costs nothing: the next one carries the whole state.
+    primary.cycle_end(b'lost', now=0.6)
+    out, _ = primary.cycle_end(b'state 7', now=0.7)
+    assert deliver(backup, out, A, now=0.7)[0] and backup.receiver.last_seq == out.seq
+
+
+def test_a_backup_follows_only_the_after_it_expects():
+    backup = replica(B, Role.BACKUP, expect='/board_a/')
+    stranger = replica('/elsewhere/cycle_after', Role.PRIMARY)
+    out, _ = stranger.cycle_end(b'x', now=0)
+    assert deliver(backup, out, '/elsewhere/cycle_after', now=0) == (False, [])
+    assert backup.receiver.state == Follow.JOINING
+
+
+def test_a_joining_backup_asks_every_join_period_until_it_follows_and_cannot_take_over_meanwhile():
+    backup = replica(B, Role.BACKUP, join_period=0.25)
+    asks = [t for t in (0.0, 0.1, 0.2, 0.25, 0.3, 0.5) if backup.check(t)[0]]
+    assert asks == [0.0, 0.25, 0.5]
+    with pytest.raises(RoleError, match='cannot take over'):
+        backup.set_role(Role.ALONE, first_seq=1)
+    assert backup.role == Role.BACKUP and not backup.passes_outputs()
+    primary = replica(A, Role.PRIMARY)
+    deliver(backup, primary.cycle_end(b's', now=0.6)[0], A, now=0.6)
+    assert backup.check(1.0) == (False, [])
+
+
+def test_a_replica_running_alone_takes_a_backup_that_asks_to_join_at_the_next_cycle_end():
+    alone = replica(A, Role.ALONE)
+    assert alone.cycle_end(b'no backup', now=0)[0] is None
+    assert alone.on_join(B) == []
+    out, notes = alone.cycle_end(b'state 1', now=0.1)
+    assert out is not None and out.state == b'state 1' and [n.kind for n in notes] == ['join']
+    assert alone.role == Role.PRIMARY
+    assert [n.kind for n in alone.on_ack(out.seq, True, '', A)] == ['joined']
+    assert alone.sender.admitted and alone.sender.joiner is None
+    out2, _ = alone.cycle_end(b'state 2', now=0.2)
+    assert out2.seq == out.seq + 1 and alone.on_ack(out2.seq, True, '', A) == []
+
+
+def test_a_primary_asked_to_join_by_its_own_backup_transfers_again_without_counting_the_old_stream():
+    primary = replica(A, Role.PRIMARY, ack_timeout=0.5)
+    primary.cycle_end(b'never answered', now=0.0)   # its backup died with this one
+    primary.on_join(B)                              # ... and came back
+    out, _ = primary.cycle_end(b'state', now=0.1)
+    primary.on_ack(out.seq, True, '', A)
+    assert primary.check(now=1.0) == (False, [])    # the unanswered checkpoint no longer counts
+    assert primary.role == Role.PRIMARY
+
+
+def test_an_unacknowledged_or_refused_checkpoint_means_the_backup_is_lost_and_says_so():
+    primary = replica(A, Role.PRIMARY, ack_timeout=0.5)
+    primary.cycle_end(b's', now=0.0)
+    assert primary.check(now=0.4) == (False, [])
+    ask, notes = primary.check(now=0.6)
+    assert alarms(notes) == ['backup_lost'] and primary.role == Role.ALONE
+    assert primary.cycle_end(b's', now=0.7)[0] is None
+    other = replica(A, Role.PRIMARY)
+    out, _ = other.cycle_end(b's', now=0)
+    assert alarms(other.on_ack(out.seq, False, 'state refused', A)) == ['backup_lost'] and other.role == Role.ALONE
+
+
+def test_acknowledgments_addressed_to_another_after_are_ignored():
+    primary = replica(A, Role.PRIMARY)
+    out, _ = primary.cycle_end(b's', now=0)
+    assert primary.on_ack(out.seq, False, 'not for you', '/elsewhere/cycle_after') == []
+    assert primary.role == Role.PRIMARY and out.seq in primary.sender.held
+
+
+@pytest.mark.parametrize('cycles,seconds,stale', [(2, 5.0, False), (10, 0.5, False), (3, 1.0, True)])
+def test_a_backup_whose_primary_stopped_checkpointing_joins_again_but_only_when_its_own_node_ran(cycles, seconds,
+                                                                                                 stale):
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, stale_after=1.0, stale_cycles=3)
+    deliver(backup, primary.cycle_end(b's', now=0)[0], A, now=0)
+    notes = []
+    for i in range(cycles):
+        notes += backup.cycle_end(b'own', now=seconds * (i + 1) / cycles)[1]
+    assert (alarms(notes) == ['backup_invalid']) == stale
+    assert backup.following != stale
+    if stale:
+        assert backup.check(now=seconds)[0]   # it asks to join at once
+        with pytest.raises(RoleError):
+            backup.set_role(Role.ALONE, first_seq=1)
+
+
+def test_a_backup_whose_node_refuses_a_state_joins_again():
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP)
+    deliver(backup, primary.cycle_end(b'good', now=0)[0], A, now=0)
+    ok, notes = deliver(backup, primary.cycle_end(b'bad', now=0.1)[0], A, now=0.1, node_accepts=False)
+    assert not ok and alarms(notes) == ['backup_invalid'] and backup.receiver.state == Follow.JOINING
+
+
+def test_role_changes_from_outside():
+    primary = replica(A, Role.PRIMARY)
+    with pytest.raises(RoleError):
+        replica(A, Role.ALONE).set_role(Role.PRIMARY, first_seq=1)
+    with pytest.raises(RoleError):
+        primary.set_role(Role.BACKUP, first_seq=1)
+    assert primary.set_role(Role.PRIMARY, first_seq=1) == 0   # no change
+    assert primary.set_role(Role.ALONE, first_seq=1) == 0 and primary.role == Role.ALONE
+    backup = replica(B, Role.BACKUP)
+    assert backup.set_role(Role.BACKUP, first_seq=1) == 0     # the watchdog's connection check
+
+
+# -- the car's pair, end to end ------------------------------------------------------------------------
+class Board(object):
+    """A board: controllerPid (its state: the integral of the error, one step a cycle) and its After."""
+
+    def __init__(self, name, role, now, peer):
+        self.name = name
+        self.after = CycleReplica('/%s/cycle_after' % name, role, int(now * 1e6) + 1, expect='/%s/' % peer)
+        self.integral = 0          # a board that starts holds no state of the controller's
+        self.on = True
+
+
+class Pair(object):
+    def __init__(self):
+        self.clock = FakeClock(0.0)
+        self.boards = {'board_a': Board('board_a', Role.PRIMARY, 0.0, 'board_b'),
+                       'board_b': Board('board_b', Role.BACKUP, 0.0, 'board_a')}
+        self.commands = []         # (t, board, integral): what the car got
+        self.notes = []
+
+    def cycle(self):
+        now = self.clock.advance(0.1)
+        live = [b for b in self.boards.values() if b.on]
+        for board in live:   # the join requests of backups holding no state
+            ask, notes = board.after.check(now)
+            self.notes += notes
+            if ask:
+                for other in live:
+                    if other is not board:
+                        self.notes += other.after.on_join(board.after.name)
+        for board in live:
+            board.integral += 1   # every node computes the cycle on the same inputs
+            if board.after.passes_outputs():
+                self.commands.append((now, board.name, board.integral))
+        for board in live:       # then the cycle ends are checkpointed
+            out, notes = board.after.cycle_end(board.integral, now)
+            self.notes += notes
+            for other in live:
+                if out is not None and other is not board:
+                    decision, notes = other.after.on_checkpoint(out.seq, board.after.name, out.first_seq, True)
+                    if decision in (Decision.APPLY, Decision.APPLY_FULL):
+                        other.integral = out.state
+                        notes += other.after.applied(out.seq, board.after.name, True, '', now)
+                    self.notes += notes
+                    self.notes += board.after.on_ack(out.seq, decision != Decision.JOINING, '', board.after.name)
+
+    def run(self, seconds):
+        for _ in range(int(round(seconds / 0.1))):
+            self.cycle()
+
+    def power_off(self, name):
+        self.boards[name].on = False
+
+    def start_again(self, name, peer):
+        self.boards[name] = Board(name, Role.BACKUP, self.clock.now, peer)
+
+    def promote(self, name):
+        return self.boards[name].after.set_role(Role.ALONE, int(self.clock.now * 1e6) + 1)
+
+
+def test_the_controller_state_survives_two_failovers_with_a_rejoin_in_between():
+    pair = Pair()
+    pair.run(2.0)
+    pair.power_off('board_a')
+    pair.promote('board_b')
+    pair.run(1.0)
+    pair.start_again('board_a', 'board_b')
+    with pytest.raises(RoleError):   # back, but holding nothing: it must not take over
+        pair.promote('board_a')
+    pair.run(1.0)
+    assert pair.boards['board_a'].after.following
+    assert pair.boards['board_b'].after.role == Role.PRIMARY
+    pair.power_off('board_b')
+    pair.promote('board_a')
+    pair.run(1.0)
+    # One command per cycle, from exactly one board at a time, and the integral never jumps.
+    integrals = [c[2] for c in pair.commands]
+    assert integrals == list(range(1, 51))
+    assert [c[1] for c in pair.commands] == ['board_a'] * 20 + ['board_b'] * 20 + ['board_a'] * 10
+    assert not [n for n in pair.notes if n.alarm]
