@@ -159,3 +159,31 @@ def test_stored_checkpoint_numbers_are_counted_per_sending_after():
     core.on_stored(reply(rid=3), seq=40, sender='/master/after_lfr')
     assert core.last_stored_seq == 40
     assert core.can_take_over(40) and not core.can_take_over(41)
+
+
+def test_a_request_queued_while_backup_and_answered_meanwhile_is_not_executed_at_promotion():
+    """Found by the simulation (tests/unit/test_replication_sim.py): a backup being promoted queues the
+    re-sent request 7, then stores its reply from the primary's last checkpoint and answers a re-send
+    of 7 from it. The Proxy's next request says it has 7's answer: the stored reply is forgotten, and
+    the queued 7 must go with it, or the promoted backup applies it a second time."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_request(request(rid=7, oldest_pending=7), 0)
+    core.on_stored(reply(rid=7, oldest_pending=7), seq=1, sender='/master/after')
+    assert kinds(core.on_request(request(rid=7, oldest_pending=7), 0)) == [('Answer', 7)]
+    core.on_request(request(rid=8, oldest_pending=8), 0)
+    assert kinds(core.set_role(Role.ALONE, 0)) == [('Forward', 8)]
+    assert core.stats.executed == 1 and core.stats.dropped == 1
+
+
+def test_a_copy_of_a_refused_request_is_refused_again_never_executed():
+    """Found by the simulation: 'not executed' is a definite answer only if no copy of the request sent
+    before the Proxy had it (a re-send) is executed later, once the reply cache has room again."""
+    core = ProtocolCore(Role.ALONE, cache_bytes=64)
+    core.on_request(request(rid=1, oldest_pending=1), 0)
+    core.on_result(reply(rid=1), 0)
+    refused = core.on_request(request(rid=2, oldest_pending=1), 0)
+    assert [type(a).__name__ for a in refused] == ['Refuse'] and refused[0].reason.startswith('not executed')
+    again = core.on_request(request(rid=2, oldest_pending=2), 0)     # 1 confirmed: the cache has room now
+    assert [type(a).__name__ for a in again] == ['Refuse'] and again[0].reason == refused[0].reason
+    assert kinds(core.on_request(request(rid=3, oldest_pending=3), 0)) == [('Forward', 3)]   # 2's refusal had
+    assert core.stats.executed == 2 and not core.refused

@@ -31,7 +31,7 @@ def test_only_the_backup_is_promoted_and_the_old_primary_is_deposed():
     grant = w.request(Op.PROMOTE, 'slave', 's1')
     assert grant.granted and (grant.epoch, grant.primary, grant.backup) == (3, 'slave', '')
     assert not w.request(Op.EXCLUDE, 'master', 'm1').granted        # deposed: it must fail-stop
-    assert not w.request(Op.PROMOTE, 'slave', 's1').granted         # no backup left to promote
+    assert not w.request(Op.PROMOTE, 'master', 'm1').granted        # no backup left to promote
 
 
 @pytest.mark.parametrize('first,second', [(Op.EXCLUDE, Op.PROMOTE), (Op.PROMOTE, Op.EXCLUDE)])
@@ -97,3 +97,17 @@ def test_a_restarted_witness_with_its_file_never_grants_an_epoch_twice(tmp_path)
 def test_a_request_without_a_site_is_refused():
     w = pair()
     assert not w.request(Op.PROMOTE, '', '').granted and w.epoch == 2
+
+
+def test_a_promotion_whose_answer_was_lost_is_granted_again_and_changes_nothing():
+    """Found by the simulation (tests/unit/test_replication_sim.py): the witness stalled, the backup's
+    Recovery timed out and asked again; the first PROMOTE was granted meanwhile. Refused, the second
+    left the new primary unpromoted, and nobody served for ever."""
+    w = pair()
+    assert w.request(Op.PROMOTE, 'slave', 's1').granted
+    again = w.request(Op.PROMOTE, 'slave', 's1')
+    assert again.granted and (again.epoch, again.primary, again.backup) == (3, 'slave', '')
+    assert len(w.history) == 3
+    assert not w.request(Op.PROMOTE, 'slave', 's2').granted         # another start of it holds nothing
+    assert w.request(Op.ADMIT, 'slave', 's1', peer='master', peer_incarnation='m2').granted
+    assert not w.request(Op.PROMOTE, 'slave', 's1').granted         # it has a backup: no promotion to repeat

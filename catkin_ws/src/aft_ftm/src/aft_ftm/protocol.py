@@ -160,6 +160,7 @@ class ProtocolStats(object):
         self.stray_results = 0       # results that match no executing request
         self.stored = 0              # replies stored from checkpoints (backup)
         self.refused = 0             # new requests refused, not executed (the reply cache is full)
+        self.dropped = 0             # queued requests dropped: their Proxy has their answer already
 
 
 class ProtocolCore(object):
@@ -179,18 +180,24 @@ class ProtocolCore(object):
         self.started_at = None
         self.last_stored_seq = 0
         self.stored_sender = None
+        self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
     def on_request(self, request, now):
         """A request arrived from a Proxy."""
         self.stats.requests += 1
-        self.cache.forget_below(request.origin, request.oldest_pending)
+        self._forget_below(request.origin, request.oldest_pending)
         k = key(request)
         cached = self.cache.lookup(k)
         if cached is not None:
             self.stats.cached_answers += 1
             return [self._answer(cached, cached=True)]
+        if k in self.refused:
+            # A copy of a request refused already (sent again before its Proxy had the answer): the same
+            # definite answer, never an execution the client was told did not happen.
+            self.stats.refused += 1
+            return [Refuse(request, self.refused[k])]
         if k in self.queued_keys or (self.current is not None and key(self.current) == k):
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
@@ -198,8 +205,9 @@ class ProtocolCore(object):
         if self.cache.full():
             # Bounded memory: push back (the client may retry) rather than grow or forget a reply.
             self.stats.refused += 1
-            return [Refuse(request, 'not executed: the reply cache holds %d bytes (bound %d) of replies its '
-                                    'clients have not confirmed' % (self.cache.bytes, self.cache.max_bytes))]
+            self.refused[k] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its clients '
+                               'have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
+            return [Refuse(request, self.refused[k])]
         self.queue.append(request)
         self.queued_keys.add(k)
         return self._dispatch(now)
@@ -223,7 +231,7 @@ class ProtocolCore(object):
         starts again from the new one's first checkpoint (can_take_over compares with it).
         """
         if reply is not None:
-            self.cache.forget_below(reply.origin, reply.oldest_pending)
+            self._forget_below(reply.origin, reply.oldest_pending)
             self.cache.store(reply)
         if sender != self.stored_sender:
             self.stored_sender = sender
@@ -262,6 +270,25 @@ class ProtocolCore(object):
         return Answer(reply, cached)
 
     # -- internals --------------------------------------------------------------
+    def _forget_below(self, origin, watermark):
+        """Proxy ``origin`` has the answer of every request below ``watermark`` (or gave up on it): forget
+        those replies and refusals, and drop those requests if queued. A backup queues the requests its
+        clients send while it is promoted; one of them may meanwhile be answered from a reply a checkpoint
+        brought: executing it once promoted would apply it twice."""
+        self.cache.forget_below(origin, watermark)
+        if self.refused:
+            for k in [k for k in self.refused if k[0] == origin and k[1] < watermark]:
+                del self.refused[k]
+        if self.queue and any(r.origin == origin and r.id < watermark for r in self.queue):
+            kept = collections.deque()
+            for r in self.queue:
+                if r.origin == origin and r.id < watermark:
+                    self.queued_keys.discard(key(r))
+                    self.stats.dropped += 1
+                else:
+                    kept.append(r)
+            self.queue = kept
+
     def _dispatch(self, now):
         actions = []
         while self.role != Role.BACKUP and self.current is None and self.queue:

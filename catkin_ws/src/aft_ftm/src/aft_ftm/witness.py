@@ -8,7 +8,8 @@ promoted (backup). Every change makes a new epoch, and each request is granted o
 current record, so at most one site holds the right to serve in any epoch:
 
 - PROMOTE (the backup takes over): granted only to the backup of the current configuration. The
-  old primary is deposed: it is neither primary nor backup any more.
+  old primary is deposed: it is neither primary nor backup any more. Asked again by the incarnation
+  it promoted (its answer was lost) while it is alone, it is granted again and changes nothing.
 - EXCLUDE (the primary goes on alone): granted only to the primary. The backup is excluded and
   can never be promoted until it re-joins (a join transfers the state again).
 - ADMIT (a joined site becomes the backup): granted only to the primary, naming the joined site
@@ -125,6 +126,10 @@ class Witness(object):
         return self._grant(False, '%s is not in epoch %d: join %s' % (site, self.epoch, self.primary))
 
     def _promote(self, site, incarnation):
+        if site and site == self.primary and not self.backup and self.incarnations.get(site) == incarnation:
+            # Granted already, the answer lost (the caller timed out and asks again): saying so changes
+            # nothing, where a refusal would leave the new primary waiting for its promotion for ever.
+            return self._grant(True, '%s is the primary of epoch %d already' % (site, self.epoch))
         if site != self.backup or not site:
             return self._grant(False, '%s is not the backup of epoch %d (primary %r, backup %r): not promoted'
                                % (site, self.epoch, self.primary, self.backup))

@@ -109,7 +109,9 @@ class CrashDetectorNode(object):
         with self.lock:
             if self.monitor.state != PeerState.FAILED:
                 return
-            self.monitor = HeartbeatMonitor(self.timeout, self.grace, time.monotonic(), stall_after=self.period)
+            now = time.monotonic()
+            self.monitor = HeartbeatMonitor(self.timeout, self.grace, now, stall_after=self.period)
+            self.monitor.beat(now)   # heard (it joined): silent from now on, it is declared failed
             self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
 

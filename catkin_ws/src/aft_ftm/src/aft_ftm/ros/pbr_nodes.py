@@ -5,7 +5,7 @@ import time
 
 import rospy
 from aft_msgs.msg import Checkpoint, CheckpointAck, Join
-from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
+from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState, Suspend
 from std_msgs.msg import String
 
 from .. import config
@@ -79,6 +79,8 @@ class PbrAfterNode(AfterNode):
         ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
         ~join_period (float, 0.5 s): a joining backup asks for a state transfer this often.
         ~state_timeout (float, 5 s): the longest a get_state or set_state call may take.
+        ~protocol (str, default protocol): this replica's Protocol, suspended (quiescent) while a state
+            transfer is captured, so that the state holds exactly the requests whose replies it carries.
         ~cache_bytes (int, 64 MiB): bound of the replies kept for a state transfer (those clients
             have not confirmed); the Protocol's reply cache has the same bound and refuses first.
     Services called:
@@ -146,6 +148,10 @@ class PbrAfterNode(AfterNode):
         self.witness_lock = threading.Lock()   # one witness request at a time
         self.witness = WitnessClient(self.witness_service, self.site, self.site_pid) if with_witness else None
         self.state_calls = Deadline('state')
+        self.protocol_calls = Deadline('protocol')
+        protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
+        self.protocol_suspend = rospy.ServiceProxy(protocol + '/suspend', Suspend, persistent=True) if protocol else None
+        self.protocol_resume = rospy.ServiceProxy(protocol + '/resume', Suspend, persistent=True) if protocol else None
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
         self.told = set()           # alarms raised once per kind and sender
@@ -373,24 +379,63 @@ class PbrAfterNode(AfterNode):
             if sender.role == Role.PRIMARY:
                 if sender.joiner != join.after and join.last_seq == 0:
                     need = Need.EXCLUDE   # our backup started again: it holds nothing any more
-            else:
-                state, error = self._capture()
-                if state is None:
-                    self._tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
-                    return
-                seq = sender.join(join.after, time.monotonic())
-                self.role = Role.PRIMARY
-                self.joiner = (join.site, join.incarnation)
-                cache = self.recent.replies()
-                self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
-                                    'replies': len(cache), 't0': time.monotonic(), 'sent_wall': time.time()}
-                self.ports.publish('checkpoints', Checkpoint(
-                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, epoch=sender.epoch,
-                    full=True, state=state, cache=cache))
-                rospy.loginfo('%s: state transfer %d to %s (%d bytes of state, %d replies)', self.name, seq,
-                              join.site, len(state), len(cache))
+                else:
+                    return                # joining it already: its acknowledgment (or the ack timeout) decides
         if need:
             self._resolve(need, '%s asks to join again: it restarted' % join.site)
+            return
+        # The state must include exactly the requests whose replies it carries: capture it while the
+        # Protocol is quiescent (suspended: no request executing, new ones held), then let it go on.
+        if not self._quiesce_protocol(True):
+            return
+        try:
+            self._transfer(join)
+        finally:
+            self._quiesce_protocol(False)
+
+    def _quiesce_protocol(self, suspend):
+        if self.protocol_suspend is None:
+            return True
+        try:
+            if suspend:
+                request = dict(timeout=self.state_timeout, lease=max(2.0, 2 * self.state_timeout))
+                answer = self.protocol_calls.call(lambda: self.protocol_suspend(**request), self.state_timeout + 1.0)
+            else:
+                answer = self.protocol_calls.call(self.protocol_resume, self.state_timeout)
+        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+            answer = None
+            error = str(e)
+            name = self.protocol_suspend.resolved_name.rsplit('/', 1)[0]
+            self.protocol_suspend = rospy.ServiceProxy(name + '/suspend', Suspend, persistent=True)
+            self.protocol_resume = rospy.ServiceProxy(name + '/resume', Suspend, persistent=True)
+        else:
+            error = answer.message
+        if answer is None or not answer.success:
+            self._tell('join_failed', 'cannot %s the Protocol for a state transfer: %s'
+                       % ('suspend' if suspend else 'resume', error))
+            return False
+        return True
+
+    def _transfer(self, join):
+        with self.lock:
+            sender = self.sender
+            if sender is None or sender.deposed or sender.role != Role.ALONE:
+                return
+            state, error = self._capture()
+            if state is None:
+                self._tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
+                return
+            seq = sender.join(join.after, time.monotonic())
+            self.role = Role.PRIMARY
+            self.joiner = (join.site, join.incarnation)
+            cache = self.recent.replies()
+            self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
+                                'replies': len(cache), 't0': time.monotonic(), 'sent_wall': time.time()}
+            self.ports.publish('checkpoints', Checkpoint(
+                seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, epoch=sender.epoch,
+                full=True, state=state, cache=cache))
+            rospy.loginfo('%s: state transfer %d to %s (%d bytes of state, %d replies)', self.name, seq,
+                          join.site, len(state), len(cache))
 
     # -- backup -----------------------------------------------------------------
     def _ask_to_join(self, _event):
@@ -405,14 +450,23 @@ class PbrAfterNode(AfterNode):
                 waited = time.monotonic() - self.followed_since
                 if conf is not None and self.site not in (conf.primary, conf.backup) \
                         and waited > max(2 * self.ack_timeout, 4 * self.join_period):
-                    self.receiver.failed(self.receiver.last_seq, 'not admitted by the witness %.1f s after its '
-                                         'state transfer (epoch %d)' % (waited, conf.epoch))
-                    self.pending_state = None
-                    stuck = self.receiver.invalid
-            if self.receiver.state != Follow.JOINING:
+                    stuck = (self.receiver.sender, waited)
+            if self.receiver.state != Follow.JOINING and stuck is None:
                 return
-        if stuck:
-            self._tell('backup_invalid', '%s: %s; it joins again' % (self.site, stuck))
+        if stuck is not None:
+            # The configuration naming this site may have been missed (a partition to the witness): ask it.
+            status = self._ask(Op.STATUS)
+            if status is None or status.backup == self.site:
+                return
+            with self.lock:
+                if self.receiver.state != Follow.FOLLOWING or self.receiver.sender != stuck[0]:
+                    return
+                self.receiver.failed(self.receiver.last_seq, 'not admitted by the witness %.1f s after its state '
+                                     'transfer (epoch %d)' % (stuck[1], status.epoch))
+                self.pending_state = None
+                why = self.receiver.invalid
+            self._tell('backup_invalid', '%s: %s; it joins again' % (self.site, why))
+            return
         if not self.ports.connections('peer_checkpoints'):
             return   # the state transfer would be lost: ask once the primary's checkpoints reach us
         self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=self.witness.incarnation,
@@ -526,6 +580,7 @@ class PbrAfterNode(AfterNode):
     # -- role changes -----------------------------------------------------------
     def _on_set_role(self, req):
         role = Role(req.role)
+        told_alone = False
         with self.lock:
             try:
                 if self.role == Role.BACKUP and role == Role.ALONE:
@@ -533,9 +588,15 @@ class PbrAfterNode(AfterNode):
                     last_seq = self.receiver.promote(initial=req.initial)
                     self.sender = CheckpointSender(Role.ALONE, self.first_seq, max(req.epoch, self.receiver.epoch))
                 elif self.role == Role.PRIMARY and role == Role.ALONE:
+                    last_seq = self.sender.seq
+                    if (req.epoch and req.epoch < self.sender.epoch) or self.sender.joiner is not None:
+                        # A late order (Recovery stalled after the witness's vote) about a backup that has
+                        # re-joined since, or one this After is joining itself: it changes nothing.
+                        return SetRoleResponse(success=True, message='role PRIMARY kept: epoch %d is newer than %d'
+                                               % (self.sender.epoch, req.epoch), last_seq=last_seq)
                     self._release(self.sender.excluded(req.epoch))
                     self.joiner = None
-                    last_seq = self.sender.seq
+                    told_alone = True
                 elif self.role == role:
                     if self.sender is not None:
                         self.sender.epoch = max(self.sender.epoch, req.epoch)
@@ -545,5 +606,8 @@ class PbrAfterNode(AfterNode):
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
             self.role = role
+        if told_alone:
+            self._tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
+                       % (self.site or self.name, req.epoch))
         rospy.loginfo('%s: role is now %s (last checkpoint %d, epoch %d)', self.name, role.name, last_seq, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)

@@ -245,17 +245,20 @@ class RecoveryNode(object):
                                                             persistent=True)
             return self.set_role_nodes[index](**request)
 
-    def _on_failure(self, failure):
+    def _on_failure(self, failure, retried_role=None):
         retry = False
         with self.lock:
             if self.recovered:
                 return
             self.recovered = True
+            # A retry keeps the role of its first attempt: the witness may have granted that attempt late,
+            # and the configuration it published since names this site alone, with nothing promoted yet.
+            role = retried_role or self.role
             record = {'failed_site': failure.site, 'reason': failure.reason, 'silence': failure.silence,
-                      'role_before': self.role.name if self.role else None, 'steps': [], 'ok': True,
+                      'role_before': role.name if role else None, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
             self._start = time.monotonic()
-            self._run_plan(plan(self.role, self.witness is not None), failure, record)
+            self._run_plan(plan(role, self.witness is not None), failure, record)
             record['seconds'] = time.monotonic() - self._start
             record['done_wall'] = time.time()
             witness_steps = [st for st in record['steps'] if st['step'] in {g.name for g in GATES}]
@@ -263,7 +266,7 @@ class RecoveryNode(object):
                 retry = 'unreachable' in witness_steps[0]['detail']
                 self.recovered = not retry
             else:
-                self.role = role_after(self.role) if self.role else None
+                self.role = role_after(role) if role else None
             record['role_after'] = self.role.name if self.role else None
         rospy.logwarn('%s: recovery from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
                       record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
@@ -275,7 +278,7 @@ class RecoveryNode(object):
                   'configuration of the witness (epoch %d); nobody serves until a replica holding the state returns'
                   % (failure.site, self.site, self.epoch))
         if retry:
-            threading.Timer(self.retry, self._on_failure, [failure]).start()
+            threading.Timer(self.retry, self._on_failure, [failure, role]).start()
         elif record['ok'] and record['steps']:
             threading.Thread(target=self._clean_master, daemon=True).start()
 
