@@ -13,11 +13,10 @@ import unittest
 import rospy
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import Account, GetState
-from std_msgs.msg import String
 
 from aft_ftm.bank import Account as Model, ReplyChecker, operation
 from aft_ftm.ros.bank_nodes import account_caller, drive_through_fault
-from aft_ftm.ros.deployment import MechanismDeployment, PbrDeployment
+from aft_ftm.ros.deployment import MechanismDeployment, PbrDeployment, last_failover
 
 LIVE = []
 SEED = int(os.environ.get('AFT_TEST_SEED', int(time.time())))
@@ -104,19 +103,7 @@ class Sites(unittest.TestCase):
 
     def recovery_event(self, site):
         """The site's last failover record (Recovery's ~events, latched: other records carry it)."""
-        from aft_ftm.sites import wait_until
-        found = {}
-
-        def last():
-            data = json.loads(rospy.wait_for_message('/%s/recovery/events' % site, String, timeout=10).data)
-            found['record'] = data if 'failed_site' in data else data.get('last_recovery')
-            return found['record']
-        wait_until(last, 10.0, 0.1)
-        if not found.get('record'):
-            raise AssertionError('%s/recovery recorded no failover' % site)
-        return found['record']
-
-
+        return last_failover(site)
 
 
 class PbrSites(Sites):

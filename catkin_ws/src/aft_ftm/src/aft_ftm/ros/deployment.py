@@ -291,6 +291,23 @@ def witness_status(service='/aft/witness/request'):
         return None
 
 
+def last_failover(site, timeout=10.0):
+    """The last failover record of site's Recovery (its latched ~events: the other records, starts,
+    configurations and alarms, carry it as ``last_recovery``). Raises RuntimeError if there is none."""
+    import json
+    import rospy
+    from std_msgs.msg import String
+    deadline = time.monotonic() + timeout
+    while True:
+        data = json.loads(rospy.wait_for_message('/%s/recovery/events' % site, String, timeout=timeout).data)
+        record = data if 'failed_site' in data else data.get('last_recovery')
+        if record:
+            return record
+        if time.monotonic() > deadline:
+            raise RuntimeError('%s/recovery recorded no failover within %.0f s' % (site, timeout))
+        time.sleep(0.1)
+
+
 def free_port():
     import socket
     with socket.socket() as s:
