@@ -37,7 +37,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
-from .deployment import roslaunch, wired
+from .deployment import publisher_links, roslaunch, wired
 from .fencing import is_local, node_api
 from .guarded_launch import guarded
 
@@ -588,21 +588,11 @@ class Engine(object):
             return True
         if silent is None:
             return False
-        try:
-            master = self.master
-            pubs, subs, _ = master.getSystemState()
-            code, _, bus = node_api(master.lookupNode(node), 1.0).getBusInfo(rospy.get_name())
-        except Exception:   # not up yet, or going away
+        links = publisher_links(node, rospy.get_name())
+        if links is None:
             return False
-        if code != 1:
-            return False
-        connected = {}
-        for info in bus:   # [id, destination, direction, transport, topic, connected, ...]
-            if info[2] == 'o':
-                connected.setdefault(info[4], set()).add(info[1])
-        subscribers = {topic: set(names) for topic, names in subs}
-        missing = {sub for topic, publishers in pubs if node in publishers
-                   for sub in subscribers.get(topic, set()) - {node} - connected.get(topic, set())}
+        missing = {sub for subscribers, connected in links.values() for sub in subscribers - connected}
+        master = self.master
         for sub in missing - set(silent):
             try:
                 node_api(master.lookupNode(sub), 0.5).getPid(rospy.get_name())

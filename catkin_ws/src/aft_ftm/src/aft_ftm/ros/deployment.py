@@ -47,25 +47,33 @@ def missing_from_graph(services=(), subscriptions=(), caller='/aft_deployment'):
             ['%s subscribed by %s' % s for s in subscriptions if s not in have_subs])
 
 
-def wired(node, caller='/aft_deployment'):
-    """True when every publisher of node is connected to every subscriber the master knows for its
-    topic (a subscription registered is not yet a connection: the subscriber connects afterwards)."""
+def publisher_links(node, caller='/aft_deployment'):
+    """For each topic node publishes: (the subscribers the master knows, the ones node is connected
+    to), or None when node cannot be asked (not up yet, or going away)."""
     from .fencing import node_api
     try:
         master = rosgraph.Master(caller)
         pubs, subs, _ = master.getSystemState()
         code, _, bus = node_api(master.lookupNode(node), 1.0).getBusInfo(caller)
     except Exception:   # not up yet, or going away
-        return False
+        return None
     if code != 1:
-        return False
+        return None
     connected = {}
     for info in bus:   # [id, destination, direction, transport, topic, connected, ...]
         if info[2] == 'o':
             connected.setdefault(info[4], set()).add(info[1])
-    subscribers = {t: set(n) for t, n in subs}
-    return all(len(connected.get(topic, ())) >= len(subscribers.get(topic, set()) - {node})
-               for topic, publishers in pubs if node in publishers)
+    subscribers = {t: set(n) - {node} for t, n in subs}
+    return {topic: (subscribers.get(topic, set()), connected.get(topic, set()))
+            for topic, publishers in pubs if node in publishers}
+
+
+def wired(node, caller='/aft_deployment'):
+    """True when every publisher of node is connected to every subscriber the master knows for its
+    topic (a subscription registered is not yet a connection: the subscriber connects afterwards)."""
+    links = publisher_links(node, caller)
+    return links is not None and all(len(connected) >= len(subscribers)
+                                     for subscribers, connected in links.values())
 
 
 def wait_for_graph(services=(), subscriptions=(), timeout=60.0):
