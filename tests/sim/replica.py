@@ -174,12 +174,11 @@ class ProtocolModel(Node):
 
     def on_result(self, reply):
         if not reply.ok and reply.refusal:
-            # fix_replicated_refusal: the After released a refusal (its backup holds it): keep it as the
-            # request's answer, and answer it.
-            self.core.cache.store(reply)
-            self.answer(reply)
-            return
-        self.act(self.core.on_result(reply, self.world.now))
+            # fix_replicated_refusal: the After released a refusal (its backup holds it): ProtocolNode
+            # keeps it as the request's answer and answers it.
+            self.act(self.core.on_refusal(reply, self.world.now))
+        else:
+            self.act(self.core.on_result(reply, self.world.now))
         self._check_quiescence()
 
     def quiescent(self):

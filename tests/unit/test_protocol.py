@@ -187,3 +187,26 @@ def test_a_copy_of_a_refused_request_is_refused_again_never_executed():
     assert [type(a).__name__ for a in again] == ['Refuse'] and again[0].reason == refused[0].reason
     assert kinds(core.on_request(request(rid=3, oldest_pending=3), 0)) == [('Forward', 3)]   # 2's refusal had
     assert core.stats.executed == 2 and not core.refused
+
+
+def test_a_refusal_replicated_through_after_is_kept_and_answers_every_later_copy():
+    """A replica's refusal comes back from After once its backup holds it: the Protocol keeps it in the
+    reply cache (so does the backup, from the checkpoint), and a copy answered later gets it again."""
+    backup = ProtocolCore(Role.BACKUP)
+    refusal = reply(rid=2, value='not executed')
+    backup.on_stored(refusal, 1, '/master/after')
+    backup.set_role(Role.ALONE, 0)
+    answers = backup.on_request(request(rid=2, oldest_pending=2), 0)   # the cache has room: no refusal of its own
+    assert kinds(answers) == [('Answer', 2)] and answers[0].reply.value == 'not executed'
+    assert backup.stats.executed == 0
+    primary = ProtocolCore(Role.PRIMARY)
+    answered = primary.on_refusal(reply(rid=5), 0)
+    assert kinds(answered) == [('Answer', 5)] and primary.cache.lookup(('/proxy', 5, 0)) is not None
+
+
+def test_an_inner_mechanisms_refusal_of_the_executing_request_is_its_result():
+    core = ProtocolCore(Role.ALONE)
+    core.on_request(request(rid=1), 0)
+    core.on_request(request(rid=2), 0)
+    actions = core.on_refusal(reply(rid=1), 0)
+    assert kinds(actions) == [('Answer', 1), ('Forward', 2)] and core.current.id == 2

@@ -115,11 +115,13 @@ class PbrSites(Sites):
     ADAPTABLE = False
     DETECTION_TIMEOUT = 0.03   # the crash detectors' timeout (s), heartbeats every 10 ms
     SERVER_TIMEOUT = None      # Proceed's server timeout (s); None: the launch files' default
+    CACHE_BYTES = None         # bound of the replicas' reply caches (bytes); None: the launch files' default
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
                              mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE,
-                             timeout=self.DETECTION_TIMEOUT, server_timeout=self.SERVER_TIMEOUT)
+                             timeout=self.DETECTION_TIMEOUT, server_timeout=self.SERVER_TIMEOUT,
+                             cache_bytes=self.CACHE_BYTES)
 
 
 class MechanismSite(Sites):

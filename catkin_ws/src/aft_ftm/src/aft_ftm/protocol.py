@@ -224,6 +224,16 @@ class ProtocolCore(object):
         self.started_at = None
         return [self._answer(reply)] + self._dispatch(now)
 
+    def on_refusal(self, reply, now):
+        """A refusal came back from After: this Protocol's own (the backup holds it now, so a copy sent
+        to it after a failover gets the same answer), or an inner mechanism's refusal of the executing
+        request. It is the request's outcome: kept and answered."""
+        if self.current is not None and key(self.current) == key(reply):
+            return self.on_result(reply, now)
+        self.epoch = max(self.epoch, getattr(reply, 'epoch', 0))
+        self.cache.store(reply)
+        return [self._answer(reply)]
+
     def on_stored(self, reply, seq, sender=None):
         """A backup stores the reply carried by checkpoint ``seq`` of After ``sender``.
 

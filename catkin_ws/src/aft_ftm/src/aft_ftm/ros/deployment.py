@@ -145,10 +145,11 @@ class PbrDeployment(object):
     'all'), as a user of pbr.launch runs it."""
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
-                 mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0):
+                 mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
+                 cache_bytes=None):
         self.log_dir = log_dir
         self.one_host = one_host
-        self.witness = witness and mechanism == 'pbr'
+        self.witness = witness
         self.launch_args = {}
         self.inner = inner
         self.faulty = faulty
@@ -158,6 +159,8 @@ class PbrDeployment(object):
             replica['server_timeout'] = server_timeout
         if ballast_bytes:
             replica['ballast_bytes'] = ballast_bytes
+        if cache_bytes is not None:
+            replica['cache_bytes'] = cache_bytes
         client = {}
         self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
         if sec:
@@ -168,10 +171,8 @@ class PbrDeployment(object):
             client = dict(sec='true', keys_dir=keys)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
-        if not self.witness and mechanism == 'pbr':
+        if not self.witness:
             replica['witness'] = 'none'   # roslaunch drops an empty name:= value
-            client['witness'] = 'false'
-        elif mechanism != 'pbr':
             client['witness'] = 'false'
         self.replica_args = dict(replica)
         if adaptable:

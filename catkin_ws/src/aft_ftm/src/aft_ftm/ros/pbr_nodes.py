@@ -4,8 +4,8 @@ import threading
 import time
 
 import rospy
-from aft_msgs.msg import Checkpoint, CheckpointAck, Join
-from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState, Suspend
+from aft_msgs.msg import Checkpoint, CheckpointAck, Join, Reply
+from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
 from .. import config
@@ -13,15 +13,15 @@ from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decisio
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import DuplicateCache, Role, check_role_change
-from ..witness import Grant, Op
+from ..witness import Op
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
-from .fail_stop import fail_stop
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
-from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
+from .replica_side import ReplicaSide
+from .witness_client import site_launcher_pid
 
 
 class PbrBeforeNode(BeforeNode):
@@ -146,15 +146,13 @@ class PbrAfterNode(AfterNode):
         self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
         self.witness_lock = threading.Lock()   # one witness request at a time
-        self.witness = WitnessClient(self.witness_service, self.site, self.site_pid) if with_witness else None
-        self.state_calls = Deadline('state')
-        self.protocol_calls = Deadline('protocol')
         protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
-        self.protocol_suspend = rospy.ServiceProxy(protocol + '/suspend', Suspend, persistent=True) if protocol else None
-        self.protocol_resume = rospy.ServiceProxy(protocol + '/resume', Suspend, persistent=True) if protocol else None
+        self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
+                                self.state_timeout)
+        self.witness = self.side.witness
+        self.state_calls = Deadline('state')
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
-        self.told = set()           # alarms raised once per kind and sender
         self.configuration_seen = None   # the witness's newest configuration
         self.followed_since = 0.0   # when the last state transfer was accepted
 
@@ -211,14 +209,6 @@ class PbrAfterNode(AfterNode):
             self._apply_locked()
 
     # -- helpers ------------------------------------------------------------------------
-    def _tell(self, kind, detail, key=None):
-        """An alarm, once per (kind, key): a flood of stray messages raises one."""
-        if key is not None:
-            if (kind, key) in self.told:
-                return
-            self.told.add((kind, key))
-        alarm(self.ports, 'pbr', kind, detail)
-
     def _remember(self, reply):
         self.recent.forget_below(reply.origin, reply.oldest_pending)
         self.recent.store(reply)
@@ -243,6 +233,15 @@ class PbrAfterNode(AfterNode):
             self._remember(reply)
             if not self.sender.needs_checkpoint():
                 return reply
+            if reply.status == Reply.NOT_EXECUTED:
+                # A refusal changes no state (and the state may already hold the request executing now,
+                # its reply not here yet): the checkpoint carries the refusal alone, so that the backup
+                # answers a copy of the request the same way.
+                seq = self.sender.hold(reply, time.monotonic())
+                self.ports.publish('checkpoints', Checkpoint(
+                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
+                    epoch=self.sender.epoch))
+                return None
             state, error = self._capture()
             if state is None:
                 # The request ran but cannot be checkpointed: replying would leave the backup behind.
@@ -256,7 +255,7 @@ class PbrAfterNode(AfterNode):
                     seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
                     state=state, epoch=self.sender.epoch))
                 return None
-        self._fail_stop(problem)
+        self.side.fail_stop(problem)
         return None
 
     def _release(self, replies):
@@ -302,23 +301,9 @@ class PbrAfterNode(AfterNode):
         finally:
             self.witness_lock.release()
 
-    def _ask(self, op, **kwargs):
-        """The witness's Grant (granted locally without a witness), or None if it cannot be reached."""
-        if self.witness is None:
-            return Grant(True, 'no witness', 0, self.site, '')
-        try:
-            return self.witness.request(op, **kwargs)
-        except WitnessUnreachable as e:
-            alarm(self.ports, 'pbr', 'witness_unreachable', '%s cannot reach the witness (%s): %s not done, '
-                  'replies stay held and it is asked again' % (self.site or self.name, e, op.name))
-            return None
-
     def _exclude(self, why):
-        grant = self._ask(Op.EXCLUDE)
+        grant = self.side.exclusion(self._deposed)
         if grant is None:
-            return
-        if not grant.granted:
-            self._deposed(grant.message)
             return
         with self.lock:
             if self.sender is None or self.sender.role == Role.ALONE and not self.sender.held:
@@ -327,7 +312,7 @@ class PbrAfterNode(AfterNode):
             self.role = Role.ALONE
             self.joiner = None
             self._release(released)
-        self._tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site or self.name, grant.epoch, why,
+        self.side.tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site or self.name, grant.epoch, why,
                                                                        grant.message))
 
     def _admit(self):
@@ -335,7 +320,7 @@ class PbrAfterNode(AfterNode):
             joiner = self.joiner
         if joiner is None:
             return
-        grant = self._ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
+        grant = self.side.ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
         if grant is None:
             return
         if not grant.granted:
@@ -352,22 +337,14 @@ class PbrAfterNode(AfterNode):
         if record is not None:
             record.update(admitted_s=time.monotonic() - record.pop('t0'), admitted_wall=time.time(), epoch=grant.epoch)
             self.events.publish(String(data=json.dumps(record, sort_keys=True)))
-        self.told.clear()
+        self.side.told.clear()
         rospy.loginfo('%s: %s is the backup again (epoch %d)', self.name, joiner[0], grant.epoch)
 
     def _deposed(self, why):
         with self.lock:
             withheld = self.sender.depose(why) if self.sender is not None else 0
-        self._fail_stop('deposed by the witness (%s): %d replies withheld' % (why, withheld))
+        self.side.fail_stop('deposed by the witness (%s): %d replies withheld' % (why, withheld))
 
-    def _fail_stop(self, problem):
-        if self.site:
-            fail_stop(self.ports, self.site, problem)
-        else:
-            rospy.logfatal('%s: %s: stopping this replica', self.name, problem)
-            rospy.signal_shutdown(problem)
-
-    # -- joins (primary side) ---------------------------------------------------------
     def _on_join(self, join):
         if join.site == self.site:
             return
@@ -386,35 +363,12 @@ class PbrAfterNode(AfterNode):
             return
         # The state must include exactly the requests whose replies it carries: capture it while the
         # Protocol is quiescent (suspended: no request executing, new ones held), then let it go on.
-        if not self._quiesce_protocol(True):
+        if not self.side.quiesce_protocol(True):
             return
         try:
             self._transfer(join)
         finally:
-            self._quiesce_protocol(False)
-
-    def _quiesce_protocol(self, suspend):
-        if self.protocol_suspend is None:
-            return True
-        try:
-            if suspend:
-                request = dict(timeout=self.state_timeout, lease=max(2.0, 2 * self.state_timeout))
-                answer = self.protocol_calls.call(lambda: self.protocol_suspend(**request), self.state_timeout + 1.0)
-            else:
-                answer = self.protocol_calls.call(self.protocol_resume, self.state_timeout)
-        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            answer = None
-            error = str(e)
-            name = self.protocol_suspend.resolved_name.rsplit('/', 1)[0]
-            self.protocol_suspend = rospy.ServiceProxy(name + '/suspend', Suspend, persistent=True)
-            self.protocol_resume = rospy.ServiceProxy(name + '/resume', Suspend, persistent=True)
-        else:
-            error = answer.message
-        if answer is None or not answer.success:
-            self._tell('join_failed', 'cannot %s the Protocol for a state transfer: %s'
-                       % ('suspend' if suspend else 'resume', error))
-            return False
-        return True
+            self.side.quiesce_protocol(False)
 
     def _transfer(self, join):
         with self.lock:
@@ -423,7 +377,7 @@ class PbrAfterNode(AfterNode):
                 return
             state, error = self._capture()
             if state is None:
-                self._tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
+                self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
                 return
             seq = sender.join(join.after, time.monotonic())
             self.role = Role.PRIMARY
@@ -455,7 +409,7 @@ class PbrAfterNode(AfterNode):
                 return
         if stuck is not None:
             # The configuration naming this site may have been missed (a partition to the witness): ask it.
-            status = self._ask(Op.STATUS)
+            status = self.side.ask(Op.STATUS)
             if status is None or status.backup == self.site:
                 return
             with self.lock:
@@ -465,7 +419,7 @@ class PbrAfterNode(AfterNode):
                                      'transfer (epoch %d)' % (stuck[1], status.epoch))
                 self.pending_state = None
                 why = self.receiver.invalid
-            self._tell('backup_invalid', '%s: %s; it joins again' % (self.site, why))
+            self.side.tell('backup_invalid', '%s: %s; it joins again' % (self.site, why))
             return
         if not self.ports.connections('peer_checkpoints'):
             return   # the state transfer would be lost: ask once the primary's checkpoints reach us
@@ -521,12 +475,13 @@ class PbrAfterNode(AfterNode):
                                                         epoch=cp.epoch))
             if decision == Decision.APPLY_FULL:
                 self.followed_since = time.monotonic()
-            if decision in (Decision.APPLY, Decision.APPLY_FULL):
+            if decision == Decision.APPLY_FULL or decision == Decision.APPLY \
+                    and cp.reply.status != Reply.NOT_EXECUTED:   # a refusal carries no state
                 self.pending_state = (cp.seq, cp.state)
                 if self.apply_period == 0 or decision == Decision.APPLY_FULL:
                     self._apply_locked()
         if tell is not None:
-            self._tell(*tell)
+            self.side.tell(*tell)
         if decision == Decision.APPLY_FULL:
             rospy.loginfo('%s: joined %s at checkpoint %d (epoch %d)', self.name, cp.sender, cp.seq, cp.epoch)
 
@@ -574,7 +529,7 @@ class PbrAfterNode(AfterNode):
         if deposed:
             self._deposed('%s is the primary of epoch %d (%s)' % (conf.primary, conf.epoch, conf.reason))
         if excluded:
-            self._tell('excluded', '%s was excluded at epoch %d (%s): it cannot take over and joins again'
+            self.side.tell('excluded', '%s was excluded at epoch %d (%s): it cannot take over and joins again'
                        % (self.site, conf.epoch, conf.reason))
 
     # -- role changes -----------------------------------------------------------
@@ -607,7 +562,7 @@ class PbrAfterNode(AfterNode):
                 return SetRoleResponse(success=False, message=str(e))
             self.role = role
         if told_alone:
-            self._tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
+            self.side.tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
                        % (self.site or self.name, req.epoch))
         rospy.loginfo('%s: role is now %s (last checkpoint %d, epoch %d)', self.name, role.name, last_seq, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)

@@ -32,6 +32,10 @@ class ProtocolNode(object):
         ~cache_capacity (int, 100000): safety limit of the reply cache (entries).
         ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
             "not executed" (the client may retry) until clients confirm replies, never forgotten.
+        ~replicate_refusals (bool, false): a replica's Protocol: a request refused (not executed, the
+            reply cache full) is answered through After, which replicates the refusal to the backup like
+            a result, so that a copy of the request sent after a failover gets the same answer and is
+            never executed. A backup refuses nothing (the request waits for a promotion).
         ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
             until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
         ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
@@ -40,11 +44,12 @@ class ProtocolNode(object):
             and the bound of what it holds (every FTM node: see aft_ftm.ros.ports.Ports).
     Subscribes:
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
-        aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests.
+        aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests (and refusals).
         aft2pro_s (aft_msgs/Checkpoint), port ``stored``: replies carried by checkpoints (backup).
     Publishes:
         pro2pxy (aft_msgs/Reply), port ``replies``: to the Proxies.
         pro2bfr (aft_msgs/Request), port ``to_before``.
+        prd2aft (aft_msgs/Reply), port ``refusals``: with ~replicate_refusals, refusals to After.
         fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend and ~resume (aft_msgs/Suspend):
@@ -59,6 +64,7 @@ class ProtocolNode(object):
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         self.listen_as_backup = param('listen_as_backup', config.boolean, False)
         self.bind_input = param('bind_input', config.boolean, True)
+        self.replicate_refusals = param('replicate_refusals', config.boolean, False)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes)
         self.hung = None   # the request whose outcome is unknown, once one is
         self.lock = threading.Condition()
@@ -67,6 +73,7 @@ class ProtocolNode(object):
              PortSpec('replies', PUBLISH, 'aft_msgs/Reply'),
              PortSpec('to_before', PUBLISH, 'aft_msgs/Request'),
              PortSpec('from_after', SUBSCRIBE, 'aft_msgs/Reply'),
+             PortSpec('refusals', PUBLISH, 'aft_msgs/Reply'),
              PortSpec('stored', SUBSCRIBE, 'aft_msgs/Checkpoint'),
              PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
              PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
@@ -87,7 +94,11 @@ class ProtocolNode(object):
         self.ports.bind('stored', 'aft2pro_s')
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        missing = wait_for_connections(self.ports, ['to_before', 'from_after'], timeout)
+        linked = ['to_before', 'from_after']
+        if self.replicate_refusals:
+            self.ports.bind('refusals', 'prd2aft')
+            linked.append('refusals')
+        missing = wait_for_connections(self.ports, linked, timeout)
         if missing:
             rospy.logerr('%s: Before/After not connected within %.1f s (ports %s)', self.name, timeout, missing)
             return False
@@ -106,11 +117,23 @@ class ProtocolNode(object):
             elif isinstance(action, Answer):
                 self.ports.publish('replies', action.reply)
             elif isinstance(action, Refuse):
-                r = action.request
-                self.ports.publish('replies', Reply(id=r.id, origin=r.origin, client=r.client,
-                                                    oldest_pending=r.oldest_pending, attempt=r.attempt,
-                                                    status=Reply.ERROR, error=action.reason, epoch=self.core.epoch))
-                rospy.logwarn_throttle(5, '%s: %s/%d %s' % (self.name, r.origin, r.id, action.reason))
+                self._refuse(action)
+
+    def _refuse(self, action):
+        r = action.request
+        refusal = Reply(id=r.id, origin=r.origin, client=r.client, oldest_pending=r.oldest_pending,
+                        attempt=r.attempt, status=Reply.NOT_EXECUTED, error=action.reason, epoch=self.core.epoch)
+        if not self.replicate_refusals:
+            self.ports.publish('replies', refusal)
+        elif self.core.role != Role.BACKUP:
+            self.ports.publish('refusals', refusal)   # answered once After has replicated it
+        else:
+            # A backup cannot tell "not executed": its primary may have run the request. Its Proxy
+            # sends it again to whichever replica serves next.
+            rospy.logwarn_throttle(5, '%s: %s/%d not answered by a backup (%s)' % (self.name, r.origin, r.id,
+                                                                                  action.reason))
+            return
+        rospy.logwarn_throttle(5, '%s: %s/%d %s' % (self.name, r.origin, r.id, action.reason))
 
     def _on_request(self, request):
         with self.lock:
@@ -120,6 +143,10 @@ class ProtocolNode(object):
             rospy.logwarn_throttle(10, '%s: reply cache over capacity, %d replies evicted' % (self.name, evicted))
 
     def _on_result(self, reply):
+        if reply.status == Reply.NOT_EXECUTED:
+            with self.lock:
+                self._act(self.core.on_refusal(reply, time.monotonic()))
+            return
         with self.lock:
             before = self.core.stats.stray_results
             self._act(self.core.on_result(reply, time.monotonic()))

@@ -1,0 +1,97 @@
+"""What the After of a duplex replica (PBR or LFR) does with the outside world beside its mechanism:
+asking the witness, raising alarms once, quiescing its Protocol for a state transfer, fail-stop."""
+import rospy
+from aft_msgs.srv import Suspend
+
+from ..witness import Grant, Op
+from .alarms import alarm
+from .deadline import CallTimeout, Deadline
+from .fail_stop import fail_stop
+from .witness_client import WitnessClient, WitnessUnreachable
+
+
+class ReplicaSide(object):
+    """One replica After's links: ``witness`` the witness's service ('' : none), ``protocol`` its
+    Protocol's node name ('' : never suspended), ``mechanism`` the alarms' mechanism field."""
+
+    def __init__(self, ports, mechanism, site, site_pid, witness, protocol, state_timeout):
+        self.ports = ports
+        self.mechanism = mechanism
+        self.site = site
+        self.state_timeout = state_timeout
+        self.witness = WitnessClient(witness, site, site_pid) if witness else None
+        self.protocol = protocol
+        self.protocol_calls = Deadline('protocol')
+        self._protocol_proxies()
+        self.told = set()           # alarms raised once per kind and key
+
+    def _protocol_proxies(self):
+        self.protocol_suspend = rospy.ServiceProxy(self.protocol + '/suspend', Suspend, persistent=True) \
+            if self.protocol else None
+        self.protocol_resume = rospy.ServiceProxy(self.protocol + '/resume', Suspend, persistent=True) \
+            if self.protocol else None
+
+    @property
+    def name(self):
+        return rospy.get_name()
+
+    def tell(self, kind, detail, key=None):
+        """An alarm, once per (kind, key) when a key is given: a flood of stray messages raises one."""
+        if key is not None:
+            if (kind, key) in self.told:
+                return
+            self.told.add((kind, key))
+        alarm(self.ports, self.mechanism, kind, detail)
+
+    def ask(self, op, **kwargs):
+        """The witness's Grant (granted locally without a witness), or None if it cannot be reached
+        (an alarm says so: the caller asks again later)."""
+        if self.witness is None:
+            return Grant(True, 'no witness', 0, self.site, '')
+        try:
+            return self.witness.request(op, **kwargs)
+        except WitnessUnreachable as e:
+            alarm(self.ports, self.mechanism, 'witness_unreachable', '%s cannot reach the witness (%s): %s not '
+                  'done, replies stay held and it is asked again' % (self.site or self.name, e, op.name))
+            return None
+
+    def exclusion(self, deposed):
+        """Ask the witness to exclude this primary's peer: its Grant if granted; None if not, after an
+        alarm (unreachable: asked again later) or deposed(why) (refused: this replica was deposed)."""
+        grant = self.ask(Op.EXCLUDE)
+        if grant is not None and not grant.granted:
+            deposed(grant.message)
+            return None
+        return grant
+
+    def quiesce_protocol(self, suspend):
+        """Suspend (quiescent: nothing executing, new requests held) or resume the Protocol; False with
+        a ``join_failed`` alarm if it cannot be done."""
+        if self.protocol_suspend is None:
+            return True
+        try:
+            if suspend:
+                request = dict(timeout=self.state_timeout, lease=max(2.0, 2 * self.state_timeout))
+                answer = self.protocol_calls.call(lambda: self.protocol_suspend(**request), self.state_timeout + 1.0)
+            else:
+                answer = self.protocol_calls.call(self.protocol_resume, self.state_timeout)
+        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+            answer = None
+            error = str(e)
+            self._protocol_proxies()
+        else:
+            error = answer.message
+        if answer is None or not answer.success:
+            self.tell('join_failed', 'cannot %s the Protocol for a state transfer: %s'
+                      % ('suspend' if suspend else 'resume', error))
+            return False
+        return True
+
+    def fail_stop(self, problem):
+        """This replica falls silent: its site fail-stops (Recovery's peer takes over), or, outside a
+        site, the node stops."""
+        if self.site:
+            fail_stop(self.ports, self.site, problem)
+        else:
+            rospy.logfatal('%s: %s: stopping this replica', self.name, problem)
+            rospy.signal_shutdown(problem)
