@@ -196,7 +196,6 @@ class LfrAfterNode(AfterNode):
         self.join_seq = int(time.time() * 1e6)
         self.accepted = 0       # follower: the seq of the last state transfer it accepted
         self.configuration_seen = None
-        self.witness_lock = threading.Lock()   # one witness decision at a time
         self.state_calls = Deadline('state')
         self.before_role = rospy.ServiceProxy(before + '/set_role', SetRole, persistent=True)
         self.before_name = before
@@ -341,11 +340,7 @@ class LfrAfterNode(AfterNode):
             for reply in released:
                 self.ports.publish('out', reply)
             return
-        if self.witness_lock.acquire(blocking=False):
-            try:
-                self._exclude(why)
-            finally:
-                self.witness_lock.release()
+        self.side.alone(self._exclude, why)
 
     def _exclude(self, why):
         """Ask the witness to exclude the follower; release the held replies only once it did."""
@@ -396,18 +391,18 @@ class LfrAfterNode(AfterNode):
                     and join.last_seq < follower[2]:
                 return
             restarted = self.role == Role.PRIMARY
-        if not self.witness_lock.acquire(blocking=False):
-            return   # a witness decision (or a transfer) under way: the follower asks again
-        try:
-            if restarted:
-                self._exclude('%s asks to join again: it restarted' % join.site)
-            elif self.role == Role.ALONE and self.side.quiesce_protocol(True):
-                try:
-                    self._join(join)
-                finally:
-                    self.side.quiesce_protocol(False)
-        finally:
-            self.witness_lock.release()
+        # One decision at a time: a follower asking while another is under way asks again later.
+        if restarted:
+            self.side.alone(self._exclude, '%s asks to join again: it restarted' % join.site)
+        else:
+            self.side.alone(self._transfer, join)
+
+    def _transfer(self, join):
+        if self.role == Role.ALONE and self.side.quiesce_protocol(True):
+            try:
+                self._join(join)
+            finally:
+                self.side.quiesce_protocol(False)
 
     def _join(self, join):
         """The Protocol is quiescent (nothing executing, new requests held): the server's state holds

@@ -145,7 +145,6 @@ class PbrAfterNode(AfterNode):
         self.joiner = None          # (site, incarnation) of the backup being joined
         self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
-        self.witness_lock = threading.Lock()   # one witness request at a time
         protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
         self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
                                 self.state_timeout)
@@ -291,15 +290,8 @@ class PbrAfterNode(AfterNode):
 
     def _resolve(self, need, why):
         """Ask the witness what the sender needs, and carry out its answer."""
-        if not self.witness_lock.acquire(blocking=False):
-            return   # being asked already; the timer asks again if still needed
-        try:
-            if need == Need.EXCLUDE:
-                self._exclude(why)
-            elif need == Need.ADMIT:
-                self._admit()
-        finally:
-            self.witness_lock.release()
+        # Being asked already: the timer asks again if still needed.
+        self.side.alone(self._exclude if need == Need.EXCLUDE else lambda _why: self._admit(), why)
 
     def _exclude(self, why):
         grant = self.side.exclusion(self._deposed)

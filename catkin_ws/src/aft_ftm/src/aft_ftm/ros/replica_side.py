@@ -1,5 +1,7 @@
 """What the After of a duplex replica (PBR or LFR) does with the outside world beside its mechanism:
 asking the witness, raising alarms once, quiescing its Protocol for a state transfer, fail-stop."""
+import threading
+
 import rospy
 from aft_msgs.srv import Suspend
 
@@ -24,6 +26,7 @@ class ReplicaSide(object):
         self.protocol_calls = Deadline('protocol')
         self._protocol_proxies()
         self.told = set()           # alarms raised once per kind and key
+        self.deciding = threading.Lock()   # one witness decision (or state transfer) at a time
 
     def _protocol_proxies(self):
         self.protocol_suspend = rospy.ServiceProxy(self.protocol + '/suspend', Suspend, persistent=True) \
@@ -54,6 +57,17 @@ class ReplicaSide(object):
             alarm(self.ports, self.mechanism, 'witness_unreachable', '%s cannot reach the witness (%s): %s not '
                   'done, replies stay held and it is asked again' % (self.site or self.name, e, op.name))
             return None
+
+    def alone(self, decision, *args):
+        """Run decision(*args) unless another one is under way (then do nothing: the caller's timer or
+        the peer asks again). Returns whether it ran."""
+        if not self.deciding.acquire(blocking=False):
+            return False
+        try:
+            decision(*args)
+        finally:
+            self.deciding.release()
+        return True
 
     def exclusion(self, deposed):
         """Ask the witness to exclude this primary's peer: its Grant if granted; None if not, after an
