@@ -215,3 +215,18 @@ def test_a_late_refusal_from_the_excluded_backup_does_not_abort_its_re_join():
     assert sender.on_ack(old, ok=False) == ([], Need.NOTHING)
     assert sender.role == Role.PRIMARY and sender.join_seq == full
     assert sender.on_ack(full, ok=True) == ([], Need.ADMIT)
+
+
+def test_a_backup_started_in_sync_by_an_adaptation_follows_the_new_primary_from_its_first_checkpoint():
+    """switch and update_after start both Afters while the pair is quiescent: no state transfer, but
+    never a start in the middle of the new primary's checkpoints either."""
+    receiver = CheckpointReceiver(join=True)
+    receiver.expect = '/master/'
+    receiver.in_sync()
+    assert receiver.invalid is None and receiver.state == Follow.FOLLOWING
+    assert receiver.decide(101, '/master/after_lfr', first_seq=100) == Decision.GAP
+    assert receiver.decide(100, '/master/after_lfr', first_seq=100) == Decision.APPLY
+    receiver.accept(100, '/master/after_lfr', 3)
+    assert receiver.decide(101, '/other/after', first_seq=50) == Decision.STRAY
+    receiver.failed(101, 'a gap')
+    assert receiver.state == Follow.JOINING   # with a witness it joins again

@@ -205,6 +205,12 @@ class CheckpointReceiver(object):
         self.invalid = 'holds no state yet' if join else None   # why it cannot take over, while it cannot
         self.expect = ''        # join: a state transfer is accepted from an After whose name starts so
 
+    def in_sync(self):
+        """This backup starts beside a primary that starts too, both from the same state (an
+        adaptation replaced both Afters while the pair was quiescent): it follows that primary from its
+        first checkpoint, without a state transfer."""
+        self._change(Follow.FOLLOWING)
+
     def _change(self, new, why=None):
         if new != self.state and (self.state, new) not in FOLLOW_EDGES:
             raise RoleError('backup %s -> %s is not allowed' % (self.state.name, new.name))

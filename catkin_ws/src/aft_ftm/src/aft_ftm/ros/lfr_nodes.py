@@ -122,6 +122,8 @@ class LfrAfterNode(AfterNode):
         ~connect_timeout (float, 10 s)
         ~witness (str, default ''): the witness's aft_msgs/Witness service ('' : no witness, no joins).
         ~site, ~peer (str, required with a witness), ~site_pid (int, default: the site's roslaunch).
+        ~in_sync (bool, false): started by an adaptation beside its new leader (or follower), the pair
+            quiescent: a follower holds its leader's state without a transfer.
         ~join_period (float, 0.5 s): a joining follower asks for a state transfer this often.
         ~state_timeout (float, 5 s): the longest a get_state or set_state call may take.
         ~protocol (str, default protocol), ~before (str, default before): this replica's Protocol
@@ -187,7 +189,8 @@ class LfrAfterNode(AfterNode):
         self.deposed = None     # leader: why the witness deposed it (it answers nothing more)
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
         # A follower with a witness holds nothing until a state transfer: it joins.
-        self.joined = self.witness is None or self.role != Role.BACKUP
+        self.in_sync = param('in_sync', config.boolean, False)
+        self.joined = self.witness is None or self.role != Role.BACKUP or self.in_sync
         self.joined_since = 0.0
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
         self.transfer = None    # leader: the state transfer waiting for its acknowledgment
@@ -224,7 +227,7 @@ class LfrAfterNode(AfterNode):
                              'manager (%s, %s) is not available', self.name, rospy.resolve_name('get_state'),
                              rospy.resolve_name('set_state'))
                 return False
-        else:
+        if self.witness is None or self.in_sync:
             peer = {Role.PRIMARY: ['notify', 'acks'], Role.BACKUP: ['peer_acks', 'notifications'],
                     Role.ALONE: []}
             missing = wait_for_connections(self.ports, peer[self.role], self.connect_timeout)
@@ -518,6 +521,10 @@ class LfrAfterNode(AfterNode):
             if self.configuration_seen is None or conf.epoch >= self.configuration_seen.epoch:
                 self.configuration_seen = conf
             if conf.epoch <= self.epoch:
+                return
+            if (conf.primary == self.site and self.role != Role.BACKUP) or \
+                    (conf.backup == self.site and self.role == Role.BACKUP and self.joined):
+                self.epoch = conf.epoch   # this replica's own configuration (an After an adaptation started)
                 return
             if self.role != Role.BACKUP and not self.deposed and conf.primary != self.site:
                 deposed = True

@@ -75,6 +75,8 @@ class PbrAfterNode(AfterNode):
         ~replaces (str, default none): the primary After this one replaces (an adaptation's update):
             the backup then follows this one's checkpoints instead.
         ~witness (str, default ''): the witness's aft_msgs/Witness service ('' : no witness).
+        ~in_sync (bool, false): started by an adaptation beside its new primary (or backup), the pair
+            quiescent: a backup follows the primary from its first checkpoint instead of joining.
         ~site, ~peer (str, required with a witness): this replica's site and the other one.
         ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
         ~join_period (float, 0.5 s): a joining backup asks for a state transfer this often.
@@ -138,7 +140,10 @@ class PbrAfterNode(AfterNode):
                              'join_requests': self._on_join})
         self.role = role
         self.sender = CheckpointSender(role, self.first_seq) if role != Role.BACKUP else None
+        self.in_sync = param('in_sync', config.boolean, False)
         self.receiver = CheckpointReceiver(join=with_witness) if role == Role.BACKUP else None
+        if self.receiver is not None and with_witness and self.in_sync:
+            self.receiver.in_sync()
         if self.receiver is not None and self.peer:
             self.receiver.expect = '/%s/' % self.peer
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
@@ -169,7 +174,7 @@ class PbrAfterNode(AfterNode):
             rospy.logerr('%s: the server state manager (%s, %s) is not available', self.name,
                          rospy.resolve_name('get_state'), rospy.resolve_name('set_state'))
             return False
-        if self.witness is None:
+        if self.witness is None or self.in_sync:
             peer_ports = {Role.PRIMARY: ['checkpoints', 'acks'], Role.BACKUP: ['peer_checkpoints', 'peer_acks'],
                           Role.ALONE: []}[self.role]
             missing = wait_for_connections(self.ports, peer_ports, self.connect_timeout)
@@ -512,6 +517,8 @@ class PbrAfterNode(AfterNode):
             if self.sender is not None and not self.sender.deposed and conf.epoch > self.sender.epoch \
                     and conf.primary != self.site:
                 deposed = True
+            elif self.sender is not None and conf.primary == self.site and self.sender.joiner is None:
+                self.sender.epoch = max(self.sender.epoch, conf.epoch)   # an After an adaptation started
             elif self.receiver is not None and self.role == Role.BACKUP and conf.epoch > self.receiver.epoch \
                     and self.site not in (conf.primary, conf.backup) and self.receiver.state == Follow.FOLLOWING:
                 self.receiver.failed(self.receiver.last_seq, 'excluded by the witness at epoch %d (%s)'
