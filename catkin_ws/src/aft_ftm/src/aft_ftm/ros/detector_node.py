@@ -6,11 +6,12 @@ import time
 import rospy
 from aft_msgs.msg import Configuration, Failure, Heartbeat
 
-from .. import config
+from .. import config, health
 from ..detector import HeartbeatMonitor, PeerState
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..sites import this_host
 from .alarms import alarm
+from .diagnostics import Diagnostics
 from .params import param
 from .ports import Ports
 from .witness_client import CONFIGURATION_TOPIC
@@ -35,6 +36,7 @@ class CrashDetectorNode(object):
         failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
         alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): this site fail-stopped; a peer declared
             failed is heard again (it came back); it is watched again.
+        /diagnostics (diagnostic_msgs/DiagnosticArray): the peer alive, failed or never heard (aft_ftm.health).
     Subscribes:
         peer_heartbeat (aft_msgs/Heartbeat), port ``peer_heartbeat``
         fail_stop (aft_msgs/Failure), port ``fail_stop``: a node of this site cannot serve correctly any
@@ -85,7 +87,14 @@ class CrashDetectorNode(object):
                                                   tcp_nodelay=True)
         self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
         self.thread.start()
+        self.diagnostics = Diagnostics(self._health, self.site)
         return True
+
+    def _health(self):
+        with self.lock:
+            heard = self.monitor.last_heard
+            return health.detector(self.site, self.peer, self.monitor.state.name,
+                                   time.monotonic() - heard if heard is not None else None, self.stopped)
 
     def _on_heartbeat(self, beat):
         with self.lock:

@@ -11,13 +11,14 @@ from aft_msgs.msg import Checkpoint, Join, Notify, Reply
 from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
-from .. import config, mechanisms
+from .. import config, health, mechanisms
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import DuplicateCache, Role, check_role_change
 from ..witness import Op
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
+from .diagnostics import Diagnostics
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
@@ -142,7 +143,8 @@ class LfrAfterNode(AfterNode):
         refusals (aft_msgs/Reply), port ``refusals``; transfers (aft_msgs/Checkpoint), port
         ``transfer``: state transfers to a joining follower; join (aft_msgs/Join), port ``join``;
         fail_stop (aft_msgs/Failure), alarms (aft_msgs/Alarm); ~events (std_msgs/String, latched): one
-        JSON record per state transfer (bytes, replies, seconds the Protocol was suspended).
+        JSON record per state transfer (bytes, replies, seconds the Protocol was suspended);
+        /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies (aft_ftm.health).
     Services: ~set_role (aft_msgs/SetRole), ~rebind (aft_msgs/Rebind)
     """
 
@@ -243,7 +245,16 @@ class LfrAfterNode(AfterNode):
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
             self.configuration = self.witness.subscribe(self._on_configuration)
         rospy.Service('~set_role', SetRole, self._on_set_role)
+        self.diagnostics = Diagnostics(self._health, self.site)
         return True
+
+    def _health(self):
+        with self.lock:
+            return health.replica_after(
+                self.site, 'lfr', self.role, self.epoch, self.peer, held=len(self.held),
+                stopped='deposed: %s' % self.deposed if self.deposed else None,
+                cannot_take_over=None if self.joined else 'holds no state: it is joining',
+                extra=[('computed', self.computed)])
 
     def quiescent(self):
         """Leader: no reply waiting for the follower (checked by ~suspend)."""

@@ -8,7 +8,7 @@ from aft_msgs.msg import Checkpoint, CheckpointAck, Join, Reply
 from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
-from .. import config
+from .. import config, health
 from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -16,6 +16,7 @@ from ..protocol import DuplicateCache, Role, check_role_change
 from ..witness import Op
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
+from .diagnostics import Diagnostics
 from .deadline import CallTimeout, Deadline
 from .params import param
 from .ports import wait_for_connections
@@ -103,6 +104,8 @@ class PbrAfterNode(AfterNode):
         fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``
         ~events (std_msgs/String, latched): one JSON record per state transfer this After sent (joiner,
             bytes of state, replies, seconds until acknowledged and until admitted)
+        /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies, whether a backup may
+            take over (aft_ftm.health)
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
     """
@@ -197,8 +200,21 @@ class PbrAfterNode(AfterNode):
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         rospy.Service('~set_role', SetRole, self._on_set_role)
+        self.diagnostics = Diagnostics(self._health, self.site)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
+
+    def _health(self):
+        with self.lock:
+            sender, receiver = self.sender, self.receiver
+            epoch = sender.epoch if sender is not None else receiver.epoch if receiver is not None else 0
+            extra = [('following', receiver.state.name), ('last_checkpoint', receiver.last_seq)] \
+                if receiver is not None and self.role == Role.BACKUP else []
+            return health.replica_after(
+                self.site, 'pbr', self.role, epoch, self.peer, held=len(sender.held) if sender is not None else 0,
+                stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else None,
+                cannot_take_over=receiver.invalid if receiver is not None and self.role == Role.BACKUP else None,
+                extra=extra)
 
     # -- suspension (adaptation) ---------------------------------------------------
     def quiescent(self):

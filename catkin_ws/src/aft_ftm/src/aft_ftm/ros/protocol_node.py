@@ -6,11 +6,12 @@ import rospy
 from aft_msgs.msg import Reply
 from aft_msgs.srv import SetRole, SetRoleResponse
 
-from .. import config
+from .. import config, health
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
 from .alarms import alarm
+from .diagnostics import Diagnostics
 from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
@@ -51,6 +52,7 @@ class ProtocolNode(object):
         pro2bfr (aft_msgs/Request), port ``to_before``.
         prd2aft (aft_msgs/Reply), port ``refusals``: with ~replicate_refusals, refusals to After.
         fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``.
+        /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, cached replies, queue (aft_ftm.health).
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend and ~resume (aft_msgs/Suspend):
         suspended, it holds the requests arriving and answers once nothing is executing.
@@ -107,8 +109,16 @@ class ProtocolNode(object):
         self.timer = rospy.Timer(rospy.Duration(min(1.0, self.processing_timeout / 4)), self._check_overdue)
         rospy.Service('~set_role', SetRole, self._on_set_role)
         self.ports.advertise_service()
+        self.diagnostics = Diagnostics(self._health, self.site)
         rospy.loginfo('%s: ready as %s', self.name, self.core.role.name)
         return True
+
+    def _health(self):
+        with self.lock:
+            core = self.core
+            hung = '%s/%d' % (self.hung.origin, self.hung.id) if self.hung is not None else None
+            return health.protocol(self.site, core.role, core.epoch, len(core.cache), core.cache.bytes,
+                                   core.cache.max_bytes, len(core.queue), hung, core.stats.refused)
 
     def _act(self, actions):
         for action in actions:

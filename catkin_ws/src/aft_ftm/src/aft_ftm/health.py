@@ -1,0 +1,98 @@
+"""The health an FTM node reports on /diagnostics, from its state (no rospy here).
+
+Levels are diagnostic_msgs/DiagnosticStatus's: OK, WARN (degraded: the service is answered, but a
+further fault would not be tolerated, or a replica cannot take over), ERROR (this node cannot serve:
+deposed, fail-stopped, a request hangs). Every report carries the keys ``status`` prints: site,
+mechanism, role, epoch; and what the node knows beside them.
+"""
+import enum
+
+from .protocol import Role
+
+
+class Level(enum.IntEnum):
+    OK = 0
+    WARN = 1
+    ERROR = 2
+
+
+class Report(object):
+    """One node's health: level, a one-line message, and key/value pairs (values as strings)."""
+    __slots__ = ('level', 'message', 'values')
+
+    def __init__(self, level, message, values):
+        self.level = level
+        self.message = message
+        self.values = [(k, str(v)) for k, v in values]
+
+    def value(self, key, default=None):
+        return next((v for k, v in self.values if k == key), default)
+
+    def __repr__(self):
+        return 'Report(%s, %r)' % (self.level.name, self.message)
+
+
+def _common(site, mechanism, role, epoch):
+    return [('site', site), ('mechanism', mechanism), ('role', role.name if isinstance(role, Role) else role),
+            ('epoch', epoch)]
+
+
+def replica_after(site, mechanism, role, epoch, peer, held=0, stopped=None, cannot_take_over=None, extra=()):
+    """A PBR or LFR After. ``held``: replies waiting for the backup (checkpoint lag);
+    ``stopped``: why it answers nothing any more (deposed, fail-stop); ``cannot_take_over``: why a
+    backup may not be promoted (joining, excluded, a refused checkpoint)."""
+    values = _common(site, mechanism, role, epoch) + [('peer', peer), ('held', held)] + list(extra)
+    if stopped:
+        return Report(Level.ERROR, 'serves nothing: %s' % stopped, values)
+    if role == Role.BACKUP:
+        if cannot_take_over:
+            return Report(Level.WARN, 'cannot take over: %s' % cannot_take_over, values)
+        return Report(Level.OK, 'backup of %s, may take over' % peer, values)
+    if role == Role.ALONE:
+        return Report(Level.WARN, 'alone: no backup, a further failure is not tolerated', values)
+    return Report(Level.OK, 'primary, %s follows (%d held)' % (peer, held), values)
+
+
+def protocol(site, role, epoch, cached, cache_bytes, bound_bytes, queued, hung=None, refused=0):
+    """A replica's (or a mechanism's) Protocol."""
+    values = _common(site, '', role, epoch) + [('cached_replies', cached), ('cache_bytes', cache_bytes),
+                                               ('cache_bound_bytes', bound_bytes), ('queued', queued),
+                                               ('refused', refused)]
+    if hung is not None:
+        return Report(Level.ERROR, 'a request hangs: %s' % hung, values)
+    if bound_bytes and cache_bytes >= bound_bytes:
+        return Report(Level.WARN, 'refusing new requests: the reply cache is at its bound', values)
+    doing = 'backup' if role == Role.BACKUP else 'serving'   # the Protocol is ALONE on a primary too
+    return Report(Level.OK, '%s, %d cached replies, %d queued' % (doing, cached, queued), values)
+
+
+def detector(site, peer, peer_state, silence, stopped=None):
+    """A crash detector: ``peer_state`` a detector.PeerState name (UNKNOWN, ALIVE, FAILED)."""
+    values = [('site', site), ('peer', peer), ('peer_state', peer_state),
+              ('silence_ms', '%.1f' % (silence * 1e3) if silence is not None else '')]
+    if stopped:
+        return Report(Level.ERROR, 'fail-stopped (no heartbeat sent): %s' % stopped, values)
+    if peer_state == 'FAILED':
+        return Report(Level.WARN, 'peer %s declared failed' % peer, values)
+    if peer_state == 'UNKNOWN':
+        return Report(Level.WARN, 'peer %s never heard' % peer, values)
+    return Report(Level.OK, 'peer %s alive' % peer, values)
+
+
+def summary(reports):
+    """One line per site from the reports of its nodes ({node name: Report}): (site, level, text)."""
+    sites = {}
+    for name, report in sorted(reports.items()):
+        site = report.value('site') or '?'
+        sites.setdefault(site, []).append((name, report))
+    lines = []
+    for site, entries in sorted(sites.items()):
+        level = max(r.level for _, r in entries)
+        mechanism = next((r.value('mechanism') for _, r in entries if r.value('mechanism')), '-')
+        role = next((r.value('role') for n, r in entries if n.endswith('after') or 'after_' in n), None) \
+            or next((r.value('role') for _, r in entries if r.value('role')), '-')
+        epoch = max((int(r.value('epoch')) for _, r in entries if (r.value('epoch') or '').isdigit()), default=0)
+        worst = [('%s: %s' % (n.rsplit('/', 1)[-1], r.message)) for n, r in entries if r.level == level]
+        lines.append((site, level, '%-8s %-5s %-8s epoch %-4d %-5s %s' % (site, mechanism, role, epoch, level.name,
+                                                                        '; '.join(worst))))
+    return lines
