@@ -22,7 +22,7 @@ from .diagnostics import Diagnostics
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
-from .replica_side import ReplicaSide
+from .replica_side import SIDE_PORTS, ReplicaSide
 from .witness_client import site_launcher_pid
 
 
@@ -143,7 +143,7 @@ class LfrAfterNode(AfterNode):
         refusals (aft_msgs/Reply), port ``refusals``; transfers (aft_msgs/Checkpoint), port
         ``transfer``: state transfers to a joining follower; join (aft_msgs/Join), port ``join``;
         fail_stop (aft_msgs/Failure), alarms (aft_msgs/Alarm); ~events (std_msgs/String, latched): one
-        JSON record per state transfer (bytes, replies, seconds the Protocol was suspended);
+        JSON record per state transfer (bytes, replies; admitted_s: how long the Protocol was suspended);
         /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies (aft_ftm.health).
     Services: ~set_role (aft_msgs/SetRole), ~rebind (aft_msgs/Rebind)
     """
@@ -172,11 +172,7 @@ class LfrAfterNode(AfterNode):
                          PortSpec('refusals', PUBLISH, 'aft_msgs/Reply'),
                          PortSpec('peer_refusals', SUBSCRIBE, 'aft_msgs/Reply'),
                          PortSpec('transfer', PUBLISH, 'aft_msgs/Checkpoint'),
-                         PortSpec('transfers', SUBSCRIBE, 'aft_msgs/Checkpoint'),
-                         PortSpec('join', PUBLISH, 'aft_msgs/Join'),
-                         PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
-                         PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
-                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+                         PortSpec('transfers', SUBSCRIBE, 'aft_msgs/Checkpoint')] + list(SIDE_PORTS),
             extra_callbacks={'acks': self._on_ack, 'notifications': self._on_notify,
                              'peer_refusals': self._on_peer_refusal, 'transfers': self._on_transfer,
                              'join_requests': self._on_join})
@@ -461,7 +457,6 @@ class LfrAfterNode(AfterNode):
             self.epoch = max(self.epoch, grant.epoch)
             self.follower = (join.after, join.incarnation, record['seq'])
         record.update(admitted_s=time.monotonic() - record.pop('t0'), admitted_wall=time.time(), epoch=grant.epoch)
-        record['paused_s'] = record['admitted_s']   # the Protocol resumes now
         self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)

@@ -21,7 +21,7 @@ from .deadline import CallTimeout, Deadline
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
-from .replica_side import ReplicaSide
+from .replica_side import SIDE_PORTS, ReplicaSide
 from .witness_client import site_launcher_pid
 
 
@@ -134,11 +134,7 @@ class PbrAfterNode(AfterNode):
                          PortSpec('acks', SUBSCRIBE, 'aft_msgs/CheckpointAck'),
                          PortSpec('peer_checkpoints', SUBSCRIBE, 'aft_msgs/Checkpoint'),
                          PortSpec('peer_acks', PUBLISH, 'aft_msgs/CheckpointAck'),
-                         PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint'),
-                         PortSpec('join', PUBLISH, 'aft_msgs/Join'),
-                         PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
-                         PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
-                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+                         PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint')] + list(SIDE_PORTS),
             extra_callbacks={'acks': self._on_ack, 'peer_checkpoints': self._on_checkpoint,
                              'join_requests': self._on_join})
         self.role = role

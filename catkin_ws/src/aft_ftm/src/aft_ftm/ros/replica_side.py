@@ -5,11 +5,19 @@ import threading
 import rospy
 from aft_msgs.srv import Suspend
 
+from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Grant, Op
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
 from .fail_stop import fail_stop
 from .witness_client import WitnessClient, WitnessUnreachable
+
+
+# The ports every duplex replica's After has beside its mechanism's: joins, fail-stop, alarms.
+SIDE_PORTS = (PortSpec('join', PUBLISH, 'aft_msgs/Join'),
+              PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
+              PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
+              PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'))
 
 
 class ReplicaSide(object):
