@@ -57,16 +57,73 @@ def niceness(name, value):
     return value
 
 
-def boolean(name, value):
-    """Return value as a bool: True/False, or the strings true/false/1/0 (``bool('false')`` is True,
-    so never convert a parameter with bool())."""
+def flag(name, value):
+    """Return value as a bool: only true or false (a bool, or those words in any case) are accepted.
+    Never convert a parameter with bool(): ``bool('false')`` is True."""
     if isinstance(value, bool):
         return value
-    if isinstance(value, int) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ('true', 'false', '1', '0'):
-        return value.strip().lower() in ('true', '1')
+    if isinstance(value, str) and value.strip().lower() in ('true', 'false'):
+        return value.strip().lower() == 'true'
     raise ConfigError('parameter %s must be true or false, got %r' % (name, value))
+
+
+def optional_name(name, value):
+    """Return '' (not set) or a non-empty string, stripped."""
+    return '' if value == '' else non_empty_str(name, value)
+
+
+def non_negative_float(name, value):
+    """Return value as a float >= 0 (0 usually meaning 'off')."""
+    return 0.0 if value == 0 else positive_float(name, value)
+
+
+def number_in(low, high):
+    """A converter accepting a number from low to high inclusive."""
+    def convert(name, value):
+        try:
+            result = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError('parameter %s must be a number, got %r' % (name, value))
+        if isinstance(value, bool) or not low <= result <= high:
+            raise ConfigError('parameter %s must be a number from %g to %g, got %r' % (name, low, high, value))
+        return result
+    return convert
+
+
+def choice(*choices):
+    """A converter accepting one of choices."""
+    return lambda name, value: one_of(name, value, choices)
+
+
+def name_list(name, value):
+    """Return value as a list of non-empty strings (a YAML list; a single string is refused, so that a
+    forgotten pair of brackets is an error rather than a list of characters)."""
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError('parameter %s must be a list of names, got %r' % (name, value))
+    return [non_empty_str('%s[%d]' % (name, i), v) for i, v in enumerate(value)]
+
+
+def some_names(name, value):
+    """name_list() with at least one name."""
+    result = name_list(name, value)
+    if not result:
+        raise ConfigError('parameter %s must name at least one, got an empty list' % name)
+    return result
+
+
+def number(name, value):
+    """Return value as a finite float."""
+    result = number_in(-float('inf'), float('inf'))(name, value)
+    if result in (float('inf'), float('-inf')):
+        raise ConfigError('parameter %s must be a finite number, got %r' % (name, value))
+    return result
+
+
+def number_map(name, value):
+    """Return value as a dict of names to numbers > 0."""
+    if not isinstance(value, dict):
+        raise ConfigError('parameter %s must be a dict of names to numbers, got %r' % (name, value))
+    return {non_empty_str(name, k): positive_float('%s/%s' % (name, k), v) for k, v in value.items()}
 
 
 def positive_int(name, value):

@@ -5,7 +5,7 @@ import threading
 import rospy
 from aft_msgs.msg import Reply
 
-from .. import assertions
+from .. import assertions, config
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import key
 from .alarms import alarm
@@ -35,7 +35,7 @@ class AdBeforeNode(BeforeNode):
     """
 
     def __init__(self):
-        self.checks = assertions.load_all(param('request_assertions', lambda n, v: v, []),
+        self.checks = assertions.load_all(param('request_assertions', config.name_list, []),
                                           rospy.resolve_name('~request_assertions'))
         super(AdBeforeNode, self).__init__(extra_ports=[PortSpec('to_after', PUBLISH, 'aft_msgs/Request'),
                                                         PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
@@ -73,7 +73,7 @@ class AdAfterNode(AfterNode):
     """
 
     def __init__(self):
-        self.checks = assertions.load_all(param('reply_assertions', lambda n, v: v, []),
+        self.checks = assertions.load_all(param('reply_assertions', config.name_list, []),
                                           rospy.resolve_name('~reply_assertions'))
         super(AdAfterNode, self).__init__(extra_ports=[PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],

@@ -141,7 +141,7 @@ class BankClientNode(object):
 
     def __init__(self):
         self.count = param('count', config.non_negative_int, 500)
-        self.pause = param('pause', lambda n, v: float(v), 0.0)
+        self.pause = param('pause', config.non_negative_float, 0.0)
         self.report = param('report', config.non_empty_str, '')
 
     def setup(self, timeout):

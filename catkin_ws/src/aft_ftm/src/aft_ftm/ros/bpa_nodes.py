@@ -35,7 +35,7 @@ class StageNode(object):
         self.ports = Ports([PortSpec('inp', SUBSCRIBE, self.IN_TYPE),
                             PortSpec('out', PUBLISH, self.OUT_TYPE)] + list(extra_ports), callbacks)
         self.ports.suspension(hold=['inp'], quiescent=self.quiescent, before_suspend=self.before_suspend)
-        self.bind_input = param('bind_input', config.boolean, True)
+        self.bind_input = param('bind_input', config.flag, True)
         self.name = rospy.get_name()
 
     def quiescent(self):
@@ -100,7 +100,7 @@ class ProceedNode(StageNode):
 
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
-        self.site = param('site', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        self.site = param('site', config.optional_name, '')
         super(ProceedNode, self).__init__(extra_ports=[PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.server_name = rospy.resolve_name('server')

@@ -100,7 +100,7 @@ class CycleAfterNode(object):
 
     def __init__(self):
         self.name = rospy.get_name()
-        role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         msg_type = param('msg_type', config.service_type, required=True)
         if roslib.message.get_message_class(msg_type) is None:
             raise config.ConfigError('parameter %s: unknown message type %s'
@@ -109,8 +109,7 @@ class CycleAfterNode(object):
         self.site = param('site', config.non_empty_str, self.name)
         self.first_seq = int(time.time() * 1e6)   # numbered from the clock, as PBR's After
         self.replica = CycleReplica(
-            self.name, role, self.first_seq, expect=param('peer_after', lambda n, v: '' if v == '' else
-                                                          config.non_empty_str(n, v), ''),
+            self.name, role, self.first_seq, expect=param('peer_after', config.optional_name, ''),
             ack_timeout=param('ack_timeout', config.positive_float, 0.5),
             join_period=param('join_period', config.positive_float, 0.25),
             stale_after=param('stale_after', config.positive_float, 1.0),

@@ -53,10 +53,10 @@ class CrashDetectorNode(object):
         if timeout <= self.period:
             raise config.ConfigError('parameter %s (%r) must be longer than ~period (%r)'
                                      % (rospy.resolve_name('~timeout'), timeout, self.period))
-        grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
+        grace = param('startup_grace', config.non_negative_float, 0.0)
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
-        self.follow_witness = param('follow_witness', config.boolean, False)
+        self.follow_witness = param('follow_witness', config.flag, False)
         self.timeout, self.grace = timeout, grace
         # A check later than one period after the previous one: this detector itself was stalled.
         self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic(), stall_after=self.period)

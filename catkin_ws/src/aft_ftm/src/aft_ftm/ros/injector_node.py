@@ -30,10 +30,10 @@ class ServiceFaultInjectorNode(object):
     def __init__(self):
         self.service_type = param('service_type', config.service_type, required=True)
         self.cls = service_class(self.service_type)
-        probability = param('probability', lambda n, v: float(v), 0.0)
+        probability = param('probability', config.number_in(0.0, 1.0), 0.0)
         try:
-            self.corruptor = Corruptor(param('mode', lambda n, v: config.one_of(n, v, MODES), 'bitflip'),
-                                       probability, param('magnitude', lambda n, v: float(v), 1.0),
+            self.corruptor = Corruptor(param('mode', config.choice(*MODES), 'bitflip'),
+                                       probability, param('magnitude', config.number, 1.0),
                                        param('seed', config.non_negative_int, None))
         except ConfigError as e:
             raise ConfigError('%s: %s' % (rospy.get_name(), e))

@@ -27,7 +27,7 @@ from .witness_client import site_launcher_pid
 
 
 def _role():
-    return ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+    return ROLES[param('role', config.choice(*ROLES), 'primary')]
 
 
 def _refused(current, new):
@@ -149,12 +149,12 @@ class LfrAfterNode(AfterNode):
     """
 
     def __init__(self):
-        mechanisms.check_application('lfr', param('server_deterministic', config.boolean, required=True),
+        mechanisms.check_application('lfr', param('server_deterministic', config.flag, required=True),
                                      state_access=False)
         self.role = _role()
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
-        witness = param('witness', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        witness = param('witness', config.optional_name, '')
         self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
         self.peer = param('peer', config.non_empty_str, required=bool(witness)) or ''
         site_pid = param('site_pid', config.non_negative_int, site_launcher_pid())
@@ -187,7 +187,7 @@ class LfrAfterNode(AfterNode):
         self.deposed = None     # leader: why the witness deposed it (it answers nothing more)
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
         # A follower with a witness holds nothing until a state transfer: it joins.
-        self.in_sync = param('in_sync', config.boolean, False)
+        self.in_sync = param('in_sync', config.flag, False)
         self.joined = self.witness is None or self.role != Role.BACKUP or self.in_sync
         self.joined_since = 0.0
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)

@@ -53,14 +53,14 @@ class MonitorNode(object):
 
     def __init__(self):
         faults = param('faults', _names, ['crash'])
-        deterministic = param('deterministic', config.boolean, True)
-        state_access = param('state_access', config.boolean, True)
+        deterministic = param('deterministic', config.flag, True)
+        state_access = param('state_access', config.flag, True)
         self.sites = param('sites', _names, ['master', 'slave'])
         running = tuple(param('running', config.non_empty_str, 'pbr').split('+'))
         lost_after = param('lost_after', config.positive_float, 2.0)
         high = param('bandwidth_high', config.positive_float, 1e6)
         low = param('bandwidth_low', config.positive_float, 1e4)
-        self.mode = param('mode', lambda n, v: config.one_of(n, v, ('prepared', 'paper')), 'prepared')
+        self.mode = param('mode', config.choice('prepared', 'paper'), 'prepared')
         self.period = param('period', config.positive_float, 0.1)
         self.ftm_ns = param('ftm_ns', config.non_empty_str, '/ftm')
         try:

@@ -36,7 +36,7 @@ class PbrBeforeNode(BeforeNode):
     """
 
     def __init__(self):
-        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        self.role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         super(PbrBeforeNode, self).__init__()
 
     def setup(self, timeout):
@@ -111,13 +111,13 @@ class PbrAfterNode(AfterNode):
     """
 
     def __init__(self):
-        role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
-        self.apply_period = param('apply_period', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v),
+        self.apply_period = param('apply_period', config.non_negative_float,
                                   0.01)
         self.replaces = param('replaces', config.non_empty_str, '')
-        self.witness_service = param('witness', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        self.witness_service = param('witness', config.optional_name, '')
         with_witness = bool(self.witness_service)
         self.site = param('site', config.non_empty_str, required=with_witness) or ''
         self.peer = param('peer', config.non_empty_str, required=with_witness) or ''
@@ -139,7 +139,7 @@ class PbrAfterNode(AfterNode):
                              'join_requests': self._on_join})
         self.role = role
         self.sender = CheckpointSender(role, self.first_seq) if role != Role.BACKUP else None
-        self.in_sync = param('in_sync', config.boolean, False)
+        self.in_sync = param('in_sync', config.flag, False)
         self.receiver = CheckpointReceiver(join=with_witness) if role == Role.BACKUP else None
         if self.receiver is not None and with_witness and self.in_sync:
             self.receiver.in_sync()

@@ -59,14 +59,14 @@ class ProtocolNode(object):
     """
 
     def __init__(self):
-        role_name = param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')
+        role_name = param('role', config.choice(*ROLES), 'primary')
         self.processing_timeout = param('processing_timeout', config.positive_float, 30.0)
-        self.site = param('site', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        self.site = param('site', config.optional_name, '')
         capacity = param('cache_capacity', config.non_negative_int, 100000)
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
-        self.listen_as_backup = param('listen_as_backup', config.boolean, False)
-        self.bind_input = param('bind_input', config.boolean, True)
-        self.replicate_refusals = param('replicate_refusals', config.boolean, False)
+        self.listen_as_backup = param('listen_as_backup', config.flag, False)
+        self.bind_input = param('bind_input', config.flag, True)
+        self.replicate_refusals = param('replicate_refusals', config.flag, False)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes)
         self.hung = None   # the request whose outcome is unknown, once one is
         self.lock = threading.Condition()

@@ -52,7 +52,7 @@ class ProxyNode(object):
     def __init__(self):
         self.service_type = param('service_type', config.service_type, required=True)
         self.resend_period = param('resend_period', config.positive_float, 0.5)
-        self.timeout = param('timeout', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
+        self.timeout = param('timeout', config.non_negative_float, 0.0)
         self.cls = service_class(self.service_type)
         self.table = PendingTable(first_id=int(time.time() * 1e6),
                                   max_bytes=param('max_pending_bytes', config.non_negative_int, 64 << 20))

@@ -77,23 +77,20 @@ class RecoveryNode(object):
     """
 
     def __init__(self):
-        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ('primary', 'backup')), 'backup')]
+        self.role = ROLES[param('role', config.choice('primary', 'backup'), 'backup')]
         self.protocol = rospy.resolve_name(param('protocol', config.non_empty_str, required=True))
         self.entry = rospy.resolve_name(param('entry', config.non_empty_str, self.protocol))
         self.entry_requests = param('entry_requests_port', config.non_empty_str, 'requests')
         self.entry_replies = param('entry_replies_port', config.non_empty_str, 'replies')
-        promote = param('promote', lambda n, v: v, ['after'])
-        if not isinstance(promote, list) or not promote or not all(isinstance(x, str) and x for x in promote):
-            raise config.ConfigError('parameter %s must be a non-empty list of node names, got %r'
-                                     % (rospy.resolve_name('~promote'), promote))
+        promote = param('promote', config.some_names, ['after'])
         self.promote = [rospy.resolve_name(n) for n in promote]
         self.peer_ns = rospy.resolve_name(param('peer_namespace', config.non_empty_str, required=True))
-        required = self.role == Role.BACKUP or bool(rospy.get_param('~witness', ''))
+        witness = param('witness', config.optional_name, '')
+        required = self.role == Role.BACKUP or bool(witness)
         self.client_requests = param('client_requests', config.non_empty_str, required=required)
         self.client_replies = param('client_replies', config.non_empty_str, required=required)
         self.timeout = param('service_timeout', config.positive_float, 2.0)
         self.learn_period = param('learn_period', config.positive_float, 2.0)
-        witness = param('witness', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
         self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
         self.retry = param('witness_retry', config.positive_float, 0.5)
         self.witness = WitnessClient(witness, self.site, param('site_pid', config.non_negative_int,

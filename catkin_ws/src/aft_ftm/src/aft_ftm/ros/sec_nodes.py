@@ -25,10 +25,7 @@ class CertificationAuthorityNode(object):
 
     def __init__(self):
         keys_dir = param('keys_dir', config.non_empty_str, required=True)
-        parties = param('parties', lambda n, v: v, required=True)
-        if not isinstance(parties, list) or not parties:
-            raise config.ConfigError('parameter %s must be a non-empty list of party names, got %r'
-                                     % (rospy.resolve_name('~parties'), parties))
+        parties = param('parties', config.some_names, required=True)
         self.ca = security.read_party(keys_dir, 'ca')
         self.certificates = {}
         for name in parties:
@@ -68,13 +65,13 @@ class SecGateNode(object):
     """
 
     def __init__(self):
-        self.side = param('side', lambda n, v: config.one_of(n, v, ('client', 'server')), required=True)
+        self.side = param('side', config.choice('client', 'server'), required=True)
         keys_dir = param('keys_dir', config.non_empty_str, required=True)
         self.me = security.read_party(keys_dir, param('party', config.non_empty_str, required=True))
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
-        self.role = ROLES[param('role', lambda n, v: config.one_of(n, v, ROLES), 'primary')]
+        self.role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         self.ports = Ports([PortSpec('requests_in', SUBSCRIBE, 'aft_msgs/Request'),
                             PortSpec('requests_out', PUBLISH, 'aft_msgs/Request'),
                             PortSpec('replies_in', SUBSCRIBE, 'aft_msgs/Reply'),

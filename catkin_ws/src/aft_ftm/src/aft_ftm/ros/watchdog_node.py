@@ -68,7 +68,7 @@ class WatchdogNode(object):
         self.first = param('primary', lambda n, v: config.one_of(n, v, self.boards), required=True)
         self.timeout = param('timeout', config.positive_float, 0.05)
         self.stall_after = param('stall_after', config.positive_float, self.timeout / 5.0)
-        self.grace = param('startup_grace', lambda n, v: 0.0 if v == 0 else config.positive_float(n, v), 0.0)
+        self.grace = param('startup_grace', config.non_negative_float, 0.0)
         self.service_timeout = param('service_timeout', config.positive_float, 2.0)
         self.niceness = param('niceness', config.niceness, -5)
         self.lock = threading.Lock()

@@ -31,8 +31,8 @@ class WitnessNode(object):
 
     def __init__(self):
         from .params import param
-        initial = param('initial_primary', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
-        path = param('state_file', lambda n, v: v if v == '' else config.non_empty_str(n, v), '')
+        initial = param('initial_primary', config.optional_name, '')
+        path = param('state_file', config.optional_name, '')
         store = StateStore(path, check=self._check) if path else None
         if store is not None:
             state, why = store.load()

@@ -130,12 +130,10 @@ class AlarmManagerNode(PortedNode):
     TYPES = {'imu': 'geometry_msgs/TwistStamped', 'ultrasonic': 'sensor_msgs/Range', 'gap': 'aft_msgs/Measure'}
 
     def __init__(self):
-        watch = param('watch', lambda n, v: v, {'imu': 0.3, 'ultrasonic': 0.3, 'gap': 0.5})
-        if not isinstance(watch, dict) or any(k not in self.TYPES for k in watch) or \
-                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in watch.values()):
+        self.watch = param('watch', config.number_map, {'imu': 0.3, 'ultrasonic': 0.3, 'gap': 0.5})
+        if any(k not in self.TYPES for k in self.watch):
             raise config.ConfigError('parameter %s must map some of %s to timeouts > 0, got %r'
-                                     % (rospy.resolve_name('~watch'), ', '.join(self.TYPES), watch))
-        self.watch = {k: float(v) for k, v in watch.items()}
+                                     % (rospy.resolve_name('~watch'), ', '.join(self.TYPES), self.watch))
         self.clock_timeout = param('clock_timeout', config.positive_float, 0.5)
         self.master_period = param('master_period', config.positive_float, 0.25)
         specs = [PortSpec('clock', SUBSCRIBE, 'rosgraph_msgs/Clock'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
