@@ -37,7 +37,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
-from .deployment import publisher_links, roslaunch, wired
+from .graph import publisher_links, roslaunch, wired
 from .fencing import is_local, node_api
 from .guarded_launch import guarded
 

@@ -27,7 +27,7 @@ from aft_msgs.msg import Alarm
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from aft_ftm.ros.deployment import wired
+from aft_ftm.ros.graph import wired
 from aft_ftm.sites import Site, process_tree, wait_dead, wait_until
 
 from .. import scenario as scenarios

@@ -1,0 +1,119 @@
+"""What the ROS master knows of the graph, for the nodes and tools that launch and wire others: what
+is registered, what is connected, dead registrations, a roscore of one's own. Uses the master API
+only (no rospy node)."""
+import os
+
+import rosgraph
+
+from ..sites import Site, wait_until
+
+
+def missing_from_graph(services=(), subscriptions=(), caller='/aft_deployment'):
+    """The services and (topic, node) subscriptions not yet registered with the master."""
+    try:
+        _, subs, srvs = rosgraph.Master(caller).getSystemState()
+    except Exception as e:   # master not up yet
+        return ['master: %s' % e]
+    have_srvs = {name for name, _ in srvs}
+    have_subs = {(topic, node) for topic, nodes in subs for node in nodes}
+    return ([s for s in services if s not in have_srvs] +
+            ['%s subscribed by %s' % s for s in subscriptions if s not in have_subs])
+
+
+def publisher_links(node, caller='/aft_deployment'):
+    """For each topic node publishes: (the subscribers the master knows, the ones node is connected
+    to), or None when node cannot be asked (not up yet, or going away)."""
+    from .fencing import node_api
+    try:
+        master = rosgraph.Master(caller)
+        pubs, subs, _ = master.getSystemState()
+        code, _, bus = node_api(master.lookupNode(node), 1.0).getBusInfo(caller)
+    except Exception:   # not up yet, or going away
+        return None
+    if code != 1:
+        return None
+    connected = {}
+    for info in bus:   # [id, destination, direction, transport, topic, connected, ...]
+        if info[2] == 'o':
+            connected.setdefault(info[4], set()).add(info[1])
+    subscribers = {t: set(n) - {node} for t, n in subs}
+    return {topic: (subscribers.get(topic, set()), connected.get(topic, set()))
+            for topic, publishers in pubs if node in publishers}
+
+
+def wired(node, caller='/aft_deployment'):
+    """True when every publisher of node is connected to every subscriber the master knows for its
+    topic (a subscription registered is not yet a connection: the subscriber connects afterwards)."""
+    links = publisher_links(node, caller)
+    return links is not None and all(len(connected) >= len(subscribers)
+                                     for subscribers, connected in links.values())
+
+
+def wait_for_graph(services=(), subscriptions=(), timeout=60.0):
+    """Wait until everything is registered; returns what is still missing (empty on success)."""
+    missing = wait_until(lambda: not missing_from_graph(services, subscriptions), timeout, 0.05)
+    return [] if missing else missing_from_graph(services, subscriptions)
+
+
+def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
+    """Unregister from the master every node that no longer answers (as ``rosnode cleanup``).
+
+    A node killed by a signal leaves its registrations behind. If a new process later binds the
+    dead node's XML-RPC port, the master's "new node registered with the same name" shutdown call
+    for the dead node reaches that new process and stops it: so clean up after every stop.
+    """
+    import rosnode
+    from .fencing import node_api
+    try:
+        master = rosgraph.Master(caller)
+        pubs, subs, srvs = master.getSystemState()
+    except Exception:   # no master: nothing to clean
+        return []
+    names = sorted({n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes} - {'/rosout', caller})
+    dead = []
+    for name in names:
+        try:
+            node_api(master.lookupNode(name), timeout).getPid(caller)
+        except Exception:
+            dead.append(name)
+    if dead:
+        import contextlib
+        import io
+        with contextlib.redirect_stdout(io.StringIO()):   # rosnode prints each name
+            rosnode.cleanup_master_blacklist(master, dead)
+    return dead
+
+
+def roslaunch(pkg, launch_file, **args):
+    return ['roslaunch', '--wait', '--skip-log-check', pkg, launch_file] + \
+           ['%s:=%s' % (k, v) for k, v in sorted(args.items())]
+
+
+def free_port():
+    import socket
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def start_master(log_dir, port=None, timeout=30.0):
+    """Start a roscore on a free port and point this process (and its children) at it.
+
+    Returns the roscore Site; raises RuntimeError if the master does not answer in time.
+    """
+    port = port or free_port()
+    os.environ['ROS_MASTER_URI'] = 'http://127.0.0.1:%d' % port
+    os.makedirs(log_dir, exist_ok=True)
+    core = Site('roscore', ['roscore', '-p', str(port)], log_path=os.path.join(log_dir, 'roscore.log')).start()
+
+    def up():
+        try:
+            rosgraph.Master('/aft_deployment').getPid()
+            return True
+        except Exception:
+            return False
+    if not wait_until(up, timeout, 0.05):
+        core.stop()
+        raise RuntimeError('roscore on port %d did not answer within %.0f s (log: %s)'
+                           % (port, timeout, core.log_path))
+    return core
