@@ -16,8 +16,8 @@ from leftovers import kill_tagged
 from reporting import report as report_figure
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_ftm', 'src'))
-from aft_ftm import report  # noqa: E402
+sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_bench', 'src'))
+from aft_bench import report  # noqa: E402
 
 BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing')
 

@@ -1,4 +1,4 @@
-"""Graph-level tests: each rostest file of aft_ftm, run as rostest runs it (own master).
+"""Graph-level tests: each rostest file of every package, run as rostest runs it (own master).
 
 Every process a rostest starts carries AFT_TEST_TAG in its environment; after the run, pass or
 fail, any process still carrying it is killed and the test fails.
@@ -15,8 +15,9 @@ from leftovers import kill_tagged
 from reporting import report
 
 SRC = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src')
-TEST_DIR = os.path.join(SRC, 'aft_ftm', 'test')
-ROSTESTS = [(pkg, os.path.basename(p)) for pkg in ('aft_ftm', 'tjp_sim')
+PACKAGES = ('aft_ftm', 'aft_service_manager', 'aft_examples', 'aft_bench', 'tjp_sim')
+LAUNCH_DIR = os.path.join(SRC, 'aft_ftm', 'launch')
+ROSTESTS = [(pkg, os.path.basename(p)) for pkg in PACKAGES
             for p in sorted(glob.glob(os.path.join(SRC, pkg, 'test', '*.test')))]
 
 
@@ -66,7 +67,7 @@ LAUNCH_ARGS = {
 
 def launch_files():
     paths = []
-    for pkg in ('aft_ftm', 'tjp_sim'):
+    for pkg in PACKAGES:
         paths += sorted(glob.glob(os.path.join(SRC, pkg, 'launch', '*.launch')))
         paths += sorted(glob.glob(os.path.join(SRC, pkg, 'test', '*.test')))
     return paths
@@ -90,7 +91,7 @@ def test_launch_file_loads_and_every_node_exists(path):
 def test_a_missing_required_argument_is_named():
     import roslaunch.config
     import roslaunch.xmlloader
-    path = os.path.join(TEST_DIR, '..', 'launch', 'proxy.launch')
+    path = os.path.join(LAUNCH_DIR, 'proxy.launch')
     loader = roslaunch.xmlloader.XmlLoader()
     loader.ignore_unset_args = False   # roslaunch reads it without setting it
     with pytest.raises(roslaunch.xmlloader.XmlParseException, match="requires the 'service_type' arg"):
@@ -100,7 +101,7 @@ def test_a_missing_required_argument_is_named():
 def test_mechanisms_nest_to_any_depth_a_protocol_standing_in_for_each_proceed():
     import roslaunch.config
     import roslaunch.xmlloader
-    path = os.path.join(TEST_DIR, '..', 'launch', 'replica.launch')
+    path = os.path.join(LAUNCH_DIR, 'replica.launch')
     config = roslaunch.config.ROSLaunchConfig()
     roslaunch.xmlloader.XmlLoader().load(path, config, argv=LAUNCH_ARGS['replica.launch'][:3] + [
         'server:=/master/account', 'inner:=tr+ad'], verbose=False)
@@ -118,7 +119,7 @@ def test_mechanisms_nest_to_any_depth_a_protocol_standing_in_for_each_proceed():
 def test_an_adaptable_site_lets_its_stages_be_replaced_without_stopping_the_site(adaptable, replaceable_required):
     import roslaunch.config
     import roslaunch.xmlloader
-    path = os.path.join(TEST_DIR, '..', 'launch', 'replica.launch')
+    path = os.path.join(LAUNCH_DIR, 'replica.launch')
     config = roslaunch.config.ROSLaunchConfig()
     roslaunch.xmlloader.XmlLoader().load(path, config, argv=REPLICA + [
         'server:=/master/account', 'adaptable:=' + adaptable], verbose=False)

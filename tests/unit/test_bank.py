@@ -1,7 +1,7 @@
 """The demo application: errors in the request stream are visible in the replies. No ROS."""
 import pytest
 
-from aft_ftm.bank import Account, InsufficientFunds, ReplyChecker, operation
+from aft_examples.bank import Account, InsufficientFunds, ReplyChecker, operation
 from aft_ftm.errors import StateError
 
 

@@ -41,3 +41,30 @@ def test_summary_is_one_line_per_site_with_its_worst_level_and_why():
     master = lines[0][2]
     assert 'pbr' in master and 'ALONE' in master and 'epoch 3' in master
     assert 'after: alone' in master and 'crash_detector: peer slave declared failed' in master
+
+
+def test_recovery_reports_its_last_failover_and_a_failed_one_as_an_error():
+    assert health.recovery('slave', Role.BACKUP, 1).message == 'no failover yet'
+    last = {'failed_site': 'master', 'reason': 'no heartbeat for 31 ms', 'ok': True, 'seconds': 0.0123,
+            'steps': [{'step': 'FAIL_SILENCE', 'ok': True, 'detail': '', 'seconds': 0.002}]}
+    done = health.recovery('slave', Role.ALONE, 2, last)
+    assert done.level == Level.OK and 'master failed (no heartbeat for 31 ms); recovered in 12.3 ms' in done.message
+    assert 'FAIL_SILENCE 2.0 ms' in done.message and done.value('last_recovery_ms') == '12.3'
+    failed = dict(last, ok=False, steps=[{'step': 'BIND_CLIENT', 'ok': False, 'detail': 'refused', 'seconds': 0.1}])
+    report = health.recovery('slave', Role.ALONE, 2, failed)
+    assert report.level == Level.ERROR and 'BIND_CLIENT: refused' in report.message
+    assert health.recovery('slave', None, 3, last).level == Level.WARN
+
+
+def test_proxy_warns_of_a_request_nobody_answers_and_of_its_bound():
+    ok = health.proxy('/account', 2, 0.1, 3, 0, 100, 1000, 4, patience=2.0)
+    assert ok.level == Level.OK and ok.message == '2 pending, 3 re-sent, 0 refused' and ok.value('site') == '/account'
+    late = health.proxy('/account', 1, 2.5, 5, 0, 100, 1000, 4, patience=2.0)
+    assert late.level == Level.WARN and 'unanswered for 2.5 s' in late.message
+    assert health.proxy('/account', 9, 0.1, 0, 0, 1000, 1000, 4, patience=2.0).level == Level.WARN
+
+
+def test_a_nested_mechanism_s_node_counts_for_the_site_of_its_name_space():
+    lines = health.summary({'/master/tr/protocol': health.protocol('', Role.ALONE, 0, 1, 10, 0, 0),
+                            '/master/after': health.replica_after('master', 'pbr', Role.PRIMARY, 2, 'slave')})
+    assert [site for site, _, _ in lines] == ['master']

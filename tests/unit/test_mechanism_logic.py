@@ -84,11 +84,11 @@ def test_assertion_outcomes(fn, detail):
 
 
 @pytest.mark.parametrize('spec,error', [
-    ('aft_ftm.bank:balance_never_negative', None),
-    ('aft_ftm.bank', 'must be named as package.module:function'),
+    ('aft_examples.bank:balance_never_negative', None),
+    ('aft_examples.bank', 'must be named as package.module:function'),
     ('aft_ftm.nope:f', 'cannot import aft_ftm.nope'),
-    ('aft_ftm.bank:missing', 'module aft_ftm.bank has no missing'),
-    ('aft_ftm.bank:LIMIT', 'LIMIT is not callable'),
+    ('aft_examples.bank:missing', 'module aft_examples.bank has no missing'),
+    ('aft_examples.bank:LIMIT', 'LIMIT is not callable'),
     (42, 'must be named'),
 ])
 def test_assertions_are_loaded_at_start_with_a_clear_error(spec, error):
@@ -102,11 +102,11 @@ def test_assertions_are_loaded_at_start_with_a_clear_error(spec, error):
 
 def test_assertion_list_parameter_must_be_a_list():
     with pytest.raises(ConfigError, match='~reply_assertions must be a list'):
-        assertions.load_all('aft_ftm.bank:balance_never_negative', '~reply_assertions')
+        assertions.load_all('aft_examples.bank:balance_never_negative', '~reply_assertions')
 
 
 def test_bank_safety_assertions():
-    from aft_ftm.bank import amount_within_limit, balance_never_negative
+    from aft_examples.bank import amount_within_limit, balance_never_negative
     assert amount_within_limit(types.SimpleNamespace(amount=10)) is True
     assert 'over the limit' in amount_within_limit(types.SimpleNamespace(amount=5000))
     assert 'negative' in balance_never_negative(None, types.SimpleNamespace(balance=-1))

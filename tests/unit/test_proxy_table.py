@@ -42,3 +42,14 @@ def test_abandoned_request_is_not_resent():
     entry = table.open('/c', b'', 0)
     table.abandon(entry.id)
     assert table.due(now=10, period=0) == [] and len(table) == 0
+
+
+def test_oldest_age_counts_from_the_first_send_not_the_last_resend():
+    table = PendingTable(first_id=1)
+    assert table.oldest_age(10.0) is None
+    first = table.open('c', b'a', now=10.0)
+    table.open('c', b'b', now=11.0)
+    table.due(now=12.0, period=0.5)           # both re-sent at 12: their age does not restart
+    assert table.oldest_age(13.0) == 3.0
+    table.close(first.id, 'reply')
+    assert table.oldest_age(13.0) == 2.0

@@ -1,4 +1,4 @@
-"""The benchmark report (aft_ftm.report): verdicts computed from figures, never assumed; every
+"""The benchmark report (aft_bench.report): verdicts computed from figures, never assumed; every
 section present whatever ran; consistency checks that catch figures that do not add up."""
 import copy
 import json
@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from aft_ftm import report, report_plots
+from aft_bench import report, report_plots
 
 
 def buffering_row(lost, sent=200, stop=1.0, queue=1, size=100):

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from aft_ftm.services import (EDGES, Sample, ServiceConfigError, State, Supervisor, detect, documentation,
+from aft_service_manager.services import (EDGES, Sample, ServiceConfigError, State, Supervisor, detect, documentation,
                               parse_config)
 from aft_ftm.state_store import StateStore, from_environment
 

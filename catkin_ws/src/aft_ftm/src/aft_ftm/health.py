@@ -79,12 +79,49 @@ def detector(site, peer, peer_state, silence, stopped=None):
     return Report(Level.OK, 'peer %s alive' % peer, values)
 
 
+def recovery(site, role, epoch, last=None):
+    """A replica's Recovery: ``last`` is its last failover record (~events), None before any."""
+    values = _common(site, '', role, epoch)
+    if last:
+        values += [('last_failed_site', last.get('failed_site')), ('last_recovery_ms', '%.1f' % (last['seconds'] * 1e3)),
+                   ('last_reason', last.get('reason'))]
+    if last and not last.get('ok'):
+        failed = [s for s in last['steps'] if not s['ok']]
+        return Report(Level.ERROR, 'the recovery from the failure of %s failed: %s' % (
+            last['failed_site'], '; '.join('%s: %s' % (s['step'], s['detail']) for s in failed)), values)
+    if role is None:
+        return Report(Level.WARN, 'in no configuration of the witness: neither serves nor takes over', values)
+    if not last:
+        return Report(Level.OK, 'no failover yet', values)
+    return Report(Level.OK, '%s failed (%s); recovered in %.1f ms: %s' % (
+        last['failed_site'], last['reason'], last['seconds'] * 1e3,
+        ', '.join('%s %.1f ms' % (s['step'], s['seconds'] * 1e3) for s in last['steps'])), values)
+
+
+def proxy(service, pending, oldest_age, resends, refused, pending_bytes, bound_bytes, epoch, patience):
+    """A Proxy: ``oldest_age`` the age of its oldest unanswered request (s, None if none);
+    ``patience``: past this age a request is late (the replicas are not answering)."""
+    values = [('site', service), ('role', 'PROXY'), ('epoch', epoch), ('pending', pending),
+              ('oldest_pending_s', '%.3f' % oldest_age if oldest_age is not None else ''),
+              ('resends', resends), ('refused', refused), ('pending_bytes', pending_bytes)]
+    if bound_bytes and pending_bytes >= bound_bytes:
+        return Report(Level.WARN, 'refusing calls: the requests waiting for replies are at their bound', values)
+    if oldest_age is not None and oldest_age > patience:
+        return Report(Level.WARN, 'a request unanswered for %.1f s: no replica answers it' % oldest_age, values)
+    return Report(Level.OK, '%d pending, %d re-sent, %d refused' % (pending, resends, refused), values)
+
+
+def _site_of(name, report):
+    """A report's site; for a node that names none, the first name space of the node (/master/tr/x)."""
+    parts = name.strip('/').split('/')
+    return report.value('site') or (parts[0] if len(parts) > 1 else '?')
+
+
 def summary(reports):
     """One line per site from the reports of its nodes ({node name: Report}): (site, level, text)."""
     sites = {}
     for name, report in sorted(reports.items()):
-        site = report.value('site') or '?'
-        sites.setdefault(site, []).append((name, report))
+        sites.setdefault(_site_of(name, report), []).append((name, report))
     lines = []
     for site, entries in sorted(sites.items()):
         level = max(r.level for _, r in entries)

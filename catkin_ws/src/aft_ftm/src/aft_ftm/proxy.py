@@ -14,13 +14,14 @@ class Full(AftError):
 
 class Pending(object):
     """One request waiting for its reply."""
-    __slots__ = ('id', 'client', 'payload', 'sent_at', 'sends', 'reply', 'done')
+    __slots__ = ('id', 'client', 'payload', 'sent_at', 'opened_at', 'sends', 'reply', 'done')
 
     def __init__(self, request_id, client, payload, now):
         self.id = request_id
         self.client = client
         self.payload = payload
         self.sent_at = now
+        self.opened_at = now      # sent_at moves with each re-send; this stays
         self.sends = 1
         self.reply = None
         self.done = threading.Event()
@@ -89,6 +90,11 @@ class PendingTable(object):
         """Every id below this one has been answered (or abandoned)."""
         with self._lock:
             return min(self._pending) if self._pending else self._next
+
+    def oldest_age(self, now):
+        """How long the oldest unanswered request has waited (s), or None if none waits."""
+        with self._lock:
+            return max((now - e.opened_at for e in self._pending.values()), default=None)
 
     def due(self, now, period):
         """Entries to send again: all of them if period is 0, else those not sent for period."""

@@ -14,9 +14,36 @@ def param(name, convert, default=None, required=False):
     return convert(full, rospy.get_param('~' + name))
 
 
-def run_node(name, factory, setup_timeout=30.0):
-    """init_node, build the node object, setup(), spin. Exits non-zero with a clear message on failure."""
+def node_help(name, factory, variants=None):
+    """The text of ``rosrun <package> <name> --help``: the executable's docstring, then the node
+    class's (its parameters, topics and services); with variants ({value: class} chosen by a
+    parameter), each variant's."""
+    import inspect
     import sys
+    main = sys.modules.get('__main__')
+    parts = ['usage: rosrun <package> %s [_param:=value ...] [__name:=NAME] [__ns:=NS] [topic:=remapped ...]' % name]
+    if main is not None and main.__doc__:
+        parts.append(inspect.cleandoc(main.__doc__))
+    classes = sorted(variants.items()) if variants else [('', factory)]
+    for key, cls in classes:
+        doc = inspect.getdoc(cls)
+        if doc:
+            parts.append(('%s: %s' % (key, doc)) if key else doc)
+    return '\n\n'.join(parts)
+
+
+def wants_help(argv):
+    """True if the command line asks for help (-h or --help): answer it without starting work."""
+    return any(a in ('-h', '--help') for a in argv[1:])
+
+
+def run_node(name, factory, setup_timeout=30.0, variants=None):
+    """init_node, build the node object, setup(), spin. Exits non-zero with a clear message on failure.
+    ``--help`` prints node_help() and exits 0 without contacting the master."""
+    import sys
+    if wants_help(sys.argv):
+        print(node_help(name, factory, variants))
+        sys.exit(0)
     rospy.init_node(name)
     try:
         node = factory()

@@ -4,10 +4,11 @@ import time
 import rospy
 from aft_msgs.msg import Reply, Request
 
-from .. import config
+from .. import config, health
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..proxy import Full, PendingTable
 from .alarms import alarm
+from .diagnostics import Diagnostics
 from .envelope import deserialize, serialize, service_class
 from .params import param
 from .ports import Ports, wait_for_connections
@@ -76,6 +77,7 @@ class ProxyNode(object):
                           self.name, self.ports.topic('requests'))
         self.timer = rospy.Timer(rospy.Duration(self.resend_period / 2.0), lambda _: self.resend())
         self.service = rospy.Service('service', self.cls, self._on_call)
+        self.diagnostics = Diagnostics(self._health)
         rospy.loginfo('%s: offering %s (%s)', self.name, self.service.resolved_name, self.service_type)
         return True
 
@@ -113,6 +115,12 @@ class ProxyNode(object):
                   % (reply.id, reply.epoch, self.table.epoch))
             return
         self.table.close(reply.id, reply)
+
+    def _health(self):
+        table = self.table
+        return health.proxy(self.service.resolved_name, len(table), table.oldest_age(time.monotonic()), table.resends,
+                            table.refused, table.bytes, table.max_bytes, table.epoch,
+                            patience=max(4 * self.resend_period, self.timeout or 0.0))
 
     def resend(self, all_pending=False):
         for entry in self.table.due(time.monotonic(), 0 if all_pending else self.resend_period):

@@ -10,13 +10,14 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, SetNodesResponse, SetR
 from aft_msgs.msg import Alarm
 from std_msgs.msg import String
 
-from .. import config
+from .. import config, health
 from ..protocol import Role
 from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
 from ..sites import power_off, process_tree, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
+from .diagnostics import Diagnostics
 from .fencing import NamespaceFence
 from .params import param
 from .ports import Ports
@@ -146,7 +147,13 @@ class RecoveryNode(object):
         if self.witness is not None:
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.alarm_log = rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
+        self.diagnostics = Diagnostics(self._health, self.site)
         return True
+
+    def _health(self):
+        with self.lock:
+            role, epoch, last = self.role, self.epoch, self.last_recovery
+        return health.recovery(self.site or rospy.get_namespace().strip('/'), role, epoch, last)
 
     def _on_alarm(self, msg):
         """Every alarm of this site's nodes (a degraded state) is also an event of this site."""

@@ -1,0 +1,170 @@
+"""The demo application: an unmodified bank server and client (no FTM code in them but the
+server's state-manager mixin)."""
+import json
+import threading
+import time
+
+import rospy
+from aft_msgs.srv import Account, AccountResponse, InjectFault, InjectFaultResponse
+
+from aft_ftm import config
+from aft_examples.stats import median
+from aft_examples.bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, operation
+from aft_ftm.errors import StateError
+from aft_ftm.ros.params import param
+from aft_ftm.ros.state_manager import StateManager
+
+
+class BankServerNode(StateManager):
+    """A bank account served as a ROS service.
+
+    Parameters:
+        ~ballast_bytes (int, 0): bytes of inert state carried with the account (benchmarks of large
+            states: scripts/bench_healing); a state whose ballast is not that long is refused.
+    Services:
+        account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
+        ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
+            (fault injection for the tests: a state capture failing once, or for good)
+    """
+
+    def __init__(self):
+        self.account = AccountLogic()
+        self.state_lock = threading.RLock()
+        self.capture_faults = 0
+        self.ballast = b'\xa5' * param('ballast_bytes', config.non_negative_int, 0)
+
+    def setup(self, timeout):
+        self.advertise_state_services()
+        rospy.Service('account', Account, self._on_request)
+        rospy.Service('~fail_state_captures', InjectFault, self._on_fail_captures)
+        return True
+
+    def _on_fail_captures(self, req):
+        with self.state_lock:
+            self.capture_faults = req.count
+        return InjectFaultResponse(success=True, message='the next %d state captures fail' % req.count)
+
+    def _on_request(self, req):
+        with self.state_lock:
+            try:
+                balance, count, digest = self.account.apply(req.op, req.amount)
+            except (ValueError, InsufficientFunds) as e:
+                raise rospy.ServiceException(str(e))
+        return AccountResponse(balance=balance, count=count, digest=digest)
+
+    def get_state(self):
+        if self.capture_faults > 0:
+            self.capture_faults -= 1
+            raise rospy.ServiceException('injected fault: the state cannot be captured')
+        if self.ballast:
+            return self.account.get_state() + b'\0' + self.ballast
+        return self.account.get_state()
+
+    def set_state(self, data):
+        if self.ballast:
+            data = bytes(data)
+            account, _, ballast = data.partition(b'\0')
+            if len(ballast) != len(self.ballast):
+                raise StateError('state ballast of %d bytes, expected %d' % (len(ballast), len(self.ballast)))
+            data = account
+        self.account.set_state(data)
+
+
+def drive(call, count, checker, on_reply=None, pause=0.0, first=0):
+    """Send operations first .. first+count-1 through call(op, amount) -> (balance, count, digest),
+    checking each.
+
+    Returns a list of (index, sent_wall, replied_wall, ok) records; failed calls count as errors.
+    """
+    records = []
+    for i in range(first, first + count):
+        op, amount = operation(i)
+        expected = checker.expect(op, amount)
+        sent = time.time()
+        try:
+            got = call(op, amount)
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            checker.errors += 1
+            rospy.logerr('request %d failed: %s', i, e)
+            records.append((i, sent, time.time(), False))
+            continue
+        ok = checker.check(expected, got)
+        records.append((i, sent, time.time(), ok))
+        if on_reply:
+            on_reply(i)
+        if pause:
+            time.sleep(pause)
+    return records
+
+
+def account_caller(proxy):
+    """Adapt an aft_msgs/Account service proxy to drive()'s call(op, amount) -> (balance, count, digest)."""
+    def call(op, amount):
+        r = proxy(op=op, amount=amount)
+        return r.balance, r.count, r.digest
+    return call
+
+
+def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003, first=0):
+    """drive() count operations; once fault_after replies came back, after a random delay of up to
+    max_delay (so that the fault lands anywhere inside the next request), run fault() in another
+    thread. fault() returns (processes affected, wall-clock time of the fault).
+
+    Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
+    was never injected.
+    """
+    injected = {}
+    reached = threading.Event()
+
+    def inject():
+        if reached.wait(300):
+            time.sleep(rng.uniform(0, max_delay))
+            injected['processes'], injected['wall'] = fault()
+
+    thread = threading.Thread(target=inject, name='fault', daemon=True)
+    thread.start()
+    records = drive(call, count, checker, first=first,
+                    on_reply=lambda i: reached.set() if i + 1 - first >= fault_after else None)
+    thread.join(10)
+    if 'wall' not in injected:
+        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))
+    return records, injected
+
+
+class BankClientNode(object):
+    """Sends ~count operations to the account service, checks every reply, writes a report.
+
+    Parameters:
+        ~count (int, 500), ~pause (float, 0 s between requests), ~report (str: JSON output path, optional)
+    Services called:
+        account (aft_msgs/Account)
+    """
+
+    def __init__(self):
+        self.count = param('count', config.non_negative_int, 500)
+        self.pause = param('pause', config.non_negative_float, 0.0)
+        self.report = param('report', config.non_empty_str, '')
+
+    def setup(self, timeout):
+        try:
+            rospy.wait_for_service('account', timeout)
+        except rospy.ROSException:
+            rospy.logerr('%s: service %s not available', rospy.get_name(), rospy.resolve_name('account'))
+            return False
+        self.proxy = rospy.ServiceProxy('account', Account)
+        return True
+
+    def run(self):
+        checker = ReplyChecker()
+        records = drive(account_caller(self.proxy), self.count, checker, pause=self.pause)
+        summary = dict(checker.summary(), sent=self.count, answered=self.count - checker.errors,
+                       records=records)
+        if self.report:
+            with open(self.report, 'w') as f:
+                json.dump(summary, f)
+        waits = [replied - sent for _, sent, replied, _ in records if replied is not None]
+        print('bank_client: %(sent)d sent, %(answered)d answered, %(correct)d correct, %(lost)d lost, '
+              '%(duplicated)d duplicated, %(reordered)d reordered, %(errors)d failed calls' % summary
+              + ('; reply time median %.1f ms, longest %.1f ms' % (median(waits) * 1e3, max(waits) * 1e3)
+                 if waits else ''), flush=True)
+        return checker.summary()['correct'] == self.count

@@ -1,0 +1,235 @@
+"""Launching the PBR demo's three sites as separate roslaunch processes, for the demo, the
+integration tests and the benchmarks. Uses the master API only (no rospy node)."""
+import os
+import time
+
+from aft_ftm import security
+from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph, wired
+from aft_ftm.sites import Site, wait_until
+
+REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
+                    'before/rebind', 'crash_detector/rebind', 'recovery/rebind',
+                    'bank_server/get_state', 'bank_server/set_state', 'account')
+GRAPH_SERVICES = ('protocol/rebind', 'before/rebind', 'proceed/rebind', 'after/rebind')
+CLIENT_SERVICES = ('/account', '/proxy/rebind')
+
+
+def nested_services(outer_ns, inner):
+    """The services of mechanisms nested in an outer one's Proceed (inner: 'tr', 'tr+ad', ...)."""
+    names, ns = [], outer_ns
+    for mechanism in inner.split('+'):
+        ns = '%s/%s' % (ns, mechanism)
+        names += ['%s/%s' % (ns, s) for s in GRAPH_SERVICES if not s.startswith('proceed')]
+    return names + ['%s/proceed/rebind' % ns]
+
+
+def replica_services(site, inner='', faulty=False, sec=False):
+    """The services a replica site of the demo offers once every node is set up."""
+    names = ['/%s/%s' % (site, s) for s in REPLICA_SERVICES]
+    if sec:
+        names.append('/%s/sec_gate/rebind' % site)
+    names += nested_services('/' + site, inner) if inner else ['/%s/proceed/rebind' % site]
+    if faulty:
+        names.append('/%s/fault_injector/inject' % site)
+    return names
+
+
+def start_retrying(deployment, attempts=2, log=print):
+    """deployment.start(); if it does not come up, stop it and start it afresh (attempts in all).
+
+    On a loaded 2-core machine a node's set-up has been seen to hang on a subscriber's handshake
+    for 30 s, and the stall of many nodes starting at once to get a replica fenced on a false
+    suspicion (scripts/bench_heartbeats). What a benchmark measures starts once the sites are up,
+    so a second start hides nothing it measures; each failed try is logged. Returns what start()
+    returned; raises the last try's error.
+    """
+    for attempt in range(1, attempts + 1):
+        try:
+            return deployment.start()
+        except RuntimeError as e:
+            if attempt == attempts:
+                raise
+            log('deployment start %d of %d failed, starting afresh: %s' % (attempt, attempts, e))
+            deployment.stop()
+
+
+class _NoPair(object):
+    backup = ''
+
+
+class PbrDeployment(object):
+    """The bank demo under PBR (or mechanism='lfr'). By default three sites, CLIENT, MASTER and SLAVE, each its own
+    roslaunch process tree; with one_host=True a single roslaunch of demo_one_host.launch (site
+    'all'), as a user of pbr.launch runs it."""
+
+    def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
+                 mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
+                 cache_bytes=None):
+        self.log_dir = log_dir
+        self.one_host = one_host
+        self.witness = witness
+        self.launch_args = {}
+        self.inner = inner
+        self.faulty = faulty
+        self.sec = sec
+        replica = dict(period=period, timeout=timeout)
+        if server_timeout is not None:
+            replica['server_timeout'] = server_timeout
+        if ballast_bytes:
+            replica['ballast_bytes'] = ballast_bytes
+        if cache_bytes is not None:
+            replica['cache_bytes'] = cache_bytes
+        client = {}
+        self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
+        if sec:
+            keys = self.keys_dir
+            for party in ('ca', 'client', 'server'):
+                security.write_party(keys, security.Party.generate(party))
+            replica.update(sec='true', keys_dir=keys)
+            client = dict(sec='true', keys_dir=keys)
+        if mechanism != 'pbr':
+            replica['mechanism'] = mechanism
+        if not self.witness:
+            replica['witness'] = 'none'   # roslaunch drops an empty name:= value
+            client['witness'] = 'false'
+        self.replica_args = dict(replica)
+        if adaptable:
+            replica['adaptable'] = 'true'   # Before, Proceed and After replaceable without stopping a site
+        if inner or faulty:
+            if one_host:
+                raise ValueError('the one-host demo has no nested mechanism nor fault injector')
+            replica.update(inner=inner, faulty=str(bool(faulty)).lower())
+
+        self.env = env
+
+        def site(name, launch_file, **args):
+            self.launch_args[name] = (launch_file, args)
+            return Site(name, roslaunch('aft_examples', launch_file, **args), env, os.path.join(log_dir, name + '.log'))
+        if one_host:
+            self.sites = {'all': site('all', 'demo_one_host.launch', **replica)}
+        else:
+            self.sites = {
+                'master': site('master', 'demo_replica_site.launch', site='master', peer='slave', role='primary',
+                               **replica),
+                'slave': site('slave', 'demo_replica_site.launch', site='slave', peer='master', role='backup',
+                              **replica),
+                'client': site('client', 'demo_client_site.launch', **client),
+            }
+
+    def start(self, timeout=120.0):
+        """Start the replicas, then the client site; raise RuntimeError naming what did not come up."""
+        os.makedirs(self.log_dir, exist_ok=True)
+        clean_dead_nodes()   # registrations a killed node left behind would stop our new nodes
+        started = time.monotonic()
+        replicas = ['all'] if self.one_host else ['slave', 'master']
+        if not self.one_host:
+            # The witness and the CA are on the client site: the replicas ask them at set-up.
+            self.sites['client'].start()
+        for name in replicas:
+            self.sites[name].start()
+        for site in ('master', 'slave'):
+            missing = wait_for_graph(replica_services(site, self.inner, self.faulty, self.sec),
+                                     timeout=timeout - (time.monotonic() - started))
+            if missing:
+                raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
+                                   % (site, ', '.join(missing), self.log_dir))
+        client_services = list(CLIENT_SERVICES) + (['/aft/ca/certificate', '/sec_gate/rebind'] if self.sec else [])
+        replies = '/sec_plain/pro2pxy' if self.sec else '/ftm/pro2pxy'
+        missing = wait_for_graph(client_services, [(replies, '/proxy')], timeout - (time.monotonic() - started))
+        if missing:
+            raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
+                                                                                      self.log_dir))
+        # Registered is not connected: the first reply must find the Proxy connected.
+        entry = '/master/%s' % ('sec_gate' if self.sec else 'protocol')
+        if not wait_until(lambda: wired(entry), max(5.0, timeout - (time.monotonic() - started)), 0.05):
+            raise RuntimeError('%s is not connected to its subscribers (logs in %s)' % (entry, self.log_dir))
+        if self.witness and not wait_until(lambda: (witness_status() or _NoPair).backup, max(5.0, timeout - (
+                time.monotonic() - started)), 0.05):
+            raise RuntimeError('the backup did not join the primary: witness %s (logs in %s)'
+                               % (witness_status(), self.log_dir))
+        status = witness_status() if self.witness else None
+        if status is not None and (status.epoch, status.primary, status.backup) != (2, 'master', 'slave'):
+            # A detector timed out while the sites were starting (a loaded machine): not the pair asked for.
+            raise RuntimeError('the pair did not hold through the start: epoch %d, primary %r, backup %r (logs in %s)'
+                               % (status.epoch, status.primary, status.backup, self.log_dir))
+        return time.monotonic() - started
+
+    def relaunch(self, name, **overrides):
+        """Start site name again (a repaired machine coming back), with its launch arguments and overrides
+        (e.g. role='backup'). Returns the new Site; it joins the primary by itself."""
+        launch_file, args = self.launch_args[name]
+        args = dict(args, **overrides)
+        old = self.sites[name]
+        old.stop(grace=2.0)
+        clean_dead_nodes()   # the dead site's registrations would stall the new nodes' connections
+        site = Site(name, roslaunch('aft_examples', launch_file, **args), self.env,
+                    os.path.join(self.log_dir, '%s.%d.log' % (name, int(time.time() * 1000))))
+        self.sites[name] = site
+        return site.start()
+
+    def stop(self):
+        for site in self.sites.values():
+            site.stop(grace=10.0)
+        clean_dead_nodes()
+
+
+class MechanismDeployment(object):
+    """One site: the bank server, a fault injector (faulty=True), one mechanism and the Proxy."""
+
+    def __init__(self, log_dir, mechanism, faulty=True, executions=3, env=None, inner=''):
+        self.log_dir = log_dir
+        self.mechanism = mechanism
+        self.faulty = faulty
+        self.inner = inner
+        args = dict(mechanism=mechanism, faulty=str(bool(faulty)).lower(), executions=executions)
+        if inner:
+            args['inner'] = inner
+        self.sites = {'site': Site('site', roslaunch('aft_examples', 'demo_mechanism_site.launch', **args),
+                                   env, os.path.join(log_dir, 'site.log'))}
+
+    def start(self, timeout=120.0):
+        os.makedirs(self.log_dir, exist_ok=True)
+        clean_dead_nodes()   # registrations a killed node left behind would stop our new nodes
+        started = time.monotonic()
+        self.sites['site'].start()
+        ns = '/site/%s' % self.mechanism
+        services = ['%s/%s' % (ns, s) for s in GRAPH_SERVICES if not s.startswith('proceed')] + list(CLIENT_SERVICES)
+        services += nested_services(ns, self.inner) if self.inner else ['%s/proceed/rebind' % ns]
+        if self.faulty:
+            services.append('/site/fault_injector/inject')
+        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout)
+        if missing:
+            raise RuntimeError('the %s site did not come up: missing %s (logs in %s)'
+                               % (self.mechanism, ', '.join(missing), self.log_dir))
+        return time.monotonic() - started
+
+    def stop(self):
+        self.sites['site'].stop(grace=10.0)
+        clean_dead_nodes()
+
+
+def witness_status(service='/aft/witness/request'):
+    """The witness's configuration (aft_msgs/WitnessResponse: epoch, primary, backup), or None."""
+    import rospy
+    from aft_msgs.srv import Witness
+    try:
+        return rospy.ServiceProxy(service, Witness)(op=0, site='deployment')
+    except Exception:   # not up yet, or gone
+        return None
+
+
+def last_failover(site, timeout=10.0):
+    """The last failover record of site's Recovery (its latched ~events: the other records, starts,
+    configurations and alarms, carry it as ``last_recovery``). Raises RuntimeError if there is none."""
+    import json
+    import rospy
+    from std_msgs.msg import String
+    deadline = time.monotonic() + timeout
+    while True:
+        data = json.loads(rospy.wait_for_message('/%s/recovery/events' % site, String, timeout=timeout).data)
+        record = data if 'failed_site' in data else data.get('last_recovery')
+        if record:
+            return record
+        if time.monotonic() > deadline:
+            raise RuntimeError('%s/recovery recorded no failover within %.0f s' % (site, timeout))
+        time.sleep(0.1)

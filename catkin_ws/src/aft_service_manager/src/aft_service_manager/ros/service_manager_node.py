@@ -1,0 +1,432 @@
+"""The service manager as a ROS node: spawns the configured services as child processes, watches
+them, and carries out the decisions of aft_service_manager.services.Supervisor."""
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+
+import psutil
+import rospy
+from aft_msgs.msg import SafeState, ServiceHeartbeat
+from aft_msgs.srv import ServiceCommand, ServiceCommandResponse
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import String
+from std_srvs.srv import Trigger, TriggerResponse
+
+from aft_ftm import config as params
+from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
+from aft_ftm.ros.params import param
+from aft_service_manager.ros.service_heartbeat import TOPIC
+
+LEVELS = {State.RUNNING: DiagnosticStatus.OK, State.STARTING: DiagnosticStatus.WARN,
+          State.RESTARTING: DiagnosticStatus.WARN, State.STOPPED: DiagnosticStatus.STALE,
+          State.ERROR: DiagnosticStatus.ERROR, State.FAILED: DiagnosticStatus.ERROR}
+
+
+def resolve_rosrun(command, where):
+    """``rosrun PKG TYPE ARGS`` as the node's own executable and ARGS, found once, at start: rosrun
+    looks the package up at every start, which added about 300 ms to each restart. A node that
+    does not exist is a configuration error."""
+    if len(command) < 3 or os.path.basename(command[0]) != 'rosrun':
+        return command
+    import roslib.packages
+    import rospkg
+    try:
+        found = roslib.packages.find_node(command[1], command[2])
+    except rospkg.ResourceNotFound:
+        found = None
+    if not found:
+        raise params.ConfigError('%s: rosrun %s %s: no such node' % (where, command[1], command[2]))
+    return [found[0]] + command[3:]
+
+
+class Child(object):
+    """A service's process (a session of its own, so that everything it starts goes with it) and
+    what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
+
+    def __init__(self, popen, cpu_window):
+        self.popen = popen
+        self.proc = psutil.Process(popen.pid)
+        self.cpu_window = cpu_window
+        self.cpu_marks = []   # (wall time, cpu seconds)
+
+    @property
+    def pid(self):
+        return self.popen.pid
+
+    def sample(self, resources):
+        code = self.popen.poll()
+        if code is not None:
+            return Sample(False, code, False, None, None)
+        if not resources:
+            return Sample(True, None, False, None, None)
+        try:
+            with self.proc.oneshot():
+                stopped = self.proc.status() in (psutil.STATUS_STOPPED, psutil.STATUS_TRACING_STOP)
+                times = self.proc.cpu_times()
+                rss = self.proc.memory_info().rss
+        except psutil.NoSuchProcess:
+            return Sample(False, self.popen.poll(), False, None, None)
+        now = time.monotonic()
+        self.cpu_marks.append((now, times.user + times.system))
+        while len(self.cpu_marks) > 2 and now - self.cpu_marks[1][0] >= self.cpu_window:
+            self.cpu_marks.pop(0)
+        cpu = None
+        first = self.cpu_marks[0]
+        if now - first[0] >= self.cpu_window:
+            cpu = 100.0 * (self.cpu_marks[-1][1] - first[1]) / (now - first[0])
+        return Sample(True, None, stopped, cpu, rss)
+
+    def kill(self, timeout):
+        """SIGKILL the whole session at once (a faulty service is not asked). It is reaped here if it
+        dies within 0.2 s (it almost always does), else by a thread, so the manager's loop never waits long."""
+        try:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        try:
+            self.popen.wait(min(timeout, 0.2))
+        except subprocess.TimeoutExpired:
+            threading.Thread(target=self.popen.wait, daemon=True).start()
+
+    def alive(self):
+        return self.popen.poll() is None
+
+    def owns(self, pid):
+        """Whether pid is this service's process or one of its descendants."""
+        if pid == self.popen.pid:
+            return True
+        try:
+            return any(p.pid == pid for p in self.proc.children(recursive=True))
+        except psutil.Error:
+            return False
+
+    def terminate(self, timeout):
+        """SIGTERM the session, SIGKILL it after timeout (an operator's stop)."""
+        try:
+            os.killpg(self.popen.pid, signal.SIGTERM)
+            self.popen.wait(timeout)
+        except ProcessLookupError:
+            return
+        except subprocess.TimeoutExpired:
+            self.kill(timeout)
+
+
+class ServiceManagerNode(object):
+    """Spawns, watches, restarts, terminates and escalates (see aft_service_manager.services).
+
+    Parameters:
+        ~config (str, required): the configuration file (YAML; keys in aft_service_manager.services)
+        ~resource_period (float, 0.1 s): how often CPU, memory and stopped processes are measured
+            (exit status, heartbeats and reported errors are checked every manager period)
+        ~heartbeat_topic (str, /aft/service_heartbeat): where the services' heartbeats come
+    Subscribes:
+        (~heartbeat_topic) (aft_msgs/ServiceHeartbeat): every service's heartbeats (passed to the services
+            as AFT_HEARTBEAT_TOPIC); a beat from a process the manager has replaced is ignored
+    Publishes:
+        safe_state (aft_msgs/SafeState, latched): the safe-state command
+        /diagnostics (diagnostic_msgs/DiagnosticArray): every service's health, each second and when the
+            safe state changes
+        ~events (std_msgs/String): one JSON record per fault detected and per decision
+    Services:
+        ~start, ~stop, ~restart, ~status (aft_msgs/ServiceCommand), ~clear_safe_state (std_srvs/Trigger)
+    """
+
+    def __init__(self):
+        path = param('config', params.non_empty_str, required=True)
+        try:
+            with open(path) as f:
+                self.config = parse_config(f.read(), source=path)
+        except OSError as e:
+            raise params.ConfigError('cannot read the configuration %s: %s' % (path, e.strerror))
+        except ServiceConfigError as e:
+            raise params.ConfigError(str(e))
+        for name, service in self.config['services'].items():
+            for key in ('command', 'program'):
+                if service[key]:
+                    service[key] = resolve_rosrun(service[key], 'services.%s.%s' % (name, key))
+        self.resource_period = param('resource_period', params.positive_float, 0.1)
+        self.heartbeat_topic = rospy.resolve_name(param('heartbeat_topic', params.non_empty_str, TOPIC))
+        self.period = self.config['manager']['period']
+        self.supervisor = Supervisor(self.config)
+        self.children = {}
+        self.lock = threading.RLock()
+        self.total_memory = psutil.virtual_memory().total
+        self.heartbeats = 0
+        self.unknown_heartbeats = 0
+        self.stale_heartbeats = 0     # from a process the manager has replaced: ignored
+        self.stopping = {}            # name -> Child being stopped by an operator (SIGTERM, then SIGKILL)
+        self.published_safe = None    # the safe state last published (its reason, None: not in it)
+        self.pid_file = os.path.join(self.config['manager']['state_dir'],
+                                     'manager%s.pids' % rospy.get_name().replace('/', '_'))
+
+    def setup(self, timeout):
+        self.safe_pub = rospy.Publisher('safe_state', SafeState, queue_size=1, latch=True)
+        self.diag_pub = rospy.Publisher('/diagnostics', DiagnosticArray, queue_size=10)
+        self.events_pub = rospy.Publisher('~events', String, queue_size=100)
+        rospy.Subscriber(self.heartbeat_topic, ServiceHeartbeat, self._on_heartbeat, queue_size=1000, tcp_nodelay=True)
+        self.safe_pub.publish(SafeState(active=False, reason='', stamp=rospy.Time.now()))
+        for verb in ('start', 'stop', 'restart', 'status'):
+            rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
+        rospy.Service('~clear_safe_state', Trigger, self._on_clear)
+        rospy.on_shutdown(self.shutdown)
+        self._kill_orphans()
+        now = time.monotonic()
+        with self.lock:
+            for name, service in self.supervisor.services.items():
+                if service.config['autostart']:
+                    self._spawn(name, now)
+            self._sync_safe_state()
+        threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
+        return True
+
+    # -- processes -------------------------------------------------------------------------------
+    def _spawn(self, name, now):
+        service = self.supervisor[name]
+        cfg, manager = service.config, self.config['manager']
+        state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
+        env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file, AFT_HEARTBEAT_TOPIC=self.heartbeat_topic,
+                   AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
+        popen = None
+        try:
+            popen = subprocess.Popen(cfg['command'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+            self.children[name] = Child(popen, cfg['cpu_window'])
+        except (OSError, psutil.Error) as e:
+            if popen is not None:   # started but cannot be watched: not left running unwatched
+                try:
+                    os.killpg(popen.pid, signal.SIGKILL)
+                except OSError:
+                    pass
+                threading.Thread(target=popen.wait, daemon=True).start()
+            self.supervisor.spawn_failed(name, now, str(e))
+            self._event('spawn_failed', name, str(e), now)
+            return
+        finally:
+            self._record_pids()
+        service.spawned(now)
+        self._event('spawned', name, 'pid %d' % popen.pid, now, starts=service.starts, pid=popen.pid)
+
+    def _record_pids(self):
+        """The process groups of the running services, so that a manager started after this one was
+        killed can stop what it left behind."""
+        try:
+            os.makedirs(os.path.dirname(self.pid_file), exist_ok=True)
+            with open(self.pid_file, 'w') as f:
+                json.dump({n: {'pid': c.pid, 'cmdline': c.proc.cmdline()} for n, c in self.children.items()
+                           if c.alive()}, f)
+        except (OSError, psutil.Error) as e:
+            rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
+                                   % (rospy.get_name(), self.pid_file, e))
+
+    def _kill_orphans(self):
+        """Kill the services an earlier manager of the same name left running (it was killed)."""
+        try:
+            with open(self.pid_file) as f:
+                recorded = json.load(f)
+        except (OSError, ValueError):
+            return
+        for name, entry in recorded.items():
+            try:
+                proc = psutil.Process(entry['pid'])
+                if proc.cmdline() == entry['cmdline']:
+                    rospy.logwarn('%s: killing %s (pid %d), left running by an earlier manager',
+                                  rospy.get_name(), name, entry['pid'])
+                    os.killpg(entry['pid'], signal.SIGKILL)
+            except (psutil.Error, OSError, KeyError, TypeError):
+                pass
+
+    def _kill(self, name):
+        child = self.children.pop(name, None)
+        if child is not None:
+            child.kill(self.config['manager']['kill_timeout'])
+            self._record_pids()
+
+    def _run_program(self, name, kind):
+        cfg = self.supervisor[name].config
+        env = dict(os.environ, AFT_SERVICE=name, AFT_FAULT=kind)
+        try:
+            subprocess.Popen(cfg['program'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+        except OSError as e:
+            rospy.logerr('%s: the failure program of %s cannot run: %s', rospy.get_name(), name, e)
+
+    def _act(self, decision, now):
+        for verb, name in decision.actions:
+            try:
+                if verb == 'kill':
+                    self._kill(name)
+                elif verb == 'spawn':
+                    self._spawn(name, now)
+                elif verb == 'run':
+                    self._run_program(name, decision.kind)
+                elif verb == 'alert':
+                    rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
+            except Exception as e:   # one failed action must not leave the others undone
+                rospy.logerr('%s: %s %s failed: %s: %s', rospy.get_name(), verb, name, type(e).__name__, e)
+                if verb == 'spawn' and self.supervisor[name].state in (State.RESTARTING, State.STARTING):
+                    self.supervisor.spawn_failed(name, now, str(e))
+        self._sync_safe_state()
+
+    def _sync_safe_state(self):
+        """Publish the safe state whenever the supervisor's has changed (whatever changed it)."""
+        if self.supervisor.safe_state != self.published_safe:
+            self.published_safe = self.supervisor.safe_state
+            self._publish_safe_state()
+
+    # -- the loop --------------------------------------------------------------------------------
+    def _loop(self):
+        next_resources = next_diagnostics = 0.0
+        tick = time.monotonic()
+        while not rospy.is_shutdown():
+            now = time.monotonic()
+            resources = now >= next_resources
+            if resources:
+                next_resources = now + self.resource_period
+            with self.lock:
+                for name in list(self.supervisor.services):
+                    child = self.children.get(name)
+                    if child is None:
+                        continue
+                    try:
+                        was = self.supervisor[name].state
+                        decision = self.supervisor.check(name, child.sample(resources), now, self.total_memory)
+                        if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
+                            child.cpu_marks = []   # its CPU is judged from now on, not its start-up
+                        if decision is not None:
+                            self._event('fault', name, decision.detail, now, kind=decision.kind,
+                                        actions=decision.actions, escalate=decision.escalate)
+                            self._act(decision, time.monotonic())
+                    except Exception as e:   # the manager must outlive any one service's trouble
+                        rospy.logerr('%s: while checking %s: %s: %s', rospy.get_name(), name, type(e).__name__, e)
+            if now >= next_diagnostics:
+                next_diagnostics = now + 1.0
+                self._publish_diagnostics()
+            tick = max(tick + self.period, time.monotonic() - self.period)
+            time.sleep(max(0.0, tick - time.monotonic()))
+
+    def _on_heartbeat(self, beat):
+        now = time.monotonic()
+        with self.lock:
+            if beat.name not in self.supervisor.services:
+                self.unknown_heartbeats += 1
+                rospy.logwarn_throttle(5.0, '%s: heartbeat from %r, which is not a configured service (%d so far)'
+                                       % (rospy.get_name(), beat.name, self.unknown_heartbeats))
+                return
+            child = self.children.get(beat.name)
+            if child is None or (beat.pid and not child.owns(beat.pid)):
+                self.stale_heartbeats += 1     # a replaced (or stopped) process's last words
+                return
+            self.heartbeats += 1
+            service = self.supervisor[beat.name]
+            was = service.state
+            service.heard(now, beat.status, beat.detail)
+            if was == State.STARTING and service.state == State.RUNNING:
+                child.cpu_marks = []
+                self._event('running', beat.name, 'heard from', now, started_at=service.started_at)
+
+    # -- reporting -------------------------------------------------------------------------------
+    def _event(self, event, name, detail, now, **extra):
+        record = dict(extra, event=event, service=name, detail=detail, wall=time.time(), monotonic=now)
+        self.events_pub.publish(String(data=json.dumps(record, default=str)))
+
+    def _publish_safe_state(self):
+        reason = self.supervisor.safe_state
+        if reason:
+            rospy.logerr('%s: SAFE STATE: %s', rospy.get_name(), reason)
+        self.safe_pub.publish(SafeState(active=reason is not None, reason=reason or '', stamp=rospy.Time.now()))
+        self._publish_diagnostics()
+
+    def status(self, name=None):
+        with self.lock:
+            out = {}
+            for n, s in self.supervisor.services.items():
+                if name and n != name:
+                    continue
+                child = self.children.get(n)
+                out[n] = {'state': s.state.name.lower(), 'reason': s.reason, 'pid': child.pid if child else None,
+                          'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
+                          'errors': dict(s.errors), 'critical': s.config['critical'],
+                          'period': s.config['period'], 'spare': s.config['spare']}
+            return {'services': out, 'safe_state': self.supervisor.safe_state}
+
+    def _publish_diagnostics(self):
+        status = self.status()
+        array = DiagnosticArray()
+        array.header.stamp = rospy.Time.now()
+        for name, s in status['services'].items():
+            state = State[s['state'].upper()]
+            array.status.append(DiagnosticStatus(
+                level=LEVELS[state], name='service_manager: %s' % name, message='%s: %s' % (s['state'], s['reason']),
+                hardware_id=str(s['pid'] or ''),
+                values=[KeyValue(key='starts', value=str(s['starts'])),
+                        KeyValue(key='restarts_in_window', value=str(s['restarts_in_window'])),
+                        KeyValue(key='critical', value=str(s['critical']).lower())] +
+                [KeyValue(key='errors.%s' % k, value=str(v)) for k, v in sorted(s['errors'].items())]))
+        safe = status['safe_state']
+        array.status.append(DiagnosticStatus(level=DiagnosticStatus.ERROR if safe else DiagnosticStatus.OK,
+                                             name='service_manager', message='SAFE STATE: %s' % safe if safe else 'normal',
+                                             values=[KeyValue(key='heartbeats', value=str(self.heartbeats))]))
+        self.diag_pub.publish(array)
+
+    # -- operators -------------------------------------------------------------------------------
+    def _on_command(self, verb, req):
+        if verb == 'status':
+            if req.name and req.name not in self.supervisor.services:
+                return ServiceCommandResponse(success=False, message='unknown service %r (services: %s)'
+                                              % (req.name, ', '.join(self.supervisor.services)))
+            return ServiceCommandResponse(success=True, message='', status=json.dumps(self.status(req.name or None)))
+        if req.name not in self.supervisor.services:
+            return ServiceCommandResponse(success=False, message='unknown service %r (services: %s)'
+                                          % (req.name, ', '.join(self.supervisor.services)))
+        now = time.monotonic()
+        with self.lock:
+            stopping = self.stopping.get(req.name)
+            if verb in ('start', 'restart') and stopping is not None and stopping.alive():
+                return ServiceCommandResponse(success=False, message='%s is still stopping: try again' % req.name,
+                                              status=json.dumps(self.status(req.name)))
+            ok, actions, message = getattr(self.supervisor, verb)(req.name, now)
+            for action, name in actions:
+                if action == 'kill' and verb == 'stop':
+                    # An operator's stop asks first (SIGTERM), off the manager's loop.
+                    child = self.children.pop(name, None)
+                    if child is not None:
+                        self.stopping[name] = child
+                        threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),
+                                         daemon=True).start()
+                elif action == 'kill':
+                    self._kill(name)
+                elif action == 'spawn':
+                    self._spawn(name, now)
+            self._event('command', req.name, message, now, verb=verb, accepted=ok)
+            self._sync_safe_state()
+        return ServiceCommandResponse(success=ok, message=message, status=json.dumps(self.status(req.name)))
+
+    def _on_clear(self, _req):
+        with self.lock:
+            ok, message = self.supervisor.clear_safe_state(time.monotonic())
+            self._sync_safe_state()
+        rospy.logwarn('%s: clear safe state: %s', rospy.get_name(), message)
+        return TriggerResponse(success=ok, message=message)
+
+    def shutdown(self):
+        """Stop every service, those being stopped too: SIGTERM to all, then SIGKILL to those still
+        running after kill_timeout. Never raises."""
+        with self.lock:
+            children = list(self.children.values()) + list(self.stopping.values())
+            self.children, self.stopping = {}, {}
+        try:
+            for child in children:
+                try:
+                    os.killpg(child.pid, signal.SIGTERM)
+                except (ProcessLookupError, PermissionError):
+                    pass
+            deadline = time.monotonic() + self.config['manager']['kill_timeout']
+            for child in children:
+                try:
+                    child.popen.wait(max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    child.kill(0.2)
+            os.unlink(self.pid_file)
+        except Exception:   # shutdown paths never raise
+            pass

@@ -1,0 +1,111 @@
+"""A small periodic service standing in for the remote-handling services of the third paper
+(TrajectoryGenerator, C4G, ...): it works every period, publishes a counter, sends its heartbeat,
+saves its state, and can be made to fail on demand (crash, hang, memory leak, CPU hog, error)."""
+import json
+import os
+import signal
+import threading
+import time
+
+import rospy
+from aft_msgs.srv import InjectFault, InjectFaultResponse
+from std_msgs.msg import String, UInt64
+
+from aft_ftm import config
+from aft_ftm.state_store import from_environment
+from aft_ftm.ros.params import param
+from aft_service_manager.ros.service_heartbeat import Heartbeat
+
+FAULTS = ('crash', 'exit', 'hang', 'leak', 'hog', 'error')
+
+
+class StandInServiceNode(object):
+    """Parameters:
+        ~period (float, 0.01 s): the service's cycle (wall clock)
+        ~save_every (float, 0.5 s): how often its state (the counter) is saved
+        ~counter_limit (int, 10**9): the range check of a restored state
+    Publishes:
+        ~output (std_msgs/UInt64): the counter, each cycle
+        ~restored (std_msgs/String, latched): JSON {restored, reason, counter} at start
+        /aft/service_heartbeat (aft_msgs/ServiceHeartbeat): each cycle
+    Services:
+        ~fault (aft_msgs/InjectFault): mode crash (SIGSEGV), exit (status 3), hang (SIGSTOP of itself),
+            leak (magnitude MB more each cycle), hog (a busy thread), error (reported in the heartbeat)
+    """
+
+    def __init__(self):
+        self.period = param('period', config.positive_float, 0.01)
+        self.save_every = param('save_every', config.positive_float, 0.5)
+        limit = param('counter_limit', config.non_negative_int, 10 ** 9)
+        self.store, self.restore = from_environment(
+            '/tmp/aft_service_state/%s.json' % rospy.get_name().strip('/').replace('/', '_'),
+            lambda state: None if isinstance(state.get('counter'), int) and 0 <= state['counter'] <= limit
+            else 'counter %r outside 0 .. %d' % (state.get('counter'), limit))
+        self.counter = 0
+        self.error = None
+        self.leak_mb = 0.0
+        self.leaked = []
+
+    def setup(self, timeout):
+        reason = 'restoring not asked for: clean start'
+        restored = False
+        if self.restore:
+            state, why = self.store.load()
+            if state is None:
+                reason = 'clean start: %s' % why
+                rospy.logwarn('%s: %s', rospy.get_name(), reason)
+            else:
+                self.counter, restored, reason = state['counter'], True, 'restored'
+        pub = rospy.Publisher('~restored', String, queue_size=1, latch=True)
+        pub.publish(String(data=json.dumps({'restored': restored, 'reason': reason, 'counter': self.counter})))
+        self.output = rospy.Publisher('~output', UInt64, queue_size=10, tcp_nodelay=True)
+        self.heartbeat = Heartbeat()
+        rospy.Service('~fault', InjectFault, self._on_fault)
+        threading.Thread(target=self._loop, name='cycle', daemon=True).start()
+        return True
+
+    def _loop(self):
+        tick = time.monotonic()
+        last_save = 0.0
+        while not rospy.is_shutdown():
+            self.counter += 1
+            if self.leak_mb:
+                self.leaked.append(bytearray(int(self.leak_mb * 1e6)))
+            self.output.publish(UInt64(data=self.counter))
+            self.heartbeat.beat('error', self.error) if self.error else self.heartbeat.beat()
+            now = time.monotonic()
+            if now - last_save >= self.save_every:
+                self.store.save({'counter': self.counter})
+                last_save = now
+            tick = max(tick + self.period, time.monotonic() - self.period)
+            time.sleep(max(0.0, tick - time.monotonic()))
+
+    def _on_fault(self, req):
+        mode = req.mode
+        if mode not in FAULTS:
+            return InjectFaultResponse(success=False, message='mode must be one of %s, got %r' % (', '.join(FAULTS), mode))
+        rospy.logwarn('%s: fault injected: %s', rospy.get_name(), mode)
+        if mode == 'leak':
+            self.leak_mb = req.magnitude or 5.0
+        elif mode == 'hog':
+            threading.Thread(target=self._hog, daemon=True).start()
+        elif mode == 'error':
+            self.error = 'injected error'
+        else:
+            # After the answer has gone out.
+            threading.Timer(0.05, self._die, args=(mode,)).start()
+        return InjectFaultResponse(success=True, message='%s injected' % mode)
+
+    @staticmethod
+    def _hog():
+        while True:
+            pass
+
+    @staticmethod
+    def _die(mode):
+        if mode == 'crash':
+            os.kill(os.getpid(), signal.SIGSEGV)
+        elif mode == 'exit':
+            os._exit(3)
+        else:
+            os.kill(os.getpid(), signal.SIGSTOP)

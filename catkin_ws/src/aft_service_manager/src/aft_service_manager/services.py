@@ -1,0 +1,535 @@
+"""A service manager for loosely coupled services (third paper: fault detection and recovery in
+critical real-time systems by loose coupling), without rospy and without processes.
+
+- :func:`parse_config`: the configuration file (YAML), every key checked and defaulted
+  (:data:`SERVICE_KEYS`, :data:`MANAGER_KEYS` document each one);
+- :class:`Service`: one service's explicit state machine (:class:`State`, one ``_change()``,
+  every edge in :data:`EDGES`) and its error counts;
+- :func:`detect`: the faults a sample of a service shows (exit status, hang, heartbeat timeout,
+  an error the service reported, CPU or memory over its limit);
+- :class:`Supervisor`: the policies. Restart within a limit per time window, terminate, run a
+  program or alert; dependants restarted or terminated with a service; escalation to a safe state
+  (limit exhausted, or a critical service that cannot be recovered) that stays until an operator
+  clears it.
+
+The supervisor decides; the caller (aft_service_manager.ros.service_manager_node) acts: it spawns and kills
+processes and reports what it observed. ``now`` is always passed in.
+"""
+import collections
+import enum
+import re
+
+import yaml
+
+from aft_ftm.errors import AftError
+
+
+class ServiceConfigError(AftError):
+    """The configuration is malformed; the message names the service, the key and the value."""
+
+
+class State(enum.Enum):
+    STOPPED = 0      # not running: never started, stopped by an operator, or terminated by a policy
+    STARTING = 1     # spawned, not yet heard (heartbeat) or not yet past its start grace
+    RUNNING = 2
+    ERROR = 3        # a fault was detected; the failure action is being decided
+    RESTARTING = 4   # being killed, to be spawned again
+    FAILED = 5       # restart limit exhausted, or it cannot be started: stays until an operator starts it
+
+
+EDGES = {
+    (State.STOPPED, State.STARTING): 'started (by the manager at start, an operator, or with a dependency)',
+    (State.FAILED, State.STARTING): 'an operator starts it again (error counts kept, restart allowance renewed)',
+    (State.STARTING, State.RUNNING): 'heard from (or alive past its start grace, without heartbeats)',
+    (State.STARTING, State.ERROR): 'a fault before it was running (exit, start timeout, ...)',
+    (State.RUNNING, State.ERROR): 'a fault was detected',
+    (State.ERROR, State.RESTARTING): 'failure action restart, within the restart limit',
+    (State.ERROR, State.STOPPED): 'failure action terminate, run or alert; or terminated with a dependency',
+    (State.ERROR, State.FAILED): 'restart limit exhausted',
+    (State.ERROR, State.RUNNING): 'failure action alert on a service still running: it goes on',
+    (State.RESTARTING, State.STARTING): 'killed and spawned again',
+    (State.RESTARTING, State.FAILED): 'it could not be spawned again',
+    (State.RESTARTING, State.STOPPED): 'terminated with a dependency while it was restarting',
+    (State.STARTING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
+    (State.RUNNING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
+    (State.RUNNING, State.RESTARTING): 'restarted by an operator or with a dependency',
+    (State.STARTING, State.RESTARTING): 'restarted by an operator or with a dependency',
+    (State.STOPPED, State.RESTARTING): 'restarted by an operator or with a dependency',
+    (State.FAILED, State.STOPPED): 'stopped by an operator',
+}
+
+ACTIONS = ('restart', 'terminate', 'run', 'alert')
+
+
+# -- configuration -------------------------------------------------------------------------------
+def _size(where, value):
+    """Bytes: an integer, or a string like 200MB, 1.5GiB, 512k; or a percentage of the RAM: '10%'."""
+    if isinstance(value, bool):
+        raise ServiceConfigError('%s must be bytes or a percentage, got %r' % (where, value))
+    if isinstance(value, (int, float)):
+        if value <= 0:
+            raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+        return ('bytes', float(value))
+    match = re.match(r'^\s*([0-9.]+)\s*(%|[kKmMgG]i?[bB]?|[bB])?\s*$', str(value))
+    if not match:
+        raise ServiceConfigError('%s must be bytes (e.g. 200MB) or a percentage (e.g. 10%%), got %r' % (where, value))
+    number, unit = float(match.group(1)), (match.group(2) or 'b').lower()
+    if number <= 0:
+        raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+    if unit == '%':
+        if number > 100:
+            raise ServiceConfigError('%s: a percentage of the RAM cannot exceed 100, got %r' % (where, value))
+        return ('percent', number)
+    scale = {'b': 1, 'k': 1e3, 'm': 1e6, 'g': 1e9, 'ki': 1024, 'mi': 1024 ** 2, 'gi': 1024 ** 3}[unit.rstrip('b') or 'b']
+    return ('bytes', number * scale)
+
+
+def _cpu(where, value):
+    """Percent of one core (100 = one core busy), '80%' or 80."""
+    if isinstance(value, bool):
+        raise ServiceConfigError('%s must be a percentage of one core, got %r' % (where, value))
+    text = str(value).strip()
+    try:
+        number = float(text[:-1] if text.endswith('%') else text)
+    except ValueError:
+        raise ServiceConfigError('%s must be a percentage of one core (e.g. 80%%), got %r' % (where, value))
+    if not number > 0:
+        raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+    return number
+
+
+def _positive(where, value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ServiceConfigError('%s must be a number > 0, got %r' % (where, value))
+    return float(value)
+
+
+def _non_negative(where, value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+        raise ServiceConfigError('%s must be a number >= 0, got %r' % (where, value))
+    return float(value)
+
+
+def _count(where, value):
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ServiceConfigError('%s must be an integer >= 0, got %r' % (where, value))
+    return value
+
+
+def _flag(where, value):
+    if not isinstance(value, bool):
+        raise ServiceConfigError('%s must be true or false, got %r' % (where, value))
+    return value
+
+
+def _command(where, value):
+    if isinstance(value, str) and value.strip():
+        return value.split()
+    if isinstance(value, list) and value and all(isinstance(a, (str, int, float)) and not isinstance(a, bool)
+                                                 for a in value):
+        return [str(a) for a in value]
+    raise ServiceConfigError('%s must be a command: a string or a list of arguments, got %r' % (where, value))
+
+
+def _names(where, value):
+    if not isinstance(value, list) or not all(isinstance(n, str) and n for n in value):
+        raise ServiceConfigError('%s must be a list of service names, got %r' % (where, value))
+    return list(value)
+
+
+def _optional(convert):
+    return lambda where, value: None if value is None else convert(where, value)
+
+
+def _action(where, value):
+    if value not in ACTIONS:
+        raise ServiceConfigError('%s must be one of %s, got %r' % (where, ', '.join(ACTIONS), value))
+    return value
+
+
+def _text(where, value):
+    if not isinstance(value, str):
+        raise ServiceConfigError('%s must be a string, got %r' % (where, value))
+    return value
+
+
+# key: (default, converter, documentation). REQUIRED marks a key without default.
+REQUIRED = object()
+SERVICE_KEYS = collections.OrderedDict([
+    ('command', (REQUIRED, _command, 'the start command, a string or a list of arguments')),
+    ('period', (None, _optional(_positive), "the service's own period (s); informational, shown by ~status")),
+    ('spare', (0.0, _non_negative, 'spare time (s) left from its previous period; informational, shown by ~status')),
+    ('heartbeat_timeout', (None, _optional(_positive), 'silence (s) after which the service is declared hung; '
+                                                      'null: the service sends no heartbeat')),
+    ('start_timeout', (5.0, _positive, 'a service not heard (or, without heartbeats, not alive) this long (s) '
+                                       'after its start has failed to start')),
+    ('start_grace', (0.5, _non_negative, 'without heartbeats: alive this long (s) after its start counts as running')),
+    ('cpu_limit', (None, _optional(_cpu), 'CPU limit, percent of one core (e.g. 80%); null: none')),
+    ('cpu_window', (1.0, _positive, 'the CPU use is averaged over this long (s) before it is compared to the limit')),
+    ('memory_limit', (None, _optional(_size), 'memory limit: bytes (200MB, 1GiB) or a percentage of the RAM (10%); '
+                                              'null: none')),
+    ('on_failure', ('restart', _action, 'restart, terminate, run (terminate, then run ``program``) or alert '
+                                        '(report it and let it be)')),
+    ('program', (None, _optional(_command), 'the program on_failure: run runs (with AFT_SERVICE and AFT_FAULT in '
+                                            'its environment)')),
+    ('restart_limit', (3, _count, 'restarts allowed within restart_window; one more fault escalates')),
+    ('restart_window', (60.0, _positive, 'the window (s) of restart_limit')),
+    ('restart_with', ([], _names, 'services restarted after this one is restarted (its dependants, and '
+                                  'theirs); those stopped stay stopped')),
+    ('terminate_with', ([], _names, 'services terminated when this one fails (before it restarts), and left '
+                                    'stopped (e.g. the trajectory generator when the trajectory sender fails)')),
+    ('critical', (False, _flag, 'a critical service that cannot be recovered puts the system in the safe state')),
+    ('safe_state_on_failure', (False, _flag, 'any failure of it puts the system in the safe state, even one a '
+                                             'restart recovers (the paper\'s "stop manipulator movement")')),
+    ('restore_state', (False, _flag, 'pass its state file (AFT_STATE_FILE) on restart, to be restored after a '
+                                     'sanity check; false: it starts clean')),
+    ('state_file', (None, _optional(_text), 'where the service saves its state (default: <state_dir>/<name>.json)')),
+    ('autostart', (True, _flag, 'started when the manager starts')),
+])
+MANAGER_KEYS = collections.OrderedDict([
+    ('period', (0.01, _positive, "the manager's cycle (s): how often it checks every service")),
+    ('kill_timeout', (2.0, _positive, 'a service asked to stop (SIGTERM) is killed (SIGKILL) after this long (s)')),
+    ('state_dir', ('/tmp/aft_service_state', _text, 'directory of the services\' state files')),
+])
+
+
+def _fill(where, item, keys):
+    if not isinstance(item, dict):
+        raise ServiceConfigError('%s must be a mapping, got %r' % (where, item))
+    unknown = sorted(str(k) for k in set(item) - set(keys))
+    if unknown:
+        raise ServiceConfigError('%s: unknown key %s (known: %s)' % (where, ', '.join(unknown), ', '.join(keys)))
+    out = {}
+    for key, (default, convert, _) in keys.items():
+        if key in item:
+            out[key] = convert('%s.%s' % (where, key), item[key])
+        elif default is REQUIRED:
+            raise ServiceConfigError('%s: missing key %s' % (where, key))
+        else:
+            out[key] = list(default) if isinstance(default, list) else default
+    return out
+
+
+def parse_config(text, source='config'):
+    """The configuration of a YAML text: {'manager': {...}, 'services': OrderedDict(name -> {...})}."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ServiceConfigError('%s: not valid YAML: %s' % (source, e))
+    if not isinstance(data, dict) or 'services' not in data:
+        raise ServiceConfigError('%s: must be a mapping with a services key' % source)
+    unknown = sorted(str(k) for k in set(data) - {'manager', 'services'})
+    if unknown:
+        raise ServiceConfigError('%s: unknown key %s (known: manager, services)' % (source, ', '.join(unknown)))
+    manager = _fill('%s: manager' % source, data.get('manager') or {}, MANAGER_KEYS)
+    raw = data['services']
+    if not isinstance(raw, dict) or not raw:
+        raise ServiceConfigError('%s: services must be a non-empty mapping of names to services' % source)
+    services = collections.OrderedDict()
+    for name, item in raw.items():
+        if not isinstance(name, str) or not re.match(r'^[A-Za-z][A-Za-z0-9_]*$', name):
+            raise ServiceConfigError('%s: service name %r must be a letter then letters, digits or _' % (source, name))
+        services[name] = _fill('%s: services.%s' % (source, name), item, SERVICE_KEYS)
+    for name, s in services.items():
+        if s['on_failure'] == 'run' and not s['program']:
+            raise ServiceConfigError('%s: services.%s: on_failure run needs a program' % (source, name))
+        for key in ('restart_with', 'terminate_with'):
+            for other in s[key]:
+                if other not in services:
+                    raise ServiceConfigError('%s: services.%s.%s names %r, which is not a service (services: %s)'
+                                             % (source, name, key, other, ', '.join(services)))
+                if other == name:
+                    raise ServiceConfigError('%s: services.%s.%s names the service itself' % (source, name, key))
+        both = set(s['restart_with']) & set(s['terminate_with'])
+        if both:
+            raise ServiceConfigError('%s: services.%s: %s both restarted and terminated with it'
+                                     % (source, name, ', '.join(sorted(both))))
+    cycle = _cycle(services)
+    if cycle:
+        raise ServiceConfigError('%s: restart_with makes a cycle: %s' % (source, ' -> '.join(cycle)))
+    return {'manager': manager, 'services': services}
+
+
+def _cycle(services):
+    """A cycle in the restart_with graph, as a list of names (first repeated last), or None."""
+    colour = {}
+
+    def visit(name, path):
+        colour[name] = 'grey'
+        for other in services[name]['restart_with']:
+            if colour.get(other) == 'grey':
+                return path[path.index(other):] + [other]
+            if other not in colour:
+                found = visit(other, path + [other])
+                if found:
+                    return found
+        colour[name] = 'black'
+        return None
+    for name in services:
+        if name not in colour:
+            found = visit(name, [name])
+            if found:
+                return found
+    return None
+
+
+def documentation():
+    """The configuration keys, their defaults and meaning, as a Markdown table (for the README)."""
+    lines = ['| key | default | meaning |', '|---|---|---|']
+    for section, keys in (('manager', MANAGER_KEYS), ('services.NAME', SERVICE_KEYS)):
+        for key, (default, _, doc) in keys.items():
+            shown = 'required' if default is REQUIRED else ('null' if default is None else repr(default))
+            lines.append('| `%s.%s` | %s | %s |' % (section, key, shown, doc))
+    return '\n'.join(lines)
+
+
+# -- detection -----------------------------------------------------------------------------------
+Sample = collections.namedtuple('Sample', 'alive exit_code stopped cpu_percent rss')
+Sample.__doc__ = """What the manager observed of a service's process: alive (bool), exit_code (None while
+alive), stopped (the process is stopped: SIGSTOP, a hang), cpu_percent (averaged over cpu_window, None
+before a whole window), rss (bytes)."""
+
+
+def detect(config, sample, now, last_heard, reported_error, started_at, total_memory):
+    """The fault a service shows now, as (kind, detail), or None.
+
+    ``last_heard``: when its last heartbeat came (None: never); ``reported_error``: the detail of an
+    error it reported in a heartbeat (None: none)."""
+    if not sample.alive:
+        return 'exit', 'the process exited with status %s' % sample.exit_code
+    if sample.stopped:
+        return 'hang', 'the process is stopped (not scheduled)'
+    if reported_error is not None:
+        return 'reported_error', 'the service reported an error: %s' % reported_error
+    timeout = config['heartbeat_timeout']
+    if timeout is not None and last_heard is not None and now - last_heard > timeout:
+        return 'heartbeat_timeout', 'no heartbeat for %.0f ms (timeout %.0f ms)' % ((now - last_heard) * 1e3, timeout * 1e3)
+    if config['cpu_limit'] is not None and sample.cpu_percent is not None and sample.cpu_percent > config['cpu_limit']:
+        return 'cpu_limit', 'CPU %.0f%% of a core over %.1f s (limit %.0f%%)' % (
+            sample.cpu_percent, config['cpu_window'], config['cpu_limit'])
+    if config['memory_limit'] is not None and sample.rss is not None:
+        kind, value = config['memory_limit']
+        limit = value if kind == 'bytes' else value / 100.0 * total_memory
+        if sample.rss > limit:
+            return 'memory_limit', 'memory %.1f MB (limit %.1f MB)' % (sample.rss / 1e6, limit / 1e6)
+    return None
+
+
+# -- one service ---------------------------------------------------------------------------------
+class ServiceStateError(AftError):
+    pass
+
+
+class Service(object):
+    """A service's state and counts. Every state change goes through _change(), along EDGES."""
+
+    def __init__(self, name, config):
+        self.name, self.config = name, config
+        self.state = State.STOPPED
+        self.reason = 'not started'
+        self.since = None
+        self.started_at = None
+        self.last_heard = None
+        self.reported_error = None
+        self.restarts = collections.deque()   # times of the restarts within the window
+        self.errors = collections.Counter()    # fault kind -> count
+        self.starts = 0
+        self.history = []                      # (now, from, to, reason)
+        self.alerted = set()                   # fault kinds alerted and still present (alerted once)
+
+    def _change(self, state, now, reason):
+        if state == self.state:
+            return
+        if (self.state, state) not in EDGES:
+            raise ServiceStateError('%s: %s -> %s is not allowed (%s)' % (self.name, self.state.name, state.name, reason))
+        self.history.append((now, self.state, state, reason))
+        self.state, self.since, self.reason = state, now, reason
+
+    def spawned(self, now):
+        """Its process was (re)started."""
+        self._change(State.STARTING, now, 'spawned')
+        self.started_at, self.last_heard, self.reported_error = now, None, None
+        self.starts += 1
+
+    def heard(self, now, status, detail=''):
+        """A heartbeat with the service's own status ('ok' or 'error')."""
+        if self.state not in (State.STARTING, State.RUNNING):
+            return
+        self.last_heard = now
+        if status == 'error':
+            self.reported_error = detail or 'error'
+            return
+        self.reported_error = None     # an ok heartbeat: no error reported any more
+        if self.state == State.STARTING:
+            self._change(State.RUNNING, now, 'heard from')
+
+    def restarts_in_window(self, now):
+        while self.restarts and now - self.restarts[0] > self.config['restart_window']:
+            self.restarts.popleft()
+        return len(self.restarts)
+
+
+Decision = collections.namedtuple('Decision', 'service kind detail actions escalate')
+Decision.__doc__ = """What the supervisor decided about a fault: ``actions`` is a list of
+(verb, service) the caller must carry out in order: ('kill', name), ('spawn', name), ('run', name);
+``escalate`` is the reason to enter the safe state, or None."""
+
+
+class Supervisor(object):
+    """The policies over every service of a configuration (see the module's docstring)."""
+
+    def __init__(self, config):
+        self.config = config
+        self.services = collections.OrderedDict((n, Service(n, c)) for n, c in config['services'].items())
+        self.safe_state = None      # the reason the system is in the safe state, None while it is not
+        self.safe_since = None
+        self.escalations = 0
+
+    def __getitem__(self, name):
+        return self.services[name]
+
+    # -- what the caller observed ----------------------------------------------------------------
+    def check(self, name, sample, now, total_memory):
+        """Check one service; returns a Decision when it has a fault, else None."""
+        s = self.services[name]
+        if s.state == State.STARTING:
+            if not sample.alive:
+                return self.fault(name, 'exit', 'exited while starting, status %s' % sample.exit_code, now)
+            if s.config['heartbeat_timeout'] is None and now - s.started_at >= s.config['start_grace']:
+                s._change(State.RUNNING, now, 'alive past its start grace of %.2f s' % s.config['start_grace'])
+            elif now - s.started_at > s.config['start_timeout']:
+                return self.fault(name, 'start_timeout', 'not heard within %.1f s of its start'
+                                  % s.config['start_timeout'], now)
+            elif s.reported_error is not None:
+                return self.fault(name, 'reported_error', 'the service reported an error: %s' % s.reported_error, now)
+            if s.state == State.STARTING:
+                return None
+        if s.state != State.RUNNING:
+            return None
+        found = detect(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
+        if found is None:
+            s.alerted.clear()
+            return None
+        if found[0] in s.alerted:
+            return None        # alerted already; alerted again only once the condition has cleared
+        return self.fault(name, found[0], found[1], now)
+
+    def fault(self, name, kind, detail, now):
+        """A fault of service name: count it, decide and return what to do."""
+        s = self.services[name]
+        s.errors[kind] += 1
+        s._change(State.ERROR, now, '%s: %s' % (kind, detail))
+        action = s.config['on_failure']
+        escalate = None
+        actions = []
+        if action == 'restart':
+            if s.restarts_in_window(now) >= s.config['restart_limit']:
+                s._change(State.FAILED, now, 'restart limit exhausted: %d restarts within %.0f s'
+                          % (s.config['restart_limit'], s.config['restart_window']))
+                actions += self._terminate_with(name, now) + [('kill', name)]
+                escalate = '%s: restart limit exhausted after %s' % (name, kind)
+            else:
+                s.restarts.append(now)
+                actions += self._restart(name, now, 'failure action restart after %s' % kind)
+        elif action == 'alert':
+            if kind in ('exit', 'start_timeout'):
+                s._change(State.STOPPED, now, 'alerted; it is not running')
+                actions += self._terminate_with(name, now) + [('kill', name)]
+            else:
+                s.alerted.add(kind)
+                s._change(State.RUNNING, now, 'alerted; left running')
+            actions.append(('alert', name))
+        else:   # terminate, or run: terminate then run the program
+            s._change(State.STOPPED, now, 'failure action %s after %s' % (action, kind))
+            actions += self._terminate_with(name, now) + [('kill', name)]
+            if action == 'run':
+                actions.append(('run', name))
+        if escalate is None and s.config['critical'] and s.state in (State.STOPPED, State.FAILED):
+            escalate = '%s (critical) cannot be recovered: %s' % (name, kind)
+        if escalate is None and s.config['safe_state_on_failure']:
+            escalate = '%s failed (%s): movement stopped while it recovers' % (name, kind)
+        if escalate:
+            self._escalate(escalate, now)
+        return Decision(name, kind, detail, actions, escalate)
+
+    def _terminate_with(self, name, now):
+        """Actions terminating the services that must not run without name (left stopped)."""
+        actions = []
+        for other in self.services[name].config['terminate_with']:
+            o = self.services[other]
+            if o.state in (State.STARTING, State.RUNNING, State.ERROR, State.RESTARTING):
+                o._change(State.STOPPED, now, 'terminated with %s' % name)
+                actions.append(('kill', other))
+        return actions
+
+    def _restart(self, name, now, why, seen=None):
+        """Actions restarting name: terminate its terminate_with first, restart it, then its dependants
+        (restart_with, followed transitively) that are running or starting; stopped ones stay stopped."""
+        seen = set() if seen is None else seen
+        seen.add(name)
+        s = self.services[name]
+        actions = self._terminate_with(name, now)
+        s._change(State.RESTARTING, now, why)
+        actions += [('kill', name), ('spawn', name)]
+        for other in s.config['restart_with']:
+            if other not in seen and self.services[other].state in (State.STARTING, State.RUNNING):
+                actions += self._restart(other, now, 'restarted with %s' % name, seen)
+        return actions
+
+    def _escalate(self, reason, now):
+        if self.safe_state is None:
+            self.safe_state, self.safe_since = reason, now
+            self.escalations += 1
+
+    # -- what an operator asks ---------------------------------------------------------------------
+    def start(self, name, now):
+        """An operator's start. Returns (accepted, actions, message); refused changes nothing."""
+        s = self.services[name]
+        if s.state in (State.STOPPED, State.FAILED):
+            if s.state == State.FAILED:
+                s.restarts.clear()   # the operator takes it back: a fresh restart allowance
+            return True, [('spawn', name)], 'starting %s' % name
+        if s.state in (State.STARTING, State.RUNNING):
+            return False, [], '%s is already %s' % (name, s.state.name.lower())
+        return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
+
+    def stop(self, name, now):
+        s = self.services[name]
+        if s.state == State.STOPPED:
+            return False, [], '%s is already stopped' % name
+        if s.state == State.RESTARTING:
+            return False, [], '%s is restarting: wait until it settles' % name
+        was = s.state
+        s._change(State.STOPPED, now, 'stopped by an operator')
+        return True, ([] if was == State.FAILED else [('kill', name)]), 'stopping %s' % name
+
+    def restart(self, name, now):
+        s = self.services[name]
+        if s.state == State.FAILED:
+            return False, [], '%s has failed: start it instead' % name
+        if s.state in (State.ERROR, State.RESTARTING):
+            return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
+        return True, self._restart(name, now, 'restarted by an operator'), 'restarting %s' % name
+
+    def clear_safe_state(self, now):
+        """An operator clears the safe state. Refused while a critical service is not running."""
+        if self.safe_state is None:
+            return False, 'the system is not in the safe state'
+        down = [n for n, s in self.services.items() if s.config['critical'] and s.state != State.RUNNING]
+        if down:
+            return False, 'critical services not running: %s (start them first)' % ', '.join(down)
+        reason, self.safe_state, self.safe_since = self.safe_state, None, None
+        return True, 'safe state cleared (it was: %s)' % reason
+
+    # -- what the caller reports back ----------------------------------------------------------------
+    def spawn_failed(self, name, now, error):
+        s = self.services[name]
+        s.errors['spawn'] += 1
+        if s.state == State.STOPPED:
+            s._change(State.STARTING, now, 'spawn asked')
+        if s.state == State.STARTING:
+            s._change(State.ERROR, now, 'cannot be spawned: %s' % error)
+        if s.state in (State.ERROR, State.RESTARTING):
+            s._change(State.FAILED, now, 'cannot be spawned: %s' % error)
+        if s.config['critical']:
+            self._escalate('%s (critical) cannot be spawned: %s' % (name, error), now)
