@@ -200,3 +200,49 @@ def test_only_the_kills_after_the_last_resume_are_cleanup_never_rolled_back():
     script = adaptation.load(COMPOSE, {'site': 'master'})
     assert actions(adaptation.cleanup_steps(adaptation.plan(script, 'prepared'))) == [('kill', '/master/proceed')]
     assert adaptation.cleanup_steps(adaptation.plan(script, 'paper')) == []   # its kill is in the pause
+
+
+# -- fitting the live graph (the engine's checks that need only the master's view) ---------------
+RUNNING = {'/master/protocol', '/master/proceed', '/master/bank_server', '/master/recovery', '/master/before'}
+SERVICES = {'/master/protocol/suspend', '/master/proceed/rebind', '/master/recovery/set_promote'}
+NEW = {adaptation.Launch('aft_ftm/mechanism.launch', (('bind_input', 'false'), ('ns', '/master/tr'))):
+       ['/master/tr/protocol', '/master/tr/after']}
+
+
+def test_a_script_that_fits_the_graph_passes_and_launched_nodes_need_not_run_yet():
+    script = adaptation.load(COMPOSE + 'promote: [{recovery: /master/recovery, nodes: [/master/tr/after]}]\n',
+                             {'site': 'master'})
+    adaptation.check_fit(script, RUNNING, SERVICES, NEW)
+
+
+@pytest.mark.parametrize('change,message', [
+    (lambda t: t.replace('retire: [/$(arg site)/proceed]', 'retire: [/master/nobody]'),
+     'unknown node /master/nobody (to retire): it is not running'),
+    (lambda t: t.replace('suspend: [/$(arg site)/protocol]', 'suspend: [/master/bank_server]'),
+     'node /master/bank_server offers no suspend service (to suspend): is it an FTM node?'),
+    (lambda t: t.replace('suspend: [/$(arg site)/protocol]', 'suspend: [/master/ghost]'),
+     'unknown node /master/ghost (to suspend): it is not running'),
+    (lambda t: t.replace('/$(arg site)/$(arg mechanism)/protocol, port', '/master/before, port'),
+     'node /master/before offers no rebind service (to rebind its port requests)'),
+    (lambda t: t + 'promote: [{recovery: /master/recovery, nodes: [/master/nobody]}]\n',
+     'unknown node /master/nobody (for /master/recovery to promote)'),
+])
+def test_a_script_that_does_not_fit_the_graph_is_refused_naming_the_problem(change, message):
+    script = adaptation.load(change(COMPOSE), {'site': 'master'})
+    with pytest.raises(ScriptError) as error:
+        adaptation.check_fit(script, RUNNING, SERVICES, NEW)
+    assert message in str(error.value)
+
+
+def test_a_launch_that_would_start_a_running_node_is_refused():
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    clash = {entry: ['/master/protocol'] for entry in NEW}
+    with pytest.raises(ScriptError, match='would start /master/protocol, already running'):
+        adaptation.check_fit(script, RUNNING, SERVICES, clash)
+
+
+def test_the_copies_of_one_suspend_entry_are_known_to_the_script_itself():
+    script = adaptation.load(COMPOSE)
+    assert set(script.suspend_entry.values()) == {'script: suspend[0]'}
+    bare = adaptation.Script('x', 'update', '', ['/a/p', '/b/p'], [], [], [], [], {})
+    assert [s.detail for s in adaptation.plan(bare, 'paper') if s.action == 'suspend'] == ['/a/p', '/b/p']

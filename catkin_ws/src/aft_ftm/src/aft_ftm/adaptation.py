@@ -26,8 +26,9 @@ Example (PBR -> PBR+TR, the paper's worked example)::
       - {node: /$(arg site)/tr/protocol, port: requests, topic: /$(arg site)/bfr2prd}
     retire: [/$(arg site)/proceed]
 
-This module parses and checks scripts and plans steps; it never touches ROS (see
-:mod:`aft_ftm.ros.adaptation_engine`).
+This module parses and checks scripts (:func:`check_fit`: against the master's view of the live
+graph too) and plans steps and their undoing; it never touches ROS (see
+:mod:`aft_ftm.ros.adaptation_engine`; the run itself is :mod:`aft_ftm.transaction`).
 """
 import collections
 import re
@@ -63,7 +64,7 @@ Promote = collections.namedtuple('Promote', 'recovery nodes')
 class Script(object):
     """A parsed, expanded and checked script: every name absolute, every $(arg) substituted."""
 
-    def __init__(self, name, kind, description, suspend, launch, bind, promote, retire, args):
+    def __init__(self, name, kind, description, suspend, launch, bind, promote, retire, args, suspend_entry=None):
         self.name = name
         self.kind = kind
         self.description = description
@@ -73,6 +74,9 @@ class Script(object):
         self.promote = promote       # [Promote]
         self.retire = retire         # [node]
         self.args = args             # the argument values used
+        # node -> the entry of "suspend" it comes from: the copies of one entry (one per value of
+        # "each": different sites) may be suspended together; different entries in the script's order.
+        self.suspend_entry = dict(suspend_entry or {})
 
     def nodes_touched(self, launched=()):
         """Every node the adaptation acts on: suspended, rebound, promoted by, retired, launched."""
@@ -174,9 +178,8 @@ def load(text, overrides=None, source='script'):
         duplicates = sorted({n for n in values_ if values_.count(n) > 1})
         if duplicates:
             _fail(source, '"%s" names %s more than once' % (where, ', '.join(duplicates)))
-    script = Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args)
-    script.suspend_entry = suspend_entry
-    return script
+    return Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args,
+                  suspend_entry)
 
 
 def _mentions(value, text):
@@ -261,6 +264,43 @@ def _promote(where, entry):
     return Promote(_node(where, entry.get('recovery')), tuple(_node(where, n) for n in nodes))
 
 
+# -- fitting the live graph ----------------------------------------------------------------------
+
+def check_fit(script, nodes, services, launched):
+    """Check script against a view of the live graph; raises ScriptError naming the first problem.
+
+    ``nodes``: the running nodes; ``services``: the services offered; ``launched``: for each of
+    the script's Launch entries, the nodes its launch file starts. What only the nodes can answer
+    (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
+    """
+    for entry in script.launch:
+        clash = sorted(set(launched[entry]) & set(nodes))
+        if clash:
+            raise ScriptError('launch file %s would start %s, already running (a second node of the same '
+                              'name stops the first): choose other names' % (entry.file, ', '.join(clash)))
+    new = {name for names in launched.values() for name in names}
+
+    def need(node, service, why):
+        if node in new:
+            return
+        if node not in nodes:
+            raise ScriptError('unknown node %s (%s): it is not running' % (node, why))
+        if node + '/' + service not in services:
+            raise ScriptError('node %s offers no %s service (%s): is it an FTM node?' % (node, service, why))
+    for node in script.suspend:
+        need(node, 'suspend', 'to suspend')
+    for node in script.retire:
+        if node not in nodes:
+            raise ScriptError('unknown node %s (to retire): it is not running' % node)
+    for bind in script.bind:
+        need(bind.node, 'rebind', 'to rebind its port %s' % bind.port)
+    for promote in script.promote:
+        need(promote.recovery, 'set_promote', 'to change the nodes it promotes')
+        for node in promote.nodes:
+            if node not in new and node not in nodes:
+                raise ScriptError('unknown node %s (for %s to promote)' % (node, promote.recovery))
+
+
 # -- planning -----------------------------------------------------------------------------------
 
 Step = collections.namedtuple('Step', 'action target detail')
@@ -277,8 +317,7 @@ def plan(script, mode):
         raise ScriptError('mode must be one of %s, got %r' % (', '.join(MODES), mode))
     launch = [Step('launch', l.file, l) for l in script.launch]
     wait = [Step('wait_launched', '%d launch file(s)' % len(script.launch), None)] if script.launch else []
-    entry = getattr(script, 'suspend_entry', {})
-    suspend = [Step('suspend', n, entry.get(n, n)) for n in script.suspend]
+    suspend = [Step('suspend', n, script.suspend_entry.get(n, n)) for n in script.suspend]
     resume = [Step('resume', n, None) for n in reversed(script.suspend)]
     kill = [Step('kill', n, None) for n in script.retire]
     promote = [Step('promote', p.recovery, p) for p in script.promote]

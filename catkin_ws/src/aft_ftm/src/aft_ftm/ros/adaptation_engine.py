@@ -1,11 +1,13 @@
 """The Adaptation Engine: runs an adaptation script against the live ROS graph.
 
-It checks the whole script against the graph before touching anything (nodes exist and offer
-the services the steps need, launch files exist and load with their arguments, the nodes they
-start do not clash with running ones, every rebind of an existing node would be accepted: the
-node itself answers a dry run, naming both types when a topic has the wrong one). It then runs
-the planned steps (:func:`aft_ftm.adaptation.plan`); when one fails, it undoes what was done in
-reverse order and resumes everything it suspended, and reports it.
+Validate, plan, execute. It checks the whole script against the graph before touching anything
+(launch files exist and load with their arguments; :func:`aft_ftm.adaptation.check_fit`: nodes
+exist and offer the services the steps need, the nodes launched do not clash with running ones;
+every rebind of an existing node would be accepted: the node itself answers a dry run, naming
+both types when a topic has the wrong one). It plans the steps (:func:`aft_ftm.adaptation.plan`)
+and runs them as a transaction (:class:`aft_ftm.transaction.Transaction`, an explicit state
+machine without ROS): the transaction decides what comes next, the engine carries it out; when a
+step fails, what was done is undone in reverse order, everything suspended resumed, and reported.
 
 An adaptation cannot strand the system:
 
@@ -22,6 +24,7 @@ An adaptation cannot strand the system:
 Uses the master API, the nodes' services and XML-RPC, psutil and roslaunch processes; it needs
 an initialised rospy node (the ``adapt`` command and the monitor are ones).
 """
+import collections
 import itertools
 import os
 import threading
@@ -36,6 +39,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
+from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from .graph import publisher_links, roslaunch, wired
 from .fencing import is_local, node_api
@@ -169,12 +173,53 @@ class LeaseKeeper(object):
         return None if answer.success else answer.message
 
 
+LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners')
+LaunchPlan.__doc__ = """A launch entry as validated: its file, the nodes it starts, the launchers
+of the sites they join (their guard stops them with those)."""
+
+Killed = collections.namedtuple('Killed', 'pid cmdline cwd env owners')
+Killed.__doc__ = """How to start a retired node again (a rollback): its process's command line,
+working directory and environment, and the site launchers it belongs to (it stops with them)."""
+
+
+class LaunchedSite(object):
+    """A roslaunch the engine started, and the nodes it starts (a record of the engine's own)."""
+
+    def __init__(self, site, nodes):
+        self.site = site
+        self.nodes = list(nodes)
+
+    @property
+    def pid(self):
+        return self.site.pid
+
+    @property
+    def log_path(self):
+        return self.site.log_path
+
+    def alive(self):
+        return self.site.alive()
+
+    def set_niceness(self, niceness):
+        return self.site.set_niceness(niceness)
+
+    def stop(self, grace=5.0):
+        """Never raises (Site.stop)."""
+        self.site.stop(grace=grace)
+
+
 class Engine(object):
     """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints).
 
     ``lease`` (s): the lease of each suspension (renewed while held). ``guard_poll`` and
     ``guard_grace`` (s): how often a launched node's guard looks at its site's launcher, and
-    how long the launch has to stop after SIGINT before it is killed."""
+    how long the launch has to stop after SIGINT before it is killed.
+
+    State: what the engine started (``sites``, ``respawned``), the interrupt, and what the run
+    in progress needs (its checked launches, its lease keeper, its service connections); the
+    transaction's own state is in :attr:`transaction` (that of the last run)."""
+
+    SILENT_AFTER = 2.0   # s: from then on, a launched node is not kept waiting by subscribers that do not answer
 
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
                  connect_timeout=2.0, log_dir=None, launch_niceness=5, lease=5.0, guard_poll=0.2,
@@ -185,18 +230,24 @@ class Engine(object):
         self.lease = lease
         self.guard_poll = guard_poll
         self.guard_grace = guard_grace
-        self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
-        self._keeper = None        # the LeaseKeeper of the run in progress
-        self._launch_owners = {}   # launch entry -> the launchers of the sites its nodes join
         self.quiesce_timeout = quiesce_timeout
         self.launch_timeout = launch_timeout
         self.service_timeout = service_timeout
         self.connect_timeout = connect_timeout
         self.launch_niceness = launch_niceness
         self.log_dir = log_dir or os.path.join(rospkg.get_log_dir(), 'aft_adaptations')
-        self.sites = []            # roslaunch processes started by this engine and still running
+        self.sites = []            # LaunchedSite: the roslaunch processes started and still running
+        self.respawned = []        # Site: nodes started again from their command line by a rollback
+        self.transaction = None    # the Transaction of the last run
+        self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
         self._launch_count = itertools.count()
-        self.respawned = []        # nodes started again from their command line by a rollback
+        # The script validated last (the run in progress):
+        self._launches = {}        # Launch entry -> LaunchPlan
+        self._launched_names = []  # the nodes its launches start
+        self._proxies = {}         # service name -> persistent proxy
+        self._nodes_seen = (None, frozenset())   # (when, the running nodes): _graph_nodes' cache
+        self._keeper = None        # the LeaseKeeper of the run in progress
+        self._run_sites = []       # the LaunchedSites it started
 
     def interrupt(self, why):
         """Stop the run in progress and roll it back (from a signal handler, or another thread):
@@ -211,14 +262,8 @@ class Engine(object):
     def interrupted(self):
         return self._interrupted
 
-    def _stop_reason(self):
-        """Why the run must stop and roll back now ('' if it goes on)."""
-        if self._interrupted:
-            return 'interrupted (%s)' % self._interrupted
-        lost = self._keeper.lost() if self._keeper is not None else {}
-        if lost:
-            return 'suspension lost: %s' % '; '.join('%s: %s' % item for item in sorted(lost.items()))
-        return ''
+    def _lost(self):
+        return self._keeper.lost() if self._keeper is not None else {}
 
     # -- the graph ----------------------------------------------------------------------------
     @property
@@ -234,45 +279,34 @@ class Engine(object):
         nodes = {n for _, names in list(pubs) + list(subs) + list(srvs) for n in names}
         return nodes, {name for name, _ in srvs}
 
+    def _graph_nodes(self):
+        when = self._nodes_seen[0]
+        if when is None or time.monotonic() - when > 0.5:
+            self._nodes_seen = (time.monotonic(), frozenset(self._graph()[0]))
+        return self._nodes_seen[1]
+
     # -- validation -----------------------------------------------------------------------------
     def validate(self, script, mode):
         """Check script against the live graph; returns the plan. Raises ScriptError naming the
         problem; nothing is changed."""
         steps = adaptation.plan(script, mode)
-        self._proxies = {}
+        self._close_proxies()
+        self._launches, self._launched_names = {}, []
         nodes, services = self._graph()
-        launched = []
-        self._launch_configs = {}
+        loaded = collections.OrderedDict()
         for entry in script.launch:
             path = resolve_launch_file(entry.file)
-            names, _ = launch_nodes(path, entry.args)
-            clash = sorted(set(names) & nodes)
-            if clash:
-                raise ScriptError('launch file %s would start %s, already running (a second node of the same '
-                                  'name stops the first): choose other names' % (entry.file, ', '.join(clash)))
-            self._launch_configs[entry] = (path, names)
-            launched += names
-        self._launch_owners = {}
-        for entry in script.launch:
-            names = self._launch_configs[entry][1]
+            loaded[entry] = (path, launch_nodes(path, entry.args)[0])
+        adaptation.check_fit(script, nodes, services, {entry: names for entry, (_, names) in loaded.items()})
+        launches = {}
+        for entry, (path, names) in loaded.items():
             owners = self._site_owners(names, nodes)
-            self._launch_owners[entry] = owners
             if not owners:
                 self.log('warning: no site launcher on this host runs nodes of the namespace of %s: they will '
                          'not stop with a site (stop them by hand)' % ', '.join(names))
-
-        def need(node, service, why):
-            if node in launched:
-                return
-            if node not in nodes:
-                raise ScriptError('unknown node %s (%s): it is not running' % (node, why))
-            if node + '/' + service not in services:
-                raise ScriptError('node %s offers no %s service (%s): is it an FTM node?' % (node, service, why))
-        for node in script.suspend:
-            need(node, 'suspend', 'to suspend')
+            launches[entry] = LaunchPlan(path, names, owners)
+        launched = [name for entry in script.launch for name in launches[entry].nodes]
         for node in script.retire:
-            if node not in nodes:
-                raise ScriptError('unknown node %s (to retire): it is not running' % node)
             try:
                 uri = self.master.lookupNode(node)
             except Exception as e:
@@ -281,18 +315,12 @@ class Engine(object):
                 raise ScriptError('node %s (to retire) runs on another host (%s): the engine kills, and '
                                   'restarts on a rollback, only nodes of its own host' % (node, uri))
         for bind in script.bind:
-            need(bind.node, 'rebind', 'to rebind its port %s' % bind.port)
             if bind.node not in launched:
                 try:
                     self._rebind(bind, dry_run=True)
                 except (StepError, rospy.ServiceException, rospy.ROSException) as e:
                     raise ScriptError('%s does not answer its rebind service: %s' % (bind.node, e))
-        for promote in script.promote:
-            need(promote.recovery, 'set_promote', 'to change the nodes it promotes')
-            for node in promote.nodes:
-                if node not in launched and node not in nodes:
-                    raise ScriptError('unknown node %s (for %s to promote)' % (node, promote.recovery))
-        self._launched_names = launched
+        self._launches, self._launched_names = launches, launched
         return steps
 
     def _rebind(self, bind, dry_run=False):
@@ -337,103 +365,88 @@ class Engine(object):
     def run(self, script, mode='prepared'):
         """Validate, then run the script. Returns a report (dict). Raises ScriptError (invalid:
         nothing changed); a failed step, a lost suspension or an interrupt (:meth:`interrupt`)
-        is rolled back and reported with ok=False (``interrupted`` names the interrupt).
+        is rolled back and reported with ok=False (``interrupted`` names the interrupt). A
+        rollback that could not undo everything is reported with ``state`` FAILED and an
+        ``alarm`` naming what is left.
 
         Consecutive steps of the same action run in parallel, except suspensions, which follow
         the script's order (a backup's After is suspended after the primary's Protocol is
         quiescent, so the last checkpoint is in when it applies it).
         """
         t0 = time.monotonic()
-        steps = self.validate(script, mode)
+        tx = self.transaction = Transaction(script.name, t0)
+        try:
+            steps = self.validate(script, mode)
+        except ScriptError as e:
+            tx.refused(str(e), time.monotonic())
+            raise
+        tx.validated(steps, time.monotonic())
         report = {'script': script.name, 'kind': script.kind, 'mode': mode, 'ok': True, 'steps': [],
                   'rolled_back': False, 'error': '', 'interrupted': '', 'validated_s': time.monotonic() - t0}
         self.log('adaptation %s (%s, %s order): %d steps' % (script.name, script.kind, mode, len(steps)))
-        self._sites_of_run = []
+        self._run_sites = []
         self._keeper = LeaseKeeper(self.lease, self.log)
         try:
-            pause_start, pause_end = self._run_steps(steps, report)
+            self._execute(tx, report['steps'])
         finally:
             self._keeper.stop()
-        if pause_start is not None and pause_end is None:
-            pause_end = time.monotonic()
-        report['pause_s'] = (pause_end - pause_start) if pause_start is not None else 0.0
+        report.update(tx.summary())
         report['duration_s'] = time.monotonic() - t0
         report['nodes_touched'] = script.nodes_touched(self._launched_names)
-        report['launched_pids'] = [s.pid for s in self._sites_of_run if s.alive()]
+        report['launched_pids'] = [s.pid for s in self._run_sites if s.alive()]
+        if tx.alarm:
+            self.log('ALARM: %s' % tx.alarm)
         self.log('adaptation %s %s: pause %.1f ms, %.2f s in all, %d nodes touched' % (
-            script.name, 'done' if report['ok'] else 'ROLLED BACK', report['pause_s'] * 1e3,
-            report['duration_s'], len(report['nodes_touched'])))
+            script.name, {State.DONE: 'done', State.ROLLED_BACK: 'ROLLED BACK'}.get(tx.state, 'ROLLBACK FAILED'),
+            report['pause_s'] * 1e3, report['duration_s'], len(report['nodes_touched'])))
         return report
 
-    def _run_steps(self, steps, report):
-        """Run the planned steps into report; returns (pause start, pause end or None)."""
-        done = []
-        pause_start = pause_end = None
-        report['cleanup_errors'] = []
-        cleanup = adaptation.cleanup_steps(steps)
-        for group in adaptation.groups(steps):
-            self.log('step %s: %s' % (group[0].action, ', '.join(str(s.target) for s in group)))
-            if group[0] in cleanup:
-                # Resumed: the new configuration serves. What is left (killing the old nodes) is
-                # cleanup; undoing the adaptation now would rebind a live graph, so failures here
-                # are reported, not rolled back; an interrupt leaves the rest undone.
-                if self._interrupted:
-                    report['interrupted'] = self._interrupted
-                    report['cleanup_errors'] += ['%s %s: not done (interrupted)' % (s.action, s.target) for s in group]
-                    continue
-                for step, s0, error, info in self._run_group(group):
-                    report['steps'].append(self._record(step, s0, error is None,
-                                                        self._describe(step, info) if error is None else error))
-                    if error is not None:
-                        report['cleanup_errors'].append('%s %s: %s' % (step.action, step.target, error))
-                        self.log('cleanup step %s %s failed: %s (the adaptation stands)' % (
-                            step.action, step.target, error))
+    def _execute(self, tx, records):
+        """Carry out the transaction's decisions until it ends; each step's record into records."""
+        tx.start(time.monotonic())
+        while True:
+            decision = tx.next(time.monotonic(), self._interrupted, self._lost())
+            if decision.failure:
+                self.log('FAILED: %s: rolling back' % decision.failure)
+            if decision.action is Action.END:
+                return
+            if decision.action is Action.UNDO:
+                step = decision.steps[0]
+                try:
+                    detail, ok = self._undo(step), True
+                except Exception as e:   # keep undoing the rest: each failure is reported
+                    detail, ok = str(e), False
+                self.log('  rollback %s %s: %s%s' % (step.action, step.target, 'ok: ' if ok else 'FAILED: ', detail))
+                tx.undone(step, ok, detail, time.monotonic())
                 continue
-            stop = self._stop_reason()
-            if stop:
-                error = '%s before step %s %s' % (stop, group[0].action, group[0].target)
-            else:
-                if group[0].action == 'suspend' and pause_start is None:
-                    self._connect(steps)   # persistent connections, opened before the pause
-                    pause_start = time.monotonic()
-                results = self._run_group(group)
-                for step, s0, failure, info in results:
-                    if failure is None or step.action == 'suspend':
-                        # A suspension that failed may still have closed the node's gate (its answer
-                        # lost): the rollback resumes it too, which is harmless on a running node.
-                        done.append((step, info))
-                    report['steps'].append(self._record(step, s0, failure is None,
-                                                        self._describe(step, info) if failure is None else failure))
-                failed = [r for r in results if r[2] is not None]
-                error = 'step %s %s failed: %s' % (failed[0][0].action, failed[0][0].target, failed[0][2]) \
-                    if failed else ''
-                if failed and self._interrupted:
-                    error = 'interrupted (%s) during step %s %s' % (self._interrupted, failed[0][0].action,
-                                                                    failed[0][0].target)
-            if error:
-                report.update(ok=False, error=error, interrupted=self._interrupted)
-                self.log('FAILED: %s: rolling back' % error)
-                report['rollback'] = self._roll_back(done)
-                report['rolled_back'] = True
-                pause_end = self._resumed_at   # clients wait until the rollback resumed them
-                break
-            if group[-1].action == 'resume' and not any(s.action == 'resume' for s in steps[steps.index(group[-1]) + 1:]):
-                pause_end = time.monotonic()
-        return pause_start, pause_end
+            group = decision.steps
+            self.log('step %s: %s' % (group[0].action, ', '.join(str(s.target) for s in group)))
+            if decision.opens_pause:
+                self._connect(tx.steps)   # persistent connections, opened before the pause
+            outcomes = self._run_group(group)
+            for o in outcomes:
+                records.append(self._record(o.step, o.started, o.error is None,
+                                            self._describe(o.step, o.info) if o.error is None else o.error))
+                if decision.action is Action.CLEAN and o.error is not None:
+                    # Resumed: the new configuration serves. Undoing it now would rebind a live
+                    # graph: a failure here is reported, not rolled back.
+                    self.log('cleanup step %s %s failed: %s (the adaptation stands)' % (
+                        o.step.action, o.step.target, o.error))
+            tx.ran(outcomes, time.monotonic(), self._interrupted)
 
     def _run_group(self, group):
-        """Run steps (in parallel if more than one); returns [(step, start, error or None, info)]."""
+        """Run steps (in parallel if more than one); returns an Outcome per step, in order."""
         results = [None] * len(group)
 
         def one(i, step):
             s0 = time.monotonic()
             try:
-                results[i] = (step, s0, None, self._do(step))
+                results[i] = Outcome(step, s0, None, self._do(step))
             except (StepError, ScriptError, rospy.ServiceException, rospy.ROSException) as e:
                 self._forget_proxies(step.target)   # rospy keeps a broken persistent connection
-                results[i] = (step, s0, str(e), None)
+                results[i] = Outcome(step, s0, str(e), None)
             except Exception as e:   # an unexpected error is still a failed step, rolled back
-                results[i] = (step, s0, '%s: %s' % (type(e).__name__, e), None)
+                results[i] = Outcome(step, s0, '%s: %s' % (type(e).__name__, e), None)
         if len(group) == 1:
             one(0, group[0])
         else:
@@ -461,27 +474,26 @@ class Engine(object):
                 self._proxies.pop(step.target + '/rebind', None)
 
     def _forget_proxies(self, node):
-        for name in [n for n in getattr(self, '_proxies', {}) if n.startswith(node + '/')]:
+        for name in [n for n in self._proxies if n.startswith(node + '/')]:
             self._proxies.pop(name).close()
 
-    def _graph_nodes(self):
-        if not hasattr(self, '_nodes_cache') or time.monotonic() - self._nodes_cache[0] > 0.5:
-            self._nodes_cache = (time.monotonic(), self._graph()[0])
-        return self._nodes_cache[1]
+    def _close_proxies(self):
+        for proxy in self._proxies.values():
+            proxy.close()
+        self._proxies = {}
 
     def _proxy(self, name, cls):
-        proxy = getattr(self, '_proxies', {}).get(name)
+        proxy = self._proxies.get(name)
         if proxy is None:
             try:
                 rospy.wait_for_service(name, self.service_timeout)
             except rospy.ROSException:
                 raise StepError('service %s is not available' % name)
-            proxy = rospy.ServiceProxy(name, cls, persistent=True)
-            if hasattr(self, '_proxies'):
-                self._proxies[name] = proxy
+            proxy = self._proxies[name] = rospy.ServiceProxy(name, cls, persistent=True)
         return proxy
 
-    def _record(self, step, s0, ok, detail):
+    @staticmethod
+    def _record(step, s0, ok, detail):
         """A step's outcome; ``wall`` is when it started (wall clock), ``ms`` how long it took."""
         return {'action': step.action, 'target': step.target, 'ok': ok, 'detail': detail,
                 'ms': (time.monotonic() - s0) * 1e3, 'wall': time.time() - (time.monotonic() - s0)}
@@ -495,7 +507,7 @@ class Engine(object):
         if step.action == 'launch':
             return 'pid %d' % info.pid
         if step.action == 'kill':
-            return 'pid %s' % (info or {}).get('pid')
+            return 'pid %s' % (info.pid if info is not None else None)
         return ''
 
     def _do(self, step):
@@ -526,21 +538,20 @@ class Engine(object):
         raise ValueError(action)
 
     def _launch(self, entry):
-        path, names = self._launch_configs[entry]
+        plan = self._launches[entry]
         os.makedirs(self.log_dir, exist_ok=True)
-        log = os.path.join(self.log_dir, '%s_%d_%d.log' % (os.path.basename(path)[:-7], int(time.time() * 1e3),
+        log = os.path.join(self.log_dir, '%s_%d_%d.log' % (os.path.basename(plan.path)[:-7], int(time.time() * 1e3),
                                                            next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
-        argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [path]
+        argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [plan.path]
         # Under a guard: the nodes stop when the launcher of the site they join stops.
-        argv = guarded(argv, self._launch_owners.get(entry, []), self.guard_poll, self.guard_grace)
+        argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace)
         # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
         # must not starve the running replicas. Not much lower: under full load a niceness of 10
         # left a new node unable to finish its set-up in 30 s.
-        site = Site('adaptation', argv, log_path=log).start(niceness=self.launch_niceness)
-        site.nodes = names
+        site = LaunchedSite(Site('adaptation', argv, log_path=log).start(niceness=self.launch_niceness), plan.nodes)
         self.sites.append(site)
-        self._sites_of_run.append(site)
+        self._run_sites.append(site)
         return site
 
     def _wait_launched(self):
@@ -549,10 +560,10 @@ class Engine(object):
         subscribers that do not answer after a while (see :meth:`_wired`)."""
         started = time.monotonic()
         deadline = started + self.launch_timeout
-        pending = [(site, name) for site in self._sites_of_run for name in site.nodes]
+        pending = [(site, name) for site in self._run_sites for name in site.nodes]
         silent = {}
         while pending:
-            stop = self._stop_reason()
+            stop = stop_reason(self._interrupted, self._lost())
             if stop:   # seconds of waiting: an interrupt or a lost suspension does not wait for its end
                 raise StepError(stop)
             for site, _ in pending:
@@ -570,14 +581,12 @@ class Engine(object):
                     self.launch_timeout, ', '.join(n for _, n in pending), pending[0][0].log_path))
             time.sleep(0.02)
         refused = []
-        for site in self._sites_of_run:   # set up: back to the priority of the nodes they join
+        for site in self._run_sites:   # set up: back to the priority of the nodes they join
             refused += site.set_niceness(0)
         if refused:
             self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
                      % (self.launch_niceness, refused))
         return len(self._launched_names)
-
-    SILENT_AFTER = 2.0   # s: from then on, a launched node is not kept waiting by subscribers that do not answer
 
     def _wired(self, node, silent=None):
         """wired(node); with ``silent`` (a dict kept over one wait), the subscribers node is not
@@ -612,13 +621,12 @@ class Engine(object):
 
     def _kill(self, node):
         """rosnode kill, after recording how to start the node again (for a rollback)."""
-        record = {}
         try:
             uri = self.master.lookupNode(node)
             code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
             proc = psutil.Process(pid)
-            record = {'pid': pid, 'cmdline': proc.cmdline(), 'cwd': proc.cwd(), 'env': proc.environ(),
-                      'owners': owners_of_process(pid)}   # started again, it stops with its site too
+            # Started again, it stops with its site too (its owners).
+            record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
         _, failed = rosnode.kill_nodes([node])
@@ -632,21 +640,6 @@ class Engine(object):
         return record
 
     # -- rollback -------------------------------------------------------------------------------
-    def _roll_back(self, done):
-        results = []
-        self._resumed_at = None
-        for step in adaptation.undo_plan(done):
-            if step.action == 'stop_launch' and self._resumed_at is None:
-                self._resumed_at = time.monotonic()
-            try:
-                detail = self._undo(step)
-                ok = True
-            except Exception as e:   # keep undoing the rest: each failure is reported
-                detail, ok = str(e), False
-            results.append({'action': step.action, 'target': step.target, 'ok': ok, 'detail': detail})
-            self.log('  rollback %s %s: %s%s' % (step.action, step.target, 'ok: ' if ok else 'FAILED: ', detail))
-        return results
-
     def _undo(self, step):
         if step.action == 'resume':
             self._keeper.release(step.target)
@@ -661,11 +654,11 @@ class Engine(object):
             return 'stopped %s' % ', '.join(site.nodes)
         if step.action == 'respawn':
             record = step.detail
-            argv = guarded(record['cmdline'], record.get('owners', []), self.guard_poll, self.guard_grace)
-            site = Site('respawn', argv, env=record['env'], cwd=record['cwd'],
-                        log_path=os.path.join(self.log_dir, 'respawn_%d.log' % record['pid']))
+            argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace)
             os.makedirs(self.log_dir, exist_ok=True)
-            site.start()
+            # The node's own working directory, given to its process (never this one's: it has threads).
+            site = Site('respawn', argv, env=record.env, cwd=record.cwd,
+                        log_path=os.path.join(self.log_dir, 'respawn_%d.log' % record.pid)).start()
             self.respawned.append(site)
             if not wait_until(lambda: step.target + '/rebind' in self._graph()[1] or
                               (step.target in self._graph()[0] and not self._offers_rebind(record)), 30.0, 0.05):
@@ -685,7 +678,7 @@ class Engine(object):
 
     @staticmethod
     def _offers_rebind(record):
-        return any('aft_ftm' in part for part in record.get('cmdline', []))
+        return any('aft_ftm' in part for part in record.cmdline)
 
     def stop_all(self):
         """Stop every process this engine started (tests and benchmarks). Never raises."""
