@@ -246,3 +246,25 @@ def test_the_copies_of_one_suspend_entry_are_known_to_the_script_itself():
     assert set(script.suspend_entry.values()) == {'script: suspend[0]'}
     bare = adaptation.Script('x', 'update', '', ['/a/p', '/b/p'], [], [], [], [], {})
     assert [s.detail for s in adaptation.plan(bare, 'paper') if s.action == 'suspend'] == ['/a/p', '/b/p']
+
+
+def test_the_services_a_launched_node_will_call_follow_its_remaps_and_mechanism():
+    remaps = {'server': '/master/plan', 'get_state': '/master/planner/get_state', 'set_state': 'planner/set_state'}
+    assert adaptation.services_called('/master/tr/proceed', 'proceed', '', remaps) == ['/master/plan']
+    assert adaptation.services_called('/master/tr/before', 'before', 'tr', remaps) == [
+        '/master/planner/get_state', '/master/tr/planner/set_state']   # a relative target, in the node's name space
+    assert adaptation.services_called('/master/ad/before', 'before', 'ad', remaps) == []
+    assert adaptation.services_called('/master/after_lfr', 'after', 'lfr', remaps) == []
+    assert adaptation.services_called('/master/after_lfr', 'after', 'lfr', remaps, '/aft/witness/request') == [
+        '/master/planner/get_state', '/master/planner/set_state', '/aft/witness/request']
+
+
+def test_a_launch_whose_nodes_would_call_a_service_nobody_offers_is_refused_naming_it():
+    # The defaults name the bank demo's services: on another service the run would wait for them and roll back.
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    entry = next(iter(NEW))
+    calls = {entry: {'/master/tr/proceed': ['/master/account']}}
+    with pytest.raises(ScriptError, match=r'would start /master/tr/proceed, which calls /master/account: no node '
+                                          r'offers /master/account \(name your service'):
+        adaptation.check_fit(script, RUNNING, SERVICES, NEW, calls)
+    adaptation.check_fit(script, RUNNING, SERVICES | {'/master/account'}, NEW, calls)

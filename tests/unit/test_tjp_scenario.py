@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from tjp_sim import fmeca, scenario as scenarios
+from tjp_sim import fmeca, resources, scenario as scenarios
 from tjp_sim.faults import SILENT, SensorFaults
 from tjp_sim.filters import LaserVoter
 
@@ -229,7 +229,7 @@ def test_every_fmeca_row_has_a_scenario_with_its_control_experiment(row):
 
 
 def test_every_shipped_scenario_loads():
-    names = sorted(n[:-5] for n in os.listdir(scenarios.DIR) if n.endswith('.yaml'))
+    names = sorted(n[:-5] for n in os.listdir(resources.path('scenarios')) if n.endswith('.yaml'))
     assert len(names) >= len(fmeca.load())
     for name in names:
         assert scenarios.load(name)['name'] == name

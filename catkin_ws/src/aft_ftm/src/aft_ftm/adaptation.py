@@ -266,13 +266,52 @@ def _promote(where, entry):
 
 # -- fitting the live graph ----------------------------------------------------------------------
 
-def check_fit(script, nodes, services, launched):
+# The services an aft_ftm node calls once it runs, by (executable, ~mechanism): each is the node's
+# relative name, usually remapped by the launch file. None: whatever the mechanism.
+SERVICES_CALLED = {
+    ('proceed', None): ('server',),
+    ('fault_injector', None): ('server',),
+    ('before', 'tr'): ('get_state', 'set_state'),
+    ('after', 'pbr'): ('get_state', 'set_state'),
+    ('cycle_after', None): ('set_state',),
+    ('sec_gate', None): ('certificate',),
+}
+
+
+def services_called(node, node_type, mechanism, remaps, witness=''):
+    """The resolved names of the services a launched aft_ftm node will call: ``node`` its absolute
+    name, ``remaps`` {from: to} of its launch file, ``witness`` its ~witness parameter. LFR's After
+    calls the state services only with a witness (a join is a state transfer)."""
+    called = list(SERVICES_CALLED.get((node_type, None), ()) or SERVICES_CALLED.get((node_type, mechanism), ()))
+    if node_type == 'after' and mechanism == 'lfr' and witness:
+        called += ['get_state', 'set_state']
+    namespace = node.rsplit('/', 1)[0] or '/'
+    names = []
+    for name in called:
+        target = remaps.get(name, name)
+        names.append(target if target.startswith('/') else '%s/%s' % (namespace.rstrip('/'), target))
+    if witness:
+        names.append(witness)
+    return names
+
+
+def check_fit(script, nodes, services, launched, calls=None):
     """Check script against a view of the live graph; raises ScriptError naming the first problem.
 
     ``nodes``: the running nodes; ``services``: the services offered; ``launched``: for each of
-    the script's Launch entries, the nodes its launch file starts. What only the nodes can answer
-    (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
+    the script's Launch entries, the nodes its launch file starts; ``calls``: for each entry, {node:
+    the services it will call (services_called())}: each must be offered now, or the new nodes would
+    wait for it and the adaptation roll back long after (the script's defaults name the bank demo's
+    services: another service needs its own names, server:= or state_manager:=). What only the nodes
+    can answer (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
     """
+    for entry, called in sorted((calls or {}).items(), key=lambda item: item[0].file):
+        for node, names in sorted(called.items()):
+            missing = [n for n in names if n not in services]
+            if missing:
+                raise ScriptError('launch file %s would start %s, which calls %s: no node offers %s (name '
+                                  'your service in the script\'s arguments, e.g. server:= or state_manager:=)'
+                                  % (entry.file, node, ', '.join(names), ', '.join(missing)))
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))
         if clash:

@@ -4,11 +4,11 @@ import os
 
 import yaml
 
+from . import resources
 from .errors import TjpConfigError
 
 MECHANISMS = ('pbr', 'tr_sliding_average', 'triplication_vote', 'alarm_and_stop')
 FIELDS = ('entity', 'failure_mode', 'effect', 'frequency', 'gravity', 'mechanism', 'scenario')
-DEFAULT_PATH = os.path.join(os.path.dirname(__file__), '..', '..', 'config', 'fmeca.yaml')
 
 Row = collections.namedtuple('Row', FIELDS + ('risk',))
 
@@ -46,7 +46,9 @@ def parse(text, source='fmeca'):
     return rows
 
 
-def load(path=DEFAULT_PATH):
+def load(path=None):
+    """The FMECA table at path (default: the package's config/fmeca.yaml)."""
+    path = path or resources.path('config', 'fmeca.yaml')
     with open(path) as f:
         return parse(f.read(), source=os.path.basename(path))
 

@@ -33,6 +33,7 @@ import random
 
 import yaml
 
+from . import resources
 from .control import SafetyDistance
 from .errors import TjpConfigError
 from .faults import VALUE_KINDS
@@ -59,7 +60,6 @@ PROFILES = {
 }
 KEYS = {'name', 'description', 'duration', 'seed', 'rate', 'profile', 'initial_speed', 'initial_gap',
         'mechanisms', 'faults', 'events', 'expect', 'control', 'managed_tjp'}
-DIR = os.path.join(os.path.dirname(__file__), '..', '..', 'scenarios')
 
 
 def _number(where, value, low=None, high=None, positive=False):
@@ -256,7 +256,7 @@ def path_of(name):
     """A scenario's file: a path, or the name of one shipped in the package."""
     if os.path.sep in name or name.endswith('.yaml'):
         return name
-    return os.path.join(DIR, name + '.yaml')
+    return resources.path('scenarios', name + '.yaml')
 
 
 def load(name):
@@ -265,7 +265,8 @@ def load(name):
         with open(path) as f:
             text = f.read()
     except OSError as e:
-        shipped = sorted(n[:-5] for n in os.listdir(DIR) if n.endswith('.yaml')) if os.path.isdir(DIR) else []
+        folder = resources.path('scenarios')
+        shipped = sorted(n[:-5] for n in os.listdir(folder) if n.endswith('.yaml')) if os.path.isdir(folder) else []
         raise ScenarioError('cannot read scenario %s (%s); shipped scenarios: %s' % (path, e.strerror, ', '.join(shipped)))
     return parse(text, source=os.path.basename(path))
 

@@ -76,6 +76,23 @@ def launch_nodes(path, args):
     return [rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes], config
 
 
+def services_called_by(config):
+    """{node: the services it will call} for the aft_ftm nodes of a loaded launch configuration."""
+    def value(name):
+        param = config.params.get(name)
+        return param.value if param is not None else ''
+    calls = {}
+    for node in config.nodes:
+        if node.package != 'aft_ftm':
+            continue
+        name = rosgraph.names.ns_join(node.namespace, node.name)
+        called = adaptation.services_called(name, node.type, value(name + '/mechanism'), dict(node.remap_args),
+                                            value(name + '/witness'))
+        if called:
+            calls[name] = called
+    return calls
+
+
 def owners_of_process(pid):
     """The site launchers (aft_ftm.site_guard.Owner) a node's process belongs to: those its
     environment names (a node an adaptation launched or started again), else the nearest roslaunch
@@ -294,10 +311,13 @@ class Engine(object):
         self._launches, self._launched_names = {}, []
         nodes, services = self._graph()
         loaded = collections.OrderedDict()
+        calls = {}
         for entry in script.launch:
             path = resolve_launch_file(entry.file)
-            loaded[entry] = (path, launch_nodes(path, entry.args)[0])
-        adaptation.check_fit(script, nodes, services, {entry: names for entry, (_, names) in loaded.items()})
+            names, config = launch_nodes(path, entry.args)
+            loaded[entry] = (path, names)
+            calls[entry] = services_called_by(config)
+        adaptation.check_fit(script, nodes, services, {entry: names for entry, (_, names) in loaded.items()}, calls)
         launches = {}
         for entry, (path, names) in loaded.items():
             owners = self._site_owners(names, nodes)

@@ -26,6 +26,22 @@ def _names(name, value):
     return value
 
 
+def _script_args(name, value):
+    """{script: [name:=value, ...]}: the arguments the monitor gives each shipped script (a service's
+    own names: server:=, state_manager:=, assertions), each checked now."""
+    from ..adaptation import ScriptError, parse_overrides
+    if not isinstance(value, dict):
+        raise ConfigError('parameter %s must map script names to lists of name:=value, got %r' % (name, value))
+    for script, items in value.items():
+        items = config.name_list('%s/%s' % (name, script), items)
+        try:
+            parse_overrides(items)
+        except ScriptError as e:
+            raise ConfigError('parameter %s/%s: %s' % (name, script, e))
+        value[script] = items
+    return value
+
+
 class MonitorNode(object):
     """Keeps (F, A, R) up to date, selects the cheapest consistent mechanism from Table I, and when
     the running one is no longer consistent, runs the matching adaptation script and logs why.
@@ -39,6 +55,8 @@ class MonitorNode(object):
         ~bandwidth_high, ~bandwidth_low (float, 1e6 and 1e4 B/s): what a link must carry for
             mechanisms needing high / low bandwidth (Table I).
         ~mode (prepared | paper, default prepared): the order adaptations run in.
+        ~script_args (dict, default {}): arguments given to each shipped script, before the monitor's
+            own, e.g. {compose: [server:=plan, state_manager:=planner], switch: [state_manager:=planner]}.
         ~period (float, 0.1 s): how often the model is checked.
     Subscribes:
         <ftm_ns>/heartbeat/<site> (aft_msgs/Heartbeat): R, the sites alive.
@@ -61,6 +79,7 @@ class MonitorNode(object):
         high = param('bandwidth_high', config.positive_float, 1e6)
         low = param('bandwidth_low', config.positive_float, 1e4)
         self.mode = param('mode', config.choice('prepared', 'paper'), 'prepared')
+        self.script_args = param('script_args', _script_args, {})
         self.period = param('period', config.positive_float, 0.1)
         self.ftm_ns = param('ftm_ns', config.non_empty_str, '/ftm')
         try:
@@ -163,6 +182,7 @@ class MonitorNode(object):
                     raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
                                       % decision.selection.reason)
                 move = transition(decision.from_, decision.to, alive, self.suffix)
+                move = move._replace(overrides=list(self.script_args.get(move.script, [])) + list(move.overrides))
                 record['script'], record['args'] = move.script, move.overrides
                 self._event(record)
                 from .adapt_command import load_script

@@ -30,6 +30,7 @@ from std_srvs.srv import Trigger
 from aft_ftm.ros.graph import wired
 from aft_ftm.sites import Site, process_tree, wait_dead, wait_until
 
+from .. import resources
 from .. import scenario as scenarios
 from .. import summary as summaries
 
@@ -314,7 +315,7 @@ class ScenarioRun(object):
 def load_script(name, args):
     """An adaptation script: a path, or the name of one shipped in tjp_sim/adaptations or aft_ftm's."""
     from aft_ftm.ros import adapt_command
-    shipped = os.path.join(os.path.dirname(__file__), '..', '..', '..', 'adaptations', name + '.yaml')
+    shipped = resources.path('adaptations', name + '.yaml')
     spec = shipped if os.path.isfile(shipped) else name
     return adapt_command.load_script(spec, ['%s:=%s' % kv for kv in sorted(args.items())])
 
