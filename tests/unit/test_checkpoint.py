@@ -230,3 +230,18 @@ def test_a_backup_started_in_sync_by_an_adaptation_follows_the_new_primary_from_
     assert receiver.decide(101, '/other/after', first_seq=50) == Decision.STRAY
     receiver.failed(101, 'a gap')
     assert receiver.state == Follow.JOINING   # with a witness it joins again
+
+
+def test_the_senders_and_receivers_role_change_only_along_the_allowed_edges():
+    sender = CheckpointSender(Role.ALONE)
+    with pytest.raises(RoleError, match='ALONE -> BACKUP is not allowed'):
+        sender._change_role(Role.BACKUP)
+    assert sender.role == Role.ALONE
+    sender.join('/slave/after', now=0)
+    assert sender.role == Role.PRIMARY
+    sender.go_alone()
+    assert sender.role == Role.ALONE
+    receiver = CheckpointReceiver()
+    receiver.accept(1, '/master/after')
+    receiver.promote()
+    assert receiver.role == Role.ALONE and receiver.decide(2, '/master/after') == Decision.FENCED

@@ -56,7 +56,7 @@ class CheckpointSender(object):
     def __init__(self, role, first_seq=1, epoch=0):
         if role not in (Role.PRIMARY, Role.ALONE):
             raise RoleError('a checkpoint sender is PRIMARY or ALONE, not %s' % role.name)
-        self.role = role
+        self.role = role        # changed only by _change_role()
         self.epoch = epoch
         self.first_seq = first_seq   # a replacement After starts above its predecessor's numbers
         self.seq = first_seq - 1
@@ -69,6 +69,11 @@ class CheckpointSender(object):
         self.admitted = role == Role.PRIMARY   # the witness knows our backup (always true without one)
         self.deposed = None     # why the witness refused us: nothing is ever released again
         self.session = first_seq   # acks of checkpoints below this were for an earlier backup: ignored
+
+    def _change_role(self, role):
+        """The one place where the sender's role changes (RoleError unless an allowed edge)."""
+        check_role_change(self.role, role)
+        self.role = role
 
     def needs_checkpoint(self):
         return self.role == Role.PRIMARY and not self.deposed
@@ -86,8 +91,7 @@ class CheckpointSender(object):
         released, the joiner holds; it becomes the backup once the witness admits it (Need.ADMIT)."""
         if self.deposed:
             raise RoleError('deposed: %s' % self.deposed)
-        check_role_change(self.role, Role.PRIMARY)
-        self.role = Role.PRIMARY
+        self._change_role(Role.PRIMARY)
         self.admitted = False
         self.joiner = joiner
         self.seq += 1
@@ -136,8 +140,7 @@ class CheckpointSender(object):
 
     def go_alone(self):
         """The backup is gone: release every held reply, send no more checkpoints."""
-        check_role_change(self.role, Role.ALONE)
-        self.role = Role.ALONE
+        self._change_role(Role.ALONE)
         self.joiner = self.join_seq = self.join_since = None
         released = [self.held[s].reply for s in sorted(self.held)]
         self.held.clear()
@@ -196,7 +199,7 @@ class CheckpointReceiver(object):
     """
 
     def __init__(self, join=False, epoch=0):
-        self.role = Role.BACKUP
+        self.role = Role.BACKUP     # changed only by promote()
         self.join = join
         self.state = Follow.JOINING
         self.epoch = epoch
@@ -281,5 +284,5 @@ class CheckpointReceiver(object):
             raise RoleError('this backup cannot take over: %s' % self.invalid)
         check_role_change(self.role, Role.ALONE)
         self._change(Follow.PROMOTED)
-        self.role = Role.ALONE
+        self.role = Role.ALONE      # the receiver's one role change, checked above
         return self.last_seq

@@ -1,7 +1,9 @@
 """Leader-Follower Replication (paper Table II): the leader forwards each request to the follower,
 both compute, the leader replies once the follower computed it too, then notifies it. No state is
 transferred while both serve (bandwidth low), but the server must be deterministic. With a witness,
-a follower joins by one state transfer (the server's getState/setState), as a PBR backup does."""
+a follower joins by one state transfer (the server's getState/setState), as a PBR backup does.
+
+The decisions (and each node's role) live in aft_ftm.lfr, without ROS; these nodes carry them out."""
 import json
 import threading
 import time
@@ -13,8 +15,9 @@ from std_msgs.msg import String
 
 from .. import config, health, mechanisms
 from ..errors import RoleError
+from ..lfr import Ack, ConfChange, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out, State
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import DuplicateCache, Role, check_role_change
+from ..protocol import Role
 from ..witness import Op
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
@@ -28,15 +31,6 @@ from .witness_client import site_launcher_pid
 
 def _role():
     return ROLES[param('role', config.choice(*ROLES), 'primary')]
-
-
-def _refused(current, new):
-    """A SetRole refusal if current -> new is not an allowed role change, else None."""
-    try:
-        check_role_change(current, new)
-    except RoleError as e:
-        return SetRoleResponse(success=False, message=str(e))
-    return None
 
 
 class LfrBeforeNode(BeforeNode):
@@ -53,15 +47,12 @@ class LfrBeforeNode(BeforeNode):
     """
 
     def __init__(self):
-        self.role = _role()
+        self.forwarder = LfrForwarder(_role())   # the one owner of this Before's role
         super(LfrBeforeNode, self).__init__(
             extra_ports=[PortSpec('forward', PUBLISH, 'aft_msgs/Request'),
                          PortSpec('forwarded', SUBSCRIBE, 'aft_msgs/Request')],
             extra_callbacks={'forwarded': self._on_forwarded})
         self.lock = threading.Lock()
-        self.passed = 0      # forwarded requests passed to Proceed (the follower's execution order)
-        self.epoch = 0       # the witness's epoch of the last role given (a late, older order changes nothing)
-        self.refused = 0
 
     def setup(self, timeout):
         self.ports.bind('forward')
@@ -70,33 +61,27 @@ class LfrBeforeNode(BeforeNode):
         return super(LfrBeforeNode, self).setup(timeout)
 
     def handle(self, request):
-        if self.role == Role.PRIMARY:
+        if self.forwarder.forwards():
             self.ports.publish('forward', request)
         return request
 
     def _on_forwarded(self, request):
         with self.lock:
-            if self.role != Role.BACKUP:
-                self.refused += 1
+            if not self.forwarder.on_forwarded():
                 rospy.logwarn('%s: forwarded request %s/%d refused: no longer a follower', self.name,
                               request.origin, request.id)
                 return
-            self.passed += 1
             self.ports.publish('out', request)
 
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
-            refused = _refused(self.role, role)
-            if refused:
-                return refused
-            if self.role == Role.PRIMARY and role == Role.ALONE and req.epoch and req.epoch < self.epoch:
-                # A late order (Recovery stalled) about a follower that has joined again since.
-                return SetRoleResponse(success=True, message='role PRIMARY kept: epoch %d is newer than %d'
-                                       % (self.epoch, req.epoch), last_seq=self.passed)
-            self.role = role
-            self.epoch = max(self.epoch, req.epoch)
-            return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=self.passed)
+            try:
+                kept = self.forwarder.set_role(role, req.epoch)
+            except RoleError as e:
+                return SetRoleResponse(success=False, message=str(e))
+            return SetRoleResponse(success=True, message=kept or 'role %s' % role.name,
+                                   last_seq=self.forwarder.passed)
 
 
 class LfrAfterNode(AfterNode):
@@ -142,7 +127,8 @@ class LfrAfterNode(AfterNode):
         notify (aft_msgs/Notify), port ``notify``; aft2pro_s (aft_msgs/Checkpoint), port ``stored``;
         refusals (aft_msgs/Reply), port ``refusals``; transfers (aft_msgs/Checkpoint), port
         ``transfer``: state transfers to a joining follower; join (aft_msgs/Join), port ``join``;
-        fail_stop (aft_msgs/Failure), alarms (aft_msgs/Alarm); ~events (std_msgs/String, latched): one
+        fail_stop (aft_msgs/Failure), alarms (aft_msgs/Alarm: stray_ack for an ack, stray_checkpoint for a state
+        transfer, from an After of another site than ~peer); ~events (std_msgs/String, latched): one
         JSON record per state transfer (bytes, replies; admitted_s: how long the Protocol was suspended);
         /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies (aft_ftm.health).
     Services: ~set_role (aft_msgs/SetRole), ~rebind (aft_msgs/Rebind)
@@ -151,7 +137,7 @@ class LfrAfterNode(AfterNode):
     def __init__(self):
         mechanisms.check_application('lfr', param('server_deterministic', config.flag, required=True),
                                      state_access=False)
-        self.role = _role()
+        role = _role()
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
         witness = param('witness', config.optional_name, '')
@@ -163,6 +149,7 @@ class LfrAfterNode(AfterNode):
         protocol = param('protocol', config.non_empty_str, 'protocol') if witness else ''
         before = param('before', config.non_empty_str, 'before')
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
+        self.in_sync = param('in_sync', config.flag, False)
         super(LfrAfterNode, self).__init__(
             extra_ports=[PortSpec('acks', SUBSCRIBE, 'aft_msgs/Notify'),
                          PortSpec('peer_acks', PUBLISH, 'aft_msgs/Notify'),
@@ -178,25 +165,14 @@ class LfrAfterNode(AfterNode):
                              'join_requests': self._on_join})
         self.side = ReplicaSide(self.ports, 'lfr', self.site, site_pid, witness, protocol, self.state_timeout)
         self.witness = self.side.witness
-        self.lock = threading.Condition()
-        self.held = {}          # leader: (origin, id) -> (reply, since)
-        self.acked = set()      # leader: acks that came before our own result
-        self.computed = 0       # follower: results of forwarded requests
-        self.notified = 0
-        self.epoch = 0          # the witness's epoch of this replica's role
-        self.deposed = None     # leader: why the witness deposed it (it answers nothing more)
-        self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
-        # A follower with a witness holds nothing until a state transfer: it joins.
-        self.in_sync = param('in_sync', config.flag, False)
-        self.joined = self.witness is None or self.role != Role.BACKUP or self.in_sync
-        self.joined_since = 0.0
-        self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
-        self.transfer = None    # leader: the state transfer waiting for its acknowledgment
-        # State transfers are numbered from the wall clock (microseconds), so that a follower's
-        # Join sent before it accepted a transfer (last_seq below it) is told from one sent after.
-        self.join_seq = int(time.time() * 1e6)
-        self.accepted = 0       # follower: the seq of the last state transfer it accepted
-        self.configuration_seen = None
+        self.lock = threading.Condition()   # guards self.core
+        # The decisions and the one owner of this replica's role. A follower with a witness holds
+        # nothing until a state transfer: it joins. State transfers are numbered from the wall clock
+        # (microseconds), so that a follower's Join sent before it accepted a transfer (last_seq below
+        # it) is told from one sent after, across a restart of the leader.
+        self.core = LfrAfter(self.name, role, joined=self.witness is None or role != Role.BACKUP or self.in_sync,
+                             site=self.site, peer=self.peer, ack_timeout=self.ack_timeout,
+                             join_period=self.join_period, join_seq=int(time.time() * 1e6), cache_bytes=cache_bytes)
         self.state_calls = Deadline('state')
         self.before_role = rospy.ServiceProxy(before + '/set_role', SetRole, persistent=True)
         self.before_name = before
@@ -228,7 +204,7 @@ class LfrAfterNode(AfterNode):
         if self.witness is None or self.in_sync:
             peer = {Role.PRIMARY: ['notify', 'acks'], Role.BACKUP: ['peer_acks', 'notifications'],
                     Role.ALONE: []}
-            missing = wait_for_connections(self.ports, peer[self.role], self.connect_timeout)
+            missing = wait_for_connections(self.ports, peer[self.core.role], self.connect_timeout)
             if missing:
                 rospy.logerr('%s: the peer After is not connected on %s', self.name,
                              [self.ports.topic(n) for n in missing])
@@ -246,107 +222,77 @@ class LfrAfterNode(AfterNode):
 
     def _health(self):
         with self.lock:
+            core = self.core
             return health.replica_after(
-                self.site, 'lfr', self.role, self.epoch, self.peer, held=len(self.held),
-                stopped='deposed: %s' % self.deposed if self.deposed else None,
-                cannot_take_over=None if self.joined else 'holds no state: it is joining',
-                extra=[('computed', self.computed)])
+                self.site, 'lfr', core.role, core.epoch, self.peer, held=len(core.held),
+                stopped='deposed: %s' % core.deposed if core.deposed else None,
+                cannot_take_over=None if core.joined else 'holds no state: it is joining',
+                extra=[('computed', core.computed)])
 
     def quiescent(self):
         """Leader: no reply waiting for the follower (checked by ~suspend)."""
         with self.lock:
-            return not self.held
+            return not self.core.held
 
     # -- replies ------------------------------------------------------------------------
-    def _remember(self, reply):
-        self.recent.forget_below(reply.origin, reply.oldest_pending)
-        self.recent.store(reply)
-
     def handle(self, reply):
-        key = (reply.origin, reply.id)
         with self.lock:
-            if self.role == Role.BACKUP:
-                if reply.status == Reply.NOT_EXECUTED:
-                    return None   # a follower's Protocol refuses nothing (nor does it get requests)
-                self.computed += 1
-                self._remember(reply)
-                self.ports.publish('stored', Checkpoint(seq=self.computed, sender=self.name, reply=reply,
-                                                        epoch=self.epoch))
-                self.ports.publish('peer_acks', Notify(origin=reply.origin, id=reply.id, seq=self.computed))
+            out = self.core.on_reply(reply, time.monotonic(), refused=reply.status == Reply.NOT_EXECUTED)
+            if out == Out.STORE:
+                computed = self.core.computed
+                self.ports.publish('stored', Checkpoint(seq=computed, sender=self.name, reply=reply,
+                                                        epoch=self.core.epoch))
+                self.ports.publish('peer_acks', Notify(origin=reply.origin, id=reply.id, seq=computed))
                 self.lock.notify_all()
-                return None
-            if self.deposed:
-                return None       # a deposed leader answers nothing
-            reply.epoch = self.epoch
-            self._remember(reply)
-            if self.role == Role.PRIMARY:
-                if reply.status == Reply.NOT_EXECUTED:
-                    self.held[key] = (reply, time.monotonic())
-                    self.ports.publish('refusals', reply)
-                    return None
-                if key not in self.acked:
-                    self.held[key] = (reply, time.monotonic())
-                    return None
-                self.acked.discard(key)
-        self._release(reply)
+            elif out == Out.HOLD_REFUSAL:
+                self.ports.publish('refusals', reply)
+        if out in (Out.RELEASE, Out.RELEASE_NOTIFY):
+            self._release(reply, notify=out == Out.RELEASE_NOTIFY)
         return None
 
-    def _release(self, reply):
+    def _release(self, reply, notify):
         self.ports.publish('out', reply)
-        if self.role == Role.PRIMARY:
+        if notify:
             self.ports.publish('notify', Notify(origin=reply.origin, id=reply.id))
 
     def _on_ack(self, ack):
-        key = (ack.origin, ack.id)
+        # rospy gives every received message its publisher's node name in the connection header.
+        sender = getattr(ack, '_connection_header', {}).get('callerid')
         with self.lock:
-            if not ack.origin:
-                if self.transfer is not None and ack.id == self.transfer['seq']:
-                    self.transfer['acknowledged_s'] = time.monotonic() - self.transfer['t0']
-                    self.lock.notify_all()
-                return
-            held = self.held.pop(key, None)
-            if held is None:
-                if self.role == Role.PRIMARY:
-                    self.acked.add(key)
-                return
-        self._release(held[0])
+            answer, reply = self.core.on_ack(ack.origin, ack.id, time.monotonic(), sender)
+            if answer == Ack.TRANSFER:
+                self.lock.notify_all()
+        if answer == Ack.RELEASE:
+            self._release(reply, notify=True)
+        elif answer == Ack.STRAY:
+            self.side.tell('stray_ack', 'ack of %s/%d from %s ignored: %s does not follow %s' % (
+                ack.origin, ack.id, sender, sender, self.name), sender)
 
     def _on_peer_refusal(self, refusal):
         """Follower: the leader refused a request; a copy sent here after a failover gets the same answer."""
         with self.lock:
-            if self.role != Role.BACKUP or not self.joined:
+            if not self.core.on_peer_refusal(refusal):
                 return
-            self._remember(refusal)
-            self.ports.publish('stored', Checkpoint(seq=self.computed, sender=self.name, reply=refusal,
-                                                    epoch=self.epoch))
-            self.ports.publish('peer_acks', Notify(origin=refusal.origin, id=refusal.id, seq=self.computed))
+            computed = self.core.computed
+            self.ports.publish('stored', Checkpoint(seq=computed, sender=self.name, reply=refusal,
+                                                    epoch=self.core.epoch))
+            self.ports.publish('peer_acks', Notify(origin=refusal.origin, id=refusal.id, seq=computed))
 
     def _on_notify(self, _notification):
-        self.notified += 1   # the leader replied: nothing more to do for it (the Protocol's cache is GC'd by watermark)
+        with self.lock:
+            # the leader replied: nothing more to do for it (the Protocol's cache is GC'd by watermark)
+            self.core.notified += 1
 
     # -- losing the follower -----------------------------------------------------------
-    def _go_alone(self, epoch=0):
-        self.role = Role.ALONE
-        self.epoch = max(self.epoch, epoch)
-        self.follower = None
-        released = [r for r, _ in sorted(self.held.values(), key=lambda h: h[1])]
-        self.held.clear()
-        self.acked.clear()
-        for reply in released:
-            reply.epoch = self.epoch
-        return released
-
     def _check_acks(self, _event):
         with self.lock:
-            now = time.monotonic()
-            if self.role != Role.PRIMARY or self.deposed \
-                    or not any(now - t > self.ack_timeout for _, t in self.held.values()):
+            if not self.core.overdue(time.monotonic()):
                 return
         why = 'the follower did not compute a request for %.1f s' % self.ack_timeout
         if self.witness is None:
             rospy.logerr('%s: %s: going on ALONE', self.name, why)
             with self.lock:
-                released = self._go_alone()
+                released = self.core.go_alone(why=why)
             for reply in released:
                 self.ports.publish('out', reply)
             return
@@ -359,9 +305,9 @@ class LfrAfterNode(AfterNode):
             return
         self._forwarding(Role.ALONE, grant.epoch)
         with self.lock:
-            if self.role != Role.PRIMARY:
+            if self.core.state != State.LEADING:
                 return
-            released = self._go_alone(grant.epoch)
+            released = self.core.go_alone(grant.epoch, why)
         for reply in released:
             self.ports.publish('out', reply)
         self.side.tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site, grant.epoch, why, grant.message))
@@ -382,33 +328,23 @@ class LfrAfterNode(AfterNode):
 
     def _deposed(self, why):
         with self.lock:
-            self.deposed = why
-            withheld = len(self.held)
-            self.held.clear()
+            withheld = self.core.depose(why)
         self.side.fail_stop('deposed by the witness (%s): %d replies withheld' % (why, withheld))
 
     # -- joins (leader side) -----------------------------------------------------------
     def _on_join(self, join):
-        if join.site == self.site:
-            return
         with self.lock:
-            if self.role == Role.BACKUP or self.deposed:
-                return
-            # A follower that accepted our transfer and asks again lost its state (or was restarted):
-            # exclude it first. A Join it sent before it accepted the transfer is late: ignored.
-            follower = self.follower
-            if self.role == Role.PRIMARY and follower is not None and (join.after, join.incarnation) == follower[:2] \
-                    and join.last_seq < follower[2]:
-                return
-            restarted = self.role == Role.PRIMARY
+            decision = self.core.on_join(join)
         # One decision at a time: a follower asking while another is under way asks again later.
-        if restarted:
+        if decision == JoinDecision.EXCLUDE:
             self.side.alone(self._exclude, '%s asks to join again: it restarted' % join.site)
-        else:
+        elif decision == JoinDecision.TRANSFER:
             self.side.alone(self._transfer, join)
 
     def _transfer(self, join):
-        if self.role == Role.ALONE and self.side.quiesce_protocol(True):
+        with self.lock:
+            alone = self.core.state == State.ALONE
+        if alone and self.side.quiesce_protocol(True):
             try:
                 self._join(join)
             finally:
@@ -425,21 +361,21 @@ class LfrAfterNode(AfterNode):
             self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, e))
             return
         with self.lock:
-            if self.role != Role.ALONE or self.deposed:
+            transfer = self.core.start_transfer(join.site, t0)
+            if transfer is None:
                 return
-            self.join_seq += 1
-            cache = self.recent.replies()
-            self.transfer = record = {'event': 'join', 'joiner': join.site, 'seq': self.join_seq,
-                                      'state_bytes': len(state), 'replies': len(cache), 't0': t0,
-                                      'sent_wall': time.time()}
-            self.ports.publish('transfer', Checkpoint(seq=self.join_seq, first_seq=self.join_seq, sender=self.name,
-                                                      epoch=self.epoch, full=True, state=state, cache=cache))
-            acknowledged = self.lock.wait_for(lambda: 'acknowledged_s' in record, timeout=self.ack_timeout)
-            self.transfer = None
+            record = {'event': 'join', 'joiner': join.site, 'seq': transfer.seq, 'state_bytes': len(state),
+                      'replies': len(transfer.cache), 'sent_wall': time.time()}
+            self.ports.publish('transfer', Checkpoint(seq=transfer.seq, first_seq=transfer.seq, sender=self.name,
+                                                      epoch=self.core.epoch, full=True, state=state,
+                                                      cache=transfer.cache))
+            acknowledged = self.lock.wait_for(lambda: transfer.acknowledged_s is not None, timeout=self.ack_timeout)
+            self.core.end_transfer()
         if not acknowledged:
             self.side.tell('join_failed', '%s did not acknowledge the state transfer within %.1f s'
                            % (join.site, self.ack_timeout))
             return
+        record['acknowledged_s'] = transfer.acknowledged_s
         grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation)
         if grant is None:
             return
@@ -453,10 +389,12 @@ class LfrAfterNode(AfterNode):
             self._exclude('Before cannot forward to the admitted follower %s' % join.site)
             return
         with self.lock:
-            self.role = Role.PRIMARY
-            self.epoch = max(self.epoch, grant.epoch)
-            self.follower = (join.after, join.incarnation, record['seq'])
-        record.update(admitted_s=time.monotonic() - record.pop('t0'), admitted_wall=time.time(), epoch=grant.epoch)
+            try:
+                self.core.admitted(join.after, join.incarnation, transfer.seq, grant.epoch)
+            except RoleError as e:
+                rospy.logwarn('%s: %s admitted, but not followed: %s', self.name, join.site, e)
+                return
+        record.update(admitted_s=time.monotonic() - t0, admitted_wall=time.time(), epoch=grant.epoch)
         self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
@@ -464,56 +402,38 @@ class LfrAfterNode(AfterNode):
     # -- joins (follower side) ---------------------------------------------------------
     def _ask_to_join(self, _event):
         with self.lock:
-            if self.role != Role.BACKUP:
-                return
-            if self.joined:
-                conf = self.configuration_seen
-                waited = time.monotonic() - self.joined_since
-                if conf is None or self.site in (conf.primary, conf.backup) \
-                        or waited < max(2 * self.ack_timeout, 4 * self.join_period):
-                    return
-        if self.joined:
+            step = self.core.join_step(time.monotonic())
+            accepted = self.core.accepted
+        if step == JoinStep.STATUS:
             # Joined, but never admitted (the witness refused it, or its configuration was missed): ask.
             status = self.side.ask(Op.STATUS)
             if status is None or status.backup == self.site:
                 return
             with self.lock:
-                self.joined = False
-            self.side.tell('backup_invalid', '%s: not admitted by the witness after its state transfer '
-                           '(epoch %d); it joins again' % (self.site, status.epoch))
-            return
-        if self.ports.connections('transfers'):
+                again = self.core.not_admitted(status.epoch)
+            if again:
+                self.side.tell('backup_invalid', '%s: not admitted by the witness after its state transfer '
+                               '(epoch %d); it joins again' % (self.site, status.epoch))
+        elif step == JoinStep.JOIN and self.ports.connections('transfers'):
             self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=self.witness.incarnation,
-                                            last_seq=self.accepted, stamp=rospy.Time.now()))
+                                            last_seq=accepted, stamp=rospy.Time.now()))
 
     def _on_transfer(self, cp):
         with self.lock:
-            problem = None
-            if self.role != Role.BACKUP or self.joined:
-                problem = '%s is not joining' % self.name
-            elif not cp.full or not cp.sender.startswith('/%s/' % self.peer):
-                problem = '%s does not follow %s' % (self.name, cp.sender)
-            elif cp.epoch < self.epoch:
-                problem = 'state transfer of epoch %d, older than epoch %d' % (cp.epoch, self.epoch)
+            problem = self.core.check_transfer(cp.seq, cp.sender, cp.epoch, cp.full)
             if problem is None:
                 try:
                     result = self.state_calls.call(self.set_state, self.state_timeout, cp.state)
-                    error = '' if result.success else 'the server refused the state: %s' % result.message
+                    problem = None if result.success else 'the server refused the state: %s' % result.message
                 except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
                     self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
-                    error = 'cannot set the server state: %s' % e
-                if error:
-                    problem = error
-                else:
-                    for reply in cp.cache:
-                        self._remember(reply)
-                    self.ports.publish('stored', Checkpoint(seq=self.computed, sender=self.name, full=True,
-                                                            cache=cp.cache, epoch=cp.epoch))
-                    self.joined = True
-                    self.accepted = cp.seq
-                    self.joined_since = time.monotonic()
-                    self.epoch = max(self.epoch, cp.epoch)
-                    self.ports.publish('peer_acks', Notify(origin='', id=cp.seq, seq=self.computed))
+                    problem = 'cannot set the server state: %s' % e
+            if problem is None:
+                self.core.transferred(cp.seq, cp.epoch, cp.cache, time.monotonic())
+                computed = self.core.computed
+                self.ports.publish('stored', Checkpoint(seq=computed, sender=self.name, full=True,
+                                                        cache=cp.cache, epoch=cp.epoch))
+                self.ports.publish('peer_acks', Notify(origin='', id=cp.seq, seq=computed))
         if problem is not None:
             self.side.tell('stray_checkpoint', 'state transfer %d from %s refused, nothing changed: %s'
                            % (cp.seq, cp.sender, problem), cp.sender)
@@ -522,24 +442,11 @@ class LfrAfterNode(AfterNode):
 
     # -- the witness's configuration ----------------------------------------------------
     def _on_configuration(self, conf):
-        deposed = excluded = False
         with self.lock:
-            if self.configuration_seen is None or conf.epoch >= self.configuration_seen.epoch:
-                self.configuration_seen = conf
-            if conf.epoch <= self.epoch:
-                return
-            if (conf.primary == self.site and self.role != Role.BACKUP) or \
-                    (conf.backup == self.site and self.role == Role.BACKUP and self.joined):
-                self.epoch = conf.epoch   # this replica's own configuration (an After an adaptation started)
-                return
-            if self.role != Role.BACKUP and not self.deposed and conf.primary != self.site:
-                deposed = True
-            elif self.role == Role.BACKUP and self.joined and self.site not in (conf.primary, conf.backup):
-                self.joined = False
-                excluded = True
-        if deposed:
+            change = self.core.on_configuration(conf)
+        if change == ConfChange.DEPOSED:
             self._deposed('%s is the primary of epoch %d (%s)' % (conf.primary, conf.epoch, conf.reason))
-        if excluded:
+        elif change == ConfChange.EXCLUDED:
             self.side.tell('excluded', '%s was excluded at epoch %d (%s): it cannot take over and joins again'
                            % (self.site, conf.epoch, conf.reason))
 
@@ -547,27 +454,20 @@ class LfrAfterNode(AfterNode):
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
-            refused = _refused(self.role, role)
-            if refused:
-                return refused
-            released = []
-            if self.role == Role.BACKUP and role == Role.ALONE:
-                if not (self.joined or req.initial):
-                    return SetRoleResponse(success=False, message='%s holds no state: it never joined' % self.name)
-                # Wait for the results of every forwarded request Before passed on (fenced now).
-                if not self.lock.wait_for(lambda: self.computed >= req.last_seq, timeout=2.0):
+            core = self.core
+            try:
+                core.check_role(role, req.initial)
+                if core.role == Role.BACKUP and role == Role.ALONE and \
+                        not self.lock.wait_for(lambda: core.computed >= req.last_seq, timeout=2.0):
+                    # The results of every forwarded request Before passed on (fenced now) are needed.
                     return SetRoleResponse(success=False, message='computed %d of the %d forwarded requests'
-                                           % (self.computed, req.last_seq))
-                self.role = role
-                self.epoch = max(self.epoch, req.epoch)
-            elif self.role == Role.PRIMARY and role == Role.ALONE:
-                if req.epoch and req.epoch < self.epoch:
-                    return SetRoleResponse(success=True, message='role PRIMARY kept: epoch %d is newer than %d'
-                                           % (self.epoch, req.epoch), last_seq=self.computed)
-                released = self._go_alone(req.epoch)
-            elif self.role == role:
-                self.epoch = max(self.epoch, req.epoch)
-            last_seq = self.computed
+                                           % (core.computed, req.last_seq))
+                released, kept = core.set_role(role, req.epoch, req.initial)
+            except RoleError as e:
+                return SetRoleResponse(success=False, message=str(e))
+            last_seq = core.computed
+        if kept:
+            return SetRoleResponse(success=True, message=kept, last_seq=last_seq)
         for reply in released:
             self.ports.publish('out', reply)
         rospy.loginfo('%s: role is now %s (epoch %d)', self.name, role.name, req.epoch)

@@ -137,7 +137,8 @@ class PbrAfterNode(AfterNode):
                          PortSpec('stored', PUBLISH, 'aft_msgs/Checkpoint')] + list(SIDE_PORTS),
             extra_callbacks={'acks': self._on_ack, 'peer_checkpoints': self._on_checkpoint,
                              'join_requests': self._on_join})
-        self.role = role
+        # The replica's role has one owner: the CheckpointSender once there is one (a primary, or a
+        # promoted backup), else the CheckpointReceiver (see the role property).
         self.sender = CheckpointSender(role, self.first_seq) if role != Role.BACKUP else None
         self.in_sync = param('in_sync', config.flag, False)
         self.receiver = CheckpointReceiver(join=with_witness) if role == Role.BACKUP else None
@@ -199,6 +200,12 @@ class PbrAfterNode(AfterNode):
         self.diagnostics = Diagnostics(self._health, self.site)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
+
+    @property
+    def role(self):
+        """This replica's role, read from its one owner (changed only through the sender's and the
+        receiver's guarded methods)."""
+        return self.sender.role if self.sender is not None else self.receiver.role
 
     def _health(self):
         with self.lock:
@@ -318,7 +325,6 @@ class PbrAfterNode(AfterNode):
             if self.sender is None or self.sender.role == Role.ALONE and not self.sender.held:
                 return
             released = self.sender.excluded(grant.epoch)
-            self.role = Role.ALONE
             self.joiner = None
             self._release(released)
         self.side.tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site or self.name, grant.epoch, why,
@@ -389,7 +395,6 @@ class PbrAfterNode(AfterNode):
                 self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
                 return
             seq = sender.join(join.after, time.monotonic())
-            self.role = Role.PRIMARY
             self.joiner = (join.site, join.incarnation)
             cache = self.recent.replies()
             self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
@@ -571,7 +576,6 @@ class PbrAfterNode(AfterNode):
                     raise RoleError('role change %s -> %s is not allowed' % (self.role.name, role.name))
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
-            self.role = role
         if told_alone:
             self.side.tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
                        % (self.site or self.name, req.epoch))
