@@ -9,7 +9,7 @@ import threading
 import rospy
 from aft_msgs.msg import Reply
 
-from .. import config
+from .. import config, service_errors
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
@@ -136,8 +136,9 @@ class ProceedNode(StageNode):
             try:
                 response = self._call(request, app_request)
             except rospy.ServiceException as e:
-                # The server answered, with an application error: that is the request's outcome.
-                reply.status, reply.error = Reply.ERROR, str(e)
+                # The server answered, with an application error: that is the request's outcome, kept as
+                # the server wrote it (without this replica's service name).
+                reply.status, reply.error = Reply.ERROR, service_errors.as_written(str(e))
                 return reply
             if response is None:
                 return None

@@ -4,7 +4,7 @@ import time
 import rospy
 from aft_msgs.msg import Reply, Request
 
-from .. import config, health
+from .. import config, health, service_errors
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..proxy import Full, PendingTable
 from .alarms import alarm
@@ -23,6 +23,11 @@ class _ResendOnConnect(rospy.SubscribeListener):
 
     def peer_subscribe(self, topic_name, topic_publish, peer_publish):
         self.proxy.resend(all_pending=True)
+
+
+class ServerError(Exception):
+    """The server failed with an exception other than ServiceException: raised again here, so that
+    rospy words it for the client as it did for the Proxy (``error processing request: ...``)."""
 
 
 class ProxyNode(object):
@@ -104,7 +109,8 @@ class ProxyNode(object):
         reply = entry.reply
         if reply.status != Reply.OK:
             self.errors += 1
-            raise rospy.ServiceException(reply.error or 'the request failed')
+            kind, text = service_errors.to_raise(reply.error or 'the request failed')
+            raise rospy.ServiceException(text) if kind == 'service' else ServerError(text)
         return deserialize(self.cls._response_class, reply.payload)
 
     def _on_reply(self, reply):
