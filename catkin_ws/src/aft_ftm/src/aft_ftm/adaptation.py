@@ -305,13 +305,6 @@ def check_fit(script, nodes, services, launched, calls=None):
     services: another service needs its own names, server:= or state_manager:=). What only the nodes
     can answer (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
     """
-    for entry, called in sorted((calls or {}).items(), key=lambda item: item[0].file):
-        for node, names in sorted(called.items()):
-            missing = [n for n in names if n not in services]
-            if missing:
-                raise ScriptError('launch file %s would start %s, which calls %s: no node offers %s (name '
-                                  'your service in the script\'s arguments, e.g. server:= or state_manager:=)'
-                                  % (entry.file, node, ', '.join(names), ', '.join(missing)))
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))
         if clash:
@@ -338,6 +331,13 @@ def check_fit(script, nodes, services, launched, calls=None):
         for node in promote.nodes:
             if node not in new and node not in nodes:
                 raise ScriptError('unknown node %s (for %s to promote)' % (node, promote.recovery))
+    for entry, called in sorted((calls or {}).items(), key=lambda item: item[0].file):
+        for node, names in sorted(called.items()):
+            missing = [n for n in names if n not in services]
+            if missing:
+                raise ScriptError('launch file %s would start %s, which calls %s: no node offers %s (name '
+                                  'your service in the script\'s arguments, e.g. server:= or state_manager:=)'
+                                  % (entry.file, node, ', '.join(names), ', '.join(missing)))
 
 
 # -- planning -----------------------------------------------------------------------------------
