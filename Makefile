@@ -6,7 +6,7 @@ setup:
 	@bash scripts/setup.sh
 
 test: setup
-	$(ENV) python -m pytest -q -p no:cacheprovider tests
+	$(ENV) python -m pytest -q -p no:cacheprovider --durations=25 tests
 
 unit: setup
 	$(ENV) python -m pytest -q -p no:cacheprovider tests/unit

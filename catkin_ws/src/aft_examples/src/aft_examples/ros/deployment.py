@@ -116,6 +116,14 @@ class PbrDeployment(object):
                 'client': site('client', 'demo_client_site.launch', **client),
             }
 
+    def _site_exited(self):
+        """Why a started site's roslaunch has exited (a required node died in its set-up), or None:
+        waiting for its services is then pointless."""
+        for name, site in sorted(self.sites.items()):
+            if site.proc is not None and not site.alive():
+                return 'site %s exited (code %s) while starting' % (name, site.proc.returncode)
+        return None
+
     def start(self, timeout=120.0):
         """Start the replicas, then the client site; raise RuntimeError naming what did not come up."""
         os.makedirs(self.log_dir, exist_ok=True)
@@ -129,13 +137,14 @@ class PbrDeployment(object):
             self.sites[name].start()
         for site in ('master', 'slave'):
             missing = wait_for_graph(replica_services(site, self.inner, self.faulty, self.sec),
-                                     timeout=timeout - (time.monotonic() - started))
+                                     timeout=timeout - (time.monotonic() - started), abort=self._site_exited)
             if missing:
                 raise RuntimeError('replica %s did not come up: missing %s (logs in %s)'
                                    % (site, ', '.join(missing), self.log_dir))
         client_services = list(CLIENT_SERVICES) + (['/aft/ca/certificate', '/sec_gate/rebind'] if self.sec else [])
         replies = '/sec_plain/pro2pxy' if self.sec else '/ftm/pro2pxy'
-        missing = wait_for_graph(client_services, [(replies, '/proxy')], timeout - (time.monotonic() - started))
+        missing = wait_for_graph(client_services, [(replies, '/proxy')], timeout - (time.monotonic() - started),
+                                 abort=self._site_exited)
         if missing:
             raise RuntimeError('the Proxy did not come up: missing %s (logs in %s)' % (', '.join(missing),
                                                                                       self.log_dir))
@@ -197,7 +206,9 @@ class MechanismDeployment(object):
         services += nested_services(ns, self.inner) if self.inner else ['%s/proceed/rebind' % ns]
         if self.faulty:
             services.append('/site/fault_injector/inject')
-        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout)
+        site = self.sites['site']
+        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout, abort=lambda: None if site.alive() else
+                                 'the site exited (code %s) while starting' % site.proc.returncode)
         if missing:
             raise RuntimeError('the %s site did not come up: missing %s (logs in %s)'
                                % (self.mechanism, ', '.join(missing), self.log_dir))

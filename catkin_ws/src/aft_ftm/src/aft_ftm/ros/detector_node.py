@@ -71,6 +71,10 @@ class CrashDetectorNode(object):
         self.seq = 0
         self.stopped = None        # why this site fail-stopped: no heartbeat is sent any more
         self.peer_back_told = False
+        # A failure report published while Recovery was not connected (rospy handles a publisher's
+        # inbound connections one at a time: one stalled handshake holds the others back for up to
+        # 60 s): (the monitor that declared it, the message), published once Recovery connects.
+        self.undelivered = None
 
     def setup(self, timeout):
         try:
@@ -145,12 +149,40 @@ class CrashDetectorNode(object):
                 verdict = self.monitor.check(now)
             if verdict is not None and self.stopped is None:   # a fail-stopped site takes nothing over
                 self._report(verdict)
+            elif self.undelivered is not None:
+                self._deliver_late()
             next_tick = max(next_tick + tick, time.monotonic())
             time.sleep(max(0.0, next_tick - time.monotonic()))
 
     def _report(self, verdict):
         info = verdict.last_info
         rospy.logwarn('%s: site %s failed: %s', rospy.get_name(), self.peer, verdict.reason)
-        self.ports.publish('failures', Failure(
-            site=self.peer, host=info.host if info else '', pid=info.pid if info else 0,
-            reason=verdict.reason, silence=verdict.silence, detected=rospy.Time.now()))
+        failure = Failure(site=self.peer, host=info.host if info else '', pid=info.pid if info else 0,
+                          reason=verdict.reason, silence=verdict.silence, detected=rospy.Time.now())
+        if not self._connected('failures'):
+            # Published now, it would reach nobody: kept until Recovery is connected. Never silent.
+            self.undelivered = (self.monitor, failure)
+            alarm(self.ports, 'pbr', 'failure_undelivered', 'site %s failed, but no Recovery is connected to %s: '
+                  'the report is sent as soon as one is' % (self.peer, self.ports.topic('failures')))
+            return
+        self.ports.publish('failures', failure)
+
+    def _connected(self, port):
+        publisher = self.ports.publisher(port)
+        return publisher is not None and publisher.get_num_connections() > 0
+
+    def _deliver_late(self):
+        """The kept failure report, once Recovery is connected, if the peer is still the failed one
+        (not heard again, not re-joined since): otherwise it is moot and dropped, saying so."""
+        monitor, failure = self.undelivered
+        with self.lock:
+            current = self.monitor is monitor and monitor.beats_after_failure == 0
+        if not current:
+            self.undelivered = None
+            rospy.logwarn('%s: the failure report of %s is dropped: %s was heard again before a Recovery '
+                          'connected', rospy.get_name(), failure.site, failure.site)
+        elif self._connected('failures'):
+            self.undelivered = None
+            self.ports.publish('failures', failure)
+            rospy.logwarn('%s: the failure report of %s sent late, once Recovery connected', rospy.get_name(),
+                          failure.site)

@@ -49,10 +49,20 @@ def wired(node, caller='/aft_deployment'):
                                      for subscribers, connected in links.values())
 
 
-def wait_for_graph(services=(), subscriptions=(), timeout=60.0):
-    """Wait until everything is registered; returns what is still missing (empty on success)."""
-    missing = wait_until(lambda: not missing_from_graph(services, subscriptions), timeout, 0.05)
-    return [] if missing else missing_from_graph(services, subscriptions)
+def wait_for_graph(services=(), subscriptions=(), timeout=60.0, abort=None):
+    """Wait until everything is registered; returns what is still missing (empty on success).
+    ``abort()``, if given, returns why waiting is pointless (a launch that exited): that reason is
+    returned at once."""
+    why = []
+
+    def done():
+        reason = abort() if abort is not None else None
+        if reason:
+            why.append(reason)
+            return True
+        return not missing_from_graph(services, subscriptions)
+    wait_until(done, timeout, 0.05)
+    return why or missing_from_graph(services, subscriptions)
 
 
 def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
