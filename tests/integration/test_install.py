@@ -15,6 +15,8 @@ from leftovers import kill_tagged
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 VENV_BIN = os.path.join(ROOT, '.venv', 'bin')
+CLEAN_ENV = {'HOME': os.environ.get('HOME', '/root'), 'LANG': 'C.UTF-8',
+             'PATH': VENV_BIN + ':/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin'}
 
 
 def free_port():
@@ -28,10 +30,11 @@ def install_space():
     work = tempfile.mkdtemp(prefix='aft_install_')
     prefix = os.path.join(work, 'install')
     build = subprocess.run(
-        ['catkin_make', '--build', os.path.join(work, 'build'), '-DCATKIN_DEVEL_PREFIX=' + os.path.join(work, 'devel'),
+        ['catkin_make', '-C', os.path.join(ROOT, 'catkin_ws'), '--build', os.path.join(work, 'build'), '-DCATKIN_DEVEL_PREFIX=' + os.path.join(work, 'devel'),
          '-DCMAKE_INSTALL_PREFIX=' + prefix, '-DPYTHON_EXECUTABLE=' + os.path.join(VENV_BIN, 'python3'),
          '-DCATKIN_ENABLE_TESTING=OFF', 'install'],
-        cwd=os.path.join(ROOT, 'catkin_ws'), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=600)
+        cwd=os.path.join(ROOT, 'catkin_ws'), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=600,
+        env=CLEAN_ENV)   # not this shell's: it has the devel space sourced, which the install would chain to
     assert build.returncode == 0, 'catkin_make install failed:\n%s' % build.stdout.decode(errors='replace')[-4000:]
     try:
         yield work, prefix
@@ -41,9 +44,8 @@ def install_space():
 
 def in_install_space(prefix, work, script, tag, timeout):
     """Run a bash script with only the install space sourced; returns (exit status, output)."""
-    env = {'HOME': work, 'PATH': VENV_BIN + ':/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin',
-           'AFT_TEST_TAG': tag, 'ROS_HOME': os.path.join(work, 'ros'), 'LANG': 'C.UTF-8',
-           'ROS_MASTER_URI': 'http://127.0.0.1:%d' % free_port()}
+    env = dict(CLEAN_ENV, HOME=work, AFT_TEST_TAG=tag, ROS_HOME=os.path.join(work, 'ros'),
+               ROS_MASTER_URI='http://127.0.0.1:%d' % free_port())
     text = 'set -e\nsource %s/setup.bash\n%s' % (prefix, script)
     try:
         run = subprocess.run(['bash', '-c', text], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
