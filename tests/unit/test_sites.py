@@ -74,3 +74,32 @@ def test_launch_failure_of_a_killed_node_and_of_a_launch_that_says_nothing():
     killed = '[master/before_pbr-1] process has died [pid 12, exit code -9, cmd /x/before].\n'
     assert launch_failure(killed) == '/master/before_pbr died (exit code -9)'
     assert launch_failure('process[a-1]: started with pid [1]\n') == ''
+
+
+# A roslaunch whose node dies in its set-up while the launch itself keeps running (the node is not required).
+LAUNCH_NODE_DIES = ('import sys, time\n'
+                    'print("process[site/tr/after-6]: started with pid [1]", flush=True)\n'
+                    'time.sleep(float(sys.argv[1]))\n'
+                    'print("[ERROR] [1.0]: /site/tr/after: ports [\'out\'] not connected within 30.0 s", flush=True)\n'
+                    'print("[site/tr/after-6] process has died [pid 1, exit code 1, cmd after].", flush=True)\n'
+                    'time.sleep(60)\n')
+
+
+def test_a_site_whose_node_died_while_its_launch_runs_on_is_a_failure_named_with_the_node(tmp_path):
+    log = str(tmp_path / 'site.log')
+    with open(log, 'w') as f:   # an earlier start's output in the same log is not this start's failure
+        f.write('[old/node-1] process has died [pid 9, exit code 1, cmd x].\n')
+    site = Site('site', [sys.executable, '-c', LAUNCH_NODE_DIES, '0.3'], log_path=log).start()
+    try:
+        assert site.failure() is None
+        deadline = time.monotonic() + 10
+        while site.failure() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        why = site.failure()
+        assert site.alive()
+        assert why.startswith('site site: /site/tr/after died (exit code 1)'), why
+        assert 'not connected within 30.0 s' in why and '/old/node' not in why
+    finally:
+        site.stop(grace=1)
+    assert site.failure() == 'site site exited (code %s)' % site.proc.returncode
+    assert Site('never', ['true']).failure() is None

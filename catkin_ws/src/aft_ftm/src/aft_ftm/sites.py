@@ -9,6 +9,7 @@ import os
 import re
 import signal
 import subprocess
+import threading
 import time
 
 import psutil
@@ -94,12 +95,14 @@ class Site(object):
         self.log_path = log_path
         self.proc = None
         self._log = None
+        self._log_start = 0        # where this start's output begins in the log (it is appended to)
         self.powered_off_at = None   # wall-clock time at which power_off() stopped the whole site
 
     def start(self, niceness=0):
         """Start the command; with niceness > 0 it (and what it starts) runs at a lower priority."""
         if self.log_path:
             self._log = open(self.log_path, 'ab')
+            self._log_start = self._log.tell()
         out = self._log if self._log else subprocess.DEVNULL
         self.proc = subprocess.Popen(self.argv, env=self.env, cwd=self.cwd, stdout=out, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True,
@@ -125,6 +128,26 @@ class Site(object):
 
     def alive(self):
         return self.proc is not None and self.proc.poll() is None
+
+    def failure(self):
+        """Why the started site is no longer whole, or None: its command exited, or a node of it
+        died (read from this start's roslaunch output in the log). A site waited for while it
+        starts can be given up at once then, rather than at the end of the wait."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is not None:
+            return 'site %s exited (code %s)' % (self.name, self.proc.returncode)
+        if not self.log_path:
+            return None
+        try:
+            with open(self.log_path, 'rb') as f:
+                f.seek(self._log_start)
+                text = f.read().decode(errors='replace')
+        except OSError:   # not written yet
+            return None
+        if not nodes_died(text):
+            return None
+        return 'site %s: %s' % (self.name, launch_failure(text))
 
     def power_off(self):
         """Kill the whole site at once, as a power loss would."""
@@ -157,21 +180,38 @@ class Site(object):
                 self._log = None
 
 
+def stop_sites(sites, grace=5.0):
+    """Site.stop() of every site at once: a roslaunch takes a second or two to stop its nodes,
+    and the sites do not wait for one another. Never raises."""
+    threads = [threading.Thread(target=site.stop, kwargs={'grace': grace}, daemon=True) for site in sites]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(3 * grace + 5.0)   # Site.stop waits at most 3 grace
+
+
 _DIED = re.compile(r'process \[?([^\]\s]+?)(?:-\d+)?\]? has died|\[([^\]\s]+?)-\d+\] process has died')
 _EXIT_CODE = re.compile(r'exit code (-?\d+)')
 _ERROR = re.compile(r'\[(?:FATAL|ERROR)\] \[[\d.]+\]: (.*)')
 
 
-def launch_failure(text, errors=2):
-    """Why a roslaunch ended, from its output: the nodes that died with their exit codes, then its
-    last errors. '' if the output says nothing of it."""
-    died, codes, messages = [], [], []
+def nodes_died(text):
+    """The nodes a roslaunch's output says died, in order, each once."""
+    died = []
     for line in text.splitlines():
         match = _DIED.search(line)
         if match:
             name = '/' + (match.group(1) or match.group(2)).lstrip('/')
             if name not in died:
                 died.append(name)
+    return died
+
+
+def launch_failure(text, errors=2):
+    """Why a roslaunch ended, from its output: the nodes that died with their exit codes, then its
+    last errors. '' if the output says nothing of it."""
+    died, codes, messages = nodes_died(text), [], []
+    for line in text.splitlines():
         match = _EXIT_CODE.search(line)
         if match and 'has died' in line:
             codes.append(match.group(1))

@@ -5,7 +5,7 @@ import time
 
 from aft_ftm import security
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph, wired
-from aft_ftm.sites import Site, wait_until
+from aft_ftm.sites import Site, stop_sites, wait_until
 
 REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
                     'before/rebind', 'crash_detector/rebind', 'recovery/rebind',
@@ -51,6 +51,12 @@ def start_retrying(deployment, attempts=2, log=print):
                 raise
             log('deployment start %d of %d failed, starting afresh: %s' % (attempt, attempts, e))
             deployment.stop()
+
+
+def _while_starting(site):
+    """Why site, being started, will not come up (Site.failure), or None."""
+    why = site.failure()
+    return why + ' while starting' if why else None
 
 
 class _NoPair(object):
@@ -117,11 +123,12 @@ class PbrDeployment(object):
             }
 
     def _site_exited(self):
-        """Why a started site's roslaunch has exited (a required node died in its set-up), or None:
-        waiting for its services is then pointless."""
-        for name, site in sorted(self.sites.items()):
-            if site.proc is not None and not site.alive():
-                return 'site %s exited (code %s) while starting' % (name, site.proc.returncode)
+        """Why a started site is not coming up (its roslaunch exited, or a node of it died in its
+        set-up), or None: waiting for its services is then pointless."""
+        for _, site in sorted(self.sites.items()):
+            why = _while_starting(site)
+            if why:
+                return why
         return None
 
     def start(self, timeout=120.0):
@@ -177,8 +184,7 @@ class PbrDeployment(object):
         return site.start()
 
     def stop(self):
-        for site in self.sites.values():
-            site.stop(grace=10.0)
+        stop_sites(list(self.sites.values()), grace=10.0)
         clean_dead_nodes()
 
 
@@ -207,8 +213,8 @@ class MechanismDeployment(object):
         if self.faulty:
             services.append('/site/fault_injector/inject')
         site = self.sites['site']
-        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout, abort=lambda: None if site.alive() else
-                                 'the site exited (code %s) while starting' % site.proc.returncode)
+        missing = wait_for_graph(services, [('/ftm/pro2pxy', '/proxy')], timeout,
+                                 abort=lambda: _while_starting(site))
         if missing:
             raise RuntimeError('the %s site did not come up: missing %s (logs in %s)'
                                % (self.mechanism, ', '.join(missing), self.log_dir))
