@@ -3,7 +3,9 @@
 rospy handles a publisher's inbound connections one at a time: one stalled handshake held a
 Recovery's subscription back for 60 s in a CI run, and the failure published meanwhile reached
 nobody (the backup never took over). Here the detector declares its peer failed with nobody
-subscribed: it must say so on /aft/alarms and send the report as soon as a subscriber connects.
+subscribed: it must say so on /aft/alarms and send the report as soon as a subscriber connects,
+unless the peer was heard again meanwhile (then the report is moot: the peer came back, and must
+re-join; the detector says so with peer_back and sends no failure).
 The script runs in a process of its own, with a master of its own; every process it starts carries
 the test's AFT_TEST_TAG and is killed at the end."""
 import os
@@ -17,7 +19,7 @@ from leftovers import kill_tagged
 SCRIPT = r'''
 import subprocess, sys, tempfile, time
 import rospy
-from aft_msgs.msg import Alarm, Failure
+from aft_msgs.msg import Alarm, Failure, Heartbeat
 from aft_ftm.ros.graph import start_master
 from aft_ftm.sites import wait_until
 core = start_master(tempfile.mkdtemp(prefix='aft_detector_'))
@@ -30,7 +32,22 @@ try:
     rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
     if not wait_until(lambda: any(a.kind == 'failure_undelivered' for a in alarms), 30, 0.05):
         sys.exit('no failure_undelivered alarm: %s' % [(a.kind, a.detail) for a in alarms])
-    rospy.Subscriber('/t/failures', Failure, failures.append)       # a Recovery connects late
+    if sys.argv[1] == 'back':   # the peer is heard again before any Recovery connects
+        peer = rospy.Publisher('/t/peer', Heartbeat, queue_size=10)
+        seq = 0
+        while not any(a.kind == 'peer_back' for a in alarms) and seq < 3000:
+            seq += 1
+            peer.publish(Heartbeat(site='b', host='h', pid=4242, seq=seq, stamp=rospy.Time.now()))
+            time.sleep(0.01)
+        if not any(a.kind == 'peer_back' for a in alarms):
+            sys.exit('the peer heard again raised no peer_back: %s' % [(a.kind, a.detail) for a in alarms])
+    recovery = rospy.Subscriber('/t/failures', Failure, failures.append)       # a Recovery connects late
+    if sys.argv[1] == 'back':
+        if not wait_until(lambda: recovery.get_num_connections() > 0, 10, 0.01):
+            sys.exit('the late subscriber never connected to the detector')
+        # A kept report goes out within a check period (2 ms) of the connection: 1 s is 500 of them.
+        time.sleep(1.0)
+        sys.exit('a moot failure report was sent: %s' % failures if failures else 0)
     if not wait_until(lambda: failures, 10, 0.05):
         sys.exit('the failure report never reached the subscriber that connected late')
     print('delivered late: site %s, %s' % (failures[0].site, failures[0].reason))
@@ -42,15 +59,25 @@ finally:
 '''
 
 
-def test_a_failure_declared_before_recovery_connects_is_sent_once_it_does():
+def run_script(case):
+    """SCRIPT for case ('late' or 'back'): its exit status and output; every process it started is gone."""
     tag = uuid.uuid4().hex
     env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=tempfile.mkdtemp(prefix='aft_detector_home_'))
     try:
-        run = subprocess.run([sys.executable, '-c', SCRIPT], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             timeout=120)
+        run = subprocess.run([sys.executable, '-c', SCRIPT, case], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, timeout=120)
     finally:
         leftovers = kill_tagged(tag)
-    output = run.stdout.decode(errors='replace')
-    assert run.returncode == 0, output[-3000:]
-    assert 'delivered late: site b' in output, output[-3000:]
     assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
+    return run.returncode, run.stdout.decode(errors='replace')
+
+
+def test_a_failure_declared_before_recovery_connects_is_sent_once_it_does():
+    code, output = run_script('late')
+    assert code == 0, output[-3000:]
+    assert 'delivered late: site b' in output, output[-3000:]
+
+
+def test_a_kept_failure_report_is_dropped_once_the_peer_is_heard_again():
+    code, output = run_script('back')
+    assert code == 0, output[-3000:]

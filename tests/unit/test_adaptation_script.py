@@ -6,24 +6,11 @@ import pytest
 
 from aft_ftm import adaptation
 from aft_ftm.adaptation import ScriptError, Step
+from adaptation_scripts import COMPOSE
 
 SHIPPED = sorted(glob.glob(os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm',
                                         'adaptations', '*.yaml')))
 
-COMPOSE = """
-name: compose
-kind: compose
-args: {site: [master, slave], mechanism: tr}
-each: site
-suspend: [/$(arg site)/protocol]
-launch:
-  - file: aft_ftm/mechanism.launch
-    args: {ns: /$(arg site)/$(arg mechanism), bind_input: false}
-bind:
-  - {node: /$(arg site)/proceed, port: inp, unbind: true}
-  - {node: /$(arg site)/$(arg mechanism)/protocol, port: requests, topic: /$(arg site)/bfr2prd}
-retire: [/$(arg site)/proceed]
-"""
 
 
 def actions(steps):

@@ -68,3 +68,40 @@ def test_a_nested_mechanism_s_node_counts_for_the_site_of_its_name_space():
     lines = health.summary({'/master/tr/protocol': health.protocol('', Role.ALONE, 0, 1, 10, 0, 0),
                             '/master/after': health.replica_after('master', 'pbr', Role.PRIMARY, 2, 'slave')})
     assert [site for site, _, _ in lines] == ['master']
+
+
+def test_a_stage_reports_a_late_server_call_and_a_fail_stop_and_any_node_is_degraded_while_suspended():
+    assert health.stage('tr', 'before').level == Level.OK
+    calling = health.stage('', 'proceed', calling_for=0.2, patience=5.0)
+    assert calling.level == Level.OK and calling.value('calling_for_s') == '0.200'
+    late = health.stage('', 'proceed', calling_for=7.5, patience=5.0)
+    assert late.level == Level.WARN and 'not answered for 7.5 s' in late.message
+    failed = health.stage('', 'proceed', calling_for=7.5, patience=5.0, failed='the server hangs')
+    assert failed.level == Level.ERROR and 'the server hangs' in failed.message
+    open_ = health.with_suspension(health.stage('tr', 'after'), 'OPEN', 0)
+    assert open_.level == Level.OK and open_.value('suspension') == 'OPEN'
+    held = health.with_suspension(health.stage('tr', 'after'), 'CLOSED', 3)
+    assert held.level == Level.WARN and held.message.startswith('suspended (closed, 3 message(s) held)')
+    # Suspension never hides something worse.
+    assert health.with_suspension(failed, 'CLOSED', 0).level == Level.ERROR
+
+
+def test_the_witness_is_degraded_while_a_primary_serves_alone():
+    ok = health.witness(4, 'master', 'slave', 'admitted slave', persistent=True)
+    assert ok.level == Level.OK and ok.value('state_file') == 'yes'
+    alone = health.witness(5, 'slave', '', 'excluded master', persistent=False)
+    assert alone.level == Level.WARN and 'slave serves alone' in alone.message
+    assert health.witness(0, '', '', 'start', persistent=False).level == Level.OK   # nobody registered yet
+
+
+def test_sec_gate_and_watchdog_levels():
+    assert health.sec_gate('server', 'server', Role.PRIMARY, 1, 0, 0).level == Level.OK
+    rejected = health.sec_gate('client', 'client', Role.PRIMARY, 1, 2, 3)
+    assert rejected.level == Level.WARN and '3 message(s) rejected' in rejected.message
+    assert health.watchdog('board_a', 'board_b', 0, 'a primary, b backup').level == Level.OK
+    assert health.watchdog('board_b', None, 1, 'a lost, b primary').level == Level.WARN
+    assert health.watchdog(None, None, 2, 'both lost').level == Level.ERROR
+    # They count in `status` under a site of their own.
+    lines = health.summary({'/aft/witness': health.witness(5, 'slave', '', 'x', False),
+                            '/ftm/watchdog': health.watchdog('board_a', 'board_b', 0, 'd')})
+    assert [(site, level) for site, level, _ in lines] == [('watchdog', Level.OK), ('witness', Level.WARN)]

@@ -302,3 +302,58 @@ def test_who_drove_when_and_the_rejoins_are_reported():
     assert any('t=2.50 s, board board_a re-joined (the backup of board_b), 270 ms after it came back' in line
                for line in text(s).splitlines())
     assert summarize(steady_run())['rejoins'] == []
+
+
+def random_run(rng, seconds=6.0):
+    """A run with gaps closing and opening, a collision maybe, emergency, hold and safe-stop
+    commands, controllerPid silent at times (or throughout), and alarms and events."""
+    dt = 0.1
+    n = int(seconds / dt)
+    gap, speed, collided, states = rng.uniform(3, 20), rng.uniform(0, 8), False, []
+    for i in range(n + 1):
+        gap = max(0.0, gap + rng.uniform(-1.5, 1.0))
+        speed = max(0.0, speed + rng.uniform(-1.0, 1.0))
+        collided = collided or (gap == 0.0 and rng.random() < 0.5)
+        states.append(state(round(i * dt, 3), gap=gap, speed=speed, obstacle=rng.choice([INF, INF, 2.0, gap]),
+                            collided=collided))
+    modes = [TJP] * 6 + [EMERGENCY, HOLD, SAFE_STOP]
+    commands = sorted((round(rng.uniform(0, seconds), 3), -1.0, rng.choice(modes), 'cm') for _ in range(rng.randint(0, 30)))
+    pids, t = [], rng.choice([0.0, 0.0, 1.6])   # controllerPid heard from the start, or late
+    while rng.random() > 0.05 and t < seconds:
+        t += rng.choice([0.1] * 40 + [0.5, 1.3])
+        pids.append((round(t, 3), BOARD_A))
+    alarms = [(round(rng.uniform(0, seconds), 3), 'x', 'pbr', 'k', '') for _ in range(rng.randint(0, 3))]
+    return {'states': states, 'commands': commands, 'pid_commands': pids, 'alarms': sorted(alarms),
+            'events': [], 'service_events': [{'wall': 1.0, 'event': 'fault'}]}
+
+
+def test_a_hazard_shown_so_far_is_shown_by_every_longer_run():
+    """What lets a control experiment end at its hazard: each hazard shown_so_far reports for a part
+    of a run is a hazard of the whole run, whatever comes after (seeded; the seed is printed)."""
+    import os
+    import random
+    from tjp_sim.summary import shown_so_far
+    seed = int(os.environ.get('AFT_SIM_SEED', random.randrange(1 << 30)))
+    rng = random.Random(seed)
+    seen = set()
+    for case in range(500):
+        run = random_run(rng)
+        expect = {'min_gap_fraction': rng.choice([0.3, 0.5, 0.8]), 'stop_within': None}
+        stop = rng.random() < 0.5
+        whole = set(hazards(summarize(run, expect), expect['min_gap_fraction'], stop))
+        for until in sorted(rng.uniform(0, 6) for _ in range(5)):
+            # The part received so far: every list up to until, commands and pid commands a little
+            # ahead of the states (they arrive on other topics).
+            ahead = until + rng.uniform(0, 0.3)
+            part = {'states': [s for s in run['states'] if s[0] <= until],
+                    'commands': [c for c in run['commands'] if c[0] <= ahead],
+                    'pid_commands': [p for p in run['pid_commands'] if p[0] <= ahead],
+                    'alarms': [a for a in run['alarms'] if a[0] <= ahead], 'events': [],
+                    'service_events': run['service_events']}
+            shown = shown_so_far(part, expect, stop)
+            seen.update(shown)
+            assert 'no_stop' not in shown
+            assert set(shown) <= whole, 'seed %d case %d until %.2f: %s shown, the whole run shows %s' % (
+                seed, case, until, shown, sorted(whole))
+    assert {'collision', 'gap_violation', 'unjustified_emergency', 'service_lost'} <= seen, (seed, seen)
+    assert shown_so_far({'states': []}, {'min_gap_fraction': 0.5, 'stop_within': None}) == []

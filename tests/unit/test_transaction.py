@@ -8,25 +8,9 @@ import pytest
 
 from aft_ftm import adaptation
 from aft_ftm.transaction import EDGES, TERMINAL, Action, Outcome, State, Transaction, TransactionError
+from adaptation_scripts import COMPOSE_PROMOTING as COMPOSE
 
 SEED = int(os.environ.get('AFT_SEED', random.SystemRandom().randrange(2 ** 32)))
-
-COMPOSE = """
-name: compose
-kind: compose
-args: {site: [master, slave], mechanism: tr}
-each: site
-suspend: [/$(arg site)/protocol]
-launch:
-  - file: aft_ftm/mechanism.launch
-    args: {ns: /$(arg site)/$(arg mechanism), bind_input: false}
-bind:
-  - {node: /$(arg site)/proceed, port: inp, unbind: true}
-  - {node: /$(arg site)/$(arg mechanism)/protocol, port: requests, topic: /$(arg site)/bfr2prd}
-promote:
-  - {recovery: /$(arg site)/recovery, nodes: [/$(arg site)/before, /$(arg site)/$(arg mechanism)/after]}
-retire: [/$(arg site)/proceed]
-"""
 
 
 class FakeSystem(object):

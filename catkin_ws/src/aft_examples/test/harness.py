@@ -33,6 +33,14 @@ def on_signal(signum, _frame):
     os._exit(128 + signum)
 
 
+def pid_of(node):
+    """The pid of a running node (asked through its XML-RPC API, as fencing does)."""
+    from aft_ftm.ros.fencing import NamespaceFence
+    fence = NamespaceFence(node.rsplit('/', 1)[0], '/aft_test')
+    fence.learn()
+    return fence.known[node][0]
+
+
 def sequential_state(count):
     model = Model()
     for i in range(count):

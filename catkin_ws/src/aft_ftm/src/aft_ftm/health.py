@@ -111,6 +111,66 @@ def proxy(service, pending, oldest_age, resends, refused, pending_bytes, bound_b
     return Report(Level.OK, '%d pending, %d re-sent, %d refused' % (pending, resends, refused), values)
 
 
+def stage(mechanism, stage, calling_for=None, patience=None, failed=None, calls_server=None):
+    """A Before, Proceed or After without a report of its own. For a node that calls the server
+    (``calls_server``, by default a Proceed): ``calling_for`` how long the call in progress has run
+    (s, None if none), late past ``patience``; ``failed`` why the replica fail-stopped."""
+    values = [('mechanism', mechanism), ('stage', stage)]
+    if calls_server or (calls_server is None and stage == 'proceed'):
+        values.append(('calling_for_s', '%.3f' % calling_for if calling_for is not None else ''))
+    if failed:
+        return Report(Level.ERROR, 'fail-stopped: %s' % failed, values)
+    if calling_for is not None and patience is not None and calling_for > patience:
+        return Report(Level.WARN, 'the server has not answered for %.1f s' % calling_for, values)
+    return Report(Level.OK, 'passing requests on' if stage != 'proceed' else 'calling the server', values)
+
+
+def witness(epoch, primary, backup, reason, persistent):
+    """The witness: the configuration it granted last. ``persistent``: it keeps its record in a
+    state file (a restart forgets nothing)."""
+    values = [('site', 'witness'), ('role', 'WITNESS'), ('epoch', epoch), ('primary', primary), ('backup', backup),
+              ('reason', reason), ('state_file', 'yes' if persistent else 'no')]
+    if not primary:
+        # No replica has registered (a deployment without replication, or one still starting).
+        return Report(Level.OK, 'epoch %d: no replica registered' % epoch, values)
+    if not backup:
+        return Report(Level.WARN, 'epoch %d: %s serves alone (no backup admitted): %s' % (epoch, primary, reason),
+                      values)
+    return Report(Level.OK, 'epoch %d: primary %s, backup %s' % (epoch, primary, backup), values)
+
+
+def sec_gate(side, party, role, peers, awaiting, rejected):
+    """A SEC gate: ``peers`` parties whose certificates it holds, ``awaiting`` requests sealed and
+    not answered (client side), ``rejected`` messages refused (forged, replayed, undecryptable)."""
+    values = [('mechanism', 'sec'), ('side', side), ('party', party), ('role', role.name if isinstance(role, Role)
+                                                                      else role),
+              ('certified_peers', peers), ('awaiting_replies', awaiting), ('rejected', rejected)]
+    if rejected:
+        return Report(Level.WARN, '%d message(s) rejected (see /aft/alarms)' % rejected, values)
+    return Report(Level.OK, '%s side of %s, %d certified peer(s)' % (side, party, peers), values)
+
+
+def watchdog(primary, backup, failures, describe):
+    """The car's watchdog: the board that drives, the one that may take over, failovers so far."""
+    values = [('site', 'watchdog'), ('mechanism', 'pbr'), ('role', 'WATCHDOG'), ('primary', primary or ''),
+              ('backup', backup or ''), ('failovers', failures), ('boards', describe)]
+    if not primary:
+        return Report(Level.ERROR, 'no board drives: %s' % describe, values)
+    if not backup:
+        return Report(Level.WARN, '%s drives with no backup able to take over: %s' % (primary, describe), values)
+    return Report(Level.OK, '%s drives, %s may take over' % (primary, backup), values)
+
+
+def with_suspension(report, gate_state, held):
+    """report, with the node's suspension: a node suspended by an adaptation (its inputs held) is
+    degraded (WARN at least) until it is resumed."""
+    values = list(report.values) + [('suspension', gate_state), ('held_messages', held)]
+    if gate_state == 'OPEN':
+        return Report(report.level, report.message, values)
+    return Report(max(report.level, Level.WARN), 'suspended (%s, %d message(s) held); %s' % (
+        gate_state.lower(), held, report.message), values)
+
+
 def _site_of(name, report):
     """A report's site; for a node that names none, the first name space of the node (/master/tr/x)."""
     parts = name.strip('/').split('/')

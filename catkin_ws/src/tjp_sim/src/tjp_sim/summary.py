@@ -20,6 +20,8 @@ The lists other than ``states`` may be missing or empty: nothing of that kind ha
 - :func:`summarize`: the metrics of a run (a JSON-serialisable dict), and a verdict against the
   scenario's ``expect``.
 - :func:`hazards`: which of the scenario hazards (:data:`HAZARDS`) a summary shows.
+- :func:`shown_so_far`: the hazards a run still going on shows for good (a control experiment can
+  end there).
 - :func:`text`: the summary for a human, one aligned ``label: value`` line per metric.
 """
 import bisect
@@ -221,6 +223,33 @@ def hazards(summary, min_gap_fraction, stop_expected=True):
         'no_stop': stop_expected and summary['safe_stop_at'] is None,
     }
     return sorted(name for name, shown in present.items() if shown)
+
+
+def _time_of(key, row):
+    return row['t'] if key == 'events' else row[0]
+
+
+def shown_so_far(run, expect, stop_expected=True):
+    """The hazards a run still going on shows already, such that every longer run (the same records
+    and more after them) shows them too: a control experiment may end once its hazard is here.
+
+    The records are read up to the last car state (a command received before the state of its time
+    would be judged against an older state). ``no_stop`` (no controlled stop commanded) is known
+    only at the end and is never returned; nor is a ``service_lost`` that rests only on controllerPid
+    having said nothing yet (the silence before its first command does not count once it speaks).
+    ``service_events`` (dated on the wall clock) are left out. Returns [] while no state is recorded.
+    """
+    states = run.get('states') or []
+    if not states:
+        return []
+    until = states[-1][0]
+    cut = {key: [row for row in rows if _time_of(key, row) <= until] for key, rows in run.items()
+           if key != 'service_events'}
+    summary = summarize(cut, expect)
+    shown = set(hazards(summary, expect['min_gap_fraction'], stop_expected)) - {'no_stop'}
+    if not cut.get('pid_commands') and summary['safe_stop_at'] is None:
+        shown.discard('service_lost')
+    return sorted(shown)
 
 
 def _ms(seconds):

@@ -33,6 +33,7 @@ class AdBeforeNode(BeforeNode):
         aft2pro (aft_msgs/Reply), port ``errors``: refused requests; alarms (aft_msgs/Alarm), port ``alarms``.
     Services: ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'ad'
 
     def __init__(self):
         self.checks = assertions.load_all(param('request_assertions', config.name_list, []),
@@ -71,6 +72,7 @@ class AdAfterNode(AfterNode):
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services: ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'ad'
 
     def __init__(self):
         self.checks = assertions.load_all(param('reply_assertions', config.name_list, []),

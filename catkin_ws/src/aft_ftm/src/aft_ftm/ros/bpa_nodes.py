@@ -5,14 +5,16 @@ After default to pass-through; Proceed calls the real server. Mechanism-specific
 behaviours subclass them (see :mod:`aft_ftm.ros.pbr_nodes`).
 """
 import threading
+import time
 
 import rospy
 from aft_msgs.msg import Reply
 
-from .. import config, service_errors
+from .. import config, health, service_errors
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
+from .diagnostics import Diagnostics
 from .envelope import deserialize, serialize, service_class
 from .fail_stop import fail_stop
 from .params import param
@@ -26,8 +28,11 @@ class StageNode(object):
     which returns the message to send on, or None if it will send it later itself.
     Every stage reads ~bind_input (bool, default true): false starts it with ``inp`` unbound, as
     the Adaptation Engine launches a replacement that it binds in the pause. ~suspend holds ``inp``.
+    Once set up, it publishes health() on /diagnostics, marked degraded while suspended.
     """
     IN_TYPE = OUT_TYPE = IN_TOPIC = OUT_TOPIC = None
+    MECHANISM = ''   # the mechanism a subclass belongs to ('' for the generic stages)
+    STAGE = ''       # before | proceed | after | relay
 
     def __init__(self, extra_ports=(), extra_callbacks=None):
         callbacks = {'inp': self._on_input}
@@ -37,6 +42,7 @@ class StageNode(object):
         self.ports.suspension(hold=['inp'], quiescent=self.quiescent, before_suspend=self.before_suspend)
         self.bind_input = param('bind_input', config.flag, True)
         self.name = rospy.get_name()
+        self.diagnostics = None
 
     def quiescent(self):
         """True when no request is inside this node (checked by ~suspend)."""
@@ -56,7 +62,15 @@ class StageNode(object):
             rospy.logerr('%s: ports %s not connected within %.1f s', self.name, missing, timeout)
             return False
         self.ports.advertise_service()
+        self.diagnostics = Diagnostics(self._report)
         return True
+
+    def health(self):
+        """This node's health (an aft_ftm.health.Report); subclasses with state say more."""
+        return health.stage(self.MECHANISM, self.STAGE)
+
+    def _report(self):
+        return health.with_suspension(self.health(), self.ports.gate.state.name, self.ports.gate.held)
 
     def _on_input(self, msg):
         out = self.handle(msg)
@@ -74,6 +88,7 @@ class BeforeNode(StageNode):
     Services: ~rebind (aft_msgs/Rebind)
     """
     IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Request', 'aft_msgs/Request', 'pro2bfr', 'bfr2prd'
+    STAGE = 'before'
 
 
 class ProceedNode(StageNode):
@@ -97,6 +112,7 @@ class ProceedNode(StageNode):
     Services: ~rebind (aft_msgs/Rebind)
     """
     IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Request', 'aft_msgs/Reply', 'bfr2prd', 'prd2aft'
+    STAGE = 'proceed'
 
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
@@ -108,6 +124,12 @@ class ProceedNode(StageNode):
         self._lock = threading.Lock()
         self._deadline = Deadline('server-call')
         self.failed = None    # why this replica fail-stopped: nothing more is executed
+        self.calling_since = None   # monotonic time the server call in progress started
+
+    def health(self):
+        since = self.calling_since
+        return health.stage(self.MECHANISM, self.STAGE, None if since is None else time.monotonic() - since,
+                            self.server_timeout, self.failed)
 
     def setup(self, timeout):
         self.ports.bind('fail_stop')
@@ -140,6 +162,8 @@ class ProceedNode(StageNode):
                 # the server wrote it (without this replica's service name).
                 reply.status, reply.error = Reply.ERROR, service_errors.as_written(str(e))
                 return reply
+            finally:
+                self.calling_since = None
             if response is None:
                 return None
             reply.payload = serialize(response)
@@ -148,6 +172,7 @@ class ProceedNode(StageNode):
     def _call(self, request, app_request):
         """The server's response; raises ServiceException for the server's own error answer; None when
         the outcome is unknown and this replica fail-stopped (or is shutting down)."""
+        self.calling_since = time.monotonic()
         try:
             return self._deadline.call(self._proxy(request.service_type), self.server_timeout, app_request)
         except CallTimeout as e:
@@ -193,6 +218,7 @@ class AfterNode(StageNode):
     Services: ~rebind (aft_msgs/Rebind)
     """
     IN_TYPE, OUT_TYPE, IN_TOPIC, OUT_TOPIC = 'aft_msgs/Reply', 'aft_msgs/Reply', 'prd2aft', 'aft2pro'
+    STAGE = 'after'
 
 
 class RelayNode(StageNode):

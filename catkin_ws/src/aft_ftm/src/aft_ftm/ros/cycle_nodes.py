@@ -32,12 +32,13 @@ import roslib.message
 from aft_msgs.msg import Alarm, Checkpoint, CheckpointAck, CycleEnd, Join
 from aft_msgs.srv import SetRole, SetRoleResponse, SetState
 
-from .. import config
+from .. import config, health
 from ..checkpoint import Decision
 from ..cycle_replica import CycleReplica
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
+from .diagnostics import Diagnostics
 from .params import param
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
@@ -108,8 +109,9 @@ class CycleAfterNode(object):
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
         self.site = param('site', config.non_empty_str, self.name)
         self.first_seq = int(time.time() * 1e6)   # numbered from the clock, as PBR's After
+        self.peer_after = param('peer_after', config.optional_name, '')
         self.replica = CycleReplica(
-            self.name, role, self.first_seq, expect=param('peer_after', config.optional_name, ''),
+            self.name, role, self.first_seq, expect=self.peer_after,
             ack_timeout=param('ack_timeout', config.positive_float, 0.5),
             join_period=param('join_period', config.positive_float, 0.25),
             stale_after=param('stale_after', config.positive_float, 1.0),
@@ -132,6 +134,7 @@ class CycleAfterNode(object):
                             'join_requests': self._on_join})
         self.ports.suspension(['raw', 'cycle_end'])
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.diagnostics = None
 
     def setup(self, timeout):
         for name in ('out', 'checkpoints', 'acks', 'join', 'alarms', 'peer_checkpoints', 'peer_acks', 'join_requests',
@@ -154,6 +157,7 @@ class CycleAfterNode(object):
             return False
         rospy.Service('~set_role', SetRole, self._on_set_role)
         self.ports.advertise_service()
+        self.diagnostics = Diagnostics(self._health)
         # On the wall clock, as the acknowledgments' deadlines: simulated time may run at any rate.
         threading.Thread(target=self._tick, name='pbr', daemon=True).start()
         return True
@@ -241,6 +245,19 @@ class CycleAfterNode(object):
             error = '%s: checkpoint %d of %s refused (%s)' % (self.name, cp.seq, cp.sender, decision.name)
             rospy.logerr(error)
         self.ports.publish('acks', CheckpointAck(seq=cp.seq, ok=ok, error=error, to=cp.sender))
+
+    def _health(self):
+        with self.lock:
+            replica = self.replica
+            sender = replica.sender
+            held = len(sender.held) if sender is not None else 0
+            report = health.replica_after(
+                self.site, 'pbr', replica.role, 0, self.peer_after or 'any peer After', held=held,
+                stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else None,
+                cannot_take_over=None if replica.following or replica.role != Role.BACKUP
+                else 'holds no state of its primary yet: it is joining',
+                extra=[('forwarded', self.forwarded), ('withheld', self.withheld), ('checkpoints', self.checkpoints)])
+        return health.with_suspension(report, self.ports.gate.state.name, self.ports.gate.held)
 
     def _on_set_role(self, req):
         role = Role(req.role)

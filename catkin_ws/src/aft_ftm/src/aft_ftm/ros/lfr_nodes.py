@@ -21,7 +21,6 @@ from ..protocol import Role
 from ..witness import Op
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
-from .diagnostics import Diagnostics
 from .params import param
 from .ports import wait_for_connections
 from .protocol_node import ROLES
@@ -45,6 +44,7 @@ class LfrBeforeNode(BeforeNode):
     Services: ~set_role (aft_msgs/SetRole: returns the number of forwarded requests passed on),
         ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'lfr'
 
     def __init__(self):
         self.forwarder = LfrForwarder(_role())   # the one owner of this Before's role
@@ -133,6 +133,7 @@ class LfrAfterNode(AfterNode):
         /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies (aft_ftm.health).
     Services: ~set_role (aft_msgs/SetRole), ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'lfr'
 
     def __init__(self):
         mechanisms.check_application('lfr', param('server_deterministic', config.flag, required=True),
@@ -217,10 +218,9 @@ class LfrAfterNode(AfterNode):
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
             self.configuration = self.witness.subscribe(self._on_configuration)
         rospy.Service('~set_role', SetRole, self._on_set_role)
-        self.diagnostics = Diagnostics(self._health, self.site)
         return True
 
-    def _health(self):
+    def health(self):
         with self.lock:
             core = self.core
             return health.replica_after(

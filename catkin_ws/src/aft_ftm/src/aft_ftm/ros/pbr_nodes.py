@@ -16,7 +16,6 @@ from ..protocol import DuplicateCache, Role, check_role_change
 from ..witness import Op
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
-from .diagnostics import Diagnostics
 from .deadline import CallTimeout, Deadline
 from .params import param
 from .ports import wait_for_connections
@@ -34,6 +33,7 @@ class PbrBeforeNode(BeforeNode):
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.  Publishes: bfr2prd (aft_msgs/Request), port ``out``.
     Services: ~set_role (aft_msgs/SetRole, last_seq 0: it holds nothing), ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'pbr'
 
     def __init__(self):
         self.role = ROLES[param('role', config.choice(*ROLES), 'primary')]
@@ -109,6 +109,7 @@ class PbrAfterNode(AfterNode):
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
     """
+    MECHANISM = 'pbr'
 
     def __init__(self):
         role = ROLES[param('role', config.choice(*ROLES), 'primary')]
@@ -197,7 +198,6 @@ class PbrAfterNode(AfterNode):
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         rospy.Service('~set_role', SetRole, self._on_set_role)
-        self.diagnostics = Diagnostics(self._health, self.site)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
 
@@ -207,7 +207,7 @@ class PbrAfterNode(AfterNode):
         receiver's guarded methods)."""
         return self.sender.role if self.sender is not None else self.receiver.role
 
-    def _health(self):
+    def health(self):
         with self.lock:
             sender, receiver = self.sender, self.receiver
             epoch = sender.epoch if sender is not None else receiver.epoch if receiver is not None else 0

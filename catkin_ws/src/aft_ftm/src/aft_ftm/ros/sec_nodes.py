@@ -7,10 +7,11 @@ import rospy
 from aft_msgs.msg import Reply, Request
 from aft_msgs.srv import Certificate, CertificateResponse
 
-from .. import config, security
+from .. import config, health, security
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from .alarms import alarm
+from .diagnostics import Diagnostics
 from .params import param
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
@@ -85,6 +86,7 @@ class SecGateNode(object):
         self.replays = security.ReplayGuard()
         self.lock = threading.Lock()
         self.rejected = 0
+        self.diagnostics = None
 
     def setup(self, timeout):
         try:
@@ -108,7 +110,13 @@ class SecGateNode(object):
         if missing:
             rospy.logwarn('%s: %s not connected yet', rospy.get_name(), missing)
         self.ports.advertise_service()
+        self.diagnostics = Diagnostics(self._health)
         return True
+
+    def _health(self):
+        with self.lock:
+            return health.sec_gate(self.side, self.me.name, self.role, len(self.peers), len(self.sent),
+                                   self.rejected)
 
     def _peer(self, party):
         """The certified public keys of party (fetched from the CA once, then kept)."""

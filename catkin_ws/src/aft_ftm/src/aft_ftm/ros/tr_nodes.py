@@ -1,17 +1,20 @@
 """Time Redundancy (paper Table II): Before saves and restores the server's state, Proceed
 computes, After compares the results and a majority decides."""
 import threading
+import time
 
 import rospy
 from aft_msgs.msg import Reply, Request
 from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
-from .. import config
+from .. import config, health
 from ..errors import ConfigError
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
+from .deadline import CallTimeout, Deadline
+from .fail_stop import fail_stop
 from .params import param
 
 
@@ -31,22 +34,42 @@ class TrBeforeNode(BeforeNode):
     """TR's Before: saves the server's state before each request; on After's word restores it and
     executes the request again, or forgets it.
 
+    A state capture that does not return within ``~server_timeout`` (a hung server) leaves the
+    request not executed. Outside a replica, the request is answered "not executed" with an alarm
+    (``server_hangs``), so the client may retry; in a replica (``~site`` set) the replica
+    fail-stops, as Proceed does, and its peer takes over.
+
+    Parameters:
+        ~server_timeout (float, 5 s): the longest the server's get_state may take.
+        ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
     Services called: get_state, set_state (the server's state manager).
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; aft2pro (aft_msgs/Reply), port ``errors``:
-        an error reply when the state cannot be saved.
+        an error reply (not executed) when the state cannot be saved; alarms (aft_msgs/Alarm), port
+        ``alarms``; fail_stop (aft_msgs/Failure), port ``fail_stop`` (in a replica).
     Services: ~repeat (aft_msgs/Repeat), ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'tr'
 
     def __init__(self):
-        super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply')])
+        self.server_timeout = param('server_timeout', config.positive_float, 5.0)
+        self.site = param('site', config.optional_name, '')
+        super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
+                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
+                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
         self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.lock = threading.Lock()
+        self._deadline = Deadline('state-capture')
+        self.capturing_since = None   # monotonic time the state capture in progress started
+        self.failed = None            # why this replica fail-stopped: nothing more is executed
 
     def setup(self, timeout):
         self.ports.bind('errors', 'aft2pro')
+        self.ports.bind('alarms')
+        if self.site:
+            self.ports.bind('fail_stop')
         try:
             for name in ('get_state', 'set_state'):
                 rospy.wait_for_service(name, timeout)
@@ -61,19 +84,44 @@ class TrBeforeNode(BeforeNode):
         rospy.Service('~repeat', Repeat, self._on_repeat)
         return super(TrBeforeNode, self).setup(timeout)
 
+    def health(self):
+        since = self.capturing_since
+        return health.stage(self.MECHANISM, self.STAGE, None if since is None else time.monotonic() - since,
+                            self.server_timeout, self.failed, calls_server=True)
+
     def handle(self, request):
+        if self.failed:
+            return None   # fail-stopped: the next primary executes it
+        self.capturing_since = time.monotonic()
         try:
-            state = self.get_state().state
+            state = self._deadline.call(self.get_state, self.server_timeout).state
+        except CallTimeout:
+            problem = 'the server state manager %s did not answer within %.3f s (it hangs)' % (
+                rospy.resolve_name('get_state'), self.server_timeout)
+            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            if self.site:
+                self.failed = problem
+                fail_stop(self.ports, self.site, problem, mechanism='tr')
+                return None
+            alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (problem, request.origin, request.id))
+            return self._not_executed(request, problem)
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
-            self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
-                                               oldest_pending=request.oldest_pending, attempt=request.attempt,
-                                               status=Reply.ERROR,
-                                               error='time redundancy cannot save the server state: %s' % e))
-            return None
+            return self._not_executed(request, str(e))
+        finally:
+            self.capturing_since = None
         with self.lock:
             self.held[(request.origin, request.id)] = [request, state, 1]
         return execution(request, 0)
+
+    def _not_executed(self, request, why):
+        """Answer request "not executed" (its state could not be saved, nothing ran): the client may retry."""
+        self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
+                                           oldest_pending=request.oldest_pending, attempt=request.attempt,
+                                           status=Reply.ERROR,
+                                           error='not executed: time redundancy cannot save the server state: %s'
+                                           % why))
+        return None
 
     def _on_repeat(self, req):
         key = (req.origin, req.id)
@@ -103,6 +151,7 @@ class TrAfterNode(AfterNode):
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services: ~rebind (aft_msgs/Rebind)
     """
+    MECHANISM = 'tr'
 
     def __init__(self):
         executions = param('executions', config.non_negative_int, 3)

@@ -11,11 +11,12 @@ from aft_msgs.msg import Alarm
 from aft_msgs.srv import SetRole
 from std_msgs.msg import String
 
-from .. import config
+from .. import config, health
 from ..board_watch import BoardWatch, Connect, Failover, Report, boards_param
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from ..sites import power_off, this_host
+from .diagnostics import Diagnostics
 from .params import param
 from .ports import Ports
 
@@ -75,6 +76,7 @@ class WatchdogNode(object):
         self.host = this_host()
         self.watch = None            # BoardWatch, from set-up on
         self.proxies = {}            # board -> {node: persistent SetRole proxy}
+        self.diagnostics = None
         specs = [PortSpec('events', PUBLISH, 'std_msgs/String'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')]
         callbacks = {}
         for board in self.boards:
@@ -102,8 +104,16 @@ class WatchdogNode(object):
         for name in sorted(self.ports.specs):
             self.ports.bind(name)
         self.ports.advertise_service()
+        self.diagnostics = Diagnostics(self._health)
         threading.Thread(target=self._loop, name='watchdog', daemon=True).start()
         return True
+
+    def _health(self):
+        with self.lock:
+            watch = self.watch
+            report = health.watchdog(watch.primary, watch.backup, sum(b.failures for b in watch.boards.values()),
+                                     watch.describe())
+        return health.with_suspension(report, self.ports.gate.state.name, self.ports.gate.held)
 
     def _open(self, nodes, timeout):
         """Persistent SetRole connections to nodes, each opened with a call that changes nothing (a

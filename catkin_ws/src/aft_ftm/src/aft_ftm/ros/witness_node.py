@@ -5,10 +5,11 @@ import rospy
 from aft_msgs.msg import Configuration
 from aft_msgs.srv import Witness as WitnessSrv, WitnessResponse
 
-from .. import config
+from .. import config, health
 from ..errors import ConfigError
 from ..state_store import StateStore
 from ..witness import Op, Witness
+from .diagnostics import Diagnostics
 
 
 class WitnessNode(object):
@@ -40,7 +41,9 @@ class WitnessNode(object):
                 raise ConfigError('witness state file %s: %s (refusing to start: it could grant an epoch twice)'
                                   % (path, why))
         self.witness = Witness(initial, store)
+        self.persistent = store is not None
         self.lock = threading.Lock()
+        self.diagnostics = None
 
     @staticmethod
     def _check(state):
@@ -54,8 +57,14 @@ class WitnessNode(object):
         self.publisher = rospy.Publisher('~configuration', Configuration, queue_size=10, latch=True)
         self._publish()
         rospy.Service('~request', WitnessSrv, self._on_request)
+        self.diagnostics = Diagnostics(self._health)
         rospy.loginfo('%s: ready at epoch %d (%s)', rospy.get_name(), self.witness.epoch, self.witness.reason)
         return True
+
+    def _health(self):
+        with self.lock:
+            w = self.witness
+            return health.witness(w.epoch, w.primary, w.backup, w.reason, self.persistent)
 
     def _publish(self):
         w = self.witness

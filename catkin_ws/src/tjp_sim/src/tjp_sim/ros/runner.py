@@ -23,7 +23,7 @@ import psutil
 import rosbag
 import rosgraph
 import rospy
-from aft_msgs.msg import Alarm
+from aft_msgs.msg import Alarm, CarCommand, CarState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -42,6 +42,7 @@ CAR_NODES = ['/car_sim', '/tjp/measure_manager', '/tjp/distance_security_calcula
 MECHANISM_NODES = {'tr_imu': ['/ftm/imu_tr'], 'triplication_vote': ['/ftm/laser_vote'],
                    'alarm_and_stop': ['/ftm/alarm_manager'], 'pbr': ['/ftm/watchdog'], 'tr_ultrasonic': []}
 RECORDER = '/tjp_record'
+HAZARD_MARGIN_S = 1.0   # road time a control experiment runs on after its hazard has shown
 RUNNER = '/tjp_scenario_runner'
 
 
@@ -62,8 +63,10 @@ def board_nodes(board, pbr):
 class ScenarioRun(object):
     """One run of a scenario (a dict from tjp_sim.scenario) into directory out."""
 
-    def __init__(self, scenario, path, out, gui=False, log=print, setup_timeout=90.0):
+    def __init__(self, scenario, path, out, gui=False, log=print, setup_timeout=90.0, until_hazard=None):
         self.scenario, self.path, self.out, self.gui, self.log = scenario, path, out, gui, log
+        self.until_hazard = until_hazard   # end the run once this hazard has shown (a control experiment)
+        self.live = None
         self.setup_timeout = setup_timeout
         self.pbr = 'pbr' in scenario['mechanisms']
         self.sites = {}
@@ -118,6 +121,8 @@ class ScenarioRun(object):
             self.events = rospy.Publisher('/tjp/events', String, queue_size=None, tcp_nodelay=True)
         self.alarm_kinds = set()
         rospy.Subscriber('/aft/alarms', Alarm, lambda msg: self.alarm_kinds.add(msg.kind), tcp_nodelay=True)
+        if self.until_hazard:
+            self.live = LiveHazards(self.scenario)
         t0 = time.monotonic()
         missing = self._wait_ready(master)
         if missing:
@@ -190,9 +195,20 @@ class ScenarioRun(object):
         actions += [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt' and e['at'] is not None]
         triggers = [('event', i, e) for i, e in enumerate(self.scenario['events']) if e['kind'] == 'adapt' and e['on_alarm']]
         ended = 'the scenario ended'
+        shown_at, next_look = None, time.monotonic()
         while True:
             t = rospy.get_time()
             wall = time.monotonic()
+            if self.live is not None and shown_at is None and wall >= next_look:
+                next_look = wall + 0.5
+                if self.until_hazard in self.live.shown():
+                    shown_at = t
+                    self.log('    %s shown by t=%.2f s: the control experiment ends %.1f s later'
+                             % (self.until_hazard, t, HAZARD_MARGIN_S))
+            if shown_at is not None and t >= shown_at + HAZARD_MARGIN_S:
+                ended = 'the control experiment showed %s by t=%.2f s and ended at t=%.2f s' % (
+                    self.until_hazard, shown_at, t)
+                break
             if t != last_t:
                 last_t, last_change = t, wall
             for key, i, item in actions:
@@ -290,6 +306,8 @@ class ScenarioRun(object):
         closes the bag) after the others, the master last."""
         for engine in self.engines:
             engine.stop_all()
+        if self.live is not None:
+            self.live.close()
         # The car and the boards are powered off: the run is over and recorded, and a roslaunch
         # takes 1.5 s to stop its nodes gently, a quarter of a short scenario's road time.
         for name, site in self.sites.items():
@@ -326,34 +344,77 @@ def load_script(name, args):
     return adapt_command.load_script(spec, ['%s:=%s' % kv for kv in sorted(args.items())])
 
 
+# What the summary reads (tjp_sim.summary's input), from the bag or live.
+RECORDED = {'/car/state': CarState, '/car/command': CarCommand, '/tjp/pid_command': CarCommand,
+            '/aft/alarms': Alarm, '/tjp/events': String, '/tjp/service_manager/events': String}
+
+
+def new_record():
+    return {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': [], 'service_events': []}
+
+
+def add_message(run, topic, msg):
+    """Add one message of a RECORDED topic to the run's records."""
+    if topic == '/car/state':
+        run['states'].append((msg.stamp.to_sec(), msg.gap, msg.follower_speed, msg.leader_speed, msg.accel,
+                              msg.obstacle, msg.collided))
+    elif topic == '/car/command':
+        run['commands'].append((msg.stamp.to_sec(), msg.accel, msg.mode, msg.source))
+    elif topic == '/tjp/pid_command':
+        run['pid_commands'].append((msg.stamp.to_sec(), msg.source))
+    elif topic == '/aft/alarms':
+        run['alarms'].append((msg.stamp.to_sec(), msg.source, msg.mechanism, msg.kind, msg.detail))
+    elif topic == '/tjp/events':
+        run['events'].append(json.loads(msg.data))
+    else:
+        run['service_events'].append(json.loads(msg.data))
+
+
+def sorted_record(run):
+    """The records in time order (messages of different topics arrive in any order)."""
+    return {key: sorted(rows, key=lambda r: r['wall'] if key == 'service_events' else r['t'] if key == 'events'
+                        else r[0]) for key, rows in run.items()}
+
+
 def read_bag(path):
     """The run's records (tjp_sim.summary's input) from the bag."""
     if not os.path.exists(path) and os.path.exists(path + '.active'):
         raise RunError('the recorder did not close %s (a .active file remains)' % path)
-    run = {'states': [], 'commands': [], 'pid_commands': [], 'alarms': [], 'events': [], 'service_events': []}
+    run = new_record()
     try:
         bag = rosbag.Bag(path)
     except (OSError, rosbag.ROSBagException) as e:
         raise RunError('cannot read the record %s: %s' % (path, e))
     with bag:
-        for topic, msg, _ in bag.read_messages(topics=['/car/state', '/car/command', '/tjp/pid_command',
-                                                       '/aft/alarms', '/tjp/events', '/tjp/service_manager/events']):
-            if topic == '/car/state':
-                run['states'].append((msg.stamp.to_sec(), msg.gap, msg.follower_speed, msg.leader_speed, msg.accel,
-                                      msg.obstacle, msg.collided))
-            elif topic == '/car/command':
-                run['commands'].append((msg.stamp.to_sec(), msg.accel, msg.mode, msg.source))
-            elif topic == '/tjp/pid_command':
-                run['pid_commands'].append((msg.stamp.to_sec(), msg.source))
-            elif topic == '/aft/alarms':
-                run['alarms'].append((msg.stamp.to_sec(), msg.source, msg.mechanism, msg.kind, msg.detail))
-            elif topic == '/tjp/events':
-                run['events'].append(json.loads(msg.data))
-            else:
-                run['service_events'].append(json.loads(msg.data))
-    for key in run:
-        run[key].sort(key=lambda r: r['wall'] if key == 'service_events' else r['t'] if key == 'events' else r[0])
-    return run
+        for topic, msg, _ in bag.read_messages(topics=list(RECORDED)):
+            add_message(run, topic, msg)
+    return sorted_record(run)
+
+
+class LiveHazards(object):
+    """The hazards the run shows for good so far (tjp_sim.summary.shown_so_far), from the same records
+    as the bag's, received live: the control experiment can end once its hazard has shown. The
+    verdict is still read from the bag."""
+
+    def __init__(self, scenario):
+        self.scenario = scenario
+        self.lock = threading.Lock()
+        self.run = new_record()
+        self.subscribers = [rospy.Subscriber(topic, kind, self._on_message, callback_args=topic, tcp_nodelay=True)
+                            for topic, kind in RECORDED.items()]
+
+    def _on_message(self, msg, topic):
+        with self.lock:
+            add_message(self.run, topic, msg)
+
+    def shown(self):
+        with self.lock:
+            run = {key: list(rows) for key, rows in self.run.items()}
+        return summaries.shown_so_far(sorted_record(run), self.scenario['expect'], stop_expected(self.scenario))
+
+    def close(self):
+        for subscriber in self.subscribers:
+            subscriber.unregister()
 
 
 def stop_expected(scenario):
@@ -362,16 +423,21 @@ def stop_expected(scenario):
     return scenario['expect']['stop_within'] is not None or control.get('hazard') == 'no_stop'
 
 
-def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
+def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until_hazard=False):
     """Run scenario name (a file or shipped name), with mechanism disable removed if given (the
-    control experiment). Returns the summary (with its verdict and hazards); writes summary.json,
-    run.bag and plot.png into out."""
+    control experiment). With until_hazard (a control experiment only), the run ends HAZARD_MARGIN_S
+    of road time after the scenario's control hazard has shown, not at its duration. Returns the
+    summary (with its verdict and hazards); writes summary.json, run.bag and plot.png into out."""
     path = scenarios.path_of(name)
     scenario = scenarios.load(name)
     if disable:
         scenario = scenarios.without(scenario, disable)
     os.makedirs(out, exist_ok=True)
-    runner = ScenarioRun(scenario, path, out, gui=gui, log=log)
+    if until_hazard and not (disable and scenario['control']):
+        raise RunError('ending at the hazard is for a control experiment: a scenario with a control hazard, '
+                       'run without its mechanism')
+    runner = ScenarioRun(scenario, path, out, gui=gui, log=log,
+                         until_hazard=scenario['control']['hazard'] if until_hazard else None)
     try:
         runner.start()
         ended = runner.run()
@@ -391,6 +457,7 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print):
                    if e['event'] == 'fault'],
         'restarted': [e['service'] for e in managed if e['event'] == 'spawned' and e.get('starts', 1) > 1]}
     summary.update(scenario=scenario['name'], mechanisms=scenario['mechanisms'], ended=ended,
+                   ended_at_hazard=runner.until_hazard is not None and ended.startswith('the control experiment'),
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
     if plot:

@@ -16,6 +16,9 @@ def main(argv):
     parser.add_argument('scenario', help='a scenario file, or the name of one shipped in tjp_sim/scenarios')
     parser.add_argument('--without', metavar='MECHANISM', choices=scenarios.MECHANISMS,
                         help='the control experiment: run it with this mechanism removed')
+    parser.add_argument('--until-hazard', action='store_true',
+                        help='with --without: end the run a second of road time after the hazard the mechanism '
+                             'answers has shown, instead of at the scenario\'s end')
     parser.add_argument('--out', help='directory for run.bag, plot.png, summary.json and the logs '
                                       '(default /tmp/tjp_runs/<scenario>-<time>)')
     parser.add_argument('--gui', action='store_true', help="open pybullet's window")
@@ -26,6 +29,9 @@ def main(argv):
         scenario = scenarios.load(options.scenario)
         if options.without:
             scenarios.without(scenario, options.without)
+        if options.until_hazard and not (options.without and scenario['control']):
+            raise scenarios.ScenarioError('--until-hazard is for a control experiment: give --without MECHANISM '
+                                          'for a scenario with a control hazard')
     except TjpError as e:
         print('scenario: rejected: %s' % e, file=sys.stderr)
         return 2
@@ -40,7 +46,7 @@ def main(argv):
     log = (lambda line: print(line, file=sys.stderr)) if options.json else print
     try:
         summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,
-                               plot=not options.no_plot, log=log)
+                               plot=not options.no_plot, log=log, until_hazard=options.until_hazard)
     except (RunError, TjpError) as e:
         print('scenario: the run failed: %s' % e, file=sys.stderr)
         return 2
