@@ -25,7 +25,7 @@ RNG = random.Random(SEED)
 
 def stop_all(*_):
     while LIVE:
-        LIVE.pop().stop()
+        LIVE.pop().teardown()
 
 
 def on_signal(signum, _frame):
@@ -87,7 +87,7 @@ class Sites(unittest.TestCase):
         self.call = account_caller(self.account)
 
     def tearDown(self):
-        self.deployment.stop()
+        self.deployment.teardown()
         if self.deployment in LIVE:
             LIVE.remove(self.deployment)
 

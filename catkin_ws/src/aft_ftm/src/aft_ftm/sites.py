@@ -38,11 +38,17 @@ def power_off(pid, timeout=5.0, on_stopped=None):
     on_stopped() is called the moment every process is stopped: that is when the site stops
     computing, the instant a power loss would happen.
     """
-    procs = process_tree(pid)
+    return power_off_trees([pid], timeout, on_stopped)
+
+
+def power_off_trees(pids, timeout=5.0, on_stopped=None):
+    """power_off() of several process trees at the same instant: every process of every tree is
+    stopped before any is killed, so none sees another go. Returns the number of processes killed."""
+    procs = [proc for pid in pids for proc in process_tree(pid)]
     _signal_all(procs, signal.SIGSTOP)
     # Children forked between the snapshot and the stop are caught by a second look.
     seen = {p.pid for p in procs}
-    for proc in process_tree(pid):
+    for proc in [proc for pid in pids for proc in process_tree(pid)]:
         if proc.pid not in seen:
             procs.append(proc)
             _signal_all([proc], signal.SIGSTOP)
@@ -178,6 +184,20 @@ class Site(object):
             if self._log:
                 self._log.close()
                 self._log = None
+
+
+def power_off_sites(sites, timeout=5.0):
+    """Power off every running site at the same instant (power_off_trees), then reap and close
+    them: the end of a test or an experiment, where nothing needs a clean exit. Never raises."""
+    try:
+        running = [site for site in sites if site.alive()]
+        power_off_trees([site.pid for site in running], timeout)
+        for site in running:
+            site.proc.wait(timeout)
+    except Exception:   # shutdown paths never raise: Site.stop below kills what is left
+        pass
+    for site in sites:
+        site.stop(grace=1.0)
 
 
 def stop_sites(sites, grace=5.0):

@@ -5,7 +5,7 @@ import time
 
 from aft_ftm import security
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph, wired
-from aft_ftm.sites import Site, stop_sites, wait_until
+from aft_ftm.sites import Site, power_off_sites, stop_sites, wait_until
 
 REPLICA_SERVICES = ('protocol/set_role', 'protocol/rebind', 'after/set_role', 'after/rebind',
                     'before/rebind', 'crash_detector/rebind', 'recovery/rebind',
@@ -187,6 +187,12 @@ class PbrDeployment(object):
         stop_sites(list(self.sites.values()), grace=10.0)
         clean_dead_nodes()
 
+    def teardown(self):
+        """The end of a test: every site powered off at once (0.1 s where a clean stop takes 1.5 s),
+        and the dead nodes' registrations forgotten."""
+        power_off_sites(list(self.sites.values()))
+        clean_dead_nodes()
+
 
 class MechanismDeployment(object):
     """One site: the bank server, a fault injector (faulty=True), one mechanism and the Proxy."""
@@ -222,6 +228,11 @@ class MechanismDeployment(object):
 
     def stop(self):
         self.sites['site'].stop(grace=10.0)
+        clean_dead_nodes()
+
+    def teardown(self):
+        """The end of a test: the site powered off, the dead nodes' registrations forgotten."""
+        power_off_sites(list(self.sites.values()))
         clean_dead_nodes()
 
 
