@@ -1,0 +1,551 @@
+"""Emulated hosts, carried out: runs the plans of :mod:`aft_ftm.hosts` (root only).
+
+- :class:`Hosts`: a context manager that brings a topology up and always tears it down (normal
+  exit, exception, SIGTERM or SIGINT, interpreter exit); :meth:`Hosts.run_in` starts a process in a
+  host with ``ROS_IP``/``ROS_HOSTNAME`` set to the host's address; the faults (partition, pair
+  partition, rate limit, power off/on, freeze).
+- :func:`cleanup_leftovers`: removes the namespaces and links a killed run left (found by the
+  project prefix in their names), never those of a run still alive.
+- A run's record is a small JSON file in :func:`state_dir` (root only, mode 0700): its topology,
+  the hosts' states and who owns it (the process of a :class:`Hosts`, or none: ``scripts/hosts up``,
+  whose hosts stay until ``scripts/hosts down``).
+
+The processes of a host are those started with :meth:`Hosts.run_in` and their descendants (psutil),
+together with every process whose network namespace is the host's (a daemon that left its parent
+and started a session of its own is still found).
+"""
+import atexit
+import json
+import os
+import secrets
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import psutil
+
+from .hosts import (HostsError, Network, Signal, Topology, TopologyError, check_seconds,
+                    plan_down, plan_up, run_prefix_pattern, PROJECT_PREFIX)
+
+STATE_DIRS = ('/run/aft_hosts', '/tmp/aft_hosts')
+COMMAND_TIMEOUT = 10.0
+KILL_WAIT = 5.0
+
+
+class PlatformError(HostsError):
+    """This machine cannot make emulated hosts (not root, no ip command, no namespaces)."""
+
+
+class CommandError(HostsError):
+    """An ip or tc command failed; the message gives the command and what it printed."""
+
+    def __init__(self, argv, message):
+        HostsError.__init__(self, '%s: %s' % (' '.join(argv), message))
+        self.argv = argv
+
+
+def run(argv, timeout=COMMAND_TIMEOUT):
+    """Run one command line; its stdout. Raises CommandError naming it if it fails or hangs."""
+    try:
+        done = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                              timeout=timeout)
+    except FileNotFoundError:
+        raise CommandError(argv, 'no such program')
+    except subprocess.TimeoutExpired:
+        raise CommandError(argv, 'still running after %g s' % timeout)
+    if done.returncode != 0:
+        raise CommandError(argv, 'exit %d: %s' % (done.returncode, done.stderr.decode(errors='replace').strip()))
+    return done.stdout.decode(errors='replace')
+
+
+def check_platform():
+    """Raises PlatformError naming what is missing; changes nothing (the probe's namespace has no name
+    and vanishes with its process)."""
+    if os.geteuid() != 0:
+        raise PlatformError('emulated hosts need root (network namespaces, links, tc); this is uid %d'
+                            % os.geteuid())
+    for program in ('ip', 'tc', 'unshare'):
+        try:
+            run([program, '-V'] if program != 'unshare' else [program, '--version'])
+        except CommandError as e:
+            raise PlatformError('the %s command is unavailable (%s)' % (program, e))
+    try:
+        run(['unshare', '--net', 'true'])
+    except CommandError as e:
+        raise PlatformError('network namespaces cannot be made here: %s' % e)
+
+
+def state_dir():
+    """The record directory: /run/aft_hosts (or /tmp/aft_hosts), made 0700 if missing, refused if
+    anybody but root may write in it."""
+    errors = []
+    for path in STATE_DIRS:
+        try:
+            os.makedirs(path, mode=0o700, exist_ok=True)
+            st = os.stat(path)
+        except OSError as e:
+            errors.append('%s: %s' % (path, e))
+            continue
+        if st.st_uid != 0 or st.st_mode & 0o022:
+            errors.append('%s: not root-only (owner uid %d, mode %o)' % (path, st.st_uid, st.st_mode & 0o777))
+            continue
+        return path
+    raise PlatformError('no directory for the hosts record: %s' % '; '.join(errors))
+
+
+def _owner_record():
+    me = psutil.Process()
+    return {'pid': me.pid, 'create_time': me.create_time()}
+
+
+def _owner_alive(owner):
+    if owner is None:
+        return True          # scripts/hosts up: the hosts stay until scripts/hosts down
+    try:
+        return psutil.Process(owner['pid']).create_time() == owner['create_time']
+    except (psutil.NoSuchProcess, KeyError, TypeError):
+        return False
+
+
+def write_record(net, owner):
+    path = os.path.join(state_dir(), net.topology.prefix + '.json')
+    tmp = path + '.tmp'
+    with open(tmp, 'w') as f:
+        json.dump({'network': net.to_dict(), 'owner': owner}, f, indent=1, sort_keys=True)
+    os.replace(tmp, path)
+    return path
+
+
+def read_records():
+    """prefix -> (record or None if unreadable, path) of every run recorded."""
+    records = {}
+    directory = state_dir()
+    for name in sorted(os.listdir(directory)):
+        if not name.endswith('.json'):
+            continue
+        path = os.path.join(directory, name)
+        try:
+            with open(path) as f:
+                records[name[:-5]] = (json.load(f), path)
+        except (OSError, ValueError):
+            records[name[:-5]] = (None, path)
+    return records
+
+
+def netns_names():
+    return [entry['name'] for entry in json.loads(run(['ip', '-j', 'netns', 'list']) or '[]')]
+
+
+def root_links():
+    return [entry['ifname'] for entry in json.loads(run(['ip', '-j', 'link', 'show']) or '[]')]
+
+
+def used_networks():
+    """The IPv4 networks this machine uses: root namespace routes and addresses, and other runs'."""
+    nets = []
+    for entry in json.loads(run(['ip', '-j', '-4', 'route', 'show', 'table', 'all']) or '[]'):
+        dst = entry.get('dst', '')
+        if dst and dst[0].isdigit():
+            nets.append(dst if '/' in dst else dst + '/32')
+    for link in json.loads(run(['ip', '-j', '-4', 'addr', 'show']) or '[]'):
+        for addr in link.get('addr_info', []):
+            nets.append('%s/%s' % (addr['local'], addr['prefixlen']))
+    for record, _ in read_records().values():
+        try:
+            nets.append(record['network']['topology']['network'])
+        except (KeyError, TypeError):
+            pass
+    return nets
+
+
+def netns_pids(namespace):
+    """The processes whose network namespace is the named one."""
+    try:
+        target = os.stat('/run/netns/%s' % namespace)
+    except OSError:
+        return []
+    pids = []
+    for pid in psutil.pids():
+        try:
+            st = os.stat('/proc/%d/ns/net' % pid)
+        except OSError:
+            continue
+        if (st.st_dev, st.st_ino) == (target.st_dev, target.st_ino):
+            pids.append(pid)
+    return pids
+
+
+def send(signum, pids):
+    """Send signum to each pid still alive; the pids it reached."""
+    reached = []
+    for pid in pids:
+        try:
+            os.kill(pid, signum)
+            reached.append(pid)
+        except ProcessLookupError:
+            pass
+    return reached
+
+
+def kill_and_wait(pids, timeout=KILL_WAIT):
+    """SIGKILL each pid, then wait (bounded) until they are gone or zombies; those still there."""
+    send(signal.SIGKILL, pids)
+    deadline = time.monotonic() + timeout
+    alive = list(pids)
+    while alive and time.monotonic() < deadline:
+        alive = [pid for pid in alive if _running(pid)]
+        if alive:
+            time.sleep(0.005)
+    return alive
+
+
+def _running(pid):
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def cleanup_leftovers(prefix=PROJECT_PREFIX, log=None):
+    """Remove the namespaces and root-namespace links named ``<prefix><4 hex>-...`` whose run is not
+    alive (no record, or a record whose owner process is gone), killing any process still in them,
+    and their records. Never raises; returns the names removed."""
+    log = log or (lambda message: sys.stderr.write(message + '\n'))
+    pattern = run_prefix_pattern(prefix)
+    removed = []
+    try:
+        records = read_records()
+        alive = set(p for p, (record, _) in records.items()
+                    if record is not None and _owner_alive(record.get('owner', False)))
+        namespaces = [n for n in netns_names() if pattern.match(n) and pattern.match(n).group(1) not in alive]
+        # hosts first, the switch last (a host's namespace removes its cable, and the switch's end)
+        namespaces.sort(key=lambda n: n.endswith('-sw'))
+        for ns in namespaces:
+            pids = netns_pids(ns)
+            if pids:
+                kill_and_wait(pids)
+            _quiet(['ip', 'netns', 'del', ns], log, removed, ns)
+        for link in root_links():
+            match = pattern.match(link)
+            if match and match.group(1) not in alive:
+                _quiet(['ip', 'link', 'del', link], log, removed, link)
+        for run_prefix, (record, path) in records.items():
+            if run_prefix not in alive and pattern.match(run_prefix + '-'):
+                os.unlink(path)
+    except (HostsError, OSError, ValueError) as e:
+        log('hosts: cleanup of leftovers incomplete: %s' % e)
+    return removed
+
+
+def _quiet(argv, log, done, name):
+    try:
+        run(argv)
+        done.append(name)
+    except CommandError as e:
+        log('hosts: %s' % e)
+
+
+def leftovers(prefix):
+    """Names of namespaces and root links that start with ``prefix`` (a run's prefix, for checks)."""
+    return [n for n in netns_names() + root_links() if n.startswith(prefix + '-')]
+
+
+def carry_out(plan, on_signal=send):
+    """Run a plan's steps in order. If a step fails, the undo of the steps done is run in reverse
+    and CommandError is raised: the hosts are as before."""
+    done = []
+    try:
+        for item in plan:
+            if isinstance(item, Signal):
+                on_signal(item.signum, item.pids)
+            else:
+                run(item.argv)
+                done.append(item)
+    except CommandError:
+        for step in reversed(done):
+            if step.undo is not None:
+                try:
+                    run(step.undo)
+                except CommandError:
+                    pass
+        raise
+
+
+def bring_up(net, owner):
+    """Make a topology's hosts, with its record; on failure everything made is removed again."""
+    write_record(net, owner)
+    try:
+        carry_out(plan_up(net.topology))
+    except CommandError:
+        remove_record(net.topology.prefix)
+        raise
+
+
+def tear_down(topology, log):
+    """Kill every process in the run's namespaces, remove them. Never raises; the errors, logged."""
+    errors = []
+    for ns in topology.namespaces():
+        pids = netns_pids(ns)
+        if pids:
+            left = kill_and_wait(pids)
+            if left:
+                errors.append('processes %s of %s would not die' % (left, ns))
+    existing = set(netns_names())
+    for argv in plan_down(topology):
+        if argv[:3] == ['ip', 'netns', 'del'] and argv[3] not in existing:
+            continue
+        if argv[:2] == ['ip', '-n'] and argv[2] not in existing:
+            continue          # a link in a namespace already gone: gone with it
+        try:
+            run(argv)
+        except CommandError as e:
+            errors.append(str(e))
+    remove_record(topology.prefix)
+    for message in errors:
+        log('hosts: tear-down: %s' % message)
+    return errors
+
+
+def remove_record(prefix):
+    try:
+        os.unlink(os.path.join(state_dir(), prefix + '.json'))
+    except (OSError, HostsError):
+        pass
+
+
+def new_topology(hosts):
+    return Topology.make(hosts, token=secrets.token_hex(2), taken=used_networks())
+
+
+class Freeze(object):
+    """A freeze under way: thawed by its timer, or at once with :meth:`thaw` (idempotent)."""
+
+    def __init__(self, pids, seconds):
+        self.pids = pids
+        self.seconds = seconds
+        self.done = threading.Event()
+        self._lock = threading.Lock()
+        self._timer = threading.Timer(seconds, self.thaw)
+        self._timer.daemon = True
+
+    def start(self):
+        send(signal.SIGSTOP, self.pids)
+        self._timer.start()
+        return self
+
+    def thaw(self):
+        with self._lock:
+            if self.done.is_set():
+                return
+            self._timer.cancel()
+            send(signal.SIGCONT, self.pids)
+            self.done.set()
+
+    def wait(self, timeout=None):
+        return self.done.wait(timeout)
+
+
+class Hosts(object):
+    """Emulated hosts for the duration of a ``with`` block; always removed at its end.
+
+    ``Hosts(['a', 'b'])`` or ``Hosts(topology)``. Inside, :meth:`run_in` starts processes in a host,
+    and the fault methods act on hosts. Tear-down (:meth:`close`) kills every process of every host
+    and removes every namespace and link; it runs on leaving the block, on SIGTERM/SIGINT (then the
+    signal goes on: the previous handler, or the default's exit) and at interpreter exit.
+    """
+
+    def __init__(self, hosts, log=None):
+        self._hosts = hosts
+        self.log = log or (lambda message: sys.stderr.write(message + '\n'))
+        self.net = None
+        self._lock = threading.RLock()
+        self._started = {}        # host -> [(Popen, psutil.Process)]
+        self._freezes = []
+        self._previous = {}       # signum -> handler replaced
+        self._open = False
+
+    @property
+    def topology(self):
+        return self.net.topology
+
+    def __enter__(self):
+        check_platform()
+        cleanup_leftovers(log=self.log)
+        topology = self._hosts if isinstance(self._hosts, Topology) else new_topology(self._hosts)
+        self.net = Network(topology)
+        self._install_handlers()
+        atexit.register(self.close)
+        self._open = True
+        try:
+            bring_up(self.net, _owner_record())
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    # -- processes --------------------------------------------------------------------------------
+    def ip(self, name):
+        return self.topology.host(name).ip
+
+    def run_in(self, name, argv, env=None, **popen_args):
+        """Start argv in host ``name`` (``ip netns exec``), with ROS_IP and ROS_HOSTNAME set to the
+        host's address. The Popen; the process and its descendants are the host's."""
+        with self._lock:
+            if not self.net.runs(name):
+                raise HostsError('cannot start %s in host %s: it is off' % (argv[0], name))
+            host = self.topology.host(name)
+            env = dict(os.environ if env is None else env, ROS_IP=host.ip, ROS_HOSTNAME=host.ip)
+            popen = subprocess.Popen(['ip', 'netns', 'exec', host.namespace] + list(argv), env=env, **popen_args)
+            try:
+                self._started.setdefault(name, []).append((popen, psutil.Process(popen.pid)))
+            except psutil.NoSuchProcess:
+                pass
+            return popen
+
+    def processes(self, name):
+        """pids of every live process of the host: started with run_in and their descendants, and
+        every process in its network namespace."""
+        pids = set(netns_pids(self.topology.host(name).namespace))
+        for popen, proc in self._started.get(name, []):
+            try:
+                if proc.is_running():
+                    pids.add(proc.pid)
+                    pids.update(child.pid for child in proc.children(recursive=True))
+            except psutil.NoSuchProcess:
+                pass
+        pids.discard(os.getpid())
+        return sorted(pids)
+
+    # -- faults -----------------------------------------------------------------------------------
+    def _do(self, decision):
+        plan, changes = decision
+        carry_out(plan)
+        self.net.commit(changes)
+        write_record(self.net, _owner_record())
+
+    def partition(self, name, other=None):
+        """Cut host ``name`` off (link down, processes go on); with ``other``: only those two."""
+        with self._lock:
+            self._do(self.net.partition(name) if other is None else self.net.partition_pair(name, other))
+
+    def heal(self, name, other=None):
+        with self._lock:
+            self._do(self.net.heal(name) if other is None else self.net.heal_pair(name, other))
+
+    def rate(self, name, kbit):
+        with self._lock:
+            self._do(self.net.rate(name, kbit))
+
+    def unrate(self, name):
+        with self._lock:
+            self._do(self.net.unrate(name))
+
+    def power_off(self, name):
+        """Link down first, then every process of the host stopped and killed; returns their pids.
+        Processes forked while they were being stopped are caught by further rounds."""
+        with self._lock:
+            plan, changes = self.net.power_off(name, self.processes(name))
+            link, stop, kill = plan                    # link down, SIGSTOP, SIGKILL: in this order
+            carry_out([link])                          # nothing more leaves the host
+            send(stop.signum, stop.pids)
+            stopped = set(stop.pids)
+            for _ in range(20):                        # bounded: forked before they were stopped
+                new = set(self.processes(name)) - stopped
+                if not new:
+                    break
+                send(stop.signum, sorted(new))
+                stopped |= new
+            left = kill_and_wait(sorted(stopped | set(kill.pids)))
+            for popen, _ in self._started.get(name, []):
+                try:
+                    popen.wait(timeout=KILL_WAIT)
+                except subprocess.TimeoutExpired:
+                    pass
+            self._started.pop(name, None)
+            self.net.commit(changes)
+            write_record(self.net, _owner_record())
+            if left:
+                raise HostsError('host %s: processes %s still alive after SIGKILL' % (name, left))
+            return sorted(stopped)
+
+    def power_on(self, name):
+        """The host made again from nothing (new namespace, same address), linked."""
+        with self._lock:
+            self._do(self.net.power_on(name))
+
+    def freeze(self, target, seconds):
+        """SIGSTOP of every process of host ``target`` (a name) or of one process (a pid, of a host
+        of this run) for ``seconds``; a :class:`Freeze` (wait() returns once thawed)."""
+        seconds = check_seconds(seconds)
+        with self._lock:
+            if isinstance(target, int) and not isinstance(target, bool):
+                if not any(target in self.processes(n) for n in self.topology.hosts):
+                    raise TopologyError('process %d is not a process of these hosts' % target)
+                pids = [target]
+            else:
+                pids = self.processes(self.topology.host(target).name)
+            freeze = Freeze(pids, seconds).start()
+            self._freezes.append(freeze)
+            return freeze
+
+    # -- tear-down --------------------------------------------------------------------------------
+    def close(self):
+        """Kill every process of the hosts, remove every namespace and link and the record.
+        Idempotent; never raises."""
+        with self._lock:
+            if not self._open:
+                return
+            self._open = False
+            try:
+                for freeze in self._freezes:
+                    freeze.thaw()
+                for name in self.topology.hosts:
+                    pids = self.processes(name)
+                    if pids:
+                        kill_and_wait(pids)
+                for started in self._started.values():
+                    for popen, _ in started:
+                        try:
+                            popen.wait(timeout=KILL_WAIT)
+                        except subprocess.TimeoutExpired:
+                            pass
+                tear_down(self.topology, self.log)
+            except Exception as e:      # shutdown never raises
+                self.log('hosts: tear-down failed: %s' % e)
+            finally:
+                self._restore_handlers()
+                try:
+                    atexit.unregister(self.close)
+                except Exception:
+                    pass
+
+    def _install_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            self._previous[signum] = signal.signal(signum, self._on_signal)
+
+    def _restore_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+        self._previous.clear()
+
+    def _on_signal(self, signum, frame):
+        previous = self._previous.get(signum)
+        self.close()
+        if previous == signal.SIG_IGN:
+            return
+        if callable(previous):
+            previous(signum, frame)
+        elif signum == signal.SIGINT:
+            raise KeyboardInterrupt()
+        else:
+            raise SystemExit(128 + signum)

@@ -1,0 +1,232 @@
+"""Emulated hosts (network namespaces), for real: traffic crosses their links, and each fault does
+what it says. Needs root; skipped (with the reason) where namespaces cannot be made.
+
+Peers are plain Python sockets (net_peer.py) started inside the hosts with Hosts.run_in; the test
+process itself is in the root namespace and reaches the hosts only through them. Every wait is on a
+line a peer prints, with a deadline.
+"""
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from aft_ftm import hosts_exec
+from aft_ftm.hosts_exec import Hosts, PlatformError
+from reporting import report
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(os.path.dirname(HERE))
+PEER = os.path.join(HERE, 'net_peer.py')
+HOSTS_CLI = os.path.join(ROOT, 'scripts', 'hosts')
+PORT = 7000
+BULK = 150000            # bytes: about 1.5 s at 800 kbit/s
+LIMIT = 800              # kbit/s
+
+
+def _platform_or_skip():
+    try:
+        hosts_exec.check_platform()
+    except PlatformError as e:
+        pytest.skip(str(e))
+
+
+class Lines(object):
+    """The stdout lines of a process, each read with a deadline."""
+
+    def __init__(self, popen):
+        self.popen, self.buffer = popen, b''
+
+    def next(self, timeout=5.0):
+        deadline = time.monotonic() + timeout
+        while b'\n' not in self.buffer:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError('no line from %s within %g s' % (self.popen.args, timeout))
+            ready, _, _ = select.select([self.popen.stdout], [], [], left)
+            if ready:
+                data = os.read(self.popen.stdout.fileno(), 4096)
+                if not data:
+                    raise AssertionError('%s ended without a line (exit %s)' % (self.popen.args, self.popen.wait(5)))
+                self.buffer += data
+        line, self.buffer = self.buffer.split(b'\n', 1)
+        return line.decode()
+
+
+def peer(hosts, host, *args, stdin=None):
+    popen = hosts.run_in(host, [sys.executable, PEER] + [str(a) for a in args], stdout=subprocess.PIPE,
+                         stdin=stdin, bufsize=0)
+    return popen, Lines(popen)
+
+
+def once(hosts, host, *args, timeout=10.0):
+    """Run a peer to its end; its one line, split."""
+    popen, lines = peer(hosts, host, *args)
+    try:
+        return lines.next(timeout).split()
+    finally:
+        popen.wait(timeout)
+
+
+def server(hosts, host):
+    popen, lines = peer(hosts, host, 'serve', PORT)
+    assert lines.next() == 'ready'
+    return popen
+
+
+def kbits(words):
+    assert words[0] == 'sent' and int(words[1]) == BULK, words
+    return BULK * 8 / 1000.0 / float(words[2])
+
+
+def test_traffic_partition_rate_freeze_power_off():
+    _platform_or_skip()
+    prefix = None
+    try:
+        with Hosts(['a', 'b', 'c']) as hosts:
+            prefix = hosts.topology.prefix
+            a, c = hosts.ip('a'), hosts.ip('c')
+            assert a != c and a.startswith('10.213.')
+            assert os.environ.get('ROS_IP') != a
+            shown = hosts.run_in('a', [sys.executable, '-c', 'import os; print(os.environ["ROS_IP"], '
+                                       'os.environ["ROS_HOSTNAME"])'], stdout=subprocess.PIPE)
+            assert shown.communicate(timeout=10)[0].decode().split() == [a, a]
+            server(hosts, 'a')
+
+            # reachable by A's address from B, across the links (the root namespace has no route to it)
+            assert once(hosts, 'b', 'probe', a, PORT, 1.0)[0] == 'ok'
+
+            # partition of A: B's connect gives up within its bounded time; healing restores it
+            hosts.partition('a')
+            started = time.monotonic()
+            words = once(hosts, 'b', 'probe', a, PORT, 1.0)
+            assert words[0] == 'fail', words
+            assert time.monotonic() - started < 5.0
+            report('emulated hosts: partitioned host A, connect from B failed (%s) after %s s (connect timeout 1 s)'
+                   % (words[1], words[2]))
+            hosts.heal('a')
+            assert once(hosts, 'b', 'probe', a, PORT, 1.0)[0] == 'ok'
+
+            # pair partition A|C: C no longer reaches A, B still does
+            hosts.partition('a', 'c')
+            assert once(hosts, 'c', 'probe', a, PORT, 0.5)[0] == 'fail'
+            assert once(hosts, 'b', 'probe', a, PORT, 1.0)[0] == 'ok'
+            hosts.heal('a', 'c')
+            assert once(hosts, 'c', 'probe', a, PORT, 1.0)[0] == 'ok'
+
+            # rate limit of A: a bulk transfer B->A falls to about the limit
+            unlimited = kbits(once(hosts, 'b', 'send', a, PORT, BULK))
+            hosts.rate('a', LIMIT)
+            limited = kbits(once(hosts, 'b', 'send', a, PORT, BULK))
+            hosts.unrate('a')
+            again = kbits(once(hosts, 'b', 'send', a, PORT, BULK))
+            report('emulated hosts: bulk B->A %d kB: %.0f kbit/s unlimited, %.0f kbit/s limited to %d kbit/s, '
+                   '%.0f kbit/s after unrate' % (BULK // 1000, unlimited, limited, LIMIT, again))
+            assert limited < 0.5 * unlimited
+            assert limited < 1.5 * LIMIT
+            assert again > 2 * limited
+
+            # freeze of one process for 0.5 s: its ticks stop, then resume
+            ticker, ticks = peer(hosts, 'a', 'tick')
+            before = [float(ticks.next()) for _ in range(3)]
+            freeze = hosts.freeze(ticker.pid, 0.5)
+            assert freeze.wait(3.0)
+            after = [float(ticks.next()) for _ in range(30)]
+            gaps = [y - x for x, y in zip(before[-1:] + after, after)]
+            assert max(gaps) >= 0.45, gaps
+            assert ticker.poll() is None
+            report('emulated hosts: process frozen for 0.5 s, longest gap between its ticks %.3f s' % max(gaps))
+
+            # control: a crash of a server process (not a power loss) is seen at once by its client
+            control = server(hosts, 'c')
+            holder, held = peer(hosts, 'b', 'hold', c, PORT, stdin=subprocess.PIPE)
+            assert held.next() == 'connected'
+            control.kill()
+            control.wait(5)
+            holder.stdin.write(b'recv 2.0\n')
+            assert held.next() in ('closed', 'reset')
+            holder.kill()
+
+            # power loss of A: B's open connection hears nothing; every process of A is dead, daemons too
+            holder, held = peer(hosts, 'b', 'hold', a, PORT, stdin=subprocess.PIPE)
+            assert held.next() == 'connected'
+            spawner, spawned = peer(hosts, 'a', 'daemon')
+            daemon_pid = int(spawned.next())
+            started_in_a = [p for p, _ in hosts._started['a']]
+            killed = hosts.power_off('a')
+            assert daemon_pid in killed and ticker.pid in killed
+            holder.stdin.write(b'recv 1.0\n')
+            assert held.next() == 'timeout'
+            for popen in started_in_a:
+                assert popen.poll() is not None, popen.args
+            for pid in killed:
+                assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+            assert hosts.processes('a') == []
+            report('emulated hosts: power loss of A killed %d processes; B\'s open connection saw nothing in 1 s'
+                   % len(killed))
+
+            # power on: A made again, same address, reachable again
+            hosts.power_on('a')
+            server(hosts, 'a')
+            assert once(hosts, 'b', 'probe', a, PORT, 1.0)[0] == 'ok'
+    finally:
+        if prefix is not None:
+            assert hosts_exec.leftovers(prefix) == []
+
+
+def test_sigterm_tears_down_and_sigkill_leftovers_are_cleaned():
+    _platform_or_skip()
+    code = ('import sys, time\n'
+            'from aft_ftm.hosts_exec import Hosts\n'
+            'with Hosts(["x", "y"]) as hosts:\n'
+            '    hosts.run_in("x", ["sleep", "30"])\n'
+            '    print(hosts.topology.prefix, flush=True)\n'
+            '    time.sleep(30)\n')
+    for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGKILL):
+        child = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE, bufsize=0)
+        try:
+            prefix = Lines(child).next(10.0)
+            assert hosts_exec.leftovers(prefix)
+            child.send_signal(signum)
+            child.wait(10)
+        finally:
+            child.kill()
+        if signum == signal.SIGKILL:
+            assert hosts_exec.leftovers(prefix), 'a run killed by SIGKILL cannot clean up: its leftovers stay'
+            removed = hosts_exec.cleanup_leftovers()
+            assert prefix + '-x' in removed
+        assert hosts_exec.leftovers(prefix) == [], signal.Signals(signum).name
+
+
+def cli(*args, user=None):
+    argv = [sys.executable, HOSTS_CLI] + list(args)
+    if user is not None:
+        argv = ['setpriv', '--reuid=%d' % user, '--regid=%d' % user, '--clear-groups'] + argv
+    done = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=30)
+    return done.returncode, done.stdout.decode()
+
+
+def test_cli_up_fault_down():
+    _platform_or_skip()
+    rc, text = cli('up', '--hosts', 'p,q')
+    try:
+        assert rc == 0, text
+        prefix = text.split()[1].rstrip(',')
+        assert cli('up')[0] == 2                                       # already up: refused
+        rc, text = cli('fault', 'partition', 'nosuch')
+        assert (rc, 'unknown host \'nosuch\'') == (2, text.strip().split(': ', 1)[1][:21]), text
+        assert cli('fault', 'rate', 'fast', 'p')[0] == 2
+        assert cli('fault', 'rate', '800', 'p')[0] == 0
+        assert cli('fault', 'partition', 'q')[0] == 0
+        rc, text = cli('status')
+        assert 'rate 800 kbit/s' in text and 'partitioned' in text, text
+        rc, text = cli('status', user=65534)
+        assert rc == 2 and 'need root' in text, text
+    finally:
+        rc, text = cli('down')
+    assert rc == 0, text
+    assert hosts_exec.leftovers(prefix) == []
