@@ -30,7 +30,7 @@ def files_of(package, test_code=False):
     paths += glob.glob(os.path.join(base, 'config', '*'))
     if test_code:
         paths += glob.glob(os.path.join(base, 'test', '*'))
-    return paths
+    return [p for p in paths if os.path.isfile(p) and not p.endswith('.pyc')]   # not __pycache__
 
 
 def packages_used(path):

@@ -49,6 +49,7 @@ class NamespaceFence(object):
         self.master = rosgraph.Master(caller_id)
         self.known = {}        # node name -> (pid, create_time) for nodes on this host
         self.remote = {}       # node name -> API uri, for nodes on other hosts
+        self.unlearned = []    # nodes under the name space the last learn() could not learn
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -57,22 +58,38 @@ class NamespaceFence(object):
         return sorted(n for n in names if n.startswith(self.prefix))
 
     def learn(self):
-        """Ask every node under the name space for its pid. Returns the number of local nodes known."""
+        """Ask every node under the name space for its pid. Returns the number of local nodes known;
+        ``unlearned`` names the nodes it could not learn this time."""
+        unlearned = []
         for name in self.node_names():
+            if name in self.known and self._still(self.known[name]):
+                continue
+            unlearned.append(name)
             try:
                 uri = self.master.lookupNode(name)
                 if not is_local(uri):
                     with self.lock:
                         self.remote[name] = uri
+                    unlearned.pop()
                     continue
                 code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
                 if code == 1:
                     created = psutil.Process(pid).create_time()
                     with self.lock:
                         self.known[name] = (pid, created)
+                    unlearned.pop()
             except Exception:   # a node going away while we ask: learned next time, or never needed
                 continue
+        self.unlearned = unlearned
         return len(self.known)
+
+    @staticmethod
+    def _still(entry):
+        """Whether a learned (pid, create_time) is still that process (a node started again has a new pid)."""
+        try:
+            return psutil.Process(entry[0]).create_time() == entry[1]
+        except psutil.NoSuchProcess:
+            return False
 
     def kill(self):
         """SIGKILL every known local node still running as the same process. Returns their names."""

@@ -363,12 +363,16 @@ class RecoveryNode(object):
 
     def _learn_peer(self):
         while not rospy.is_shutdown():
+            complete = True
             try:
                 if not self.recovered:   # re-armed after a re-join: the peer's new pids are learned
                     self.fence.learn()
+                    complete = not self.fence.unlearned
             except Exception as e:   # the master is unreachable for a while: try again later
                 rospy.logwarn_throttle(30, '%s: cannot learn the nodes of %s: %s' % (rospy.get_name(), self.peer_ns, e))
-            rospy.sleep(self.learn_period)
+            # A node of the peer not learned yet (its site is starting) cannot be killed by pid if it
+            # freezes: ask again soon, not a whole period later.
+            rospy.sleep(self.learn_period if complete else min(self.learn_period, 0.2))
 
     def _fail_silence(self, failure):
         """Kill what is left of the failed site: its launcher's whole process tree when the heartbeat
