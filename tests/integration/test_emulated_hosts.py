@@ -230,3 +230,32 @@ def test_cli_up_fault_down():
         rc, text = cli('down')
     assert rc == 0, text
     assert hosts_exec.leftovers(prefix) == []
+
+
+SINK = ('import sys\nfrom aft_ftm.link_probe import Sink\n'
+        'sink = Sink(sys.argv[1], 0).start()\nprint(sink.endpoint[1], flush=True)\nsys.stdin.read()\n')
+PROBE = ('import sys\nfrom aft_ftm.link_probe import probe, rate\n'
+         'print(rate(*probe((sys.argv[1], int(sys.argv[2])), 0.3)), flush=True)\n')
+
+
+def test_the_link_monitor_probe_measures_a_rate_limit_across_hosts():
+    """The figure the monitor adapts on (aft_ftm.link_probe) follows a real limit of the link: far above
+    Table I's high bandwidth (1 MB/s) unlimited, about the limit (100 kB/s) once limited."""
+    _platform_or_skip()
+    with Hosts(['a', 'b']) as hosts:
+        sink = hosts.run_in('a', [sys.executable, '-c', SINK, hosts.ip('a')], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, bufsize=0)
+        port = int(Lines(sink).next())
+
+        def measure():
+            popen = hosts.run_in('b', [sys.executable, '-c', PROBE, hosts.ip('a'), str(port)], stdout=subprocess.PIPE)
+            return float(popen.communicate(timeout=20)[0].decode().strip())
+        unlimited = measure()
+        hosts.rate('a', LIMIT)
+        limited = [measure() for _ in range(3)]
+        hosts.unrate('a')
+        report('link probe across hosts: %.0f kB/s unlimited, %s kB/s limited to %d kbit/s (%.0f kB/s)'
+               % (unlimited / 1e3, ', '.join('%.0f' % (x / 1e3) for x in limited), LIMIT, LIMIT / 8.0))
+        assert unlimited > 1e6
+        median = sorted(limited)[1]
+        assert 0.5 * LIMIT * 125 < median < 1.5 * LIMIT * 125, limited

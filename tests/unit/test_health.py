@@ -105,3 +105,11 @@ def test_sec_gate_and_watchdog_levels():
     lines = health.summary({'/aft/witness': health.witness(5, 'slave', '', 'x', False),
                             '/ftm/watchdog': health.watchdog('board_a', 'board_b', 0, 'd')})
     assert [(site, level) for site, level, _ in lines] == [('watchdog', Level.OK), ('witness', Level.WARN)]
+
+
+def test_a_proceed_says_whether_it_is_calling_the_server_or_idle():
+    idle = health.stage('pbr', 'proceed', None, 5.0, None)
+    busy = health.stage('pbr', 'proceed', 0.25, 5.0, None)
+    assert idle.level == busy.level == health.Level.OK
+    assert 'idle' in idle.message and 'calling' not in idle.message
+    assert 'calling the server' in busy.message and '0.250' in busy.message

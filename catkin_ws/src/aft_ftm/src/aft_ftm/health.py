@@ -122,7 +122,11 @@ def stage(mechanism, stage, calling_for=None, patience=None, failed=None, calls_
         return Report(Level.ERROR, 'fail-stopped: %s' % failed, values)
     if calling_for is not None and patience is not None and calling_for > patience:
         return Report(Level.WARN, 'the server has not answered for %.1f s' % calling_for, values)
-    return Report(Level.OK, 'passing requests on' if stage != 'proceed' else 'calling the server', values)
+    if stage != 'proceed':
+        return Report(Level.OK, 'passing requests on', values)
+    if calling_for is None:
+        return Report(Level.OK, 'idle: no call of the server in progress', values)
+    return Report(Level.OK, 'calling the server (for %.3f s)' % calling_for, values)
 
 
 def witness(epoch, primary, backup, reason, persistent):
@@ -193,3 +197,15 @@ def summary(reports):
         lines.append((site, level, '%-8s %-5s %-8s epoch %-4d %-5s %s' % (site, mechanism, role, epoch, level.name,
                                                                         '; '.join(worst))))
     return lines
+
+
+def link_monitor(site, peer, estimate, last, failures, why=None):
+    """A link monitor: the bandwidth to ``peer`` it reports (median of its last probes, bytes/s),
+    the last probe's figure, and ``failures`` probes in a row that measured nothing (``why``)."""
+    values = [('site', site), ('peer', peer), ('bandwidth_bytes_per_s', '%.0f' % estimate if estimate else 'unknown'),
+              ('last_probe_bytes_per_s', '%.0f' % last if last else 'none'), ('failed_probes', failures)]
+    if failures:
+        return Report(Level.WARN, '%d probe(s) of %s in a row measured nothing: %s' % (failures, peer, why), values)
+    if estimate is None:
+        return Report(Level.OK, 'no probe of %s yet' % peer, values)
+    return Report(Level.OK, '%.0f kB/s to %s' % (estimate / 1e3, peer), values)

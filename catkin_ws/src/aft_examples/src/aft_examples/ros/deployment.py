@@ -70,7 +70,7 @@ class PbrDeployment(object):
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
-                 cache_bytes=None):
+                 cache_bytes=None, link_monitor=False):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -85,6 +85,8 @@ class PbrDeployment(object):
             replica['ballast_bytes'] = ballast_bytes
         if cache_bytes is not None:
             replica['cache_bytes'] = cache_bytes
+        if link_monitor:
+            replica['link_monitor'] = 'true'   # the bandwidth between the sites, measured, for the monitor
         client = {}
         self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
         if sec:

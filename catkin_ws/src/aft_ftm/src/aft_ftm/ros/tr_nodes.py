@@ -40,7 +40,9 @@ class TrBeforeNode(BeforeNode):
     fail-stops, as Proceed does, and its peer takes over.
 
     Parameters:
-        ~server_timeout (float, 5 s): the longest the server's get_state may take.
+        ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
+            execution again, may take (a set_state past it: no execution again, the same alarm or
+            fail-stop; the request is answered with TR's error).
         ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
     Services called: get_state, set_state (the server's state manager).
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
@@ -62,6 +64,7 @@ class TrBeforeNode(BeforeNode):
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
+        self._restore_deadline = Deadline('state-restore')
         self.capturing_since = None   # monotonic time the state capture in progress started
         self.failed = None            # why this replica fail-stopped: nothing more is executed
 
@@ -131,7 +134,24 @@ class TrBeforeNode(BeforeNode):
             return RepeatResponse(success=False, message='no saved state for %s/%d' % key)
         request, state, sent = held
         if req.action in (req.REPEAT, req.RESTORE):
-            result = self.set_state(state)
+            if self.failed:
+                return RepeatResponse(success=False, message='this replica fail-stopped: %s' % self.failed)
+            try:
+                result = self._restore_deadline.call(self.set_state, self.server_timeout, state)
+            except CallTimeout:
+                # A hung server must not hang the vote: bounded, and never silent.
+                problem = 'the server state manager %s did not restore the state within %.3f s (it hangs)' % (
+                    rospy.resolve_name('set_state'), self.server_timeout)
+                self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                if self.site:
+                    self.failed = problem
+                    fail_stop(self.ports, self.site, problem, mechanism='tr')
+                else:
+                    alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again' % ((problem,) + key))
+                return RepeatResponse(success=False, message='state not restored: %s' % problem)
+            except (rospy.ServiceException, rospy.ROSException) as e:
+                self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                return RepeatResponse(success=False, message='state not restored: %s' % e)
             if not result.success:
                 return RepeatResponse(success=False, message='state not restored: %s' % result.message)
         if req.action == req.REPEAT:
