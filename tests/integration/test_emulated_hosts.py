@@ -259,3 +259,40 @@ def test_the_link_monitor_probe_measures_a_rate_limit_across_hosts():
         assert unlimited > 1e6
         median = sorted(limited)[1]
         assert 0.5 * LIMIT * 125 < median < 1.5 * LIMIT * 125, limited
+
+
+def test_a_command_is_started_on_the_host_of_a_process():
+    """What the Adaptation Engine uses to start a site's new nodes next to its running ones
+    (aft_ftm.where.run_where): in the process's network namespace, with its ROS addresses."""
+    from aft_ftm.where import run_where
+    _platform_or_skip()
+    here, env = run_where(os.getpid(), ['true'], {'ROS_IP': 'keep'})
+    assert (here, env['ROS_IP']) == (['true'], 'keep')
+    with Hosts(['a']) as hosts:
+        sleeper = hosts.run_in('a', ['sleep', '60'])
+        pid = sleeper.pid
+        assert wait_for_child(pid, 'sleep'), 'no sleep process in host a'
+        target = next(p for p in [psutil.Process(pid)] + psutil.Process(pid).children(recursive=True)
+                      if p.name() == 'sleep').pid
+        argv, env = run_where(target, [sys.executable, '-c', 'import os, socket; s = socket.socket(); '
+                                       's.bind((os.environ["ROS_IP"], 0)); print(os.environ["ROS_IP"])'],
+                              {'ROS_IP': '127.0.0.1', 'ROS_MASTER_URI': 'http://127.0.0.1:1'})
+        assert argv[0] == 'nsenter'
+        done = subprocess.run(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=20)
+        # It could bind the host's own address: it runs in that host.
+        assert done.stdout.decode().strip() == hosts.ip('a'), done.stderr.decode()
+        # the host's own ROS addresses, not this process's
+        assert env['ROS_MASTER_URI'] == psutil.Process(target).environ().get('ROS_MASTER_URI') != 'http://127.0.0.1:1'
+
+
+def wait_for_child(pid, name, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            procs = [psutil.Process(pid)] + psutil.Process(pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            return False
+        if any(p.name() == name for p in procs):
+            return True
+        time.sleep(0.02)
+    return False

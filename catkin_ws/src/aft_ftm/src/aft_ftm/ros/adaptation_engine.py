@@ -41,6 +41,7 @@ from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
+from ..where import run_where
 from .graph import publisher_links, roslaunch, wired
 from .fencing import is_local, node_api
 from .guarded_launch import guarded
@@ -566,10 +567,15 @@ class Engine(object):
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [plan.path]
         # Under a guard: the nodes stop when the launcher of the site they join stops.
         argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace)
+        env = None
+        if plan.owners:
+            # On the host of the site the nodes join (an emulated host: its network namespace).
+            argv, env = run_where(plan.owners[0].pid, argv)
         # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
         # must not starve the running replicas. Not much lower: under full load a niceness of 10
         # left a new node unable to finish its set-up in 30 s.
-        site = LaunchedSite(Site('adaptation', argv, log_path=log).start(niceness=self.launch_niceness), plan.nodes)
+        site = LaunchedSite(Site('adaptation', argv, env=env, log_path=log).start(niceness=self.launch_niceness),
+                            plan.nodes)
         self.sites.append(site)
         self._run_sites.append(site)
         return site
@@ -675,9 +681,12 @@ class Engine(object):
         if step.action == 'respawn':
             record = step.detail
             argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace)
+            env = record.env
+            if record.owners:
+                argv, env = run_where(record.owners[0].pid, argv, env)   # on its site's host, as it was
             os.makedirs(self.log_dir, exist_ok=True)
             # The node's own working directory, given to its process (never this one's: it has threads).
-            site = Site('respawn', argv, env=record.env, cwd=record.cwd,
+            site = Site('respawn', argv, env=env, cwd=record.cwd,
                         log_path=os.path.join(self.log_dir, 'respawn_%d.log' % record.pid)).start()
             self.respawned.append(site)
             if not wait_until(lambda: step.target + '/rebind' in self._graph()[1] or
