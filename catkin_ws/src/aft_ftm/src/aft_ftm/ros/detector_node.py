@@ -7,7 +7,7 @@ import rospy
 from aft_msgs.msg import Configuration, Failure, Heartbeat
 
 from .. import config, health
-from ..detector import HeartbeatMonitor, PeerState
+from ..detector import DEFAULT_PHI, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor, PeerState, PhiAccrualMonitor
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..sites import this_host
 from .alarms import alarm
@@ -23,6 +23,12 @@ class CrashDetectorNode(object):
     Parameters:
         ~site (str, required): this site's name.  ~peer (str, required): the watched site's name.
         ~period (float, 0.01 s), ~timeout (float, 0.03 s)
+        ~detector (str, aft_ftm.detector.DEFAULT_RULE): the rule that judges a silence a failure (aft_ftm.detector):
+            ``timeout``, a fixed ~timeout; ``phi``, phi accrual, ~timeout deciding only while the first
+            ~phi_min_samples intervals are learnt.
+        ~phi_threshold (float, 8), ~phi_window (int, 100 intervals), ~phi_min_std (float, 0.005 s),
+        ~phi_pause (float, 0 s: the acceptable pause added to the mean), ~phi_min_samples (int, 10):
+            the phi rule's settings (read, and checked, only with ~detector phi).
         ~startup_grace (float, 0 = never): declare a never-heard peer failed after this long.
         ~site_pid (int, default: this node's parent, i.e. the site's roslaunch): sent in heartbeats
             so that the peer's Recovery can enforce fail-silence on the same host.
@@ -49,7 +55,7 @@ class CrashDetectorNode(object):
         self.site = param('site', config.non_empty_str, required=True)
         self.peer = param('peer', config.non_empty_str, required=True)
         self.period = param('period', config.positive_float, 0.01)
-        timeout = param('timeout', config.positive_float, 0.03)
+        timeout = param('timeout', config.positive_float, DEFAULT_TIMEOUT)
         if timeout <= self.period:
             raise config.ConfigError('parameter %s (%r) must be longer than ~period (%r)'
                                      % (rospy.resolve_name('~timeout'), timeout, self.period))
@@ -58,8 +64,20 @@ class CrashDetectorNode(object):
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
         self.timeout, self.grace = timeout, grace
-        # A check later than one period after the previous one: this detector itself was stalled.
-        self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic(), stall_after=self.period)
+        self.detector = param('detector', config.choice('timeout', 'phi'), DEFAULT_RULE)
+        self.phi = None
+        if self.detector == 'phi':
+            self.phi = {'threshold': param('phi_threshold', config.positive_float, DEFAULT_PHI['threshold']),
+                        'window': param('phi_window', config.positive_int, DEFAULT_PHI['window']),
+                        'min_std': param('phi_min_std', config.positive_float, DEFAULT_PHI['min_std']),
+                        'acceptable_pause': param('phi_pause', config.non_negative_float,
+                                                  DEFAULT_PHI['acceptable_pause']),
+                        'min_samples': param('phi_min_samples', config.positive_int, DEFAULT_PHI['min_samples'])}
+            if not 2 <= self.phi['min_samples'] <= self.phi['window']:
+                raise config.ConfigError('parameters %s (%r) and %s (%r): need 2 <= min_samples <= window' % (
+                    rospy.resolve_name('~phi_min_samples'), self.phi['min_samples'],
+                    rospy.resolve_name('~phi_window'), self.phi['window']))
+        self.monitor = self._new_monitor(time.monotonic())
         self.lock = threading.Lock()
         self.host = this_host()
         self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),
@@ -75,6 +93,14 @@ class CrashDetectorNode(object):
         # inbound connections one at a time: one stalled handshake holds the others back for up to
         # 60 s): (the monitor that declared it, the message), published once Recovery connects.
         self.undelivered = None
+
+    def _new_monitor(self, now):
+        """A monitor of the peer by the chosen rule. A check later than one period after the
+        previous one means this detector itself was stalled (stall_after)."""
+        if self.phi is not None:
+            return PhiAccrualMonitor(bootstrap_timeout=self.timeout, startup_grace=self.grace, started_at=now,
+                                     stall_after=self.period, **self.phi)
+        return HeartbeatMonitor(self.timeout, self.grace, now, stall_after=self.period)
 
     def setup(self, timeout):
         try:
@@ -123,7 +149,7 @@ class CrashDetectorNode(object):
             if self.monitor.state != PeerState.FAILED:
                 return
             now = time.monotonic()
-            self.monitor = HeartbeatMonitor(self.timeout, self.grace, now, stall_after=self.period)
+            self.monitor = self._new_monitor(now)
             self.monitor.beat(now)   # heard (it joined): silent from now on, it is declared failed
             self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
