@@ -50,6 +50,7 @@ import math
 DEFAULT_RULE = 'timeout'           # or 'phi'
 DEFAULT_TIMEOUT = 0.03             # s: the fixed rule; phi's bootstrap timeout
 DEFAULT_PHI = {'threshold': 8.0, 'window': 100, 'min_std': 0.005, 'acceptable_pause': 0.0, 'min_samples': 10}
+DEFAULT_REALTIME_PRIORITY = 10    # SCHED_FIFO priority of the crash detectors' threads (0: off)
 
 
 class PeerState(enum.Enum):
