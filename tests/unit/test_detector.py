@@ -1,7 +1,9 @@
 """Failure detection from heartbeat timing, with a fake clock. No ROS."""
+import random
+
 import pytest
 
-from aft_ftm.detector import HeartbeatMonitor, PeerState
+from aft_ftm.detector import HeartbeatMonitor, PeerState, PhiAccrualMonitor, phi, phi_z
 from fakes import FakeClock
 
 
@@ -132,3 +134,154 @@ def test_a_stall_before_the_last_beat_is_no_excuse_for_the_silence_after_it():
 def test_invalid_stall_after_is_refused():
     with pytest.raises(ValueError, match='stall_after'):
         HeartbeatMonitor(timeout=0.03, stall_after=0)
+
+
+# -- phi accrual ------------------------------------------------------------------------------------
+
+PERIOD, TICK = 0.01, 0.002
+
+
+def phi_monitor(**kw):
+    settings = dict(threshold=8.0, bootstrap_timeout=0.03, window=100, min_std=0.005, min_samples=10,
+                    stall_after=PERIOD)
+    settings.update(kw)
+    return PhiAccrualMonitor(**settings)
+
+
+def jittered(monitor, clock, rng, count, jitter):
+    """count beats, period +- jitter apart, checked every tick in between; the verdicts seen."""
+    verdicts = []
+    for _ in range(count):
+        gap = PERIOD + rng.uniform(-jitter, jitter)
+        due = clock.now + gap
+        while clock.now + TICK < due:
+            verdicts.append(monitor.check(clock.advance(TICK)))
+        monitor.beat(clock.advance(due - clock.now))
+        verdicts.append(monitor.check(clock.now))
+    return [v for v in verdicts if v is not None]
+
+
+def test_phi_is_the_normal_tail_in_log10_and_its_inverse_holds():
+    assert phi(0.010, 0.010, 0.002) == pytest.approx(0.30, abs=0.01)        # at the mean: P(later) = 1/2
+    values = [phi(0.010 + k * 0.001, 0.010, 0.002) for k in range(-20, 60)]
+    assert values == sorted(values) and values[0] >= 0.0
+    for threshold in (1.0, 3.0, 8.0, 12.0, 16.0):
+        assert phi(phi_z(threshold), 0.0, 1.0) == pytest.approx(threshold, rel=1e-6)
+    assert phi(-1e6, 0.0, 1e-3) == 0.0 and phi(1e6, 0.0, 1e-3) > 1e6       # far tails: no overflow
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_steady_heartbeats_with_bounded_jitter_are_never_suspected(seed):
+    rng = random.Random(seed)
+    jitter = rng.uniform(0.0, 0.004)
+    clock = FakeClock(rng.uniform(0, 100))
+    monitor = phi_monitor(threshold=rng.choice([3.0, 8.0, 12.0]))
+    verdicts = jittered(monitor, clock, rng, 500, jitter)
+    assert verdicts == [], 'seed %d (jitter %.1f ms): %s' % (seed, jitter * 1e3, verdicts)
+    assert monitor.state == PeerState.ALIVE and not monitor.learning()
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_a_stop_is_suspected_within_the_bound_the_window_gives(seed):
+    # Whatever the window holds, std <= (max - min) / 2, so the verdict comes at most
+    # max + z(threshold) * max(min_std, (max - min) / 2) after the last beat (plus a check tick),
+    # and not before the model's own suspicion time.
+    rng = random.Random(seed)
+    clock = FakeClock()
+    threshold = rng.choice([3.0, 8.0, 12.0])
+    monitor = phi_monitor(threshold=threshold, window=rng.choice([20, 100]))
+    jittered(monitor, clock, rng, rng.randint(30, 300), rng.uniform(0.0, 0.005))
+    intervals = list(monitor.intervals)
+    bound = max(intervals) + phi_z(threshold) * max(0.005, (max(intervals) - min(intervals)) / 2.0)
+    expected = monitor.suspicion_after()
+    stop = clock.now
+    verdict = checked_every(monitor, clock, TICK, 2.0)
+    assert verdict is not None, 'seed %d' % seed
+    assert expected - 1e-9 <= clock.now - stop <= min(bound, expected) + TICK + 1e-9, \
+        'seed %d: verdict %.1f ms after the stop, model %.1f ms, bound %.1f ms' % (
+            seed, (clock.now - stop) * 1e3, expected * 1e3, bound * 1e3)
+    assert 'phi' in verdict.reason and monitor.state == PeerState.FAILED
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_a_one_off_pause_shorter_than_the_acceptable_pause_is_tolerated(seed):
+    # Regular beats: mean 10 ms, std at its floor. With an acceptable pause P, any single silence
+    # shorter than P + mean + z * min_std passes; the peer is alive after it, and a stop is then
+    # still declared.
+    rng = random.Random(seed)
+    pause = rng.choice([0.0, 0.02, 0.05, 0.2])
+    clock = FakeClock()
+    monitor = phi_monitor(acceptable_pause=pause)
+    jittered(monitor, clock, rng, 150, 0.0)
+    tolerated = PERIOD + pause + phi_z(8.0) * 0.005
+    silence = rng.uniform(PERIOD, tolerated - 2 * TICK)
+    assert checked_every(monitor, clock, TICK, silence) is None, 'seed %d: pause %.1f ms' % (seed, silence * 1e3)
+    monitor.beat(clock.now)
+    assert jittered(monitor, clock, rng, 20, 0.0) == [] and monitor.state == PeerState.ALIVE
+    stop = clock.now
+    assert checked_every(monitor, clock, TICK, 2.0) is not None
+    assert clock.now - stop <= monitor.suspicion_after() + TICK + 1e-9   # the pause, now learnt, widened it
+
+
+def test_irregular_beats_widen_the_suspicion_time_and_regular_ones_narrow_it_again():
+    rng = random.Random(5)
+    clock = FakeClock()
+    monitor = phi_monitor(window=50)
+    jittered(monitor, clock, rng, 60, 0.0)
+    quiet = monitor.suspicion_after()
+    assert quiet < 0.04                                       # 10 ms + 5.2 x 5 ms
+    for k in range(50):                                       # a loaded spell: gaps of 6 and 24 ms
+        gap = 0.024 if k % 2 else 0.006
+        assert checked_every(monitor, clock, TICK, gap - TICK) is None
+        monitor.beat(clock.advance(TICK))
+    loaded = monitor.suspicion_after()
+    assert loaded > 0.06, 'after a spell of irregular beats, 60 ms of silence is no failure (%.1f ms)' % (loaded * 1e3)
+    assert checked_every(monitor, clock, TICK, 0.06) is None
+    monitor.beat(clock.now)
+    jittered(monitor, clock, rng, 50, 0.0)                    # the window forgets the spell
+    assert monitor.suspicion_after() == pytest.approx(quiet, abs=1e-6)
+
+
+def test_while_learning_the_bootstrap_timeout_decides():
+    clock = FakeClock()
+    monitor = phi_monitor(bootstrap_timeout=0.05, min_samples=10)
+    monitor.beat(clock.now)
+    for _ in range(5):
+        monitor.beat(clock.advance(PERIOD))
+    assert monitor.learning() and monitor.phi(1.0) is None
+    assert checked_every(monitor, clock, TICK, 0.048) is None
+    verdict = checked_every(monitor, clock, TICK, 0.01)
+    assert verdict is not None and 'while learning (5 of 10 intervals)' in verdict.reason
+
+
+def test_phi_does_not_hold_the_detectors_own_stall_against_the_peer():
+    clock = FakeClock()
+    monitor = phi_monitor()
+    jittered(monitor, clock, random.Random(1), 50, 0.0)
+    monitor.check(clock.advance(0.002))
+    assert monitor.check(clock.advance(0.080)) is None        # 72 ms of it this detector's own stall
+    monitor.beat(clock.advance(0.001))
+    assert max(monitor.intervals) < 0.02                      # nor is it learnt as the peer's lateness
+
+
+def test_phi_shares_the_life_cycle_a_failed_peer_stays_failed():
+    clock = FakeClock()
+    monitor = phi_monitor(startup_grace=1.0, started_at=clock.now)
+    assert monitor.state == PeerState.UNKNOWN
+    jittered(monitor, clock, random.Random(2), 20, 0.0)
+    assert checked_every(monitor, clock, TICK, 1.0) is not None
+    assert monitor.beat(clock.advance(PERIOD)) is True and monitor.state == PeerState.FAILED
+    with pytest.raises(AssertionError, match='no edge FAILED -> ALIVE'):
+        monitor._change(PeerState.ALIVE)
+    never = phi_monitor(startup_grace=1.0, started_at=clock.now)
+    assert 'never heard' in checked_every(never, clock, 0.1, 2.0).reason
+
+
+@pytest.mark.parametrize('kw,message', [
+    (dict(threshold=0), 'threshold'), (dict(window=1), 'window'), (dict(window=2.5), 'window'),
+    (dict(min_samples=1), 'min_samples'), (dict(window=20, min_samples=21), 'min_samples'),
+    (dict(min_std=0), 'min_std'), (dict(acceptable_pause=-0.1), 'acceptable_pause'),
+    (dict(bootstrap_timeout=0), 'timeout')])
+def test_invalid_phi_settings_are_refused_by_name(kw, message):
+    with pytest.raises(ValueError, match=message):
+        phi_monitor(**kw)

@@ -4,7 +4,7 @@ Plain Python, no ROS: ``scripts/bench_report`` runs the benchmarks and gathers t
 into one dict, and this module turns that dict into verdicts, tables and consistency checks.
 
 The figures dict has one key per benchmark (``pbr``, ``mechanisms``, ``adaptation``, ``buffering``,
-``service_manager``, ``master``, ``car``), each the JSON that benchmark wrote (absent when it did
+``service_manager``, ``master``, ``healing``, ``detection``, ``car``), each the JSON that benchmark wrote (absent when it did
 not run or failed), plus ``machine``, ``mode``, ``steps`` and ``plots``. Every verdict is computed
 from the figures; a claim whose figures are missing is "not measured", never guessed.
 """
@@ -24,6 +24,7 @@ SECTIONS = [
     'Car scenarios: FMECA rows with and without their mechanism',
     'The ROS master as a single point of failure',
     'Healing: the witness, re-joins, state transfer, memory',
+    'Failure detection under load: fixed timeouts against phi accrual',
     'Consistency checks',
     'Steps',
 ]
@@ -40,6 +41,7 @@ COMMANDS = {
     'service_manager': 'scripts/bench_service_manager',
     'master': 'scripts/bench_master',
     'healing': 'scripts/bench_healing',
+    'detection': 'scripts/bench_detection',
     'car': 'rosrun tjp_sim scenario NAME [--without MECHANISM] --json',
 }
 
@@ -485,6 +487,14 @@ def targets(f):
         out.append(('client pause of a join < 50 ms (state transfer to admission; worst of the run)',
                     '%s (median %s)' % (ms(heal['join_pause_max_s']), ms(heal.get('join_pause_median_s'))),
                     heal['join_pause_max_s'] < 0.05))
+    default = get(f, 'detection.default_rule')
+    rule = get(f, 'detection.rules.%s' % default) if default else None
+    if rule and rule.get('detection_median_ms') is not None:
+        out.append(('detection under load (1 core spinning, nodes starting): the default rule (%s) detects a power '
+                    'loss in < 50 ms (median) with 0 false suspicions' % default,
+                    '%.1f ms, %d false suspicion(s) in %.0f s' % (rule['detection_median_ms'], rule['false_suspicions'],
+                                                                  get(f, 'detection.observed_s')),
+                    rule['detection_median_ms'] < 50.0 and rule['false_suspicions'] == 0))
     totals = _adaptation_totals(f)
     if totals:
         out.append(('no request lost or duplicated in any adaptation', '%d lost, %d duplicated of %d'
@@ -781,6 +791,42 @@ def master_lines(f):
                                                      rows))
 
 
+def _rule_order(item):
+    """Fixed timeouts first, then phi, each by its number ('timeout 30 ms', 'phi 8, min std 4 ms')."""
+    kind, _, rest = item[0].partition(' ')
+    try:
+        value = float(rest.split(' ')[0].rstrip(','))
+    except ValueError:
+        value = 0.0
+    return (kind != 'timeout', value, item[0])
+
+
+def detection_lines(f):
+    d = get(f, 'detection')
+    if not d or not d.get('rules'):
+        return [_missing(f, 'detection')]
+    a = d.get('arrival') or {}
+    lines = ['Heartbeats every %g ms between two %s, one process spinning a core on the observer and %d launch rounds '
+             '(4 rospy nodes each, niceness 5) beside it; %d power losses of the peer (link down, then every process '
+             'killed); one probe runs every rule on the same beats (`%s`). Arrival gaps: median %s, p99 %s, max %s. '
+             'False suspicions over %.0f s with the peer alive, and that count extrapolated to an hour.' % (
+                 d['period_ms'], 'emulated hosts' if d.get('emulated_hosts') else 'processes of ONE host (no namespaces)',
+                 d['launch_rounds'], d['losses'], COMMANDS['detection'], num(a.get('gap_median_ms'), '%.1f ms'),
+                 num(a.get('gap_p99_ms'), '%.1f ms'), num(a.get('gap_max_ms'), '%.1f ms'), d['observed_s']), '']
+    lines += ['Detection: from the power loss asked to the verdict (an upper bound: the link-down command took %s '
+              'median); in brackets, from that command\'s return (a lower bound). Detectors %s.' % (
+                  num(d.get('link_down_command_median_ms'), '%.1f ms'),
+                  'under SCHED_FIFO %s (`~realtime_priority`)' % d['realtime_priority'] if d.get('realtime_priority')
+                  else 'at niceness -5 only, not real-time'), '']
+    lines += table(['rule', 'detection median', 'p99', 'max', 'missed', 'false suspicions', 'per hour'],
+                   [['**%s** (default)' % name if name == d.get('default_rule') else name,
+                     '%s (%s)' % (num(r['detection_median_ms'], '%.1f ms'), num(r.get('after_link_median_ms'), '%.1f ms')),
+                     num(r['detection_p99_ms'], '%.1f ms'),
+                     num(r['detection_max_ms'], '%.1f ms'), r['missed'], r['false_suspicions'],
+                     num(r['false_per_hour'], '%.0f')] for name, r in sorted(d['rules'].items(), key=_rule_order)])
+    return lines
+
+
 # -- consistency --------------------------------------------------------------------------------------
 
 def consistency(f):
@@ -822,6 +868,8 @@ def _consistency(f, check):
               % (len(samples), fo['crashes']))
         check('failover: median <= p99 <= max', fo['median_s'] <= fo['p99_s'] + 1e-12 <= fo['max_s'] + 2e-12)
         check('failover: wrong replies = sum over crashes', fo['wrong_replies'] == sum(s['wrong'] for s in samples))
+    for name, r in (get(f, 'detection.rules') or {}).items():
+        check('detection %s: detected + missed = losses' % name, r['detected'] + r['missed'] == get(f, 'detection.losses'))
     for name, c in (get(f, 'mechanisms.configs') or {}).items():
         check('%s: median <= p99' % name, c['median_s'] <= c['p99_s'])
     for r in get(f, 'buffering.rows') or []:
@@ -860,7 +908,8 @@ def build(f):
     builders = [(_claims_lines, None), (_targets_lines, None), (latency_lines, 'mechanisms'),
                 (resources_lines, 'mechanisms'), (failover_lines, 'pbr'), (adaptation_lines, 'adaptation'),
                 (buffering_lines, 'buffering'), (service_manager_lines, 'service_manager'), (car_lines, 'car'),
-                (master_lines, 'master'), (healing_lines, 'healing'), (_consistency_lines, None), (_steps_lines, None)]
+                (master_lines, 'master'), (healing_lines, 'healing'), (detection_lines, 'detection'),
+                (_consistency_lines, None), (_steps_lines, None)]
     for title, (builder, key) in zip(SECTIONS, builders):
         try:
             body = builder(f)

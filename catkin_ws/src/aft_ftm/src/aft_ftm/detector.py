@@ -12,14 +12,60 @@ in its own socket; on a loaded 2-core machine such stalls reach tens of millisec
 ``stall_after`` after the previous one marks the excess as this detector's own stall, and that
 time is not held against the peer. A crashed peer watched by a running detector is declared
 exactly as without it.
+
+Two rules decide when a silence is a failure:
+
+- :class:`HeartbeatMonitor`: a fixed ``timeout``.
+- :class:`PhiAccrualMonitor`: the phi accrual detector of Hayashibara et al. (2004), as Akka uses
+  it. The last ``window`` inter-arrival times (this detector's own stalls taken out) give a
+  normal model of when the next beat comes; the suspicion of a silence ``t`` is
+  ``phi(t) = -log10(P(next beat later than t))`` with mean ``mu + acceptable_pause`` and standard
+  deviation ``max(sigma, min_std)`` (Akka's logistic approximation of the normal tail, computed so
+  that it never overflows). The peer is declared failed when phi exceeds ``threshold``: a threshold
+  of 8 means a false suspicion once in 10^8 silences, if the model held. So the silence that is
+  judged a failure follows the peer's measured regularity: short on a quiet machine, longer while
+  beats come irregularly (nodes starting, a loaded core), and longer than any of the recent gaps
+  only by the margin the threshold asks. Until ``min_samples`` intervals are known (the first
+  beats after the peer is first heard) the model is not trusted, and the fixed
+  ``bootstrap_timeout`` decides, as the fixed rule would.
+
+  Why phi accrual rather than Chen et al. (2002): Chen's estimator (mean arrival plus a constant
+  safety margin alpha) adapts to the mean only, and on this machine the mean gap stays at the
+  period while its spread changes with the load; phi's margin scales with the measured spread,
+  which is what a loaded machine changes. Phi with a ``threshold`` and a ``min_std`` is Chen's
+  estimator with a margin of (threshold's z-score) x spread, bounded below.
+
+Both share the life cycle of :class:`PeerState`, with one change function and these edges:
+UNKNOWN -> ALIVE (first beat), ALIVE -> FAILED (the rule fires), UNKNOWN -> FAILED (never heard
+within ``startup_grace``). FAILED is final: a beat after it is counted (fail-silence broken), the
+peer is not revived; a re-joined peer gets a new monitor.
 """
+import collections
 import enum
+import math
+
+
+# The crash detectors' defaults (the node's parameters, the launch files' arguments, the benchmark's
+# "default" row): the rule and its settings. See scripts/bench_detection for the figures behind them.
+DEFAULT_RULE = 'timeout'           # or 'phi'
+DEFAULT_TIMEOUT = 0.03             # s: the fixed rule; phi's bootstrap timeout
+DEFAULT_PHI = {'threshold': 8.0, 'window': 100, 'min_std': 0.005, 'acceptable_pause': 0.0, 'min_samples': 10}
+DEFAULT_REALTIME_PRIORITY = 10    # SCHED_FIFO priority of the crash detectors' threads (0: off)
 
 
 class PeerState(enum.Enum):
     UNKNOWN = 0   # never heard
     ALIVE = 1
     FAILED = 2    # declared failed; final (fail-silence: it must not come back)
+
+
+# (from, to) -> why the edge exists. Every state change goes through HeartbeatMonitor._change.
+EDGES = {
+    (PeerState.UNKNOWN, PeerState.ALIVE): 'the first heartbeat',
+    (PeerState.ALIVE, PeerState.ALIVE): 'a further heartbeat',
+    (PeerState.ALIVE, PeerState.FAILED): 'the silence is judged a failure by the rule',
+    (PeerState.UNKNOWN, PeerState.FAILED): 'never heard within the start-up grace',
+}
 
 
 class Verdict(object):
@@ -62,7 +108,9 @@ class HeartbeatMonitor(object):
             self.beats_after_failure += 1
             self.last_info = info
             return True
-        self.state = PeerState.ALIVE
+        if self.last_heard is not None:
+            self._interval(max(0.0, now - self.last_heard - self.stalled))
+        self._change(PeerState.ALIVE)
         self.last_heard = now
         self.stalled = 0.0
         self.last_info = info
@@ -74,18 +122,34 @@ class HeartbeatMonitor(object):
         self._note_stall(now)
         if self.state == PeerState.ALIVE:
             silence = now - self.last_heard
-            if silence - self.stalled > self.timeout:
-                self.state = PeerState.FAILED
+            rule = self._judge(silence - self.stalled)
+            if rule is not None:
+                self._change(PeerState.FAILED)
                 excused = ', of which %.1f ms this detector was stalled' % (self.stalled * 1e3) if self.stalled else ''
-                return Verdict('no heartbeat for %.1f ms%s (timeout %.1f ms)'
-                               % (silence * 1e3, excused, self.timeout * 1e3), silence, self.last_info)
+                return Verdict('no heartbeat for %.1f ms%s (%s)' % (silence * 1e3, excused, rule),
+                               silence, self.last_info)
         elif self.state == PeerState.UNKNOWN and self.startup_grace > 0:
             silence = now - self.started_at
             if silence > self.startup_grace:
-                self.state = PeerState.FAILED
+                self._change(PeerState.FAILED)
                 return Verdict('never heard within the start-up grace of %.1f s'
                                % self.startup_grace, silence, None)
         return None
+
+    def _change(self, state):
+        """The one place the peer's state changes; an edge not in EDGES is a bug."""
+        if (self.state, state) not in EDGES:
+            raise AssertionError('detector: no edge %s -> %s' % (self.state.name, state.name))
+        self.state = state
+
+    def _judge(self, silence):
+        """The rule: a description of why ``silence`` (own stalls taken out) is a failure, else None."""
+        if silence > self.timeout:
+            return 'timeout %.1f ms' % (self.timeout * 1e3)
+        return None
+
+    def _interval(self, seconds):
+        """A new inter-arrival time (own stalls taken out): the fixed rule has no use for it."""
 
     def _note_stall(self, now):
         """Add to ``stalled`` the part of a late check's gap beyond stall_after that follows the
@@ -99,3 +163,111 @@ class HeartbeatMonitor(object):
         if now > stall_start and now - previous > self.stall_after:
             self.stalled += now - stall_start
             self.stalls += 1
+
+
+# Akka's logistic approximation of the standard normal tail: P(Z > y) ~ 1 / (1 + exp(a(y))).
+_A1, _A3 = 1.5976, 0.070566
+
+
+def _softplus(a):
+    """log(1 + exp(a)) without overflow."""
+    return a + math.log1p(math.exp(-a)) if a > 0 else math.log1p(math.exp(a))
+
+
+def phi(silence, mean, std):
+    """-log10 of the probability that a beat expected at ``mean`` (+- ``std``, normal) comes later
+    than ``silence``: 0.3 at the mean, about 8 at 5.6 standard deviations beyond it."""
+    y = (silence - mean) / std
+    return _softplus(y * (_A1 + _A3 * y * y)) / math.log(10.0)
+
+
+def phi_z(threshold):
+    """The number of standard deviations beyond the mean at which phi reaches ``threshold``."""
+    a = math.log(math.expm1(threshold * math.log(10.0))) if threshold < 300 else threshold * math.log(10.0)
+    low, high = -10.0, 100.0
+    for _ in range(100):                      # bisection on an increasing cubic: bounded
+        mid = (low + high) / 2.0
+        if mid * (_A1 + _A3 * mid * mid) < a:
+            low = mid
+        else:
+            high = mid
+    return high
+
+
+class PhiAccrualMonitor(HeartbeatMonitor):
+    """Watches one peer's heartbeats with the phi accrual rule (see the module docstring).
+
+    ``threshold``: phi above which the peer is declared failed; ``window``: the inter-arrival
+    times kept; ``min_std`` (s): the spread assumed at least (a perfectly regular peer would
+    otherwise be declared failed by the first late beat); ``acceptable_pause`` (s): added to the
+    mean, a pause tolerated on top of the model; ``min_samples``: intervals needed before the model
+    decides, ``bootstrap_timeout`` (s) deciding until then.
+    """
+
+    def __init__(self, threshold, bootstrap_timeout, window=100, min_std=0.005, acceptable_pause=0.0,
+                 min_samples=10, startup_grace=0.0, started_at=0.0, stall_after=None):
+        HeartbeatMonitor.__init__(self, bootstrap_timeout, startup_grace, started_at, stall_after)
+        if not threshold > 0:
+            raise ValueError('threshold must be > 0, got %r' % (threshold,))
+        if isinstance(window, bool) or not isinstance(window, int) or window < 2:
+            raise ValueError('window must be an integer >= 2, got %r' % (window,))
+        if isinstance(min_samples, bool) or not isinstance(min_samples, int) or not 2 <= min_samples <= window:
+            raise ValueError('min_samples must be an integer from 2 to window (%d), got %r' % (window, min_samples))
+        if not min_std > 0:
+            raise ValueError('min_std must be > 0, got %r' % (min_std,))
+        if not acceptable_pause >= 0:
+            raise ValueError('acceptable_pause must be >= 0, got %r' % (acceptable_pause,))
+        self.threshold = threshold
+        self.min_std = min_std
+        self.acceptable_pause = acceptable_pause
+        self.min_samples = min_samples
+        self.intervals = collections.deque(maxlen=window)
+        self._sum = 0.0
+        self._squares = 0.0
+
+    def _interval(self, seconds):
+        if len(self.intervals) == self.intervals.maxlen:
+            old = self.intervals[0]
+            self._sum -= old
+            self._squares -= old * old
+        self.intervals.append(seconds)
+        self._sum += seconds
+        self._squares += seconds * seconds
+
+    def learning(self):
+        """True while too few intervals are known for the model to decide."""
+        return len(self.intervals) < self.min_samples
+
+    def model(self):
+        """(mean with the acceptable pause, standard deviation) of the next arrival, in seconds."""
+        n = len(self.intervals)
+        mean = self._sum / n
+        variance = max(0.0, self._squares / n - mean * mean)   # rounding can make it slightly negative
+        return mean + self.acceptable_pause, max(math.sqrt(variance), self.min_std)
+
+    def phi(self, silence):
+        """The suspicion of a silence (own stalls taken out); None while learning."""
+        if self.learning():
+            return None
+        mean, std = self.model()
+        return phi(silence, mean, std)
+
+    def suspicion_after(self):
+        """The silence (own stalls taken out) after which the peer would be declared failed now."""
+        if self.learning():
+            return self.timeout
+        mean, std = self.model()
+        return mean + phi_z(self.threshold) * std
+
+    def _judge(self, silence):
+        if self.learning():
+            if silence > self.timeout:
+                return 'timeout %.1f ms while learning (%d of %d intervals)' % (
+                    self.timeout * 1e3, len(self.intervals), self.min_samples)
+            return None
+        value = self.phi(silence)
+        if value > self.threshold:
+            mean, std = self.model()
+            return 'phi %.1f > %g: next beat expected at %.1f +- %.1f ms over %d intervals' % (
+                value, self.threshold, mean * 1e3, std * 1e3, len(self.intervals))
+        return None

@@ -7,7 +7,7 @@ import rospy
 from aft_msgs.msg import Configuration, Failure, Heartbeat
 
 from .. import config, health
-from ..detector import HeartbeatMonitor, PeerState
+from ..detector import DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor, PeerState, PhiAccrualMonitor
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..sites import this_host
 from .alarms import alarm
@@ -23,12 +23,25 @@ class CrashDetectorNode(object):
     Parameters:
         ~site (str, required): this site's name.  ~peer (str, required): the watched site's name.
         ~period (float, 0.01 s), ~timeout (float, 0.03 s)
+        ~detector (str, aft_ftm.detector.DEFAULT_RULE): the rule that judges a silence a failure (aft_ftm.detector):
+            ``timeout``, a fixed ~timeout; ``phi``, phi accrual, ~timeout deciding only while the first
+            ~phi_min_samples intervals are learnt.
+        ~phi_threshold (float, 8), ~phi_window (int, 100 intervals), ~phi_min_std (float, 0.005 s),
+        ~phi_pause (float, 0 s: the acceptable pause added to the mean), ~phi_min_samples (int, 10):
+            the phi rule's settings (read, and checked, only with ~detector phi).
         ~startup_grace (float, 0 = never): declare a never-heard peer failed after this long.
         ~site_pid (int, default: this node's parent, i.e. the site's roslaunch): sent in heartbeats
             so that the peer's Recovery can enforce fail-silence on the same host.
         ~niceness (int, default -5): the detector's own process priority. A failure detector must not
             be starved by the load it watches (its peer would declare this site failed); lowering
             it needs privileges: without them it warns and runs at the default.
+        ~realtime_priority (int 0-99, aft_ftm.detector.DEFAULT_REALTIME_PRIORITY; 0 = off): every thread
+            of the detector under SCHED_FIFO at this priority (threads rospy starts later included,
+            checked every second). Under load a late heartbeat was a starved sender far more often than
+            a slow link (scripts/bench_detection): at real-time priority the heartbeats stay on time on
+            a loaded 2-core machine. The detector sleeps between beats, so it takes little CPU from
+            anybody. Without the privilege it warns, raises an alarm (``detector_priority``) and runs
+            at its niceness.
         ~follow_witness (bool, default false): watch the peer again when the witness's configuration
             (/aft/witness/configuration) names it once more (it re-joined after a failure).
     Publishes:
@@ -49,7 +62,7 @@ class CrashDetectorNode(object):
         self.site = param('site', config.non_empty_str, required=True)
         self.peer = param('peer', config.non_empty_str, required=True)
         self.period = param('period', config.positive_float, 0.01)
-        timeout = param('timeout', config.positive_float, 0.03)
+        timeout = param('timeout', config.positive_float, DEFAULT_TIMEOUT)
         if timeout <= self.period:
             raise config.ConfigError('parameter %s (%r) must be longer than ~period (%r)'
                                      % (rospy.resolve_name('~timeout'), timeout, self.period))
@@ -57,9 +70,29 @@ class CrashDetectorNode(object):
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
+        self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
+        if self.realtime_priority > 99:
+            raise config.ConfigError('parameter %s must be from 0 (off) to 99, got %r'
+                                     % (rospy.resolve_name('~realtime_priority'), self.realtime_priority))
+        self.realtime_threads = set()   # thread ids already under SCHED_FIFO
+        self.realtime_error = None
+        self.realtime_told = False
+        self.started = time.monotonic()
         self.timeout, self.grace = timeout, grace
-        # A check later than one period after the previous one: this detector itself was stalled.
-        self.monitor = HeartbeatMonitor(timeout, grace, time.monotonic(), stall_after=self.period)
+        self.detector = param('detector', config.choice('timeout', 'phi'), DEFAULT_RULE)
+        self.phi = None
+        if self.detector == 'phi':
+            self.phi = {'threshold': param('phi_threshold', config.positive_float, DEFAULT_PHI['threshold']),
+                        'window': param('phi_window', config.positive_int, DEFAULT_PHI['window']),
+                        'min_std': param('phi_min_std', config.positive_float, DEFAULT_PHI['min_std']),
+                        'acceptable_pause': param('phi_pause', config.non_negative_float,
+                                                  DEFAULT_PHI['acceptable_pause']),
+                        'min_samples': param('phi_min_samples', config.positive_int, DEFAULT_PHI['min_samples'])}
+            if not 2 <= self.phi['min_samples'] <= self.phi['window']:
+                raise config.ConfigError('parameters %s (%r) and %s (%r): need 2 <= min_samples <= window' % (
+                    rospy.resolve_name('~phi_min_samples'), self.phi['min_samples'],
+                    rospy.resolve_name('~phi_window'), self.phi['window']))
+        self.monitor = self._new_monitor(time.monotonic())
         self.lock = threading.Lock()
         self.host = this_host()
         self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),
@@ -76,6 +109,14 @@ class CrashDetectorNode(object):
         # 60 s): (the monitor that declared it, the message), published once Recovery connects.
         self.undelivered = None
 
+    def _new_monitor(self, now):
+        """A monitor of the peer by the chosen rule. A check later than one period after the
+        previous one means this detector itself was stalled (stall_after)."""
+        if self.phi is not None:
+            return PhiAccrualMonitor(bootstrap_timeout=self.timeout, startup_grace=self.grace, started_at=now,
+                                     stall_after=self.period, **self.phi)
+        return HeartbeatMonitor(self.timeout, self.grace, now, stall_after=self.period)
+
     def setup(self, timeout):
         try:
             os.setpriority(os.PRIO_PROCESS, 0, self.niceness)
@@ -86,6 +127,7 @@ class CrashDetectorNode(object):
             self.ports.bind(name)
         self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
+        self._realtime()
         if self.follow_witness:
             self.configuration = rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration,
                                                   tcp_nodelay=True)
@@ -93,6 +135,37 @@ class CrashDetectorNode(object):
         self.thread.start()
         self.diagnostics = Diagnostics(self._health, self.site)
         return True
+
+    def _realtime(self):
+        """Put every thread of this process not yet under SCHED_FIFO there (threads started by those
+        already there inherit it; others, started by rospy's own threads, are caught at the next call)."""
+        if not self.realtime_priority or self.realtime_error:
+            return
+        try:
+            tids = set(int(t) for t in os.listdir('/proc/self/task'))
+        except OSError as e:
+            self.realtime_error = str(e)
+            return
+        for tid in tids - self.realtime_threads:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
+            except ProcessLookupError:
+                continue                  # the thread ended meanwhile
+            except OSError as e:
+                self.realtime_error = 'SCHED_FIFO %d refused: %s' % (self.realtime_priority, e)
+                rospy.logwarn('%s: %s', rospy.get_name(), self.realtime_error)
+                return
+        self.realtime_threads = tids
+
+    def _tell_realtime_error(self, now):
+        """The alarm that this detector runs without real-time priority: once, when a subscriber of the
+        alarms is connected (published at once, it would reach nobody), or after 10 s in any case."""
+        if self.realtime_error is None or self.realtime_told:
+            return
+        if self._connected('alarms') or now - self.started > 10.0:
+            self.realtime_told = True
+            alarm(self.ports, 'pbr', 'detector_priority', 'the crash detector of site %s runs without real-time '
+                  'priority (%s): its heartbeats may be late under load' % (self.site, self.realtime_error))
 
     def _health(self):
         with self.lock:
@@ -123,7 +196,7 @@ class CrashDetectorNode(object):
             if self.monitor.state != PeerState.FAILED:
                 return
             now = time.monotonic()
-            self.monitor = HeartbeatMonitor(self.timeout, self.grace, now, stall_after=self.period)
+            self.monitor = self._new_monitor(now)
             self.monitor.beat(now)   # heard (it joined): silent from now on, it is declared failed
             self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
@@ -132,9 +205,13 @@ class CrashDetectorNode(object):
         """Send a heartbeat every period; check the peer five times as often, so that a
         failure is declared within period/5 of the timeout expiring."""
         tick = self.period / 5.0
-        next_beat = next_tick = time.monotonic()
+        next_beat = next_tick = next_realtime = time.monotonic()
         while not rospy.is_shutdown():
             now = time.monotonic()
+            if now >= next_realtime:
+                self._realtime()
+                next_realtime = now + 1.0
+                self._tell_realtime_error(now)
             if now >= next_beat and self.stopped is None:
                 self.seq += 1
                 try:
