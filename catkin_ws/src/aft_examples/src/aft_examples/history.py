@@ -356,3 +356,24 @@ def read_history(path, client):
         ops.append(Op(client, i, begun['invoke'], None, begun['op'], begun['amount'], 'unfinished',
                       tag=begun.get('tag', '')))
     return ops
+
+
+# -- what a failed call tells its client -------------------------------------------------------------
+
+# rospy's words when the request never left the client (no Proxy registered, or none listening).
+_NOT_SENT = ('unavailable', 'unable to connect', 'connection refused', 'service [')
+# rospy's words when the request was sent and the connection then broke: its fate is unknown.
+_CUT = ('transport error', 'unable to receive data', 'connection reset', 'broken pipe', 'outcome unknown')
+
+
+def classify_error(text):
+    """The outcome of a call that raised, from its error text: 'not_executed' (the request never reached
+    a Proxy, or the Proxy answered "not executed"), 'indeterminate' (the connection broke with the
+    request sent, or the Proxy gave up: the client cannot know), or 'error' (the server's or a
+    mechanism's error: nothing changed)."""
+    low = (text or '').lower()
+    if any(word in low for word in _CUT):
+        return 'indeterminate'
+    if 'not executed' in low or any(word in low for word in _NOT_SENT):
+        return 'not_executed'
+    return 'error'
