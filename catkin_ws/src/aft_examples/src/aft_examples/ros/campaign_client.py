@@ -46,8 +46,10 @@ class CampaignClientNode(object):
         return True
 
     def operation(self):
-        if self.rng.random() < 0.35:
-            return 'withdraw', self.rng.randint(1, 15)
+        """Deposits and withdrawals that keep the balance near zero, so that some withdrawals are
+        refused for insufficient funds (the checker checks those refusals too)."""
+        if self.rng.random() < 0.45:
+            return 'withdraw', self.rng.randint(1, 20)
         return 'deposit', self.rng.randint(1, 10)
 
     def run(self):
