@@ -1,4 +1,4 @@
-"""A short campaign (issue 15): scripts/campaign with about 50 faults on the PBR and LFR bank, two
+"""A short campaign (issue 15): scripts/campaign with 40 faults (two segments of 20) on the PBR and LFR bank, two
 client processes each through its own Proxy, every fault healed before the next; the history checker
 must find no violation. The campaign runs in a process of its own with a master of its own; every
 process it starts carries the test's AFT_TEST_TAG and is killed at the end, whatever happened.
@@ -17,7 +17,7 @@ from leftovers import kill_tagged
 from reporting import report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 50))
+FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 40))
 
 
 def test_a_short_campaign_finds_no_violation():
@@ -26,6 +26,7 @@ def test_a_short_campaign_finds_no_violation():
     tag = uuid.uuid4().hex
     env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=os.path.join(out, 'ros_home'))
     argv = [sys.executable, os.path.join(ROOT, 'scripts', 'campaign'), '--faults', str(FAULTS), '--seed', str(seed),
+            '--per-segment', str(max(1, FAULTS // 2)),
             '--out', out]
     print('AFT_CAMPAIGN_SEED=%d: %s' % (seed, ' '.join(argv[1:])))
     try:

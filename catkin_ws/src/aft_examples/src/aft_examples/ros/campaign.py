@@ -368,8 +368,24 @@ class Segment(object):
         self.progress = progress or (lambda record: None)
         self.records = []
         self.kills = {}
+        self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
 
     def run(self):
+        import rospy
+        from aft_msgs.msg import Alarm
+        alarms = rospy.Subscriber('/aft/alarms', Alarm, lambda a: self.alarms.append((a.kind, a.detail)))
+        try:
+            return self._run()
+        finally:
+            alarms.unregister()
+
+    def alarm_counts(self):
+        counts = {}
+        for kind, _ in self.alarms:
+            counts[kind] = counts.get(kind, 0) + 1
+        return counts
+
+    def _run(self):
         mechanism = self.faults[0].mechanism
         deployment = CampaignDeployment(self.log_dir, mechanism, self.clients, seed=self.seed)
         rng = __import__('random').Random(self.seed * 7919 + self.faults[0].index)
