@@ -361,7 +361,7 @@ def read_history(path, client):
 # -- what a failed call tells its client -------------------------------------------------------------
 
 # rospy's words when the request never left the client (no Proxy registered, or none listening).
-_NOT_SENT = ('unavailable', 'unable to connect', 'connection refused', 'service [')
+_NOT_SENT = ('unavailable', 'unable to connect', 'connection refused')
 # rospy's words when the request was sent and the connection then broke: its fate is unknown.
 _CUT = ('transport error', 'unable to receive data', 'connection reset', 'broken pipe', 'outcome unknown')
 
@@ -372,6 +372,8 @@ def classify_error(text):
     request sent, or the Proxy gave up: the client cannot know), or 'error' (the server's or a
     mechanism's error: nothing changed)."""
     low = (text or '').lower()
+    if 'responded with an error' in low:   # the Proxy answered: the server's or a mechanism's word
+        return 'not_executed' if 'not executed' in low else 'error'
     if any(word in low for word in _CUT):
         return 'indeterminate'
     if 'not executed' in low or any(word in low for word in _NOT_SENT):
