@@ -16,6 +16,8 @@ from aft_examples.history import classify_error
     ("service [/account1] responded with an error: b'service cannot process request: cannot withdraw 18 from a "
      "balance of 12'", 'error'),
     ("service [/account1] responded with an error: b'not executed: the reply cache is full'", 'not_executed'),
+    ("service [/account2] responded with an error: b'service cannot process request: outcome UNKNOWN: no reply to "
+     "request 5 within 30.0 s'", 'indeterminate'),
 ])
 def test_a_failed_call_is_classified_by_what_its_client_can_know(text, outcome):
     assert classify_error(text) == outcome

@@ -372,7 +372,9 @@ def classify_error(text):
     request sent, or the Proxy gave up: the client cannot know), or 'error' (the server's or a
     mechanism's error: nothing changed)."""
     low = (text or '').lower()
-    if 'responded with an error' in low:   # the Proxy answered: the server's or a mechanism's word
+    if 'responded with an error' in low:   # the Proxy answered: its own word, the server's or a mechanism's
+        if 'outcome unknown' in low:         # the Proxy's call limit passed: it may still execute
+            return 'indeterminate'
         return 'not_executed' if 'not executed' in low else 'error'
     if any(word in low for word in _CUT):
         return 'indeterminate'
