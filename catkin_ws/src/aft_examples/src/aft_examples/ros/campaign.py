@@ -369,6 +369,7 @@ class Segment(object):
         self.records = []
         self.kills = {}
         self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
+        self.skipped = 0   # faults not run: an earlier one left the deployment unhealed
 
     def run(self):
         import rospy
@@ -401,6 +402,13 @@ class Segment(object):
             for fault in self.faults:
                 self.records.append(self._one(fault, deployment, rng))
                 self.progress(self.records[-1])
+                if self.records[-1]['outcome'].startswith('unhealed'):
+                    # Never a fault on a deployment that is not whole: a second replica down loses the
+                    # state (the witness then rightly refuses to serve). The segment ends here.
+                    self.skipped = len(self.faults) - len(self.records)
+                    self.log('segment %d: fault %d left the deployment unhealed; its %d remaining faults are '
+                             'skipped' % (fault.segment, fault.index, self.skipped))
+                    break
             time.sleep(0.5)   # load after the last fault
             unfinished = deployment.stop_clients()
             self.finals = final_states(deployment)
