@@ -1,5 +1,5 @@
 SHELL := /bin/bash
-.PHONY: setup test unit integration demo demo-pbr bench clean
+.PHONY: setup test unit integration demo demo-pbr bench campaign clean
 ENV := . scripts/env.sh &&
 
 setup:
@@ -22,6 +22,9 @@ demo-pbr: setup
 
 bench: setup
 	$(ENV) python scripts/bench_report $(if $(QUICK),--quick)
+
+campaign: setup
+	$(ENV) python scripts/campaign --faults $(or $(FAULTS),1000) $(if $(SEED),--seed $(SEED))
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel

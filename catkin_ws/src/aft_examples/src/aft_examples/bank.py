@@ -24,8 +24,9 @@ class Account(object):
         self.count = count
         self.digest = digest
 
-    def apply(self, op, amount):
-        """Apply one operation; returns (balance, count, digest). Raises ValueError or InsufficientFunds."""
+    def apply(self, op, amount, tag=''):
+        """Apply one operation; returns (balance, count, digest). Raises ValueError or InsufficientFunds.
+        A tag, if given, enters the hash chain with the operation (an untagged chain is unchanged)."""
         if op not in OPERATIONS:
             raise ValueError('unknown operation %r (known: %s)' % (op, ', '.join(OPERATIONS)))
         if amount < 0:
@@ -34,7 +35,7 @@ class Account(object):
             raise InsufficientFunds('cannot withdraw %d from a balance of %d' % (amount, self.balance))
         self.balance += amount if op == 'deposit' else -amount
         self.count += 1
-        link = ('%s|%s:%d' % (self.digest, op, amount)).encode()
+        link = ('%s|%s:%d' % (self.digest, op, amount) + (':' + tag if tag else '')).encode()
         self.digest = hashlib.sha256(link).hexdigest()[:16]
         return self.balance, self.count, self.digest
 

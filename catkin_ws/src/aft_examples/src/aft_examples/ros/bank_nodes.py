@@ -47,7 +47,7 @@ class BankServerNode(StateManager):
     def _on_request(self, req):
         with self.state_lock:
             try:
-                balance, count, digest = self.account.apply(req.op, req.amount)
+                balance, count, digest = self.account.apply(req.op, req.amount, req.tag)
             except (ValueError, InsufficientFunds) as e:
                 raise rospy.ServiceException(str(e))
         return AccountResponse(balance=balance, count=count, digest=digest)

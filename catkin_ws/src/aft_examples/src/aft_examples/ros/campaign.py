@@ -1,0 +1,478 @@
+"""The campaign (issue 15): the PBR (or LFR) bank with several clients, each through its own Proxy,
+under a seeded schedule of faults (aft_examples.schedule), each fault healed and the failed site
+re-joined before the next; at the end of each segment the clients' histories and the servers' final
+states are checked (aft_examples.history).
+
+Faults reach the deployment through a backend (FaultBackend): ProcessBackend injects those of one
+host (signals to nodes found through the master's getPid, a site's process tree, its power loss);
+HostsBackend adds the host-level ones (link down, partitions, rate limits) through
+aft_ftm.hosts_exec.Hosts, for a deployment whose sites run on emulated hosts.
+"""
+import os
+import signal
+import threading
+import time
+
+import psutil
+import rosgraph
+
+from aft_ftm.ros.fencing import node_api
+from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph
+from aft_ftm.sites import Site, power_off_sites, process_tree, wait_until
+from aft_examples import history, schedule
+from aft_examples.ros.deployment import replica_services, witness_status
+
+REPLICAS = ('master', 'slave')
+CALL_TIMEOUT = 30.0     # a Proxy gives a call up after this long ("outcome UNKNOWN": a violation)
+HEAL_TIMEOUT = 90.0     # the pair whole again within this, or the fault is 'unhealed'
+JOIN_PATIENCE = 30.0
+SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
+
+
+class CampaignError(RuntimeError):
+    """The campaign could not run (a deployment that does not start, a fault that cannot be injected)."""
+
+
+def _pid_of(node, caller='/campaign', timeout=1.0):
+    """The pid of a running node, asked through its XML-RPC API (None if it does not answer)."""
+    try:
+        uri = rosgraph.Master(caller).lookupNode(node)
+        code, _, pid = node_api(uri, timeout).getPid(caller)
+        return pid if code == 1 else None
+    except Exception:   # not registered, or not answering (dead, frozen)
+        return None
+
+
+def _signal(pids, sig):
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+class CampaignDeployment(object):
+    """The sites of a campaign segment, each its own roslaunch process tree: the witness (its record
+    in a state file, so that it may be killed and restarted), the replicas MASTER and SLAVE, and per
+    client a Proxy site (proxyK offering /accountK) and the client process (clientK)."""
+
+    def __init__(self, log_dir, mechanism='pbr', clients=2, timeout=0.15, seed=0, env=None):
+        if clients < 1:
+            raise CampaignError('at least one client is needed, got %d' % clients)
+        self.log_dir = log_dir
+        self.mechanism = mechanism
+        self.clients = clients
+        self.env = env
+        self.stop_file = os.path.join(log_dir, 'stop')
+        self.launch = {
+            'witness': ('aft_ftm', 'witness.launch', dict(state_file=os.path.join(log_dir, 'witness.state'))),
+        }
+        replica = dict(timeout=timeout, server_timeout=1.0)
+        if mechanism != 'pbr':
+            replica['mechanism'] = mechanism
+        for name, peer, role in (('master', 'slave', 'primary'), ('slave', 'master', 'backup')):
+            self.launch[name] = ('aft_examples', 'demo_replica_site.launch', dict(replica, site=name, peer=peer,
+                                                                                  role=role))
+        for k in range(1, clients + 1):
+            self.launch['proxy%d' % k] = ('aft_ftm', 'proxy.launch', dict(
+                service='/account%d' % k, service_type='aft_msgs/Account', witness='false', name='proxy%d' % k,
+                timeout=CALL_TIMEOUT))
+        self.client_argv = {'client%d' % k: [
+            'rosrun', 'aft_examples', 'campaign_client', '__name:=client%d' % k, 'account:=/account%d' % k,
+            '_history:=%s' % self.history_path(k), '_stop_file:=%s' % self.stop_file, '_seed:=%d' % (seed * 100 + k)]
+            for k in range(1, clients + 1)}
+        self.sites = {}
+        self.starts = {}
+
+    def history_path(self, k):
+        return os.path.join(self.log_dir, 'client%d.history' % k)
+
+    def _site(self, name):
+        if name in self.client_argv:
+            argv = self.client_argv[name]
+        else:
+            pkg, launch_file, args = self.launch[name]
+            argv = roslaunch(pkg, launch_file, **args)
+        self.starts[name] = self.starts.get(name, 0) + 1
+        return Site(name, argv, self.env, os.path.join(self.log_dir, '%s.%d.log' % (name, self.starts[name])))
+
+    def start(self, timeout=120.0):
+        os.makedirs(self.log_dir, exist_ok=True)
+        clean_dead_nodes()
+        started = time.monotonic()
+        for name in ('witness', 'master', 'slave'):
+            self.sites[name] = self._site(name).start()
+        left = lambda: timeout - (time.monotonic() - started)   # noqa: E731
+        for name in REPLICAS:
+            missing = wait_for_graph(replica_services(name), timeout=left(), abort=self._exited)
+            if missing:
+                raise CampaignError('replica %s did not come up: missing %s (logs in %s)'
+                                    % (name, ', '.join(missing)[:300], self.log_dir))
+        if not wait_until(lambda: (witness_status() or _Status).backup, max(5.0, left()), 0.05):
+            raise CampaignError('the pair did not form: witness %s (logs in %s)' % (witness_status(), self.log_dir))
+        for k in range(1, self.clients + 1):
+            self.sites['proxy%d' % k] = self._site('proxy%d' % k).start()
+        missing = wait_for_graph(['/account%d' % k for k in range(1, self.clients + 1)], timeout=max(5.0, left()),
+                                 abort=self._exited)
+        if missing:
+            raise CampaignError('Proxies did not come up: missing %s (logs in %s)' % (missing, self.log_dir))
+        for name in sorted(self.client_argv):
+            self.sites[name] = self._site(name).start()
+        return time.monotonic() - started
+
+    def _exited(self):
+        for name, site in sorted(self.sites.items()):
+            why = site.failure()
+            if why:
+                return why + ' while starting'
+        return None
+
+    def relaunch(self, name):
+        """Start site name again; a replica comes back as a backup and joins the primary by itself."""
+        old = self.sites.get(name)
+        if old is not None:
+            old.stop(grace=1.0)
+        clean_dead_nodes('/campaign')
+        if name in REPLICAS:
+            pkg, launch_file, args = self.launch[name]
+            self.launch[name] = (pkg, launch_file, dict(args, role='backup'))
+        self.sites[name] = self._site(name).start()
+        return self.sites[name]
+
+    def stop_clients(self, timeout=CALL_TIMEOUT + 10.0):
+        """Ask the clients to stop after their call in flight; those still running after timeout are
+        killed (their last call is then unfinished). Returns the names killed."""
+        with open(self.stop_file, 'w'):
+            pass
+        clients = [self.sites[name] for name in sorted(self.client_argv) if name in self.sites]
+        wait_until(lambda: not any(site.alive() for site in clients), timeout, 0.05)
+        killed = [site.name for site in clients if site.alive()]
+        power_off_sites([site for site in clients if site.alive()])
+        return killed
+
+    def teardown(self):
+        power_off_sites(list(self.sites.values()))
+        clean_dead_nodes('/campaign')
+
+
+class _Status(object):
+    epoch, primary, backup = 0, '', ''
+
+
+class FaultBackend(object):
+    """Injects a fault of the schedule into a deployment. ``offered`` names what it can inject
+    (aft_examples.schedule.NEEDS). inject() returns when the fault itself is over (a freeze thawed, a
+    partition healed, a node killed); healing what it broke (re-joins, restarts) is the runner's."""
+    offered = ()
+
+    def inject(self, fault, deployment, site_of, rng):
+        """Inject fault; site_of(role) -> site name now. Returns a dict: start (wall clock), end, what
+        (the processes or links hit, in words), proxy_killed (the client whose Proxy died, or None)."""
+        raise NotImplementedError
+
+
+class ProcessBackend(FaultBackend):
+    """The faults of one host: signals to processes (nodes found through the master's getPid, sites
+    by their process trees)."""
+    offered = ('process',)
+
+    def _node(self, fault, site_of, rng, deployment):
+        target = fault.target
+        if target == 'proxy':
+            k = rng.randint(1, deployment.clients)
+            return '/proxy%d' % k, 'client%d' % k
+        if target == 'witness':
+            return '/aft/witness', None
+        role, _, node = target.partition('/')
+        return '/%s/%s' % (site_of(role), node), None
+
+    def inject(self, fault, deployment, site_of, rng):
+        kind = fault.kind
+        if kind in ('kill', 'freeze_node'):
+            node, client = self._node(fault, site_of, rng, deployment)
+            pid = _pid_of(node)
+            if pid is None:
+                raise CampaignError('fault %d: node %s has no pid (not running?)' % (fault.index, node))
+            start = time.time()
+            if kind == 'kill':
+                _signal([pid], signal.SIGKILL)
+                return dict(start=start, end=time.time(), what='%s (pid %d) killed' % (node, pid),
+                            proxy_killed=client)
+            _signal([pid], signal.SIGSTOP)
+            time.sleep(fault.duration)
+            _signal([pid], signal.SIGCONT)
+            return dict(start=start, end=time.time(), what='%s (pid %d) frozen %.2f s' % (node, pid, fault.duration),
+                        proxy_killed=None)
+        if kind in ('freeze_site', 'power_loss'):
+            name = site_of(fault.target)
+            site = deployment.sites[name]
+            if not site.alive():
+                raise CampaignError('fault %d: site %s is not running' % (fault.index, name))
+            if kind == 'power_loss':
+                count = site.power_off()
+                start = site.powered_off_at or time.time()
+                return dict(start=start, end=time.time(), what='site %s powered off (%d processes)' % (name, count),
+                            proxy_killed=None)
+            tree = [p.pid for p in process_tree(site.pid)]
+            start = time.time()
+            _signal(tree, signal.SIGSTOP)
+            time.sleep(fault.duration)
+            _signal(tree, signal.SIGCONT)
+            return dict(start=start, end=time.time(), what='site %s frozen %.2f s (%d processes)'
+                        % (name, fault.duration, len(tree)), proxy_killed=None)
+        raise CampaignError('fault %d: %s is not a fault of one host (offered: %s)'
+                            % (fault.index, kind, ', '.join(self.offered)))
+
+
+class HostsBackend(ProcessBackend):
+    """The process faults, plus those of emulated hosts (aft_ftm.hosts_exec.Hosts): a host's power loss
+    by its link down first, partitions of a host or a pair and their healing, rate limits.
+
+    hosts: an entered Hosts; host_of: {site name: host name} for the deployment's sites, e.g. the
+    hosted PBR deployment's (branch wt_hostsites), which places every site on a host of its own.
+    """
+    offered = ('process', 'hosts')
+    RATE_KBIT = 200
+
+    def __init__(self, hosts, host_of):
+        self.hosts = hosts
+        self.host_of = dict(host_of)
+
+    def _host(self, role, site_of):
+        if role == 'client':
+            return self.host_of['proxy1']
+        if role == 'witness':
+            return self.host_of['witness']
+        return self.host_of[site_of(role)]
+
+    def inject(self, fault, deployment, site_of, rng):
+        kind = fault.kind
+        if kind == 'power_loss':
+            name = site_of(fault.target)
+            start = time.time()
+            self.hosts.power_off(self.host_of[name])
+            return dict(start=start, end=time.time(), what='host %s powered off' % self.host_of[name],
+                        proxy_killed=None)
+        if kind in ('partition', 'partition_pair'):
+            ends = fault.target.split('-')
+            hosts = [self._host(role, site_of) for role in ends]
+            start = time.time()
+            self.hosts.partition(*hosts)
+            time.sleep(fault.duration)
+            self.hosts.heal(*hosts)
+            return dict(start=start, end=time.time(), what='%s cut %.2f s' % ('|'.join(hosts), fault.duration),
+                        proxy_killed=None)
+        if kind == 'bandwidth':
+            host = self._host(fault.target, site_of)
+            start = time.time()
+            self.hosts.rate(host, self.RATE_KBIT)
+            time.sleep(fault.duration)
+            self.hosts.unrate(host)
+            return dict(start=start, end=time.time(), what='%s at %d kbit/s %.2f s' % (host, self.RATE_KBIT,
+                                                                                       fault.duration),
+                        proxy_killed=None)
+        return super(HostsBackend, self).inject(fault, deployment, site_of, rng)
+
+
+def _down(site):
+    """Why a site is down (its roslaunch exited, or a node of it died: a Proxy is not required by its
+    roslaunch, which then lives on without it), or None."""
+    return site.failure() if site.proc is not None else 'never started'
+
+
+def whole(deployment):
+    """Why the deployment is not whole yet (a site down, the pair not formed), or None."""
+    for name, site in sorted(deployment.sites.items()):
+        if not name.startswith('client') and _down(site):
+            return _down(site)
+    status = witness_status()
+    if status is None:
+        return 'the witness does not answer'
+    if not status.primary or not status.backup:
+        return 'the pair is not whole (epoch %d, primary %r, backup %r)' % (status.epoch, status.primary,
+                                                                            status.backup)
+    return None
+
+
+def heal(deployment, log=print):
+    """Bring the deployment back whole: relaunch every site that is down (a replica re-joins as the
+    backup), power off and relaunch a replica that runs but does not join. Returns (what was done,
+    None) once whole, or (what was done, why not) after HEAL_TIMEOUT."""
+    done = []
+    started = time.monotonic()
+    waiting_since = {}
+    time.sleep(SETTLE)   # a detection, a roslaunch seeing its node die
+    steady = 0
+    while True:
+        why = whole(deployment)
+        steady = steady + 1 if why is None else 0
+        if steady >= 3:   # whole on three looks 0.05 s apart: not a site on its way down
+            return done, None
+        if time.monotonic() - started > HEAL_TIMEOUT:
+            return done, why
+        for name, site in sorted(deployment.sites.items()):
+            if name.startswith('client'):
+                continue
+            if _down(site):
+                deployment.relaunch(name)
+                done.append('%s relaunched' % name)
+                waiting_since[name] = time.monotonic()
+        status = witness_status() or _Status
+        for name in REPLICAS:
+            if name in (status.primary, status.backup):
+                waiting_since.pop(name, None)
+                continue
+            since = waiting_since.setdefault(name, time.monotonic())
+            if time.monotonic() - since > JOIN_PATIENCE and deployment.sites[name].alive():
+                log('%s runs but did not join in %.0f s: powered off, relaunched' % (name, JOIN_PATIENCE))
+                deployment.sites[name].power_off()
+                done.append('%s stuck, relaunched' % name)
+        time.sleep(0.05)
+
+
+def final_states(deployment, settle=5.0):
+    """The (balance, count, digest) of every replica in the pair, once they agree (or after settle s)."""
+    import rospy
+    from aft_msgs.srv import GetState
+    from aft_examples.bank import Account
+
+    def states():
+        status = witness_status() or _Status
+        found = []
+        for name in (status.primary, status.backup):
+            if not name:
+                continue
+            try:
+                data = rospy.ServiceProxy('/%s/bank_server/get_state' % name, GetState)().state
+                model = Account()
+                model.set_state(data)
+                found.append(model.snapshot())
+            except Exception as e:   # reported: a final state that cannot be read is no pass
+                found.append(('unreadable: %s' % e, -1, ''))
+        return found
+    got = []
+    wait_until(lambda: got.append(states()) or len(set(got[-1])) == 1, settle, 0.1)
+    return got[-1]
+
+
+class Segment(object):
+    """One deployment's share of the schedule, run and checked."""
+
+    def __init__(self, faults, log_dir, backend, clients=2, seed=0, log=print, progress=None):
+        self.faults = faults
+        self.log_dir = log_dir
+        self.backend = backend
+        self.clients = clients
+        self.seed = seed
+        self.log = log
+        self.progress = progress or (lambda record: None)
+        self.records = []
+        self.kills = {}
+        self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
+        self.skipped = 0   # faults not run: an earlier one left the deployment unhealed
+
+    def run(self):
+        import rospy
+        from aft_msgs.msg import Alarm
+        alarms = rospy.Subscriber('/aft/alarms', Alarm, lambda a: self.alarms.append((a.kind, a.detail)))
+        try:
+            return self._run()
+        finally:
+            alarms.unregister()
+
+    def alarm_counts(self):
+        counts = {}
+        for kind, _ in self.alarms:
+            counts[kind] = counts.get(kind, 0) + 1
+        return counts
+
+    def _run(self):
+        mechanism = self.faults[0].mechanism
+        deployment = CampaignDeployment(self.log_dir, mechanism, self.clients, seed=self.seed)
+        rng = __import__('random').Random(self.seed * 7919 + self.faults[0].index)
+        try:
+            try:
+                deployment.start()
+            except CampaignError as e:
+                self.log('segment %d: start failed, starting afresh: %s' % (self.faults[0].segment, e))
+                deployment.teardown()
+                deployment = CampaignDeployment(self.log_dir + '.2', mechanism, self.clients, seed=self.seed)
+                deployment.start()
+            self.began = time.time()
+            for fault in self.faults:
+                self.records.append(self._one(fault, deployment, rng))
+                self.progress(self.records[-1])
+                if self.records[-1]['outcome'].startswith('unhealed'):
+                    # Never a fault on a deployment that is not whole: a second replica down loses the
+                    # state (the witness then rightly refuses to serve). The segment ends here.
+                    self.skipped = len(self.faults) - len(self.records)
+                    self.log('segment %d: fault %d left the deployment unhealed; its %d remaining faults are '
+                             'skipped' % (fault.segment, fault.index, self.skipped))
+                    break
+            time.sleep(0.5)   # load after the last fault
+            unfinished = deployment.stop_clients()
+            self.finals = final_states(deployment)
+            self.ended = time.time()
+            self.ops = []
+            for k in range(1, self.clients + 1):
+                path = deployment.history_path(k)
+                if os.path.exists(path):
+                    self.ops += history.read_history(path, 'client%d' % k)
+            self.unfinished_clients = unfinished
+        finally:
+            deployment.teardown()
+        self.result = history.check(self.ops, self.finals, self.kills, self.ended)
+        windows = [r['start'] for r in self.records[1:]] + [self.ended]
+        for record, stop in zip(self.records, windows):
+            record['unavailable'] = history.unavailability(self.ops, record['start'], stop)
+        return self
+
+    def _one(self, fault, deployment, rng):
+        time.sleep(fault.gap)
+        status = witness_status() or _Status
+        roles = {'primary': status.primary, 'backup': status.backup}
+        record = dict(index=fault.index, segment=fault.segment, mechanism=fault.mechanism, kind=fault.kind,
+                      target=fault.target, duration=fault.duration, epoch_before=status.epoch,
+                      primary_before=status.primary)
+        try:
+            injected = self.backend.inject(fault, deployment, lambda role: roles[role], rng)
+        except CampaignError as e:
+            record.update(start=time.time(), end=time.time(), what=str(e), outcome='not_injected', healed=[])
+            return record
+        record.update(injected)
+        if injected.get('proxy_killed'):
+            self.kills.setdefault(injected['proxy_killed'], []).append(injected['start'])
+        done, why = heal(deployment, self.log)
+        after = witness_status() or _Status
+        record.update(healed=done, healed_at=time.time(), epoch_after=after.epoch, primary_after=after.primary)
+        if why:
+            record['outcome'] = 'unhealed: %s' % why
+        elif after.primary != status.primary:
+            record['outcome'] = 'failover'
+        elif done:
+            record['outcome'] = 'restarted'
+        else:
+            record['outcome'] = 'absorbed'
+        return record
+
+
+def in_background(function):
+    """Run function in a daemon thread; returns the thread (for the progress bar while a segment runs)."""
+    thread = threading.Thread(target=function, daemon=True)
+    thread.start()
+    return thread
+
+
+def kill_leftovers(root_pid):
+    """SIGKILL every descendant of root_pid (a campaign's end, whatever happened)."""
+    procs = process_tree(root_pid)[1:]
+    for proc in procs:
+        try:
+            proc.kill()
+        except psutil.NoSuchProcess:
+            pass
+    return len(procs)
+
+
+__all__ = ['CampaignDeployment', 'FaultBackend', 'ProcessBackend', 'HostsBackend', 'Segment', 'heal', 'whole',
+           'schedule']

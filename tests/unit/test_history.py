@@ -1,0 +1,197 @@
+"""The campaign's history checker: linearizable histories pass, every injected violation is caught.
+Seeded random histories; a failure prints its seed (replay: AFT_HISTORY_SEED=<seed>). No ROS."""
+import os
+import random
+
+import pytest
+
+from aft_examples.bank import Account, InsufficientFunds
+from aft_examples.history import HistoryError, Op, check, percentile, read_history, unavailability
+
+SEEDS = [int(os.environ['AFT_HISTORY_SEED'])] if 'AFT_HISTORY_SEED' in os.environ else range(200)
+MUTATIONS = ('lost', 'duplicated', 'reordered', 'wrong_value', 'failed_but_executed', 'indeterminate_no_kill',
+             'stale_reply', 'final_differs')
+
+
+def simulate(rng, clients=3, per_client=25, mutation=None):
+    """Random concurrent clients on one account. Each operation takes effect at a point inside its call
+    (its linearization point). Returns (ops, final states, proxy kills, the mutation applied or None)."""
+    plans = []
+    for c in range(clients):
+        t = rng.uniform(0, 0.01)
+        for i in range(per_client):
+            invoke = t
+            point = invoke + rng.uniform(0.0005, 0.01)
+            complete = point + rng.uniform(0.0005, 0.01)
+            t = complete + rng.uniform(0, 0.005)
+            op = ('withdraw', rng.randint(1, 15)) if rng.random() < 0.35 else ('deposit', rng.randint(1, 10))
+            op += ('c%d:%d' % (c, i),)   # the campaign's tags: every operation unique
+            fate = rng.random()
+            outcome = 'not_executed' if fate < 0.05 else 'indeterminate' if fate < 0.1 else 'ok'
+            plans.append(dict(client='c%d' % c, index=i, invoke=invoke, point=point, complete=complete, op=op,
+                              outcome=outcome, executes=outcome == 'ok' or (outcome == 'indeterminate'
+                                                                            and rng.random() < 0.5)))
+    answered = [p for p in plans if p['outcome'] == 'ok']
+    target = rng.choice(answered) if mutation else None
+    if mutation == 'reordered':
+        # Two answered operations, one completed before the other was invoked: swap their points.
+        pairs = [(a, b) for a in answered for b in answered if a['complete'] < b['invoke']]
+        a, b = rng.choice(pairs)
+        a['point'], b['point'] = b['point'], a['point']
+    if mutation == 'failed_but_executed':
+        target = rng.choice([p for p in plans if p['outcome'] == 'not_executed'] or [None])
+        if target is None:
+            return None
+        target['executes'] = True
+    if mutation == 'indeterminate_no_kill':
+        target = rng.choice([p for p in plans if p['outcome'] == 'indeterminate'] or [None])
+        if target is None:
+            return None
+    account, previous = Account(), None
+    applied = mutation in (None, 'indeterminate_no_kill', 'final_differs')
+    for p in sorted(plans, key=lambda p: p['point']):
+        p['reply'], p['error'] = None, ''
+        if not p['executes']:
+            continue
+        before = account.snapshot()
+        try:
+            reply = account.apply(*p['op'])
+        except InsufficientFunds as e:
+            if p['outcome'] == 'ok':
+                p['outcome'], p['error'] = 'error', str(e)
+            continue
+        if mutation == 'lost' and p is target:
+            account = Account(*before)
+            applied = True
+        if mutation == 'duplicated' and p is target:
+            try:
+                account.apply(*p['op'])
+            except InsufficientFunds:
+                return None
+            applied = True
+        if mutation == 'stale_reply' and p is target and previous is not None:
+            # A deposed primary answers from its own copy: one that missed the operation before.
+            try:
+                reply = Account(*previous).apply(*p['op'])
+            except InsufficientFunds:
+                return None
+            applied = True
+        previous = before
+        p['reply'] = list(reply)
+        if mutation == 'wrong_value' and p is target:
+            p['reply'][0] += 1
+            applied = True
+    if mutation == 'reordered':   # both still executed (a withdrawal moved may be refused instead)
+        applied = a['reply'] is not None and b['reply'] is not None
+    if mutation == 'failed_but_executed':
+        applied = target['reply'] is not None
+    if not applied:
+        return None
+    kills = {}
+    ops = []
+    for p in plans:
+        if p['outcome'] == 'indeterminate' and not (mutation == 'indeterminate_no_kill' and p is target):
+            kills.setdefault(p['client'], []).append(rng.uniform(p['invoke'], p['complete']))
+        if p['outcome'] == 'ok' and p['reply'] is None:
+            p['outcome'] = 'not_executed'   # an unexecuted answered op is a client-side "not executed"
+        ops.append(Op(p['client'], p['index'], p['invoke'], p['complete'], p['op'][0], p['op'][1], p['outcome'],
+                      p['reply'], p['error'], p['op'][2]))
+    final = account.snapshot()
+    finals = [final]
+    if mutation == 'final_differs':
+        finals.append((final[0] + 1, final[1], final[2]))
+    return ops, finals, kills, mutation
+
+
+@pytest.mark.parametrize('seed', SEEDS)
+def test_linearizable_histories_pass(seed):
+    ops, finals, kills, _ = simulate(random.Random(seed))
+    result = check(ops, finals, kills)
+    assert result.ok, 'seed %d (AFT_HISTORY_SEED=%d): %s' % (seed, seed, result.violations[:3])
+    assert result.counts['positions'] == finals[0][1]
+
+
+@pytest.mark.parametrize('mutation', MUTATIONS)
+def test_every_injected_violation_is_caught(mutation):
+    tried = 0
+    for seed in SEEDS:
+        made = simulate(random.Random(seed), mutation=mutation)
+        if made is None:
+            continue
+        ops, finals, kills, _ = made
+        tried += 1
+        result = check(ops, finals, kills)
+        assert not result.ok, 'seed %d (AFT_HISTORY_SEED=%d): the %s history passed' % (seed, seed, mutation)
+    assert tried >= min(20, len(SEEDS)) or len(SEEDS) == 1, 'only %d %s histories made' % (tried, mutation)
+
+
+def op(client, index, invoke, complete, name, amount, outcome='ok', reply=None, error=''):
+    return Op(client, index, invoke, complete, name, amount, outcome, reply, error)
+
+
+def chain(*ops):
+    account = Account()
+    return [account.apply(*o) for o in ops]
+
+
+def test_each_kind_is_named():
+    r1, r2 = chain(('deposit', 5), ('deposit', 3))
+    # Real time: b completed before a was invoked, yet a's reply places it first.
+    a = op('a', 0, 2.0, 3.0, 'deposit', 5, reply=r1)
+    b = op('b', 0, 0.0, 1.0, 'deposit', 3, reply=r2)
+    assert [v.kind for v in check([a, b], [r2]).violations] == ['real_time']
+    # Lost: answered, and not in the final state.
+    assert 'lost' in [v.kind for v in check([a], [(0, 0, '0' * 16)]).violations]
+    # A withdrawal refused while the balance always covered it.
+    refused = op('b', 1, 1.5, 1.6, 'withdraw', 2, 'error', error='cannot withdraw 2 from a balance of 0')
+    ok_a = op('a', 0, 0.0, 1.0, 'deposit', 5, reply=r1)
+    assert [v.kind for v in check([ok_a, refused], [r1]).violations] == ['wrong_refusal']
+    refused_early = op('b', 1, 0.0, 0.4, 'withdraw', 2, 'error', error='cannot withdraw 2 from a balance of 0')
+    assert check([ok_a, refused_early], [r1]).ok
+
+
+def test_indeterminate_and_unfinished_operations_fill_gaps_in_either_fate():
+    r1, r2 = chain(('deposit', 5), ('deposit', 3))
+    lost_call = op('a', 0, 0.0, 1.0, 'deposit', 5, 'indeterminate', error='transport error')
+    b = op('b', 0, 0.5, 2.0, 'deposit', 3, reply=r2)
+    assert check([lost_call, b], [r2], {'a': [0.5]}).ok
+    # The same call never executed: fine too, if b's reply says so.
+    alone = chain(('deposit', 3))[0]
+    assert check([lost_call, op('b', 0, 0.5, 2.0, 'deposit', 3, reply=alone)], [alone], {'a': [0.5]}).ok
+    unfinished = op('a', 1, 3.0, None, 'deposit', 5, 'unfinished')
+    assert check([op('b', 0, 0.5, 2.0, 'deposit', 3, reply=alone), unfinished], [chain(('deposit', 3),
+                                                                                      ('deposit', 5))[1]]).ok
+
+
+def test_percentile_and_unavailability():
+    assert percentile([], 50) is None
+    assert percentile([1, 2, 3, 4], 50) == 2 and percentile(range(1, 101), 99) == 99
+    r = chain(*[('deposit', 1)] * 4)
+    ops = [op('a', 0, 0.0, 1.0, 'deposit', 1, reply=r[0]), op('a', 1, 1.0, 4.0, 'deposit', 1, reply=r[1]),
+           op('a', 2, 4.0, 4.5, 'deposit', 1, reply=r[2])]
+    assert unavailability(ops, 1.5, 10.0) == pytest.approx(2.5)
+    assert unavailability(ops, 5.0, 10.0) == 0.0   # nothing pending: not unavailable
+
+
+def test_bad_records_are_refused_by_name(tmp_path):
+    with pytest.raises(HistoryError, match='outcome'):
+        Op('a', 0, 0.0, 1.0, 'deposit', 1, 'maybe')
+    with pytest.raises(HistoryError, match='ok without a reply'):
+        Op('a', 0, 0.0, 1.0, 'deposit', 1, 'ok')
+    path = tmp_path / 'h.jsonl'
+    path.write_text('{"i": 0, "invoke": 1.0, "op": "deposit", "amount": 1}\n'
+                    '{"i": 0, "complete": 1.5, "outcome": "ok", "reply": [1, 1, "x"]}\n'
+                    '{"i": 1, "invoke": 2.0, "op": "deposit", "amount": 2}\n{"i": 1, "comp')
+    ops = read_history(str(path), 'a')
+    assert [(o.index, o.outcome) for o in ops] == [(0, 'ok'), (1, 'unfinished')]
+    path.write_text('garbage\n')
+    with pytest.raises(HistoryError, match='line 1'):
+        read_history(str(path), 'a')
+
+
+def test_a_tag_enters_the_chain_and_an_untagged_chain_is_unchanged():
+    import hashlib
+    untagged = Account().apply('deposit', 5)
+    assert untagged[2] == hashlib.sha256(('0' * 16 + '|deposit:5').encode()).hexdigest()[:16]
+    tagged = Account().apply('deposit', 5, 'c0:1')
+    assert tagged[:2] == untagged[:2] and tagged[2] != untagged[2]
