@@ -68,13 +68,14 @@ class Driver(object):
         if not answer.get('ready'):
             raise DriverError('the bank driver started with %r' % answer)
 
-    def request(self, timeout, on_event=None, **command):
-        """Send one command, return its answer (a dict); events before it go to on_event(event)."""
+    def request(self, limit, on_event=None, **command):
+        """Send one command, return its answer (a dict) if it comes within ``limit`` seconds; events
+        before it go to on_event(event). Raises DriverError."""
         if self.popen.poll() is not None:
             raise DriverError('the bank driver exited (code %s)' % self.popen.returncode)
         self.popen.stdin.write((json.dumps(command) + '\n').encode())
         self.popen.stdin.flush()
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + limit
         while True:
             item = self._next(deadline, command.get('op'))
             if 'event' in item:
@@ -233,6 +234,36 @@ class HostedDeployment(object):
                 self.hosts = None
 
     teardown = stop
+
+    # -- the client ----------------------------------------------------------------------------------
+    def drive(self, count, first=0, fault_after=None, fault=None, rng=None, max_delay=0.003, timeout=None):
+        """The client in the client host sends operations first .. first+count-1 and checks each
+        reply; once ``fault_after`` replies came back, after a random delay of up to max_delay (so the
+        fault lands anywhere inside the next request), ``fault()`` runs here (it returns (processes
+        affected, wall time of the fault)). Returns (records [index, sent, replied, ok], the checker's
+        summary, {'processes', 'wall'} or None)."""
+        injected = {}
+
+        def on_event(event):
+            if event.get('event') == 'fault_point' and fault is not None and not injected:
+                if rng is not None:
+                    time.sleep(rng.uniform(0, max_delay))
+                injected['processes'], injected['wall'] = fault()
+        answer = self.driver.request(timeout or 60.0 + 0.5 * count, on_event=on_event, op='drive', count=count,
+                                     first=first, fault_after=fault_after if fault is not None else None)
+        if fault is not None and not injected:
+            raise RuntimeError('the fault was never injected (fault_after=%s, count=%d)' % (fault_after, count))
+        return answer['records'], answer['summary'], injected or None
+
+    def server_state(self, site):
+        """The bank server state of site (bytes), read by the client host's driver."""
+        return bytes.fromhex(self.driver.request(10.0, op='state', site=site)['state'])
+
+    def last_failover(self, site, timeout=10.0):
+        return self.driver.request(timeout + 5.0, op='failover', site=site, timeout=timeout)['record']
+
+    def alarms(self):
+        return self.driver.request(10.0, op='alarms')['alarms']
 
     # -- faults and observations, by host --------------------------------------------------------------
     def node_pids(self, host):
