@@ -187,6 +187,7 @@ EDGES = {
     (FenceState.OFF, FenceState.IDLE): 're-armed: the peer re-joined',
     (FenceState.NO_SWITCH, FenceState.IDLE): 're-armed: the peer re-joined',
     (FenceState.REFUSED, FenceState.IDLE): 're-armed: the peer came back and re-joined',
+    (FenceState.FENCING, FenceState.IDLE): 're-armed while the switch was asked: its outcome is ignored',
 }
 
 
@@ -227,9 +228,10 @@ class Fencing(object):
         return self.state
 
     def settle(self, outcome, now):
-        """The switch's Outcome of the attempt under way."""
+        """The switch's Outcome of the attempt under way; ignored (nothing changes) if none is under
+        way any more (re-armed meanwhile)."""
         if self.state is not FenceState.FENCING:
-            raise SwitchError('fencing of %s: an outcome while %s' % (self.host, self.state.name))
+            return self.state
         self.attempts += 1
         self.last = outcome
         if outcome.confirmed:

@@ -439,8 +439,15 @@ class RecoveryNode(object):
         if rospy.is_shutdown():
             return
         with self.lock:
-            if self.fencing.retry(time.monotonic()) is not FenceState.FENCING:
-                return   # re-armed meanwhile (the peer re-joined), or not due
+            now = time.monotonic()
+            state = self.fencing.retry(now)
+            if state is FenceState.REFUSED:   # woken a little early: not due yet
+                timer = threading.Timer(max(0.01, self.fencing.next_try - now), self._retry_fence)
+                timer.daemon = True
+                timer.start()
+                return
+            if state is not FenceState.FENCING:
+                return   # re-armed meanwhile (the peer re-joined)
             self._start = time.monotonic()
             record = {'failed_site': self.peer_ns.strip('/'), 'reason': 'fencing retried', 'steps': [], 'ok': True,
                       'role_before': self.role.name if self.role else None, 'late_promotion': self.promotion_waits}
