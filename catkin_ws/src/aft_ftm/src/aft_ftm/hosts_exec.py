@@ -364,6 +364,7 @@ class Hosts(object):
         self._started = {}        # host -> [(Popen, psutil.Process)]
         self._freezes = []
         self._switch = None       # the power switch agent (power_switch()), stopped by close()
+        self.powered_off_at = {}  # host -> wall time its link went down in its last power_off()
         self._previous = {}       # signum -> handler replaced
         self._open = False
 
@@ -447,14 +448,18 @@ class Hosts(object):
         with self._lock:
             self._do(self.net.unrate(name))
 
-    def power_off(self, name, on_link_down=None):
+    def power_off(self, name, on_link_down=None, if_on=False):
         """Link down first, then every process of the host stopped and killed; returns their pids.
         Processes forked while they were being stopped are caught by further rounds.
-        ``on_link_down()``, if given, is called the moment the link is down (the power loss)."""
+        ``on_link_down()``, if given, is called the moment the link is down (the power loss).
+        ``if_on``: a host already off is left as it is ([] returned) instead of refused."""
         with self._lock:
+            if if_on and self.net.state[self.topology.host(name).name] is HostState.OFF:
+                return []
             plan, changes = self.net.power_off(name, self.processes(name))
             link, stop, kill = plan                    # link down, SIGSTOP, SIGKILL: in this order
             carry_out([link])                          # nothing more leaves the host
+            self.powered_off_at[name] = time.time()
             if on_link_down is not None:
                 on_link_down()
             send(stop.signum, stop.pids)

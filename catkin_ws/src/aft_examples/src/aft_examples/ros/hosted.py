@@ -272,10 +272,11 @@ class HostedDeployment(object):
 
     def power_off(self, host):
         """The faithful power loss: the host's link down first, then every process of it killed.
-        Returns (processes killed, wall time the link went down)."""
-        when = {}
-        killed = self.hosts.power_off(host, on_link_down=lambda: when.setdefault('wall', time.time()))
-        return len(killed), when['wall']
+        Returns (processes killed, wall time the link went down). A host already off (e.g. fenced through
+        the power switch after a false suspicion, a detector timing out under load) is left off:
+        (0, the wall time its link went down then)."""
+        killed = self.hosts.power_off(host, if_on=True)
+        return len(killed), self.hosts.powered_off_at.get(host)
 
     def partition(self, host, other=None):
         self.hosts.partition(host, other)
