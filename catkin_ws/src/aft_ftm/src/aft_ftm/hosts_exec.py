@@ -26,7 +26,7 @@ import time
 
 import psutil
 
-from .hosts import (HostsError, Network, Signal, Topology, TopologyError, check_seconds,
+from .hosts import (HostState, HostsError, Network, Signal, Topology, TopologyError, check_seconds,
                     plan_down, plan_up, run_prefix_pattern, PROJECT_PREFIX)
 
 STATE_DIRS = ('/run/aft_hosts', '/tmp/aft_hosts')
@@ -363,6 +363,8 @@ class Hosts(object):
         self._lock = threading.RLock()
         self._started = {}        # host -> [(Popen, psutil.Process)]
         self._freezes = []
+        self._switch = None       # the power switch agent (power_switch()), stopped by close()
+        self.powered_off_at = {}  # host -> wall time its link went down in its last power_off()
         self._previous = {}       # signum -> handler replaced
         self._open = False
 
@@ -446,13 +448,20 @@ class Hosts(object):
         with self._lock:
             self._do(self.net.unrate(name))
 
-    def power_off(self, name):
+    def power_off(self, name, on_link_down=None, if_on=False):
         """Link down first, then every process of the host stopped and killed; returns their pids.
-        Processes forked while they were being stopped are caught by further rounds."""
+        Processes forked while they were being stopped are caught by further rounds.
+        ``on_link_down()``, if given, is called the moment the link is down (the power loss).
+        ``if_on``: a host already off is left as it is ([] returned) instead of refused."""
         with self._lock:
+            if if_on and self.net.state[self.topology.host(name).name] is HostState.OFF:
+                return []
             plan, changes = self.net.power_off(name, self.processes(name))
             link, stop, kill = plan                    # link down, SIGSTOP, SIGKILL: in this order
             carry_out([link])                          # nothing more leaves the host
+            self.powered_off_at[name] = time.time()
+            if on_link_down is not None:
+                on_link_down()
             send(stop.signum, stop.pids)
             stopped = set(stop.pids)
             for _ in range(20):                        # bounded: forked before they were stopped
@@ -494,6 +503,37 @@ class Hosts(object):
             self._freezes.append(freeze)
             return freeze
 
+    def state(self, name):
+        """'up', 'partitioned' or 'off'."""
+        with self._lock:
+            self.topology.host(name)
+            return self.net.state[name].value
+
+    # -- the power switch -------------------------------------------------------------------------
+    def power_switch(self):
+        """Start (once) the hosts' power switch: an agent in this process, outside every host, on a
+        Unix-domain socket in the run's root-only state directory (the filesystem is shared by the
+        namespaces, so this is a management network that no partition of the data network cuts).
+        A request to power a host off is answered once its link is down and its processes are dead
+        (:meth:`power_off`). Returns the :class:`aft_ftm.power_switch_exec.SwitchServer`; its spec
+        for Recovery's ``~power_switch`` is ``'unix:' + switch.path``. Stopped by :meth:`close`."""
+        from .power_switch_exec import SwitchServer
+        with self._lock:
+            if self._switch is None:
+                path = os.path.join(state_dir(), self.topology.prefix + '.switch')
+                self._switch = SwitchServer(path, self._switch_off, self._switch_state, self.log).start()
+            return self._switch
+
+    def _switch_off(self, name):
+        self.topology.host(name)
+        pids = self.power_off(name)
+        return 'link down, then %d processes killed' % len(pids)
+
+    def _switch_state(self, name):
+        self.topology.host(name)
+        with self._lock:
+            return 'off' if self.net.state[name] is HostState.OFF else self.net.state[name].value
+
     # -- tear-down --------------------------------------------------------------------------------
     def close(self):
         """Kill every process of the hosts, remove every namespace and link and the record.
@@ -503,6 +543,8 @@ class Hosts(object):
                 return
             self._open = False
             try:
+                if self._switch is not None:
+                    self._switch.stop()
                 for freeze in self._freezes:
                     freeze.thaw()
                 for name in self.topology.hosts:

@@ -258,4 +258,7 @@ def wait_until(predicate, timeout, interval=0.02):
 
 
 def this_host():
-    return os.uname()[1]
+    """The name this host's nodes are known by: ROS_HOSTNAME, else ROS_IP (as ROS advertises its
+    nodes), else the machine's name. Emulated hosts share one kernel, so the machine's name is the
+    same in all of them; their ROS_IP/ROS_HOSTNAME tell them apart."""
+    return os.environ.get('ROS_HOSTNAME') or os.environ.get('ROS_IP') or os.uname()[1]

@@ -30,6 +30,9 @@ class ServerError(Exception):
     rospy words it for the client as it did for the Proxy (``error processing request: ...``)."""
 
 
+REQUEST_QUEUE = 1000
+
+
 class ProxyNode(object):
     """Offers the application's service to an unmodified client and forwards each call as an
     aft_msgs/Request, re-sending it until a reply comes back.
@@ -50,7 +53,8 @@ class ProxyNode(object):
         service (the application's type): remap it to the name the client calls.
         ~rebind (aft_msgs/Rebind)
     Publishes:
-        requests (aft_msgs/Request), port ``requests``
+        requests (aft_msgs/Request), port ``requests``: queued per subscriber (1000 messages), so a
+            subscriber whose host died never holds the others back; a request dropped is re-sent.
     Subscribes:
         replies (aft_msgs/Reply), port ``replies``
     """
@@ -73,7 +77,11 @@ class ProxyNode(object):
 
     def setup(self, timeout):
         self.ports.bind('replies')
-        self.ports.bind('requests')
+        # Queued: a Protocol whose host lost power (no FIN, no RST) stops acknowledging, and a
+        # synchronous write to it blocks once about 20 messages fill the socket's send buffer: every
+        # call, and the re-sends to the Protocol that took over, would wait behind it (seen on
+        # emulated hosts). A request a queue drops is re-sent (~resend_period).
+        self.ports.bind('requests', queue_size=REQUEST_QUEUE)
         self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
         missing = wait_for_connections(self.ports, ['requests'], timeout)

@@ -11,6 +11,8 @@ from aft_msgs.msg import Alarm
 from std_msgs.msg import String
 
 from .. import config, health
+from ..power_switch import FenceState, Fencing, SwitchError, parse_spec
+from ..power_switch_exec import call_switch
 from ..protocol import Role
 from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
 from ..sites import power_off, process_tree, this_host
@@ -61,6 +63,15 @@ class RecoveryNode(object):
         ~site (str, required with a witness): this site's name.
         ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
         ~witness_retry (float, 0.5 s): how soon an unreachable witness is asked again.
+        ~power_switch (str, default '': none): the power switch of the peer's host, called in
+            FAIL_SILENCE before any promotion: ``unix:PATH`` (an agent's socket, e.g. the emulated
+            hosts' switch) or ``command:ARGV...`` (a fence agent such as fence_ipmilan, exit 0 = off;
+            ``{host}`` is replaced by ~peer_host). If it does not confirm the host is off, the
+            Protocol is NOT promoted: alarm ``fence_failed``, and the switch is asked again every
+            ~fence_retry until it confirms (then the promotion completes).
+        ~peer_host (str, required with a power switch): the peer's host as the switch names it.
+        ~fence_timeout (float, 10 s): the longest one call of the switch may take.
+        ~fence_retry (float, 1 s): how soon a switch that did not confirm is asked again.
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
         /aft/witness/configuration (aft_msgs/Configuration): this site's role.
@@ -96,6 +107,15 @@ class RecoveryNode(object):
         self.retry = param('witness_retry', config.positive_float, 0.5)
         self.witness = WitnessClient(witness, self.site, param('site_pid', config.non_negative_int,
                                                                site_launcher_pid())) if witness else None
+        switch_text = param('power_switch', config.optional_name, '')
+        try:
+            switch = parse_spec(switch_text)
+            self.fencing = Fencing(switch, param('peer_host', config.optional_name, ''),
+                                   param('fence_retry', config.positive_float, 1.0))
+        except SwitchError as e:
+            raise config.ConfigError('%s: %s' % (rospy.resolve_name('~power_switch'), e))
+        self.fence_timeout = param('fence_timeout', config.positive_float, 10.0)
+        self.promotion_waits = False   # PROMOTE_PROTOCOL held back until the switch confirms
         self.claim = self.role != Role.BACKUP   # launched as the first primary
         if self.witness is not None:
             self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
@@ -208,6 +228,8 @@ class RecoveryNode(object):
             self.role = role_in(conf.primary, conf.backup, self.site)
             if self.role in (Role.PRIMARY, Role.BACKUP):
                 self.recovered = False
+                self.fencing.rearm()
+                self.promotion_waits = False
         record = {'event': 'configuration', 'epoch': conf.epoch, 'primary': conf.primary, 'backup': conf.backup,
                   'reason': conf.reason, 'role_before': before.name if before else None,
                   'role_after': self.role.name if self.role else None}
@@ -297,10 +319,10 @@ class RecoveryNode(object):
             if any(not st['ok'] for st in record['steps'] if Step[st['step']] in GATES):
                 return
 
-    def _run_step(self, step, failure, record):
+    def _run_step(self, step, failure, record, do=None):
         t0 = time.monotonic()
         try:
-            detail = self._do(step, failure)
+            detail = (do or self._do)(step, failure)
             ok = True
         except Exception as e:   # a failed step is reported, and the next ones still run
             detail, ok = str(e), False
@@ -341,6 +363,12 @@ class RecoveryNode(object):
             if self.last_seq is None:
                 # Never a Protocol serving clients without its After fenced against the old primary.
                 raise RuntimeError('not promoted: the After was not promoted (see PROMOTE_AFTER)')
+            if not self.fencing.may_promote():
+                # Never a Protocol serving clients while the old primary's host may still answer them.
+                self.promotion_waits = True
+                raise RuntimeError('not promoted: the power switch did not confirm %s is off (%s); asked again '
+                                   'every %.1f s' % (self.fencing.host, self.fencing.last and
+                                                     self.fencing.last.detail, self.fencing.retry_period))
             result = self.set_role_protocol(role=Role.ALONE.value, last_seq=self.last_seq, epoch=self.granted)
             if not result.success:
                 raise RuntimeError('Protocol refused: %s' % result.message)
@@ -375,14 +403,73 @@ class RecoveryNode(object):
             rospy.sleep(self.learn_period if complete else min(self.learn_period, 0.2))
 
     def _fail_silence(self, failure):
-        """Kill what is left of the failed site: its launcher's whole process tree when the heartbeat
-        names one on this host, and every node of its name space whose pid was learned."""
+        """Kill what is left of the failed site: its host powered off by the power switch (if one is
+        configured: a failure of it fails this step, and no promotion follows), its launcher's whole
+        process tree when the heartbeat names one on this host, and every node of its name space
+        whose pid was learned."""
         done = []
+        if self.fencing.begin(time.monotonic()) is FenceState.FENCING:
+            outcome = self._ask_switch()
+            if not outcome.confirmed:
+                raise RuntimeError(outcome.detail)
+            done.append(outcome.detail)
         if failure.pid > 0 and failure.host == this_host():
             done.append(self._power_off_launcher(failure))
         killed = self.fence.kill()
         done.append('%d nodes of %s killed by pid' % (len(killed), self.peer_ns))
         return '; '.join(done)
+
+    def _ask_switch(self):
+        """One call of the power switch (state FENCING); settles the Fencing. A switch that does not
+        confirm raises the alarm fence_failed and is asked again after ~fence_retry."""
+        outcome = call_switch(self.fencing.switch, self.fencing.host, self.fence_timeout)
+        self.fencing.settle(outcome, time.monotonic())
+        if not outcome.confirmed:
+            alarm(self.ports, 'pbr', 'fence_failed', '%s cannot fence %s (attempt %d): %s; no promotion until the '
+                  'switch confirms it is off, asked again in %.1f s' % (self.site or rospy.get_name(),
+                                                                      self.fencing.host, self.fencing.attempts,
+                                                                      outcome.detail, self.fencing.retry_period))
+            timer = threading.Timer(self.fencing.retry_period, self._retry_fence)
+            timer.daemon = True
+            timer.start()
+        return outcome
+
+    def _retry_fence(self):
+        """Ask the switch again; once it confirms, complete a promotion that waited for it."""
+        if rospy.is_shutdown():
+            return
+        with self.lock:
+            now = time.monotonic()
+            state = self.fencing.retry(now)
+            if state is FenceState.REFUSED:   # woken a little early: not due yet
+                timer = threading.Timer(max(0.01, self.fencing.next_try - now), self._retry_fence)
+                timer.daemon = True
+                timer.start()
+                return
+            if state is not FenceState.FENCING:
+                return   # re-armed meanwhile (the peer re-joined)
+            self._start = time.monotonic()
+            record = {'failed_site': self.peer_ns.strip('/'), 'reason': 'fencing retried', 'steps': [], 'ok': True,
+                      'role_before': self.role.name if self.role else None, 'late_promotion': self.promotion_waits}
+            self._run_step(Step.FAIL_SILENCE, None, record, do=self._ask_switch_step)
+            if record['ok'] and self.promotion_waits:
+                self.promotion_waits = False
+                self._run_step(Step.PROMOTE_PROTOCOL, None, record)
+            record['seconds'] = time.monotonic() - self._start
+            record['done_wall'] = time.time()
+            record['role_after'] = self.role.name if self.role else None
+        if record['ok']:
+            rospy.logwarn('%s: %s confirmed off by the power switch after %d attempts%s', rospy.get_name(),
+                          self.fencing.host, self.fencing.attempts,
+                          '; the promotion completed' if record['late_promotion'] else '')
+            self._event(record)
+            threading.Thread(target=self._clean_master, daemon=True).start()
+
+    def _ask_switch_step(self, step, failure):
+        outcome = self._ask_switch()
+        if not outcome.confirmed:
+            raise RuntimeError(outcome.detail)
+        return outcome.detail
 
     def _power_off_launcher(self, failure):
         try:
