@@ -17,6 +17,7 @@ import random
 import tempfile
 import time
 
+import psutil
 import pytest
 
 from aft_examples.bank import Account, operation
@@ -155,3 +156,65 @@ def test_a_switch_that_does_not_confirm_prevents_the_promotion_until_it_does(dep
     record = d.last_failover('slave')
     assert record['late_promotion'] and step(record, 'PROMOTE_PROTOCOL')['ok'], record
     assert d.hosts.state('master') == 'off' and d.node_pids('master') == []
+
+
+def _nodes_in(d, host, name):
+    """pids of the processes of host whose command line names node ``name`` (``__name:=name``)."""
+    found = []
+    for pid in d.node_pids(host):
+        try:
+            if '__name:=%s' % name in psutil.Process(pid).cmdline():
+                found.append(pid)
+        except psutil.NoSuchProcess:
+            continue
+    return found
+
+
+def test_a_bandwidth_drop_between_the_replica_hosts_makes_the_monitor_switch_pbr_to_lfr(deployment, seed):
+    """R measured for real: the link monitors' probes cross the replicas' links; a token bucket on the
+    slave host's link (800 kbit/s, below what PBR's checkpoints need) makes the monitor switch PBR to
+    LFR by itself, the new nodes start on their sites' hosts, and no request is lost or run twice."""
+    rng = random.Random(seed)
+    d = deployment(adaptable=True, link_monitor=True, monitor=True, timeout=0.5)
+    d.strings('/aft/monitor/events')            # subscribed from now on
+
+    def measured():
+        models = d.strings('/aft/monitor/model', last=1)
+        return models[-1]['model']['resources'].get('bandwidth') if models else None
+    deadline = time.monotonic() + 30.0
+    sent = 0
+    while not measured():
+        assert time.monotonic() < deadline, 'no bandwidth reached the monitor: %s' % d.strings('/aft/monitor/model', last=1)
+        _, summary, _ = d.drive(10, first=sent)
+        sent += 10
+    high = measured()
+    assert high > 1e6, 'the unlimited link measured %s B/s' % high
+    _, summary, _ = d.drive(rng.randint(20, 60), first=sent)
+    sent = summary['correct']
+    d.hosts.rate('slave', 800)
+    limited_at = time.monotonic()
+    deadline = limited_at + 120.0
+
+    def finished():
+        return [e for e in d.strings('/aft/monitor/events') if e.get('event') in ('adapted', 'adaptation_failed')]
+    while not finished():
+        assert time.monotonic() < deadline, 'the monitor did not adapt: %s' % d.strings('/aft/monitor/events')
+        _, summary, _ = d.drive(10, first=sent)
+        sent = summary['correct'] + summary['errors']
+    adapted_s = time.monotonic() - limited_at
+    _, summary, _ = d.drive(30, first=sent)
+    sent += 30
+    done = finished()[0]
+    assert done['event'] == 'adapted', done
+    decision = [e for e in d.strings('/aft/monitor/events') if e.get('event') == 'decision'][0]
+    assert (decision['decision']['from'], decision['decision']['to']) == (['pbr'], ['lfr']), decision
+    assert 'bandwidth' in decision['decision']['reason'], decision
+    assert summary == dict(correct=sent, lost=0, duplicated=0, reordered=0, errors=0), (seed, summary)
+    assert survivor_state(d, 'slave') == survivor_state(d, 'master') == expected_state(sent), seed
+    # The new nodes run on the hosts of the sites they joined, not on the monitor's.
+    assert _nodes_in(d, 'master', 'after_lfr') and _nodes_in(d, 'slave', 'after_lfr')
+    assert not _nodes_in(d, 'witness', 'after_lfr')
+    low = measured()
+    report('hosts PBR -> LFR: link measured %.0f kB/s, then %.0f kB/s under an 800 kbit/s limit on the slave host; '
+           'the monitor switched to LFR %.1f s after the limit (engine pause %.1f ms), %d requests exactly once'
+           % (high / 1e3, low / 1e3, adapted_s, done['report']['pause_s'] * 1e3, sent))

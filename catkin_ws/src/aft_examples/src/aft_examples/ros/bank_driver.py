@@ -16,6 +16,8 @@ Commands (``op``):
 - ``state``: ``site``: its bank server's state (hex);
 - ``failover``: ``site``, ``timeout``: the last failover record of its Recovery;
 - ``alarms``: every aft_msgs/Alarm heard on /aft/alarms since the driver started;
+- ``strings``: ``topic``, ``last`` (0: all): the std_msgs/String (JSON) heard on it since the first
+  ``strings`` of that topic (which subscribes);
 - ``quit``.
 """
 import json
@@ -26,6 +28,7 @@ import time
 import rospy
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import Account, GetState
+from std_msgs.msg import String
 
 from aft_examples.bank import ReplyChecker, operation
 from aft_examples.ros.bank_nodes import account_caller, drive
@@ -38,6 +41,7 @@ class BankDriver(object):
 
     Subscribes:
         /aft/alarms (aft_msgs/Alarm): kept for the ``alarms`` command.
+        any std_msgs/String topic a ``strings`` command names.
     Services called:
         /account (aft_msgs/Account), /<site>/bank_server/get_state (aft_msgs/GetState),
         /aft/witness/request (aft_msgs/Witness)
@@ -47,6 +51,7 @@ class BankDriver(object):
         self.out = out
         self.checker = ReplyChecker()
         self.alarms = []
+        self.strings = {}          # topic -> every message heard (``strings``)
         self.lock = threading.Lock()
         self.account = None
 
@@ -134,3 +139,20 @@ class BankDriver(object):
     def do_alarms(self, command):
         with self.lock:
             return {'alarms': list(self.alarms)}
+
+    def do_strings(self, command):
+        topic = rospy.resolve_name(str(command['topic']))
+        with self.lock:
+            if topic not in self.strings:
+                self.strings[topic] = []
+                rospy.Subscriber(topic, String, lambda m: self._on_string(topic, m))
+            last = int(command.get('last') or 0)
+            return {'messages': list(self.strings[topic][-last:] if last else self.strings[topic])}
+
+    def _on_string(self, topic, msg):
+        try:
+            data = json.loads(msg.data)
+        except ValueError:
+            data = {'text': msg.data}
+        with self.lock:
+            self.strings[topic].append(data)

@@ -109,8 +109,9 @@ class HostedDeployment(object):
     or '' for none. Other keyword arguments are those of :class:`PbrDeployment`.
     """
 
-    def __init__(self, log_dir, hosts=None, power_switch=True, **pbr_args):
+    def __init__(self, log_dir, hosts=None, power_switch=True, monitor=False, **pbr_args):
         plan = PbrDeployment(log_dir, **pbr_args)   # its launch arguments, not started
+        self.monitor = monitor    # the Monitoring Engine (monitor.launch, running pbr) in the witness host
         self.log_dir = log_dir
         self.launch_args = dict(plan.launch_args)
         self.witness = plan.witness
@@ -168,6 +169,9 @@ class HostedDeployment(object):
             self._site('rosmaster', 'rosmaster', ['roscore', '-p', str(MASTER_PORT)])
             if self.witness:
                 self._site('witness', 'witness', roslaunch('aft_ftm', 'witness.launch'))
+            if self.monitor:
+                # A third machine's: the engine starts each site's new nodes on that site's host.
+                self._site('monitor', 'witness', roslaunch('aft_ftm', 'monitor.launch', running='pbr'))
             for name in ('client', 'slave', 'master'):
                 launch_file, args = self._site_args(name)
                 self._site(name, name, roslaunch('aft_examples', launch_file, **args))
@@ -264,6 +268,11 @@ class HostedDeployment(object):
 
     def alarms(self):
         return self.driver.request(10.0, op='alarms')['alarms']
+
+    def strings(self, topic, last=0):
+        """Every std_msgs/String heard on topic since the first call for it (which subscribes: a
+        latched topic gives its last message at once), each parsed as JSON; the ``last`` ones only if > 0."""
+        return self.driver.request(10.0, op='strings', topic=topic, last=last)['messages']
 
     # -- faults and observations, by host --------------------------------------------------------------
     def node_pids(self, host):

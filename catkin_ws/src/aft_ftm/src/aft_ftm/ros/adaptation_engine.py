@@ -43,7 +43,7 @@ from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from ..where import run_where
 from .graph import publisher_links, roslaunch, wired
-from .fencing import is_local, node_api
+from .fencing import node_api, visible_pid
 from .guarded_launch import guarded
 
 
@@ -332,9 +332,14 @@ class Engine(object):
                 uri = self.master.lookupNode(node)
             except Exception as e:
                 raise ScriptError('node %s (to retire) cannot be looked up: %s' % (node, e))
-            if not is_local(uri):
-                raise ScriptError('node %s (to retire) runs on another host (%s): the engine kills, and '
-                                  'restarts on a rollback, only nodes of its own host' % (node, uri))
+            try:
+                here = visible_pid(uri, rospy.get_name())
+            except Exception as e:
+                raise ScriptError('node %s (to retire) does not answer at %s: %s' % (node, uri, e))
+            if here is None:
+                raise ScriptError('node %s (to retire) runs on another machine (%s): the engine kills, and '
+                                  'restarts on a rollback, only nodes of its own machine (its host or '
+                                  'emulated hosts of it)' % (node, uri))
         for bind in script.bind:
             if bind.node not in launched:
                 try:
@@ -371,13 +376,12 @@ class Engine(object):
     def _owners_of_nodes(self, nodes, tries=3):
         for node in nodes[:tries]:
             try:
-                uri = self.master.lookupNode(node)
-                if not is_local(uri):
+                pid = visible_pid(self.master.lookupNode(node), rospy.get_name())
+                if pid is None:
                     continue
-                code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
             except Exception:   # gone meanwhile, or not answering: try the next one
                 continue
-            owners = owners_of_process(pid) if code == 1 else []
+            owners = owners_of_process(pid)
             if owners:
                 return owners
         return []

@@ -39,6 +39,22 @@ def is_local(uri):
     return host in (this_host(), 'localhost') or host.startswith('127.')
 
 
+def visible_pid(uri, caller_id, timeout=1.0):
+    """The pid of the node at ``uri`` if its process runs on this machine, else None: a node of this
+    host, or of an emulated host of this machine (a network namespace: its process is here, with the
+    URI's address as its ROS_IP or ROS_HOSTNAME). A node of another machine has no process here."""
+    code, _, pid = node_api(uri, timeout).getPid(caller_id)
+    if code != 1:
+        return None
+    if is_local(uri):
+        return pid
+    try:
+        env = psutil.Process(pid).environ()
+    except (psutil.Error, OSError):
+        return None
+    return pid if urlparse(uri).hostname in (env.get('ROS_IP'), env.get('ROS_HOSTNAME')) else None
+
+
 class NamespaceFence(object):
     """The nodes under ``namespace``: learn their pids, kill them, forget them at the master."""
 
