@@ -6,8 +6,8 @@ import types
 import pytest
 
 from aft_ftm.errors import RoleError
-from aft_ftm.lfr import (EDGES, ROLE_OF, Ack, ConfChange, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out,
-                         State)
+from aft_ftm.lfr import (EDGES, ROLE_OF, Ack, ConfChange, Forwarded, JoinDecision, JoinStep, LfrAfter, LfrForwarder,
+                         Out, State)
 from aft_ftm.protocol import ROLE_EDGES, Role
 
 LEADER, FOLLOWER = '/master/after', '/slave/after'
@@ -302,9 +302,37 @@ def test_the_before_refuses_illegal_changes_and_keeps_primary_on_a_late_order():
 
 def test_a_promoted_before_refuses_forwarded_requests():
     forwarder = LfrForwarder(Role.BACKUP)
-    assert forwarder.on_forwarded() and forwarder.passed == 1
+    assert forwarder.on_forwarded() == Forwarded.PASS and forwarder.passed == 1
     forwarder.set_role(Role.ALONE, 2)
-    assert not forwarder.on_forwarded() and (forwarder.passed, forwarder.refused) == (1, 1)
+    assert forwarder.on_forwarded() == Forwarded.NOT_FOLLOWER and (forwarder.passed, forwarder.refused) == (1, 1)
+    with pytest.raises(RoleError, match='ALONE Before follows no state transfer'):
+        forwarder.follow(7)
+
+
+def test_a_leaders_before_stamps_the_transfer_its_follower_joined_with():
+    forwarder = LfrForwarder(Role.ALONE)
+    assert forwarder.stamp() == 0            # no join: no witness, or started in sync
+    forwarder.set_role(Role.PRIMARY, 3, transfer=1000)
+    assert forwarder.forwards() and forwarder.stamp() == 1000
+    forwarder.set_role(Role.PRIMARY, 3)      # an order without a transfer keeps the stamp
+    assert forwarder.stamp() == 1000
+
+
+def test_a_follower_refuses_the_forwards_of_an_older_transfer_and_passes_the_newer():
+    forwarder = LfrForwarder(Role.BACKUP)
+    assert forwarder.on_forwarded(1000) == Forwarded.PASS
+    assert forwarder.follow(1001) == 1       # passed on so far: its After waits until they are computed
+    assert forwarder.on_forwarded(1000) == Forwarded.STALE
+    assert forwarder.on_forwarded(1001) == Forwarded.PASS and forwarder.on_forwarded(1002) == Forwarded.PASS
+    assert forwarder.follow(1000) == 3 and forwarder.transfer == 1001   # a late, abandoned call lowers nothing
+    assert (forwarder.passed, forwarder.stale, forwarder.refused) == (3, 1, 0)
+
+
+def test_a_follower_sets_a_transfer_only_once_what_its_before_passed_on_is_computed():
+    core = follower(joined=False)
+    assert core.in_flight(0) == 0
+    core.on_reply(reply(1), 0.0)             # a forward passed on before the fence, computed
+    assert core.in_flight(3) == 2 and core.in_flight(1) == 0
 
 
 # -- random orders ----------------------------------------------------------------------------
@@ -341,3 +369,146 @@ def test_in_any_order_of_results_and_acks_every_reply_goes_out_exactly_once_afte
             assert set(released) <= computed & acked, 'seed %d: released before both computed' % seed
     assert sorted(released) == list(range(n)), 'seed %d: %s' % (seed, released)
     assert not core.held, 'seed %d' % seed
+
+
+# -- forwards and state transfers in every interleaving ------------------------------------------
+class Pair(object):
+    """A leader and a follower, each server a list of the operations it executed. The leader's
+    forwards wait on their topic (a follower's Before frozen or slow), the requests the follower's
+    Before passed on wait in its Proceed (frozen, or a slow server call), a state transfer waits on
+    its own topic; each is delivered at a random step. The fence is what the nodes do: follow()
+    before the state is set, and the state set only once in_flight() is 0 (else the transfer is
+    refused, as when the follower's After gives up after ack_timeout)."""
+
+    def __init__(self, rng):
+        self.rng = rng
+        self.epoch = 1                         # the witness's
+        self.leader = leader(State.ALONE)
+        self.leader_before = LfrForwarder(Role.ALONE)
+        self.leader_state = []
+        self.follower = follower(joined=False)
+        self.follower_before = LfrForwarder(Role.BACKUP)
+        self.follower_state = []
+        self.topic = []                        # forwards (stamp, op) not yet delivered: FIFO
+        self.proceed = []                      # ops passed on, not yet computed: FIFO
+        self.transfer = None                   # (seq, state) sent, not yet delivered
+        self.ops = 0
+        self.log = []
+
+    def check(self):
+        """A follower holding its leader's state is never ahead of it, nor different."""
+        if self.follower.state == State.FOLLOWING:
+            assert self.follower_state == self.leader_state[:len(self.follower_state)], self.log
+
+    def request(self):
+        self.ops += 1
+        self.leader_state.append(self.ops)
+        if self.leader_before.forwards():
+            self.topic.append((self.leader_before.stamp(), self.ops))
+        self.log.append('request %d' % self.ops)
+
+    def deliver(self):
+        stamp, op = self.topic.pop(0)
+        decision = self.follower_before.on_forwarded(stamp)
+        if decision == Forwarded.PASS:
+            self.proceed.append(op)
+        self.log.append('deliver %d (stamp %d): %s' % (op, stamp, decision.name))
+
+    def compute(self):
+        op = self.proceed.pop(0)
+        self.follower_state.append(op)
+        self.follower.on_reply(reply(op), 0.0)
+        self.log.append('compute %d' % op)
+
+    def exclude(self):
+        self.epoch += 1
+        self.leader_before.set_role(Role.ALONE, self.epoch)
+        self.leader.go_alone(self.epoch)
+        self.follower.on_configuration(conf(self.epoch, 'master'))
+        self.log.append('exclude at epoch %d' % self.epoch)
+
+    def start_join(self):
+        seq = self.leader.start_transfer('slave', 0.0).seq
+        self.transfer = (seq, list(self.leader_state))    # the Protocol quiescent: every request answered
+        self.log.append('transfer %d sent' % seq)
+
+    def receive_transfer(self, patient):
+        """The follower's After gets the transfer; ``patient``: its Proceed computes what is in
+        flight before ack_timeout (else it refuses the transfer)."""
+        (seq, state), self.transfer = self.transfer, None
+        assert self.follower.check_transfer(seq, LEADER, self.leader.epoch, True) is None
+        passed = self.follower_before.follow(seq)
+        while patient and self.follower.in_flight(passed) and self.proceed:
+            self.compute()    # while the After waits (its lock released), the Before may get forwards too
+            if self.topic and self.rng.random() < 0.3:
+                self.deliver()
+        if self.follower.in_flight(passed):
+            self.leader.end_transfer()
+            self.log.append('transfer %d refused: %d in flight' % (seq, self.follower.in_flight(passed)))
+            return
+        self.follower_state = list(state)
+        self.follower.transferred(seq, self.leader.epoch, [], 0.0)
+        assert self.leader.on_ack('', seq, 0.0, FOLLOWER)[0] == Ack.TRANSFER
+        self.leader.end_transfer()
+        self.epoch += 1
+        self.leader_before.set_role(Role.PRIMARY, self.epoch, seq)
+        self.leader.admitted(FOLLOWER, 'i1', seq, self.epoch)
+        self.follower.on_configuration(conf(self.epoch, 'master', 'slave'))
+        self.log.append('transfer %d set, admitted at epoch %d' % (seq, self.epoch))
+
+    def step(self):
+        rng = self.rng
+        moves = [self.request] * 3
+        if self.topic:
+            moves += [self.deliver] * rng.choice((0, 1, 3))     # 0: the Before is frozen for now
+        if self.proceed:
+            moves += [self.compute] * rng.choice((0, 1, 3))     # 0: the Proceed is frozen for now
+        if self.leader.state == State.LEADING and rng.random() < 0.15:
+            moves.append(self.exclude)                          # the ack timeout expired
+        if self.transfer is not None:
+            moves = [m for m in moves if m != self.request]     # the leader's Protocol is suspended
+            moves.append(lambda: self.receive_transfer(rng.random() < 0.8))
+        elif self.leader.state == State.ALONE and self.follower.state == State.JOINING and rng.random() < 0.5:
+            moves.append(self.start_join)
+        rng.choice(moves)()
+        self.check()
+
+
+@pytest.mark.parametrize('seed', range(300))
+def test_a_follower_never_computes_again_what_its_state_transfer_holds(seed):
+    """Whatever the delays of the forwards, of the Proceed and of the state transfer, and however
+    often the follower is excluded and joins again, the follower's state is always a prefix of its
+    leader's, and equal to it once every forward is delivered and computed."""
+    rng = random.Random(seed)
+    pair = Pair(rng)
+    for _ in range(rng.randint(20, 120)):
+        pair.step()
+    if pair.transfer is not None:
+        pair.receive_transfer(True)
+    while pair.topic or pair.proceed:
+        pair.deliver() if pair.topic else pair.compute()
+        pair.check()
+    if pair.follower.state == State.FOLLOWING:
+        assert pair.follower_state == pair.leader_state, 'seed %d: %s' % (seed, pair.log)
+
+
+def test_the_campaigns_case_a_frozen_before_passes_on_nothing_its_new_state_holds():
+    """scripts/campaign --faults 150 --seed 11 --per-segment 25 --clients 2 --segment 1 (fault 36): the
+    follower's Before frozen past the ack timeout with 3 forwards queued; the follower is excluded
+    and joins again at once; the Before thaws. The 3 are refused, the states stay equal."""
+    pair = Pair(random.Random(0))
+    pair.start_join()
+    pair.receive_transfer(True)
+    for _ in range(3):
+        pair.request()                       # forwarded; the follower's Before is frozen
+    pair.exclude()
+    pair.request()
+    pair.start_join()
+    pair.receive_transfer(True)              # the Before is still frozen: nothing passed on, nothing in flight
+    pair.request()
+    while pair.topic:
+        pair.deliver()                       # thawed: the 3 old forwards, then the new one
+    while pair.proceed:
+        pair.compute()
+    assert pair.follower_before.stale == 3
+    assert pair.follower_state == pair.leader_state == [1, 2, 3, 4, 5]

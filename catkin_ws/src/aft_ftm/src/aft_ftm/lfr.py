@@ -21,6 +21,11 @@ Invariants the After keeps (:class:`LfrAfter`):
   A Join tells the last transfer the follower accepted (``last_seq``): a Join of the admitted
   follower sent before it accepted our transfer is late and ignored; one sent after means it lost
   its state (it restarted): the leader has it excluded first.
+- A follower sets a transferred state only once its Before follows that transfer and every request
+  the Before passed on before is computed (:meth:`LfrAfter.in_flight`): a request the leader
+  forwarded before the transfer (contained in its state) is never computed after it, whatever
+  the delays (a Before or Proceed frozen past the ack timeout, a slow server call, forwards
+  delivered after the transfer; see :class:`LfrForwarder`).
 - A transfer or an ack from an After that is not the peer site's is ignored and reported
   (:attr:`Ack.STRAY`, :meth:`LfrAfter.check_transfer`): one stray message changes nothing.
 
@@ -332,6 +337,12 @@ class LfrAfter(object):
             return 'state transfer of epoch %d, older than epoch %d' % (epoch, self.epoch)
         return None
 
+    def in_flight(self, passed):
+        """How many of the ``passed`` forwarded requests its Before passed on are not computed yet.
+        The state of a transfer is set only once none is: a request passed on before the transfer
+        and computed after it would be computed twice (it is in the transferred state)."""
+        return max(0, passed - self.computed)
+
     def transferred(self, seq, epoch, cache, now):
         """The server holds the state of transfer seq: follow its sender."""
         self._change(State.FOLLOWING, 'state transfer %d' % seq)
@@ -388,34 +399,75 @@ class LfrAfter(object):
         return [], None
 
 
+class Forwarded(enum.Enum):
+    """What a follower's Before does with a request the leader forwarded (:meth:`LfrForwarder.on_forwarded`)."""
+    PASS = 0            # pass it on to the Proceed (the server computes it)
+    NOT_FOLLOWER = 1    # refused: this Before no longer follows (promoted, fenced)
+    STALE = 2           # refused: forwarded before the state transfer this follower joined with,
+                        # so that transfer's state contains it already (computing it again would
+                        # put the follower ahead of its leader)
+
+
 class LfrForwarder(object):
     """An LFR Before's decisions: a leader (PRIMARY) forwards each request to the follower; a
     follower (BACKUP) passes the leader's forwarded requests on, in order; once promoted (ALONE) it
-    is fenced: it refuses them. ``passed`` counts the requests passed on (Recovery waits for the
-    After to have computed that many)."""
+    is fenced: it refuses them. ``passed`` counts the requests passed on (Recovery, and a follower's
+    After before it sets a transferred state, wait for the After to have computed that many).
+
+    Forwards are fenced by state transfer: the leader's Before stamps each forwarded request with
+    the seq of the state transfer its follower was admitted with (``transfer``, 0 without a join);
+    a follower's After, before it sets a transferred state on its server, makes its Before follow
+    that transfer (:meth:`follow`): from then on a request stamped below it was forwarded before
+    the transfer, is contained in the transferred state and is refused (:attr:`Forwarded.STALE`).
+    A Before frozen past the leader's ack timeout, whose follower was excluded and joined again
+    meanwhile, thus never passes its backlog on to the server again. Transfer seqs grow (the
+    leader numbers them from the wall clock), so the forwards of the transfer joined with and of
+    later ones pass."""
 
     def __init__(self, role):
         self.role = role
         self.epoch = 0       # the witness's epoch of the last role given (a late, older order changes nothing)
+        self.transfer = 0    # leader: the stamp of its forwards; follower: forwards stamped below are stale
         self.passed = 0
         self.refused = 0
+        self.stale = 0       # forwards refused as contained in the state transfer joined with
 
     def forwards(self):
         return self.role == Role.PRIMARY
 
-    def on_forwarded(self):
-        """A request forwarded by the leader: True to pass it on, False if refused (no longer a follower)."""
+    def stamp(self):
+        """Leader: the state transfer its follower joined with (stamped on each forwarded request)."""
+        return self.transfer
+
+    def on_forwarded(self, transfer=0):
+        """A request forwarded by the leader, stamped ``transfer``: pass it on or refuse it (Forwarded)."""
         if self.role != Role.BACKUP:
             self.refused += 1
-            return False
+            return Forwarded.NOT_FOLLOWER
+        if transfer < self.transfer:
+            self.stale += 1
+            return Forwarded.STALE
         self.passed += 1
-        return True
+        return Forwarded.PASS
 
-    def set_role(self, role, epoch=0):
-        """The one place where the role changes. Returns None, or why the role is kept; raises RoleError."""
+    def follow(self, transfer):
+        """Follower: its After is about to set the state of ``transfer``. Refuse from now on every
+        forward stamped below it; returns how many requests were passed on so far (the After waits
+        until it computed them all before it sets the state). Raises RoleError unless a follower."""
+        if self.role != Role.BACKUP:
+            raise RoleError('a %s Before follows no state transfer' % self.role.name)
+        self.transfer = max(self.transfer, transfer)   # a late call (abandoned past its deadline) lowers nothing
+        return self.passed
+
+    def set_role(self, role, epoch=0, transfer=0):
+        """The one place where the role changes (``transfer``: PRIMARY only, the state transfer the
+        admitted follower holds, stamped on forwards; 0 keeps the stamp). Returns None, or why the
+        role is kept; raises RoleError."""
         check_role_change(self.role, role)
         if self.role == Role.PRIMARY and role == Role.ALONE and epoch and epoch < self.epoch:
             return 'role PRIMARY kept: epoch %d is newer than %d' % (self.epoch, epoch)
         self.role = role
         self.epoch = max(self.epoch, epoch)
+        if role == Role.PRIMARY and transfer:
+            self.transfer = transfer
         return None

@@ -15,7 +15,7 @@ from std_msgs.msg import String
 
 from .. import config, health, mechanisms
 from ..errors import RoleError
-from ..lfr import Ack, ConfChange, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out, State
+from ..lfr import Ack, ConfChange, Forwarded, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out, State
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from ..witness import Op
@@ -35,10 +35,14 @@ def _role():
 class LfrBeforeNode(BeforeNode):
     """LFR's Before. Leader: forwards each request to the follower, then to its own Proceed.
     Follower: passes the leader's forwarded requests to its Proceed, in the leader's order; once
-    promoted (fenced) it refuses them.
+    promoted (fenced) it refuses them. Each forwarded request carries the state transfer the
+    follower joined with (Request.transfer); a follower refuses those forwarded before the transfer
+    it joined with (they are in its transferred state: aft_ftm.lfr.LfrForwarder).
 
     Parameters: ~role (primary | backup | alone). With a witness, the After makes a leader's Before
-    PRIMARY once a follower is admitted and ALONE once it is excluded.
+    PRIMARY once a follower is admitted (SetRole last_seq: the follower's transfer, stamped on
+    forwards) and ALONE once it is excluded; a follower's After makes its Before follow a state
+    transfer before setting its state (SetRole BACKUP, last_seq: the transfer).
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``; peer_forward (aft_msgs/Request), port ``forwarded``.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; forward (aft_msgs/Request), port ``forward``.
     Services: ~set_role (aft_msgs/SetRole: returns the number of forwarded requests passed on),
@@ -61,23 +65,37 @@ class LfrBeforeNode(BeforeNode):
         return super(LfrBeforeNode, self).setup(timeout)
 
     def handle(self, request):
-        if self.forwarder.forwards():
+        with self.lock:
+            forwards, request.transfer = self.forwarder.forwards(), self.forwarder.stamp()
+        if forwards:
             self.ports.publish('forward', request)
         return request
 
     def _on_forwarded(self, request):
         with self.lock:
-            if not self.forwarder.on_forwarded():
-                rospy.logwarn('%s: forwarded request %s/%d refused: no longer a follower', self.name,
-                              request.origin, request.id)
+            decision = self.forwarder.on_forwarded(request.transfer)
+            if decision == Forwarded.PASS:
+                self.ports.publish('out', request)
                 return
-            self.ports.publish('out', request)
+            stale = self.forwarder.stale
+        if decision == Forwarded.NOT_FOLLOWER:
+            rospy.logwarn('%s: forwarded request %s/%d refused: no longer a follower', self.name,
+                          request.origin, request.id)
+        else:
+            rospy.loginfo('%s: forwarded request %s/%d refused: forwarded before state transfer %d, whose state '
+                          'holds it (%d refused so far)', self.name, request.origin, request.id,
+                          self.forwarder.transfer, stale)
 
     def _on_set_role(self, req):
         role = Role(req.role)
         with self.lock:
             try:
-                kept = self.forwarder.set_role(role, req.epoch)
+                if role == Role.BACKUP and req.last_seq:
+                    # Our follower's After is about to set the state of transfer last_seq.
+                    passed = self.forwarder.follow(req.last_seq)
+                    return SetRoleResponse(success=True, message='follows state transfer %d' % req.last_seq,
+                                           last_seq=passed)
+                kept = self.forwarder.set_role(role, req.epoch, req.last_seq)
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
             return SetRoleResponse(success=True, message=kept or 'role %s' % role.name,
@@ -312,10 +330,11 @@ class LfrAfterNode(AfterNode):
             self.ports.publish('out', reply)
         self.side.tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site, grant.epoch, why, grant.message))
 
-    def _forwarding(self, role, epoch):
-        """Tell this replica's Before to forward (PRIMARY) or not (ALONE); True if it did."""
+    def _forwarding(self, role, epoch, transfer=0):
+        """Tell this replica's Before to forward (PRIMARY, stamping ``transfer``) or not (ALONE); True if it did."""
         try:
-            answer = self.state_calls.call(lambda: self.before_role(role=role.value, epoch=epoch), self.state_timeout)
+            answer = self.state_calls.call(lambda: self.before_role(role=role.value, epoch=epoch, last_seq=transfer),
+                                           self.state_timeout)
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
             self.before_role = rospy.ServiceProxy(self.before_name + '/set_role', SetRole, persistent=True)
             answer, error = None, str(e)
@@ -385,7 +404,7 @@ class LfrAfterNode(AfterNode):
             else:
                 self.side.tell('join_failed', 'the witness refused to admit %s: %s' % (join.site, grant.message))
             return
-        if not self._forwarding(Role.PRIMARY, grant.epoch):
+        if not self._forwarding(Role.PRIMARY, grant.epoch, transfer.seq):
             self._exclude('Before cannot forward to the admitted follower %s' % join.site)
             return
         with self.lock:
@@ -422,6 +441,8 @@ class LfrAfterNode(AfterNode):
         with self.lock:
             problem = self.core.check_transfer(cp.seq, cp.sender, cp.epoch, cp.full)
             if problem is None:
+                problem = self._fence(cp.seq)
+            if problem is None:
                 try:
                     result = self.state_calls.call(self.set_state, self.state_timeout, cp.state)
                     problem = None if result.success else 'the server refused the state: %s' % result.message
@@ -439,6 +460,24 @@ class LfrAfterNode(AfterNode):
                            % (cp.seq, cp.sender, problem), cp.sender)
         else:
             rospy.loginfo('%s: joined %s (state transfer %d, epoch %d)', self.name, cp.sender, cp.seq, cp.epoch)
+
+    def _fence(self, seq):
+        """Before the state of transfer seq is set (self.lock held): make the Before refuse the
+        requests forwarded before it, and wait until those it passed on are computed. Why not, or None."""
+        try:
+            answer = self.state_calls.call(
+                lambda: self.before_role(role=Role.BACKUP.value, last_seq=seq), self.ack_timeout)
+        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+            self.before_role = rospy.ServiceProxy(self.before_name + '/set_role', SetRole, persistent=True)
+            return 'cannot fence Before %s against the requests forwarded before the transfer: %s' % (
+                self.before_name, e)
+        if not answer.success:
+            return 'Before %s does not follow the transfer: %s' % (self.before_name, answer.message)
+        passed = answer.last_seq
+        if not self.lock.wait_for(lambda: self.core.in_flight(passed) == 0, timeout=self.ack_timeout):
+            return ('%d of the %d requests Before passed on before the transfer are still not computed after %.1f s'
+                    % (self.core.in_flight(passed), passed, self.ack_timeout))
+        return None
 
     # -- the witness's configuration ----------------------------------------------------
     def _on_configuration(self, conf):
