@@ -181,6 +181,7 @@ class ProtocolCore(object):
         self.last_stored_seq = 0
         self.stored_sender = None
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
+        self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
@@ -188,6 +189,11 @@ class ProtocolCore(object):
         """A request arrived from a Proxy."""
         self.stats.requests += 1
         self._forget_below(request.origin, request.oldest_pending)
+        if request.id < self.watermarks[request.origin]:
+            # Its Proxy has its answer already (a late copy: a backup hears the Proxy on one connection and
+            # the checkpoints that say so on another): its reply may be forgotten, it must not execute.
+            self.stats.dropped += 1
+            return []
         k = key(request)
         cached = self.cache.lookup(k)
         if cached is not None:
@@ -202,12 +208,11 @@ class ProtocolCore(object):
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
             return []
-        if self.cache.full():
-            # Bounded memory: push back (the client may retry) rather than grow or forget a reply.
-            self.stats.refused += 1
-            self.refused[k] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its clients '
-                               'have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
-            return [Refuse(request, self.refused[k])]
+        if self.role != Role.BACKUP and self.cache.full():
+            return [self._refuse(request)]
+        # A backup refuses nothing: its primary may execute the request (a backup cannot say "not
+        # executed"). It queues it; the queue is bounded by the Proxies' pending requests (what is
+        # below a Proxy's oldest_pending is dropped), and checked against the cache once promoted.
         self.queue.append(request)
         self.queued_keys.add(k)
         return self._dispatch(now)
@@ -274,6 +279,13 @@ class ProtocolCore(object):
         self.epoch = max(self.epoch, epoch)
         return self._dispatch(now)
 
+    def _refuse(self, request):
+        """Bounded memory: push back (the client may retry) rather than grow or forget a reply."""
+        self.stats.refused += 1
+        self.refused[key(request)] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its '
+                                      'clients have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
+        return Refuse(request, self.refused[key(request)])
+
     def _answer(self, reply, cached=False):
         if hasattr(reply, 'epoch'):
             reply.epoch = self.epoch    # answered in this configuration (a cached reply too)
@@ -284,7 +296,10 @@ class ProtocolCore(object):
         """Proxy ``origin`` has the answer of every request below ``watermark`` (or gave up on it): forget
         those replies and refusals, and drop those requests if queued. A backup queues the requests its
         clients send while it is promoted; one of them may meanwhile be answered from a reply a checkpoint
-        brought: executing it once promoted would apply it twice."""
+        brought: executing it once promoted would apply it twice. The highest watermark of each origin is
+        kept (Proxy ids grow across restarts): a copy arriving after it is dropped by on_request."""
+        watermark = max(watermark, self.watermarks.get(origin, watermark))
+        self.watermarks[origin] = watermark
         self.cache.forget_below(origin, watermark)
         if self.refused:
             for k in [k for k in self.refused if k[0] == origin and k[1] < watermark]:
@@ -310,6 +325,9 @@ class ProtocolCore(object):
                 # Queued while a backup, and executed by the old primary meanwhile.
                 self.stats.cached_answers += 1
                 actions.append(self._answer(cached, cached=True))
+                continue
+            if self.cache.full():   # queued while a backup: refused now, by the replica that serves
+                actions.append(self._refuse(request))
                 continue
             self.current = request
             self.started_at = now
