@@ -95,6 +95,29 @@ def test_promoted_backup_answers_executed_requests_from_cache_and_executes_the_r
     assert kinds(core.on_request(request(rid=3), 0)) == [('Forward', 3)]
 
 
+def test_a_backup_answers_no_client_even_from_its_cache():
+    """One replica answers the clients: a backup queues a request whose reply it stored, and answers it
+    from the cache only once promoted."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1, value='by the primary'), seq=1)
+    assert core.on_request(request(rid=1), 0) == [] and core.stats.cached_answers == 0
+    answers = core.set_role(Role.ALONE, 0)
+    assert kinds(answers) == [('Answer', 1)] and answers[0].cached and core.stats.executed == 0
+
+
+def test_a_backup_taking_over_drops_a_queued_request_its_primary_dealt_with_but_whose_reply_was_lost():
+    """Found by the simulation (loss within a site, seed 90 of loss,local): the message storing 6's reply
+    was lost, 7's arrived. The Proxy sent 6 before 7 to both replicas, so the primary executed 6 first:
+    taking over, the backup must not execute it again. A re-send of 6 (the Proxy still waiting) executes."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_request(request(rid=6, oldest_pending=6), 0)
+    core.on_request(request(rid=7, oldest_pending=6), 0)
+    core.on_stored(reply(rid=7, oldest_pending=6), seq=2, sender='/master/after')   # seq 1 (reply 6) lost
+    assert kinds(core.set_role(Role.ALONE, 0)) == [('Answer', 7)]
+    assert core.stats.executed == 0 and core.stats.dropped == 1
+    assert kinds(core.on_request(request(rid=6, oldest_pending=6), 0)) == [('Forward', 6)]
+
+
 def test_requests_queued_while_backup_are_deduplicated_at_promotion():
     core = ProtocolCore(Role.BACKUP)
     core.on_request(request(rid=1), 0)
@@ -165,13 +188,14 @@ def test_stored_checkpoint_numbers_are_counted_per_sending_after():
 
 def test_a_request_queued_while_backup_and_answered_meanwhile_is_not_executed_at_promotion():
     """Found by the simulation (tests/unit/test_replication_sim.py): a backup being promoted queues the
-    re-sent request 7, then stores its reply from the primary's last checkpoint and answers a re-send
-    of 7 from it. The Proxy's next request says it has 7's answer: the stored reply is forgotten, and
-    the queued 7 must go with it, or the promoted backup applies it a second time."""
+    re-sent request 7, then stores its reply from the primary's last checkpoint (it answered a re-send
+    of 7 from it then; a backup answers nothing now). The Proxy's next request says it has 7's answer:
+    the stored reply is forgotten, and the queued 7 must go with it, or the promoted backup applies it
+    a second time."""
     core = ProtocolCore(Role.BACKUP)
     core.on_request(request(rid=7, oldest_pending=7), 0)
     core.on_stored(reply(rid=7, oldest_pending=7), seq=1, sender='/master/after')
-    assert kinds(core.on_request(request(rid=7, oldest_pending=7), 0)) == [('Answer', 7)]
+    assert core.on_request(request(rid=7, oldest_pending=7), 0) == []   # a backup answers nothing
     core.on_request(request(rid=8, oldest_pending=8), 0)
     assert kinds(core.set_role(Role.ALONE, 0)) == [('Forward', 8)]
     assert core.stats.executed == 1 and core.stats.dropped == 1
@@ -233,7 +257,7 @@ def test_a_backup_listening_from_set_up_keeps_a_bounded_queue_and_takes_over_exa
     subscription). A Proxy with up to `window` calls pending, a primary that releases a reply once its
     checkpoint is acknowledged, FIFO links delivered in a random order, and at a random point the
     primary crashes (checkpoints in flight lost) and the backup is promoted. Then: the backup's queue
-    never holds more than the Proxy's window, it never refuses nor executes as a backup, every answered
+    never holds more than the Proxy's window, it never answers, refuses nor executes as a backup, every answered
     request is in the final state exactly once, and a refused one is not in it."""
     rng = random.Random(seed)
     total, window = rng.randint(1, 30), rng.randint(1, 4)
@@ -259,6 +283,7 @@ def test_a_backup_listening_from_set_up_keeps_a_bounded_queue_and_takes_over_exa
                 assert crashed, 'seed %d: a backup refused %d' % (seed, a.request.id)
                 links['replies'].append(('refused', a.request.id))
             else:
+                assert crashed, 'seed %d: a backup answered %d' % (seed, a.reply.id)
                 links['replies'].append(('ok', a.reply.id))
 
     def primary_acts(actions):

@@ -37,7 +37,7 @@ What the simulation found (each replayed below or in a unit test, with its seed)
   * fix_quiescent_join: the After captures a state transfer while a request executes: the state holds
     the request, the transferred replies do not; a failover applies it twice (P1; seed 5161).
   * fix_replicated_refusal: a refusal is answered without the backup knowing of it; after a failover
-    the new primary executes the request the client was told was not executed (P2; seed 117 with
+    the new primary executes the request the client was told was not executed (P2; seed 121 with
     a reply cache bound of 64 bytes).
   * fix_retry_role, fix_confirm_not_admitted, fix_rewatch_heard: liveness (no property above breaks,
     but nobody ever serves although a live replica holds the state; seeds 659, 2361, 1434).
@@ -48,6 +48,12 @@ What the simulation found (each replayed below or in a unit test, with its seed)
     the Proxy had its answer (two connections, no order between them), queued it with its reply
     forgotten, and executed it once promoted (P1, applied twice; seed 1176). Each origin's highest
     watermark is kept: a request below it is dropped.
+  * ProtocolCore: with a message lost inside a site (After to Protocol), the backup queued a request
+    its primary had executed, the reply's message lost, and executed it once promoted although the
+    Proxy had its answer (P1; seed 90 of loss,local). Taking over, a backup drops a queued request
+    below the highest id whose reply it stored from that Proxy (a re-send still executes).
+  * A backup answered re-sent requests from its reply cache; excluded, its reply carried an old epoch
+    and the Proxy raised stale_reply. A backup answers nothing now (stale_reply: 13 -> 4 in 2500 runs).
 
 What it relies on (tests below): each connection delivers at most once, as TCP does (in order too,
 though reordering no longer breaks a property).
@@ -318,7 +324,7 @@ FINDINGS = [
     ('fix_stale_exclusion', seed_with(18263), 'P1'),
     ('fix_stale_exclusion', case_with(0, lambda: stale_exclusion_case(admit_asked=False)), 'P1'),
     ('fix_stale_exclusion', case_with(0, lambda: stale_exclusion_case(admit_asked=True)), 'P1'),
-    ('fix_replicated_refusal', seed_with(117, cache_bytes=64), 'P2'),
+    ('fix_replicated_refusal', seed_with(121, cache_bytes=64), 'P2'),
 ]
 
 

@@ -182,6 +182,7 @@ class ProtocolCore(object):
         self.stored_sender = None
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
+        self.stored_high = {}       # origin -> the highest request id whose reply a checkpoint brought (backup)
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
@@ -196,7 +197,7 @@ class ProtocolCore(object):
             return []
         k = key(request)
         cached = self.cache.lookup(k)
-        if cached is not None:
+        if cached is not None and self.role != Role.BACKUP:
             self.stats.cached_answers += 1
             return [self._answer(cached, cached=True)]
         if k in self.refused:
@@ -210,9 +211,11 @@ class ProtocolCore(object):
             return []
         if self.role != Role.BACKUP and self.cache.full():
             return [self._refuse(request)]
-        # A backup refuses nothing: its primary may execute the request (a backup cannot say "not
-        # executed"). It queues it; the queue is bounded by the Proxies' pending requests (what is
-        # below a Proxy's oldest_pending is dropped), and checked against the cache once promoted.
+        # A backup answers nothing (one replica answers the clients: an excluded backup's cached reply
+        # would be of an older epoch) and refuses nothing (its primary may execute the request: a backup
+        # cannot say "not executed"). It queues the request; the queue is bounded by the Proxies' pending
+        # requests (what is below a Proxy's oldest_pending is dropped), and checked against the cache
+        # once promoted.
         self.queue.append(request)
         self.queued_keys.add(k)
         return self._dispatch(now)
@@ -248,6 +251,7 @@ class ProtocolCore(object):
         if reply is not None:
             self._forget_below(reply.origin, reply.oldest_pending)
             self.cache.store(reply)
+            self.stored_high[reply.origin] = max(reply.id, self.stored_high.get(reply.origin, reply.id))
         if sender != self.stored_sender:
             self.stored_sender = sender
             self.last_stored_seq = seq
@@ -275,6 +279,8 @@ class ProtocolCore(object):
     def set_role(self, role, now, epoch=0):
         """Change role (guarded); a new primary starts executing queued requests."""
         check_role_change(self.role, role)
+        if self.role == Role.BACKUP and role != Role.BACKUP:
+            self._drop_dealt_with()
         self.role = role
         self.epoch = max(self.epoch, epoch)
         return self._dispatch(now)
@@ -313,6 +319,22 @@ class ProtocolCore(object):
                 else:
                     kept.append(r)
             self.queue = kept
+
+    def _drop_dealt_with(self):
+        """Taking over: drop the requests queued as a backup that its primary dealt with although their
+        reply is not in the cache (the message that stored it was lost). A Proxy sends a request to
+        both replicas over connections that keep its order, and a Protocol takes them in that order:
+        once a reply to a later request of the same Proxy was stored, the earlier one's outcome was
+        stored before it, or forgotten (its Proxy has it). Without losses nothing is dropped here; a
+        Proxy still waiting for a dropped request sends it again, and it executes then."""
+        kept = collections.deque()
+        for r in self.queue:
+            if r.id < self.stored_high.get(r.origin, r.id) and self.cache.lookup(key(r)) is None:
+                self.queued_keys.discard(key(r))
+                self.stats.dropped += 1
+            else:
+                kept.append(r)
+        self.queue = kept
 
     def _dispatch(self, now):
         actions = []
