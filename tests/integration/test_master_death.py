@@ -1,12 +1,13 @@
-"""The bank's PBR failover works with the ROS master dead (issue 15).
+"""The bank's failover works with the ROS master dead (issue 15).
 
-The three sites of the bank demo run under a master of their own. A client calls /account through a
-persistent connection; after KILL_AT replies the roscore is killed (SIGKILL of its whole process tree),
-after OFF_AT replies the MASTER site is powered off (detection after 150 ms of silence). Every connection the failover needs was opened at
-set-up, so SLAVE takes over without the master: every call is answered exactly once, SLAVE's state
-equals a failure-free sequential run, SLAVE's Recovery says master_unreachable (an alarm), and its
-failover record shows every step done. The script runs in a process of its own; every process it
-starts carries the test's AFT_TEST_TAG and is killed at the end, pass or fail.
+The three sites of the bank demo (PBR, LFR, or PBR behind SEC gates) run under a master of their
+own. A client calls /account through a persistent connection; after KILL_AT replies the roscore is
+killed (SIGKILL of its whole process tree), after OFF_AT replies the MASTER site is powered off
+(detection after 150 ms of silence). Every connection the failover needs was opened at set-up, so
+SLAVE takes over without the master: every call is answered exactly once, SLAVE's state equals a
+failure-free sequential run, SLAVE's Recovery says master_unreachable (an alarm), and its failover
+record shows every step done. The script runs in a process of its own; every process it starts
+carries the test's AFT_TEST_TAG and is killed at the end, pass or fail.
 """
 import os
 import subprocess
@@ -14,6 +15,7 @@ import sys
 import tempfile
 import uuid
 
+import pytest
 from leftovers import kill_tagged
 from reporting import report
 
@@ -35,7 +37,8 @@ log_dir = tempfile.mkdtemp(prefix='aft_nomaster_')
 core = start_master(log_dir)
 # Detection after 150 ms of silence: a false suspicion before the faults (30 ms has seen them on a
 # loaded machine) would fail the sites over while the master lives, and test nothing.
-deployment = PbrDeployment(log_dir, timeout=0.15)
+MECHANISM, SEC = sys.argv[1], sys.argv[2] == 'sec'
+deployment = PbrDeployment(log_dir, timeout=0.15, mechanism=MECHANISM, sec=SEC)
 try:
     rospy.init_node('checker', disable_signals=True)
     start_retrying(deployment)
@@ -97,7 +100,8 @@ try:
         sys.exit('SLAVE took over before the MASTER site was powered off (a false suspicion): %s' % failover)
     replies = [r for r in faults['records'] if r[2] > faults['master_site_wall']]
     print('FIGURES ' + json.dumps({
-        'calls': COUNT, 'roscore_processes_killed': faults['roscore_killed'],
+        'mechanism': MECHANISM + (' under SEC' if SEC else ''), 'calls': COUNT,
+        'roscore_processes_killed': faults['roscore_killed'],
         'recovery_ms': round(failover['seconds'] * 1e3, 1),
         'steps': ['%s %.1f ms' % (s['step'], s['seconds'] * 1e3) for s in failover['steps']],
         'failover_ms': round((replies[0][2] - faults['master_site_wall']) * 1e3, 1) if replies else None,
@@ -108,12 +112,14 @@ finally:
 '''
 
 
-def test_the_bank_fails_over_with_the_ros_master_dead():
+@pytest.mark.parametrize('mechanism,sec', [('pbr', ''), ('lfr', ''), ('pbr', 'sec')])
+def test_the_bank_fails_over_with_the_ros_master_dead(mechanism, sec):
+    """PBR; LFR (the follower takes over); PBR behind SEC gates (the backup's gate is the entry)."""
     tag = uuid.uuid4().hex
     env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=tempfile.mkdtemp(prefix='aft_nomaster_home_'))
     try:
-        run = subprocess.run([sys.executable, '-c', SCRIPT], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, timeout=400)
+        run = subprocess.run([sys.executable, '-c', SCRIPT, mechanism, sec or 'plain'], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=400)
     finally:
         leftovers = kill_tagged(tag)
     output = run.stdout.decode(errors='replace')
