@@ -149,7 +149,7 @@ class Node(Process):
 
 class ProtocolModel(Node):
     """ProtocolNode: a backup (every node starts as one with a witness), ``requests`` unbound until Recovery
-    binds it; set_role waits for the stored replies (releasing its lock meanwhile)."""
+    binds it at its set-up; set_role waits for the stored replies (releasing its lock meanwhile)."""
 
     def __init__(self, site):
         super(ProtocolModel, self).__init__(site, 'protocol')
@@ -827,6 +827,10 @@ class RecoveryModel(Node):
         self.spawn(self._register(), blocking=True)
 
     def _register(self):
+        # RecoveryNode.setup: the Protocol hears the clients from set-up (it queues as a backup), so that
+        # no failover binds a topic (that needs the ROS master).
+        # (Its answer is awaited before registering: modelled as done at once, it always succeeds.)
+        self.own('protocol').srv_rebind(lambda answer: None, {})
         deadline = self.world.now + self.env.params.register_timeout
         while True:
             grant = yield WitnessCall(self.env, Op.REGISTER, self.site.name, self.incarnation, claim=self.claim)
@@ -943,9 +947,6 @@ class PlanStep(object):
                 resume((False, 'not promoted: the After was not promoted'))
                 return
             result = yield Call(r.own('protocol'), 'set_role', role=Role.ALONE, last_seq=r.last_seq, epoch=r.granted)
-            resume((result.success, result.message))
-        elif step == Step.BIND_CLIENT:
-            result = yield Call(r.own('protocol'), 'rebind')
             resume((result.success, result.message))
         elif step == Step.AFTER_ALONE:
             result = yield Call(r.own('after'), 'set_role', role=Role.ALONE, epoch=r.granted)

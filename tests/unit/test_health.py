@@ -50,9 +50,9 @@ def test_recovery_reports_its_last_failover_and_a_failed_one_as_an_error():
     done = health.recovery('slave', Role.ALONE, 2, last)
     assert done.level == Level.OK and 'master failed (no heartbeat for 31 ms); recovered in 12.3 ms' in done.message
     assert 'FAIL_SILENCE 2.0 ms' in done.message and done.value('last_recovery_ms') == '12.3'
-    failed = dict(last, ok=False, steps=[{'step': 'BIND_CLIENT', 'ok': False, 'detail': 'refused', 'seconds': 0.1}])
+    failed = dict(last, ok=False, steps=[{'step': 'PROMOTE_PROTOCOL', 'ok': False, 'detail': 'refused', 'seconds': 0.1}])
     report = health.recovery('slave', Role.ALONE, 2, failed)
-    assert report.level == Level.ERROR and 'BIND_CLIENT: refused' in report.message
+    assert report.level == Level.ERROR and 'PROMOTE_PROTOCOL: refused' in report.message
     assert health.recovery('slave', None, 3, last).level == Level.WARN
 
 
@@ -113,3 +113,10 @@ def test_a_proceed_says_whether_it_is_calling_the_server_or_idle():
     assert idle.level == busy.level == health.Level.OK
     assert 'idle' in idle.message and 'calling' not in idle.message
     assert 'calling the server' in busy.message and '0.250' in busy.message
+
+
+def test_recovery_warns_while_the_master_is_unreachable():
+    report = health.recovery('slave', Role.ALONE, 2, None, master_unreachable_for=12.4)
+    assert report.level == Level.WARN and report.message.startswith('master_unreachable')
+    assert report.value('master') == 'unreachable for 12 s'
+    assert health.recovery('slave', Role.ALONE, 2).value('master') == 'reachable'

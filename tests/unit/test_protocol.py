@@ -1,4 +1,6 @@
 """Protocol logic: duplicate detection, one request at a time, backup and promotion. No ROS."""
+import random
+
 import pytest
 
 from aft_ftm.errors import RoleError
@@ -93,6 +95,29 @@ def test_promoted_backup_answers_executed_requests_from_cache_and_executes_the_r
     assert kinds(core.on_request(request(rid=3), 0)) == [('Forward', 3)]
 
 
+def test_a_backup_answers_no_client_even_from_its_cache():
+    """One replica answers the clients: a backup queues a request whose reply it stored, and answers it
+    from the cache only once promoted."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1, value='by the primary'), seq=1)
+    assert core.on_request(request(rid=1), 0) == [] and core.stats.cached_answers == 0
+    answers = core.set_role(Role.ALONE, 0)
+    assert kinds(answers) == [('Answer', 1)] and answers[0].cached and core.stats.executed == 0
+
+
+def test_a_backup_taking_over_drops_a_queued_request_its_primary_dealt_with_but_whose_reply_was_lost():
+    """Found by the simulation (loss within a site, seed 90 of loss,local): the message storing 6's reply
+    was lost, 7's arrived. The Proxy sent 6 before 7 to both replicas, so the primary executed 6 first:
+    taking over, the backup must not execute it again. A re-send of 6 (the Proxy still waiting) executes."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_request(request(rid=6, oldest_pending=6), 0)
+    core.on_request(request(rid=7, oldest_pending=6), 0)
+    core.on_stored(reply(rid=7, oldest_pending=6), seq=2, sender='/master/after')   # seq 1 (reply 6) lost
+    assert kinds(core.set_role(Role.ALONE, 0)) == [('Answer', 7)]
+    assert core.stats.executed == 0 and core.stats.dropped == 1
+    assert kinds(core.on_request(request(rid=6, oldest_pending=6), 0)) == [('Forward', 6)]
+
+
 def test_requests_queued_while_backup_are_deduplicated_at_promotion():
     core = ProtocolCore(Role.BACKUP)
     core.on_request(request(rid=1), 0)
@@ -163,13 +188,14 @@ def test_stored_checkpoint_numbers_are_counted_per_sending_after():
 
 def test_a_request_queued_while_backup_and_answered_meanwhile_is_not_executed_at_promotion():
     """Found by the simulation (tests/unit/test_replication_sim.py): a backup being promoted queues the
-    re-sent request 7, then stores its reply from the primary's last checkpoint and answers a re-send
-    of 7 from it. The Proxy's next request says it has 7's answer: the stored reply is forgotten, and
-    the queued 7 must go with it, or the promoted backup applies it a second time."""
+    re-sent request 7, then stores its reply from the primary's last checkpoint (it answered a re-send
+    of 7 from it then; a backup answers nothing now). The Proxy's next request says it has 7's answer:
+    the stored reply is forgotten, and the queued 7 must go with it, or the promoted backup applies it
+    a second time."""
     core = ProtocolCore(Role.BACKUP)
     core.on_request(request(rid=7, oldest_pending=7), 0)
     core.on_stored(reply(rid=7, oldest_pending=7), seq=1, sender='/master/after')
-    assert kinds(core.on_request(request(rid=7, oldest_pending=7), 0)) == [('Answer', 7)]
+    assert core.on_request(request(rid=7, oldest_pending=7), 0) == []   # a backup answers nothing
     core.on_request(request(rid=8, oldest_pending=8), 0)
     assert kinds(core.set_role(Role.ALONE, 0)) == [('Forward', 8)]
     assert core.stats.executed == 1 and core.stats.dropped == 1
@@ -210,3 +236,112 @@ def test_an_inner_mechanisms_refusal_of_the_executing_request_is_its_result():
     core.on_request(request(rid=2), 0)
     actions = core.on_refusal(reply(rid=1), 0)
     assert kinds(actions) == [('Answer', 1), ('Forward', 2)] and core.current.id == 2
+
+
+def test_a_backup_with_a_full_cache_queues_and_refuses_only_once_promoted():
+    """A backup cannot say "not executed" (its primary may run the request): it queues the request. Once
+    promoted, a request is refused if the cache is still full, and executed once it has room."""
+    core = ProtocolCore(Role.BACKUP, cache_bytes=64)
+    core.on_stored(reply(rid=1, oldest_pending=1), seq=1, sender='/master/after')
+    assert core.cache.full()
+    assert core.on_request(request(rid=2, oldest_pending=1), 0) == [] and core.stats.refused == 0
+    actions = core.set_role(Role.ALONE, 0)
+    assert [type(a).__name__ for a in actions] == ['Refuse'] and actions[0].request.id == 2
+    assert core.stats.executed == 0
+    assert kinds(core.on_request(request(rid=3, oldest_pending=3), 0)) == [('Forward', 3)]   # 1, 2 confirmed
+
+
+@pytest.mark.parametrize('seed', range(60))
+def test_a_backup_listening_from_set_up_keeps_a_bounded_queue_and_takes_over_exactly_once(seed):
+    """The backup's Protocol hears every client request from set-up (so that a failover needs no new
+    subscription). A Proxy with up to `window` calls pending, a primary that releases a reply once its
+    checkpoint is acknowledged, FIFO links delivered in a random order, and at a random point the
+    primary crashes (checkpoints in flight lost) and the backup is promoted. Then: the backup's queue
+    never holds more than the Proxy's window, it never answers, refuses nor executes as a backup, every answered
+    request is in the final state exactly once, and a refused one is not in it."""
+    rng = random.Random(seed)
+    total, window = rng.randint(1, 30), rng.randint(1, 4)
+    primary = ProtocolCore(Role.PRIMARY)
+    backup = ProtocolCore(Role.BACKUP, cache_bytes=rng.choice([0, 64 * rng.randint(1, 4)]))
+    links = {name: [] for name in ('to_primary', 'to_backup', 'checkpoints', 'acks', 'replies')}
+    state_primary, state_backup, held = [], [], {}
+    pending, answered, refused, next_id, crashed = set(), {}, set(), 0, False
+    crash_at = rng.randint(0, 6 * total) if rng.random() < 0.8 else None
+
+    def send(rid):
+        oldest = min(pending) if pending else next_id
+        for link in (['to_backup'] if crashed else ['to_primary', 'to_backup']):
+            links[link].append(request(rid=rid, oldest_pending=oldest))
+
+    def backup_acts(actions):
+        for a in actions:
+            if isinstance(a, Forward):
+                assert crashed, 'seed %d: a backup executed %d' % (seed, a.request.id)
+                state_backup.append(a.request.id)
+                backup_acts(backup.on_result(reply(rid=a.request.id, oldest_pending=a.request.oldest_pending), 0))
+            elif type(a).__name__ == 'Refuse':
+                assert crashed, 'seed %d: a backup refused %d' % (seed, a.request.id)
+                links['replies'].append(('refused', a.request.id))
+            else:
+                assert crashed, 'seed %d: a backup answered %d' % (seed, a.reply.id)
+                links['replies'].append(('ok', a.reply.id))
+
+    def primary_acts(actions):
+        for a in actions:
+            if isinstance(a, Forward):
+                state_primary.append(a.request.id)
+                seq = len(state_primary)
+                held[seq] = reply(rid=a.request.id, oldest_pending=a.request.oldest_pending)
+                links['checkpoints'].append((seq, held[seq], list(state_primary)))
+            else:
+                links['replies'].append(('ok', a.reply.id))
+
+    for step in range(100 * total + 100):
+        if step == crash_at:
+            crashed = True
+            for name in ('to_primary', 'checkpoints', 'acks'):
+                links[name] = []
+            backup_acts(backup.set_role(Role.ALONE, 0))
+            for rid in sorted(pending):   # the Proxy's re-send
+                send(rid)
+        if len(answered) == total:
+            break
+        choices = [name for name, link in links.items() if link]
+        if next_id < total and len(pending) < window:
+            choices.append('call')
+        if not choices:   # only re-sends are left
+            assert pending, 'seed %d: nothing left to do' % seed
+            for rid in sorted(pending):
+                send(rid)
+            continue
+        choice = rng.choice(choices)
+        if choice == 'call':
+            pending.add(next_id)
+            send(next_id)
+            next_id += 1
+            continue
+        message = links[choice].pop(0)
+        if choice == 'to_primary':
+            primary_acts(primary.on_request(message, 0))
+        elif choice == 'to_backup':
+            backup_acts(backup.on_request(message, 0))
+            assert len(backup.queue) <= window, 'seed %d: backup queue %d > window %d' % (
+                seed, len(backup.queue), window)
+        elif choice == 'checkpoints':
+            seq, stored, state = message
+            backup.on_stored(stored, seq, '/master/after')
+            state_backup[:] = state
+            links['acks'].append(seq)
+        elif choice == 'acks':
+            primary_acts(primary.on_result(held.pop(message), 0))
+        else:
+            outcome, rid = message
+            if rid in pending:
+                pending.discard(rid)
+                answered[rid] = outcome
+                if outcome == 'refused':
+                    refused.add(rid)
+    assert len(answered) == total, 'seed %d: %d of %d answered' % (seed, len(answered), total)
+    final = state_backup if crashed else state_primary
+    assert len(final) == len(set(final)), 'seed %d: executed twice: %s' % (seed, final)
+    assert set(final) == set(answered) - refused, 'seed %d: state %s, answered %s' % (seed, final, answered)

@@ -5,7 +5,7 @@ from aft_ftm import config
 from aft_ftm.errors import ConfigError, RebindError
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
 from aft_ftm.protocol import Role
-from aft_ftm.recovery import Step, plan, role_after, same_process
+from aft_ftm.recovery import Step, plan, role_after, same_process, start_plan
 
 SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
          'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
@@ -34,7 +34,7 @@ def test_rebind_rules(port, direction, topic, activate, error):
 
 
 @pytest.mark.parametrize('role,waves,after', [
-    (Role.BACKUP, [[Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.BIND_CLIENT], [Step.PROMOTE_PROTOCOL]], Role.ALONE),
+    (Role.BACKUP, [[Step.FAIL_SILENCE, Step.PROMOTE_AFTER], [Step.PROMOTE_PROTOCOL]], Role.ALONE),
     (Role.PRIMARY, [[Step.FAIL_SILENCE, Step.AFTER_ALONE]], Role.ALONE),
     (Role.ALONE, [], Role.ALONE),
 ])
@@ -50,6 +50,17 @@ def test_a_backup_never_executes_before_the_failed_site_is_silent(role):
     if Step.PROMOTE_PROTOCOL in wave_of:
         assert wave_of[Step.FAIL_SILENCE] < wave_of[Step.PROMOTE_PROTOCOL]
         assert wave_of[Step.PROMOTE_AFTER] < wave_of[Step.PROMOTE_PROTOCOL]
+
+
+@pytest.mark.parametrize('witness', [False, True])
+def test_failover_and_start_plans_only_switch_roles(witness):
+    """The clients' topics are bound at set-up: no plan binds a topic (a new subscription needs the ROS
+    master, which may be dead at failover). A witness adds only its vote, first."""
+    assert plan(Role.BACKUP, witness) == ([[Step.WITNESS_PROMOTE]] if witness else []) + [
+        [Step.FAIL_SILENCE, Step.PROMOTE_AFTER], [Step.PROMOTE_PROTOCOL]]
+    assert start_plan() == [[Step.PROMOTE_AFTER], [Step.PROMOTE_PROTOCOL]]
+    assert set(Step) == {Step.WITNESS_PROMOTE, Step.WITNESS_EXCLUDE, Step.FAIL_SILENCE, Step.PROMOTE_AFTER,
+                         Step.PROMOTE_PROTOCOL, Step.AFTER_ALONE}
 
 
 def test_fail_silence_spares_a_pid_reused_after_the_last_heartbeat():

@@ -381,8 +381,8 @@ def _claim_master(f):
     return text, QUALIFIED, (
         'what is connected keeps working; nothing new can connect, so a failover works only over connections '
         'opened beforehand (%s)%s' % (
-            'the bank\'s rebinding failover did too' if rebind else 'the bank PBR\'s rebind needs the master and '
-            'fails', '; a restarted master does not know the running nodes: they must be restarted to be found '
+            'the bank PBR\'s failover did too: its connections are opened at set-up' if rebind
+            else 'the bank PBR\'s failover needs the master and fails', '; a restarted master does not know the running nodes: they must be restarted to be found '
             'again' if not restored else '; a restarted master gets the running nodes back'))
 
 

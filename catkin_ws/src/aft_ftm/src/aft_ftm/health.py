@@ -79,9 +79,12 @@ def detector(site, peer, peer_state, silence, stopped=None):
     return Report(Level.OK, 'peer %s alive' % peer, values)
 
 
-def recovery(site, role, epoch, last=None):
-    """A replica's Recovery: ``last`` is its last failover record (~events), None before any."""
+def recovery(site, role, epoch, last=None, master_unreachable_for=None):
+    """A replica's Recovery: ``last`` is its last failover record (~events), None before any;
+    ``master_unreachable_for``: seconds the ROS master has not answered (None: it answers)."""
     values = _common(site, '', role, epoch)
+    values.append(('master', 'reachable' if master_unreachable_for is None
+                   else 'unreachable for %.0f s' % master_unreachable_for))
     if last:
         values += [('last_failed_site', last.get('failed_site')), ('last_recovery_ms', '%.1f' % (last['seconds'] * 1e3)),
                    ('last_reason', last.get('reason'))]
@@ -91,6 +94,9 @@ def recovery(site, role, epoch, last=None):
             last['failed_site'], '; '.join('%s: %s' % (s['step'], s['detail']) for s in failed)), values)
     if role is None:
         return Report(Level.WARN, 'in no configuration of the witness: neither serves nor takes over', values)
+    if master_unreachable_for is not None:
+        return Report(Level.WARN, 'master_unreachable: the ROS master has not answered for %.0f s (failovers still '
+                      'work; no node can start, re-join or be adapted)' % master_unreachable_for, values)
     if not last:
         return Report(Level.OK, 'no failover yet', values)
     return Report(Level.OK, '%s failed (%s); recovered in %.1f ms: %s' % (

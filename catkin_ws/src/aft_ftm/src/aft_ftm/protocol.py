@@ -181,6 +181,8 @@ class ProtocolCore(object):
         self.last_stored_seq = 0
         self.stored_sender = None
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
+        self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
+        self.stored_high = {}       # origin -> the highest request id whose reply a checkpoint brought (backup)
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
@@ -188,9 +190,14 @@ class ProtocolCore(object):
         """A request arrived from a Proxy."""
         self.stats.requests += 1
         self._forget_below(request.origin, request.oldest_pending)
+        if request.id < self.watermarks[request.origin]:
+            # Its Proxy has its answer already (a late copy: a backup hears the Proxy on one connection and
+            # the checkpoints that say so on another): its reply may be forgotten, it must not execute.
+            self.stats.dropped += 1
+            return []
         k = key(request)
         cached = self.cache.lookup(k)
-        if cached is not None:
+        if cached is not None and self.role != Role.BACKUP:
             self.stats.cached_answers += 1
             return [self._answer(cached, cached=True)]
         if k in self.refused:
@@ -202,12 +209,13 @@ class ProtocolCore(object):
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
             return []
-        if self.cache.full():
-            # Bounded memory: push back (the client may retry) rather than grow or forget a reply.
-            self.stats.refused += 1
-            self.refused[k] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its clients '
-                               'have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
-            return [Refuse(request, self.refused[k])]
+        if self.role != Role.BACKUP and self.cache.full():
+            return [self._refuse(request)]
+        # A backup answers nothing (one replica answers the clients: an excluded backup's cached reply
+        # would be of an older epoch) and refuses nothing (its primary may execute the request: a backup
+        # cannot say "not executed"). It queues the request; the queue is bounded by the Proxies' pending
+        # requests (what is below a Proxy's oldest_pending is dropped), and checked against the cache
+        # once promoted.
         self.queue.append(request)
         self.queued_keys.add(k)
         return self._dispatch(now)
@@ -243,6 +251,7 @@ class ProtocolCore(object):
         if reply is not None:
             self._forget_below(reply.origin, reply.oldest_pending)
             self.cache.store(reply)
+            self.stored_high[reply.origin] = max(reply.id, self.stored_high.get(reply.origin, reply.id))
         if sender != self.stored_sender:
             self.stored_sender = sender
             self.last_stored_seq = seq
@@ -270,9 +279,18 @@ class ProtocolCore(object):
     def set_role(self, role, now, epoch=0):
         """Change role (guarded); a new primary starts executing queued requests."""
         check_role_change(self.role, role)
+        if self.role == Role.BACKUP and role != Role.BACKUP:
+            self._drop_dealt_with()
         self.role = role
         self.epoch = max(self.epoch, epoch)
         return self._dispatch(now)
+
+    def _refuse(self, request):
+        """Bounded memory: push back (the client may retry) rather than grow or forget a reply."""
+        self.stats.refused += 1
+        self.refused[key(request)] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its '
+                                      'clients have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
+        return Refuse(request, self.refused[key(request)])
 
     def _answer(self, reply, cached=False):
         if hasattr(reply, 'epoch'):
@@ -284,7 +302,10 @@ class ProtocolCore(object):
         """Proxy ``origin`` has the answer of every request below ``watermark`` (or gave up on it): forget
         those replies and refusals, and drop those requests if queued. A backup queues the requests its
         clients send while it is promoted; one of them may meanwhile be answered from a reply a checkpoint
-        brought: executing it once promoted would apply it twice."""
+        brought: executing it once promoted would apply it twice. The highest watermark of each origin is
+        kept (Proxy ids grow across restarts): a copy arriving after it is dropped by on_request."""
+        watermark = max(watermark, self.watermarks.get(origin, watermark))
+        self.watermarks[origin] = watermark
         self.cache.forget_below(origin, watermark)
         if self.refused:
             for k in [k for k in self.refused if k[0] == origin and k[1] < watermark]:
@@ -299,6 +320,22 @@ class ProtocolCore(object):
                     kept.append(r)
             self.queue = kept
 
+    def _drop_dealt_with(self):
+        """Taking over: drop the requests queued as a backup that its primary dealt with although their
+        reply is not in the cache (the message that stored it was lost). A Proxy sends a request to
+        both replicas over connections that keep its order, and a Protocol takes them in that order:
+        once a reply to a later request of the same Proxy was stored, the earlier one's outcome was
+        stored before it, or forgotten (its Proxy has it). Without losses nothing is dropped here; a
+        Proxy still waiting for a dropped request sends it again, and it executes then."""
+        kept = collections.deque()
+        for r in self.queue:
+            if r.id < self.stored_high.get(r.origin, r.id) and self.cache.lookup(key(r)) is None:
+                self.queued_keys.discard(key(r))
+                self.stats.dropped += 1
+            else:
+                kept.append(r)
+        self.queue = kept
+
     def _dispatch(self, now):
         actions = []
         while self.role != Role.BACKUP and self.current is None and self.queue:
@@ -310,6 +347,9 @@ class ProtocolCore(object):
                 # Queued while a backup, and executed by the old primary meanwhile.
                 self.stats.cached_answers += 1
                 actions.append(self._answer(cached, cached=True))
+                continue
+            if self.cache.full():   # queued while a backup: refused now, by the replica that serves
+                actions.append(self._refuse(request))
                 continue
             self.current = request
             self.started_at = now

@@ -10,13 +10,14 @@ class Step(enum.Enum):
     FAIL_SILENCE = 'kill whatever is left of the failed site'
     PROMOTE_AFTER = "fence the After against the old primary's checkpoints and make it ALONE"
     PROMOTE_PROTOCOL = "make the Protocol ALONE once it stored every checkpointed reply"
-    BIND_CLIENT = "bind the Protocol to the clients' request and reply topics"
     AFTER_ALONE = 'stop checkpointing: release the replies held for the lost backup'
 
 
-# What each step must wait for. Binding the clients' topic early is safe: a Protocol that is
-# still a backup queues the requests it receives (answering only those whose checkpointed reply
-# it holds). The Protocol executes them only once promoted, and it is promoted only once the
+# What each step must wait for. No step binds the clients' topics: a replica's entry (its Protocol,
+# or a SEC gate in front of it) is bound to them from set-up, so that a failover opens no new
+# connection and needs no ROS master. That is safe: a Protocol that is still a backup queues the
+# requests it receives (answering only those whose checkpointed reply it holds, refusing none). The
+# Protocol executes them only once promoted, and it is promoted only once the
 # failed site is silent (no two primaries) and its After is fenced against the old primary.
 # With a witness, nothing happens before its vote: a backup that was excluded must not kill the
 # primary (the only replica holding the state), and a deposed primary must not kill the new one.
@@ -26,7 +27,6 @@ PREREQUISITES = {
     Step.WITNESS_EXCLUDE: (),
     Step.FAIL_SILENCE: WITNESS,
     Step.PROMOTE_AFTER: WITNESS,
-    Step.BIND_CLIENT: WITNESS,
     Step.PROMOTE_PROTOCOL: (Step.FAIL_SILENCE, Step.PROMOTE_AFTER),
     Step.AFTER_ALONE: WITNESS,
 }
@@ -40,7 +40,7 @@ def plan(role, witness=False):
     wave run in parallel, each wave once the previous one is complete. ``role`` None: this site is
     in no configuration of the witness (excluded or deposed): nothing to do."""
     if role == Role.BACKUP:
-        steps = [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.BIND_CLIENT, Step.PROMOTE_PROTOCOL]
+        steps = [Step.FAIL_SILENCE, Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL]
         steps = ([Step.WITNESS_PROMOTE] if witness else []) + steps
     elif role == Role.PRIMARY:
         steps = ([Step.WITNESS_EXCLUDE] if witness else []) + [Step.FAIL_SILENCE, Step.AFTER_ALONE]
@@ -52,7 +52,7 @@ def plan(role, witness=False):
 def start_plan():
     """The steps when the witness names this site the first primary at start: it serves from its own
     server's state (nothing to fence, nobody to wait for)."""
-    return waves([Step.PROMOTE_AFTER, Step.BIND_CLIENT, Step.PROMOTE_PROTOCOL])
+    return waves([Step.PROMOTE_AFTER, Step.PROMOTE_PROTOCOL])
 
 
 def role_in(configuration_primary, configuration_backup, site):

@@ -8,9 +8,11 @@ import threading
 import time
 
 import rospy
+import rosservice
 from aft_msgs.msg import Reply
 
 from .. import config, health, service_errors
+from ..errors import ConfigError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
@@ -18,6 +20,7 @@ from .diagnostics import Diagnostics
 from .envelope import deserialize, serialize, service_class
 from .fail_stop import fail_stop
 from .params import param
+from .persistent_service import PersistentService
 from .ports import Ports, wait_for_connections
 
 
@@ -94,6 +97,10 @@ class BeforeNode(StageNode):
 class ProceedNode(StageNode):
     """Proceed: calls the real server with the application's request and passes the reply on.
 
+    The persistent connection to the server is opened as soon as the server is up (its type is asked
+    of it), not at the first request: a backup's Proceed first calls its server at a failover, when
+    the ROS master may be dead.
+
     A call that fails without an answer from the server (it hangs past ``~server_timeout``, or its
     connection broke: the server died or was replaced) has an unknown outcome: the server may
     apply the request later, or its state may be gone. Proceed then never answers an error. In a
@@ -134,13 +141,31 @@ class ProceedNode(StageNode):
     def setup(self, timeout):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        return super(ProceedNode, self).setup(timeout)
+        if not super(ProceedNode, self).setup(timeout):
+            return False
+        threading.Thread(target=self._open_server, name='open-server', daemon=True).start()
+        return True
+
+    def _open_server(self, period=0.5):
+        """Open the persistent connection to the server once it is up (asking the server its type)."""
+        while not rospy.is_shutdown():
+            try:
+                type_name = rosservice.get_service_type(self.server_name)
+                if type_name:
+                    proxy = self._proxies.setdefault(type_name, PersistentService(self.server_name,
+                                                                                  service_class(type_name)))
+                    proxy.connect()
+                    rospy.loginfo('%s: connected to the server %s (%s)', self.name, self.server_name, type_name)
+                    return
+            except (rosservice.ROSServiceException, rospy.ServiceException, rospy.ROSException, ConfigError,
+                    OSError) as e:
+                rospy.logdebug('%s: the server %s cannot be connected yet: %s', self.name, self.server_name, e)
+            time.sleep(period)
 
     def _proxy(self, type_name):
         proxy = self._proxies.get(type_name)
         if proxy is None:
-            proxy = rospy.ServiceProxy(self.server_name, service_class(type_name), persistent=True)
-            self._proxies[type_name] = proxy
+            proxy = self._proxies.setdefault(type_name, PersistentService(self.server_name, service_class(type_name)))
         return proxy
 
     def handle(self, request):
@@ -189,7 +214,9 @@ class ProceedNode(StageNode):
             problem = 'the server %s cannot be called for %s/%d: %s' % (
                 self.server_name, request.origin, request.id, e)
             late = None
-        self._proxies.pop(request.service_type, None)
+        broken = self._proxies.get(request.service_type)
+        if broken is not None:   # a new connection next time, to the address known (the call may still run)
+            self._proxies[request.service_type] = broken.fresh()
         if rospy.is_shutdown():
             # This replica is going down: stay silent (fail-silent); the Proxy re-sends the
             # request to whichever replica takes over.

@@ -22,6 +22,7 @@ from ..witness import Op
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
 from .params import param
+from .persistent_service import PersistentService
 from .ports import wait_for_connections
 from .protocol_node import ROLES
 from .replica_side import SIDE_PORTS, ReplicaSide
@@ -193,10 +194,10 @@ class LfrAfterNode(AfterNode):
                              site=self.site, peer=self.peer, ack_timeout=self.ack_timeout,
                              join_period=self.join_period, join_seq=int(time.time() * 1e6), cache_bytes=cache_bytes)
         self.state_calls = Deadline('state')
-        self.before_role = rospy.ServiceProxy(before + '/set_role', SetRole, persistent=True)
+        self.before_role = PersistentService(before + '/set_role', SetRole)
         self.before_name = before
-        self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
-        self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.get_state = PersistentService('get_state', GetState)
+        self.set_state = PersistentService('set_state', SetState)
 
     def setup(self, timeout):
         for name in ('acks', 'peer_acks', 'notify', 'refusals', 'fail_stop'):
@@ -215,11 +216,19 @@ class LfrAfterNode(AfterNode):
             try:
                 rospy.wait_for_service('get_state', timeout)
                 rospy.wait_for_service('set_state', timeout)
-            except rospy.ROSException:
+                self.get_state.connect()   # opened now: no state call needs the master later
+                self.set_state.connect()
+            except (rospy.ROSException, rospy.ServiceException) as e:
                 rospy.logerr('%s: LFR with a witness joins a follower by a state transfer: the server state '
-                             'manager (%s, %s) is not available', self.name, rospy.resolve_name('get_state'),
-                             rospy.resolve_name('set_state'))
+                             'manager (%s, %s) is not available: %s', self.name, rospy.resolve_name('get_state'),
+                             rospy.resolve_name('set_state'), e)
                 return False
+        try:   # Before's set_role, called when the follower is excluded: opened now, not then
+            rospy.wait_for_service(self.before_name + '/set_role', timeout)
+            self.before_role.connect()
+        except (rospy.ROSException, rospy.ServiceException) as e:
+            rospy.logwarn('%s: %s/set_role not connected at set-up (%s): it is connected at its first call, '
+                          'which then needs the ROS master', self.name, self.before_name, e)
         if self.witness is None or self.in_sync:
             peer = {Role.PRIMARY: ['notify', 'acks'], Role.BACKUP: ['peer_acks', 'notifications'],
                     Role.ALONE: []}
@@ -336,7 +345,7 @@ class LfrAfterNode(AfterNode):
             answer = self.state_calls.call(lambda: self.before_role(role=role.value, epoch=epoch, last_seq=transfer),
                                            self.state_timeout)
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            self.before_role = rospy.ServiceProxy(self.before_name + '/set_role', SetRole, persistent=True)
+            self.before_role = self.before_role.fresh()
             answer, error = None, str(e)
         else:
             error = answer.message
@@ -376,7 +385,7 @@ class LfrAfterNode(AfterNode):
         try:
             state = self.state_calls.call(self.get_state, self.state_timeout).state
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            self.get_state = self.get_state.fresh()
             self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, e))
             return
         with self.lock:
@@ -447,7 +456,7 @@ class LfrAfterNode(AfterNode):
                     result = self.state_calls.call(self.set_state, self.state_timeout, cp.state)
                     problem = None if result.success else 'the server refused the state: %s' % result.message
                 except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-                    self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                    self.set_state = self.set_state.fresh()
                     problem = 'cannot set the server state: %s' % e
             if problem is None:
                 self.core.transferred(cp.seq, cp.epoch, cp.cache, time.monotonic())

@@ -18,6 +18,7 @@ from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
 from .params import param
+from .persistent_service import PersistentService
 from .ports import wait_for_connections
 from .protocol_node import ROLES
 from .replica_side import SIDE_PORTS, ReplicaSide
@@ -156,8 +157,8 @@ class PbrAfterNode(AfterNode):
                                 self.state_timeout)
         self.witness = self.side.witness
         self.state_calls = Deadline('state')
-        self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
-        self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.get_state = PersistentService('get_state', GetState)
+        self.set_state = PersistentService('set_state', SetState)
         self.configuration_seen = None   # the witness's newest configuration
         self.followed_since = 0.0   # when the last state transfer was accepted
 
@@ -171,9 +172,12 @@ class PbrAfterNode(AfterNode):
         try:
             rospy.wait_for_service('get_state', timeout)
             rospy.wait_for_service('set_state', timeout)
-        except rospy.ROSException:
-            rospy.logerr('%s: the server state manager (%s, %s) is not available', self.name,
-                         rospy.resolve_name('get_state'), rospy.resolve_name('set_state'))
+            # Opened now: a promoted backup's first state call must not need the master.
+            self.get_state.connect()
+            self.set_state.connect()
+        except (rospy.ROSException, rospy.ServiceException) as e:
+            rospy.logerr('%s: the server state manager (%s, %s) is not available: %s', self.name,
+                         rospy.resolve_name('get_state'), rospy.resolve_name('set_state'), e)
             return False
         if self.witness is None or self.in_sync:
             peer_ports = {Role.PRIMARY: ['checkpoints', 'acks'], Role.BACKUP: ['peer_checkpoints', 'peer_acks'],
@@ -244,7 +248,7 @@ class PbrAfterNode(AfterNode):
                 return self.state_calls.call(self.get_state, self.state_timeout).state, None
             except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
                 error = e
-                self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+                self.get_state = self.get_state.fresh()
         return None, error
 
     # -- primary ----------------------------------------------------------------
@@ -513,7 +517,7 @@ class PbrAfterNode(AfterNode):
             result = self.state_calls.call(self.set_state, self.state_timeout, state)
             error = '' if result.success else 'the server refused the state: %s' % result.message
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+            self.set_state = self.set_state.fresh()
             error = 'cannot set the server state: %s' % e
         self.pending_state = None
         if error:

@@ -24,7 +24,9 @@ class ProtocolNode(object):
     to Before. As a backup it executes nothing and stores the replies checkpoints carry.
 
     Parameters:
-        ~role (primary | backup | alone, default primary): a backup starts with ``requests`` unbound.
+        ~role (primary | backup | alone, default primary): a backup starts with ``requests`` unbound; a
+            replica's Recovery binds it at its set-up (a backup queues requests and executes none), so that
+            a failover needs no new subscription, hence no ROS master.
         ~processing_timeout (float, 30 s): an executing request with no result after this long has an
             unknown outcome: in a replica (~site set) the replica fail-stops, so that its peer takes
             over and executes it once; elsewhere an alarm is raised and the request stays unanswered.
@@ -38,7 +40,7 @@ class ProtocolNode(object):
             a result, so that a copy of the request sent after a failover gets the same answer and is
             never executed. A backup refuses nothing (the request waits for a promotion).
         ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
-            until promoted): for a Protocol behind an entry node (a SEC gate) that Recovery binds.
+            until promoted): for a Protocol behind an entry node (a SEC gate, which Recovery binds).
         ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
             mechanism the Adaptation Engine launches ahead and binds in the pause).
         ~suspend_lease (float, 10 s), ~suspend_buffer_bytes (int, 64 MiB): the lease of a suspension

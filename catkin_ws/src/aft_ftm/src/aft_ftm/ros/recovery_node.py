@@ -13,6 +13,7 @@ from std_msgs.msg import String
 from .. import config, health
 from ..power_switch import FenceState, Fencing, SwitchError, parse_spec
 from ..power_switch_exec import call_switch
+from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
 from ..sites import power_off, process_tree, this_host
@@ -21,7 +22,9 @@ from ..witness import Op
 from .alarms import alarm
 from .diagnostics import Diagnostics
 from .fencing import NamespaceFence
+from .graph import master_answers
 from .params import param
+from .persistent_service import PersistentService, open_service
 from .ports import Ports
 from .protocol_node import ROLES
 from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
@@ -30,12 +33,19 @@ from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
 class RecoveryNode(object):
     """Acts on the crash detector's verdicts about the peer replica.
 
-    Backup whose primary failed: kill what is left of the primary's site, fence and promote
-    this replica's After, bind the Protocol to the clients' topics through its rebind service,
-    all three at once; then promote the Protocol once it stored every checkpointed reply
-    (see aft_ftm.recovery for why this order is safe). Primary whose
+    Backup whose primary failed: kill what is left of the primary's site and fence and promote
+    this replica's After, both at once; then promote the Protocol once it stored every checkpointed
+    reply (see aft_ftm.recovery for why this order is safe). Primary whose
     backup failed: kill what is left of the backup's site and tell After to stop
     checkpointing.
+
+    A failover needs no ROS master: at set-up a backup binds its entry (the Protocol, or a SEC gate)
+    to the clients' request and reply topics through the entry's rebind service (the Protocol queues
+    requests as a backup, executing nothing), and opens a persistent connection to every service
+    the failover calls (the nodes' set_role, the witness), which remembers the service's address to
+    reconnect without the master. The master is probed every ``~master_check_period``: while it
+    does not answer, the alarm ``master_unreachable`` is raised (again every ``~master_alarm_repeat``)
+    and the diagnostics say WARN, since nothing can start, re-join or be adapted without it.
 
     With a witness (``~witness``) every step waits for its vote: a backup is promoted only if the
     witness grants it the next epoch, a primary goes on alone only once the witness excluded the
@@ -72,6 +82,8 @@ class RecoveryNode(object):
         ~peer_host (str, required with a power switch): the peer's host as the switch names it.
         ~fence_timeout (float, 10 s): the longest one call of the switch may take.
         ~fence_retry (float, 1 s): how soon a switch that did not confirm is asked again.
+        ~master_check_period (float, 1 s): how often the ROS master is probed (each probe limited to it).
+        ~master_alarm_repeat (float, 60 s): how often the alarm master_unreachable is repeated while it lasts.
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
         /aft/witness/configuration (aft_msgs/Configuration): this site's role.
@@ -80,7 +92,9 @@ class RecoveryNode(object):
         ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations), per start,
             per configuration change, and per alarm of this site's nodes (``"event": "alarm"``).
         alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): a promotion refused, the witness
-            unreachable, this site excluded or deposed.
+            unreachable, this site excluded or deposed, the ROS master unreachable (master_unreachable).
+        /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, last failover, the master (WARN when
+            it does not answer).
     Services:
         ~rebind (aft_msgs/Rebind)
         ~set_promote (aft_msgs/SetNodes): replace the list of nodes to promote (an adaptation
@@ -105,6 +119,8 @@ class RecoveryNode(object):
         self.learn_period = param('learn_period', config.positive_float, 2.0)
         self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
         self.retry = param('witness_retry', config.positive_float, 0.5)
+        self.master_period = param('master_check_period', config.positive_float, 1.0)
+        self.master = MasterWatch(param('master_alarm_repeat', config.positive_float, 60.0))
         self.witness = WitnessClient(witness, self.site, param('site_pid', config.non_negative_int,
                                                                site_launcher_pid())) if witness else None
         switch_text = param('power_switch', config.optional_name, '')
@@ -135,21 +151,25 @@ class RecoveryNode(object):
             except rospy.ROSException:
                 rospy.logerr('%s: service %s not available within %.1f s', rospy.get_name(), name, timeout)
                 return False
-        # Persistent connections, opened now by no-op calls, so that a failover pays no connection set-up.
-        self.set_role_nodes = [rospy.ServiceProxy(n + '/set_role', SetRole, persistent=True) for n in self.promote]
-        self.set_role_protocol = rospy.ServiceProxy(self.protocol + '/set_role', SetRole, persistent=True)
-        self.rebind_entry = rospy.ServiceProxy(self.entry + '/rebind', Rebind, persistent=True)
+        # Persistent connections, opened now by no-op calls, so that a failover pays no connection set-up
+        # and needs no master (each remembers its service's address).
+        self.set_role_nodes = [PersistentService(n + '/set_role', SetRole) for n in self.promote]
+        self.set_role_protocol = PersistentService(self.protocol + '/set_role', SetRole)
+        self.rebind_entry = PersistentService(self.entry + '/rebind', Rebind)
         try:
             for set_role in self.set_role_nodes:
                 set_role(role=self.role.value)
             if self.role == Role.BACKUP:
                 self.set_role_protocol(role=self.role.value, last_seq=0)
-                bound = self.rebind_entry(port=self.entry_replies, topic=self.client_replies,
-                                             direction=RebindRequest.PUBLISH, activate=True)
-                if not bound.success:
-                    rospy.logerr('%s: cannot bind the Protocol replies to %s: %s', rospy.get_name(),
-                                 self.client_replies, bound.message)
-                    return False
+                # The entry hears the clients from now on (a backup queues their requests, executes none)
+                # and its replies reach them: a failover binds nothing (a new subscription needs the master).
+                for port, topic, direction in ((self.entry_replies, self.client_replies, RebindRequest.PUBLISH),
+                                               (self.entry_requests, self.client_requests, RebindRequest.SUBSCRIBE)):
+                    bound = self.rebind_entry(port=port, topic=topic, direction=direction, activate=True)
+                    if not bound.success:
+                        rospy.logerr('%s: cannot bind port %s of %s to %s: %s', rospy.get_name(), port, self.entry,
+                                     topic, bound.message)
+                        return False
         except (rospy.ServiceException, rospy.ROSException) as e:
             rospy.logerr('%s: cannot reach this replica\'s nodes: %s', rospy.get_name(), e)
             return False
@@ -168,12 +188,28 @@ class RecoveryNode(object):
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.alarm_log = rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
         self.diagnostics = Diagnostics(self._health, self.site)
+        threading.Thread(target=self._watch_master, name='watch-master', daemon=True).start()
         return True
 
     def _health(self):
         with self.lock:
             role, epoch, last = self.role, self.epoch, self.last_recovery
-        return health.recovery(self.site or rospy.get_namespace().strip('/'), role, epoch, last)
+        return health.recovery(self.site or rospy.get_namespace().strip('/'), role, epoch, last,
+                               self.master.unreachable_for(time.monotonic()))
+
+    def _watch_master(self):
+        """Probe the ROS master every ~master_check_period: its loss is a degraded state (alarmed)."""
+        while not rospy.is_shutdown():
+            t0 = time.monotonic()
+            answered, why = master_answers(self.master_period)
+            decision = self.master.probe(answered, time.monotonic(), why)
+            if decision == Decision.ALARM:
+                alarm(self.ports, 'ros', 'master_unreachable', 'the ROS master has not answered for %.0f s (%s): '
+                      'failovers still work over the connections open, but no node can start, re-join or be '
+                      'adapted until it is back' % (self.master.unreachable_for(time.monotonic()), why))
+            elif decision == Decision.BACK:
+                rospy.loginfo('%s: the ROS master answers again', rospy.get_name())
+            time.sleep(max(0.0, self.master_period - (time.monotonic() - t0)))
 
     def _on_alarm(self, msg):
         """Every alarm of this site's nodes (a degraded state) is also an event of this site."""
@@ -248,8 +284,7 @@ class RecoveryNode(object):
         with self.lock:   # no recovery runs while the list changes
             for name in names:
                 try:
-                    rospy.wait_for_service(name + '/set_role', self.timeout)
-                    proxy = rospy.ServiceProxy(name + '/set_role', SetRole, persistent=True)
+                    proxy = open_service(name + '/set_role', SetRole, self.timeout)
                     answer = proxy(role=self.role.value)
                 except (rospy.ServiceException, rospy.ROSException) as e:
                     return SetNodesResponse(success=False, previous=self.promote,
@@ -263,12 +298,11 @@ class RecoveryNode(object):
         return SetNodesResponse(success=True, message='promote %s' % ', '.join(names), previous=previous)
 
     def _set_role(self, index, **request):
-        """Call set_role of promote node index; reconnect once if the persistent connection broke."""
+        """Call set_role of promote node index; reconnect once if the persistent connection broke (to the
+        address known, if the master cannot be asked)."""
         try:
             return self.set_role_nodes[index](**request)
-        except (rospy.ServiceException, rospy.ROSException):
-            self.set_role_nodes[index] = rospy.ServiceProxy(self.promote[index] + '/set_role', SetRole,
-                                                            persistent=True)
+        except (rospy.ServiceException, rospy.ROSException):   # the broken connection is closed: retried
             return self.set_role_nodes[index](**request)
 
     def _on_failure(self, failure, retried_role=None):
@@ -373,14 +407,6 @@ class RecoveryNode(object):
             if not result.success:
                 raise RuntimeError('Protocol refused: %s' % result.message)
             return result.message
-        if step == Step.BIND_CLIENT:
-            # The replies port was bound to the clients' topic at set-up (checked there): its
-            # publisher is already connected, so only the requests port is bound now.
-            result = self.rebind_entry(port=self.entry_requests, topic=self.client_requests,
-                                       direction=RebindRequest.SUBSCRIBE, activate=True)
-            if not result.success:
-                raise RuntimeError('rebind of requests refused: %s' % result.message)
-            return result.message
         if step == Step.AFTER_ALONE:
             for index, name in enumerate(self.promote):
                 result = self._set_role(index, role=Role.ALONE.value, epoch=self.granted)
@@ -483,7 +509,13 @@ class RecoveryNode(object):
         return '%d processes of the launcher of %s killed' % (power_off(failure.pid), failure.site)
 
     def _clean_master(self):
-        """Ask the failed site's remaining nodes to shut down, and unregister the dead ones."""
+        """Ask the failed site's remaining nodes to shut down, and unregister the dead ones. Best effort,
+        after the failover: skipped while the master does not answer (its loss is alarmed by
+        _watch_master, not here)."""
+        if self.master.unreachable_for(time.monotonic()) is not None:
+            rospy.loginfo('%s: the master does not answer: the nodes of %s are not unregistered', rospy.get_name(),
+                          self.peer_ns)
+            return
         try:
             count = self.fence.shut_down_the_rest()
             rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), count, self.peer_ns)

@@ -13,6 +13,7 @@ from ..protocol import Role
 from .alarms import alarm
 from .diagnostics import Diagnostics
 from .params import param
+from .persistent_service import open_service
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
 
@@ -58,7 +59,8 @@ class SecGateNode(object):
     Parameters:
         ~side (client | server), ~party (this side's party name), ~keys_dir (its key files),
         ~ca_public (path of ca.pub, the CA's public keys: known to all), ~server_party (client side),
-        ~role (server side: primary | backup; a backup starts with requests_in unbound)
+        ~role (server side: primary | backup; a backup starts with requests_in unbound: the replica's
+            Recovery binds it at its set-up, so that a failover needs no new subscription)
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply)
     Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm)
@@ -89,13 +91,12 @@ class SecGateNode(object):
         self.diagnostics = None
 
     def setup(self, timeout):
-        try:
-            rospy.wait_for_service('certificate', timeout)
-        except rospy.ROSException:
-            rospy.logerr('%s: the certification authority (%s) is not available', rospy.get_name(),
-                         rospy.resolve_name('certificate'))
+        try:   # opened now: a certificate asked later (a failover, a new client) needs no master
+            self.certificate = open_service('certificate', Certificate, timeout)
+        except (rospy.ROSException, rospy.ServiceException) as e:
+            rospy.logerr('%s: the certification authority (%s) is not available: %s', rospy.get_name(),
+                         rospy.resolve_name('certificate'), e)
             return False
-        self.certificate = rospy.ServiceProxy('certificate', Certificate, persistent=True)
         if self.side == 'client':
             try:
                 self._peer(self.server_party)
@@ -127,7 +128,7 @@ class SecGateNode(object):
         try:
             cert = self.certificate(party=party)
         except (rospy.ServiceException, rospy.ROSException) as e:
-            self.certificate = rospy.ServiceProxy('certificate', Certificate, persistent=True)
+            self.certificate = self.certificate.fresh()
             raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
         if not cert.found:
             raise security.Rejected('unknown_party', cert.message)

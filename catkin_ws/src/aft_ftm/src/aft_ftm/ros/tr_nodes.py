@@ -16,6 +16,7 @@ from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
 from .fail_stop import fail_stop
 from .params import param
+from .persistent_service import PersistentService
 
 
 # Execution k (0, 1, ...) of a request that came with attempt a goes out with attempt a * SPAN + k:
@@ -59,8 +60,8 @@ class TrBeforeNode(BeforeNode):
         super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
                                                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                                                         PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
-        self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
-        self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+        self.get_state = PersistentService('get_state', GetState)
+        self.set_state = PersistentService('set_state', SetState)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
@@ -83,7 +84,7 @@ class TrBeforeNode(BeforeNode):
         try:
             self.get_state()   # read-only: opens the persistent connection now, not on the first request
         except (rospy.ServiceException, rospy.ROSException):
-            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            self.get_state = self.get_state.fresh()
         rospy.Service('~repeat', Repeat, self._on_repeat)
         return super(TrBeforeNode, self).setup(timeout)
 
@@ -101,7 +102,7 @@ class TrBeforeNode(BeforeNode):
         except CallTimeout:
             problem = 'the server state manager %s did not answer within %.3f s (it hangs)' % (
                 rospy.resolve_name('get_state'), self.server_timeout)
-            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            self.get_state = self.get_state.fresh()
             if self.site:
                 self.failed = problem
                 fail_stop(self.ports, self.site, problem, mechanism='tr')
@@ -109,7 +110,7 @@ class TrBeforeNode(BeforeNode):
             alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (problem, request.origin, request.id))
             return self._not_executed(request, problem)
         except (rospy.ServiceException, rospy.ROSException) as e:
-            self.get_state = rospy.ServiceProxy('get_state', GetState, persistent=True)
+            self.get_state = self.get_state.fresh()
             return self._not_executed(request, str(e))
         finally:
             self.capturing_since = None
@@ -180,7 +181,7 @@ class TrAfterNode(AfterNode):
                                                                          SPAN, executions))
         self.voter = TimeRedundancyVote(executions)
         super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
-        self.repeat = rospy.ServiceProxy('repeat', Repeat, persistent=True)
+        self.repeat = PersistentService('repeat', Repeat)
         self.masked = 0
 
     def setup(self, timeout):
@@ -200,7 +201,7 @@ class TrAfterNode(AfterNode):
             result = self.repeat(origin=reply.origin, id=reply.id, action=action)
             return result.success, result.message
         except (rospy.ServiceException, rospy.ROSException) as e:
-            self.repeat = rospy.ServiceProxy('repeat', Repeat, persistent=True)
+            self.repeat = self.repeat.fresh()
             return False, str(e)
 
     def handle(self, reply):

@@ -10,6 +10,7 @@ from ..errors import AftError
 from ..site_guard import OWNERS_ENV, GuardError, parse_owners
 from ..witness import Grant, Op
 from .deadline import CallTimeout, Deadline
+from .persistent_service import open_service
 
 CONFIGURATION_TOPIC = '/aft/witness/configuration'
 
@@ -41,7 +42,9 @@ def incarnation(pid):
 
 class WitnessClient(object):
     """Calls ``service`` (aft_msgs/Witness) for ``site`` over a persistent connection opened at set-up,
-    each call limited to ``timeout`` (a frozen witness must not freeze the replica)."""
+    each call limited to ``timeout`` (a frozen witness must not freeze the replica). A call needs no
+    ROS master: the connection is open, and one that broke is opened again to the witness's last known
+    address when the master cannot be asked."""
 
     def __init__(self, service, site, site_pid, timeout=1.0):
         self.service = service
@@ -53,11 +56,11 @@ class WitnessClient(object):
 
     def setup(self, timeout):
         try:
-            rospy.wait_for_service(self.service, timeout)
-        except rospy.ROSException:
-            rospy.logerr('%s: the witness %s is not available within %.1f s', rospy.get_name(), self.service, timeout)
+            self.proxy = open_service(self.service, WitnessSrv, timeout)
+        except (rospy.ROSException, rospy.ServiceException) as e:
+            rospy.logerr('%s: the witness %s is not available within %.1f s: %s', rospy.get_name(), self.service,
+                         timeout, e)
             return False
-        self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
         return True
 
     def request(self, op, peer='', peer_incarnation='', claim=False):
@@ -65,10 +68,9 @@ class WitnessClient(object):
         try:
             answer = self.deadline.call(self._call, self.timeout, op, peer, peer_incarnation, claim)
         except CallTimeout as e:
-            self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
+            self.proxy = self.proxy.fresh()   # the call that timed out may still hold the old connection
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
-        except (rospy.ServiceException, rospy.ROSException) as e:
-            self.proxy = rospy.ServiceProxy(self.service, WitnessSrv, persistent=True)
+        except (rospy.ServiceException, rospy.ROSException) as e:   # its connection is closed: opened again next
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
         return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
 
