@@ -8,6 +8,8 @@ from aft_examples.history import classify_error
 @pytest.mark.parametrize('text,outcome', [
     ('service [/account1] unavailable', 'not_executed'),
     ('unable to connect to service: [Errno 111] Connection refused', 'not_executed'),
+    # seen on emulated hosts (seed 11), a Proxy killed 17 ms before: the header exchange was reset
+    ('unable to connect to service: [Errno 104] Connection reset by peer', 'not_executed'),
     ('service cannot process request: not executed: the reply cache is full', 'not_executed'),
     ('transport error completing service call: unable to receive data from sender, check sender\'s logs for '
      'details', 'indeterminate'),

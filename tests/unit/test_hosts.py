@@ -198,3 +198,20 @@ def test_the_command_refuses_without_root_or_with_bad_input_and_runs_nothing(mon
         hosts_command.main(['--help'])
     assert e.value.code == 0
     assert 'power_off' in capsys.readouterr().out
+
+
+def test_a_host_back_on_after_a_power_loss_during_a_pair_partition_is_reachable_from_its_peer():
+    # Found by the campaign on hosts (seed 11): the slave kept its dead ARP entry for the master, so the
+    # master, powered off by the switch during the pair partition and relaunched, never re-joined.
+    net = Network(TOP)
+    dead_entry = [step.argv for step in plan_pair_partition(TOP, 'master', 'slave')
+                  if step.argv[2] == TOP.host('slave').namespace][0]
+    net.commit(net.partition_pair('master', 'slave')[1])
+    net.commit(net.power_off('master', [5])[1])
+    plan, _ = net.power_on('master')
+    flushes = [step.argv for step in plan if 'flush' in step.argv]
+    slave = TOP.host('slave')
+    assert ['ip', '-n', slave.namespace, 'neigh', 'flush', 'to', TOP.host('master').ip, 'dev', slave.host_if,
+            'nud', 'permanent'] in flushes
+    assert dead_entry[:5] == ['ip', '-n', slave.namespace, 'neigh', 'replace']
+    assert all(argv[2] != TOP.host('master').namespace for argv in flushes)   # its own namespace is new

@@ -376,6 +376,8 @@ def classify_error(text):
         if 'outcome unknown' in low:         # the Proxy's call limit passed: it may still execute
             return 'indeterminate'
         return 'not_executed' if 'not executed' in low else 'error'
+    if 'unable to connect' in low:   # rospy's connect and header exchange, before the request is written,
+        return 'not_executed'        # whatever broke them (a Proxy just killed: "Connection reset by peer")
     if any(word in low for word in _CUT):
         return 'indeterminate'
     if 'not executed' in low or any(word in low for word in _NOT_SENT):

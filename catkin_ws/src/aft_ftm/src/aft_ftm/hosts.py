@@ -334,6 +334,15 @@ def plan_power_on(top, name):
         + plan_host_up(top, name)
 
 
+def plan_forget_dead_entries(top, name, others):
+    """Every host of ``others`` finds ``name`` again: a dead ARP entry left there by a pair partition
+    that ended with ``name``'s power loss is removed (a no-op where there is none)."""
+    host = top.host(name)
+    return [Step(_ip(top.host(o).namespace, 'neigh', 'flush', 'to', host.ip, 'dev', top.host(o).host_if, 'nud',
+                     'permanent'), None, '%s finds %s again (no dead ARP entry left)' % (o, name))
+            for o in others if o != name]
+
+
 def plan_freeze(pids, seconds):
     """SIGSTOP now, SIGCONT after ``seconds`` (the caller's timer)."""
     seconds = check_seconds(seconds)
@@ -415,7 +424,11 @@ class Network(object):
 
     def power_on(self, name):
         self._need(name, (HostState.OFF,), 'power on')
-        return plan_power_on(self.topology, name), [('state', name, HostState.UP)]
+        # A pair partition ended by the power loss left a dead ARP entry for this host in its peer:
+        # the host back on with the same address must be reachable again.
+        others = [o for o in self.topology.hosts if self.state[o] is not HostState.OFF]
+        return plan_power_on(self.topology, name) + plan_forget_dead_entries(self.topology, name, others), \
+            [('state', name, HostState.UP)]
 
     def runs(self, name):
         """Whether processes can be started in the host (it is not off)."""

@@ -170,6 +170,10 @@ class FaultBackend(object):
         (the processes or links hit, in words), proxy_killed (the client whose Proxy died, or None)."""
         raise NotImplementedError
 
+    def deployment(self, log_dir, mechanism, clients, seed):
+        """The deployment a segment runs (the sites of one host by default)."""
+        return CampaignDeployment(log_dir, mechanism, clients, seed=seed)
+
 
 class ProcessBackend(FaultBackend):
     """The faults of one host: signals to processes (nodes found through the master's getPid, sites
@@ -238,9 +242,10 @@ class HostsBackend(ProcessBackend):
         self.hosts = hosts
         self.host_of = dict(host_of)
 
-    def _host(self, role, site_of):
-        if role == 'client':
-            return self.host_of['proxy1']
+    def _host(self, role, site_of, rng):
+        if role == 'client':   # one of the client hosts
+            clients = sorted(name for name in self.host_of if name.startswith('proxy'))
+            return self.host_of[clients[rng.randrange(len(clients))]]
         if role == 'witness':
             return self.host_of['witness']
         return self.host_of[site_of(role)]
@@ -255,23 +260,32 @@ class HostsBackend(ProcessBackend):
                         proxy_killed=None)
         if kind in ('partition', 'partition_pair'):
             ends = fault.target.split('-')
-            hosts = [self._host(role, site_of) for role in ends]
+            hosts = [self._host(role, site_of, rng) for role in ends]
             start = time.time()
             self.hosts.partition(*hosts)
             time.sleep(fault.duration)
-            self.hosts.heal(*hosts)
-            return dict(start=start, end=time.time(), what='%s cut %.2f s' % ('|'.join(hosts), fault.duration),
-                        proxy_killed=None)
+            fenced = self._heal(*hosts)
+            return dict(start=start, end=time.time(), what='%s cut %.2f s%s' % (
+                '|'.join(hosts), fault.duration, ' (%s)' % fenced if fenced else ''), proxy_killed=None)
         if kind == 'bandwidth':
-            host = self._host(fault.target, site_of)
+            host = self._host(fault.target, site_of, rng)
             start = time.time()
             self.hosts.rate(host, self.RATE_KBIT)
             time.sleep(fault.duration)
-            self.hosts.unrate(host)
-            return dict(start=start, end=time.time(), what='%s at %d kbit/s %.2f s' % (host, self.RATE_KBIT,
-                                                                                       fault.duration),
+            unrated = self._unrate(host)
+            return dict(start=start, end=time.time(), what='%s at %d kbit/s %.2f s%s' % (
+                host, self.RATE_KBIT, fault.duration, ' (%s)' % unrated if unrated else ''),
                         proxy_killed=None)
         return super(HostsBackend, self).inject(fault, deployment, site_of, rng)
+
+    def _heal(self, *hosts):
+        """Heal a partition; returns what else was found ('' here)."""
+        self.hosts.heal(*hosts)
+        return ''
+
+    def _unrate(self, host):
+        self.hosts.unrate(host)
+        return ''
 
 
 def _down(site):
@@ -388,7 +402,7 @@ class Segment(object):
 
     def _run(self):
         mechanism = self.faults[0].mechanism
-        deployment = CampaignDeployment(self.log_dir, mechanism, self.clients, seed=self.seed)
+        deployment = self.backend.deployment(self.log_dir, mechanism, self.clients, self.seed)
         rng = __import__('random').Random(self.seed * 7919 + self.faults[0].index)
         try:
             try:
@@ -396,7 +410,7 @@ class Segment(object):
             except CampaignError as e:
                 self.log('segment %d: start failed, starting afresh: %s' % (self.faults[0].segment, e))
                 deployment.teardown()
-                deployment = CampaignDeployment(self.log_dir + '.2', mechanism, self.clients, seed=self.seed)
+                deployment = self.backend.deployment(self.log_dir + '.2', mechanism, self.clients, self.seed)
                 deployment.start()
             self.began = time.time()
             for fault in self.faults:
