@@ -192,7 +192,7 @@ def test_sigterm_tears_down_and_sigkill_leftovers_are_cleaned():
             prefix = Lines(child).next(10.0)
             assert hosts_exec.leftovers(prefix)
             child.send_signal(signum)
-            child.wait(10)
+            child.wait(30)    # the tear-down runs ip commands: seconds on a loaded machine
         finally:
             child.kill()
         if signum == signal.SIGKILL:
