@@ -180,7 +180,10 @@ def test_traffic_partition_rate_freeze_power_off():
 
 def test_sigterm_tears_down_and_sigkill_leftovers_are_cleaned():
     _platform_or_skip()
-    code = ('import sys, time\n'
+    # As an interactive program: Ctrl-C raises KeyboardInterrupt even where this test runs as a
+    # background job (whose children inherit SIGINT ignored, and then keep ignoring it).
+    code = ('import signal, sys, time\n'
+            'signal.signal(signal.SIGINT, signal.default_int_handler)\n'
             'from aft_ftm.hosts_exec import Hosts\n'
             'with Hosts(["x", "y"]) as hosts:\n'
             '    hosts.run_in("x", ["sleep", "30"])\n'
@@ -192,7 +195,11 @@ def test_sigterm_tears_down_and_sigkill_leftovers_are_cleaned():
             prefix = Lines(child).next(10.0)
             assert hosts_exec.leftovers(prefix)
             child.send_signal(signum)
-            child.wait(30)    # the tear-down runs ip commands: seconds on a loaded machine
+            try:
+                child.wait(30)    # the tear-down runs ip commands: seconds on a loaded machine
+            except subprocess.TimeoutExpired:
+                raise AssertionError('the owner of hosts %s did not end within 30 s of %s'
+                                     % (prefix, signal.Signals(signum).name))
         finally:
             child.kill()
         if signum == signal.SIGKILL:

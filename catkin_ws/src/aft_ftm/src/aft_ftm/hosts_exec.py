@@ -571,6 +571,8 @@ class Hosts(object):
         if threading.current_thread() is not threading.main_thread():
             return
         for signum in (signal.SIGTERM, signal.SIGINT):
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue   # ignored by this process (a background job's SIGINT): it stays ignored
             self._previous[signum] = signal.signal(signum, self._on_signal)
 
     def _restore_handlers(self):
