@@ -97,6 +97,16 @@ def drive(call, count, checker, on_reply=None, pause=0.0, first=0):
     return records
 
 
+def account_proxy(timeout):
+    """A proxy of the ``account`` service once it is offered (within timeout), else None (logged)."""
+    try:
+        rospy.wait_for_service('account', timeout)
+    except rospy.ROSException:
+        rospy.logerr('%s: service %s not available', rospy.get_name(), rospy.resolve_name('account'))
+        return None
+    return rospy.ServiceProxy('account', Account)
+
+
 def account_caller(proxy):
     """Adapt an aft_msgs/Account service proxy to drive()'s call(op, amount) -> (balance, count, digest)."""
     def call(op, amount):
@@ -146,13 +156,8 @@ class BankClientNode(object):
         self.report = param('report', config.non_empty_str, '')
 
     def setup(self, timeout):
-        try:
-            rospy.wait_for_service('account', timeout)
-        except rospy.ROSException:
-            rospy.logerr('%s: service %s not available', rospy.get_name(), rospy.resolve_name('account'))
-            return False
-        self.proxy = rospy.ServiceProxy('account', Account)
-        return True
+        self.proxy = account_proxy(timeout)
+        return self.proxy is not None
 
     def run(self):
         checker = ReplyChecker()

@@ -88,13 +88,17 @@ class CampaignDeployment(object):
         return os.path.join(self.log_dir, 'client%d.history' % k)
 
     def _site(self, name):
+        """Site ``name`` (not started), its log numbered by how often it was started."""
         if name in self.client_argv:
             argv = self.client_argv[name]
         else:
             pkg, launch_file, args = self.launch[name]
             argv = roslaunch(pkg, launch_file, **args)
         self.starts[name] = self.starts.get(name, 0) + 1
-        return Site(name, argv, self.env, os.path.join(self.log_dir, '%s.%d.log' % (name, self.starts[name])))
+        return self._make_site(name, argv, os.path.join(self.log_dir, '%s.%d.log' % (name, self.starts[name])))
+
+    def _make_site(self, name, argv, log_path):
+        return Site(name, argv, self.env, log_path)
 
     def start(self, timeout=120.0):
         os.makedirs(self.log_dir, exist_ok=True)

@@ -6,11 +6,11 @@ import random
 import time
 
 import rospy
-from aft_msgs.srv import Account
 
 from aft_ftm import config
 from aft_ftm.ros.params import param
 from aft_examples.history import classify_error
+from aft_examples.ros.bank_nodes import account_proxy
 
 
 class CampaignClientNode(object):
@@ -37,13 +37,8 @@ class CampaignClientNode(object):
         self.name = rospy.get_name().strip('/').replace('/', '_')
 
     def setup(self, timeout):
-        try:
-            rospy.wait_for_service('account', timeout)
-        except rospy.ROSException:
-            rospy.logerr('%s: service %s not available', rospy.get_name(), rospy.resolve_name('account'))
-            return False
-        self.proxy = rospy.ServiceProxy('account', Account)
-        return True
+        self.proxy = account_proxy(timeout)
+        return self.proxy is not None
 
     def operation(self):
         """Deposits and withdrawals that keep the balance near zero, so that some withdrawals are

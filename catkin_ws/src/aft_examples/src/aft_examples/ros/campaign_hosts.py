@@ -20,7 +20,6 @@ import queue
 import threading
 import time
 
-from aft_ftm.ros.graph import roslaunch
 from aft_ftm.sites import Site, wait_until
 from aft_examples.ros.campaign import CampaignDeployment, CampaignError, HostsBackend
 
@@ -184,18 +183,11 @@ class HostedCampaignDeployment(CampaignDeployment):
             self.launch[name] = (pkg, launch_file, dict(args, power_switch='unix:' + campaign.switch.path,
                                                         peer_host=args['peer']))
 
-    def _site(self, name):
-        if name in self.client_argv:
-            argv = self.client_argv[name]
-        else:
-            pkg, launch_file, args = self.launch[name]
-            argv = roslaunch(pkg, launch_file, **args)
-        self.starts[name] = self.starts.get(name, 0) + 1
+    def _make_site(self, name, argv, log_path):
         host = self.campaign.host_of[name]
         if self.campaign.root.state(host) == 'off':
             self.campaign.root.power_on(host)
-        return self.campaign.site(name, host, argv, os.path.join(self.log_dir, '%s.%d.log'
-                                                                 % (name, self.starts[name])))
+        return self.campaign.site(name, host, argv, log_path)
 
 
 class HostedBackend(HostsBackend):

@@ -21,25 +21,13 @@ def missing_from_graph(services=(), subscriptions=(), caller='/aft_deployment'):
             ['%s subscribed by %s' % s for s in subscriptions if s not in have_subs])
 
 
-class _TimedTransport(xmlrpc.client.Transport):
-    """An XML-RPC transport whose connections give up after ``timeout`` seconds."""
-
-    def __init__(self, timeout):
-        super(_TimedTransport, self).__init__()
-        self.timeout = timeout
-
-    def make_connection(self, host):
-        connection = super(_TimedTransport, self).make_connection(host)
-        connection.timeout = self.timeout
-        return connection
-
-
 def master_answers(timeout, caller='/aft_probe'):
     """(True, '') if the ROS master answers getPid within ``timeout`` s, else (False, why). A master
     whose host is cut off is noticed within the timeout (rosgraph.Master has none)."""
+    from .fencing import node_api
     uri = rosgraph.get_master_uri()
     try:
-        code, message, _ = xmlrpc.client.ServerProxy(uri, transport=_TimedTransport(timeout)).getPid(caller)
+        code, message, _ = node_api(uri, timeout).getPid(caller)
     except (OSError, xmlrpc.client.Error) as e:
         return False, '%s: %s' % (uri, e)
     return (code == 1), ('' if code == 1 else '%s: %s' % (uri, message))
