@@ -35,6 +35,12 @@ def test_a_short_campaign_finds_no_violation():
         leftovers = kill_tagged(tag)
     output = run.stdout.decode(errors='replace')
     print(output[output.find('| fault kind'):] if '| fault kind' in output else output[-5000:])
+    if leftovers or run.returncode != 0:
+        # The figures section is what CI shows of a run: the failure's own words go there too.
+        said = [line for line in output.splitlines() if line.startswith(('VIOLATION', '  replay', 'campaign:', 'segment',
+                                                                          'Traceback', 'detection'))]
+        report('campaign FAILED (seed %d, exit %d, %d processes left): %s' % (
+            seed, run.returncode, len(leftovers), ' | '.join(said)[-3000:] or output[-3000:]))
     assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
     assert run.returncode == 0, 'seed %d: exit %d\n%s' % (seed, run.returncode, output[-6000:])
     summary = json.load(open(os.path.join(out, 'campaign.json')))

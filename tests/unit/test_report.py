@@ -231,3 +231,40 @@ def test_the_server_count_must_agree_with_the_lost_requests(figures):
     run['state']['master'][1] = 99   # the server applied one operation fewer than the client says
     failed = [name for name, ok, _ in report.consistency(f) if not ok]
     assert failed == ['adaptation compose PBR->PBR+TR (prepared): operations the server applied = sent - lost']
+
+
+def campaign_figures(violations=(), false_suspicions=0, failover_ms=41.0):
+    table = [('kill', 3, '2 failover, 1 restarted', 180.0, 300.0, 300.0),
+             ('power_loss', 2, '1 failover, 1 restarted', 60.0, 70.0, 70.0),
+             ('all', 5, '3 failover, 2 restarted', 100.0, 300.0, 300.0)]
+    return {'seed': 9, 'faults': 5, 'faults_run': 5, 'clients': 2, 'per_segment': 5, 'mechanisms': ['pbr', 'lfr'],
+            'backend': 'ProcessBackend', 'hosts': '', 'elapsed_s': 20.0, 'calls': {'ok': 900, 'error': 12},
+            'detection_timeout_s': 0.03, 'violations': list(violations), 'table': table,
+            'detection': {'verdicts': 3 + false_suspicions, 'explained': 3, 'false_suspicions': false_suspicions,
+                          'false': [], 'detection_ms_median': 27.0, 'detection_ms_by_kind': {'power_loss': 26.0},
+                          'failover_unavailable_ms_median': failover_ms, 'failovers': 3}}
+
+
+def test_the_campaign_section_and_its_targets_follow_its_figures(figures):
+    f = dict(copy.deepcopy(figures), campaign=campaign_figures())
+    text = report.build(f)
+    section = text.split('## Campaign')[1].split('\n## ')[0]
+    assert '| power_loss | 2 | 1 failover, 1 restarted | 60 ms | 70 ms | 70 ms |' in section
+    assert 'Violations: none.' in section and '**0 false suspicions**' in section
+    met = {t.split(' (')[0]: ok for t, _, ok in report.targets(f) if t.startswith('campaign')}
+    assert met == {'campaign: every answered operation exactly once, in real-time order': True,
+                   'campaign: failover median < 50 ms with 0 false suspicions': True}
+    bad = dict(f, campaign=campaign_figures(violations=[{'segment': 0, 'kind': 'lost', 'detail': 'client1#4',
+                                                         'replay': 'x'}], false_suspicions=2))
+    assert not any(ok for t, _, ok in report.targets(bad) if t.startswith('campaign'))
+    assert 'segment 0 lost: client1#4' in report.build(bad)
+    assert [name for name, ok, _ in report.consistency(bad) if not ok] == []
+    broken = copy.deepcopy(f)
+    broken['campaign']['faults_run'] = 6
+    assert 'campaign: faults by kind add up to the faults run' in [n for n, ok, _ in report.consistency(broken) if not ok]
+
+
+def test_a_campaign_that_did_not_run_is_said_missing(figures):
+    text = report.build(figures)
+    assert '## Campaign: seeded faults against the bank, checked by its history' in text
+    assert not [t for t, _, _ in report.targets(figures) if t.startswith('campaign')]

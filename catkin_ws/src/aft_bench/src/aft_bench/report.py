@@ -4,7 +4,7 @@ Plain Python, no ROS: ``scripts/bench_report`` runs the benchmarks and gathers t
 into one dict, and this module turns that dict into verdicts, tables and consistency checks.
 
 The figures dict has one key per benchmark (``pbr``, ``mechanisms``, ``adaptation``, ``buffering``,
-``service_manager``, ``master``, ``healing``, ``detection``, ``car``), each the JSON that benchmark wrote (absent when it did
+``service_manager``, ``master``, ``healing``, ``detection``, ``campaign``, ``car``), each the JSON that benchmark wrote (absent when it did
 not run or failed), plus ``machine``, ``mode``, ``steps`` and ``plots``. Every verdict is computed
 from the figures; a claim whose figures are missing is "not measured", never guessed.
 """
@@ -25,6 +25,7 @@ SECTIONS = [
     'The ROS master as a single point of failure',
     'Healing: the witness, re-joins, state transfer, memory',
     'Failure detection under load: fixed timeouts against phi accrual',
+    'Campaign: seeded faults against the bank, checked by its history',
     'Consistency checks',
     'Steps',
 ]
@@ -42,6 +43,7 @@ COMMANDS = {
     'master': 'scripts/bench_master',
     'healing': 'scripts/bench_healing',
     'detection': 'scripts/bench_detection',
+    'campaign': 'scripts/campaign --faults N --seed S',
     'car': 'rosrun tjp_sim scenario NAME [--without MECHANISM] --json',
 }
 
@@ -495,6 +497,19 @@ def targets(f):
                     '%.1f ms, %d false suspicion(s) in %.0f s' % (rule['detection_median_ms'], rule['false_suspicions'],
                                                                   get(f, 'detection.observed_s')),
                     rule['detection_median_ms'] < 50.0 and rule['false_suspicions'] == 0))
+    c = get(f, 'campaign')
+    if c and c.get('faults_run'):
+        out.append(('campaign: every answered operation exactly once, in real-time order (%d faults)' % c['faults_run'],
+                    '%d violation(s)' % len(c['violations']), not c['violations']))
+        d = c.get('detection') or {}
+        if d.get('failover_unavailable_ms_median') is not None:
+            out.append(('campaign: failover median < 50 ms with 0 false suspicions (crash detector timeout %s)'
+                        % ms(c['detection_timeout_s'], 0),
+                        'client-visible failover %.1f ms (detection of a power loss %s), %d false suspicion(s)'
+                        % (d['failover_unavailable_ms_median'],
+                           num((d.get('detection_ms_by_kind') or {}).get('power_loss'), '%.1f ms'),
+                           d['false_suspicions']),
+                        d['failover_unavailable_ms_median'] < 50.0 and d['false_suspicions'] == 0))
     totals = _adaptation_totals(f)
     if totals:
         out.append(('no request lost or duplicated in any adaptation', '%d lost, %d duplicated of %d'
@@ -832,6 +847,34 @@ def detection_lines(f):
     return lines
 
 
+def campaign_lines(f):
+    c = get(f, 'campaign')
+    if not c or not c.get('table'):
+        return [_missing(f, 'campaign')]
+    d = c.get('detection') or {}
+    lines = ['%d faults drawn from seed %d (%s backend: %s), %d client processes each through its own Proxy, '
+             'segments of %d faults taking %s in turn; every fault healed and the failed site re-joined before the '
+             'next. %.0f s in all (%.1f s per fault). Calls: %s. Checked by `aft_examples.history` (`%s`).' % (
+                 c['faults_run'], c['seed'], c.get('backend', '?'), c.get('hosts') or 'one host', c['clients'],
+                 c.get('per_segment', 0), '/'.join(c.get('mechanisms') or []), c['elapsed_s'],
+                 c['elapsed_s'] / max(c['faults_run'], 1),
+                 ', '.join('%d %s' % (n, o) for o, n in sorted((c.get('calls') or {}).items())),
+                 COMMANDS['campaign']), '']
+    lines += table(['fault kind', 'faults', 'outcomes', 'unavailable median', 'p99', 'max'],
+                   [[k, n, o, num(a, '%.0f ms'), num(b, '%.0f ms'), num(m, '%.0f ms')] for k, n, o, a, b, m in c['table']])
+    lines += ['', 'Violations: %s.' % ('; '.join('segment %s %s: %s' % (v['segment'], v['kind'], v['detail'])
+                                                 for v in c['violations']) or 'none')]
+    if d:
+        lines += ['', 'Crash detectors (timeout %s): %d verdicts, %d explained by a fault of the site they name, '
+                      '**%d false suspicions**; detection median %s (%s); %d failovers, client-visible median %s.' % (
+                          ms(c['detection_timeout_s'], 0), d['verdicts'], d['explained'], d['false_suspicions'],
+                          num(d.get('detection_ms_median'), '%.1f ms'),
+                          ', '.join('%s %s' % (k, num(v, '%.1f ms')) for k, v in
+                                    sorted((d.get('detection_ms_by_kind') or {}).items())),
+                          d['failovers'], num(d.get('failover_unavailable_ms_median'), '%.1f ms'))]
+    return lines
+
+
 # -- consistency --------------------------------------------------------------------------------------
 
 def consistency(f):
@@ -875,6 +918,15 @@ def _consistency(f, check):
         check('failover: wrong replies = sum over crashes', fo['wrong_replies'] == sum(s['wrong'] for s in samples))
     for name, r in (get(f, 'detection.rules') or {}).items():
         check('detection %s: detected + missed = losses' % name, r['detected'] + r['missed'] == get(f, 'detection.losses'))
+    camp = get(f, 'campaign')
+    if camp and camp.get('table'):
+        kinds = [row for row in camp['table'] if row[0] != 'all']
+        check('campaign: faults by kind add up to the faults run', sum(r[1] for r in kinds) == camp['faults_run'],
+              '%d = %d' % (sum(r[1] for r in kinds), camp['faults_run']))
+        d = camp.get('detection') or {}
+        if d:
+            check('campaign: verdicts = explained + false suspicions',
+                  d['verdicts'] == d['explained'] + d['false_suspicions'])
     for name, c in (get(f, 'mechanisms.configs') or {}).items():
         check('%s: median <= p99' % name, c['median_s'] <= c['p99_s'])
     for r in get(f, 'buffering.rows') or []:
@@ -914,7 +966,7 @@ def build(f):
                 (resources_lines, 'mechanisms'), (failover_lines, 'pbr'), (adaptation_lines, 'adaptation'),
                 (buffering_lines, 'buffering'), (service_manager_lines, 'service_manager'), (car_lines, 'car'),
                 (master_lines, 'master'), (healing_lines, 'healing'), (detection_lines, 'detection'),
-                (_consistency_lines, None), (_steps_lines, None)]
+                (campaign_lines, 'campaign'), (_consistency_lines, None), (_steps_lines, None)]
     for title, (builder, key) in zip(SECTIONS, builders):
         try:
             body = builder(f)

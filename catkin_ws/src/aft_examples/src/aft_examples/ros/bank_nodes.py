@@ -25,19 +25,42 @@ class BankServerNode(StateManager):
         account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
         ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
             (fault injection for the tests: a state capture failing once, or for good)
+        ~slow_state_restores (aft_msgs/InjectFault, ``count``, ``magnitude`` s): the next count set_state
+            calls take magnitude seconds before they apply, the account serving meanwhile (a server
+            decoding a large state before it swaps it in; fault injection for the tests)
     """
 
     def __init__(self):
         self.account = AccountLogic()
         self.state_lock = threading.RLock()
         self.capture_faults = 0
+        self.slow_restores = (0, 0.0)   # (how many more set_state calls are slow, seconds each)
         self.ballast = b'\xa5' * param('ballast_bytes', config.non_negative_int, 0)
 
     def setup(self, timeout):
         self.advertise_state_services()
         rospy.Service('account', Account, self._on_request)
         rospy.Service('~fail_state_captures', InjectFault, self._on_fail_captures)
+        rospy.Service('~slow_state_restores', InjectFault, self._on_slow_restores)
         return True
+
+    def _on_slow_restores(self, req):
+        if req.count and not 0 < req.magnitude <= 60:
+            return InjectFaultResponse(success=False, message='magnitude: the delay in s, in (0, 60], got %r'
+                                       % req.magnitude)
+        with self.state_lock:
+            self.slow_restores = (req.count, req.magnitude)
+        return InjectFaultResponse(success=True, message='the next %d state restores take %.3f s'
+                                   % (req.count, req.magnitude))
+
+    def _handle_set_state(self, req):
+        with self.state_lock:
+            count, delay = self.slow_restores
+            if count:
+                self.slow_restores = (count - 1, delay)
+        if count:
+            time.sleep(delay)   # outside the lock: the account goes on serving meanwhile
+        return super(BankServerNode, self)._handle_set_state(req)
 
     def _on_fail_captures(self, req):
         with self.state_lock:

@@ -19,13 +19,14 @@ import rosgraph
 from aft_ftm.ros.fencing import node_api
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph
 from aft_ftm.sites import Site, power_off_sites, process_tree, wait_until
-from aft_examples import history, schedule
+from aft_examples import history, schedule, suspicions
 from aft_examples.ros.deployment import replica_services, witness_status
 
 REPLICAS = ('master', 'slave')
 CALL_TIMEOUT = 30.0     # a Proxy gives a call up after this long ("outcome UNKNOWN": a violation)
 HEAL_TIMEOUT = 90.0     # the pair whole again within this, or the fault is 'unhealed'
 JOIN_PATIENCE = 30.0
+DETECTION_TIMEOUT = 0.03   # the crash detectors' (the product's default: aft_ftm.detector.DEFAULT_TIMEOUT)
 SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
 
 
@@ -56,7 +57,7 @@ class CampaignDeployment(object):
     in a state file, so that it may be killed and restarted), the replicas MASTER and SLAVE, and per
     client a Proxy site (proxyK offering /accountK) and the client process (clientK)."""
 
-    def __init__(self, log_dir, mechanism='pbr', clients=2, timeout=0.15, seed=0, env=None):
+    def __init__(self, log_dir, mechanism='pbr', clients=2, timeout=DETECTION_TIMEOUT, seed=0, env=None):
         if clients < 1:
             raise CampaignError('at least one client is needed, got %d' % clients)
         self.log_dir = log_dir
@@ -174,9 +175,10 @@ class FaultBackend(object):
         (the processes or links hit, in words), proxy_killed (the client whose Proxy died, or None)."""
         raise NotImplementedError
 
-    def deployment(self, log_dir, mechanism, clients, seed):
-        """The deployment a segment runs (the sites of one host by default)."""
-        return CampaignDeployment(log_dir, mechanism, clients, seed=seed)
+    def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
+        """The deployment a segment runs (the sites of one host by default); timeout: the crash
+        detectors'."""
+        return CampaignDeployment(log_dir, mechanism, clients, timeout=timeout, seed=seed)
 
 
 class ProcessBackend(FaultBackend):
@@ -376,7 +378,8 @@ def final_states(deployment, settle=5.0):
 class Segment(object):
     """One deployment's share of the schedule, run and checked."""
 
-    def __init__(self, faults, log_dir, backend, clients=2, seed=0, log=print, progress=None):
+    def __init__(self, faults, log_dir, backend, clients=2, seed=0, log=print, progress=None,
+                 timeout=DETECTION_TIMEOUT):
         self.faults = faults
         self.log_dir = log_dir
         self.backend = backend
@@ -387,16 +390,25 @@ class Segment(object):
         self.records = []
         self.kills = {}
         self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
+        self.verdicts = []   # suspicions.Verdict: every crash detector's verdict heard
+        self.timeout = timeout
         self.skipped = 0   # faults not run: an earlier one left the deployment unhealed
 
     def run(self):
         import rospy
-        from aft_msgs.msg import Alarm
-        alarms = rospy.Subscriber('/aft/alarms', Alarm, lambda a: self.alarms.append((a.kind, a.detail)))
+        from aft_msgs.msg import Alarm, Failure
+        heard = [rospy.Subscriber('/aft/alarms', Alarm, lambda a: self.alarms.append((a.kind, a.detail)))]
+        for site in REPLICAS:
+            heard.append(rospy.Subscriber('/%s/failures' % site, Failure, self._verdict, callback_args=site,
+                                          queue_size=None))
         try:
             return self._run()
         finally:
-            alarms.unregister()
+            for subscriber in heard:
+                subscriber.unregister()
+
+    def _verdict(self, failure, reporter):
+        self.verdicts.append(suspicions.Verdict(failure.detected.to_sec(), reporter, failure.site, failure.reason))
 
     def alarm_counts(self):
         counts = {}
@@ -406,7 +418,7 @@ class Segment(object):
 
     def _run(self):
         mechanism = self.faults[0].mechanism
-        deployment = self.backend.deployment(self.log_dir, mechanism, self.clients, self.seed)
+        deployment = self.backend.deployment(self.log_dir, mechanism, self.clients, self.seed, self.timeout)
         rng = __import__('random').Random(self.seed * 7919 + self.faults[0].index)
         try:
             try:
@@ -414,7 +426,8 @@ class Segment(object):
             except CampaignError as e:
                 self.log('segment %d: start failed, starting afresh: %s' % (self.faults[0].segment, e))
                 deployment.teardown()
-                deployment = self.backend.deployment(self.log_dir + '.2', mechanism, self.clients, self.seed)
+                deployment = self.backend.deployment(self.log_dir + '.2', mechanism, self.clients, self.seed,
+                                                     self.timeout)
                 deployment.start()
             self.began = time.time()
             for fault in self.faults:
@@ -451,7 +464,8 @@ class Segment(object):
         roles = {'primary': status.primary, 'backup': status.backup}
         record = dict(index=fault.index, segment=fault.segment, mechanism=fault.mechanism, kind=fault.kind,
                       target=fault.target, duration=fault.duration, epoch_before=status.epoch,
-                      primary_before=status.primary)
+                      primary_before=status.primary,
+                      sites=sorted(suspicions.sites_touched(fault.target, status.primary, status.backup)))
         try:
             injected = self.backend.inject(fault, deployment, lambda role: roles[role], rng)
         except CampaignError as e:

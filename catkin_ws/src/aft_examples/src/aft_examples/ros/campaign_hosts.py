@@ -21,7 +21,7 @@ import threading
 import time
 
 from aft_ftm.sites import Site, wait_until
-from aft_examples.ros.campaign import CampaignDeployment, CampaignError, HostsBackend
+from aft_examples.ros.campaign import DETECTION_TIMEOUT, CampaignDeployment, CampaignError, HostsBackend
 
 MASTER_PORT = 11311
 CLONE_NEWNET = 0x40000000
@@ -175,7 +175,7 @@ class HostedCampaignDeployment(CampaignDeployment):
     """A CampaignDeployment whose sites run on the campaign's hosts; the replicas fence each other
     through the hosts' power switch; a site whose host is off is relaunched after powering it on."""
 
-    def __init__(self, campaign, log_dir, mechanism='pbr', clients=2, timeout=0.15, seed=0):
+    def __init__(self, campaign, log_dir, mechanism='pbr', clients=2, timeout=DETECTION_TIMEOUT, seed=0):
         super(HostedCampaignDeployment, self).__init__(log_dir, mechanism, clients, timeout, seed)
         self.campaign = campaign
         for name in ('master', 'slave'):
@@ -199,8 +199,8 @@ class HostedBackend(HostsBackend):
         super(HostedBackend, self).__init__(campaign.root, campaign.host_of)
         self.campaign = campaign
 
-    def deployment(self, log_dir, mechanism, clients, seed):
-        return HostedCampaignDeployment(self.campaign, log_dir, mechanism, clients, seed=seed)
+    def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
+        return HostedCampaignDeployment(self.campaign, log_dir, mechanism, clients, timeout=timeout, seed=seed)
 
     def _heal(self, *hosts):
         if any(self.hosts.state(h) == 'off' for h in hosts):

@@ -40,6 +40,13 @@ class TrBeforeNode(BeforeNode):
     (``server_hangs``), so the client may retry; in a replica (``~site`` set) the replica
     fail-stops, as Proceed does, and its peer takes over.
 
+    A state restore past ``~server_timeout`` is abandoned, not cancelled: the server may still apply
+    it later, rewinding the state to before its request. So until it has returned, nothing executes
+    (every request is answered "not executed", the alarm ``server_hangs`` says why); when it lands, the
+    request it was for is undone, as its error reply said, and the service goes on (``restore_landed``,
+    or ``restore_failed`` if the server refused it: the state then holds one execution of a request
+    answered as an error).
+
     Parameters:
         ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
             execution again, may take (a set_state past it: no execution again, the same alarm or
@@ -66,6 +73,7 @@ class TrBeforeNode(BeforeNode):
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
         self._restore_deadline = Deadline('state-restore')
+        self.pending_restore = None   # (future, (origin, id)): a restore abandoned past its deadline
         self.capturing_since = None   # monotonic time the state capture in progress started
         self.failed = None            # why this replica fail-stopped: nothing more is executed
 
@@ -93,9 +101,38 @@ class TrBeforeNode(BeforeNode):
         return health.stage(self.MECHANISM, self.STAGE, None if since is None else time.monotonic() - since,
                             self.server_timeout, self.failed, calls_server=True)
 
+    def _restore_pending(self):
+        """Why nothing may execute now (a restore abandoned past its deadline that the server may still
+        apply), or None once it has returned (said once, with an alarm)."""
+        with self.lock:
+            pending = self.pending_restore
+            if pending is None:
+                return None
+            future, key = pending
+            if not future.done():
+                return ('a restore of the server state (for %s/%d) is still pending: the server hangs, and '
+                        'nothing executes until that restore has returned' % key)
+            self.pending_restore = None
+        try:
+            result = future.result()
+            failed = None if result.success else result.message
+        except Exception as e:   # the call itself failed: the state may not have been restored
+            failed = str(e)
+        if failed is None:
+            alarm(self.ports, 'tr', 'restore_landed', 'the pending restore returned: %s/%d is undone, the service '
+                  'goes on' % key)
+        else:
+            alarm(self.ports, 'tr', 'restore_failed', 'the pending restore for %s/%d failed (%s): the server state '
+                  'may hold one execution of it, though it was answered as an error' % (key + (failed,)))
+        return None
+
     def handle(self, request):
         if self.failed:
             return None   # fail-stopped: the next primary executes it
+        pending = self._restore_pending()
+        if pending:
+            alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (pending, request.origin, request.id))
+            return self._not_executed(request, pending)
         self.capturing_since = time.monotonic()
         try:
             state = self._deadline.call(self.get_state, self.server_timeout).state
@@ -137,12 +174,19 @@ class TrBeforeNode(BeforeNode):
         if req.action in (req.REPEAT, req.RESTORE):
             if self.failed:
                 return RepeatResponse(success=False, message='this replica fail-stopped: %s' % self.failed)
+            pending = self._restore_pending()
+            if pending:
+                return RepeatResponse(success=False, message='state not restored: %s' % pending)
             try:
                 result = self._restore_deadline.call(self.set_state, self.server_timeout, state)
-            except CallTimeout:
-                # A hung server must not hang the vote: bounded, and never silent.
-                problem = 'the server state manager %s did not restore the state within %.3f s (it hangs)' % (
-                    rospy.resolve_name('set_state'), self.server_timeout)
+            except CallTimeout as e:
+                # A hung server must not hang the vote: bounded, and never silent. The abandoned call
+                # may still land: until it has, nothing executes (handle).
+                with self.lock:
+                    self.pending_restore = (e.future, key)
+                problem = ('the server state manager %s did not restore the state within %.3f s (it hangs); '
+                           'nothing executes until that restore has returned, which undoes %s/%d' % (
+                               (rospy.resolve_name('set_state'), self.server_timeout) + key))
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
                 if self.site:
                     self.failed = problem

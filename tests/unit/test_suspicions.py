@@ -1,0 +1,71 @@
+"""The campaign's judgement of the crash detectors' verdicts: explained by a fault of the site they
+name, or false suspicions. No ROS."""
+import random
+
+from aft_examples.suspicions import Verdict, format_summary, judge, sites_touched, summary
+
+
+def record(index, start, healed_at, sites, kind='kill', outcome='failover', unavailable=0.04):
+    return dict(index=index, start=start, end=start + 0.01, healed_at=healed_at, sites=sorted(sites), kind=kind,
+                outcome=outcome, unavailable=unavailable)
+
+
+def test_a_fault_touches_the_sites_its_roles_name_when_it_came():
+    assert sites_touched('primary/after', 'slave', 'master') == {'slave'}
+    assert sites_touched('backup', 'slave', 'master') == {'master'}
+    assert sites_touched('primary-backup', 'master', 'slave') == {'master', 'slave'}
+    assert sites_touched('client-backup', 'master', 'slave') == {'slave'}
+    for target in ('proxy', 'witness', 'ros_master', 'switch', 'client-witness'):
+        assert sites_touched(target, 'master', 'slave') == set()
+    # A pair not whole: the missing role touches nothing.
+    assert sites_touched('backup/proceed', 'master', '') == set()
+
+
+def test_a_verdict_about_the_faulty_site_inside_its_window_is_explained_and_timed():
+    records = [record(0, 100.0, 101.0, {'master'})]
+    explained, false, detections = judge([Verdict(100.035, 'slave', 'master', 'silent')], records)
+    assert len(explained) == 1 and not false
+    assert abs(detections[0] - 0.035) < 1e-9
+
+
+def test_verdicts_outside_every_window_or_about_another_site_are_false_suspicions():
+    records = [record(0, 100.0, 101.0, {'master'}), record(1, 105.0, 106.0, set(), kind='freeze_node')]
+    verdicts = [Verdict(99.0, 'slave', 'master', 'before any fault'),          # while starting
+                Verdict(100.5, 'master', 'slave', 'the other site'),           # during a fault of master
+                Verdict(101.2, 'slave', 'master', 'after the healing'),
+                Verdict(105.5, 'slave', 'master', 'a fault of the witness')]   # nothing of a replica touched
+    explained, false, detections = judge(verdicts, records)
+    assert not explained and not detections
+    assert [v.reason for v in false] == ['before any fault', 'the other site', 'after the healing',
+                                         'a fault of the witness']
+
+
+def test_only_the_first_verdict_times_a_fault_and_a_pair_fault_is_not_timed():
+    records = [record(0, 10.0, 12.0, {'master'}), record(1, 20.0, 22.0, {'master', 'slave'}, kind='partition_pair')]
+    verdicts = [Verdict(10.2, 'slave', 'master', ''), Verdict(10.05, 'slave', 'master', ''),
+                Verdict(20.03, 'master', 'slave', ''), Verdict(20.04, 'slave', 'master', '')]
+    explained, false, detections = judge(verdicts, records)
+    assert len(explained) == 4 and not false
+    assert set(detections) == {0} and abs(detections[0] - 0.05) < 1e-9
+
+
+def test_the_summary_counts_every_verdict_once_whatever_their_order():
+    rng = random.Random(7)
+    records = [record(i, 10.0 * i, 10.0 * i + rng.uniform(0.5, 3.0), {rng.choice(['master', 'slave'])})
+               for i in range(30)]
+    verdicts = [Verdict(rng.uniform(0, 300), rng.choice(['master', 'slave']), rng.choice(['master', 'slave']), '')
+                for _ in range(200)]
+    forward = summary(verdicts, records)
+    shuffled = list(verdicts)
+    rng.shuffle(shuffled)
+    assert summary(shuffled, records) == forward
+    assert forward['explained'] + forward['false_suspicions'] == forward['verdicts'] == 200
+    lines = format_summary(forward, 0.03)
+    assert lines[0].startswith('detection (crash detector timeout 30 ms): 200 verdicts')
+    assert len(lines) == 1 + forward['false_suspicions']
+
+
+def test_a_campaign_without_verdicts_says_so():
+    s = summary([], [record(0, 1.0, 2.0, {'master'}, outcome='absorbed')])
+    assert s['false_suspicions'] == 0 and s['detection_ms_median'] is None and s['failovers'] == 0
+    assert 'none detected' in format_summary(s, 0.03)[0]
