@@ -4,6 +4,11 @@ rospy service calls have no timeout: a persistent connection to a process that s
 caller for ever. :class:`Deadline` runs each call on its own worker thread and waits for it at most
 ``timeout``; a call past it raises :class:`CallTimeout` and is abandoned (its worker stays blocked in
 the call and is never reused; a new worker serves the next call).
+
+An abandoned call is not cancelled: the server may still carry it out later. For calls that change
+state (a server's set_state), a later call overtaken by an abandoned one would be undone by it (an
+older state landing after a newer one). ``Deadline(exclusive=True)`` therefore makes no call while
+an abandoned one has not returned: it raises :class:`CallPending` at once instead.
 """
 import concurrent.futures
 
@@ -18,13 +23,27 @@ class CallTimeout(AftError):
         self.future = future
 
 
+class CallPending(CallTimeout):
+    """A call abandoned past its deadline has not returned yet (it may still take effect): no other
+    call is made until it has (Deadline(exclusive=True))."""
+
+
 class Deadline(object):
-    def __init__(self, name='deadline'):
+    def __init__(self, name='deadline', exclusive=False):
         self.name = name
+        self.exclusive = exclusive
         self._executor = None
+        self._abandoned = None   # exclusive: the future of the last call abandoned, until it returns
 
     def call(self, function, timeout, *args, **kwargs):
-        """function(*args, **kwargs), or CallTimeout after timeout seconds."""
+        """function(*args, **kwargs), or CallTimeout after timeout seconds (CallPending at once, if
+        exclusive and an abandoned call has not returned)."""
+        abandoned = self._abandoned
+        if abandoned is not None:
+            if not abandoned.done():
+                raise CallPending('%s: a call abandoned past its deadline has not returned yet, and may still '
+                                  'take effect: no other call until it has' % self.name, abandoned)
+            self._abandoned = None
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
         future = self._executor.submit(function, *args, **kwargs)
@@ -34,4 +53,6 @@ class Deadline(object):
             # The worker is stuck in the call: leave it, and give the next call a fresh one.
             self._executor.shutdown(wait=False)
             self._executor = None
+            if self.exclusive:
+                self._abandoned = future
             raise CallTimeout('no answer within %.3f s' % timeout, future)

@@ -193,7 +193,7 @@ class LfrAfterNode(AfterNode):
         self.core = LfrAfter(self.name, role, joined=self.witness is None or role != Role.BACKUP or self.in_sync,
                              site=self.site, peer=self.peer, ack_timeout=self.ack_timeout,
                              join_period=self.join_period, join_seq=int(time.time() * 1e6), cache_bytes=cache_bytes)
-        self.state_calls = Deadline('state')
+        self.state_calls = Deadline('state', exclusive=True)   # a late set_state must not overtake a newer one
         self.before_role = PersistentService(before + '/set_role', SetRole)
         self.before_name = before
         self.get_state = PersistentService('get_state', GetState)

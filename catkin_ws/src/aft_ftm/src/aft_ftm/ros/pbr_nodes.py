@@ -156,7 +156,7 @@ class PbrAfterNode(AfterNode):
         self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
                                 self.state_timeout)
         self.witness = self.side.witness
-        self.state_calls = Deadline('state')
+        self.state_calls = Deadline('state', exclusive=True)   # a late set_state must not overtake a newer one
         self.get_state = PersistentService('get_state', GetState)
         self.set_state = PersistentService('set_state', SetState)
         self.configuration_seen = None   # the witness's newest configuration
