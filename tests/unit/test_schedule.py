@@ -23,7 +23,7 @@ def test_the_catalogue_holds_every_fault_of_the_issue():
 
 @pytest.mark.parametrize('seed', range(20))
 def test_same_seed_same_schedule_and_every_entry_takes_its_turn(seed):
-    offered = ('process', 'hosts', 'adapt')
+    offered = ('process', 'hosts', 'adapt', 'adapt_mechanism')
     entries = catalogue(offered)
     rounds = random.Random(seed).randint(1, 4)
     n = len(entries) * rounds
@@ -33,6 +33,8 @@ def test_same_seed_same_schedule_and_every_entry_takes_its_turn(seed):
     assert counts == {(e.kind, e.target): rounds for e in entries}, 'seed %d' % seed
     assert {f.kind for f in first} <= {e.kind for e in entries}
     assert not any(f.target == 'ros_master' for f in first), 'seed %d: a fault the backend cannot inject' % seed
+    updates_only = {(f.kind, f.target) for f in make(n, seed, ('process', 'adapt')) if f.kind == 'adapt'}
+    assert updates_only == {('adapt', 'update')}, 'seed %d: %s' % (seed, updates_only)
 
 
 @pytest.mark.parametrize('seed', range(20))

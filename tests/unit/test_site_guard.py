@@ -133,6 +133,24 @@ def test_a_launch_that_ends_by_itself_leaving_orphans_has_them_killed():
     assert 'owners' not in world.looks                        # an ended launch has nothing to guard
 
 
+def test_a_launch_of_required_nodes_that_ends_by_itself_fails_its_site_first():
+    guard, world = Guard(grace=5.0, fail_site=True), World()
+    world.child = False                                       # a required replacement node died
+    decision = world.poll(guard)
+    assert decision.actions == [Action.FAIL_SITE, Action.KILL] and 'the site stops with it' in decision.reason
+    world.tree = False
+    assert world.poll(guard).actions == [Action.EXIT]
+
+
+@pytest.mark.parametrize('stop', ['asked', 'owners'])
+def test_a_launch_of_required_nodes_asked_to_stop_or_stopping_with_its_site_never_fails_it(stop):
+    guard, world = Guard(grace=5.0, fail_site=True), World()
+    setattr(world, stop, stop == 'asked')                     # a rollback or retirement; or the site gone
+    assert world.poll(guard).actions == [Action.INTERRUPT]
+    world.child = False
+    assert Action.FAIL_SITE not in world.poll(guard).actions
+
+
 def test_processes_that_survive_kill_are_given_up_after_the_grace():
     guard, world = Guard(grace=1.0), World()
     world.child = False
@@ -278,3 +296,30 @@ def test_a_launch_whose_site_is_already_gone_is_not_started(started):
     assert guard.wait(10) == 1
     assert 'already gone' in guard.stdout.read()
 
+
+
+def test_a_guarded_launch_of_required_nodes_that_dies_stops_its_site(started):
+    """The site's launcher is killed, its whole tree (the site fails as when one of its own required
+    nodes dies) once the guarded launch ends by itself; without --fail-site it runs on."""
+    site_code = ('import signal, subprocess, sys, time\n'
+                 'signal.signal(signal.SIGINT, signal.SIG_IGN)\n'
+                 'node = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])\n'
+                 'print("site up %d" % node.pid, flush=True)\n'
+                 'time.sleep(60)\n')
+    for fail_site, expected in ((True, -signal.SIGKILL), (False, None)):
+        site = started.popen([sys.executable, '-c', site_code], stdout=subprocess.PIPE, text=True)
+        words = site.stdout.readline().split()
+        assert words[:2] == ['site', 'up']
+        node = started.adopt(psutil.Process(int(words[2])))
+        guard = started.popen(guarded([sys.executable, '-c', 'import time; time.sleep(0.3)'], [owner_of(site)],
+                                      poll=0.05, grace=1.0, fail_site=fail_site), stdout=subprocess.PIPE, text=True)
+        assert guard.wait(10) == 0
+        try:
+            code = site.wait(3 if fail_site else 0.5)
+        except subprocess.TimeoutExpired:
+            code = None
+        assert code == expected, (fail_site, code)
+        assert wait_dead([node], 3 if fail_site else 0.2) == ([] if fail_site else [node])   # its node too
+        if code is None:
+            site.kill()
+            site.wait()

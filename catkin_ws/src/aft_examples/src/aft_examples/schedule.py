@@ -6,8 +6,11 @@ freeze of a node or a site (50 ms to 3 s), site power loss, partitions of a host
 and their healing, bandwidth drops, adaptations, the ROS master's death. Each entry says what a
 backend must offer to inject it (``needs``): ``process`` (signals to a site's processes: one host
 suffices), ``hosts`` (emulated hosts: links and rates, aft_ftm.hosts_exec), ``master`` (a ROS master
-that can be restarted under running nodes), ``adapt`` (adaptable sites and the adaptation engine).
-A schedule is drawn only from what the backend offers.
+that can be restarted under running nodes), ``adapt`` (adaptable sites and the adaptation engine:
+an update of the primary's After, which a re-joining site undoes by coming back with its own),
+``adapt_mechanism`` (switches and compositions: they change both sites' mechanism, so a failed site
+must come back with the mechanism its peer runs now). A schedule is drawn only from what the
+backend offers.
 
 Rules (each checked by tests/unit/test_schedule.py):
 - every entry of the catalogue the backend offers takes its turn: faults are dealt from a shuffled
@@ -50,12 +53,13 @@ def _catalogue():
     entries += [Entry('partition', host, 'hosts') for host in HOSTS]
     entries += [Entry('partition_pair', '%s-%s' % pair, 'hosts') for pair in PAIRS]
     entries += [Entry('bandwidth', host, 'hosts') for host in ('primary', 'backup')]
-    entries += [Entry('adapt', name, 'adapt') for name in ('switch', 'compose', 'update')]
+    entries += [Entry('adapt', 'update', 'adapt')]
+    entries += [Entry('adapt', name, 'adapt_mechanism') for name in ('switch', 'compose')]
     return tuple(entries)
 
 
 CATALOGUE = _catalogue()
-NEEDS = ('process', 'hosts', 'master', 'adapt')
+NEEDS = ('process', 'hosts', 'master', 'adapt', 'adapt_mechanism')
 
 
 class ScheduleError(ValueError):

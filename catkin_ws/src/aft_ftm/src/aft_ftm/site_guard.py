@@ -138,6 +138,7 @@ class Action(enum.Enum):
     INTERRUPT = 'interrupt'   # SIGINT to the launch (roslaunch stops its nodes, as on Ctrl-C)
     KILL = 'kill'             # SIGKILL to every process of the launch still running
     EXIT = 'exit'             # the guard's work is done
+    FAIL_SITE = 'fail_site'   # kill the site's launchers' trees: the site fails, as when its own required node dies
 
 
 Decision = collections.namedtuple('Decision', 'actions reason')
@@ -145,12 +146,17 @@ Decision = collections.namedtuple('Decision', 'actions reason')
 
 class Guard(object):
     """Decides, at each poll, what the guard of one launch does. ``grace`` (s): how long the
-    launch has to stop after SIGINT before it is killed, and how long killing is tried."""
+    launch has to stop after SIGINT before it is killed, and how long killing is tried.
+    ``fail_site``: the launch holds required nodes (an adaptation's replacement of a site's
+    Before, Proceed or After): if it ends by itself (one of them died), the site fails with it
+    (killed whole), as a site stops when one of its own required nodes dies; a launch asked
+    to stop (a rollback, a retirement) or stopping with its site never fails it."""
 
-    def __init__(self, grace=5.0):
+    def __init__(self, grace=5.0, fail_site=False):
         if not grace > 0:
             raise GuardError('the grace must be > 0 s, got %r' % (grace,))
         self.grace = grace
+        self.fail_site = fail_site
         self.state = GuardState.RUNNING
         self.deadline = None
 
@@ -168,7 +174,11 @@ class Guard(object):
         the reason of the state change ('' if none)."""
         if self.state == GuardState.RUNNING:
             if not child_alive:
-                return self._killing(Cause.CHILD_EXITED, now, tree_alive)
+                decision = self._killing(Cause.CHILD_EXITED, now, tree_alive)
+                if self.fail_site:
+                    return Decision([Action.FAIL_SITE] + decision.actions, decision.reason + '; it held required '
+                                    'nodes of its site: the site stops with it')
+                return decision
             if asked:
                 return Decision([Action.INTERRUPT], self._change(Cause.ASKED, now))
             if not owners_alive():

@@ -18,7 +18,7 @@ import rosgraph
 
 from aft_ftm.ros.fencing import node_api
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph
-from aft_ftm.sites import Site, power_off_sites, process_tree, wait_until
+from aft_ftm.sites import Site, power_off_sites, power_off_trees, process_tree, wait_until
 from aft_examples import history, schedule, suspicions
 from aft_examples.ros.deployment import replica_services, witness_status
 
@@ -27,6 +27,7 @@ CALL_TIMEOUT = 30.0     # a Proxy gives a call up after this long ("outcome UNKN
 HEAL_TIMEOUT = 90.0     # the pair whole again within this, or the fault is 'unhealed'
 JOIN_PATIENCE = 30.0
 DETECTION_TIMEOUT = 0.03   # the crash detectors' (the product's default: aft_ftm.detector.DEFAULT_TIMEOUT)
+GUARD_SETTLE = 1.5         # a node an adaptation started, killed: its site fails within this (its guard)
 SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
 
 
@@ -57,10 +58,13 @@ class CampaignDeployment(object):
     in a state file, so that it may be killed and restarted), the replicas MASTER and SLAVE, and per
     client a Proxy site (proxyK offering /accountK) and the client process (clientK)."""
 
-    def __init__(self, log_dir, mechanism='pbr', clients=2, timeout=DETECTION_TIMEOUT, seed=0, env=None):
+    def __init__(self, log_dir, mechanism='pbr', clients=2, timeout=DETECTION_TIMEOUT, seed=0, env=None,
+                 adaptable=False):
         if clients < 1:
             raise CampaignError('at least one client is needed, got %d' % clients)
         self.log_dir = log_dir
+        self.engine = None    # the adaptation engine of an adaptable deployment (AdaptingBackend)
+        self.suffix = {}      # replica site -> suffix of its After, once an update replaced it
         self.mechanism = mechanism
         self.clients = clients
         self.env = env
@@ -69,6 +73,8 @@ class CampaignDeployment(object):
             'witness': ('aft_ftm', 'witness.launch', dict(state_file=os.path.join(log_dir, 'witness.state'))),
         }
         replica = dict(timeout=timeout, server_timeout=1.0)
+        if adaptable:
+            replica['adaptable'] = 'true'   # Before, Proceed and After replaceable while the site serves
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
         for name, peer, role in (('master', 'slave', 'primary'), ('slave', 'master', 'backup')):
@@ -84,6 +90,18 @@ class CampaignDeployment(object):
             for k in range(1, clients + 1)}
         self.sites = {}
         self.starts = {}
+
+    def node(self, site, name):
+        """The graph name of a replica site's node now ('after' is 'after_v2' once updated)."""
+        return '/%s/%s%s' % (site, name, self.suffix.get(site, '') if name == 'after' else '')
+
+    def launched_of(self, site):
+        """The pids of the launches an adaptation started into site (their nodes are the site's,
+        though not in its launcher's process tree)."""
+        if self.engine is None:
+            return []
+        return [launched.pid for launched in self.engine.sites if launched.alive()
+                and launched.nodes and all(n.startswith('/%s/' % site) for n in launched.nodes)]
 
     def history_path(self, k):
         return os.path.join(self.log_dir, 'client%d.history' % k)
@@ -139,6 +157,7 @@ class CampaignDeployment(object):
             old.stop(grace=1.0)
         clean_dead_nodes('/campaign')
         if name in REPLICAS:
+            self.suffix.pop(name, None)   # its own After again
             pkg, launch_file, args = self.launch[name]
             self.launch[name] = (pkg, launch_file, dict(args, role='backup'))
         self.sites[name] = self._site(name).start()
@@ -157,6 +176,8 @@ class CampaignDeployment(object):
 
     def teardown(self):
         power_off_sites(list(self.sites.values()))
+        if self.engine is not None:
+            self.engine.stop_all()
         clean_dead_nodes('/campaign')
 
 
@@ -194,7 +215,7 @@ class ProcessBackend(FaultBackend):
         if target == 'witness':
             return '/aft/witness', None
         role, _, node = target.partition('/')
-        return '/%s/%s' % (site_of(role), node), None
+        return deployment.node(site_of(role), node), None
 
     def inject(self, fault, deployment, site_of, rng):
         kind = fault.kind
@@ -206,6 +227,10 @@ class ProcessBackend(FaultBackend):
             start = time.time()
             if kind == 'kill':
                 _signal([pid], signal.SIGKILL)
+                if any(deployment.suffix.get(site) and node == deployment.node(site, 'after') for site in REPLICAS):
+                    # A node an adaptation started fails its site through its guard: its roslaunch
+                    # notices the death, exits, and the guard kills the site (about 0.6 s).
+                    time.sleep(GUARD_SETTLE)
                 return dict(start=start, end=time.time(), what='%s (pid %d) killed' % (node, pid),
                             proxy_killed=client)
             _signal([pid], signal.SIGSTOP)
@@ -218,12 +243,17 @@ class ProcessBackend(FaultBackend):
             site = deployment.sites[name]
             if not site.alive():
                 raise CampaignError('fault %d: site %s is not running' % (fault.index, name))
+            launched = deployment.launched_of(name)
             if kind == 'power_loss':
-                count = site.power_off()
-                start = site.powered_off_at or time.time()
-                return dict(start=start, end=time.time(), what='site %s powered off (%d processes)' % (name, count),
-                            proxy_killed=None)
-            tree = [p.pid for p in process_tree(site.pid)]
+                start = time.time()
+                count = power_off_trees([site.pid] + launched,
+                                        on_stopped=lambda: setattr(site, 'powered_off_at', time.time()))
+                site.proc.wait()
+                # From the power-off's start (its first SIGSTOP; every process stopped at stopped_at):
+                # detection times measured from it are upper bounds.
+                return dict(start=start, end=time.time(), stopped_at=site.powered_off_at,
+                            what='site %s powered off (%d processes)' % (name, count), proxy_killed=None)
+            tree = [p.pid for pid in [site.pid] + launched for p in process_tree(pid)]
             start = time.time()
             _signal(tree, signal.SIGSTOP)
             time.sleep(fault.duration)
@@ -232,6 +262,50 @@ class ProcessBackend(FaultBackend):
                         % (name, fault.duration, len(tree)), proxy_killed=None)
         raise CampaignError('fault %d: %s is not a fault of one host (offered: %s)'
                             % (fault.index, kind, ', '.join(self.offered)))
+
+
+class AdaptingBackend(ProcessBackend):
+    """The faults of one host, plus adaptations of adaptable sites by the adaptation engine
+    (aft_ftm.ros.adaptation_engine): an update of the primary's After (update_after.yaml), under
+    load, in the prepared order. A site that fails afterwards comes back with its own After (the
+    launch file's), which its re-join makes consistent; the engine's replacement nodes belong to
+    their site (a power loss kills them, a freeze stops them, and the site stops if one dies)."""
+    offered = ('process', 'adapt')
+
+    def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
+        return CampaignDeployment(log_dir, mechanism, clients, timeout=timeout, seed=seed, adaptable=True)
+
+    def inject(self, fault, deployment, site_of, rng):
+        if fault.kind != 'adapt':
+            return super(AdaptingBackend, self).inject(fault, deployment, site_of, rng)
+        if fault.target != 'update':
+            raise CampaignError('fault %d: adaptation %s is not offered (offered: update)' % (fault.index, fault.target))
+        if fault.mechanism != 'pbr':
+            raise CampaignError('fault %d: the update replaces a PBR After; this segment runs %s'
+                                % (fault.index, fault.mechanism))
+        from aft_ftm.errors import AftError
+        from aft_ftm.ros.adapt_command import load_script
+        from aft_ftm.ros.adaptation_engine import Engine
+        if deployment.engine is None:
+            deployment.engine = Engine(log=lambda text: None, log_dir=os.path.join(deployment.log_dir, 'adapt'))
+        primary, backup = site_of('primary'), site_of('backup')
+        if not primary or not backup:
+            raise CampaignError('fault %d: no pair to adapt (primary %r, backup %r)' % (fault.index, primary, backup))
+        old = deployment.suffix.get(primary, '')
+        new = '_v%d' % (fault.index + 2)
+        start = time.time()
+        try:
+            script = load_script('update_after', ['site:=%s' % primary, 'peer:=%s' % backup, 'old:=%s' % old,
+                                                  'new:=%s' % new])
+            report = deployment.engine.run(script, 'prepared')
+        except AftError as e:   # refused before anything changed (a script the graph does not allow now)
+            raise CampaignError('fault %d: update of %s refused: %s' % (fault.index, primary, e))
+        if report['ok']:
+            deployment.suffix[primary] = new
+        return dict(start=start, end=time.time(), proxy_killed=None, adapted=bool(report['ok']),
+                    what='update of %s/after%s to after%s: %s (pause %.1f ms)' % (
+                        primary, old, new, 'done' if report['ok'] else 'rolled back: %s' % report['error'],
+                        (report.get('pause_s') or 0.0) * 1e3))
 
 
 class HostsBackend(ProcessBackend):
@@ -483,6 +557,8 @@ class Segment(object):
             record['outcome'] = 'failover'
         elif done:
             record['outcome'] = 'restarted'
+        elif 'adapted' in injected:
+            record['outcome'] = 'adapted' if injected['adapted'] else 'rolled_back'
         else:
             record['outcome'] = 'absorbed'
         return record
@@ -506,5 +582,5 @@ def kill_leftovers(root_pid):
     return len(procs)
 
 
-__all__ = ['CampaignDeployment', 'FaultBackend', 'ProcessBackend', 'HostsBackend', 'Segment', 'heal', 'whole',
+__all__ = ['CampaignDeployment', 'FaultBackend', 'ProcessBackend', 'AdaptingBackend', 'HostsBackend', 'Segment', 'heal', 'whole',
            'schedule']

@@ -8,7 +8,11 @@ finds the site of these nodes too), and every ``--poll`` seconds (0.2) looks whe
 still the process it was. Once one is gone, or when the guard gets SIGINT or SIGTERM (the engine's
 rollback, an operator), it sends SIGINT to COMMAND (roslaunch stops its nodes as on Ctrl-C) and
 kills whatever of the launch still runs ``--grace`` seconds (5) later. If COMMAND ends by itself,
-what it left running is killed and the guard exits with its status.
+what it left running is killed and the guard exits with its status; with ``--fail-site`` (the launch
+holds required nodes of the site) it first kills the owners' process trees at once: the site fails as
+a whole, as it would had one of its own required nodes died, and fast (a roslaunch stopping its
+nodes one by one would leave the site heartbeating for seconds without its node), so that its peer
+takes over within a detection time.
 
 The guard is a child subreaper, so that nodes orphaned by a roslaunch that died stay in its tree,
 and COMMAND gets SIGTERM if the guard itself dies (Linux). It is no ROS node (it never talks to
@@ -26,17 +30,20 @@ import time
 import psutil
 
 from ..site_guard import OWNERS_ENV, Action, Guard, GuardError, encode_owners, parse_owners, same_process
-from ..sites import process_tree, wait_dead
+from ..sites import power_off_trees, process_tree, wait_dead
 
 PR_SET_PDEATHSIG = 1
 PR_SET_CHILD_SUBREAPER = 36
 
 
-def guarded(argv, owners, poll=0.2, grace=5.0):
-    """The command line running argv under a guard of these owners (argv itself if none)."""
+def guarded(argv, owners, poll=0.2, grace=5.0, fail_site=False):
+    """The command line running argv under a guard of these owners (argv itself if none);
+    fail_site: the site stops if the launch ends by itself (it holds required nodes)."""
     if not owners:
         return list(argv)
     command = [sys.executable, '-m', 'aft_ftm.ros.guarded_launch', '--poll', str(poll), '--grace', str(grace)]
+    if fail_site:
+        command.append('--fail-site')
     for owner in owners:
         command += ['--owner', owner.encode()]
     return command + ['--'] + list(argv)
@@ -79,12 +86,14 @@ def main(argv=None):
     parser.add_argument('--owner', action='append', required=True, help='pid:create_time of a site launcher')
     parser.add_argument('--poll', type=float, default=0.2, help='seconds between looks at the owners (0.2)')
     parser.add_argument('--grace', type=float, default=5.0, help='seconds to stop after SIGINT, then killed (5)')
+    parser.add_argument('--fail-site', action='store_true',
+                        help='if the command ends by itself, stop the site (SIGINT to its launchers)')
     parser.add_argument('command', nargs=argparse.REMAINDER, help='-- then the command')
     options = parser.parse_args(argv)
     command = options.command[1:] if options.command[:1] == ['--'] else options.command
     try:
         owners = [o for text in options.owner for o in parse_owners(text)]
-        guard = Guard(options.grace)
+        guard = Guard(options.grace, fail_site=options.fail_site)
     except GuardError as e:
         parser.error(str(e))
     if not command or not options.poll > 0:
@@ -115,6 +124,9 @@ def main(argv=None):
         for action in decision.actions:
             if action == Action.INTERRUPT and child.poll() is None:
                 child.send_signal(signal.SIGINT)
+            elif action == Action.FAIL_SITE:
+                alive = [o.pid for o in owners if same_process(o, create_time_of(o.pid))]
+                _say('the site fails: %d processes of its launcher(s) %s killed' % (power_off_trees(alive), alive))
             elif action == Action.KILL:
                 for proc in tree():
                     try:
