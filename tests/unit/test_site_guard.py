@@ -9,7 +9,7 @@ import psutil
 import pytest
 from fakes import FakeClock
 
-from aft_ftm.ros.guarded_launch import create_time_of, guarded
+from aft_ftm.ros.guarded_launch import create_time_of, disarm_guard_of, guarded
 from aft_ftm.site_guard import (GUARD_EDGES, OWNERS_ENV, Action, Guard, GuardError, GuardState, Owner,
                                 launcher_among, neighbours, parse_owners, same_process)
 from aft_ftm.sites import process_tree, wait_dead
@@ -140,6 +140,16 @@ def test_a_launch_of_required_nodes_that_ends_by_itself_fails_its_site_first():
     assert decision.actions == [Action.FAIL_SITE, Action.KILL] and 'the site stops with it' in decision.reason
     world.tree = False
     assert world.poll(guard).actions == [Action.EXIT]
+
+
+def test_a_disarmed_guard_or_one_asked_as_its_launch_ended_does_not_fail_the_site():
+    guard, world = Guard(grace=5.0, fail_site=True), World()
+    guard.disarm()                                            # its nodes retired on purpose
+    world.child = False
+    assert Action.FAIL_SITE not in world.poll(guard).actions
+    guard, world = Guard(grace=5.0, fail_site=True), World()
+    world.asked, world.child = True, False                    # Ctrl-C reached the launch and the guard at once
+    assert Action.FAIL_SITE not in world.poll(guard).actions
 
 
 @pytest.mark.parametrize('stop', ['asked', 'owners'])
@@ -323,3 +333,21 @@ def test_a_guarded_launch_of_required_nodes_that_dies_stops_its_site(started):
         if code is None:
             site.kill()
             site.wait()
+
+
+def test_a_retired_launch_does_not_fail_its_site(started):
+    """An adaptation retiring a guarded launch's node disarms its guard first (SIGUSR1): the launch
+    ends, the site runs on."""
+    site = started.popen([sys.executable, '-c', 'import time; time.sleep(60)'])
+    guard = started.popen(guarded([sys.executable, '-c', 'import time; time.sleep(60)'], [owner_of(site)],
+                                  poll=0.05, grace=1.0, fail_site=True), stdout=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 10
+    while len(process_tree(guard.pid)) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    node = process_tree(guard.pid)[1]
+    assert disarm_guard_of(node.pid) == guard.pid
+    assert 'stops with it' in guard.stdout.readline()   # its first words: what it guards
+    node.kill()
+    guard.wait(10)
+    assert 'the site fails' not in guard.stdout.read()
+    assert site.poll() is None, 'the site was failed by a retirement'

@@ -150,7 +150,8 @@ class Guard(object):
     ``fail_site``: the launch holds required nodes (an adaptation's replacement of a site's
     Before, Proceed or After): if it ends by itself (one of them died), the site fails with it
     (killed whole), as a site stops when one of its own required nodes dies; a launch asked
-    to stop (a rollback, a retirement) or stopping with its site never fails it."""
+    to stop (a rollback, an operator), stopping with its site, or disarmed first (:meth:`disarm`: an
+    adaptation retiring its nodes) never fails it."""
 
     def __init__(self, grace=5.0, fail_site=False):
         if not grace > 0:
@@ -159,6 +160,11 @@ class Guard(object):
         self.fail_site = fail_site
         self.state = GuardState.RUNNING
         self.deadline = None
+
+    def disarm(self):
+        """The launch is about to end on purpose (an adaptation retires its nodes with rosnode kill):
+        its end no longer fails the site."""
+        self.fail_site = False
 
     def _change(self, cause, now):
         new, reason = GUARD_EDGES[(self.state, cause)]
@@ -175,7 +181,7 @@ class Guard(object):
         if self.state == GuardState.RUNNING:
             if not child_alive:
                 decision = self._killing(Cause.CHILD_EXITED, now, tree_alive)
-                if self.fail_site:
+                if self.fail_site and not asked:   # asked, its launch may end before the guard saw why
                     return Decision([Action.FAIL_SITE] + decision.actions, decision.reason + '; it held required '
                                     'nodes of its site: the site stops with it')
                 return decision

@@ -16,6 +16,7 @@ import time
 import psutil
 import rosgraph
 
+from aft_ftm.ros.deadline import Deadline
 from aft_ftm.ros.fencing import node_api
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph
 from aft_ftm.sites import Site, power_off_sites, power_off_trees, process_tree, wait_until
@@ -437,7 +438,7 @@ def final_states(deployment, settle=5.0):
             if not name:
                 continue
             try:
-                data = rospy.ServiceProxy('/%s/bank_server/get_state' % name, GetState)().state
+                data = _STATE_CALLS.call(rospy.ServiceProxy('/%s/bank_server/get_state' % name, GetState), 5.0).state
                 model = Account()
                 model.set_state(data)
                 found.append(model.snapshot())
@@ -447,6 +448,9 @@ def final_states(deployment, settle=5.0):
     got = []
     wait_until(lambda: got.append(states()) or len(set(got[-1])) == 1, settle, 0.1)
     return got[-1]
+
+
+_STATE_CALLS = Deadline('final-state', exclusive=True)   # a hung server: 'unreadable', never a hung campaign
 
 
 class Segment(object):

@@ -4,6 +4,7 @@ import os
 import time
 
 from aft_ftm import security
+from aft_ftm.ros.deadline import Deadline
 from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph, wired
 from aft_ftm.sites import Site, power_off_sites, stop_sites, wait_until
 
@@ -238,13 +239,18 @@ class MechanismDeployment(object):
         clean_dead_nodes()
 
 
-def witness_status(service='/aft/witness/request'):
-    """The witness's configuration (aft_msgs/WitnessResponse: epoch, primary, backup), or None."""
+_WITNESS_CALLS = Deadline('witness-status', exclusive=True)
+
+
+def witness_status(service='/aft/witness/request', timeout=5.0):
+    """The witness's configuration (aft_msgs/WitnessResponse: epoch, primary, backup), or None (not up
+    yet, gone, or no answer within timeout: a frozen or wedged witness; while such a call hangs, the
+    next ones answer None at once instead of piling up)."""
     import rospy
     from aft_msgs.srv import Witness
     try:
-        return rospy.ServiceProxy(service, Witness)(op=0, site='deployment')
-    except Exception:   # not up yet, or gone
+        return _WITNESS_CALLS.call(lambda: rospy.ServiceProxy(service, Witness)(op=0, site='deployment'), timeout)
+    except Exception:   # not up yet, gone, or not answering
         return None
 
 

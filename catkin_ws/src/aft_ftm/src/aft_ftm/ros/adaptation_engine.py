@@ -44,7 +44,7 @@ from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from ..where import run_where
 from .graph import publisher_links, roslaunch, wired
 from .fencing import node_api, visible_pid
-from .guarded_launch import guarded
+from .guarded_launch import disarm_guard_of, guarded
 
 
 def resolve_launch_file(spec):
@@ -661,6 +661,7 @@ class Engine(object):
             record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
+        disarm_guard_of(pid)   # a node an adaptation started: retired on purpose, its site must not fail
         _, failed = rosnode.kill_nodes([node])
         if failed:
             raise StepError('rosnode kill %s failed' % node)

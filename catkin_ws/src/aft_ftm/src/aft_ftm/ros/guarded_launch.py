@@ -12,7 +12,8 @@ what it left running is killed and the guard exits with its status; with ``--fai
 holds required nodes of the site) it first kills the owners' process trees at once: the site fails as
 a whole, as it would had one of its own required nodes died, and fast (a roslaunch stopping its
 nodes one by one would leave the site heartbeating for seconds without its node), so that its peer
-takes over within a detection time.
+takes over within a detection time. SIGUSR1 disarms that (:func:`disarm_guard_of`: an adaptation
+retiring the launch's nodes with rosnode kill, on purpose).
 
 The guard is a child subreaper, so that nodes orphaned by a roslaunch that died stay in its tree,
 and COMMAND gets SIGTERM if the guard itself dies (Linux). It is no ROS node (it never talks to
@@ -47,6 +48,20 @@ def guarded(argv, owners, poll=0.2, grace=5.0, fail_site=False):
     for owner in owners:
         command += ['--owner', owner.encode()]
     return command + ['--'] + list(argv)
+
+
+def disarm_guard_of(pid):
+    """Tell the guard above process pid, if any, that its launch is about to end on purpose (its
+    nodes retired): it will not fail the site. Returns the guard's pid, or None."""
+    try:
+        for proc in psutil.Process(pid).parents():
+            cmdline = proc.cmdline()
+            if '-m' in cmdline and 'aft_ftm.ros.guarded_launch' in cmdline:
+                proc.send_signal(signal.SIGUSR1)
+                return proc.pid
+    except psutil.Error:   # gone meanwhile: nothing to disarm
+        pass
+    return None
 
 
 def create_time_of(pid):
@@ -107,6 +122,7 @@ def main(argv=None):
     asked = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: asked.append(signum))
+    signal.signal(signal.SIGUSR1, lambda _signum, _frame: guard.disarm())
     _prctl(PR_SET_CHILD_SUBREAPER, 1)
     env = dict(os.environ)
     env[OWNERS_ENV] = encode_owners(owners)

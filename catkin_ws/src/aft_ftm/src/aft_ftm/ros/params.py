@@ -44,6 +44,8 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
     if wants_help(sys.argv):
         print(node_help(name, factory, variants))
         sys.exit(0)
+    from .handshake import bound_handshakes
+    bound_handshakes()   # no half-made connection wedges this node's TCPROS server
     rospy.init_node(name)
     try:
         node = factory()
