@@ -300,7 +300,9 @@ def unavailability(ops, start, stop):
     (seconds). Measured from start (a gap open when the fault came counts from the fault)."""
     answers = sorted(op.complete for op in ops if op.outcome == 'ok')
     longest = 0.0
-    pending = sorted((op.invoke, op.complete if op.complete is not None else stop) for op in ops)
+    # Only the calls pending somewhere in [start, stop] matter (a whole segment's history is long).
+    pending = sorted((op.invoke, op.complete if op.complete is not None else stop) for op in ops
+                     if op.invoke < stop and (op.complete is None or op.complete > start))
     last = start
     for t in answers:
         if t < start:
