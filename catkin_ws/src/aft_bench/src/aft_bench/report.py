@@ -852,10 +852,11 @@ def campaign_lines(f):
     if not c or not c.get('table'):
         return [_missing(f, 'campaign')]
     d = c.get('detection') or {}
-    lines = ['%d faults drawn from seed %d (%s backend: %s), %d client processes each through its own Proxy, '
+    lines = ['%s%d faults drawn from seed %d (%s backend: %s), %d client processes each through its own Proxy, '
              'segments of %d faults taking %s in turn; every fault healed and the failed site re-joined before the '
              'next. %.0f s in all (%.1f s per fault). Calls: %s. Checked by `aft_examples.history` (`%s`).' % (
-                 c['faults_run'], c['seed'], c.get('backend', '?'), c.get('hosts') or 'one host', c['clients'],
+                 'Run started %s. ' % c['started'] if c.get('started') else '', c['faults_run'], c['seed'],
+                 c.get('backend', '?'), c.get('hosts') or 'one host', c['clients'],
                  c.get('per_segment', 0), '/'.join(c.get('mechanisms') or []), c['elapsed_s'],
                  c['elapsed_s'] / max(c['faults_run'], 1),
                  ', '.join('%d %s' % (n, o) for o, n in sorted((c.get('calls') or {}).items())),
