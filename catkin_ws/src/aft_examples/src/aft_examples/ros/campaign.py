@@ -32,6 +32,13 @@ GUARD_SETTLE = 1.5         # a node an adaptation started, killed: its site fail
 SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
 
 
+def client_seed(seed, k):
+    """Client k's seed in a segment of seed: a ROS parameter, so an XML-RPC int (under 2**31): a
+    segment's seed (the schedule's seed * 1000 + its number) times 100 is past it from seed 21475 on,
+    and the client died at init_node ("int exceeds XML-RPC limits"), serving nothing."""
+    return (seed * 100 + k) % (2 ** 31 - 1)
+
+
 class CampaignError(RuntimeError):
     """The campaign could not run (a deployment that does not start, a fault that cannot be injected)."""
 
@@ -87,7 +94,7 @@ class CampaignDeployment(object):
                 timeout=CALL_TIMEOUT))
         self.client_argv = {'client%d' % k: [
             'rosrun', 'aft_examples', 'campaign_client', '__name:=client%d' % k, 'account:=/account%d' % k,
-            '_history:=%s' % self.history_path(k), '_stop_file:=%s' % self.stop_file, '_seed:=%d' % (seed * 100 + k)]
+            '_history:=%s' % self.history_path(k), '_stop_file:=%s' % self.stop_file, '_seed:=%d' % client_seed(seed, k)]
             for k in range(1, clients + 1)}
         self.sites = {}
         self.starts = {}
