@@ -569,10 +569,10 @@ class Engine(object):
                                                            next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [plan.path]
-        # Under a guard: the nodes stop when the launcher of the site they join stops; required ones
-        # (a replacement of the site's Before, Proceed or After) stop the site if they die.
-        required = str(dict(entry.args).get('required', '')).lower() == 'true'
-        argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace, fail_site=required)
+        # Under a guard: the nodes stop when the launcher of the site they join stops. (The guard can
+        # also fail the site when a required replacement dies, --fail-site; not used: where one
+        # roslaunch runs both replicas (demo_one_host.launch) that would kill the survivor too.)
+        argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace)
         env = None
         if plan.owners:
             # On the host of the site the nodes join (an emulated host: its network namespace).
