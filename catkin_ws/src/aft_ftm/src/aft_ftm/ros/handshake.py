@@ -2,46 +2,88 @@
 
 rospy reads an inbound connection's handshake header in its TCPROS server's one accept thread,
 blocking and without a timeout (``rospy.impl.tcpros_base.TCPServer.run`` ->
-``TCPROSHandler._tcp_server_callback`` -> ``rosgraph.network.read_ros_handshake_header``). A client
-that connects and never sends a whole header (a frozen or dead client, a half-open connection from a
-powered-off host, or bytes that are no TCPROS at all) stops that thread for good: no subscriber and
-no service client can connect to the node any more, and their calls hang.
+``TCPROSServer._tcp_server_callback`` -> ``rosgraph.network.read_ros_handshake_header``), and its
+listen backlog is 5. A client that connects and never sends a whole header (a frozen or dead client,
+a half-open connection from a powered-off host, or bytes that are no TCPROS at all) stops that
+thread: the backlog fills, later connections are dropped at SYN and retried by the kernel after
+1, 3, 7, 15 s, so no subscriber and no service client can connect to the node any more.
 
 It happens in plain ROS 1, found by the campaign: a node restarted on the port a dead node's
 XML-RPC API had used gets the master's HTTP call meant for the dead node; "POST" read as a header
 length is 1.4 GB, and the read waits for ever. The relaunched witness was wedged that way, and every
 call to it hung (scripts/campaign, 1000 faults, seed 2026, fault 348).
 
-:func:`bound_handshakes` bounds that read to HANDSHAKE_TIMEOUT seconds (the socket's own timeout,
-if shorter, is kept, and restored after the header): past it rospy logs the connection as failed,
-closes it and accepts the next. ``run_node`` calls it before ``init_node``.
+:func:`bound_handshakes` (``run_node`` calls it before ``init_node``) changes three things:
+- each inbound connection is handled in a thread of its own, so the accept thread only accepts
+  (rospy's own comment there: "leave threading decisions up to inbound_handler");
+- a header read waits at most HANDSHAKE_TIMEOUT seconds (the socket's own timeout, if shorter, is
+  kept, and restored after the header);
+- a header whose announced length is beyond MAX_HEADER_BYTES (an HTTP request, garbage) is refused
+  at once, without waiting for bytes that will never come.
+Past either bound rospy logs the inbound connection as failed and closes it.
 """
 import socket
+import struct
+import threading
 
 HANDSHAKE_TIMEOUT = 10.0   # s: a header is a few hundred bytes; rospy answers in milliseconds
+MAX_HEADER_BYTES = 16 << 20   # a header carries a message definition: kilobytes; 'POST' reads as 1.4 GB
 
 
-def bounded(read, timeout):
-    """read_ros_handshake_header bounded to timeout seconds per header."""
+class HandshakeRefused(socket.error):
+    """The connection announced a header no TCPROS peer sends."""
+
+
+def _announced_length(sock):
+    """The header length in the first 4 bytes, peeked (left for the reader); None if the peer
+    closed before sending them."""
+    first = sock.recv(4, socket.MSG_PEEK | socket.MSG_WAITALL)
+    if len(first) < 4:
+        return None
+    return struct.unpack('<I', first)[0]
+
+
+def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
+    """read_ros_handshake_header bounded to timeout seconds per header and max_bytes per header."""
     def read_bounded(sock, buffer, buff_size):
         previous = sock.gettimeout()
         if previous is None or previous > timeout:
             sock.settimeout(timeout)
         try:
+            if buffer.tell() == 0:   # nothing read yet: the length comes first
+                length = _announced_length(sock)
+                if length is not None and length > max_bytes:
+                    raise HandshakeRefused('not a TCPROS handshake: a header of %d bytes announced (%r)'
+                                           % (length, struct.pack('<I', length)))
             return read(sock, buffer, buff_size)
         except socket.timeout:
             raise socket.timeout('no complete TCPROS handshake header within %.1f s' % timeout)
         finally:
-            sock.settimeout(previous)
+            try:
+                sock.settimeout(previous)
+            except OSError:   # closed meanwhile (rospy closes a connection it gave up on)
+                pass
     read_bounded.bounded_to = timeout
     return read_bounded
 
 
+def threaded(callback):
+    """callback(self, sock, addr) run in a daemon thread of its own per connection."""
+    def handle(self, sock, client_addr):
+        threading.Thread(target=callback, args=(self, sock, client_addr), daemon=True,
+                         name='tcpros-inbound-%s:%s' % tuple(client_addr[:2])).start()
+    handle.threaded = True
+    return handle
+
+
 def bound_handshakes(timeout=HANDSHAKE_TIMEOUT):
-    """Bound rospy's handshake reads (idempotent). Returns the timeout in force."""
+    """Bound rospy's handshake reads and hand each inbound connection to its own thread
+    (idempotent; before init_node). Returns the timeout in force."""
     import rospy.impl.tcpros_base as base
     current = getattr(base.read_ros_handshake_header, 'bounded_to', None)
     if current is None:
         base.read_ros_handshake_header = bounded(base.read_ros_handshake_header, timeout)
         current = timeout
+    if not getattr(base.TCPROSServer._tcp_server_callback, 'threaded', False):
+        base.TCPROSServer._tcp_server_callback = threaded(base.TCPROSServer._tcp_server_callback)
     return current
