@@ -23,3 +23,23 @@ def kill_tagged(tag):
         except psutil.NoSuchProcess:
             pass
     return procs
+
+
+def run_tagged(script, args=(), timeout=180, home_prefix='aft_test_home_'):
+    """Run a Python script (its text) in a process of its own under a fresh AFT_TEST_TAG and ROS_HOME;
+    kill whatever carrying the tag is left, and fail the test if anything was. Returns
+    (exit status, output)."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    import uuid
+    tag = uuid.uuid4().hex
+    env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=tempfile.mkdtemp(prefix=home_prefix))
+    try:
+        run = subprocess.run([sys.executable, '-c', script] + list(args), env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, timeout=timeout)
+    finally:
+        leftovers = kill_tagged(tag)
+    assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
+    return run.returncode, run.stdout.decode(errors='replace')

@@ -8,13 +8,7 @@ unless the peer was heard again meanwhile (then the report is moot: the peer cam
 re-join; the detector says so with peer_back and sends no failure).
 The script runs in a process of its own, with a master of its own; every process it starts carries
 the test's AFT_TEST_TAG and is killed at the end."""
-import os
-import subprocess
-import sys
-import tempfile
-import uuid
-
-from leftovers import kill_tagged
+from leftovers import run_tagged
 
 SCRIPT = r'''
 import subprocess, sys, tempfile, time
@@ -61,15 +55,7 @@ finally:
 
 def run_script(case):
     """SCRIPT for case ('late' or 'back'): its exit status and output; every process it started is gone."""
-    tag = uuid.uuid4().hex
-    env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=tempfile.mkdtemp(prefix='aft_detector_home_'))
-    try:
-        run = subprocess.run([sys.executable, '-c', SCRIPT, case], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, timeout=120)
-    finally:
-        leftovers = kill_tagged(tag)
-    assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
-    return run.returncode, run.stdout.decode(errors='replace')
+    return run_tagged(SCRIPT, [case], timeout=120, home_prefix='aft_detector_home_')
 
 
 def test_a_failure_declared_before_recovery_connects_is_sent_once_it_does():

@@ -7,13 +7,7 @@ HTTP call meant for a dead node that had the port before; a service call and a s
 after them must still be served at once (before the 10 s a stuck header is allowed), and the
 witness logs the refused HTTP call. Runs in a process of its own with a master of its own; every
 process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
-import os
-import subprocess
-import sys
-import tempfile
-import uuid
-
-from leftovers import kill_tagged
+from leftovers import run_tagged
 
 SCRIPT = r'''
 import socket, struct, subprocess, sys, tempfile, time
@@ -68,15 +62,6 @@ finally:
 
 
 def test_a_witness_held_by_stuck_and_foreign_connections_still_answers_at_once():
-    tag = uuid.uuid4().hex
-    home = tempfile.mkdtemp(prefix='aft_handshake_home_')
-    env = dict(os.environ, AFT_TEST_TAG=tag, ROS_HOME=home, HOME=home)
-    try:
-        run = subprocess.run([sys.executable, '-c', SCRIPT], env=env, stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, timeout=120)
-    finally:
-        leftovers = kill_tagged(tag)
-    output = run.stdout.decode(errors='replace')
-    assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
-    assert run.returncode == 0, output[-3000:]
+    code, output = run_tagged(SCRIPT, timeout=120, home_prefix='aft_handshake_home_')
+    assert code == 0, output[-3000:]
     assert 'served: epoch' in output and 'refused logged' in output, output[-3000:]

@@ -307,47 +307,31 @@ def test_a_launch_whose_site_is_already_gone_is_not_started(started):
     assert 'already gone' in guard.stdout.read()
 
 
-
-def test_a_guarded_launch_of_required_nodes_that_dies_stops_its_site(started):
-    """The site's launcher is killed, its whole tree (the site fails as when one of its own required
-    nodes dies) once the guarded launch ends by itself; without --fail-site it runs on."""
-    site_code = ('import signal, subprocess, sys, time\n'
-                 'signal.signal(signal.SIGINT, signal.SIG_IGN)\n'
-                 'node = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])\n'
-                 'print("site up %d" % node.pid, flush=True)\n'
-                 'time.sleep(60)\n')
-    for fail_site, expected in ((True, -signal.SIGKILL), (False, None)):
-        site = started.popen([sys.executable, '-c', site_code], stdout=subprocess.PIPE, text=True)
-        words = site.stdout.readline().split()
-        assert words[:2] == ['site', 'up']
-        node = started.adopt(psutil.Process(int(words[2])))
-        guard = started.popen(guarded([sys.executable, '-c', 'import time; time.sleep(0.3)'], [owner_of(site)],
-                                      poll=0.05, grace=1.0, fail_site=fail_site), stdout=subprocess.PIPE, text=True)
-        assert guard.wait(10) == 0
-        try:
-            code = site.wait(3 if fail_site else 0.5)
-        except subprocess.TimeoutExpired:
-            code = None
-        assert code == expected, (fail_site, code)
-        assert wait_dead([node], 3 if fail_site else 0.2) == ([] if fail_site else [node])   # its node too
-        if code is None:
-            site.kill()
-            site.wait()
-
-
 def test_a_retired_launch_does_not_fail_its_site(started):
     """An adaptation retiring a guarded launch's node disarms its guard first (SIGUSR1): the launch
     ends, the site runs on."""
     site = started.popen([sys.executable, '-c', 'import time; time.sleep(60)'])
     guard = started.popen(guarded([sys.executable, '-c', 'import time; time.sleep(60)'], [owner_of(site)],
-                                  poll=0.05, grace=1.0, fail_site=True), stdout=subprocess.PIPE, text=True)
+                                  poll=0.05, grace=1.0, fail_site='master'), stdout=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 10
     while len(process_tree(guard.pid)) < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     node = process_tree(guard.pid)[1]
     assert disarm_guard_of(node.pid) == guard.pid
     assert 'stops with it' in guard.stdout.readline()   # its first words: what it guards
+    assert 'disarmed' in guard.stdout.readline()
     node.kill()
     guard.wait(10)
-    assert 'the site fails' not in guard.stdout.read()
+    assert ' fails: ' not in guard.stdout.read()   # it never told the site to stop
     assert site.poll() is None, 'the site was failed by a retirement'
+
+
+@pytest.mark.parametrize('args,site', [
+    ({'site': 'master', 'mechanism': 'pbr'}, 'master'),      # stages.launch (update, switch)
+    ({'ns': '/slave/tr', 'mechanism': 'tr'}, 'slave'),       # mechanism.launch (compose)
+    ({'ns': '/pbr_tr'}, 'pbr_tr'),
+    ({'mechanism': 'tr'}, ''),                               # says no site: none is failed
+])
+def test_the_site_a_required_replacement_fails_is_the_one_its_launch_names(args, site):
+    from aft_ftm.ros.adaptation_engine import site_of_launch
+    assert site_of_launch(args) == site

@@ -138,7 +138,7 @@ class Action(enum.Enum):
     INTERRUPT = 'interrupt'   # SIGINT to the launch (roslaunch stops its nodes, as on Ctrl-C)
     KILL = 'kill'             # SIGKILL to every process of the launch still running
     EXIT = 'exit'             # the guard's work is done
-    FAIL_SITE = 'fail_site'   # kill the site's launchers' trees: the site fails, as when its own required node dies
+    FAIL_SITE = 'fail_site'   # tell the site to fail-stop (aft_ftm.ros.fail_site), as its own nodes do
 
 
 Decision = collections.namedtuple('Decision', 'actions reason')
@@ -148,8 +148,8 @@ class Guard(object):
     """Decides, at each poll, what the guard of one launch does. ``grace`` (s): how long the
     launch has to stop after SIGINT before it is killed, and how long killing is tried.
     ``fail_site``: the launch holds required nodes (an adaptation's replacement of a site's
-    Before, Proceed or After): if it ends by itself (one of them died), the site fails with it
-    (killed whole), as a site stops when one of its own required nodes dies; a launch asked
+    Before, Proceed or After): if it ends by itself (one of them died), the site fail-stops with
+    it, as a site does when one of its own nodes cannot serve; a launch asked
     to stop (a rollback, an operator), stopping with its site, or disarmed first (:meth:`disarm`: an
     adaptation retiring its nodes) never fails it."""
 

@@ -226,6 +226,15 @@ class LaunchedSite(object):
         self.site.stop(grace=grace)
 
 
+def site_of_launch(args):
+    """The replica site a launch's nodes belong to, from its arguments: ``site``, else the first
+    name of ``ns`` (mechanism.launch: /master/tr is site master); '' if neither says."""
+    site = str(args.get('site', '')).strip('/')
+    if not site:
+        site = str(args.get('ns', '')).strip('/').split('/')[0]
+    return site
+
+
 class Engine(object):
     """Runs scripts. ``log`` is a function of one string (the ``adapt`` command prints).
 
@@ -569,10 +578,12 @@ class Engine(object):
                                                            next(self._launch_count)))
         argv = roslaunch('aft_ftm', 'x.launch', **dict(entry.args))
         argv[argv.index('aft_ftm'):argv.index('aft_ftm') + 2] = [plan.path]
-        # Under a guard: the nodes stop when the launcher of the site they join stops. (The guard can
-        # also fail the site when a required replacement dies, --fail-site; not used: where one
-        # roslaunch runs both replicas (demo_one_host.launch) that would kill the survivor too.)
-        argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace)
+        # Under a guard: the nodes stop when the launcher of the site they join stops; required ones
+        # (a replacement of a replica site's Before, Proceed or After) fail-stop the site if they die.
+        args = dict(entry.args)
+        required = str(args.get('required', '')).lower() == 'true'
+        argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace,
+                       fail_site=site_of_launch(args) if required else '')
         env = None
         if plan.owners:
             # On the host of the site the nodes join (an emulated host: its network namespace).

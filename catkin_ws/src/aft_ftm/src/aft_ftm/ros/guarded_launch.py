@@ -8,12 +8,13 @@ finds the site of these nodes too), and every ``--poll`` seconds (0.2) looks whe
 still the process it was. Once one is gone, or when the guard gets SIGINT or SIGTERM (the engine's
 rollback, an operator), it sends SIGINT to COMMAND (roslaunch stops its nodes as on Ctrl-C) and
 kills whatever of the launch still runs ``--grace`` seconds (5) later. If COMMAND ends by itself,
-what it left running is killed and the guard exits with its status; with ``--fail-site`` (the launch
-holds required nodes of the site) it first kills the owners' process trees at once: the site fails as
-a whole, as it would had one of its own required nodes died, and fast (a roslaunch stopping its
-nodes one by one would leave the site heartbeating for seconds without its node), so that its peer
-takes over within a detection time. SIGUSR1 disarms that (:func:`disarm_guard_of`: an adaptation
-retiring the launch's nodes with rosnode kill, on purpose).
+what it left running is killed and the guard exits with its status; with ``--fail-site SITE`` (the
+launch holds required nodes of that replica site) it first tells the site to fail-stop, through the
+site's own ``/SITE/fail_stop`` topic (:mod:`aft_ftm.ros.fail_site`): the site's crash detector stops
+its heartbeats and its peer fences it and takes over, as when one of the site's own nodes fail-stops,
+instead of the site heartbeating on without its node. (Killing the site's launcher instead would
+kill every site that launcher runs: one roslaunch may run both replicas.) SIGUSR1 disarms that
+(:func:`disarm_guard_of`: an adaptation retiring the launch's nodes with rosnode kill, on purpose).
 
 The guard is a child subreaper, so that nodes orphaned by a roslaunch that died stay in its tree,
 and COMMAND gets SIGTERM if the guard itself dies (Linux). It is no ROS node (it never talks to
@@ -31,20 +32,21 @@ import time
 import psutil
 
 from ..site_guard import OWNERS_ENV, Action, Guard, GuardError, encode_owners, parse_owners, same_process
-from ..sites import power_off_trees, process_tree, wait_dead
+from ..sites import process_tree, wait_dead
 
 PR_SET_PDEATHSIG = 1
 PR_SET_CHILD_SUBREAPER = 36
 
 
-def guarded(argv, owners, poll=0.2, grace=5.0, fail_site=False):
+def guarded(argv, owners, poll=0.2, grace=5.0, fail_site=''):
     """The command line running argv under a guard of these owners (argv itself if none);
-    fail_site: the site stops if the launch ends by itself (it holds required nodes)."""
+    fail_site: the name of the site that fail-stops if the launch ends by itself (it holds
+    required nodes of that site), '' for none."""
     if not owners:
         return list(argv)
     command = [sys.executable, '-m', 'aft_ftm.ros.guarded_launch', '--poll', str(poll), '--grace', str(grace)]
     if fail_site:
-        command.append('--fail-site')
+        command += ['--fail-site', fail_site]
     for owner in owners:
         command += ['--owner', owner.encode()]
     return command + ['--'] + list(argv)
@@ -62,6 +64,11 @@ def disarm_guard_of(pid):
     except psutil.Error:   # gone meanwhile: nothing to disarm
         pass
     return None
+
+
+def fail_site_command(site, reason):
+    """The command line that tells site to fail-stop (aft_ftm.ros.fail_site)."""
+    return [sys.executable, '-m', 'aft_ftm.ros.fail_site', '--site', site, '--reason', reason]
 
 
 def create_time_of(pid):
@@ -101,14 +108,14 @@ def main(argv=None):
     parser.add_argument('--owner', action='append', required=True, help='pid:create_time of a site launcher')
     parser.add_argument('--poll', type=float, default=0.2, help='seconds between looks at the owners (0.2)')
     parser.add_argument('--grace', type=float, default=5.0, help='seconds to stop after SIGINT, then killed (5)')
-    parser.add_argument('--fail-site', action='store_true',
-                        help='if the command ends by itself, stop the site (SIGINT to its launchers)')
+    parser.add_argument('--fail-site', default='', metavar='SITE',
+                        help='if the command ends by itself, tell SITE to fail-stop (on /SITE/fail_stop)')
     parser.add_argument('command', nargs=argparse.REMAINDER, help='-- then the command')
     options = parser.parse_args(argv)
     command = options.command[1:] if options.command[:1] == ['--'] else options.command
     try:
         owners = [o for text in options.owner for o in parse_owners(text)]
-        guard = Guard(options.grace, fail_site=options.fail_site)
+        guard = Guard(options.grace, fail_site=bool(options.fail_site))
     except GuardError as e:
         parser.error(str(e))
     if not command or not options.poll > 0:
@@ -122,7 +129,10 @@ def main(argv=None):
     asked = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: asked.append(signum))
-    signal.signal(signal.SIGUSR1, lambda _signum, _frame: guard.disarm())
+    def disarm(_signum, _frame):
+        guard.disarm()
+        _say('disarmed: the launch is retired on purpose, its end fails no site')
+    signal.signal(signal.SIGUSR1, disarm)
     _prctl(PR_SET_CHILD_SUBREAPER, 1)
     env = dict(os.environ)
     env[OWNERS_ENV] = encode_owners(owners)
@@ -141,8 +151,16 @@ def main(argv=None):
             if action == Action.INTERRUPT and child.poll() is None:
                 child.send_signal(signal.SIGINT)
             elif action == Action.FAIL_SITE:
-                alive = [o.pid for o in owners if same_process(o, create_time_of(o.pid))]
-                _say('the site fails: %d processes of its launcher(s) %s killed' % (power_off_trees(alive), alive))
+                code = child.poll()
+                reason = '%s, holding required nodes of site %s, ended by itself (status %s)' % (
+                    ' '.join(os.path.basename(word) for word in command[:2]), options.fail_site, code)
+                try:
+                    told = subprocess.run(fail_site_command(options.fail_site, reason), timeout=60).returncode
+                except subprocess.TimeoutExpired:
+                    told = None
+                _say('the site %s fails: %s' % (options.fail_site, {0: 'told on its fail_stop topic'}.get(
+                    told, 'its fail_stop topic had no subscriber (see the alarm)' if told == 1 else
+                    'the fail_site command failed (status %s)' % told)))
             elif action == Action.KILL:
                 for proc in tree():
                     try:
