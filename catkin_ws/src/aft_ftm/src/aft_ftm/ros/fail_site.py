@@ -27,9 +27,11 @@ def fail_site(site, reason, timeout=3.0):
     alarms = rospy.Publisher('/aft/alarms', Alarm, queue_size=10)
     stop = rospy.Publisher('/%s/fail_stop' % site, Failure, queue_size=10, tcp_nodelay=True)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not rospy.is_shutdown() and not (
-            stop.get_num_connections() and alarms.get_num_connections()):
-        time.sleep(0.01)
+
+    def wait_for(publisher):   # until it has a subscriber, or the deadline
+        while time.monotonic() < deadline and not rospy.is_shutdown() and not publisher.get_num_connections():
+            time.sleep(0.01)
+    wait_for(stop)   # the stop first: no wait for alarm listeners delays it
     heard = stop.get_num_connections()
     if heard:
         stop.publish(Failure(site=site, reason=reason, detected=rospy.Time.now()))
@@ -38,6 +40,7 @@ def fail_site(site, reason, timeout=3.0):
         detail = ('site %s could not be told to stop: nothing subscribes to /%s/fail_stop within %.1f s (the site '
                   'is down, or has no crash detector): %s' % (site, site, timeout, reason))
     rospy.logerr('%s: %s', rospy.get_name(), detail)
+    wait_for(alarms)
     alarms.publish(Alarm(source=rospy.get_name(), mechanism='adaptation', kind=ALARM_KIND, detail=detail,
                          stamp=rospy.Time.now()))
     time.sleep(0.2)   # rospy writes from a queue thread: let both messages leave before the exit
