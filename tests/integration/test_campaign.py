@@ -1,7 +1,9 @@
 """A short campaign (issue 15): scripts/campaign with 40 faults (two segments of 20) on the PBR and LFR bank, two
 client processes each through its own Proxy, every fault healed before the next; the history checker
-must find no violation. The sites are adaptable (`--adapt`): updates of the primary's After are drawn among the
-faults (about one per 30), so a replacement After also meets the faults that follow it. The campaign runs in a
+must find no violation. The sites are adaptable (`--adapt`): the adaptations are drawn among the faults (each
+about once per 39: an update of the primary's After, a PBR <-> LFR switch, TR composed into each replica's
+Proceed or removed), so replacement nodes meet the faults that follow them, and a failed site must re-join
+with what its peer runs by then (the campaign checks it before the next fault). The campaign runs in a
 process of its own with a master of its own; every
 process it starts carries the test's AFT_TEST_TAG and is killed at the end, whatever happened.
 
@@ -48,6 +50,10 @@ def test_a_short_campaign_finds_no_violation():
     summary = json.load(open(os.path.join(out, 'campaign.json')))
     assert len(summary['records']) == FAULTS and not summary['violations']
     assert {'kill', 'freeze_node', 'freeze_site', 'power_loss'} <= {r['kind'] for r in summary['records']}
+    adaptations = [r for r in summary['records'] if r['kind'] == 'adapt']
+    assert {'update', 'switch', 'compose'} <= {r['target'] for r in adaptations} or FAULTS < 39, adaptations
+    assert any(r['outcome'] == 'adapted' for r in adaptations) or not adaptations, \
+        'no adaptation done: %s' % [(r['target'], r['outcome'], r['what']) for r in adaptations]
     assert summary['calls'].get('ok', 0) > 10 * FAULTS, 'the clients were hardly served: %s' % summary['calls']
     assert os.path.getsize(os.path.join(out, 'timeline.png')) > 10000
     detection = summary['detection']

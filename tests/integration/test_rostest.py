@@ -59,6 +59,7 @@ LAUNCH_ARGS = {
     'demo_replica_site.launch': REPLICA,
     'stages.launch': REPLICA,
     'mechanism.launch': ['ns:=x', 'mechanism:=tr', 'inp:=/i', 'out:=/o', 'server:=/account'],
+    'proceed.launch': ['site:=master', 'server:=/master/account'],
     'demo_mechanism_site.launch': ['mechanism:=ad'],
     'car.launch': ['scenario:=board_power_loss'],
     'board.launch': ['board:=board_a', 'peer:=board_b'],

@@ -1,11 +1,15 @@
-"""The campaign's host-level backend drives aft_ftm.hosts_exec.Hosts as the schedule says: a fake Hosts
-records the calls. No ROS master, no namespaces."""
+"""The campaign's backends, without a ROS master or namespaces: the host-level one drives
+aft_ftm.hosts_exec.Hosts as the schedule says (a fake Hosts records the calls); the adapting one runs
+the shipped adaptation scripts with the names of the nodes running then."""
+import os
 import random
 
 import pytest
 
+from aft_ftm import adaptation
 from aft_examples.schedule import Fault
-from aft_examples.ros.campaign import CampaignError, HostsBackend, ProcessBackend
+from aft_examples.ros.campaign import (INNER_NODES, CampaignDeployment, CampaignError, HostsBackend, ProcessBackend,
+                                       adaptation_plan)
 
 
 class FakeHosts(object):
@@ -45,3 +49,79 @@ def test_one_host_refuses_what_needs_hosts_by_name():
     assert 'hosts' not in ProcessBackend.offered and 'hosts' in HostsBackend.offered
     with pytest.raises(CampaignError, match='partition is not a fault of one host'):
         ProcessBackend().inject(fault('partition', 'primary'), None, {'primary': 'master'}.get, random.Random(0))
+
+
+# -- adaptations in the campaign: what each one is, given what the pair runs now ---------------------
+
+SCRIPTS = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'adaptations')
+
+
+def load(plan):
+    with open(os.path.join(SCRIPTS, plan.script + '.yaml')) as f:
+        return adaptation.load(f.read(), adaptation.parse_overrides(plan.overrides), source=plan.script)
+
+
+def launched_graph(site, inner):
+    """The nodes of a replica's mechanism its launch file starts (their graph names)."""
+    stages = ['protocol', 'before', 'after'] + (['%s/%s' % (inner, n) for n in INNER_NODES] if inner else ['proceed'])
+    return {'/%s/%s' % (site, n) for n in stages}
+
+
+def new_nodes(script):
+    """The nodes a script starts, as its bindings to topics name them."""
+    return {b.node for b in script.bind if b.topic}
+
+
+@pytest.mark.parametrize('seed', range(40))
+def test_every_adaptation_names_the_nodes_running_then_whatever_came_before(seed):
+    """Updates, switches, compositions, failovers and re-joins drawn from a seed: each script the
+    campaign runs suspends, unbinds and retires only nodes that run, and afterwards the deployment
+    names the nodes that run (what its faults then target)."""
+    rng = random.Random(seed)
+    deployment = CampaignDeployment('/tmp/unused', 'pbr', clients=2, seed=seed, adaptable=True)
+    graph = launched_graph('master', '') | launched_graph('slave', '')
+    primary, backup = 'master', 'slave'
+    for index in range(30):
+        step = rng.choice(['update', 'switch', 'compose', 'failover', 'rejoin'])
+        if step == 'failover':
+            primary, backup = backup, primary
+            continue
+        if step == 'rejoin':   # the backup failed and came back from its launch file
+            deployment.comes_back(backup)
+            args = deployment.launch[backup][2]
+            assert (args['mechanism'], args['inner'], args['role']) == (deployment.mechanism, deployment.inner, 'backup')
+            graph = {n for n in graph if not n.startswith('/%s/' % backup)} | launched_graph(backup, args['inner'])
+            continue
+        fault = Fault(index, 0, 'pbr', 'adapt', step, 0.0, 0.0)
+        if step == 'update' and deployment.mechanism == 'lfr':
+            with pytest.raises(CampaignError, match='PBR After; the pair runs lfr'):
+                adaptation_plan(fault, deployment, primary, backup)
+            continue
+        plan = adaptation_plan(fault, deployment, primary, backup)
+        script = load(plan)
+        touched = set(script.suspend) | set(script.retire) | {b.node for b in script.bind if not b.topic}
+        assert touched <= graph, 'seed %d step %d %s: not running: %s' % (seed, index, plan.what, touched - graph)
+        graph = (graph - set(script.retire)) | new_nodes(script)
+        if step == 'compose' and not deployment.inner:
+            graph |= {'/%s/tr/%s' % (site, n) for site in (primary, backup) for n in INNER_NODES} - new_nodes(script)
+        plan.apply(deployment)
+        for site in (primary, backup):
+            for stage in ('before', 'after'):
+                assert deployment.node(site, stage) in graph, (seed, index, plan.what)
+            assert launched_graph(site, deployment.inner) - {'/%s/before' % site, '/%s/after' % site} <= graph
+
+
+def test_an_update_switch_and_composition_are_described_by_what_they_change():
+    deployment = CampaignDeployment('/tmp/unused', 'pbr', clients=2, adaptable=True)
+    plan = adaptation_plan(Fault(4, 0, 'pbr', 'adapt', 'switch', 0.0, 0.0), deployment, 'slave', 'master')
+    assert plan.script == 'switch' and 'to:=lfr' in plan.overrides and 'primary:=slave' in plan.overrides
+    plan.apply(deployment)
+    assert deployment.shape() == 'lfr' and deployment.node('master', 'after') == '/master/after_lfr4'
+    plan = adaptation_plan(Fault(5, 0, 'pbr', 'adapt', 'compose', 0.0, 0.0), deployment, 'slave', 'master')
+    assert plan.script == 'compose' and 'server_timeout:=1.0' in plan.overrides
+    plan.apply(deployment)
+    assert deployment.shape() == 'lfr+tr'
+    plan = adaptation_plan(Fault(6, 0, 'pbr', 'adapt', 'compose', 0.0, 0.0), deployment, 'slave', 'master')
+    assert plan.script == 'decompose' and plan.what == 'decompose lfr+tr -> lfr'
+    with pytest.raises(CampaignError, match='not offered'):
+        adaptation_plan(Fault(7, 0, 'pbr', 'adapt', 'rewrite', 0.0, 0.0), deployment, 'slave', 'master')

@@ -9,7 +9,8 @@ import time
 import pytest
 from rosgraph.network import read_ros_handshake_header
 
-from aft_ftm.ros.handshake import HandshakeRefused, bound_handshakes, bounded, threaded
+from aft_ftm.ros.handshake import (HandshakeRefused, bound_handshakes, bounded, one_subscriber_at_a_time,
+                                   threaded)
 
 
 def header(fields):
@@ -109,3 +110,83 @@ def test_rospy_reads_its_headers_bounded_in_a_thread_each_once_patched_and_patch
     finally:
         base.read_ros_handshake_header = original
         base.TCPROSServer._tcp_server_callback = callback
+
+
+def _rospy_like_publisher(steps):
+    """rospy's publisher side: answer the header, then add the connection, dropping (closing) an
+    older one from the same subscriber."""
+    kept = {}
+
+    def handler(sock, addr, header):
+        steps.append(('answer', addr[0]))
+        time.sleep(0.02)   # the window in which another thread's answer and add could interleave
+        old = kept.get(header['callerid'])
+        if old is not None:
+            old.close()
+        kept[header['callerid']] = sock
+        steps.append(('add', addr[0]))
+    return handler, kept
+
+
+def test_a_connection_whose_subscriber_already_hung_up_does_not_replace_the_live_one():
+    """The subscriber made transport a, then b (closing a before b connects) and keeps b. a's header
+    is handled last, as happens with header reads in parallel threads: rospy would keep a, the
+    closed one, drop b, and the subscription would be lost for good. a is closed unanswered."""
+    steps, logged = [], []
+    handler, kept = _rospy_like_publisher(steps)
+    handle = one_subscriber_at_a_time(handler, log=logged.append)
+    a_here, a_there = socket.socketpair()
+    b_here, b_there = socket.socketpair()
+    try:
+        a_there.sendall(b'header of a')   # a's header was sent and read, then a was closed
+        a_there.shutdown(socket.SHUT_RDWR)
+        a_there.close()
+        assert a_here.recv(64) == b'header of a'   # the header read
+        for s in (a_here, b_here):
+            s.settimeout(5.0)   # as rospy's: a peek must not wait it out
+        started = time.monotonic()
+        handle(b_here, ('b', 2), {'topic': '/t', 'callerid': '/sub'})
+        assert handle(a_here, ('a', 1), {'topic': '/t', 'callerid': '/sub'}) is None
+        assert time.monotonic() - started < 1.0
+        assert steps == [('answer', 'b'), ('add', 'b')] and kept['/sub'] is b_here
+        assert a_here.fileno() == -1 and b_here.fileno() != -1   # a closed, b kept open
+        assert logged and 'closed by /sub before it was answered' in logged[0]
+    finally:
+        for s in (a_here, b_here, b_there):
+            s.close()
+
+
+def test_answer_and_add_are_not_interleaved_and_a_stuck_header_holds_nobody():
+    steps = []
+    handler, _ = _rospy_like_publisher(steps)
+    release = threading.Event()
+
+    class Server(object):
+        topic_connection_handler = staticmethod(handler)
+
+    def callback(server, sock, addr):
+        if addr[0] == 'stuck':
+            release.wait(5.0)   # never sends its header
+            return
+        server.topic_connection_handler(sock, addr, {'topic': '/t', 'callerid': '/sub' + addr[0]})
+    server = Server()
+    handle = threaded(callback)
+    pairs = [socket.socketpair() for _ in range(3)]
+    try:
+        started = time.monotonic()
+        handle(server, pairs[0][0], ('stuck', 1))
+        handle(server, pairs[1][0], ('a', 2))
+        handle(server, pairs[2][0], ('b', 3))
+        deadline = started + 5.0
+        while len(steps) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert time.monotonic() - started < 2.0, 'held by the stuck connection'
+        assert [s[0] for s in steps] == ['answer', 'add', 'answer', 'add'], steps
+        wrapped = server.topic_connection_handler
+        handle(server, pairs[1][0], ('c', 4))
+        assert wrapped.one_subscriber_at_a_time and server.topic_connection_handler is wrapped   # once
+    finally:
+        release.set()
+        for pair in pairs:
+            for s in pair:
+                s.close()

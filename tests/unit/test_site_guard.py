@@ -1,5 +1,6 @@
 """Nodes launched by an adaptation belong to their site: the guard's decisions with fake processes
 and a fake clock, then the guard itself with real processes (no ROS)."""
+import os
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import psutil
 import pytest
 from fakes import FakeClock
 
+from aft_ftm.ros.adaptation_engine import stopped_by_launch
 from aft_ftm.ros.guarded_launch import create_time_of, disarm_guard_of, guarded
 from aft_ftm.site_guard import (GUARD_EDGES, OWNERS_ENV, Action, Guard, GuardError, GuardState, Owner,
                                 launcher_among, neighbours, parse_owners, same_process)
@@ -335,3 +337,26 @@ def test_a_retired_launch_does_not_fail_its_site(started):
 def test_the_site_a_required_replacement_fails_is_the_one_its_launch_names(args, site):
     from aft_ftm.ros.adaptation_engine import site_of_launch
     assert site_of_launch(args) == site
+
+
+# -- what retiring a node stops with it ------------------------------------------------------------
+
+STAGES = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'launch', 'stages.launch')
+
+
+@pytest.mark.parametrize('args,node,expected', [
+    # Before and After in one launch, required: retiring the After stops the Before (the campaign's
+    # update after a switch left a primary without Before, silently).
+    (['stages:=before+after', 'required:=true'], '/m/after_x', ['/m/before_x']),
+    (['stages:=after', 'required:=true'], '/m/after_x', []),          # alone in its launch
+    (['stages:=before+after', 'required:=false'], '/m/after_x', []),  # not required: nothing else stops
+])
+def test_a_required_node_retired_stops_the_rest_of_its_roslaunch(args, node, expected):
+    argv = ['/usr/bin/python3', '/usr/bin/roslaunch', '--wait', '--skip-log-check', os.path.abspath(STAGES),
+            'site:=m', 'peer:=s', 'role:=primary', 'suffix:=_x'] + args
+    assert stopped_by_launch(argv, node) == expected
+
+
+def test_what_is_not_a_roslaunch_of_a_loadable_file_stops_nothing_known():
+    assert stopped_by_launch(['/usr/bin/python3', '-m', 'pytest'], '/m/after') == []
+    assert stopped_by_launch(['/usr/bin/python3', '/usr/bin/roslaunch', '/nowhere/x.launch'], '/m/after') == []

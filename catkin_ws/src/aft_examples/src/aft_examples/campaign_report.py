@@ -8,8 +8,8 @@ from .history import percentile
 def table(records):
     """Rows (kind, faults, outcomes in words, median, p99, max unavailability in ms) and a total row."""
     by_kind = collections.OrderedDict()
-    for record in sorted(records, key=lambda r: r['kind']):
-        by_kind.setdefault(record['kind'], []).append(record)
+    for record in sorted(records, key=row_kind):
+        by_kind.setdefault(row_kind(record), []).append(record)
     rows = []
     for kind, group in list(by_kind.items()) + [('all', list(records))]:
         outcomes = collections.Counter(r['outcome'].split(':')[0] for r in group)
@@ -17,6 +17,11 @@ def table(records):
         rows.append((kind, len(group), ', '.join('%d %s' % (n, o) for o, n in sorted(outcomes.items())),
                      percentile(waits, 50), percentile(waits, 99), max(waits) if waits else None))
     return rows
+
+
+def row_kind(record):
+    """The table's row of a record: its kind; an adaptation's by what it is (adapt switch, ...)."""
+    return record['kind'] + (' ' + record['target'] if record['kind'] == 'adapt' else '')
 
 
 def format_table(rows):

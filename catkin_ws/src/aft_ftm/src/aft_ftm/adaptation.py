@@ -135,6 +135,7 @@ def load(text, overrides=None, source='script'):
         if key not in args:
             _fail(source, 'unknown argument %r (the script declares: %s)' % (key, ', '.join(sorted(args)) or 'none'))
         args[key] = value
+    args = _resolve_defaults(source, args)
     each = data.get('each')
     values = [None]
     if each is not None:
@@ -180,6 +181,23 @@ def load(text, overrides=None, source='script'):
             _fail(source, '"%s" names %s more than once' % (where, ', '.join(duplicates)))
     return Script(name, kind, str(data.get('description') or ''), suspend, launch, bind, promote, retire, args,
                   suspend_entry)
+
+
+def _resolve_defaults(source, args):
+    """Arguments whose value names other arguments (``primary_after_old: $(arg old)``: a default that
+    follows another argument unless given itself), substituted until none is left. A cycle, or a
+    name that is not an argument, is an error naming it."""
+    resolved = dict(args)
+    for _ in range(len(resolved) + 1):
+        pending = {k: v for k, v in resolved.items() if isinstance(v, str) and _ARG.search(v)}
+        if not pending:
+            return resolved
+        for key, value in pending.items():
+            names = _ARG.findall(value)
+            if all(not (isinstance(resolved.get(n), str) and _ARG.search(resolved[n])) for n in names):
+                resolved[key] = _substitute(value, resolved, '%s: args: %s' % (source, key))
+    _fail(source, 'arguments %s name each other in a cycle' % ', '.join(sorted(
+        k for k, v in resolved.items() if isinstance(v, str) and _ARG.search(v))))
 
 
 def _mentions(value, text):

@@ -28,6 +28,7 @@ CALL_TIMEOUT = 30.0     # a Proxy gives a call up after this long ("outcome UNKN
 HEAL_TIMEOUT = 90.0     # the pair whole again within this, or the fault is 'unhealed'
 JOIN_PATIENCE = 30.0
 DETECTION_TIMEOUT = 0.03   # the crash detectors' (the product's default: aft_ftm.detector.DEFAULT_TIMEOUT)
+INNER_NODES = ('protocol', 'before', 'proceed', 'after')   # the graph of a mechanism nested in Proceed
 GUARD_SETTLE = 1.5         # a node an adaptation started, killed: its site fails within this (its guard)
 SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
 
@@ -72,15 +73,18 @@ class CampaignDeployment(object):
             raise CampaignError('at least one client is needed, got %d' % clients)
         self.log_dir = log_dir
         self.engine = None    # the adaptation engine of an adaptable deployment (AdaptingBackend)
-        self.suffix = {}      # replica site -> suffix of its After, once an update replaced it
-        self.mechanism = mechanism
+        # What the pair runs now, which adaptations change and a re-joining site must come back with:
+        self.mechanism = mechanism   # pbr or lfr (a switch toggles it)
+        self.inner = ''              # the mechanism standing in for Proceed ('' or tr: compose, decompose)
+        self.suffix = {}      # (replica site, 'before' or 'after') -> suffix of that node, once replaced
+        self.server_timeout = 1.0
         self.clients = clients
         self.env = env
         self.stop_file = os.path.join(log_dir, 'stop')
         self.launch = {
             'witness': ('aft_ftm', 'witness.launch', dict(state_file=os.path.join(log_dir, 'witness.state'))),
         }
-        replica = dict(timeout=timeout, server_timeout=1.0)
+        replica = dict(timeout=timeout, server_timeout=self.server_timeout)
         if adaptable:
             replica['adaptable'] = 'true'   # Before, Proceed and After replaceable while the site serves
         if mechanism != 'pbr':
@@ -100,8 +104,35 @@ class CampaignDeployment(object):
         self.starts = {}
 
     def node(self, site, name):
-        """The graph name of a replica site's node now ('after' is 'after_v2' once updated)."""
-        return '/%s/%s%s' % (site, name, self.suffix.get(site, '') if name == 'after' else '')
+        """The graph name of a replica site's node now ('after' is 'after_v2' once updated,
+        'before' 'before_lfr3' once switched; 'tr/before': a node of the mechanism nested in Proceed)."""
+        return '/%s/%s%s' % (site, name, self.suffix.get((site, name), ''))
+
+    def shape(self):
+        """What the pair runs now, in words: 'pbr', 'lfr+tr', ..."""
+        return self.mechanism + ('+' + self.inner if self.inner else '')
+
+    def shape_problem(self, site, master):
+        """Why replica site does not run what the pair runs now (a re-joined site that came back
+        with another mechanism than its peer's), or None. master: a rosgraph.Master."""
+        after = self.node(site, 'after')
+        try:
+            mechanism = master.getParam(after + '/mechanism')
+        except Exception as e:   # its parameters not set: not launched as expected
+            return '%s has no mechanism parameter (%s)' % (after, e)
+        if mechanism != self.mechanism:
+            return '%s runs %s, the pair %s' % (after, mechanism, self.shape())
+        proceed = '/%s/%s/protocol/rebind' % (site, self.inner) if self.inner else '/%s/proceed/rebind' % site
+        try:
+            master.lookupService(proceed)
+        except Exception:
+            return '%s is not offered: %s does not run %s' % (proceed, site, self.shape())
+        return None
+
+    def started_by_engine(self, node):
+        """Whether node was started by an adaptation (its launch's guard fails its site if it dies)."""
+        return self.engine is not None and any(launched.alive() and node in launched.nodes
+                                               for launched in self.engine.sites)
 
     def launched_of(self, site):
         """The pids of the launches an adaptation started into site (their nodes are the site's,
@@ -165,11 +196,17 @@ class CampaignDeployment(object):
             old.stop(grace=1.0)
         clean_dead_nodes('/campaign')
         if name in REPLICAS:
-            self.suffix.pop(name, None)   # its own After again
-            pkg, launch_file, args = self.launch[name]
-            self.launch[name] = (pkg, launch_file, dict(args, role='backup'))
+            self.comes_back(name)
         self.sites[name] = self._site(name).start()
         return self.sites[name]
+
+    def comes_back(self, name):
+        """Replica name is launched again: as a backup, with the launch file's node names, running
+        what the pair runs now (it re-joins its peer, which may have been switched or composed)."""
+        for key in [key for key in self.suffix if key[0] == name]:
+            del self.suffix[key]
+        pkg, launch_file, args = self.launch[name]
+        self.launch[name] = (pkg, launch_file, dict(args, role='backup', mechanism=self.mechanism, inner=self.inner))
 
     def stop_clients(self, timeout=CALL_TIMEOUT + 10.0):
         """Ask the clients to stop after their call in flight; those still running after timeout are
@@ -223,6 +260,8 @@ class ProcessBackend(FaultBackend):
         if target == 'witness':
             return '/aft/witness', None
         role, _, node = target.partition('/')
+        if node == 'proceed' and deployment.inner:   # composed: a node of the graph standing in for it
+            node = '%s/%s' % (deployment.inner, rng.choice(INNER_NODES))
         return deployment.node(site_of(role), node), None
 
     def inject(self, fault, deployment, site_of, rng):
@@ -232,12 +271,13 @@ class ProcessBackend(FaultBackend):
             pid = _pid_of(node)
             if pid is None:
                 raise CampaignError('fault %d: node %s has no pid (not running?)' % (fault.index, node))
+            guarded = deployment.started_by_engine(node)
             start = time.time()
             if kind == 'kill':
                 _signal([pid], signal.SIGKILL)
-                if any(deployment.suffix.get(site) and node == deployment.node(site, 'after') for site in REPLICAS):
+                if guarded:
                     # A node an adaptation started fails its site through its guard: its roslaunch
-                    # notices the death, exits, and the guard kills the site (about 0.6 s).
+                    # notices the death, exits, and the guard fail-stops the site.
                     time.sleep(GUARD_SETTLE)
                 return dict(start=start, end=time.time(), what='%s (pid %d) killed' % (node, pid),
                             proxy_killed=client)
@@ -274,11 +314,16 @@ class ProcessBackend(FaultBackend):
 
 class AdaptingBackend(ProcessBackend):
     """The faults of one host, plus adaptations of adaptable sites by the adaptation engine
-    (aft_ftm.ros.adaptation_engine): an update of the primary's After (update_after.yaml), under
-    load, in the prepared order. A site that fails afterwards comes back with its own After (the
-    launch file's), which its re-join makes consistent; the engine's replacement nodes belong to
-    their site (a power loss kills them, a freeze stops them, and the site stops if one dies)."""
-    offered = ('process', 'adapt')
+    (aft_ftm.ros.adaptation_engine), under load, in the prepared order:
+    - update: the primary's After replaced by a new version (update_after.yaml; PBR only);
+    - switch: PBR <-> LFR on both replicas (switch.yaml);
+    - compose: TR stands in for each replica's Proceed (compose.yaml), or, where it already does, a
+      plain Proceed again (decompose.yaml).
+    The deployment keeps what the pair runs now: a site that fails afterwards comes back with that
+    mechanism (its launch file's node names), and heal() checks that it does. The engine's
+    replacement nodes belong to their site (a power loss kills them, a freeze stops them, and the
+    site fail-stops if one dies)."""
+    offered = ('process', 'adapt', 'adapt_mechanism')
 
     def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
         return CampaignDeployment(log_dir, mechanism, clients, timeout=timeout, seed=seed, adaptable=True)
@@ -286,34 +331,92 @@ class AdaptingBackend(ProcessBackend):
     def inject(self, fault, deployment, site_of, rng):
         if fault.kind != 'adapt':
             return super(AdaptingBackend, self).inject(fault, deployment, site_of, rng)
-        if fault.target != 'update':
-            raise CampaignError('fault %d: adaptation %s is not offered (offered: update)' % (fault.index, fault.target))
-        if fault.mechanism != 'pbr':
-            raise CampaignError('fault %d: the update replaces a PBR After; this segment runs %s'
-                                % (fault.index, fault.mechanism))
         from aft_ftm.errors import AftError
         from aft_ftm.ros.adapt_command import load_script
         from aft_ftm.ros.adaptation_engine import Engine
-        if deployment.engine is None:
-            deployment.engine = Engine(log=lambda text: None, log_dir=os.path.join(deployment.log_dir, 'adapt'))
         primary, backup = site_of('primary'), site_of('backup')
         if not primary or not backup:
             raise CampaignError('fault %d: no pair to adapt (primary %r, backup %r)' % (fault.index, primary, backup))
-        old = deployment.suffix.get(primary, '')
-        new = '_v%d' % (fault.index + 2)
+        plan = adaptation_plan(fault, deployment, primary, backup)
+        if deployment.engine is None:
+            log_dir = os.path.join(deployment.log_dir, 'adapt')
+            os.makedirs(log_dir, exist_ok=True)
+            deployment.engine = Engine(log=_appender(os.path.join(log_dir, 'engine.log')), log_dir=log_dir)
         start = time.time()
         try:
-            script = load_script('update_after', ['site:=%s' % primary, 'peer:=%s' % backup, 'old:=%s' % old,
-                                                  'new:=%s' % new])
-            report = deployment.engine.run(script, 'prepared')
+            report = deployment.engine.run(load_script(plan.script, plan.overrides), 'prepared')
         except AftError as e:   # refused before anything changed (a script the graph does not allow now)
-            raise CampaignError('fault %d: update of %s refused: %s' % (fault.index, primary, e))
+            raise CampaignError('fault %d: %s refused: %s' % (fault.index, plan.what, e))
         if report['ok']:
-            deployment.suffix[primary] = new
+            plan.apply(deployment)
         return dict(start=start, end=time.time(), proxy_killed=None, adapted=bool(report['ok']),
-                    what='update of %s/after%s to after%s: %s (pause %.1f ms)' % (
-                        primary, old, new, 'done' if report['ok'] else 'rolled back: %s' % report['error'],
+                    what='%s: %s (pause %.1f ms)' % (
+                        plan.what, 'done' if report['ok'] else 'rolled back: %s' % report['error'],
                         (report.get('pause_s') or 0.0) * 1e3))
+
+
+def _appender(path):
+    """A log function that appends each line, stamped, to path (the engine's warnings and steps)."""
+    def log(text):
+        with open(path, 'a') as f:
+            f.write('%.3f %s\n' % (time.time(), text))
+    return log
+
+
+class Plan(object):
+    """One adaptation of the campaign: the script (a name of aft_ftm/adaptations), its arguments,
+    what it is in words, and apply(deployment): the deployment's record of what the pair runs,
+    changed once the adaptation is done."""
+
+    def __init__(self, script, overrides, what, apply):
+        self.script, self.overrides, self.what, self.apply = script, overrides, what, apply
+
+
+def adaptation_plan(fault, deployment, primary, backup):
+    """The adaptation fault (target update, switch or compose) stands for, given what the pair runs
+    now (deployment.mechanism, .inner, .suffix). Raises CampaignError where it does not apply (an
+    update of an LFR pair). No ROS."""
+    index, suffix = fault.index, deployment.suffix
+    if fault.target == 'update':
+        if deployment.mechanism != 'pbr':
+            raise CampaignError('fault %d: the update replaces a PBR After; the pair runs %s now'
+                                % (index, deployment.shape()))
+        old, new = suffix.get((primary, 'after'), ''), '_v%d' % (index + 2)
+
+        def apply(d):
+            d.suffix[(primary, 'after')] = new
+        return Plan('update_after', ['site:=%s' % primary, 'peer:=%s' % backup, 'old:=%s' % old, 'new:=%s' % new],
+                    'update of %s/after%s to after%s' % (primary, old, new), apply)
+    if fault.target == 'switch':
+        to = 'lfr' if deployment.mechanism == 'pbr' else 'pbr'
+        new = '_%s%d' % (to, index)
+        olds = ['%s_%s_old:=%s' % (role, stage, suffix.get((site, stage), ''))
+                for role, site in (('primary', primary), ('backup', backup)) for stage in ('before', 'after')]
+
+        def apply(d):
+            d.mechanism = to
+            for site in (primary, backup):
+                for stage in ('before', 'after'):
+                    d.suffix[(site, stage)] = new
+        return Plan('switch', ['to:=%s' % to, 'new:=%s' % new, 'primary:=%s' % primary, 'backup:=%s' % backup] + olds,
+                    'switch %s -> %s' % (deployment.mechanism, to), apply)
+    if fault.target == 'compose':
+        sites = 'site:=%s,%s' % (primary, backup)
+        timeout = 'server_timeout:=%s' % deployment.server_timeout
+        if deployment.inner:
+            inner = deployment.inner
+
+            def apply(d):
+                d.inner = ''
+            return Plan('decompose', [sites, 'mechanism:=%s' % inner, timeout],
+                        'decompose %s+%s -> %s' % (deployment.mechanism, inner, deployment.mechanism), apply)
+
+        def apply(d):
+            d.inner = 'tr'
+        return Plan('compose', [sites, 'mechanism:=tr', timeout],
+                    'compose %s -> %s+tr' % (deployment.mechanism, deployment.mechanism), apply)
+    raise CampaignError('fault %d: adaptation %s is not offered (offered: update, switch, compose)'
+                        % (index, fault.target))
 
 
 class HostsBackend(ProcessBackend):
@@ -383,7 +486,8 @@ def _down(site):
 
 
 def whole(deployment):
-    """Why the deployment is not whole yet (a site down, the pair not formed), or None."""
+    """Why the deployment is not whole yet (a site down, the pair not formed, a replica that runs
+    another mechanism than the pair), or None."""
     for name, site in sorted(deployment.sites.items()):
         if not name.startswith('client') and _down(site):
             return _down(site)
@@ -393,13 +497,23 @@ def whole(deployment):
     if not status.primary or not status.backup:
         return 'the pair is not whole (epoch %d, primary %r, backup %r)' % (status.epoch, status.primary,
                                                                             status.backup)
+    master = rosgraph.Master('/campaign')
+    for name in (status.primary, status.backup):
+        why = deployment.shape_problem(name, master)
+        if why:
+            return why
     return None
 
 
-def heal(deployment, log=print):
+def heal(deployment, log=print, fail_stopped=None):
     """Bring the deployment back whole: relaunch every site that is down (a replica re-joins as the
-    backup), power off and relaunch a replica that runs but does not join. Returns (what was done,
+    backup), power off and relaunch a replica that runs but does not join: at once if it said it
+    fail-stopped since it was started (fail_stopped: {site name: monotonic time a fail_stop alarm
+    named it}, filled as they are heard; a fail-stopped backup is nobody's to fence, its launcher
+    lives on), else after JOIN_PATIENCE. Returns (what was done,
     None) once whole, or (what was done, why not) after HEAL_TIMEOUT."""
+    fail_stopped = {} if fail_stopped is None else fail_stopped
+    started_at = {}
     done = []
     started = time.monotonic()
     waiting_since = {}
@@ -416,6 +530,7 @@ def heal(deployment, log=print):
             if name.startswith('client'):
                 continue
             if _down(site):
+                started_at[name] = time.monotonic()
                 deployment.relaunch(name)
                 done.append('%s relaunched' % name)
                 waiting_since[name] = time.monotonic()
@@ -425,7 +540,11 @@ def heal(deployment, log=print):
                 waiting_since.pop(name, None)
                 continue
             since = waiting_since.setdefault(name, time.monotonic())
-            if time.monotonic() - since > JOIN_PATIENCE and deployment.sites[name].alive():
+            if fail_stopped.get(name, -1.0) > started_at.get(name, 0.0) and deployment.sites[name].alive():
+                started_at[name] = time.monotonic()
+                deployment.sites[name].power_off()
+                done.append('%s fail-stopped, relaunched' % name)
+            elif time.monotonic() - since > JOIN_PATIENCE and deployment.sites[name].alive():
                 log('%s runs but did not join in %.0f s: powered off, relaunched' % (name, JOIN_PATIENCE))
                 deployment.sites[name].power_off()
                 done.append('%s stuck, relaunched' % name)
@@ -475,6 +594,7 @@ class Segment(object):
         self.records = []
         self.kills = {}
         self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
+        self.fail_stopped = {}   # replica site -> when a fail_stop alarm last named it (monotonic)
         self.verdicts = []   # suspicions.Verdict: every crash detector's verdict heard
         self.timeout = timeout
         self.skipped = 0   # faults not run: an earlier one left the deployment unhealed
@@ -482,7 +602,7 @@ class Segment(object):
     def run(self):
         import rospy
         from aft_msgs.msg import Alarm, Failure
-        heard = [rospy.Subscriber('/aft/alarms', Alarm, lambda a: self.alarms.append((a.kind, a.detail)))]
+        heard = [rospy.Subscriber('/aft/alarms', Alarm, self._alarm)]
         for site in REPLICAS:
             heard.append(rospy.Subscriber('/%s/failures' % site, Failure, self._verdict, callback_args=site,
                                           queue_size=None))
@@ -491,6 +611,13 @@ class Segment(object):
         finally:
             for subscriber in heard:
                 subscriber.unregister()
+
+    def _alarm(self, alarm):
+        self.alarms.append((alarm.kind, alarm.detail))
+        if alarm.kind == 'fail_stop':   # the crash detector's 'site NAME stops heartbeating: why'
+            words = alarm.detail.split()
+            if len(words) > 1 and words[0] == 'site' and words[1] in REPLICAS:
+                self.fail_stopped[words[1]] = time.monotonic()
 
     def _verdict(self, failure, reporter):
         self.verdicts.append(suspicions.Verdict(failure.detected.to_sec(), reporter, failure.site, failure.reason))
@@ -547,10 +674,12 @@ class Segment(object):
         time.sleep(fault.gap)
         status = witness_status() or _Status
         roles = {'primary': status.primary, 'backup': status.backup}
-        record = dict(index=fault.index, segment=fault.segment, mechanism=fault.mechanism, kind=fault.kind,
+        record = dict(index=fault.index, segment=fault.segment, mechanism=fault.mechanism, running=deployment.shape(),
+                      kind=fault.kind,
                       target=fault.target, duration=fault.duration, epoch_before=status.epoch,
                       primary_before=status.primary,
                       sites=sorted(suspicions.sites_touched(fault.target, status.primary, status.backup)))
+        self.fail_stopped.clear()
         try:
             injected = self.backend.inject(fault, deployment, lambda role: roles[role], rng)
         except CampaignError as e:
@@ -559,7 +688,7 @@ class Segment(object):
         record.update(injected)
         if injected.get('proxy_killed'):
             self.kills.setdefault(injected['proxy_killed'], []).append(injected['start'])
-        done, why = heal(deployment, self.log)
+        done, why = heal(deployment, self.log, self.fail_stopped)
         after = witness_status() or _Status
         record.update(healed=done, healed_at=time.time(), epoch_after=after.epoch, primary_after=after.primary)
         if why:

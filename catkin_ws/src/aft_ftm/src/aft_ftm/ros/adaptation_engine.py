@@ -77,6 +77,37 @@ def launch_nodes(path, args):
     return [rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes], config
 
 
+def stopped_with(pid, node):
+    """The other nodes that stop when node (process pid) dies: those of the roslaunch that started it,
+    if it started it with required="true" (roslaunch then shuts the whole launch down); [] where that
+    cannot be known (a node started otherwise). See stopped_by_launch."""
+    try:
+        parent = psutil.Process(pid).parent()
+        argv = parent.cmdline() if parent is not None else []
+    except (psutil.Error, OSError):
+        return []
+    return stopped_by_launch(argv, node)
+
+
+def stopped_by_launch(argv, node):
+    """The nodes other than node that a roslaunch run as argv stops when node dies (node required
+    there), read from its launch file and arguments; [] if argv is not a roslaunch whose file loads."""
+    at = [i for i, a in enumerate(argv[:2]) if os.path.basename(a) == 'roslaunch']
+    if not at:
+        return []
+    rest = argv[at[0] + 1:]
+    positional = [a for a in rest if not a.startswith('-') and ':=' not in a]   # a path, or package and file
+    args = [tuple(a.split(':=', 1)) for a in rest if ':=' in a and not a.startswith('__')]
+    try:
+        if len(positional) not in (1, 2):
+            return []
+        names, config = launch_nodes(resolve_launch_file('/'.join(positional)), args)
+    except ScriptError:
+        return []
+    required = {rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes if n.required}
+    return [n for n in names if n != node] if node in required else []
+
+
 def services_called_by(config):
     """{node: the services it will call} for the aft_ftm nodes of a loaded launch configuration."""
     def value(name):
@@ -349,6 +380,12 @@ class Engine(object):
                 raise ScriptError('node %s (to retire) runs on another machine (%s): the engine kills, and '
                                   'restarts on a rollback, only nodes of its own machine (its host or '
                                   'emulated hosts of it)' % (node, uri))
+            stopped = [n for n in stopped_with(here, node) if n in nodes and n not in script.retire]
+            if stopped:
+                raise ScriptError('node %s (to retire) is required by the roslaunch that started it: its death '
+                                  'stops that roslaunch, and with it %s, which the script does not retire '
+                                  '(start the nodes an adaptation may retire one by one in launches of their '
+                                  'own, or with required false)' % (node, ', '.join(sorted(stopped))))
         for bind in script.bind:
             if bind.node not in launched:
                 try:

@@ -15,13 +15,15 @@ call to it hung (scripts/campaign, 1000 faults, seed 2026, fault 348).
 
 :func:`bound_handshakes` (``run_node`` calls it before ``init_node``) changes three things:
 - each inbound connection is handled in a thread of its own, so the accept thread only accepts
-  (rospy's own comment there: "leave threading decisions up to inbound_handler");
+  (rospy's own comment there: "leave threading decisions up to inbound_handler"); answering a
+  subscriber and adding its connection stay one at a time (:func:`one_subscriber_at_a_time`);
 - a header read waits at most HANDSHAKE_TIMEOUT seconds (the socket's own timeout, if shorter, is
   kept, and restored after the header);
 - a header whose announced length is beyond MAX_HEADER_BYTES (an HTTP request, garbage) is refused
   at once, without waiting for bytes that will never come.
 Past either bound rospy logs the inbound connection as failed and closes it.
 """
+import select
 import socket
 import struct
 import threading
@@ -67,9 +69,61 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
     return read_bounded
 
 
+def peer_hung_up(sock):
+    """True if the peer has closed (or reset) its end: an orderly EOF is waiting. Data or nothing
+    yet: False. Never waits (rospy's sockets may carry a timeout, which recv would wait out) and
+    consumes nothing."""
+    poller = select.poll()
+    poller.register(sock, select.POLLIN | select.POLLPRI)
+    if not poller.poll(0):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b''
+    except (BlockingIOError, InterruptedError, socket.timeout):
+        return False
+    except OSError:   # reset, or closed here meanwhile
+        return True
+
+
+def one_subscriber_at_a_time(handler, lock=None, log=None):
+    """rospy's topic_connection_handler, made safe for connections handled in parallel threads.
+
+    rospy answers a subscriber's header, then adds the connection and drops an older one from the
+    same subscriber. A subscriber told of a publisher twice at once (two publisherUpdate calls) makes
+    two transports; adding the second closes the first, before the second even connects, and it keeps
+    the second. Handled out of order (the second's header read first), the publisher kept the first,
+    the one the subscriber had closed, dropped the second, and that subscription was lost for good
+    (the adapting campaign and CI: replacement nodes that never set up). So, under one lock (answer
+    and add are not interleaved), a connection whose subscriber has already hung up is closed
+    unanswered instead of replacing a live one: its FIN left before the live connection's SYN, so it
+    is there to see. Header reads stay in parallel, and a stuck connection holds nobody."""
+    lock = threading.Lock() if lock is None else lock
+
+    def handle(sock, client_addr, header):
+        with lock:
+            if peer_hung_up(sock):
+                if log is not None:
+                    log('inbound connection from %s for %s closed by %s before it was answered: not added'
+                        % (client_addr, header.get('topic'), header.get('callerid')))
+                sock.close()
+                return None
+            return handler(sock, client_addr, header)
+    handle.one_subscriber_at_a_time = True
+    return handle
+
+
+def _rospy_info(text):
+    import rospy
+    rospy.loginfo(text)
+
+
 def threaded(callback):
-    """callback(self, sock, addr) run in a daemon thread of its own per connection."""
+    """callback(self, sock, addr) run in a daemon thread of its own per connection; the server's
+    topic_connection_handler (set by rospy at init_node) wrapped by one_subscriber_at_a_time."""
     def handle(self, sock, client_addr):
+        topic_handler = getattr(self, 'topic_connection_handler', None)
+        if topic_handler is not None and not getattr(topic_handler, 'one_subscriber_at_a_time', False):
+            self.topic_connection_handler = one_subscriber_at_a_time(topic_handler, log=_rospy_info)   # accept thread: no race
         threading.Thread(target=callback, args=(self, sock, client_addr), daemon=True,
                          name='tcpros-inbound-%s:%s' % tuple(client_addr[:2])).start()
     handle.threaded = True

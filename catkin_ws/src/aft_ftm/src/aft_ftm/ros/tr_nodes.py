@@ -22,6 +22,8 @@ from .persistent_service import PersistentService
 # Execution k (0, 1, ...) of a request that came with attempt a goes out with attempt a * SPAN + k:
 # nested Protocols see each execution as a request of its own, and After restores a.
 SPAN = 100
+# How Before's ~repeat says that this replica fail-stopped: After then answers nothing (the peer does).
+FAIL_STOPPED = 'this replica fail-stopped: '
 
 
 def execution(request, k):
@@ -38,7 +40,9 @@ class TrBeforeNode(BeforeNode):
     A state capture that does not return within ``~server_timeout`` (a hung server) leaves the
     request not executed. Outside a replica, the request is answered "not executed" with an alarm
     (``server_hangs``), so the client may retry; in a replica (``~site`` set) the replica
-    fail-stops, as Proceed does, and its peer takes over.
+    fail-stops, as Proceed does, and its peer takes over. So does a replica whose state manager
+    fails (the server died: connection refused): the failure is the replica's, not the request's,
+    and its peer's server may execute the request (an LFR follower already has).
 
     A state restore past ``~server_timeout`` is abandoned, not cancelled: the server may still apply
     it later, rewinding the state to before its request. So until it has returned, nothing executes
@@ -141,19 +145,30 @@ class TrBeforeNode(BeforeNode):
                 rospy.resolve_name('get_state'), self.server_timeout)
             self.get_state = self.get_state.fresh()
             if self.site:
-                self.failed = problem
-                fail_stop(self.ports, self.site, problem, mechanism='tr')
+                self._fail_stop(problem)
                 return None
             alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (problem, request.origin, request.id))
             return self._not_executed(request, problem)
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.get_state = self.get_state.fresh()
+            if self.site:
+                # This replica's server is gone (connection refused, broken) or its state manager
+                # failed: a failure of this replica, not of the request. Its peer's server may well
+                # execute the request (an LFR follower already does), so "not executed" would be a
+                # lie once the peer takes over: the replica fail-stops instead.
+                self._fail_stop('the server state manager %s failed: %s' % (rospy.resolve_name('get_state'), e))
+                return None
             return self._not_executed(request, str(e))
         finally:
             self.capturing_since = None
         with self.lock:
             self.held[(request.origin, request.id)] = [request, state, 1]
         return execution(request, 0)
+
+    def _fail_stop(self, problem):
+        """This replica fail-stops: nothing more is executed or answered; its peer takes over."""
+        self.failed = problem
+        fail_stop(self.ports, self.site, problem, mechanism='tr')
 
     def _not_executed(self, request, why):
         """Answer request "not executed" (its state could not be saved, nothing ran): the client may retry."""
@@ -173,7 +188,7 @@ class TrBeforeNode(BeforeNode):
         request, state, sent = held
         if req.action in (req.REPEAT, req.RESTORE):
             if self.failed:
-                return RepeatResponse(success=False, message='this replica fail-stopped: %s' % self.failed)
+                return RepeatResponse(success=False, message=FAIL_STOPPED + self.failed)
             pending = self._restore_pending()
             if pending:
                 return RepeatResponse(success=False, message='state not restored: %s' % pending)
@@ -189,13 +204,16 @@ class TrBeforeNode(BeforeNode):
                                (rospy.resolve_name('set_state'), self.server_timeout) + key))
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
                 if self.site:
-                    self.failed = problem
-                    fail_stop(self.ports, self.site, problem, mechanism='tr')
-                else:
-                    alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again' % ((problem,) + key))
+                    self._fail_stop(problem)
+                    return RepeatResponse(success=False, message=FAIL_STOPPED + problem)
+                alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again' % ((problem,) + key))
                 return RepeatResponse(success=False, message='state not restored: %s' % problem)
             except (rospy.ServiceException, rospy.ROSException) as e:
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                if self.site:   # this replica's failure: its peer executes the request (see handle)
+                    problem = 'the server state manager %s failed: %s' % (rospy.resolve_name('set_state'), e)
+                    self._fail_stop(problem)
+                    return RepeatResponse(success=False, message=FAIL_STOPPED + problem)
                 return RepeatResponse(success=False, message='state not restored: %s' % e)
             if not result.success:
                 return RepeatResponse(success=False, message='state not restored: %s' % result.message)
@@ -210,10 +228,17 @@ class TrAfterNode(AfterNode):
     ~executions decides; a disagreement is a transient value fault masked (alarm); no majority is
     an error reply and the state saved before the request is restored.
 
-    Parameters: ~executions (int >= 2, default 3)
+    TR Before out of reach (its repeat service broken: it died) is, in a replica (``~site`` set), the
+    replica's failure, not the request's: an error answer would be a lie once the peer, whose TR is
+    whole, executes the request (an LFR follower already has). The replica fail-stops and answers
+    nothing; outside a replica the request gets TR's error.
+
+    Parameters: ~executions (int >= 2, default 3); ~site (str, default ''): the replica site this
+        mechanism belongs to ('' : none).
     Services called: repeat (aft_msgs/Repeat): remap to TR Before's ~repeat.
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``.
-    Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
+    Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``;
+        fail_stop (aft_msgs/Failure), port ``fail_stop`` (in a replica).
     Services: ~rebind (aft_msgs/Rebind)
     """
     MECHANISM = 'tr'
@@ -224,12 +249,17 @@ class TrAfterNode(AfterNode):
             raise ConfigError('parameter %s must be below %d, got %d' % (rospy.resolve_name('~executions'),
                                                                          SPAN, executions))
         self.voter = TimeRedundancyVote(executions)
-        super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
+        self.site = param('site', config.optional_name, '')
+        super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
+                                                       PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
+        self.failed = None   # why this replica fail-stopped (TR Before out of reach): nothing more answered
         self.repeat = PersistentService('repeat', Repeat)
         self.masked = 0
 
     def setup(self, timeout):
         self.ports.bind('alarms')
+        if self.site:
+            self.ports.bind('fail_stop')
         try:
             rospy.wait_for_service('repeat', timeout)
         except rospy.ROSException:
@@ -246,14 +276,20 @@ class TrAfterNode(AfterNode):
             return result.success, result.message
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.repeat = self.repeat.fresh()
+            if self.site:   # this replica's TR is broken: its peer executes the request
+                self.failed = 'TR Before (%s) out of reach: %s' % (rospy.resolve_name('repeat'), e)
+                fail_stop(self.ports, self.site, self.failed, mechanism='tr')
+                return False, FAIL_STOPPED + self.failed
             return False, str(e)
 
     def handle(self, reply):
+        if self.failed:
+            return None   # fail-stopped: the peer answers
         reply.attempt //= SPAN   # back to the attempt the request came with
         vote = self.voter.add((reply.origin, reply.id, reply.attempt), (reply.status, reply.error, bytes(reply.payload)))
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
-            if ok:
+            if ok or why.startswith(FAIL_STOPPED):   # fail-stopped: the peer answers it
                 return None
             return self._error(reply, 'cannot execute again: %s' % why)
         if vote.outcome == Outcome.DECIDED:
@@ -264,6 +300,8 @@ class TrAfterNode(AfterNode):
                       % (vote.masked, vote.executions), reply)
             return reply
         ok, why = self._tell_before(reply, Repeat._request_class.RESTORE)
+        if not ok and why.startswith(FAIL_STOPPED):
+            return None
         detail = 'no majority among %d executions%s' % (vote.executions, '' if ok else
                                                          '; the state could not be restored: %s' % why)
         alarm(self.ports, 'tr', 'no_majority', detail, reply)
