@@ -3,6 +3,7 @@ aft_ftm.hosts_exec.Hosts as the schedule says (a fake Hosts records the calls); 
 the shipped adaptation scripts with the names of the nodes running then."""
 import os
 import random
+import time
 
 import pytest
 
@@ -49,6 +50,38 @@ def test_one_host_refuses_what_needs_hosts_by_name():
     assert 'hosts' not in ProcessBackend.offered and 'hosts' in HostsBackend.offered
     with pytest.raises(CampaignError, match='partition is not a fault of one host'):
         ProcessBackend().inject(fault('partition', 'primary'), None, {'primary': 'master'}.get, random.Random(0))
+
+
+class FakeCore(object):
+    log_path = '/nowhere/roscore.log'
+
+    def __init__(self):
+        self.calls = []
+
+    def power_off(self):
+        self.calls.append(('power_off', time.monotonic()))
+        return 3
+
+    def start(self):
+        self.calls.append(('start', time.monotonic()))
+        return self
+
+
+def test_the_master_death_kills_the_roscore_keeps_it_down_then_starts_it_again(monkeypatch):
+    import aft_examples.ros.campaign as campaign
+    assert 'master' in ProcessBackend.offered and 'master' in campaign.AdaptingBackend.offered
+    with pytest.raises(CampaignError, match='no roscore of its own'):
+        ProcessBackend().inject(fault('kill', 'ros_master'), None, {}.get, random.Random(0))
+    core = FakeCore()
+    monkeypatch.setattr(campaign, 'master_answers', lambda timeout, caller: (True, ''))
+    done = ProcessBackend(core).inject(fault('kill', 'ros_master', 0.2), None, {}.get, random.Random(0))
+    assert [c[0] for c in core.calls] == ['power_off', 'start']
+    assert core.calls[1][1] - core.calls[0][1] >= 0.2
+    assert 'down 0.20 s' in done['what'] and '3 processes' in done['what'] and done['proxy_killed'] is None
+    monkeypatch.setattr(campaign, 'master_answers', lambda timeout, caller: (False, 'refused'))
+    monkeypatch.setattr(campaign, 'MASTER_PATIENCE', 0.1)
+    with pytest.raises(CampaignError, match='did not answer within'):
+        ProcessBackend(FakeCore()).inject(fault('kill', 'ros_master', 0.0), None, {}.get, random.Random(0))
 
 
 # -- adaptations in the campaign: what each one is, given what the pair runs now ---------------------

@@ -65,6 +65,7 @@ class FakeCampaign(object):
     def __init__(self, hosts):
         self.root = hosts
         self.host_of = plan(2)[1]
+        self.core = None
 
 
 def fault(kind, target, duration=0.01):

@@ -11,6 +11,7 @@ from aft_examples.history import classify_error
     # seen on emulated hosts (seed 11), a Proxy killed 17 ms before: the header exchange was reset
     ('unable to connect to service: [Errno 104] Connection reset by peer', 'not_executed'),
     ('service cannot process request: not executed: the reply cache is full', 'not_executed'),
+    ('unable to contact master', 'not_executed'),   # the ROS master killed: the lookup, before anything is sent
     ('transport error completing service call: unable to receive data from sender, check sender\'s logs for '
      'details', 'indeterminate'),
     ('outcome UNKNOWN: no reply to request 17 within 30.0 s', 'indeterminate'),

@@ -39,8 +39,11 @@ def test_same_seed_same_schedule_and_every_entry_takes_its_turn(seed):
 
 @pytest.mark.parametrize('seed', range(20))
 def test_durations_gaps_and_segments_within_the_rules(seed):
-    faults = make(237, seed, ('process', 'hosts'), mechanisms=('pbr', 'lfr'), per_segment=25)
+    faults = make(237, seed, ('process', 'hosts', 'master'), mechanisms=('pbr', 'lfr'), per_segment=25)
     for f in faults:
+        if (f.kind, f.target) == ('kill', 'ros_master'):   # how long the killed master stays down
+            assert schedule.MASTER_DOWN_RANGE[0] <= f.duration <= schedule.MASTER_DOWN_RANGE[1], f
+            continue
         low, high = {'freeze_node': schedule.FREEZE_RANGE, 'freeze_site': schedule.FREEZE_RANGE,
                      'partition': schedule.PARTITION_RANGE, 'partition_pair': schedule.PARTITION_RANGE,
                      'bandwidth': schedule.BANDWIDTH_RANGE}.get(f.kind, (0.0, 0.0))

@@ -363,7 +363,7 @@ def read_history(path, client):
 # -- what a failed call tells its client -------------------------------------------------------------
 
 # rospy's words when the request never left the client (no Proxy registered, or none listening).
-_NOT_SENT = ('unavailable', 'unable to connect', 'connection refused')
+_NOT_SENT = ('unavailable', 'unable to connect', 'connection refused', 'unable to contact master')
 # rospy's words when the request was sent and the connection then broke: its fate is unknown.
 _CUT = ('transport error', 'unable to receive data', 'connection reset', 'broken pipe', 'outcome unknown')
 

@@ -34,6 +34,7 @@ PAIRS = (('primary', 'backup'), ('primary', 'witness'), ('backup', 'witness'), (
 FREEZE_RANGE = (0.05, 3.0)
 PARTITION_RANGE = (0.1, 3.0)
 BANDWIDTH_RANGE = (1.0, 5.0)   # seconds the rate limit holds
+MASTER_DOWN_RANGE = (0.1, 3.0)   # seconds the killed ROS master stays down before its restart
 GAP_RANGE = (0.2, 0.8)         # seconds of undisturbed load before each fault
 
 Entry = collections.namedtuple('Entry', 'kind target needs')
@@ -68,8 +69,8 @@ class ScheduleError(ValueError):
 
 Fault = collections.namedtuple('Fault', 'index segment mechanism kind target duration gap')
 Fault.__doc__ = """One fault: index (0..N-1), segment (its deployment), mechanism (of that deployment),
-kind and target (a catalogue entry), duration (s: a freeze, a partition or a rate limit held that long;
-0 otherwise), gap (s of undisturbed load before it)."""
+kind and target (a catalogue entry), duration (s: a freeze, a partition or a rate limit held that long,
+the time a killed ROS master stays down; 0 otherwise), gap (s of undisturbed load before it)."""
 
 
 def catalogue(offered):
@@ -80,13 +81,15 @@ def catalogue(offered):
     return [entry for entry in CATALOGUE if entry.needs in offered]
 
 
-def _duration(rng, kind):
+def _duration(rng, kind, target=None):
     if kind == 'freeze_node' or kind == 'freeze_site':
         low, high = FREEZE_RANGE
     elif kind in ('partition', 'partition_pair'):
         low, high = PARTITION_RANGE
     elif kind == 'bandwidth':
         low, high = BANDWIDTH_RANGE
+    elif (kind, target) == ('kill', 'ros_master'):
+        low, high = MASTER_DOWN_RANGE
     else:
         return 0.0
     # Log-uniform: short freezes (under detection) as often as long ones (past it).
@@ -116,7 +119,7 @@ def make(faults, seed, offered=('process',), mechanisms=('pbr', 'lfr'), per_segm
         entry = deck.pop()
         segment = index // per_segment
         schedule.append(Fault(index, segment, mechanisms[segment % len(mechanisms)], entry.kind, entry.target,
-                              _duration(rng, entry.kind), round(rng.uniform(*GAP_RANGE), 3)))
+                              _duration(rng, entry.kind, entry.target), round(rng.uniform(*GAP_RANGE), 3)))
     return schedule
 
 

@@ -18,7 +18,7 @@ import rosgraph
 
 from aft_ftm.ros.deadline import Deadline
 from aft_ftm.ros.fencing import node_api
-from aft_ftm.ros.graph import clean_dead_nodes, roslaunch, wait_for_graph
+from aft_ftm.ros.graph import clean_dead_nodes, master_answers, roslaunch, wait_for_graph
 from aft_ftm.sites import Site, power_off_sites, power_off_trees, process_tree, wait_until
 from aft_examples import history, schedule, suspicions
 from aft_examples.ros.deployment import replica_services, witness_status
@@ -30,6 +30,7 @@ JOIN_PATIENCE = 30.0
 DETECTION_TIMEOUT = 0.03   # the crash detectors' (the product's default: aft_ftm.detector.DEFAULT_TIMEOUT)
 INNER_NODES = ('protocol', 'before', 'proceed', 'after')   # the graph of a mechanism nested in Proceed
 GUARD_SETTLE = 1.5         # a node an adaptation started, killed: its site fails within this (its guard)
+MASTER_PATIENCE = 30.0     # a roscore started again answers within this
 SETTLE = 0.3            # after a fault, before looking whether the deployment is whole    # a running replica site not joined after this is powered off and relaunched
 
 
@@ -249,8 +250,13 @@ class FaultBackend(object):
 
 class ProcessBackend(FaultBackend):
     """The faults of one host: signals to processes (nodes found through the master's getPid, sites
-    by their process trees)."""
-    offered = ('process',)
+    by their process trees), and, given the campaign's roscore (``core``, an aft_ftm.sites.Site),
+    the ROS master's death: its whole roscore killed, down for the fault's duration, started again
+    on its port; the nodes register again by themselves (aft_ftm.ros.rejoin)."""
+    offered = ('process', 'master')
+
+    def __init__(self, core=None):
+        self.core = core
 
     def _node(self, fault, site_of, rng, deployment):
         target = fault.target
@@ -264,8 +270,24 @@ class ProcessBackend(FaultBackend):
             node = '%s/%s' % (deployment.inner, rng.choice(INNER_NODES))
         return deployment.node(site_of(role), node), None
 
+    def kill_master(self, fault):
+        if getattr(self, 'core', None) is None:
+            raise CampaignError('fault %d: the campaign has no roscore of its own to kill' % fault.index)
+        start = time.time()
+        count = self.core.power_off()
+        time.sleep(fault.duration)
+        self.core.start()
+        if not wait_until(lambda: master_answers(2.0, '/campaign')[0], MASTER_PATIENCE, 0.05):
+            raise CampaignError('fault %d: the roscore started again did not answer within %.0f s (log %s)'
+                                % (fault.index, MASTER_PATIENCE, self.core.log_path))
+        return dict(start=start, end=time.time(), proxy_killed=None,
+                    what='the ROS master killed (%d processes), down %.2f s, started again on its port'
+                    % (count, fault.duration))
+
     def inject(self, fault, deployment, site_of, rng):
         kind = fault.kind
+        if (kind, fault.target) == ('kill', 'ros_master'):
+            return self.kill_master(fault)
         if kind in ('kill', 'freeze_node'):
             node, client = self._node(fault, site_of, rng, deployment)
             pid = _pid_of(node)
@@ -323,7 +345,7 @@ class AdaptingBackend(ProcessBackend):
     mechanism (its launch file's node names), and heal() checks that it does. The engine's
     replacement nodes belong to their site (a power loss kills them, a freeze stops them, and the
     site fail-stops if one dies)."""
-    offered = ('process', 'adapt', 'adapt_mechanism')
+    offered = ('process', 'master', 'adapt', 'adapt_mechanism')
 
     def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
         return CampaignDeployment(log_dir, mechanism, clients, timeout=timeout, seed=seed, adaptable=True)

@@ -193,11 +193,15 @@ class HostedCampaignDeployment(CampaignDeployment):
 class HostedBackend(HostsBackend):
     """HostsBackend for a HostsCampaign: faults through the root-namespace thread; a host partitioned
     and meanwhile powered off by the power switch (fenced by the peer's Recovery) stays off, to be
-    powered on by the relaunch of its site."""
+    powered on by the relaunch of its site. The ROS master's death kills the roscore of the rosmaster
+    host (not the host: this runner's main thread lives there) and starts it again."""
+
+    offered = HostsBackend.offered + ('master',)
 
     def __init__(self, campaign):
         super(HostedBackend, self).__init__(campaign.root, campaign.host_of)
         self.campaign = campaign
+        self.core = campaign.core   # the ROS master's death: the rosmaster host's roscore killed, started again
 
     def deployment(self, log_dir, mechanism, clients, seed, timeout=DETECTION_TIMEOUT):
         return HostedCampaignDeployment(self.campaign, log_dir, mechanism, clients, timeout=timeout, seed=seed)

@@ -128,14 +128,7 @@ def start_master(log_dir, port=None, timeout=30.0):
     os.environ['ROS_MASTER_URI'] = 'http://127.0.0.1:%d' % port
     os.makedirs(log_dir, exist_ok=True)
     core = Site('roscore', ['roscore', '-p', str(port)], log_path=os.path.join(log_dir, 'roscore.log')).start()
-
-    def up():
-        try:
-            rosgraph.Master('/aft_deployment').getPid()
-            return True
-        except Exception:
-            return False
-    if not wait_until(up, timeout, 0.05):
+    if not wait_until(lambda: master_answers(2.0, '/aft_deployment')[0], timeout, 0.05):
         core.stop()
         raise RuntimeError('roscore on port %d did not answer within %.0f s (log: %s)'
                            % (port, timeout, core.log_path))

@@ -4,6 +4,9 @@ import rospy
 from ..errors import ConfigError
 
 
+READ = {}   # {full name: value as read}: what a restarted ROS master is given back (aft_ftm.ros.rejoin)
+
+
 def param(name, convert, default=None, required=False):
     """Read ~name, convert it with convert(full_name, value); ConfigError names the parameter."""
     full = rospy.resolve_name('~' + name)
@@ -11,7 +14,10 @@ def param(name, convert, default=None, required=False):
         if required:
             raise ConfigError('missing required parameter %s' % full)
         return default
-    return convert(full, rospy.get_param('~' + name))
+    value = rospy.get_param('~' + name)
+    converted = convert(full, value)
+    READ[full] = value
+    return converted
 
 
 def node_help(name, factory, variants=None):
@@ -45,9 +51,11 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
         print(node_help(name, factory, variants))
         sys.exit(0)
     from .handshake import bound_handshakes
+    from .rejoin import keep_registered
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
     rospy.init_node(name)
     try:
+        keep_registered()   # registers again with a restarted ROS master
         node = factory()
     except ConfigError as e:
         rospy.logfatal('%s: %s', rospy.get_name(), e)

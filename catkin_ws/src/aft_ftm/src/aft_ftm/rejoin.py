@@ -1,0 +1,79 @@
+"""Whether a node must register again with the ROS master. No ROS here.
+
+A ROS master restarted on the same port knows no node: rospy registers once, at init_node, and
+never again, so a running node's services cannot be looked up, its topics get no new peers, and
+nothing started afterwards can find it (plain ROS 1; roscpp behaves the same). A node that checks
+now and then that the master still knows it, and registers everything again when it does not,
+survives the master's restart.
+
+Two probes: the master's pid (getPid) and its lookupNode of the node's own name. A new pid is a
+new master: register again, even where the node is known (a subscription made after the restart
+registers the node, not its older topics). lookupNode answers with the node's own URI (known), with
+another URI (another node took the name: the master has shut this one down, or will; never register
+over it), or with an error (unknown: register again; a master restarted with its old pid, as pid 1
+of a container is). A master that does not answer is only waited for.
+"""
+import enum
+
+
+class Lookup(enum.Enum):
+    KNOWN = 'the master knows this node'
+    UNKNOWN = 'the master does not know this node: register again'
+    REPLACED = 'the master knows another node by this name: leave it'
+    UNREACHABLE = 'the master does not answer'
+
+
+def judge(answer, own_uri):
+    """The Lookup from a lookupNode answer: (code, message, uri), or None when the call failed."""
+    if answer is None:
+        return Lookup.UNREACHABLE
+    code, _, uri = answer
+    if code != 1:
+        return Lookup.UNKNOWN
+    return Lookup.KNOWN if _same_uri(uri, own_uri) else Lookup.REPLACED
+
+
+def master_pid(answer):
+    """The pid from a getPid answer (code, message, pid), or None (failed, or not a pid)."""
+    if answer is None or answer[0] != 1:
+        return None
+    return answer[2]
+
+
+def _same_uri(a, b):
+    return (a or '').rstrip('/') == (b or '').rstrip('/')
+
+
+class Rejoin(object):
+    """What to do after each pair of probes, and what to say (once per change, not at every probe).
+    The caller calls registered(pid) once it has registered again (until then every probe asks)."""
+
+    def __init__(self):
+        self.last = None
+        self.pid = None        # the master's pid this node is registered with
+        self.rejoins = 0
+
+    def step(self, pid, lookup):
+        """pid: the master's (None: no answer); lookup: a Lookup. Returns (register_again, message or None)."""
+        if pid is None:
+            lookup = Lookup.UNREACHABLE
+        elif self.pid is None and lookup == Lookup.KNOWN:
+            self.pid = pid   # the first probe: the master init_node registered with
+        elif lookup == Lookup.KNOWN and pid != self.pid:
+            lookup = Lookup.UNKNOWN   # a new master that knows the node only by its newer topics
+        changed = lookup != self.last
+        self.last = lookup
+        if lookup == Lookup.UNKNOWN:
+            return True, 'the ROS master (pid %s) does not know all of this node (restarted?): registering again' % pid
+        if not changed:
+            return False, None
+        if lookup == Lookup.REPLACED:
+            return False, 'another node has taken this name at the ROS master: not registering again'
+        if lookup == Lookup.UNREACHABLE:
+            return False, 'the ROS master does not answer: will register again once it does, if needed'
+        return False, None
+
+    def registered(self, pid):
+        self.pid = pid
+        self.rejoins += 1
+        self.last = Lookup.KNOWN

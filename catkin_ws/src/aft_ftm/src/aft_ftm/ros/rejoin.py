@@ -1,0 +1,129 @@
+"""A rospy node that registers again with a restarted ROS master (see aft_ftm.rejoin).
+
+:func:`keep_registered` (``run_node`` calls it after ``init_node``) starts a daemon thread that asks
+the master every ``period`` seconds (env ``AFT_MASTER_REJOIN_PERIOD``, 1 s by default; 0 turns it
+off) its pid and whether it knows this node; when the master is a new one or does not know the node,
+the node registers again, as rospy does at start-up
+and under the same locks: every publication, subscription and service of the node. Each
+subscription is then told its current publishers, through the node's own ``publisherUpdate`` API,
+as the master would have told it. The private parameters the node read at start-up (through
+aft_ftm.ros.params.param) are set again first, where the new master lacks them: tools that look at
+a node's parameters (the campaign reads an After's ``mechanism``) find them; other parameters are
+not restored.
+"""
+import os
+import threading
+import time
+import xmlrpc.client
+
+import rosgraph
+import rospy
+from rospy.impl.registration import get_service_manager, get_topic_manager
+
+from ..errors import ConfigError
+from ..rejoin import Rejoin, judge, master_pid
+from .params import READ
+
+DEFAULT_PERIOD = 1.0
+CALL_TIMEOUT = 5.0   # s: a frozen master must not hold the thread for ever
+
+
+class _TimeoutTransport(xmlrpc.client.Transport):
+    def __init__(self, timeout):
+        xmlrpc.client.Transport.__init__(self)
+        self.timeout = timeout
+
+    def make_connection(self, host):
+        connection = xmlrpc.client.Transport.make_connection(self, host)
+        connection.timeout = self.timeout
+        return connection
+
+
+def server(uri, timeout=CALL_TIMEOUT):
+    return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
+
+
+def restore_parameters(master, caller_id, read):
+    """The parameters this node read at start-up ({name: value}), set again where the master lacks
+    them (a value changed on the live master since is left alone). Returns how many were set."""
+    restored = 0
+    for name, value in sorted(read.items()):
+        code, _, present = master.hasParam(caller_id, name)
+        if code == 1 and not present:
+            master.setParam(caller_id, name, value)
+            restored += 1
+    return restored
+
+
+def register_again(master, caller_id, node_uri):
+    """Every registration of this node, again; returns (publications, subscriptions, services)."""
+    topics, services = get_topic_manager(), get_service_manager()
+    updates = []
+    with topics.lock, services.lock:   # rospy's own order (RegManager.start)
+        publications, subscriptions = topics.get_publications(), topics.get_subscriptions()
+        offered = services.get_services()
+        for name, data_type in publications:
+            master.registerPublisher(caller_id, name, data_type, node_uri)
+        for name, data_type in subscriptions:
+            code, _, publishers = master.registerSubscriber(caller_id, name, data_type, node_uri)
+            if code == 1:
+                updates.append((name, publishers))
+        for name, service_uri in offered:
+            master.registerService(caller_id, name, service_uri, node_uri)
+    node = server(node_uri)
+    for name, publishers in updates:
+        node.publisherUpdate('/master', name, publishers)
+    return len(publications), len(subscriptions), len(offered)
+
+
+def _loop(period):
+    caller_id, node_uri = rospy.get_caller_id(), rospy.core.get_node_uri()
+    master = server(rosgraph.get_master_uri())
+    state = Rejoin()
+    while not rospy.core.is_shutdown():
+        time.sleep(period)
+        if rospy.core.is_shutdown() or rospy.core.is_shutdown_requested():
+            break
+        try:
+            pid = master_pid(master.getPid(caller_id))
+            answer = master.lookupNode(caller_id, caller_id) if pid is not None else None
+        except Exception:   # refused, reset, timed out: the master is not there
+            pid = answer = None
+        again, message = state.step(pid, judge(answer, node_uri))
+        if message:
+            rospy.logwarn('%s: %s', caller_id, message)
+        if again and not rospy.core.is_shutdown_requested():
+            try:
+                restored = restore_parameters(master, caller_id, dict(READ))
+                counts = register_again(master, caller_id, node_uri)
+                state.registered(pid)
+                rospy.logwarn('%s: registered again with the ROS master: %d publications, %d subscriptions, '
+                              '%d services; %d parameters set again', caller_id, *(counts + (restored,)))
+            except Exception as e:   # the master went away again: the next probe tells
+                rospy.logwarn('%s: registering again failed (%s); will retry', caller_id, e)
+
+
+def period_from_env(environ=os.environ):
+    text = environ.get('AFT_MASTER_REJOIN_PERIOD', '')
+    if not text:
+        return DEFAULT_PERIOD
+    try:
+        period = float(text)
+    except ValueError:
+        period = -1.0
+    if not period >= 0:
+        raise ConfigError('AFT_MASTER_REJOIN_PERIOD=%r: expected seconds between checks (0: off)' % text)
+    return period
+
+
+def keep_registered(period=None):
+    """Start the thread (once per process; after init_node). Returns it, or None when turned off.
+    Raises ConfigError on a bad AFT_MASTER_REJOIN_PERIOD."""
+    if period is None:
+        period = period_from_env()
+    if period <= 0 or getattr(keep_registered, 'thread', None) is not None:
+        return getattr(keep_registered, 'thread', None)
+    thread = threading.Thread(target=_loop, args=(period,), daemon=True, name='aft-master-rejoin')
+    thread.start()
+    keep_registered.thread = thread
+    return thread

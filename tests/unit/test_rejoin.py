@@ -1,0 +1,49 @@
+"""Registering again with a restarted ROS master (aft_ftm.rejoin, aft_ftm.ros.rejoin's period). No ROS master."""
+import pytest
+
+from aft_ftm.errors import ConfigError
+from aft_ftm.rejoin import Lookup, Rejoin, judge, master_pid
+
+URI = 'http://10.0.0.2:4101/'
+
+
+def test_the_lookup_of_the_nodes_own_name_says_whether_to_register_again():
+    assert judge((1, 'node api', 'http://10.0.0.2:4101'), URI) == Lookup.KNOWN   # a trailing slash aside
+    assert judge((-1, 'unknown node [/witness]', ''), URI) == Lookup.UNKNOWN
+    assert judge((1, 'node api', 'http://10.0.0.3:4101/'), URI) == Lookup.REPLACED
+    assert judge(None, URI) == Lookup.UNREACHABLE
+
+
+def test_a_new_master_is_registered_with_again_even_where_it_knows_the_node_by_newer_topics():
+    rejoin = Rejoin()
+    K, U, N = Lookup.KNOWN, Lookup.UNKNOWN, Lookup.UNREACHABLE
+    assert rejoin.step(100, K) == (False, None) and rejoin.pid == 100
+    again, said = rejoin.step(None, N)   # the master killed
+    assert not again and 'does not answer' in said
+    assert rejoin.step(None, N) == (False, None)   # said once
+    again, said = rejoin.step(200, K)   # a new master: known only by a subscription made since
+    assert again and 'registering again' in said
+    again, _ = rejoin.step(200, K)      # not registered yet (the attempt failed): asks again
+    assert again
+    rejoin.registered(200)
+    assert rejoin.step(200, K) == (False, None) and rejoin.rejoins == 1
+    assert rejoin.step(200, U)[0]       # the same pid (pid 1 of a container) but the node unknown
+    rejoin.registered(200)
+    again, said = rejoin.step(300, Lookup.REPLACED)
+    assert not again and 'another node has taken this name' in said
+    assert rejoin.step(300, Lookup.REPLACED) == (False, None)   # said once
+
+
+def test_the_master_pid_is_read_from_its_answer():
+    assert master_pid((1, '', 4242)) == 4242
+    assert master_pid((-1, 'error', 0)) is None and master_pid(None) is None
+
+
+def test_the_period_comes_from_the_environment_and_a_bad_one_is_named():
+    from aft_ftm.ros.rejoin import DEFAULT_PERIOD, period_from_env
+    assert period_from_env({}) == DEFAULT_PERIOD
+    assert period_from_env({'AFT_MASTER_REJOIN_PERIOD': '0'}) == 0.0
+    assert period_from_env({'AFT_MASTER_REJOIN_PERIOD': '0.25'}) == 0.25
+    for bad in ('soon', '-1', 'nan'):
+        with pytest.raises(ConfigError, match='AFT_MASTER_REJOIN_PERIOD'):
+            period_from_env({'AFT_MASTER_REJOIN_PERIOD': bad})
