@@ -158,3 +158,43 @@ def test_an_update_switch_and_composition_are_described_by_what_they_change():
     assert plan.script == 'decompose' and plan.what == 'decompose lfr+tr -> lfr'
     with pytest.raises(CampaignError, match='not offered'):
         adaptation_plan(Fault(7, 0, 'pbr', 'adapt', 'rewrite', 0.0, 0.0), deployment, 'slave', 'master')
+
+
+class UpSite(object):
+    proc = object()
+
+    def failure(self):
+        return None
+
+
+class FakeMaster(object):
+    offered = set()
+
+    def __init__(self, caller_id):
+        pass
+
+    def lookupService(self, name):
+        if name not in self.offered:
+            raise Exception('no provider')
+        return 'rosrpc://x:1'
+
+
+def test_a_relaunched_proxy_counts_once_its_service_is_offered_not_once_its_roslaunch_runs(monkeypatch):
+    """Seed 2411, fault 92: the heal of a killed Proxy saw its roslaunch run and went on; the master
+    was then killed before the Proxy had read its parameters, and it died of it."""
+    import aft_examples.ros.campaign as campaign
+
+    class Deployment(object):
+        sites = {'master': UpSite(), 'slave': UpSite(), 'proxy1': UpSite(), 'proxy2': UpSite(), 'client1': UpSite()}
+
+        def shape_problem(self, site, master):
+            return None
+
+    class Status(object):
+        epoch, primary, backup = 3, 'master', 'slave'
+    monkeypatch.setattr(campaign, 'witness_status', lambda: Status)
+    monkeypatch.setattr(campaign.rosgraph, 'Master', FakeMaster)
+    FakeMaster.offered = {'/account2'}
+    assert campaign.whole(Deployment()) == 'proxy1 does not offer /account1 yet'
+    FakeMaster.offered = {'/account1', '/account2'}
+    assert campaign.whole(Deployment()) is None

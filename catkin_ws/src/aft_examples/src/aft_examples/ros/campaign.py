@@ -524,6 +524,13 @@ def whole(deployment):
         why = deployment.shape_problem(name, master)
         if why:
             return why
+    for name in sorted(deployment.sites):
+        if name.startswith('proxy'):   # a relaunched Proxy up, not only its roslaunch (seed 2411, fault 92:
+            service = '/account%s' % name[len('proxy'):]   # the master killed between them; no fault then)
+            try:
+                master.lookupService(service)
+            except Exception:
+                return '%s does not offer %s yet' % (name, service)
     return None
 
 
