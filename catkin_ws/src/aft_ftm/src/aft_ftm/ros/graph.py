@@ -127,6 +127,8 @@ def start_master(log_dir, port=None, timeout=30.0):
     port = port or free_port()
     os.environ['ROS_MASTER_URI'] = 'http://127.0.0.1:%d' % port
     os.makedirs(log_dir, exist_ok=True)
+    # roslaunch makes ROS_HOME unguarded: two roscores starting at once in a fresh clone raced on it
+    os.makedirs(os.environ.get('ROS_HOME') or os.path.expanduser('~/.ros'), exist_ok=True)
     core = Site('roscore', ['roscore', '-p', str(port)], log_path=os.path.join(log_dir, 'roscore.log')).start()
     if not wait_until(lambda: master_answers(2.0, '/aft_deployment')[0], timeout, 0.05):
         core.stop()
