@@ -14,7 +14,6 @@ not restored.
 import os
 import threading
 import time
-import xmlrpc.client
 
 import rosgraph
 import rospy
@@ -22,25 +21,11 @@ from rospy.impl.registration import get_service_manager, get_topic_manager
 
 from ..errors import ConfigError
 from ..rejoin import Rejoin, judge, master_pid
+from .fencing import node_api
 from .params import READ
 
 DEFAULT_PERIOD = 1.0
 CALL_TIMEOUT = 5.0   # s: a frozen master must not hold the thread for ever
-
-
-class _TimeoutTransport(xmlrpc.client.Transport):
-    def __init__(self, timeout):
-        xmlrpc.client.Transport.__init__(self)
-        self.timeout = timeout
-
-    def make_connection(self, host):
-        connection = xmlrpc.client.Transport.make_connection(self, host)
-        connection.timeout = self.timeout
-        return connection
-
-
-def server(uri, timeout=CALL_TIMEOUT):
-    return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
 
 
 def restore_parameters(master, caller_id, read):
@@ -70,7 +55,7 @@ def register_again(master, caller_id, node_uri):
                 updates.append((name, publishers))
         for name, service_uri in offered:
             master.registerService(caller_id, name, service_uri, node_uri)
-    node = server(node_uri)
+    node = node_api(node_uri, CALL_TIMEOUT)
     for name, publishers in updates:
         node.publisherUpdate('/master', name, publishers)
     return len(publications), len(subscriptions), len(offered)
@@ -78,7 +63,7 @@ def register_again(master, caller_id, node_uri):
 
 def _loop(period):
     caller_id, node_uri = rospy.get_caller_id(), rospy.core.get_node_uri()
-    master = server(rosgraph.get_master_uri())
+    master = node_api(rosgraph.get_master_uri(), CALL_TIMEOUT)
     state = Rejoin()
     while not rospy.core.is_shutdown():
         time.sleep(period)
