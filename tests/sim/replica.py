@@ -25,7 +25,7 @@ from aft_ftm.detector import PeerState
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Answer as AnswerAction, DuplicateCache, Forward, ProtocolCore, Refuse, Role, key
 from aft_ftm.proxy import PendingTable
-from aft_ftm.recovery import GATES, Step, plan, role_after, role_in, start_plan
+from aft_ftm.recovery import GATES, OnHang, SiteRole, Step, plan, role_after, role_in, start_plan
 from aft_ftm.witness import Op, Witness
 
 from .world import CLIENTS, Answer, Call, Process, Sleep
@@ -55,6 +55,9 @@ class Params(object):
         # tests/unit/test_replication_sim.py, which replays each finding with its flag off):
         # PbrAfterNode._on_set_role, PRIMARY -> ALONE (Recovery's AFTER_ALONE): raise the 'alone' alarm.
         self.fix_alone_alarm = True
+        # ProceedNode and ProtocolNode (hung server, request overdue) in a site that serves alone: wait for
+        # the late answer with an alarm rather than fail-stop the only replica holding the state.
+        self.fix_wait_alone = True
         # ... and do nothing if a backup joins (sender.joiner) or was admitted since (epoch < sender.epoch).
         self.fix_stale_exclusion = True
         # PbrAfterNode._on_join: capture the state transfer with the Protocol suspended and quiescent.
@@ -96,12 +99,20 @@ class Server(object):
     def __init__(self):
         self.log = []
         self.hung = False
+        self.waiters = []           # what to do once a hang ends (the calls it holds)
         self.capture_failures = 0   # the next get_state calls that fail
         self.apply_failures = 0     # the next set_state calls that fail
 
     def execute(self, request_key):
         self.log.append(request_key)
         return len(self.log)
+
+    def thaw(self):
+        """The hang ends: the calls it held are carried out."""
+        self.hung = False
+        waiters, self.waiters = self.waiters, []
+        for waiter in waiters:
+            waiter()
 
     def get_state(self):
         if self.hung:
@@ -157,6 +168,7 @@ class ProtocolModel(Node):
         self.core = ProtocolCore(Role.BACKUP, cache_bytes=p.cache_bytes)
         self.bound = False
         self.hung = None
+        self.site_role = SiteRole(site.name)
         self.waiting = []
         self.suspended = False      # ~suspend: requests held, answered once nothing executes
         self.held = []
@@ -172,7 +184,15 @@ class ProtocolModel(Node):
             return
         self.act(self.core.on_request(request, self.world.now))
 
+    def setup(self):
+        self.env.witness.subscribe(self, self.on_configuration)
+
+    def on_configuration(self, conf):
+        self.site_role.on_configuration(conf.epoch, conf.primary, conf.backup)
+
     def on_result(self, reply):
+        if self.hung is not None and key(self.hung) == key(reply):
+            self.hung = None   # its outcome is known after all (a site alone waited for it)
         if not reply.ok and reply.refusal:
             # fix_replicated_refusal: the After released a refusal (its backup holds it): ProtocolNode
             # keeps it as the request's answer and answers it.
@@ -225,7 +245,11 @@ class ProtocolModel(Node):
         if request is None or self.hung is not None:
             return
         self.hung = request
-        self.fail_stop('no result for %s/%d: its outcome is unknown' % (request.origin, request.id))
+        problem = 'no result for %s/%d: its outcome is unknown' % (request.origin, request.id)
+        if self.site_role.on_hang() == OnHang.FAIL_STOP or not self.env.params.fix_wait_alone:
+            self.fail_stop(problem)
+        else:
+            self.alarm('request_hangs', problem + ': site %s serves alone, it waits' % self.site.name)
 
     def srv_set_role(self, respond, kwargs):
         waiting = (kwargs, respond)
@@ -291,22 +315,42 @@ class ProtocolModel(Node):
 # -- Proceed and the server ------------------------------------------------------------------------
 
 class ProceedModel(Node):
-    """ProceedNode in a replica (``~site`` set): a hung server is a fail-stop past ~server_timeout."""
+    """ProceedNode in a replica (``~site`` set): a hung server is a fail-stop past ~server_timeout,
+    unless the site serves alone (its SiteRole, from the witness's configurations, heard on a thread
+    of their own: even while a call blocks): then it waits for the late answer, with an alarm. The
+    server carries out the call once its hang ends, whether Proceed still waits for it or not."""
 
     def __init__(self, site):
         super(ProceedModel, self).__init__(site, 'proceed')
         self.failed = None
+        self.site_role = SiteRole(site.name)
+        self.call = None     # the server call in progress: [request, abandoned]
+
+    def setup(self):
+        self.env.witness.subscribe(self, self.on_configuration)
+
+    def receive(self, fn, args, response=False):
+        # rospy: each subscription has its own thread; the configuration's is not held by a call.
+        super(ProceedModel, self).receive(fn, args, response or fn == self.on_configuration)
+
+    def on_configuration(self, conf):
+        self.site_role.on_configuration(conf.epoch, conf.primary, conf.backup)
 
     def on_request(self, request):
         if self.failed:
             return
         server = self.site.server
         if server.hung:
-            # The call hangs: Proceed waits for it (handling nothing else), then fail-stops.
+            # The call hangs: Proceed waits for it (handling nothing else) up to its timeout.
             self.busy = True
-            self.world.after(self.env.params.server_timeout, self.receive, self._timed_out, (request,), True)
+            call = self.call = [request, False]
+            server.waiters.append(lambda: self.world.after(0.0, self.receive, self._answered, (call,), True))
+            self.world.after(self.env.params.server_timeout, self.receive, self._timed_out, (call,), True)
             return
-        value = server.execute(key(request))
+        self._execute(request)
+
+    def _execute(self, request):
+        value = self.site.server.execute(key(request))
         self.world.log('%s executes %s/%d -> %d', self.name, request.origin, request.id, value)
         after = self.own('after')
         self.world.send(self, after, 'prd2aft', after.handle if after else None,
@@ -314,7 +358,29 @@ class ProceedModel(Node):
                            oldest_pending=request.oldest_pending, ok=True, value=value, error='', epoch=0,
                            refusal=False))
 
-    def _timed_out(self, request):
+    def _answered(self, call):
+        request, abandoned = call
+        if abandoned or self.failed:
+            # Abandoned past the timeout: the server still applies it (the request sat in its socket).
+            value = self.site.server.execute(key(request))
+            self.world.log('%s: abandoned %s/%d applied late -> %d', self.name, request.origin, request.id, value)
+            return
+        if call is self.call:
+            self.call = None
+            self.busy = False
+            self._execute(request)
+            self.drain()
+
+    def _timed_out(self, call):
+        if call is not self.call:
+            return   # answered in time
+        request = call[0]
+        if self.site_role.on_hang() == OnHang.WAIT and self.env.params.fix_wait_alone:
+            self.alarm('server_hangs', 'the server did not answer %s/%d (it hangs): site %s serves alone, waits'
+                       % (request.origin, request.id, self.site.name))
+            return   # still busy: _answered ends it
+        call[1] = True
+        self.call = None
         self.busy = False
         self.failed = 'the server did not answer %s/%d (it hangs)' % (request.origin, request.id)
         self.fail_stop(self.failed)

@@ -15,7 +15,8 @@ The faults (each at a random time, on a random site or node):
 - partition: the link between two hosts (the sites, a site and the clients' host, a site and the
   witness's: half the schedules give it a host of its own) is down for a while; TCP delivers what
   crossed it afterwards, in order;
-- hang: a site's server stops answering (Proceed fail-stops past its timeout);
+- hang: a site's server stops answering, for ever or for a while (Proceed fail-stops past its
+  timeout, or waits for the late answer where its site serves alone);
 - capture_fails: the next get_state calls fail (1: tried again and fine; more: fail-stop);
 - apply_fails: the backup's next set_state fails (it must re-join);
 - stray: a checkpoint from an After nobody follows (/intruder/after), plain or a state transfer;
@@ -100,8 +101,10 @@ def random_fault(rng, t, witness_host=CLIENTS):
     kind = rng.choice(('crash', 'crash', 'stall_site', 'stall_site', 'stall_node', 'stall_node', 'stall_node',
                        'partition', 'partition', 'hang', 'capture_fails', 'apply_fails', 'stray', 'witness_stall',
                        'proxy_stall'))
-    if kind == 'crash' or kind == 'hang':
+    if kind == 'crash':
         return (t, kind, site)
+    if kind == 'hang':   # for ever, or for a while (longer than Proceed's timeout, or shorter)
+        return (t, kind, site, None if rng.random() < 0.5 else duration(rng))
     if kind == 'stall_site':
         return (t, 'stall', site, KINDS, duration(rng))
     if kind == 'stall_node':
@@ -197,6 +200,8 @@ def apply_fault(env, fault):
         if site.alive:
             if name == 'hang':
                 site.server.hung = True
+                if len(args) > 1 and args[1] is not None:
+                    world.after(args[1], site.server.thaw)
             elif name == 'capture_fails':
                 site.server.capture_failures += args[1]
             else:

@@ -88,3 +88,39 @@ def same_process(create_time, last_heard_wall, tolerance=0.05):
     Guards fail-silence against a pid reused by an unrelated process after the site died.
     """
     return create_time <= last_heard_wall + tolerance
+
+
+class OnHang(enum.Enum):
+    """What a node does when its server (or state manager) hangs past its timeout."""
+    FAIL_STOP = 'fail-stop the replica: its peer fences it and executes the request, once'
+    WAIT = 'wait for the late answer, with an alarm: nobody else can execute the request'
+
+
+class SiteRole(object):
+    """A replica node's view of its site's role, from the witness's configurations (latched, in order).
+
+    A hang of the server is a reason to fail-stop a replica only while a peer can take over: a
+    site that serves alone (the witness excluded its backup, or none joined yet) holds the only
+    copy of the state, and fail-stopping it turns a slow server into a stopped service that no
+    re-join can restart (the joiner needs the state from it). Alone, the node waits for the late
+    answer instead, with an alarm. A site in no replica (``site`` empty) always waits (there is
+    nobody to fail over to); a site with no configuration heard (no witness) keeps fail-stop, as
+    before the witness: its peer is assumed to be there.
+    """
+
+    def __init__(self, site):
+        self.site = site
+        self.role = None    # Role per the last configuration heard; None: none heard, or not in it
+        self.epoch = None
+
+    def on_configuration(self, epoch, primary, backup):
+        self.epoch = epoch
+        self.role = role_in(primary, backup, self.site)
+
+    def alone(self):
+        return self.role == Role.ALONE
+
+    def on_hang(self):
+        if not self.site or self.alone():
+            return OnHang.WAIT
+        return OnHang.FAIL_STOP

@@ -14,6 +14,7 @@ from aft_msgs.msg import Reply
 from .. import config, health, service_errors
 from ..errors import ConfigError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..recovery import OnHang, SiteRole
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
 from .diagnostics import Diagnostics
@@ -22,6 +23,7 @@ from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import PersistentService
 from .ports import Ports, wait_for_connections
+from .witness_client import follow_site_role
 
 
 class StageNode(object):
@@ -106,14 +108,18 @@ class ProceedNode(StageNode):
     apply the request later, or its state may be gone. Proceed then never answers an error. In a
     replica (``~site`` set) the replica fail-stops: the site stops heartbeating, its peer fences it
     (which kills the hung server) and executes the request, once. Outside a replica it raises an
-    alarm and answers only when the call returns.
+    alarm and answers only when the call returns. So does a replica whose site serves alone (the
+    witness's configuration names no backup): it holds the only copy of the state, and a fail-stop
+    would turn a slow server into a stopped service (aft_ftm.recovery.SiteRole). Alone, a
+    connection that breaks (the server died, its state with it) still fail-stops the replica.
 
     Parameters:
         ~server_timeout (float, 5 s): the longest a call of the server may take.
         ~site (str, default ''): the replica site this Proceed belongs to ('' : none).
     Services called:
         server (the application's type): remap to the server replica's service (paper: prd2srv).
-    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``.  Publishes: prd2aft (aft_msgs/Reply), port ``out``;
+    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``; /aft/witness/configuration
+        (aft_msgs/Configuration), in a replica: whether its site serves alone.  Publishes: prd2aft (aft_msgs/Reply), port ``out``;
         fail_stop (aft_msgs/Failure), port ``fail_stop`` (to the site's crash detector); alarms
         (aft_msgs/Alarm), port ``alarms`` (/aft/alarms).
     Services: ~rebind (aft_msgs/Rebind)
@@ -132,6 +138,7 @@ class ProceedNode(StageNode):
         self._deadline = Deadline('server-call')
         self.failed = None    # why this replica fail-stopped: nothing more is executed
         self.calling_since = None   # monotonic time the server call in progress started
+        self.site_role = SiteRole(self.site)
 
     def health(self):
         since = self.calling_since
@@ -141,6 +148,7 @@ class ProceedNode(StageNode):
     def setup(self, timeout):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
+        self.configuration = follow_site_role(self.site_role)
         if not super(ProceedNode, self).setup(timeout):
             return False
         threading.Thread(target=self._open_server, name='open-server', daemon=True).start()
@@ -222,20 +230,39 @@ class ProceedNode(StageNode):
             # request to whichever replica takes over.
             rospy.logwarn('%s: shutting down, %s/%d left to the next primary', self.name, request.origin, request.id)
             return None
+        if late is not None and self.site_role.on_hang() == OnHang.WAIT:
+            return self._wait_late(request, late, problem)
         if self.site:
-            self.failed = problem
-            fail_stop(self.ports, self.site, problem)
-            return None
-        # Not in a replica: nobody else can execute it.
-        if late is not None:
-            alarm(self.ports, 'proceed', 'server_hangs', problem + ': the request is answered once the server does')
-            return late.result()
+            return self._fail_stop(problem)
         # The connection broke (a server restarted): reconnect once it is back, then call once more.
         try:
             rospy.wait_for_service(self.server_name, self.server_timeout)
         except rospy.ROSException:
             raise rospy.ServiceException('not executed: server %s unavailable (%s)' % (self.server_name, problem))
         return self._proxy(request.service_type)(app_request)
+
+    def _fail_stop(self, problem):
+        self.failed = problem
+        fail_stop(self.ports, self.site, problem)
+        return None
+
+    def _wait_late(self, request, late, problem):
+        """The late call's response, once the server answers (nobody else can execute the request):
+        alarmed when the wait starts and when it ends."""
+        who = ('site %s serves alone: fail-stopping it would stop the service' % self.site if self.site
+               else 'not in a replica: nobody else can execute it')
+        alarm(self.ports, 'proceed', 'server_hangs', '%s (%s): the request is answered once the server does'
+              % (problem, who), request)
+        try:
+            response = late.result()
+        except Exception as e:   # the late call's own outcome, whatever it raised
+            if not self.site or (isinstance(e, rospy.ServiceException) and 'responded with an error' in str(e)):
+                raise
+            # The hung call's connection broke: the server died, and the only state with it.
+            return self._fail_stop('%s; then the call failed: %s' % (problem, e))
+        alarm(self.ports, 'proceed', 'server_answered_late', 'the server %s answered %s/%d after %.3f s' % (
+            self.server_name, request.origin, request.id, time.monotonic() - self.calling_since), request)
+        return response
 
 
 class AfterNode(StageNode):

@@ -10,11 +10,13 @@ from .. import config, health
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
+from ..recovery import OnHang, SiteRole
 from .alarms import alarm
 from .diagnostics import Diagnostics
 from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
+from .witness_client import follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
 
@@ -29,8 +31,10 @@ class ProtocolNode(object):
             a failover needs no new subscription, hence no ROS master.
         ~processing_timeout (float, 30 s): an executing request with no result after this long has an
             unknown outcome: in a replica (~site set) the replica fail-stops, so that its peer takes
-            over and executes it once; elsewhere an alarm is raised and the request stays unanswered.
-            A backstop: Proceed's ~server_timeout normally acts first.
+            over and executes it once; elsewhere, and in a site that serves alone (the witness's
+            configuration names no backup: a fail-stop would stop the service), an alarm is raised and
+            the request stays unanswered until its result comes. A backstop: Proceed's
+            ~server_timeout normally acts first.
         ~site (str, default ''): the replica site this Protocol belongs to.
         ~cache_capacity (int, 100000): safety limit of the reply cache (entries).
         ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
@@ -49,6 +53,7 @@ class ProtocolNode(object):
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
         aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests (and refusals).
         aft2pro_s (aft_msgs/Checkpoint), port ``stored``: replies carried by checkpoints (backup).
+        /aft/witness/configuration (aft_msgs/Configuration), in a replica: whether its site serves alone.
     Publishes:
         pro2pxy (aft_msgs/Reply), port ``replies``: to the Proxies.
         pro2bfr (aft_msgs/Request), port ``to_before``.
@@ -71,6 +76,7 @@ class ProtocolNode(object):
         self.replicate_refusals = param('replicate_refusals', config.flag, False)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes)
         self.hung = None   # the request whose outcome is unknown, once one is
+        self.site_role = SiteRole(self.site)
         self.lock = threading.Condition()
         self.ports = Ports(
             [PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
@@ -98,6 +104,7 @@ class ProtocolNode(object):
         self.ports.bind('stored', 'aft2pro_s')
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
+        self.configuration = follow_site_role(self.site_role)
         linked = ['to_before', 'from_after']
         if self.replicate_refusals:
             self.ports.bind('refusals', 'prd2aft')
@@ -155,6 +162,9 @@ class ProtocolNode(object):
             rospy.logwarn_throttle(10, '%s: reply cache over capacity, %d replies evicted' % (self.name, evicted))
 
     def _on_result(self, reply):
+        with self.lock:
+            if self.hung is not None and (self.hung.origin, self.hung.id) == (reply.origin, reply.id):
+                self.hung = None   # its outcome is known after all (a site alone waited for it)
         if reply.status == Reply.NOT_EXECUTED:
             with self.lock:
                 self._act(self.core.on_refusal(reply, time.monotonic()))
@@ -183,10 +193,11 @@ class ProtocolNode(object):
             self.hung = request
         problem = 'no result for %s/%d after %.1f s: its outcome is unknown' % (
             request.origin, request.id, self.processing_timeout)
-        if self.site:
+        if self.site_role.on_hang() == OnHang.FAIL_STOP:
             fail_stop(self.ports, self.site, problem)
         else:
-            alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known',
+            alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known%s'
+                  % (' (site %s serves alone: a fail-stop would stop the service)' % self.site if self.site else ''),
                   request)
 
     def _on_set_role(self, req):

@@ -9,6 +9,7 @@ from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config, health
 from ..errors import ConfigError
+from ..recovery import OnHang, SiteRole
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
 from .alarms import alarm
@@ -17,6 +18,7 @@ from .deadline import CallTimeout, Deadline
 from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import PersistentService
+from .witness_client import follow_site_role
 
 
 # Execution k (0, 1, ...) of a request that came with attempt a goes out with attempt a * SPAN + k:
@@ -38,8 +40,9 @@ class TrBeforeNode(BeforeNode):
     executes the request again, or forgets it.
 
     A state capture that does not return within ``~server_timeout`` (a hung server) leaves the
-    request not executed. Outside a replica, the request is answered "not executed" with an alarm
-    (``server_hangs``), so the client may retry; in a replica (``~site`` set) the replica
+    request not executed. Outside a replica, and in a replica whose site serves alone (as Proceed:
+    aft_ftm.recovery.SiteRole), the request is answered "not executed" with an alarm
+    (``server_hangs``), so the client may retry; in a replica (``~site`` set) with a peer the replica
     fail-stops, as Proceed does, and its peer takes over. So does a replica whose state manager
     fails (the server died: connection refused): the failure is the replica's, not the request's,
     and its peer's server may execute the request (an LFR follower already has).
@@ -57,7 +60,8 @@ class TrBeforeNode(BeforeNode):
             fail-stop; the request is answered with TR's error).
         ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
     Services called: get_state, set_state (the server's state manager).
-    Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
+    Subscribes: pro2bfr (aft_msgs/Request), port ``inp``; /aft/witness/configuration
+        (aft_msgs/Configuration), in a replica: whether its site serves alone.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; aft2pro (aft_msgs/Reply), port ``errors``:
         an error reply (not executed) when the state cannot be saved; alarms (aft_msgs/Alarm), port
         ``alarms``; fail_stop (aft_msgs/Failure), port ``fail_stop`` (in a replica).
@@ -80,12 +84,14 @@ class TrBeforeNode(BeforeNode):
         self.pending_restore = None   # (future, (origin, id)): a restore abandoned past its deadline
         self.capturing_since = None   # monotonic time the state capture in progress started
         self.failed = None            # why this replica fail-stopped: nothing more is executed
+        self.site_role = SiteRole(self.site)
 
     def setup(self, timeout):
         self.ports.bind('errors', 'aft2pro')
         self.ports.bind('alarms')
         if self.site:
             self.ports.bind('fail_stop')
+        self.configuration = follow_site_role(self.site_role)
         try:
             for name in ('get_state', 'set_state'):
                 rospy.wait_for_service(name, timeout)
@@ -144,10 +150,11 @@ class TrBeforeNode(BeforeNode):
             problem = 'the server state manager %s did not answer within %.3f s (it hangs)' % (
                 rospy.resolve_name('get_state'), self.server_timeout)
             self.get_state = self.get_state.fresh()
-            if self.site:
+            if self.site_role.on_hang() == OnHang.FAIL_STOP:
                 self._fail_stop(problem)
                 return None
-            alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (problem, request.origin, request.id))
+            alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed%s' % (
+                problem, request.origin, request.id, self._alone()))
             return self._not_executed(request, problem)
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.get_state = self.get_state.fresh()
@@ -164,6 +171,9 @@ class TrBeforeNode(BeforeNode):
         with self.lock:
             self.held[(request.origin, request.id)] = [request, state, 1]
         return execution(request, 0)
+
+    def _alone(self):
+        return (' (site %s serves alone: a fail-stop would stop the service)' % self.site) if self.site else ''
 
     def _fail_stop(self, problem):
         """This replica fail-stops: nothing more is executed or answered; its peer takes over."""
@@ -203,10 +213,11 @@ class TrBeforeNode(BeforeNode):
                            'nothing executes until that restore has returned, which undoes %s/%d' % (
                                (rospy.resolve_name('set_state'), self.server_timeout) + key))
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
-                if self.site:
+                if self.site_role.on_hang() == OnHang.FAIL_STOP:
                     self._fail_stop(problem)
                     return RepeatResponse(success=False, message=FAIL_STOPPED + problem)
-                alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again' % ((problem,) + key))
+                alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again%s' % (
+                    (problem,) + key + (self._alone(),)))
                 return RepeatResponse(success=False, message='state not restored: %s' % problem)
             except (rospy.ServiceException, rospy.ROSException) as e:
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)

@@ -83,4 +83,13 @@ class WitnessClient(object):
         return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, callback, tcp_nodelay=True)
 
 
-__all__ = ['Op', 'WitnessClient', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid', 'CONFIGURATION_TOPIC']
+def follow_site_role(site_role):
+    """Keep an aft_ftm.recovery.SiteRole up to date with the witness's configurations (a replica's
+    node, ``site_role.site`` set); returns the subscriber, or None outside a replica."""
+    if not site_role.site:
+        return None
+    return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration,
+                            lambda c: site_role.on_configuration(c.epoch, c.primary, c.backup), tcp_nodelay=True)
+
+
+__all__ = ['Op', 'WitnessClient', 'follow_site_role', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid', 'CONFIGURATION_TOPIC']
