@@ -10,7 +10,7 @@ import psutil
 import pytest
 from fakes import FakeClock
 
-from aft_ftm.ros.adaptation_engine import stopped_by_launch
+from aft_ftm.ros.launch_files import stopped_by_launch
 from aft_ftm.ros.guarded_launch import create_time_of, disarm_guard_of, guarded
 from aft_ftm.site_guard import (GUARD_EDGES, OWNERS_ENV, Action, Guard, GuardError, GuardState, Owner,
                                 launcher_among, neighbours, parse_owners, same_process)

@@ -44,6 +44,37 @@ def test_stop_never_raises_and_leaves_nothing():
     assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != 'zombie']
 
 
+# Eight threads that each append to a file as fast as they can: any instruction they run shows.
+BUSY = ('import sys, threading\n'
+        'out = open(sys.argv[1], "a", buffering=1)\n'
+        'def work(k):\n'
+        '    while True:\n'
+        '        out.write("%d\\n" % k)\n'
+        'for k in range(8):\n'
+        '    threading.Thread(target=work, args=(k,), daemon=True).start()\n'
+        'print("ready", flush=True)\n'
+        'threading.Event().wait()\n')
+
+
+def test_fail_silence_returns_without_the_tear_down_and_nothing_runs_after_it(tmp_path):
+    """power_off(until_dead=False), what Recovery's fail-silence does: it returns once every thread
+    of every process was seen stopped and SIGKILL sent; from then on not one more line is written,
+    though the kernel may still be tearing the processes down."""
+    for round_ in range(5):
+        out = tmp_path / ('busy%d' % round_)
+        proc = subprocess.Popen([sys.executable, '-c', BUSY, str(out)], stdout=subprocess.PIPE)
+        try:
+            assert proc.stdout.readline().strip() == b'ready'
+            time.sleep(0.02)
+            assert power_off(proc.pid, until_dead=False) == 1
+            size = os.path.getsize(out)
+            time.sleep(0.1)
+            assert os.path.getsize(out) == size, 'a thread ran after fail-silence returned (round %d)' % round_
+        finally:
+            proc.kill()
+            proc.wait()
+
+
 def test_power_off_of_a_missing_process_is_a_no_op():
     proc = subprocess.Popen([sys.executable, '-c', 'pass'])
     proc.wait()

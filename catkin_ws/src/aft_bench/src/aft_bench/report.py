@@ -593,6 +593,18 @@ def failover_lines(f):
     if samples:
         lines += ['', 'Every failover, in order (ms): ' + ', '.join('%.1f' % (s['failover_s'] * 1e3) for s in samples
                                                                     if s['failover_s'] is not None)]
+    kills = get(f, 'pbr.node_kills')
+    if kills:
+        on, off = kills['watch'], kills['no_watch']
+        lines += ['', 'SIGKILL of one required node of the primary (drawn: Protocol, Before, Proceed, After, Recovery, '
+                  'the server), with the crash detector\'s watch of its site\'s required nodes and without it, '
+                  'alternating (`scripts/bench_pbr --kills`):', '']
+        lines += table(['site watch', 'kills', 'failover median', 'failover max', 'detection median',
+                        'wrong replies'],
+                       [[label, r['kills'], ms(r['failover_median_s']), ms(r['failover_max_s']),
+                         ms(r['detection_median_s']), r['wrong_replies']]
+                        for label, r in (('on (the default)', on), ('off (roslaunch\'s shutdown)', off))])
+        lines += ['', 'Failover with the watch: %.2fx the failover without it.' % on['ratio_to_no_watch']]
     board = _car_row(f, 'board_power_loss')
     if board and board.get('with') and board['with'].get('failovers'):
         lines += ['', 'The car\'s controllerPid board (watchdog, pub/sub PBR): ' + '; '.join(

@@ -45,67 +45,7 @@ from ..where import run_where
 from .graph import publisher_links, roslaunch, wired
 from .fencing import node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
-
-
-def resolve_launch_file(spec):
-    """``package/file.launch`` (found in the package's launch/ folder or anywhere in it) or a path."""
-    if os.path.isfile(spec):
-        return os.path.abspath(spec)
-    package, _, name = spec.partition('/')
-    try:
-        root = rospkg.RosPack().get_path(package)
-    except rospkg.ResourceNotFound:
-        raise ScriptError('launch file %s: no such file, and no ROS package %r' % (spec, package))
-    for folder, _, files in os.walk(root):
-        if name in files:
-            return os.path.join(folder, name)
-    raise ScriptError('launch file %s: package %s has no file %s' % (spec, package, name))
-
-
-def launch_nodes(path, args):
-    """The absolute names of the nodes a launch file starts with these arguments (it must load)."""
-    import roslaunch.config
-    import roslaunch.xmlloader
-    config = roslaunch.config.ROSLaunchConfig()
-    loader = roslaunch.xmlloader.XmlLoader()
-    loader.ignore_unset_args = False
-    try:
-        loader.load(path, config, argv=['%s:=%s' % a for a in args], verbose=False)
-    except Exception as e:   # roslaunch raises several kinds; all mean "this launch cannot start"
-        raise ScriptError('launch file %s does not load with %s: %s'
-                          % (path, ' '.join('%s:=%s' % a for a in args) or 'no arguments', e))
-    return [rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes], config
-
-
-def stopped_with(pid, node):
-    """The other nodes that stop when node (process pid) dies: those of the roslaunch that started it,
-    if it started it with required="true" (roslaunch then shuts the whole launch down); [] where that
-    cannot be known (a node started otherwise). See stopped_by_launch."""
-    try:
-        parent = psutil.Process(pid).parent()
-        argv = parent.cmdline() if parent is not None else []
-    except (psutil.Error, OSError):
-        return []
-    return stopped_by_launch(argv, node)
-
-
-def stopped_by_launch(argv, node):
-    """The nodes other than node that a roslaunch run as argv stops when node dies (node required
-    there), read from its launch file and arguments; [] if argv is not a roslaunch whose file loads."""
-    at = [i for i, a in enumerate(argv[:2]) if os.path.basename(a) == 'roslaunch']
-    if not at:
-        return []
-    rest = argv[at[0] + 1:]
-    positional = [a for a in rest if not a.startswith('-') and ':=' not in a]   # a path, or package and file
-    args = [tuple(a.split(':=', 1)) for a in rest if ':=' in a and not a.startswith('__')]
-    try:
-        if len(positional) not in (1, 2):
-            return []
-        names, config = launch_nodes(resolve_launch_file('/'.join(positional)), args)
-    except ScriptError:
-        return []
-    required = {rosgraph.names.ns_join(n.namespace, n.name) for n in config.nodes if n.required}
-    return [n for n in names if n != node] if node in required else []
+from .launch_files import launch_nodes, resolve_launch_file, stopped_with
 
 
 def services_called_by(config):

@@ -3,15 +3,18 @@ import os
 import threading
 import time
 
+import psutil
 import rospy
 from aft_msgs.msg import Configuration, Failure, Heartbeat
 
 from .. import config, health
 from ..detector import DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor, PeerState, PhiAccrualMonitor
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..site_watch import SiteWatch, WatchError, children_nodes
 from ..sites import this_host
 from .alarms import alarm
 from .diagnostics import Diagnostics
+from .launch_files import required_by_launch
 from .params import param
 from .ports import Ports
 from .witness_client import CONFIGURATION_TOPIC
@@ -44,6 +47,11 @@ class CrashDetectorNode(object):
             at its niceness.
         ~follow_witness (bool, default false): watch the peer again when the witness's configuration
             (/aft/witness/configuration) names it once more (it re-joined after a failure).
+        ~watch_required (bool, default true): watch the required nodes of this site's roslaunch (the
+            process ~site_pid; read from its launch file) through pidfds, and fail-stop the moment one
+            dies, rather than heartbeat until roslaunch's shutdown reaches this node (about 200 ms:
+            aft_ftm.site_watch). Nothing is watched with ~site_pid 0, or when the launcher is not a
+            roslaunch whose file loads (said in the log).
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``
         failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
@@ -70,6 +78,8 @@ class CrashDetectorNode(object):
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
+        self.watch_required = param('watch_required', config.flag, True)
+        self.site_watch = None
         self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
         if self.realtime_priority > 99:
             raise config.ConfigError('parameter %s must be from 0 (off) to 99, got %r'
@@ -133,8 +143,50 @@ class CrashDetectorNode(object):
                                                   tcp_nodelay=True)
         self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
         self.thread.start()
+        if self.watch_required and self.site_pid:
+            threading.Thread(target=self._watch_site, name='site-watch', daemon=True).start()
         self.diagnostics = Diagnostics(self._health, self.site)
         return True
+
+    def _watch_site(self, scan_period=0.2, patient_for=120.0, slow_scan=2.0):
+        """Fail-stop this site the moment a required node of its roslaunch dies (aft_ftm.site_watch)."""
+        try:
+            launcher = psutil.Process(self.site_pid)
+            argv, namespace = launcher.cmdline(), launcher.environ().get('ROS_NAMESPACE', '/')
+        except psutil.Error as e:
+            rospy.logwarn('%s: the site launcher (pid %d) cannot be read: its nodes are not watched (%s)',
+                          rospy.get_name(), self.site_pid, e)
+            return
+        required = required_by_launch(argv, namespace) - {rospy.get_name()}
+        if not required:
+            rospy.loginfo('%s: no required node known for the launcher %s: none watched', rospy.get_name(),
+                          ' '.join(argv[:6]))
+            return
+        try:
+            watch = self.site_watch = SiteWatch(required)
+        except WatchError as e:
+            rospy.logwarn('%s: %s: the required nodes of the site are not watched', rospy.get_name(), e)
+            return
+        started = time.monotonic()
+        while not rospy.is_shutdown() and self.stopped is None:
+            if watch.missing():
+                try:
+                    adopted = watch.adopt(children_nodes(self.site_pid))
+                except WatchError as e:
+                    rospy.logwarn('%s: %s: the site watch stops', rospy.get_name(), e)
+                    return
+                if adopted:
+                    rospy.loginfo('%s: watching the required nodes %s (still to find: %s)', rospy.get_name(),
+                                  ', '.join(sorted(adopted)), ', '.join(sorted(watch.missing())) or 'none')
+            waiting = watch.missing()
+            patience = scan_period if time.monotonic() - started < patient_for else slow_scan
+            died = watch.wait(patience if waiting else 1.0)
+            if died:
+                pid, name = died[0]
+                self._on_fail_stop(Failure(site=self.site, reason='the required node %s (pid %d) died: its '
+                                           'roslaunch stops the site' % (name, pid), detected=rospy.Time.now()))
+                break
+        watch.close()
 
     def _realtime(self):
         """Put every thread of this process not yet under SCHED_FIFO there (threads started by those

@@ -504,9 +504,12 @@ class RecoveryNode(object):
             return 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
         if not same_process(created, failure.detected.to_sec() - failure.silence):
             return 'pid %d now belongs to another process: not killed' % failure.pid
-        if os.getpid() in [p.pid for p in process_tree(failure.pid)]:
+        tree = process_tree(failure.pid)
+        if os.getpid() in [p.pid for p in tree]:
             return 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        return '%d processes of the launcher of %s killed' % (power_off(failure.pid), failure.site)
+        # Stopped, then killed: the promotion need not wait for the kernel to tear them down.
+        return '%d processes of the launcher of %s killed' % (
+            power_off(failure.pid, until_dead=False, snapshot=tree), failure.site)
 
     def _clean_master(self):
         """Ask the failed site's remaining nodes to shut down, and unregister the dead ones. Best effort,

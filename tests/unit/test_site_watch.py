@@ -1,0 +1,108 @@
+"""The crash detector's watch of its site's required nodes (aft_ftm.site_watch): names read as roslaunch
+gives them, the required ones read from the launch file, a death seen the moment it happens. No master."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from aft_ftm.ros.launch_files import required_by_launch
+from aft_ftm.site_watch import SiteWatch, children_nodes, node_name
+
+SRC = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src')
+SITE_LAUNCH = os.path.abspath(os.path.join(SRC, 'aft_examples', 'launch', 'demo_replica_site.launch'))
+
+
+@pytest.mark.parametrize('cmdline,environ,name', [
+    (['/x/proceed', '__name:=proceed', '__log:=/l.log'], {'ROS_NAMESPACE': '/master/'}, '/master/proceed'),
+    (['/x/proceed', '__name:=proceed'], {'ROS_NAMESPACE': '/master/tr'}, '/master/tr/proceed'),
+    (['/x/proceed', '__name:=proceed'], {}, '/proceed'),
+    (['/x/proceed', '__name:=proceed', '__ns:=/slave'], {'ROS_NAMESPACE': '/master/'}, '/slave/proceed'),
+    (['/x/proceed', '__name:=/abs/p'], {'ROS_NAMESPACE': '/master/'}, '/abs/p'),
+    (['/usr/bin/python3', '/usr/bin/roslaunch', 'a', 'b.launch'], {'ROS_NAMESPACE': '/m'}, None),   # not a node
+])
+def test_a_node_is_named_as_roslaunch_started_it(cmdline, environ, name):
+    assert node_name(cmdline, environ) == name
+
+
+def site_argv(*args):
+    return ['/usr/bin/python3', '/usr/bin/roslaunch', '--wait', '--skip-log-check', SITE_LAUNCH,
+            'site:=master', 'peer:=slave', 'role:=primary'] + list(args)
+
+
+STAGES = {'/master/before', '/master/proceed', '/master/after'}
+ALWAYS = {'/master/bank_server', '/master/protocol', '/master/crash_detector', '/master/recovery'}
+
+
+@pytest.mark.parametrize('args,required', [
+    ([], ALWAYS | STAGES),
+    (['adaptable:=true'], ALWAYS),      # replaceable stages: their death alone is not the site's
+    (['inner:=tr'], ALWAYS | {'/master/before', '/master/after', '/master/tr/protocol', '/master/tr/before',
+                              '/master/tr/proceed',
+                              '/master/tr/after'}),
+])
+def test_the_required_nodes_are_those_of_the_launch_file(args, required):
+    assert required_by_launch(site_argv(*args)) == required
+
+
+def test_a_launcher_that_is_not_a_loadable_roslaunch_requires_nothing_known():
+    assert required_by_launch(['/usr/bin/python3', '-m', 'pytest']) == set()
+    assert required_by_launch(['/usr/bin/python3', '/usr/bin/roslaunch', '/nowhere/x.launch']) == set()
+    assert required_by_launch(['/usr/bin/roslaunch', '-p', '11411', 'aft_ftm', 'replica.launch']) == set()
+
+
+@pytest.fixture
+def nodes():
+    """Child processes named as roslaunch names nodes; all killed at the end."""
+    started = []
+
+    def start(name, ns='/m'):
+        proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)', '__name:=' + name],
+                                env=dict(os.environ, ROS_NAMESPACE=ns))
+        started.append(proc)
+        return proc
+    yield start
+    for proc in started:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+
+
+def test_the_death_of_a_watched_node_is_seen_at_once_and_only_the_required_ones_count(nodes):
+    a, b, other = nodes('a'), nodes('b'), nodes('c')
+    watch = SiteWatch({'/m/a', '/m/b', '/m/late'})
+    try:
+        assert sorted(watch.adopt(children_nodes(os.getpid()))) == ['/m/a', '/m/b']
+        assert watch.missing() == {'/m/late'}
+        assert watch.wait(0.05) == []
+        other.kill()          # not required: nothing to tell
+        other.wait()
+        assert watch.wait(0.1) == []
+        killed = time.monotonic()
+        b.send_signal(signal.SIGKILL)
+        died = watch.wait(5.0)
+        seen_after = time.monotonic() - killed
+        assert died == [(b.pid, '/m/b')]
+        assert seen_after < 5.0
+        late = nodes('late')
+        assert watch.adopt(children_nodes(os.getpid())) == ['/m/late']     # adopted once it runs
+        assert watch.adopt(children_nodes(os.getpid())) == []              # and once only
+        late.terminate()
+        assert watch.wait(5.0) == [(late.pid, '/m/late')]
+        assert a.poll() is None and watch.wait(0.05) == []
+    finally:
+        watch.close()
+
+
+def test_a_node_dead_before_it_is_adopted_is_left_to_roslaunch(nodes):
+    gone = nodes('a')
+    gone.kill()
+    gone.wait()
+    watch = SiteWatch({'/m/a'})
+    try:
+        assert watch.adopt([(gone.pid, '/m/a')]) == []
+        assert watch.missing() == {'/m/a'}
+    finally:
+        watch.close()
