@@ -89,3 +89,71 @@ def test_nodes_register_again_with_a_restarted_master_and_plain_rospy_ones_do_no
     code, output = run_tagged(SCRIPT, timeout=150, home_prefix='aft_rejoin_home_')
     assert code == 0, output[-3000:]
     assert 'rejoined after' in output and 'probe heard' in output, output[-3000:]
+
+
+CLEANED = r'''
+import os, subprocess, sys, tempfile, time
+import rosgraph, rosnode, rospy
+from aft_msgs.srv import Witness
+from aft_ftm.ros.graph import start_master
+from aft_ftm.sites import wait_until
+log_dir = tempfile.mkdtemp(prefix='aft_cleaned_')
+core = start_master(log_dir)
+procs = []
+
+def start(argv, name, period):
+    env = dict(os.environ, AFT_MASTER_REJOIN_PERIOD=period)
+    procs.append(subprocess.Popen(argv, env=env, stdout=open('%s/%s.out' % (log_dir, name), 'w'),
+                                  stderr=subprocess.STDOUT))
+
+def known(name):
+    try:
+        rosgraph.Master('/checker').lookupService(name)
+        return True
+    except Exception:
+        return False
+
+def subscribed(node, topic):
+    _, subs, _ = rosgraph.Master('/checker').getSystemState()
+    return any(t == topic and node in nodes for t, nodes in subs)
+try:
+    start(['rosrun', 'aft_ftm', 'witness', '__name:=witness', '_initial_primary:=master'], 'witness', '0.3')
+    start(['rosrun', 'aft_ftm', 'witness', '__name:=control', '_initial_primary:=master'], 'control', '0')
+    rospy.init_node('checker')
+    if not wait_until(lambda: known('/witness/request') and known('/control/request'), 30.0, 0.1):
+        sys.exit('the witnesses did not come up')
+    master = rosgraph.Master('/checker')
+    # What rosnode cleanup does to a node that answered its ping too late: everything unregistered.
+    import contextlib, io
+    with contextlib.redirect_stdout(io.StringIO()):
+        rosnode.cleanup_master_blacklist(master, ['/witness', '/control'])
+    if known('/witness/request') or known('/control/request'):
+        sys.exit('the clean-up left registrations: the test cannot tell')
+    t0 = time.monotonic()
+    if not wait_until(lambda: known('/witness/request'), 10.0, 0.05):
+        sys.exit('the witness did not register again within 10 s of being cleaned up')
+    rejoined_s = time.monotonic() - t0
+    answer = rospy.ServiceProxy('/witness/request', Witness)(op=0, site='checker')   # and it answers
+    if known('/control/request'):
+        sys.exit('the control witness (check off) is registered again: the test cannot tell')
+    print('re-registered %.2f s after the clean-up; epoch %d' % (rejoined_s, answer.epoch))
+finally:
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+    core.stop()
+'''
+
+
+def test_a_live_node_whose_registrations_a_clean_up_removed_registers_again():
+    """rosnode cleanup (and the deployments' clean-up of dead nodes) takes a live node that answers its
+    ping late for dead and unregisters it; the master still knows its name. Found by the hosts campaign:
+    a backup's crash detector cleaned up this way never heard its re-joined peer again. The node's own
+    ~get_loggers, gone from the master, makes it register everything again."""
+    code, output = run_tagged(CLEANED, timeout=120, home_prefix='aft_cleaned_home_')
+    assert code == 0, output[-3000:]
+    assert 're-registered' in output, output[-3000:]

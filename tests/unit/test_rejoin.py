@@ -14,6 +14,24 @@ def test_the_lookup_of_the_nodes_own_name_says_whether_to_register_again():
     assert judge(None, URI) == Lookup.UNREACHABLE
 
 
+SRV = 'rosrpc://10.0.0.2:4102'
+NODE = (1, 'node api', URI)
+
+
+@pytest.mark.parametrize('service,expected', [
+    ((1, 'rosrpc URI', SRV), Lookup.KNOWN),
+    ((-1, 'no provider', ''), Lookup.UNKNOWN),                        # removed by a clean-up: register again
+    ((1, 'rosrpc URI', 'rosrpc://10.0.0.9:4102'), Lookup.UNKNOWN),    # another's: ours are gone
+    (None, Lookup.UNREACHABLE),
+])
+def test_a_node_known_by_name_whose_registrations_a_clean_up_removed_registers_again(service, expected):
+    """rosnode cleanup takes a live node that answers its ping late for dead and unregisters everything
+    of it; the master may still know its name. The node's own ~get_loggers service tells."""
+    assert judge(NODE, URI, service, SRV) == expected
+    assert judge((1, 'node api', 'http://10.0.0.3:4101/'), URI, service, SRV) == Lookup.REPLACED
+    assert judge(NODE, URI) == Lookup.KNOWN   # no service known to the node yet: by name alone
+
+
 def test_a_new_master_is_registered_with_again_even_where_it_knows_the_node_by_newer_topics():
     rejoin = Rejoin()
     K, U, N = Lookup.KNOWN, Lookup.UNKNOWN, Lookup.UNREACHABLE

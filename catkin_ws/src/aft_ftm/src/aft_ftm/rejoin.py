@@ -12,6 +12,14 @@ registers the node, not its older topics). lookupNode answers with the node's ow
 another URI (another node took the name: the master has shut this one down, or will; never register
 over it), or with an error (unknown: register again; a master restarted with its old pid, as pid 1
 of a container is). A master that does not answer is only waited for.
+
+A node the master still knows may have lost its registrations all the same: ``rosnode cleanup``
+(and the deployments' own clean-up of dead nodes) unregisters every node that does not answer a
+ping in time, and a live node slow under load is taken for dead. Its subscriptions then get no new
+publishers for ever (found by the hosts campaign: a backup's crash detector, cleaned while a site
+was relaunched on a loaded machine, never heard its re-joined peer, which it excluded ten times
+in a row). So a third probe looks up the node's own ``~get_loggers`` service, which every rospy
+node registers: gone, or registered to another address, and the node registers everything again.
 """
 import enum
 
@@ -23,14 +31,22 @@ class Lookup(enum.Enum):
     UNREACHABLE = 'the master does not answer'
 
 
-def judge(answer, own_uri):
-    """The Lookup from a lookupNode answer: (code, message, uri), or None when the call failed."""
+def judge(answer, own_uri, service=None, own_service_uri=None):
+    """The Lookup from a lookupNode answer: (code, message, uri), or None when the call failed; and,
+    when given, from a lookupService answer for the node's own ~get_loggers (same form)."""
     if answer is None:
         return Lookup.UNREACHABLE
     code, _, uri = answer
     if code != 1:
         return Lookup.UNKNOWN
-    return Lookup.KNOWN if _same_uri(uri, own_uri) else Lookup.REPLACED
+    if not _same_uri(uri, own_uri):
+        return Lookup.REPLACED
+    if own_service_uri is not None:
+        if service is None:
+            return Lookup.UNREACHABLE
+        if service[0] != 1 or not _same_uri(service[2], own_service_uri):
+            return Lookup.UNKNOWN   # known, but its registrations were removed (a clean-up took it for dead)
+    return Lookup.KNOWN
 
 
 def master_pid(answer):

@@ -93,12 +93,29 @@ def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
     except Exception:   # no master: nothing to clean
         return []
     names = sorted({n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes} - {'/rosout', caller})
-    dead = []
-    for name in names:
+
+    uris = {}
+    for name in names:   # the master's proxy is not shared between threads: looked up here, in turn
         try:
-            node_api(master.lookupNode(name), timeout).getPid(caller)
+            uris[name] = master.lookupNode(name)
         except Exception:
-            dead.append(name)
+            uris[name] = None
+
+    def silent(name, patience):
+        if uris[name] is None:
+            return True
+        try:
+            node_api(uris[name], patience).getPid(caller)
+            return False
+        except Exception:
+            return True
+    # A node that does not answer in time gets a second, longer chance: a live node slow under load,
+    # cleaned up, loses every registration (it registers again within a second, aft_ftm.ros.rejoin,
+    # but its peers miss it meanwhile). Each node has a proxy of its own: they are asked at once.
+    import concurrent.futures
+    with concurrent.futures.ThreadPoolExecutor(16, thread_name_prefix='clean') as pool:
+        dead = [n for n, gone in zip(names, pool.map(lambda n: silent(n, timeout), names)) if gone]
+        dead = [n for n, gone in zip(dead, pool.map(lambda n: silent(n, 4 * timeout), dead)) if gone]
     if dead:
         import contextlib
         import io

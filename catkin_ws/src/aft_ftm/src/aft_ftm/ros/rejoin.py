@@ -69,12 +69,15 @@ def _loop(period):
         time.sleep(period)
         if rospy.core.is_shutdown() or rospy.core.is_shutdown_requested():
             break
+        own_service = dict(get_service_manager().get_services()).get(caller_id + '/get_loggers')
         try:
             pid = master_pid(master.getPid(caller_id))
             answer = master.lookupNode(caller_id, caller_id) if pid is not None else None
+            service = (master.lookupService(caller_id, caller_id + '/get_loggers')
+                       if own_service and answer is not None and answer[0] == 1 else None)
         except Exception:   # refused, reset, timed out: the master is not there
-            pid = answer = None
-        again, message = state.step(pid, judge(answer, node_uri))
+            pid = answer = service = None
+        again, message = state.step(pid, judge(answer, node_uri, service, own_service))
         if message:
             rospy.logwarn('%s: %s', caller_id, message)
         if again and not rospy.core.is_shutdown_requested():
