@@ -12,9 +12,10 @@ control witness stays unknown to the new master. Runs in a process of its own wi
 process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_tagged
 
-SCRIPT = r'''
-import os, subprocess, sys, tempfile, time
-import rosgraph, rospy
+# What both scripts start with: a master of their own, the witnesses they start, a service lookup.
+PRELUDE = r'''
+import contextlib, io, os, subprocess, sys, tempfile, time
+import rosgraph, rosnode, rospy
 from std_msgs.msg import String
 from aft_msgs.msg import Configuration
 from aft_msgs.srv import Witness
@@ -37,6 +38,19 @@ def known(name):
         return True
     except Exception:
         return False
+
+def stop_all():
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+    core.stop()
+'''
+
+SCRIPT = PRELUDE + r'''
 try:
     start(['rosrun', 'aft_ftm', 'witness', '__name:=witness', '_initial_primary:=master'], 'witness', '0.3')
     start(['rosrun', 'aft_ftm', 'witness', '__name:=control', '_initial_primary:=master'], 'control', '0')
@@ -74,14 +88,7 @@ try:
         sys.exit('the witness did not log its registration: %s' % out[-2000:])
     print('rejoined after %.2f s; epoch %d; configuration heard; probe heard: %r' % (rejoined_s, answer.epoch, heard[0]))
 finally:
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-    core.stop()
+    stop_all()
 '''
 
 
@@ -91,31 +98,7 @@ def test_nodes_register_again_with_a_restarted_master_and_plain_rospy_ones_do_no
     assert 'rejoined after' in output and 'probe heard' in output, output[-3000:]
 
 
-CLEANED = r'''
-import os, subprocess, sys, tempfile, time
-import rosgraph, rosnode, rospy
-from aft_msgs.srv import Witness
-from aft_ftm.ros.graph import start_master
-from aft_ftm.sites import wait_until
-log_dir = tempfile.mkdtemp(prefix='aft_cleaned_')
-core = start_master(log_dir)
-procs = []
-
-def start(argv, name, period):
-    env = dict(os.environ, AFT_MASTER_REJOIN_PERIOD=period)
-    procs.append(subprocess.Popen(argv, env=env, stdout=open('%s/%s.out' % (log_dir, name), 'w'),
-                                  stderr=subprocess.STDOUT))
-
-def known(name):
-    try:
-        rosgraph.Master('/checker').lookupService(name)
-        return True
-    except Exception:
-        return False
-
-def subscribed(node, topic):
-    _, subs, _ = rosgraph.Master('/checker').getSystemState()
-    return any(t == topic and node in nodes for t, nodes in subs)
+CLEANED = PRELUDE + r'''
 try:
     start(['rosrun', 'aft_ftm', 'witness', '__name:=witness', '_initial_primary:=master'], 'witness', '0.3')
     start(['rosrun', 'aft_ftm', 'witness', '__name:=control', '_initial_primary:=master'], 'control', '0')
@@ -124,7 +107,6 @@ try:
         sys.exit('the witnesses did not come up')
     master = rosgraph.Master('/checker')
     # What rosnode cleanup does to a node that answered its ping too late: everything unregistered.
-    import contextlib, io
     with contextlib.redirect_stdout(io.StringIO()):
         rosnode.cleanup_master_blacklist(master, ['/witness', '/control'])
     if known('/witness/request') or known('/control/request'):
@@ -138,14 +120,7 @@ try:
         sys.exit('the control witness (check off) is registered again: the test cannot tell')
     print('re-registered %.2f s after the clean-up; epoch %d' % (rejoined_s, answer.epoch))
 finally:
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-    core.stop()
+    stop_all()
 '''
 
 
