@@ -204,6 +204,20 @@ class Ports(object):
             if time.monotonic() >= deadline:
                 return ['%d of %s' % (len(peers) - self.connections(port), peers)]
             time.sleep(0.001)
+        if spec.direction == rules.PUBLISH:
+            return []
+        # A subscriber counts its connection once the publisher has answered its header, but the
+        # publisher adds the connection to those it writes to only after answering: a message
+        # published in between never reaches this port (adaptation.test under load: the request
+        # Before passed on right after the pause reached nobody, and hung for good). So each
+        # publisher is asked until it lists this node among the subscribers it writes to.
+        waiting = list(peers)
+        while waiting:
+            waiting = [p for p in waiting if not _writes_to(master, p, me, topic, deadline)]
+            if waiting and time.monotonic() >= deadline:
+                return ['%s (it does not write to %s yet)' % (p, me) for p in waiting]
+            if waiting:
+                time.sleep(0.001)
         return []
 
     def advertise_service(self):
@@ -308,6 +322,20 @@ class Ports(object):
         with self._lock:
             for name in list(self._handles):
                 self._unbind_locked(name)
+
+
+def _writes_to(master, publisher, subscriber, topic, deadline):
+    """Whether the publisher node lists an outbound connection of topic to subscriber (getBusInfo);
+    True where it cannot be asked in time (it answered the subscriber a moment ago: it lives)."""
+    from .fencing import node_api
+    try:
+        uri = master.lookupNode(publisher)
+        code, _, info = node_api(uri, max(0.05, min(1.0, deadline - time.monotonic()))).getBusInfo(subscriber)
+    except Exception:   # not asked: no worse than before the check
+        return True
+    if code != 1:
+        return True
+    return any(len(c) > 4 and c[1] == subscriber and c[2] == 'o' and c[4] == topic for c in info)
 
 
 def wait_for_connections(ports, names, timeout):

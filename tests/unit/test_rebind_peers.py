@@ -1,0 +1,42 @@
+"""A subscribe port's rebind answers "connected" only once each publisher writes to it (its getBusInfo
+lists the connection): the subscriber counts its connection when the publisher has answered its header,
+a moment before the publisher adds it, and a message published in between was lost (adaptation.test
+under load). No master: the publisher's API is faked."""
+import pytest
+
+from aft_ftm.ros import fencing
+from aft_ftm.ros.ports import _writes_to
+
+TOPIC = '/master/bfr2prd'
+
+
+class FakeMaster(object):
+    def lookupNode(self, name):
+        return 'http://host:1234/'
+
+
+class FakeApi(object):
+    def __init__(self, info, fail=False):
+        self.info, self.fail = info, fail
+
+    def getBusInfo(self, caller):
+        if self.fail:
+            raise OSError('connection refused')
+        return 1, 'bus info', self.info
+
+
+@pytest.mark.parametrize('info,writes', [
+    ([], False),                                                                          # not added yet
+    ([(1, '/master/tr/protocol', 'o', 'TCPROS', TOPIC, True, '')], True),
+    ([(1, '/master/tr/protocol', 'i', 'TCPROS', TOPIC, True, '')], False),               # it reads, not writes
+    ([(1, '/other', 'o', 'TCPROS', TOPIC, True, '')], False),                             # to another node
+    ([(1, '/master/tr/protocol', 'o', 'TCPROS', '/elsewhere', True, '')], False),         # another topic
+])
+def test_a_publisher_writes_to_the_port_only_once_it_lists_the_connection(monkeypatch, info, writes):
+    monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi(info))
+    assert _writes_to(FakeMaster(), '/master/before', '/master/tr/protocol', TOPIC, deadline=1e18) is writes
+
+
+def test_a_publisher_that_cannot_be_asked_holds_nothing_up(monkeypatch):
+    monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi([], fail=True))
+    assert _writes_to(FakeMaster(), '/master/before', '/master/tr/protocol', TOPIC, deadline=1e18) is True
