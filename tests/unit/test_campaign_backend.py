@@ -198,3 +198,36 @@ def test_a_relaunched_proxy_counts_once_its_service_is_offered_not_once_its_rosl
     assert campaign.whole(Deployment()) == 'proxy1 does not offer /account1 yet'
     FakeMaster.offered = {'/account1', '/account2'}
     assert campaign.whole(Deployment()) is None
+
+
+def test_a_fault_whose_role_no_site_plays_now_is_not_injected_rather_than_a_crash(monkeypatch):
+    """The 1000-fault hosts run (seed 2611) died at fault 690: the witness named no backup at the moment a
+    backup fault came, and the runner looked up site ''. Such a fault is recorded not injected, naming
+    the witness's configuration, and nothing is touched."""
+    import types
+    from aft_examples import schedule
+    from aft_examples.ros import campaign
+    monkeypatch.setattr(campaign, 'witness_status',
+                        lambda *a, **k: types.SimpleNamespace(epoch=7, primary='master', backup=''))
+    touched = []
+
+    class Deployment(object):
+        sites = {'master': object()}
+
+        def shape(self):
+            return 'pbr'
+
+        def node(self, site, name):
+            touched.append((site, name))
+
+        def __getattr__(self, name):
+            touched.append(name)
+            raise AssertionError('the deployment was touched: %s' % name)
+    segment = campaign.Segment([], '/nonexistent', campaign.ProcessBackend(), log=lambda *a: None)
+    for kind, target in (('power_loss', 'backup'), ('kill', 'backup/after'), ('freeze_site', 'backup')):
+        fault = schedule.Fault(index=690, segment=27, mechanism='pbr', kind=kind, target=target, duration=0.1,
+                               gap=0.0)
+        record = segment._one(fault, Deployment(), random.Random(1))
+        assert record['outcome'] == 'not_injected', record
+        assert "no site is the backup now (witness: epoch 7, primary 'master', backup '')" in record['what']
+    assert not touched
