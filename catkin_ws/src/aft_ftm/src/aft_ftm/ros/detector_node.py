@@ -79,7 +79,6 @@ class CrashDetectorNode(object):
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
         self.watch_required = param('watch_required', config.flag, True)
-        self.site_watch = None
         self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
         if self.realtime_priority > 99:
             raise config.ConfigError('parameter %s must be from 0 (off) to 99, got %r'
@@ -163,7 +162,7 @@ class CrashDetectorNode(object):
                           ' '.join(argv[:6]))
             return
         try:
-            watch = self.site_watch = SiteWatch(required)
+            watch = SiteWatch(required)
         except WatchError as e:
             rospy.logwarn('%s: %s: the required nodes of the site are not watched', rospy.get_name(), e)
             return
