@@ -17,6 +17,8 @@ import pytest
 
 from aft_ftm import hosts_exec
 from aft_ftm.hosts_exec import Hosts, PlatformError
+from aft_ftm.power_switch import parse_spec
+from aft_ftm.power_switch_exec import call_switch
 from reporting import report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -55,6 +57,16 @@ class Lines(object):
                 self.buffer += data
         line, self.buffer = self.buffer.split(b'\n', 1)
         return line.decode()
+
+    def rest(self):
+        """Every line left, once the process has ended (its stdout at EOF)."""
+        while True:
+            data = os.read(self.popen.stdout.fileno(), 4096)
+            if not data:
+                break
+            self.buffer += data
+        lines, self.buffer = self.buffer.decode().split('\n'), b''
+        return [line for line in lines if line]
 
 
 def peer(hosts, host, *args, stdin=None):
@@ -173,6 +185,22 @@ def test_traffic_partition_rate_freeze_power_off():
             hosts.power_on('a')
             server(hosts, 'a')
             assert once(hosts, 'b', 'probe', a, PORT, 1.0)[0] == 'ok'
+
+            # the power switch confirms C off once C is cut off and every process of it stopped (what a
+            # promotion needs); the kill and the tear-down follow, and C is off for good afterwards
+            ticker_c, ticks_c = peer(hosts, 'c', 'tick')
+            first = float(ticks_c.next())
+            switch = hosts.power_switch()
+            outcome = call_switch(parse_spec('unix:' + switch.path), 'c', 10.0)
+            answered = time.monotonic()
+            assert outcome.confirmed, outcome.detail
+            assert 'processes stopped' in outcome.detail, outcome.detail
+            assert call_switch(parse_spec('unix:' + switch.path), 'c', 10.0).confirmed   # asked again: off
+            assert once(hosts, 'b', 'probe', c, PORT, 0.5)[0] == 'fail'
+            assert ticker_c.wait(10) is not None and hosts.state('c') == 'off'
+            last = [first] + [float(t) for t in ticks_c.rest()]   # C's ticks: none after the switch's answer
+            assert max(last) < answered, (last[-3:], answered)
+            report('emulated hosts: the power switch confirmed C off %s' % outcome.detail)
     finally:
         if prefix is not None:
             assert hosts_exec.leftovers(prefix) == []

@@ -27,8 +27,9 @@ def test_a_failed_call_is_classified_by_what_its_client_can_know(text, outcome):
 
 
 def test_table_by_kind_with_a_total_row():
-    records = [dict(kind='kill', outcome='failover', unavailable=0.1), dict(kind='kill', outcome='restarted',
-                                                                            unavailable=0.3),
+    records = [dict(kind='kill', outcome='failover', unavailable=0.1, unavailable_fault=0.04,
+                    unavailable_repair=0.1),
+               dict(kind='kill', outcome='restarted', unavailable=0.3),
                dict(kind='freeze_node', outcome='absorbed', unavailable=0.0),
                dict(kind='power_loss', outcome='unhealed: the witness does not answer', unavailable=2.0)]
     rows = table(records)
@@ -36,6 +37,9 @@ def test_table_by_kind_with_a_total_row():
     kill = rows[1]
     assert kill[1] == 2 and kill[2] == '1 failover, 1 restarted' and kill[3] == pytest.approx(100)
     assert kill[5] == pytest.approx(300)
+    # The fault's share (a record without a repair: all of it) and the repair's, by nearest rank.
+    assert kill[6] == pytest.approx(40) and kill[7] == pytest.approx(0)
+    assert rows[0][6:] == (0, 0)
     assert rows[2][2] == '1 unhealed' and rows[-1][1] == 4
     text = format_table(rows)
     assert text.splitlines()[0].startswith('| fault kind') and '| all ' in text

@@ -66,6 +66,38 @@ def test_heartbeat_after_failure_is_flagged_and_does_not_revive_the_peer():
     assert monitor.state == PeerState.FAILED and monitor.beats_after_failure == 1
 
 
+@pytest.mark.parametrize('make', [lambda: HeartbeatMonitor(timeout=0.03),
+                                  lambda: PhiAccrualMonitor(threshold=8, bootstrap_timeout=0.03)])
+def test_a_peer_that_announces_its_fail_stop_is_declared_at_the_next_check_once(make):
+    clock = FakeClock()
+    monitor = make()
+    beat_every(monitor, clock, 0.01, 50)
+    assert monitor.announced(clock.advance(0.004), 'the required node /m/before died', info='last words') is True
+    verdict = monitor.check(clock.advance(0.002))   # the next check, not one timeout later
+    assert verdict is not None and 'announced its fail-stop: the required node /m/before died' in verdict.reason
+    assert verdict.last_info == 'last words' and verdict.silence == pytest.approx(0.004)
+    assert monitor.state == PeerState.FAILED
+    # Declared once: neither a second announcement nor the silence that follows declares it again.
+    assert monitor.announced(clock.advance(0.001), 'again') is False
+    assert [monitor.check(clock.advance(0.01)) for _ in range(10)] == [None] * 10
+
+
+def test_an_announcement_from_a_peer_already_declared_failed_changes_nothing():
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(timeout=0.03)
+    monitor.beat(clock.now)
+    assert 'no heartbeat' in monitor.check(clock.advance(0.05)).reason
+    assert monitor.announced(clock.advance(0.01), 'late words') is False
+    assert monitor.check(clock.advance(0.01)) is None
+
+
+def test_a_first_word_that_is_a_fail_stop_declares_a_peer_never_heard():
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(timeout=0.03)
+    assert monitor.announced(clock.now, 'deposed') is True
+    assert 'deposed' in monitor.check(clock.advance(0.001)).reason
+
+
 def test_invalid_timeout_is_refused():
     with pytest.raises(ValueError):
         HeartbeatMonitor(timeout=0)

@@ -6,7 +6,8 @@ import random
 import pytest
 
 from aft_examples.bank import Account, InsufficientFunds
-from aft_examples.history import HistoryError, Op, check, percentile, read_history, unavailability
+from aft_examples.history import HistoryError, Op, check, percentile, read_history, unavailability, \
+    unavailability_split
 
 SEEDS = [int(os.environ['AFT_HISTORY_SEED'])] if 'AFT_HISTORY_SEED' in os.environ else range(200)
 MUTATIONS = ('lost', 'duplicated', 'reordered', 'wrong_value', 'failed_but_executed', 'indeterminate_no_kill',
@@ -171,6 +172,27 @@ def test_percentile_and_unavailability():
            op('a', 2, 4.0, 4.5, 'deposit', 1, reply=r[2])]
     assert unavailability(ops, 1.5, 10.0) == pytest.approx(2.5)
     assert unavailability(ops, 5.0, 10.0) == 0.0   # nothing pending: not unavailable
+    # Clients idle after the fault: the wait counts from their first call, not from the fault.
+    late = [op('a', 0, 3.0, 3.01, 'deposit', 1, reply=r[0]), op('a', 1, 3.01, 3.05, 'deposit', 1, reply=r[1])]
+    assert unavailability(late, 1.0, 10.0) == pytest.approx(0.04)
+
+
+def test_unavailability_split_tells_the_fault_from_its_repair():
+    # A failover (answers stop 0.05 s, at the fault) then a re-join's pause (0.3 s, after the relaunch at 2.0).
+    r = chain(*[('deposit', 1)] * 6)
+    ops = [op('a', 0, 0.0, 0.95, 'deposit', 1, reply=r[0]), op('a', 1, 0.95, 1.05, 'deposit', 1, reply=r[1]),
+           op('a', 2, 1.05, 1.1, 'deposit', 1, reply=r[2]), op('a', 3, 1.1, 2.6, 'deposit', 1, reply=r[3]),
+           op('a', 4, 2.6, 2.7, 'deposit', 1, reply=r[4])]
+    split = unavailability_split(ops, 1.0, 2.0, 3.0)
+    assert split['unavailable'] == pytest.approx(1.5)          # 1.1 .. 2.6: the whole window's longest
+    assert split['unavailable_fault'] == pytest.approx(0.9)    # 1.1 .. 2.0, cut at the relaunch
+    assert split['unavailable_repair'] == pytest.approx(0.6)   # 2.0 .. 2.6
+    assert unavailability_split(ops, 1.0, None, 3.0) == {'unavailable': pytest.approx(1.5),
+                                                         'unavailable_fault': pytest.approx(1.5),
+                                                         'unavailable_repair': 0.0}
+    # A repair time outside the window (before the fault, or after the next one) is no repair of it.
+    assert unavailability_split(ops, 1.0, 0.5, 3.0)['unavailable_repair'] == 0.0
+    assert unavailability_split(ops, 1.0, 3.5, 3.0)['unavailable_fault'] == pytest.approx(1.5)
 
 
 def test_bad_records_are_refused_by_name(tmp_path):

@@ -2,7 +2,7 @@
 name, or false suspicions. No ROS."""
 import random
 
-from aft_examples.suspicions import Verdict, format_summary, judge, sites_touched, summary
+from aft_examples.suspicions import Verdict, format_summary, judge, rejoin_of, sites_touched, summary
 
 
 def record(index, start, healed_at, sites, kind='kill', outcome='failover', unavailable=0.04):
@@ -69,3 +69,37 @@ def test_a_campaign_without_verdicts_says_so():
     s = summary([], [record(0, 1.0, 2.0, {'master'}, outcome='absorbed')])
     assert s['false_suspicions'] == 0 and s['detection_ms_median'] is None and s['failovers'] == 0
     assert 'none detected' in format_summary(s, 0.03)[0]
+
+
+def test_a_failover_is_timed_until_the_relaunch_and_its_rejoin_apart():
+    # Two failovers: 40 and 60 ms before the relaunch, 150 and 90 ms during the re-join; a restart
+    # (not a failover) and a record from before the split (no shares: the whole window is the fault's).
+    records = [dict(record(0, 1.0, 9.0, {'master'}, unavailable=0.15), unavailable_fault=0.04, unavailable_repair=0.15),
+               dict(record(1, 11.0, 19.0, {'slave'}, unavailable=0.09), unavailable_fault=0.06, unavailable_repair=0.09),
+               record(2, 21.0, 29.0, {'slave'}, outcome='restarted', unavailable=2.0),
+               record(3, 31.0, 39.0, {'master'}, unavailable=0.05)]
+    s = summary([], records)
+    assert s['failovers'] == 3
+    assert abs(s['failover_unavailable_ms_median'] - 50.0) < 1e-9   # 40, 50, 60
+    assert abs(s['failover_rejoin_ms_median'] - 90.0) < 1e-9       # 0, 90, 150
+    assert 'until the failed site is relaunched, then 90.0 ms during its re-join' in format_summary(s, 0.03)[0]
+
+
+def test_a_site_declared_failed_again_after_it_rejoined_is_a_false_suspicion():
+    # Fault 0 killed master (declared at 1.03); master relaunched re-joined at 6.0; declared failed again
+    # at 6.4, before the runner saw the pair whole (7.0): nothing touched it then.
+    records = [record(0, 1.0, 7.0, {'master'})]
+    verdicts = [Verdict(1.03, 'slave', 'master', 'silent'), Verdict(6.4, 'slave', 'master', 'silent again')]
+    rejoins = [(6.0, 'master'), (6.1, 'slave')]
+    explained, false, detections = judge(verdicts, records, rejoins)
+    assert [v.reason for v in explained] == ['silent'] and [v.reason for v in false] == ['silent again']
+    assert judge(verdicts, records)[1] == []                     # without the re-joins: hidden
+    assert summary(verdicts, records, rejoins)['false_suspicions'] == 1
+    # A re-join before the fault ends nothing.
+    assert judge(verdicts, records, [(0.5, 'master')])[1] == []
+
+
+def test_the_rejoin_alarm_is_read_by_its_words():
+    assert rejoin_of('peer_watched', 'site master re-joined (epoch 4): watched again') == 'master'
+    assert rejoin_of('peer_back', 'site master, declared failed, is heard again') is None
+    assert rejoin_of('peer_watched', 'garbage') is None

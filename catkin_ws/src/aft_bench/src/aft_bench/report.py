@@ -873,8 +873,9 @@ def campaign_lines(f):
                  c['elapsed_s'] / max(c['faults_run'], 1),
                  ', '.join('%d %s' % (n, o) for o, n in sorted((c.get('calls') or {}).items())),
                  COMMANDS['campaign']), '']
-    lines += table(['fault kind', 'faults', 'outcomes', 'unavailable median', 'p99', 'max'],
-                   [[k, n, o, num(a, '%.0f ms'), num(b, '%.0f ms'), num(m, '%.0f ms')] for k, n, o, a, b, m in c['table']])
+    lines += table(['fault kind', 'faults', 'outcomes', 'unavailable median', 'p99', 'max', 'of it: the fault',
+                    'the repair'],
+                   [[k, n, o] + [num(v, '%.0f ms') for v in values] for k, n, o, *values in c['table']])
     lines += ['', 'Violations: %s.' % ('; '.join('segment %s %s: %s' % (v['segment'], v['kind'], v['detail'])
                                                  for v in c['violations']) or 'none')]
     if d:
@@ -884,7 +885,10 @@ def campaign_lines(f):
                           num(d.get('detection_ms_median'), '%.1f ms'),
                           ', '.join('%s %s' % (k, num(v, '%.1f ms')) for k, v in
                                     sorted((d.get('detection_ms_by_kind') or {}).items())),
-                          d['failovers'], num(d.get('failover_unavailable_ms_median'), '%.1f ms'))]
+                          d['failovers'], num(d.get('failover_unavailable_ms_median'), '%.1f ms'))
+                  + (' (the longest wait from the fault to the failed site\'s relaunch; its re-join then held '
+                     'requests %s, median)' % num(d['failover_rejoin_ms_median'], '%.1f ms')
+                     if d.get('failover_rejoin_ms_median') is not None else '')]
     return lines
 
 

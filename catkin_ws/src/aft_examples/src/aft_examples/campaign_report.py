@@ -6,7 +6,9 @@ from .history import percentile
 
 
 def table(records):
-    """Rows (kind, faults, outcomes in words, median, p99, max unavailability in ms) and a total row."""
+    """Rows (kind, faults, outcomes in words, median, p99, max unavailability in ms, then the medians of
+    its two shares: the fault's, until the runner's first repair action, and the repair's, a
+    relaunched site's re-join) and a total row."""
     by_kind = collections.OrderedDict()
     for record in sorted(records, key=row_kind):
         by_kind.setdefault(row_kind(record), []).append(record)
@@ -14,8 +16,11 @@ def table(records):
     for kind, group in list(by_kind.items()) + [('all', list(records))]:
         outcomes = collections.Counter(r['outcome'].split(':')[0] for r in group)
         waits = [r.get('unavailable', 0.0) * 1e3 for r in group]
+        fault = [r.get('unavailable_fault', r.get('unavailable', 0.0)) * 1e3 for r in group]
+        repair = [r.get('unavailable_repair', 0.0) * 1e3 for r in group]
         rows.append((kind, len(group), ', '.join('%d %s' % (n, o) for o, n in sorted(outcomes.items())),
-                     percentile(waits, 50), percentile(waits, 99), max(waits) if waits else None))
+                     percentile(waits, 50), percentile(waits, 99), max(waits) if waits else None,
+                     percentile(fault, 50), percentile(repair, 50)))
     return rows
 
 
@@ -25,8 +30,9 @@ def row_kind(record):
 
 
 def format_table(rows):
-    head = ('fault kind', 'faults', 'outcomes', 'unavail. median ms', 'p99 ms', 'max ms')
-    cells = [head] + [(k, str(n), o, _ms(a), _ms(b), _ms(c)) for k, n, o, a, b, c in rows]
+    head = ('fault kind', 'faults', 'outcomes', 'unavail. median ms', 'p99 ms', 'max ms', 'fault median ms',
+            'repair median ms')
+    cells = [head] + [(k, str(n), o) + tuple(_ms(v) for v in values) for k, n, o, *values in rows]
     widths = [max(len(row[i]) for row in cells) for i in range(len(head))]
     lines = []
     for i, row in enumerate(cells):

@@ -29,6 +29,9 @@ a pass.
 
 Unavailability (``unavailability``) is measured per fault: the longest time, from the fault on and
 before the next one, during which the clients invoked operations and none was answered.
+``unavailability_split`` tells apart what the fault itself cost (from the fault to the runner's first
+repair action: a failover, a freeze waited out) from what its repair cost (a relaunched site's
+re-join, whose state transfer holds the primary's requests).
 """
 import collections
 import math
@@ -297,7 +300,8 @@ def _check_refusals(result, ops, sequence, balances):
 
 def unavailability(ops, start, stop):
     """The longest time in [start, stop) during which operations were pending and none was answered
-    (seconds). Measured from start (a gap open when the fault came counts from the fault)."""
+    (seconds). Measured from start (a gap open when the fault came counts from the fault), or from
+    the first call invoked after the last answer (a client idle meanwhile waited for nothing)."""
     answers = sorted(op.complete for op in ops if op.outcome == 'ok')
     longest = 0.0
     # Only the calls pending somewhere in [start, stop] matter (a whole segment's history is long).
@@ -309,16 +313,30 @@ def unavailability(ops, start, stop):
             continue
         if t >= stop:
             break
-        if _pending_during(pending, last, t):
-            longest = max(longest, t - last)
+        longest = max(longest, _waited(pending, last, t))
         last = t
-    if last < stop and _pending_during(pending, last, stop):
-        longest = max(longest, stop - last)
+    if last < stop:
+        longest = max(longest, _waited(pending, last, stop))
     return longest
 
 
-def _pending_during(pending, a, b):
-    return any(invoke < b and complete > a for invoke, complete in pending)
+def unavailability_split(ops, start, repaired_from, stop):
+    """{'unavailable': the whole window [start, stop), 'unavailable_fault': [start, repaired_from),
+    'unavailable_repair': [repaired_from, stop)} in seconds; with no repair (repaired_from None) the
+    fault's share is the whole window and the repair's 0. A repair action before the fault (a clock
+    step) counts as none."""
+    whole = unavailability(ops, start, stop)
+    if repaired_from is None or not start <= repaired_from < stop:
+        return {'unavailable': whole, 'unavailable_fault': whole, 'unavailable_repair': 0.0}
+    return {'unavailable': whole, 'unavailable_fault': unavailability(ops, start, repaired_from),
+            'unavailable_repair': unavailability(ops, repaired_from, stop)}
+
+
+def _waited(pending, a, b):
+    """How long in [a, b] some call was pending: from the earliest invocation among the calls pending
+    then (or a) to b; 0 if none was."""
+    invoked = [invoke for invoke, complete in pending if invoke < b and complete > a]
+    return b - max(a, min(invoked)) if invoked else 0.0
 
 
 def percentile(values, q):

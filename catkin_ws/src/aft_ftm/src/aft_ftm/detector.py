@@ -35,9 +35,15 @@ Two rules decide when a silence is a failure:
   which is what a loaded machine changes. Phi with a ``threshold`` and a ``min_std`` is Chen's
   estimator with a margin of (threshold's z-score) x spread, bounded below.
 
+A site that fail-stops on its own (a required node died, its server connection broke, the witness
+deposed it) knows it before any silence can tell: its detector's last heartbeat says so
+(``stopping``), and the peer declares it failed at the next check (:meth:`HeartbeatMonitor.announced`)
+rather than one timeout later. The verdict then goes the way a silence's does (Recovery fences the
+site before promoting anyone), so a wrong announcement costs what a false suspicion costs, no more.
+
 Both share the life cycle of :class:`PeerState`, with one change function and these edges:
-UNKNOWN -> ALIVE (first beat), ALIVE -> FAILED (the rule fires), UNKNOWN -> FAILED (never heard
-within ``startup_grace``). FAILED is final: a beat after it is counted (fail-silence broken), the
+UNKNOWN -> ALIVE (first beat), ALIVE -> FAILED (the rule fires, or the peer announced its
+fail-stop), UNKNOWN -> FAILED (never heard within ``startup_grace``, or announced). FAILED is final: a beat after it is counted (fail-silence broken), the
 peer is not revived; a re-joined peer gets a new monitor.
 """
 import collections
@@ -64,7 +70,7 @@ EDGES = {
     (PeerState.UNKNOWN, PeerState.ALIVE): 'the first heartbeat',
     (PeerState.ALIVE, PeerState.ALIVE): 'a further heartbeat',
     (PeerState.ALIVE, PeerState.FAILED): 'the silence is judged a failure by the rule',
-    (PeerState.UNKNOWN, PeerState.FAILED): 'never heard within the start-up grace',
+    (PeerState.UNKNOWN, PeerState.FAILED): 'never heard within the start-up grace, or its first word was its fail-stop',
 }
 
 
@@ -101,6 +107,18 @@ class HeartbeatMonitor(object):
         self.last_info = None
         self.beats = 0
         self.beats_after_failure = 0   # a peer heard after being declared failed: fail-silence broken
+        self.announcement = None       # the peer's own fail-stop, until check() reports it
+
+    def announced(self, now, reason, info=None):
+        """The peer says it fail-stopped (its last heartbeat): it is declared failed, and the next
+        check() returns the verdict. Returns True if this declares it (False: already failed)."""
+        if self.state == PeerState.FAILED:
+            return False
+        silence = now - self.last_heard if self.last_heard is not None else 0.0
+        self._change(PeerState.FAILED)
+        self.last_info = info if info is not None else self.last_info
+        self.announcement = Verdict('it announced its fail-stop: %s' % reason, silence, self.last_info)
+        return True
 
     def beat(self, now, info=None):
         """A heartbeat arrived. Returns True if it comes from a peer already declared failed."""
@@ -120,6 +138,9 @@ class HeartbeatMonitor(object):
     def check(self, now):
         """Return a Verdict the first time the peer is found failed, else None."""
         self._note_stall(now)
+        if self.announcement is not None:
+            verdict, self.announcement = self.announcement, None
+            return verdict
         if self.state == PeerState.ALIVE:
             silence = now - self.last_heard
             rule = self._judge(silence - self.stalled)

@@ -28,10 +28,12 @@ import psutil
 
 from .hosts import (HostState, HostsError, Network, Signal, Topology, TopologyError, check_seconds,
                     plan_down, plan_up, run_prefix_pattern, PROJECT_PREFIX)
+from .sites import wait_stopped
 
 STATE_DIRS = ('/run/aft_hosts', '/tmp/aft_hosts')
 COMMAND_TIMEOUT = 10.0
 KILL_WAIT = 5.0
+ISOLATE_WAIT = 0.5      # s: the power switch waits at most this for every thread of a host to be seen stopped
 
 
 class PlatformError(HostsError):
@@ -187,6 +189,17 @@ def send(signum, pids):
         except ProcessLookupError:
             pass
     return reached
+
+
+def _processes(pids):
+    """psutil handles of the pids still there."""
+    found = []
+    for pid in pids:
+        try:
+            found.append(psutil.Process(pid))
+        except psutil.NoSuchProcess:
+            pass
+    return found
 
 
 def kill_and_wait(pids, timeout=KILL_WAIT):
@@ -365,6 +378,7 @@ class Hosts(object):
         self._freezes = []
         self._switch = None       # the power switch agent (power_switch()), stopped by close()
         self.powered_off_at = {}  # host -> wall time its link went down in its last power_off()
+        self._isolated = set()    # hosts whose power_off has cut the link and stopped every process (read unlocked)
         self._previous = {}       # signum -> handler replaced
         self._open = False
 
@@ -448,10 +462,15 @@ class Hosts(object):
         with self._lock:
             self._do(self.net.unrate(name))
 
-    def power_off(self, name, on_link_down=None, if_on=False):
+    def power_off(self, name, on_link_down=None, if_on=False, on_isolated=None):
         """Link down first, then every process of the host stopped and killed; returns their pids.
         Processes forked while they were being stopped are caught by further rounds.
         ``on_link_down()``, if given, is called the moment the link is down (the power loss).
+        ``on_isolated(pids, running)``, if given, once the link is down and every thread of every
+        process is seen stopped (``running``: those still not, after ISOLATE_WAIT: a thread in the
+        kernel's uninterruptible sleep stops only on its way out): from then on the host can neither
+        send nor run, which is all a promotion needs; the kill and the kernel's tear-down (tens of ms
+        for a few rospy nodes) follow before this returns.
         ``if_on``: a host already off is left as it is ([] returned) instead of refused."""
         with self._lock:
             if if_on and self.net.state[self.topology.host(name).name] is HostState.OFF:
@@ -470,6 +489,11 @@ class Hosts(object):
                     break
                 send(stop.signum, sorted(new))
                 stopped |= new
+            if on_isolated is not None:
+                running = wait_stopped(_processes(sorted(stopped)), ISOLATE_WAIT)
+                self._isolated.add(name)
+                on_isolated(sorted(stopped), sorted(p.pid for p in running))
+            self._isolated.add(name)
             left = kill_and_wait(sorted(stopped | set(kill.pids)))
             for popen, _ in self._started.get(name, []):
                 try:
@@ -487,6 +511,7 @@ class Hosts(object):
         """The host made again from nothing (new namespace, same address), linked."""
         with self._lock:
             self._do(self.net.power_on(name))
+            self._isolated.discard(name)
 
     def freeze(self, target, seconds):
         """SIGSTOP of every process of host ``target`` (a name) or of one process (a pid, of a host
@@ -514,8 +539,10 @@ class Hosts(object):
         """Start (once) the hosts' power switch: an agent in this process, outside every host, on a
         Unix-domain socket in the run's root-only state directory (the filesystem is shared by the
         namespaces, so this is a management network that no partition of the data network cuts).
-        A request to power a host off is answered once its link is down and its processes are dead
-        (:meth:`power_off`). Returns the :class:`aft_ftm.power_switch_exec.SwitchServer`; its spec
+        A request to power a host off is answered once its link is down and its processes are stopped
+        (:meth:`power_off`'s ``on_isolated``): it can no longer answer anyone, so a promotion need
+        not wait for the kill and the kernel's tear-down, which go on after the answer; the host
+        cannot be powered on before they are done. Returns the :class:`aft_ftm.power_switch_exec.SwitchServer`; its spec
         for Recovery's ``~power_switch`` is ``'unix:' + switch.path``. Stopped by :meth:`close`."""
         from .power_switch_exec import SwitchServer
         with self._lock:
@@ -526,11 +553,33 @@ class Hosts(object):
 
     def _switch_off(self, name):
         self.topology.host(name)
-        pids = self.power_off(name)
-        return 'link down, then %d processes killed' % len(pids)
+        started = time.monotonic()
+        isolated, outcome = threading.Event(), {}
+
+        def off():
+            try:
+                outcome['pids'] = self.power_off(name, on_isolated=lambda pids, running: (
+                    outcome.update(stopped=len(pids), running=running, isolated=time.monotonic() - started),
+                    isolated.set()))
+            except Exception as e:   # after the answer: said in the log; before it: the switch's error
+                outcome['error'] = e
+                if isolated.is_set():
+                    self.log('power switch: host %s: %s' % (name, e))
+            finally:
+                isolated.set()
+        threading.Thread(target=off, name='power-off-%s' % name, daemon=True).start()
+        isolated.wait()
+        if 'isolated' not in outcome:
+            raise outcome.get('error') or HostsError('host %s: power off ended before the host was isolated' % name)
+        late = outcome['running']
+        return 'link down and %d processes stopped in %.1f ms%s; their kill goes on' % (
+            outcome['stopped'] - len(late), outcome['isolated'] * 1e3,
+            ' (%d in the kernel, cut off by the link: %s)' % (len(late), late) if late else '')
 
     def _switch_state(self, name):
         self.topology.host(name)
+        if name in self._isolated:   # not behind the lock: a power_off in progress holds it until its kill ends
+            return 'off'
         with self._lock:
             return 'off' if self.net.state[name] is HostState.OFF else self.net.state[name].value
 

@@ -534,14 +534,17 @@ def whole(deployment):
     return None
 
 
-def heal(deployment, log=print, fail_stopped=None):
+def heal(deployment, log=print, fail_stopped=None, acted=None):
     """Bring the deployment back whole: relaunch every site that is down (a replica re-joins as the
     backup), power off and relaunch a replica that runs but does not join: at once if it said it
     fail-stopped since it was started (fail_stopped: {site name: monotonic time a fail_stop alarm
     named it}, filled as they are heard; a fail-stopped backup is nobody's to fence, its launcher
-    lives on), else after JOIN_PATIENCE. Returns (what was done,
-    None) once whole, or (what was done, why not) after HEAL_TIMEOUT."""
+    lives on), else after JOIN_PATIENCE. The wall-clock time of each of those actions is appended to
+    acted (a list), so that what the fault cost the clients can be told from what its repair (a
+    relaunch, the re-join's state transfer) cost them. Returns (what was done, None) once whole, or
+    (what was done, why not) after HEAL_TIMEOUT."""
     fail_stopped = {} if fail_stopped is None else fail_stopped
+    acted = [] if acted is None else acted
     started_at = {}
     done = []
     started = time.monotonic()
@@ -560,6 +563,7 @@ def heal(deployment, log=print, fail_stopped=None):
                 continue
             if _down(site):
                 started_at[name] = time.monotonic()
+                acted.append(time.time())
                 deployment.relaunch(name)
                 done.append('%s relaunched' % name)
                 waiting_since[name] = time.monotonic()
@@ -571,10 +575,12 @@ def heal(deployment, log=print, fail_stopped=None):
             since = waiting_since.setdefault(name, time.monotonic())
             if fail_stopped.get(name, -1.0) > started_at.get(name, 0.0) and deployment.sites[name].alive():
                 started_at[name] = time.monotonic()
+                acted.append(time.time())
                 deployment.sites[name].power_off()
                 done.append('%s fail-stopped, relaunched' % name)
             elif time.monotonic() - since > JOIN_PATIENCE and deployment.sites[name].alive():
                 log('%s runs but did not join in %.0f s: powered off, relaunched' % (name, JOIN_PATIENCE))
+                acted.append(time.time())
                 deployment.sites[name].power_off()
                 done.append('%s stuck, relaunched' % name)
         time.sleep(0.05)
@@ -623,6 +629,7 @@ class Segment(object):
         self.records = []
         self.kills = {}
         self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
+        self.rejoins = []   # (wall clock, site) of every re-join a crash detector announced
         self.fail_stopped = {}   # replica site -> when a fail_stop alarm last named it (monotonic)
         self.verdicts = []   # suspicions.Verdict: every crash detector's verdict heard
         self.timeout = timeout
@@ -643,6 +650,9 @@ class Segment(object):
 
     def _alarm(self, alarm):
         self.alarms.append((alarm.kind, alarm.detail))
+        joined = suspicions.rejoin_of(alarm.kind, alarm.detail)
+        if joined:
+            self.rejoins.append((alarm.stamp.to_sec() or time.time(), joined))   # the detector's clock, as verdicts
         if alarm.kind == 'fail_stop':   # the crash detector's 'site NAME stops heartbeating: why'
             words = alarm.detail.split()
             if len(words) > 1 and words[0] == 'site' and words[1] in REPLICAS:
@@ -696,7 +706,7 @@ class Segment(object):
         self.result = history.check(self.ops, self.finals, self.kills, self.ended)
         windows = [r['start'] for r in self.records[1:]] + [self.ended]
         for record, stop in zip(self.records, windows):
-            record['unavailable'] = history.unavailability(self.ops, record['start'], stop)
+            record.update(history.unavailability_split(self.ops, record['start'], record.get('repaired_from'), stop))
         return self
 
     def _one(self, fault, deployment, rng):
@@ -726,9 +736,11 @@ class Segment(object):
         record.update(injected)
         if injected.get('proxy_killed'):
             self.kills.setdefault(injected['proxy_killed'], []).append(injected['start'])
-        done, why = heal(deployment, self.log, self.fail_stopped)
+        acted = []
+        done, why = heal(deployment, self.log, self.fail_stopped, acted)
         after = witness_status() or _Status
-        record.update(healed=done, healed_at=time.time(), epoch_after=after.epoch, primary_after=after.primary)
+        record.update(healed=done, healed_at=time.time(), epoch_after=after.epoch, primary_after=after.primary,
+                      repaired_from=acted[0] if acted else None)
         if why:
             record['outcome'] = 'unhealed: %s' % why
         elif after.primary != status.primary:

@@ -53,13 +53,15 @@ class CrashDetectorNode(object):
             aft_ftm.site_watch). Nothing is watched with ~site_pid 0, or when the launcher is not a
             roslaunch whose file loads (said in the log).
     Publishes:
-        heartbeat (aft_msgs/Heartbeat), port ``heartbeat``
+        heartbeat (aft_msgs/Heartbeat), port ``heartbeat``; when this site fail-stops, one last one
+            whose ``stopping`` says why, so that the peer declares it failed at once
         failures (aft_msgs/Failure), port ``failures``: to this site's Recovery
         alarms (aft_msgs/Alarm), port ``alarms`` (/aft/alarms): this site fail-stopped; a peer declared
             failed is heard again (it came back); it is watched again.
         /diagnostics (diagnostic_msgs/DiagnosticArray): the peer alive, failed or never heard (aft_ftm.health).
     Subscribes:
-        peer_heartbeat (aft_msgs/Heartbeat), port ``peer_heartbeat``
+        peer_heartbeat (aft_msgs/Heartbeat), port ``peer_heartbeat``: a beat with ``stopping`` declares the
+            peer failed at the next check (it announced its fail-stop)
         fail_stop (aft_msgs/Failure), port ``fail_stop``: a node of this site cannot serve correctly any
             more: the heartbeats stop for good, so that the peer fences this site and takes over.
     Services:
@@ -103,6 +105,7 @@ class CrashDetectorNode(object):
                     rospy.resolve_name('~phi_window'), self.phi['window']))
         self.monitor = self._new_monitor(time.monotonic())
         self.lock = threading.Lock()
+        self.beat_lock = threading.Lock()   # one heartbeat at a time: none after the last (stopping) one
         self.host = this_host()
         self.ports = Ports([PortSpec('heartbeat', PUBLISH, 'aft_msgs/Heartbeat'),
                             PortSpec('failures', PUBLISH, 'aft_msgs/Failure'),
@@ -225,6 +228,10 @@ class CrashDetectorNode(object):
                                    time.monotonic() - heard if heard is not None else None, self.stopped)
 
     def _on_heartbeat(self, beat):
+        if beat.stopping:
+            with self.lock:
+                self.monitor.announced(time.monotonic(), beat.stopping, beat)   # the loop reports it
+            return
         with self.lock:
             back = self.monitor.beat(time.monotonic(), beat) and not self.peer_back_told
             self.peer_back_told = self.peer_back_told or back
@@ -233,10 +240,20 @@ class CrashDetectorNode(object):
                   're-join before it may serve or be promoted' % (beat.site, beat.pid, beat.host))
 
     def _on_fail_stop(self, failure):
-        with self.lock:
-            first = self.stopped is None
-            self.stopped = self.stopped or failure.reason
-        if first:
+        with self.beat_lock:
+            with self.lock:
+                first = self.stopped is None
+                self.stopped = self.stopped or failure.reason
+            if first:
+                # The last heartbeat says why: the peer need not wait out its timeout to take over.
+                self.seq += 1
+                try:
+                    self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
+                                                              seq=self.seq, stamp=rospy.Time.now(),
+                                                              stopping=failure.reason or 'fail-stop'))
+                except rospy.ROSException as e:   # going down: the peer's timeout detects it as before
+                    rospy.logwarn('%s: the last heartbeat (this site fail-stops) was not sent: %s', rospy.get_name(),
+                                  e)
             alarm(self.ports, 'pbr', 'fail_stop', 'site %s stops heartbeating: %s' % (self.site, failure.reason))
 
     def _on_configuration(self, conf):
@@ -264,14 +281,17 @@ class CrashDetectorNode(object):
                 next_realtime = now + 1.0
                 self._tell_realtime_error(now)
             if now >= next_beat and self.stopped is None:
-                self.seq += 1
-                try:
-                    self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host, pid=self.site_pid,
-                                                              seq=self.seq, stamp=rospy.Time.now()))
-                except rospy.ROSException:
-                    if rospy.is_shutdown():
-                        return   # the node is going down: its topics are closed
-                    raise
+                with self.beat_lock:
+                    if self.stopped is None:
+                        self.seq += 1
+                        try:
+                            self.ports.publish('heartbeat', Heartbeat(site=self.site, host=self.host,
+                                                                      pid=self.site_pid, seq=self.seq,
+                                                                      stamp=rospy.Time.now()))
+                        except rospy.ROSException:
+                            if rospy.is_shutdown():
+                                return   # the node is going down: its topics are closed
+                            raise
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
             with self.lock:
                 verdict = self.monitor.check(now)
