@@ -97,3 +97,82 @@ def test_malformed_key_files_are_named_and_their_content_is_not_shown(tmp_path, 
 def test_party_names_cannot_escape_the_key_directory(tmp_path, name):
     with pytest.raises(ConfigError, match='party name'):
         security.read_party(str(tmp_path), name)
+
+
+class Msg(object):
+    """A request or reply's fields (the gate signs what security.header_of takes from it)."""
+
+    def __init__(self, **fields):
+        self.__dict__.update(fields)
+
+
+REQUEST = Msg(origin='/proxy', id=7, client='/bank_client', service_type='aft_msgs/Account', oldest_pending=7,
+              attempt=0, epoch=3, transfer=0)
+REPLY = Msg(origin='/proxy', id=7, client='/bank_client', oldest_pending=7, attempt=0, status=0, error='', epoch=3)
+
+
+@pytest.mark.parametrize('fields,message', [(security.REQUEST_FIELDS, REQUEST), (security.REPLY_FIELDS, REPLY)])
+def test_every_field_that_affects_processing_is_signed(fields, message):
+    """A captured message re-sent with any one field changed (attempt, epoch, client, ...) is refused:
+    the replay of issue 16 changed the unsigned attempt and executed again."""
+    blob = sealed(header=security.header_of(message, fields, 'server'))
+    assert security.open_sealed(SERVER, CLIENT.verify_public, blob,
+                                security.header_of(message, fields, 'server')) == b'deposit 10'
+    for name in fields:
+        value = getattr(message, name)
+        changed = Msg(**dict(message.__dict__, **{name: value + 1 if isinstance(value, int) else value + 'x'}))
+        with pytest.raises(Rejected) as error:
+            security.open_sealed(SERVER, CLIENT.verify_public, blob, security.header_of(changed, fields, 'server'))
+        assert error.value.kind == 'tampered', name
+    # and the party it is for: sealed for the server, presented as for another party
+    with pytest.raises(Rejected, match='tampered'):
+        security.open_sealed(SERVER, CLIENT.verify_public, blob, security.header_of(message, fields, 'client2'))
+
+
+def test_the_addressee_and_sender_are_read_before_verifying_and_garbage_is_unsigned():
+    blob = sealed(header=security.header_of(REPLY, security.REPLY_FIELDS, 'client2'))
+    assert security.addressee_of(blob) == 'client2' and security.sender_of(blob) == 'client'
+    assert security.addressee_of(sealed()) is None              # a header without 'to'
+    weird = CLIENT.signing.sign(json.dumps({'party': ['a', 'list'], 'header': {}}).encode())
+    for blob in (weird, CLIENT.signing.sign(b'[1, 2]'), CLIENT.signing.sign(b'{"party": "client"}')):
+        with pytest.raises(Rejected, match='unsigned'):
+            security.sender_of(blob)
+
+
+def test_an_origin_is_bound_to_one_party_by_the_policy_or_by_its_first_signer():
+    policy = security.OriginBinding({'client': ['/proxy', '/proxy?'], 'client2': ['/kiosk'], 'server': []})
+    assert policy.bind('client', '/proxy') == 'client' and policy.bind('client', '/proxy2') == 'client'
+    assert policy.bind('client2', '/kiosk') == 'client2' and policy.party_of('/kiosk') == 'client2'
+    for party, origin in (('client2', '/proxy'), ('client', '/kiosk'), ('server', '/proxy'), ('mallory', '/proxy'),
+                          ('client', '/proxy12')):
+        with pytest.raises(Rejected) as error:
+            policy.bind(party, origin)
+        assert error.value.kind == 'spoofed_origin' and party in error.value.detail
+    assert policy.party_of('/proxy') == 'client'               # refusals changed nothing
+    open_binding = security.OriginBinding()
+    assert open_binding.bind('client', '/proxy') == 'client'
+    with pytest.raises(Rejected, match='bound to party client'):
+        open_binding.bind('client2', '/proxy')
+    assert open_binding.bind('client2', '/kiosk') == 'client2'
+
+
+def test_the_policy_file_is_read_or_refused_naming_the_problem(tmp_path):
+    from aft_ftm import sec_policy
+    good = tmp_path / 'policy.yaml'
+    good.write_text('parties:\n  client:\n    origins: ["/proxy", "/proxy?"]\n  server: {}\n  kiosk:\n')
+    assert sec_policy.load(str(good)) == {'client': ['/proxy', '/proxy?'], 'server': [], 'kiosk': []}
+    for text, words in [('parties: [client]\n', 'exactly one key, parties'),
+                        ('parties: {}\nextra: 1\n', 'exactly one key, parties'),
+                        ('parties:\n  client:\n    origins: proxy\n', 'origins must be a list'),
+                        ('parties:\n  client:\n    origins: [proxy]\n', 'starting with /'),
+                        ('parties:\n  client:\n    topics: [/a]\n', 'unknown key(s) topics'),
+                        ('parties:\n  ../x: {}\n', 'not a party name'),
+                        ('parties:\n  client: [/proxy]\n', 'expected a mapping'),
+                        ('parties: {client: [\n', 'is not YAML')]:
+        bad = tmp_path / 'bad.yaml'
+        bad.write_text(text)
+        with pytest.raises(ConfigError) as error:
+            sec_policy.load(str(bad))
+        assert str(bad) in str(error.value) and words in str(error.value), (text, str(error.value))
+    with pytest.raises(ConfigError, match='cannot be read'):
+        sec_policy.load(str(tmp_path / 'missing.yaml'))

@@ -149,14 +149,19 @@ def witness(epoch, primary, backup, reason, persistent):
     return Report(Level.OK, 'epoch %d: primary %s, backup %s' % (epoch, primary, backup), values)
 
 
-def sec_gate(side, party, role, peers, awaiting, rejected):
+def sec_gate(side, party, role, peers, awaiting, rejected, policy=''):
     """A SEC gate: ``peers`` parties whose certificates it holds, ``awaiting`` requests sealed and
-    not answered (client side), ``rejected`` messages refused (forged, replayed, undecryptable)."""
+    not answered (client side), ``rejected`` messages refused (forged, replayed, undecryptable);
+    ``policy``: a server gate's policy file, None when it has none (each origin then bound to the
+    first party using it: a WARN), '' on the client side."""
     values = [('mechanism', 'sec'), ('side', side), ('party', party), ('role', role.name if isinstance(role, Role)
                                                                       else role),
-              ('certified_peers', peers), ('awaiting_replies', awaiting), ('rejected', rejected)]
+              ('certified_peers', peers), ('awaiting_replies', awaiting), ('rejected', rejected),
+              ('policy', policy or '')]
     if rejected:
         return Report(Level.WARN, '%d message(s) rejected (see /aft/alarms)' % rejected, values)
+    if policy is None:
+        return Report(Level.WARN, 'no SEC policy: each origin is bound to the first party using it', values)
     return Report(Level.OK, '%s side of %s, %d certified peer(s)' % (side, party, peers), values)
 
 

@@ -5,6 +5,7 @@ payload for its recipient, Ed25519 signs it for its sender; the CA signs each pa
 Nothing here logs or returns key material in error messages.
 """
 import base64
+import fnmatch
 import json
 import os
 
@@ -19,7 +20,8 @@ SIGNATURE_BYTES = 64
 
 class Rejected(AftError):
     """A message refused by SEC. ``kind``: unsigned, bad_signature, unknown_party, tampered, replay,
-    undecryptable."""
+    undecryptable, misaddressed (signed for another party), spoofed_origin (a party sending as a
+    Proxy that is not its own)."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))
@@ -124,6 +126,20 @@ def check_certificate(ca_verify_public, name, box_public, verify_public, signatu
 
 
 # -- messages -------------------------------------------------------------------------------------
+# Every field of a request or reply that affects how it is processed is signed (issue 16: a replayed
+# request with its unsigned ``attempt`` changed executed again), and so is the party it is for.
+REQUEST_FIELDS = ('origin', 'id', 'client', 'service_type', 'oldest_pending', 'attempt', 'epoch', 'transfer')
+REPLY_FIELDS = ('origin', 'id', 'client', 'oldest_pending', 'attempt', 'status', 'error', 'epoch')
+
+
+def header_of(message, fields, to):
+    """The header to sign for ``message`` (any object with those attributes): its fields, and ``to``,
+    the party it is sealed for."""
+    header = dict((name, getattr(message, name)) for name in fields)
+    header['to'] = to
+    return header
+
+
 def seal(sender, recipient_box_public, header, plaintext):
     """Cipher plaintext for the recipient and sign it with the header: bytes to put in a payload."""
     ciphertext = nacl.public.SealedBox(nacl.public.PublicKey(bytes(recipient_box_public))).encrypt(bytes(plaintext))
@@ -132,12 +148,27 @@ def seal(sender, recipient_box_public, header, plaintext):
     return sender.signing.sign(content)
 
 
+def _claims(blob):
+    """The (not yet verified) content of a sealed blob, or Rejected('unsigned')."""
+    try:
+        content = json.loads(bytes(blob)[SIGNATURE_BYTES:].decode())
+    except (ValueError, TypeError, UnicodeDecodeError):
+        content = None
+    if not isinstance(content, dict) or not isinstance(content.get('party'), str) \
+            or not isinstance(content.get('header'), dict):
+        raise Rejected('unsigned', 'the payload is not a signed SEC message')
+    return content
+
+
 def sender_of(blob):
     """The party a sealed blob claims to come from (not verified yet)."""
-    try:
-        return json.loads(bytes(blob)[SIGNATURE_BYTES:].decode())['party']
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
-        raise Rejected('unsigned', 'the payload is not a signed SEC message')
+    return _claims(blob)['party']
+
+
+def addressee_of(blob):
+    """The party a sealed blob claims to be for (its header's ``to``; not verified yet), or None."""
+    to = _claims(blob)['header'].get('to')
+    return to if isinstance(to, str) else None
 
 
 def open_sealed(recipient, sender_verify_public, blob, header):
@@ -159,6 +190,34 @@ def open_sealed(recipient, sender_verify_public, blob, header):
         return nacl.public.SealedBox(recipient.box_private).decrypt(base64.b64decode(message['ct']))
     except (nacl.exceptions.CryptoError, KeyError, ValueError, TypeError):
         raise Rejected('undecryptable', 'the payload was not ciphered for %s' % recipient.name)
+
+
+class OriginBinding(object):
+    """Which party may send requests as which origin (a Proxy's name): the reply to an origin is
+    sealed for that party only, so a party sending as another's Proxy could otherwise read its
+    replies and push its replay watermark to the end.
+
+    ``allowed``: {party: [origin patterns (fnmatch)]}, from the policy file; None: no policy, and
+    each origin is bound to the first party whose verified request used it (said in the log and the
+    gate's diagnostics). Either way an origin bound to one party is refused to every other."""
+
+    def __init__(self, allowed=None):
+        self.allowed = allowed
+        self.bound = {}   # origin -> party
+
+    def bind(self, party, origin):
+        """The party that signed a request from origin: allowed, returns it; else Rejected."""
+        if self.allowed is not None and not any(fnmatch.fnmatchcase(origin, pattern)
+                                                for pattern in self.allowed.get(party, ())):
+            raise Rejected('spoofed_origin', 'party %s may not send as %s (policy: %s)'
+                           % (party, origin, ', '.join(self.allowed.get(party, ())) or 'no origin'))
+        owner = self.bound.setdefault(origin, party)
+        if owner != party:
+            raise Rejected('spoofed_origin', 'party %s sent as %s, which is bound to party %s' % (party, origin, owner))
+        return party
+
+    def party_of(self, origin):
+        return self.bound.get(origin)
 
 
 class ReplayGuard(object):

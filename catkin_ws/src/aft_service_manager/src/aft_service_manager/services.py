@@ -189,7 +189,9 @@ SERVICE_KEYS = collections.OrderedDict([
 MANAGER_KEYS = collections.OrderedDict([
     ('period', (0.01, _positive, "the manager's cycle (s): how often it checks every service")),
     ('kill_timeout', (2.0, _positive, 'a service asked to stop (SIGTERM) is killed (SIGKILL) after this long (s)')),
-    ('state_dir', ('/tmp/aft_service_state', _text, 'directory of the services\' state files')),
+    ('state_dir', (None, _optional(_text), 'directory of the services\' state files and the manager\'s pid file: '
+                                           'made 0700, refused unless the manager owns it and no one else may '
+                                           'write it (default: $ROS_HOME/aft_service_state)')),
 ])
 
 

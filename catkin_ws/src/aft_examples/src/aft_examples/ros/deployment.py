@@ -94,10 +94,12 @@ class PbrDeployment(object):
         self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
         if sec:
             keys = self.keys_dir
-            for party in ('ca', 'client', 'server'):
+            # client2: a second certified party (the policy gives it no Proxy of the demo): what an
+            # attacker holding a valid certificate of its own can try
+            for party in ('ca', 'client', 'client2', 'server'):
                 security.write_party(keys, security.Party.generate(party))
             replica.update(sec='true', keys_dir=keys)
-            client = dict(sec='true', keys_dir=keys)
+            client = dict(sec='true', keys_dir=keys, sec_parties='[client, client2, server]')
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
         if not self.witness:

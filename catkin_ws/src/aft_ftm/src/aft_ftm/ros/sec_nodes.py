@@ -7,7 +7,7 @@ import rospy
 from aft_msgs.msg import Reply, Request
 from aft_msgs.srv import Certificate, CertificateResponse
 
-from .. import config, health, security
+from .. import config, health, sec_policy, security
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from .alarms import alarm
@@ -51,16 +51,22 @@ class SecGateNode(object):
 
     Client side: ciphers each request of the Proxy for ~server_party and signs it; checks and
     deciphers the replies. Server side: checks each request's signature against the sender's
-    certified key, its signed header against the envelope, and that it is not a replay; deciphers
-    it for the Protocol; ciphers and signs the reply for the requesting party. Rejected messages
-    are dropped with an alarm (a forged message has nobody waiting for it); a client re-sends a
-    request whose reply was rejected.
+    certified key, its signed header against the envelope (every field that affects processing:
+    security.REQUEST_FIELDS, and the party it is for), that its sender may speak for its origin
+    (security.OriginBinding, from ~policy), and that it is not a replay; deciphers it for the
+    Protocol; ciphers and signs the reply (security.REPLY_FIELDS) for the party bound to its
+    origin. Rejected messages are dropped with an alarm (a forged message has nobody waiting for
+    it); a client re-sends a request whose reply was rejected. A client gate passes over, without
+    an alarm, a reply signed for another party (replies share one topic): that party's gate checks it.
 
     Parameters:
         ~side (client | server), ~party (this side's party name), ~keys_dir (its key files),
         ~ca_public (path of ca.pub, the CA's public keys: known to all), ~server_party (client side),
         ~role (server side: primary | backup; a backup starts with requests_in unbound: the replica's
             Recovery binds it at its set-up, so that a failover needs no new subscription)
+        ~policy (server side, path, default none): the access-control policy file (aft_ftm.sec_policy):
+            which party may send as which origin. Without it each origin is bound to the first party
+            whose verified request used it (a warning in the log and in the diagnostics).
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply)
     Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm)
@@ -84,7 +90,10 @@ class SecGateNode(object):
                            listeners={'requests_out': _ResendOnConnect(self)})
         self.sent = {}            # client side: (origin, id) -> sealed request not answered yet
         self.peers = {}           # party -> (box_public, verify_public), certified
-        self.client_of = {}       # origin -> party (server side)
+        policy = param('policy', config.optional_name, '')
+        self.policy = policy or None
+        self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
+        self.not_for_me = 0       # client side: replies signed for another party, passed over
         self.replays = security.ReplayGuard()
         self.lock = threading.Lock()
         self.rejected = 0
@@ -112,12 +121,15 @@ class SecGateNode(object):
             rospy.logwarn('%s: %s not connected yet', rospy.get_name(), missing)
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._health)
+        if self.side == 'server' and self.policy is None:
+            rospy.logwarn('%s: no SEC policy (~policy): each origin is bound to the first party whose signed request '
+                          'uses it', rospy.get_name())
         return True
 
     def _health(self):
         with self.lock:
             return health.sec_gate(self.side, self.me.name, self.role, len(self.peers), len(self.sent),
-                                   self.rejected)
+                                   self.rejected, policy=self.policy if self.side == 'server' else '')
 
     def _peer(self, party):
         """The certified public keys of party (fetched from the CA once, then kept)."""
@@ -144,26 +156,26 @@ class SecGateNode(object):
 
     # -- requests -----------------------------------------------------------------------------
     def _on_request(self, request):
-        header = {'origin': request.origin, 'id': request.id, 'oldest_pending': request.oldest_pending,
-                  'service_type': request.service_type}
         try:
             if self.side == 'client':
                 box, _ = self._peer(self.server_party)
-                payload = security.seal(self.me, box, header, request.payload)
+                payload = security.seal(self.me, box, security.header_of(request, security.REQUEST_FIELDS,
+                                                                         self.server_party), request.payload)
             else:
                 party = security.sender_of(request.payload)
                 _, verify = self._peer(party)
-                payload = security.open_sealed(self.me, verify, request.payload, header)
+                payload = security.open_sealed(self.me, verify, request.payload,
+                                               security.header_of(request, security.REQUEST_FIELDS, self.me.name))
                 with self.lock:
+                    self.origins.bind(party, request.origin)
                     self.replays.check(request.origin, request.id)
                     self.replays.advance(request.origin, request.oldest_pending)
-                    self.client_of[request.origin] = party
         except security.Rejected as e:
             self._reject(e, request)
             return
         out = Request(id=request.id, origin=request.origin, client=request.client,
                       service_type=request.service_type, oldest_pending=request.oldest_pending,
-                      attempt=request.attempt, payload=payload)
+                      attempt=request.attempt, payload=payload, epoch=request.epoch, transfer=request.transfer)
         if self.side == 'client':
             with self.lock:
                 self.sent[(request.origin, request.id)] = out
@@ -181,20 +193,25 @@ class SecGateNode(object):
 
     # -- replies ------------------------------------------------------------------------------
     def _on_reply(self, reply):
-        header = {'origin': reply.origin, 'id': reply.id, 'status': reply.status, 'error': reply.error}
         try:
             if self.side == 'server':
                 with self.lock:
-                    party = self.client_of.get(reply.origin)
+                    party = self.origins.party_of(reply.origin)
                 if party is None:
                     raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
                 box, _ = self._peer(party)
-                payload = security.seal(self.me, box, header, reply.payload)
+                payload = security.seal(self.me, box, security.header_of(reply, security.REPLY_FIELDS, party),
+                                        reply.payload)
             else:
+                if security.addressee_of(reply.payload) not in (self.me.name, None):
+                    with self.lock:   # for another client's gate, which checks it: not an attack on this one
+                        self.not_for_me += 1
+                    return
                 if security.sender_of(reply.payload) != self.server_party:
                     raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
                 _, verify = self._peer(self.server_party)
-                payload = security.open_sealed(self.me, verify, reply.payload, header)
+                payload = security.open_sealed(self.me, verify, reply.payload,
+                                               security.header_of(reply, security.REPLY_FIELDS, self.me.name))
         except security.Rejected as e:
             self._reject(e, reply)
             return
@@ -203,8 +220,8 @@ class SecGateNode(object):
                 self.sent.pop((reply.origin, reply.id), None)
         self.ports.publish('replies_out', Reply(id=reply.id, origin=reply.origin, client=reply.client,
                                                 oldest_pending=reply.oldest_pending, attempt=reply.attempt,
-                                                status=reply.status,
-                                                error=reply.error, payload=payload))
+                                                status=reply.status, error=reply.error, payload=payload,
+                                                epoch=reply.epoch))
 
 
 class _ResendOnConnect(rospy.SubscribeListener):

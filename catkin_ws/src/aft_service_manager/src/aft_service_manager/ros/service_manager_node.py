@@ -16,6 +16,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger, TriggerResponse
 
 from aft_ftm import config as params
+from aft_service_manager import trust
 from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
 from aft_ftm.ros.params import param
 from aft_service_manager.ros.service_heartbeat import TOPIC
@@ -114,6 +115,22 @@ class Child(object):
             self.kill(timeout)
 
 
+def publisher_port(topic, callerid):
+    """The TCP port of node callerid's publisher that this node's subscription to topic is connected
+    to, or None."""
+    from rospy.impl.registration import get_topic_manager
+    impl = get_topic_manager().get_subscriber_impl(topic)
+    for connection in list(getattr(impl, 'connections', None) or ()):
+        header = getattr(connection, 'header', None) or {}
+        sock = getattr(connection, 'socket', None)
+        if header.get('callerid') == callerid and sock is not None:
+            try:
+                return sock.getpeername()[1]
+            except OSError:
+                continue
+    return None
+
+
 class ServiceManagerNode(object):
     """Spawns, watches, restarts, terminates and escalates (see aft_service_manager.services).
 
@@ -147,6 +164,11 @@ class ServiceManagerNode(object):
             for key in ('command', 'program'):
                 if service[key]:
                     service[key] = resolve_rosrun(service[key], 'services.%s.%s' % (name, key))
+        manager = self.config['manager']
+        try:
+            manager['state_dir'] = trust.ensure_private_dir(manager['state_dir'] or trust.default_state_dir())
+        except ServiceConfigError as e:
+            raise params.ConfigError('%s: %s' % (path, e))
         self.resource_period = param('resource_period', params.positive_float, 0.1)
         self.heartbeat_topic = rospy.resolve_name(param('heartbeat_topic', params.non_empty_str, TOPIC))
         self.period = self.config['manager']['period']
@@ -157,6 +179,9 @@ class ServiceManagerNode(object):
         self.heartbeats = 0
         self.unknown_heartbeats = 0
         self.stale_heartbeats = 0     # from a process the manager has replaced: ignored
+        self.refused_heartbeats = 0   # from no process of the service's (forged, or pid 0): refused, said
+        self.replaced = {}            # name -> pids of the service's processes the manager replaced
+        self.origins = trust.HeartbeatOrigins(self._published_by)
         self.stopping = {}            # name -> Child being stopped by an operator (SIGTERM, then SIGKILL)
         self.published_safe = None    # the safe state last published (its reason, None: not in it)
         self.pid_file = os.path.join(self.config['manager']['state_dir'],
@@ -209,39 +234,68 @@ class ServiceManagerNode(object):
         self._event('spawned', name, 'pid %d' % popen.pid, now, starts=service.starts, pid=popen.pid)
 
     def _record_pids(self):
-        """The process groups of the running services, so that a manager started after this one was
-        killed can stop what it left behind."""
+        """The process groups of the running services (pid, start time, command line), so that a
+        manager started after this one was killed can stop what it left behind; written atomically,
+        0600, in the private state directory."""
         try:
-            os.makedirs(os.path.dirname(self.pid_file), exist_ok=True)
-            with open(self.pid_file, 'w') as f:
-                json.dump({n: {'pid': c.pid, 'cmdline': c.proc.cmdline()} for n, c in self.children.items()
-                           if c.alive()}, f)
+            trust.write_private_json(self.pid_file, {n: trust.describe(c.proc) for n, c in self.children.items()
+                                                     if c.alive()})
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
                                    % (rospy.get_name(), self.pid_file, e))
 
     def _kill_orphans(self):
-        """Kill the services an earlier manager of the same name left running (it was killed)."""
+        """Kill the services an earlier manager of the same name left running (it was killed): each
+        process group only if its leader is still the process recorded (pid, start time, command line)."""
         try:
-            with open(self.pid_file) as f:
-                recorded = json.load(f)
-        except (OSError, ValueError):
+            recorded = trust.read_private_json(self.pid_file)
+        except (OSError, ValueError) as e:
+            rospy.logwarn('%s: the pid file %s is not trusted, nothing in it is signalled: %s', rospy.get_name(),
+                          self.pid_file, e)
             return
-        for name, entry in recorded.items():
+        for name, entry in (recorded or {}).items() if isinstance(recorded, dict) else ():
             try:
-                proc = psutil.Process(entry['pid'])
-                if proc.cmdline() == entry['cmdline']:
-                    rospy.logwarn('%s: killing %s (pid %d), left running by an earlier manager',
-                                  rospy.get_name(), name, entry['pid'])
-                    os.killpg(entry['pid'], signal.SIGKILL)
-            except (psutil.Error, OSError, KeyError, TypeError):
+                proc = psutil.Process(int(entry['pid']))
+                why = trust.same_process(entry, proc) or (None if os.getpgid(proc.pid) == proc.pid else
+                                                          'pid %d leads no process group' % proc.pid)
+            except (psutil.Error, OSError, KeyError, TypeError, ValueError):
+                continue   # gone: nothing to stop
+            if why:
+                rospy.logwarn('%s: %s left by an earlier manager is not signalled: %s', rospy.get_name(), name, why)
+                continue
+            rospy.logwarn('%s: killing %s (pid %d), left running by an earlier manager', rospy.get_name(), name,
+                          proc.pid)
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except OSError:
                 pass
 
     def _kill(self, name):
         child = self.children.pop(name, None)
         if child is not None:
+            self._replaced(name, child)
             child.kill(self.config['manager']['kill_timeout'])
             self._record_pids()
+
+    def _replaced(self, name, child):
+        """Remember the pids of a child the manager stops: their last heartbeats are stale, not forged."""
+        try:
+            pids = [child.pid] + [p.pid for p in child.proc.children(recursive=True)]
+        except psutil.Error:
+            pids = [child.pid]
+        self.replaced[name] = (self.replaced.get(name, []) + pids)[-64:]
+
+    def _published_by(self, callerid, pid):
+        """Whether process pid published on the heartbeat subscription's connection from node callerid:
+        it listens on the TCP port that connection reaches (None: no such connection)."""
+        port = publisher_port(self.heartbeat_topic, callerid)
+        if port is None:
+            return None
+        try:
+            return any(c.status == psutil.CONN_LISTEN and c.laddr and c.laddr[1] == port
+                       for c in psutil.Process(pid).connections('tcp'))
+        except psutil.Error:
+            return False
 
     def _run_program(self, name, kind):
         cfg = self.supervisor[name].config
@@ -314,8 +368,15 @@ class ServiceManagerNode(object):
                                        % (rospy.get_name(), beat.name, self.unknown_heartbeats))
                 return
             child = self.children.get(beat.name)
-            if child is None or (beat.pid and not child.owns(beat.pid)):
+            if child is None or beat.pid in self.replaced.get(beat.name, ()):
                 self.stale_heartbeats += 1     # a replaced (or stopped) process's last words
+                return
+            callerid = (getattr(beat, '_connection_header', None) or {}).get('callerid', '')
+            why = self.origins.judge(callerid, beat.pid, child.owns)
+            if why:
+                self.refused_heartbeats += 1
+                rospy.logwarn_throttle(5.0, '%s: heartbeat for %s refused (%d so far): %s'
+                                       % (rospy.get_name(), beat.name, self.refused_heartbeats, why))
                 return
             self.heartbeats += 1
             service = self.supervisor[beat.name]
@@ -348,7 +409,8 @@ class ServiceManagerNode(object):
                           'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
                           'errors': dict(s.errors), 'critical': s.config['critical'],
                           'period': s.config['period'], 'spare': s.config['spare']}
-            return {'services': out, 'safe_state': self.supervisor.safe_state}
+            return {'services': out, 'safe_state': self.supervisor.safe_state,
+                    'refused_heartbeats': self.refused_heartbeats}
 
     def _publish_diagnostics(self):
         status = self.status()
@@ -364,9 +426,15 @@ class ServiceManagerNode(object):
                         KeyValue(key='critical', value=str(s['critical']).lower())] +
                 [KeyValue(key='errors.%s' % k, value=str(v)) for k, v in sorted(s['errors'].items())]))
         safe = status['safe_state']
-        array.status.append(DiagnosticStatus(level=DiagnosticStatus.ERROR if safe else DiagnosticStatus.OK,
-                                             name='service_manager', message='SAFE STATE: %s' % safe if safe else 'normal',
-                                             values=[KeyValue(key='heartbeats', value=str(self.heartbeats))]))
+        level = DiagnosticStatus.ERROR if safe else DiagnosticStatus.WARN if self.refused_heartbeats else \
+            DiagnosticStatus.OK
+        message = 'SAFE STATE: %s' % safe if safe else ('%d heartbeat(s) refused: not from the service\'s own '
+                                                          'processes' % self.refused_heartbeats
+                                                          if self.refused_heartbeats else 'normal')
+        array.status.append(DiagnosticStatus(level=level, name='service_manager', message=message,
+                                             values=[KeyValue(key='heartbeats', value=str(self.heartbeats)),
+                                                     KeyValue(key='refused_heartbeats',
+                                                              value=str(self.refused_heartbeats))]))
         self.diag_pub.publish(array)
 
     # -- operators -------------------------------------------------------------------------------
@@ -390,6 +458,8 @@ class ServiceManagerNode(object):
                 if action == 'kill' and verb == 'stop':
                     # An operator's stop asks first (SIGTERM), off the manager's loop.
                     child = self.children.pop(name, None)
+                    if child is not None:
+                        self._replaced(name, child)
                     if child is not None:
                         self.stopping[name] = child
                         threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),

@@ -15,6 +15,7 @@ from aft_ftm import config
 from aft_ftm.state_store import from_environment
 from aft_ftm.ros.params import param
 from aft_service_manager.ros.service_heartbeat import Heartbeat
+from aft_service_manager.trust import default_state_dir
 
 FAULTS = ('crash', 'exit', 'hang', 'leak', 'hog', 'error')
 
@@ -38,7 +39,7 @@ class StandInServiceNode(object):
         self.save_every = param('save_every', config.positive_float, 0.5)
         limit = param('counter_limit', config.non_negative_int, 10 ** 9)
         self.store, self.restore = from_environment(
-            '/tmp/aft_service_state/%s.json' % rospy.get_name().strip('/').replace('/', '_'),
+            os.path.join(default_state_dir(), '%s.json' % rospy.get_name().strip('/').replace('/', '_')),
             lambda state: None if isinstance(state.get('counter'), int) and 0 <= state['counter'] <= limit
             else 'counter %r outside 0 .. %d' % (state.get('counter'), limit))
         self.counter = 0

@@ -1,0 +1,134 @@
+"""What the service manager trusts, checked (issue 16). The manager runs as root in the documented
+set-up and signals process groups: everything that tells it which process to signal, or that a
+service is alive, must come from itself or from its own children. No rospy.
+
+- :func:`ensure_private_dir`: its state directory is a real directory that it owns and that no one
+  else may write (made 0700 when missing); anything else is refused, naming the problem, rather
+  than used (a planted pid file in a world-writable ``/tmp/aft_service_state`` had it kill the
+  process groups the file named).
+- :func:`write_private_json` / :func:`read_private_json`: the pid file written atomically, 0600,
+  and read only if it is still a regular file of the manager's own.
+- :func:`describe` / :func:`same_process`: a process is named by its pid, its start time and its
+  command line, and signalled only while all three still match (a pid is reused).
+- :class:`HeartbeatOrigins`: a heartbeat counts only if it comes from the service's own process
+  tree: the claimed pid must be the child or a descendant (pid 0 is no longer a pass), and it must
+  be the process that published it (it listens on the port of the connection that carried it).
+"""
+import json
+import os
+import stat
+import tempfile
+
+from .services import ServiceConfigError
+
+START_TIME_SLACK = 0.01   # s: psutil's create_time is derived from boot time and clock ticks
+
+
+def default_state_dir(environ=None):
+    """$ROS_HOME/aft_service_state, or ~/.ros/aft_service_state: a directory of the user's own."""
+    environ = os.environ if environ is None else environ
+    return os.path.join(environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros'),
+                        'aft_service_state')
+
+
+def ensure_private_dir(path):
+    """Make path (0700) if missing; refuse it unless it is a directory, not a link, owned by this
+    process's user and not writable by group or others. Returns the path."""
+    if not os.path.lexists(path):
+        try:
+            os.makedirs(path, mode=0o700)
+        except FileExistsError:
+            pass   # made meanwhile: checked below like any other
+        except OSError as e:
+            raise ServiceConfigError('state_dir %s cannot be made: %s' % (path, e.strerror or e))
+    info = os.lstat(path)
+    if stat.S_ISLNK(info.st_mode):
+        raise ServiceConfigError('state_dir %s is a symbolic link: the manager keeps its state only in a directory of '
+                                 'its own' % path)
+    if not stat.S_ISDIR(info.st_mode):
+        raise ServiceConfigError('state_dir %s is not a directory' % path)
+    if info.st_uid != os.geteuid():
+        raise ServiceConfigError('state_dir %s belongs to uid %d, not to this manager (uid %d): another user could '
+                                 'plant the pids it kills' % (path, info.st_uid, os.geteuid()))
+    if info.st_mode & 0o022:
+        raise ServiceConfigError('state_dir %s is writable by others (mode %03o): make it 0700 or choose another'
+                                 % (path, stat.S_IMODE(info.st_mode)))
+    return path
+
+
+def write_private_json(path, data):
+    """Write data as JSON to path atomically (a temporary file in the same directory, 0600, renamed)."""
+    handle, temporary = tempfile.mkstemp(dir=os.path.dirname(path) or '.', prefix='.tmp-')
+    try:
+        with os.fdopen(handle, 'w') as f:
+            json.dump(data, f)
+        os.replace(temporary, path)
+    except BaseException:
+        try:
+            os.unlink(temporary)
+        except OSError:
+            pass
+        raise
+
+
+def read_private_json(path):
+    """The JSON in path, or None if there is none; raises ValueError naming why a file that is there
+    is not trusted (a link, not the manager's, writable by others, not JSON)."""
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if not stat.S_ISREG(info.st_mode):
+        raise ValueError('%s is not a regular file' % path)
+    if info.st_uid != os.geteuid() or info.st_mode & 0o022:
+        raise ValueError('%s is not the manager\'s own (uid %d, mode %03o)' % (path, info.st_uid,
+                                                                               stat.S_IMODE(info.st_mode)))
+    with open(path) as f:
+        return json.load(f)
+
+
+def describe(proc):
+    """What names a process across a pid's reuse: {'pid', 'create_time', 'cmdline'} (proc: psutil)."""
+    return {'pid': proc.pid, 'create_time': proc.create_time(), 'cmdline': proc.cmdline()}
+
+
+def same_process(entry, proc):
+    """None if psutil process proc is the one entry describes; else why not."""
+    try:
+        pid, started, cmdline = int(entry['pid']), float(entry['create_time']), list(entry['cmdline'])
+    except (KeyError, TypeError, ValueError):
+        return 'the record %r is malformed' % (entry,)
+    if proc.pid != pid:
+        return 'pid %d is not %d' % (proc.pid, pid)
+    if abs(proc.create_time() - started) > START_TIME_SLACK:
+        return 'pid %d was started at %.2f, not %.2f: the pid was reused' % (pid, proc.create_time(), started)
+    if proc.cmdline() != cmdline:
+        return 'pid %d runs %r, not %r' % (pid, proc.cmdline()[:4], cmdline[:4])
+    return None
+
+
+class HeartbeatOrigins(object):
+    """Judges where a heartbeat comes from. ``published_by(callerid, pid)``: whether process pid is the
+    one that published on the connection from node callerid (True, False, or None if that cannot be
+    told); ``owns(pid)`` (given to judge): the service's child or a descendant of it. A verified
+    (callerid, pid) pair is remembered, and checked again once the pid is no longer the service's."""
+
+    def __init__(self, published_by):
+        self.published_by = published_by
+        self.verified = {}   # callerid -> pid
+
+    def judge(self, callerid, pid, owns):
+        """None if the beat is the service's own; else why it is refused."""
+        if not pid or pid < 0:
+            return 'it names no process (pid %r)' % pid
+        if not owns(pid):
+            return 'pid %d is not a process of this service' % pid
+        if self.verified.get(callerid) == pid:
+            return None
+        sender = self.published_by(callerid, pid)
+        if sender is None:
+            return 'the process that published it (node %s) cannot be found' % (callerid or '?')
+        if not sender:
+            return 'it claims pid %d, but node %s that published it is another process' % (pid, callerid or '?')
+        self.verified[callerid] = pid
+        return None
