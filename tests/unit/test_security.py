@@ -63,16 +63,117 @@ def test_replay_of_an_answered_request_is_rejected_but_a_resend_of_a_pending_one
         guard.check('/proxy', 4)
 
 
-def test_certificates_bind_a_name_to_its_keys():
-    signature = security.certify(CA, 'server', SERVER.box_public, SERVER.verify_public)
-    security.check_certificate(CA.verify_public, 'server', SERVER.box_public, SERVER.verify_public, signature)
-    for name, box, verify in [('client', SERVER.box_public, SERVER.verify_public),      # another name
-                              ('server', MALLORY.box_public, SERVER.verify_public)]:    # another key
+def test_certificates_bind_a_name_to_its_keys_serial_and_expiry():
+    signature = security.certify(CA, 'server', SERVER.box_public, SERVER.verify_public, 7, 1000.0)
+    cert = security.check_certificate(CA.verify_public, 'server', SERVER.box_public, SERVER.verify_public, 7,
+                                      1000.0, signature)
+    assert (cert.serial, cert.not_after, cert.verify_public) == (7, 1000.0, SERVER.verify_public)
+    for name, box, verify, serial, not_after in [
+            ('client', SERVER.box_public, SERVER.verify_public, 7, 1000.0),      # another name
+            ('server', MALLORY.box_public, SERVER.verify_public, 7, 1000.0),     # another key
+            ('server', SERVER.box_public, SERVER.verify_public, 8, 1000.0),      # another serial
+            ('server', SERVER.box_public, SERVER.verify_public, 7, 10 ** 9)]:    # a longer life
         with pytest.raises(Rejected, match='bad_certificate'):
-            security.check_certificate(CA.verify_public, name, box, verify, signature)
-    forged = security.certify(MALLORY, 'server', MALLORY.box_public, MALLORY.verify_public)
+            security.check_certificate(CA.verify_public, name, box, verify, serial, not_after, signature)
+    forged = security.certify(MALLORY, 'server', MALLORY.box_public, MALLORY.verify_public, 7, 1000.0)
     with pytest.raises(Rejected, match='not signed by the CA'):
-        security.check_certificate(CA.verify_public, 'server', MALLORY.box_public, MALLORY.verify_public, forged)
+        security.check_certificate(CA.verify_public, 'server', MALLORY.box_public, MALLORY.verify_public, 7, 1000.0,
+                                   forged)
+
+
+def fetch(issuer, book, party, ca_time, now):
+    """What a gate does: ask the CA (the Issuer), check the answer, hold it in its book."""
+    cert, signature = issuer.certificate(party, ca_time)
+    checked = security.check_certificate(CA.verify_public, party, cert.box_public, cert.verify_public, cert.serial,
+                                         cert.not_after, signature)
+    return book.add(party, checked, now)
+
+
+def test_a_revoked_party_is_dropped_by_the_next_status_and_refused_by_the_ca():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    book = security.CertificateBook(CA.verify_public, silent_after=3.0)
+    assert book.on_status(*issuer.status(5000.0), now=10.0) == []
+    cert = fetch(issuer, book, 'client', 5000.0, 10.0)
+    assert book.get('client', 10.5) == cert
+    assert issuer.bar(['client']) == ['client']
+    assert book.get('client', 10.6) == cert                  # until the status says so
+    assert book.on_status(*issuer.status(5000.7), now=10.7) == ['client']
+    assert book.get('client', 10.7) is None
+    with pytest.raises(Rejected, match='revoked'):
+        issuer.certificate('client', 5000.8)
+    with pytest.raises(Rejected, match='is revoked'):       # a certificate kept from before: refused too
+        book.add('client', cert, 10.8)
+    issuer.bar([])                                           # named no more: a new certificate, a new serial
+    assert book.on_status(*issuer.status(5001.0), now=11.0) == []
+    again = fetch(issuer, book, 'client', 5001.0, 11.0)
+    assert again.serial != cert.serial
+    with pytest.raises(Rejected, match='is revoked'):       # the old serial stays revoked
+        book.add('client', cert, 11.0)
+
+
+def test_expiry_is_judged_in_the_cas_time_carried_by_the_gates_own_clock():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    book = security.CertificateBook(CA.verify_public)
+    book.on_status(*issuer.status(5000.0), now=1.0e6)        # the gate's monotonic clock is unrelated
+    cert = fetch(issuer, book, 'client', 5000.0, 1.0e6)
+    assert cert.not_after == 5100.0
+    assert book.get('client', 1.0e6 + 99.9) == cert
+    assert book.get('client', 1.0e6 + 100.1) is None         # CA time 5100.1: expired
+    with pytest.raises(Rejected, match='expired'):
+        book.add('client', cert, 1.0e6 + 100.1)
+    renewed = fetch(issuer, book, 'client', 5060.0, 1.0e6 + 60.0)   # past half its life: a new one
+    assert renewed.serial != cert.serial and renewed.not_after == 5160.0
+
+
+def test_a_status_not_signed_by_the_ca_or_replayed_is_refused_and_changes_nothing():
+    issuer = security.Issuer(CA, validity=100.0)
+    book = security.CertificateBook(CA.verify_public, silent_after=3.0)
+    assert book.silent(0.0) == float('inf')
+    first = issuer.status(5000.0)
+    issuer.revoked.add(99)
+    second = issuer.status(5001.0)
+    book.on_status(*second, now=2.0)
+    with pytest.raises(Rejected, match='stale_status'):
+        book.on_status(*first, now=3.0)                       # an older status replayed (99 not revoked in it)
+    assert book.revoked == {99}
+    ca_time, seq, revoked, _ = issuer.status(5002.0)
+    forged = security.sign_status(MALLORY, ca_time, seq, [])
+    with pytest.raises(Rejected, match='bad_signature'):
+        book.on_status(ca_time, seq, [], forged, now=4.0)
+    with pytest.raises(Rejected, match='bad_signature'):     # the CA's signature on other revocations
+        book.on_status(ca_time, seq, [], issuer.status(5003.0)[3], now=4.0)
+    assert book.revoked == {99} and book.silent(4.0) is None and book.silent(6.0) == pytest.approx(4.0)
+
+
+def test_a_rotated_key_gets_a_new_certificate_and_the_old_one_is_revoked():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    old, _ = issuer.certificate('client', 0.0)
+    assert issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public) is False   # unchanged
+    fresh = Party.generate('client')
+    assert issuer.set_keys('client', fresh.box_public, fresh.verify_public) is True
+    new, _ = issuer.certificate('client', 1.0)
+    assert new.verify_public == fresh.verify_public and new.serial != old.serial
+    assert old.serial in issuer.revoked and new.serial not in issuer.revoked
+    with pytest.raises(Rejected, match='unknown_party'):
+        issuer.certificate('nobody', 1.0)
+
+
+def test_the_revocations_file_is_read_or_refused_naming_the_problem(tmp_path):
+    from aft_ftm import sec_policy
+    path = tmp_path / 'revoked.yaml'
+    assert sec_policy.load_revocations(str(path)) == []          # no file: nobody revoked
+    path.write_text('revoked: [client2]\n')
+    assert sec_policy.load_revocations(str(path)) == ['client2']
+    path.write_text('')
+    assert sec_policy.load_revocations(str(path)) == []
+    for text in ('revoked: client2\n', 'parties: [a]\n', 'revoked: [1]\n', '[a, b]\n', 'revoked: [\n'):
+        path.write_text(text)
+        with pytest.raises(ConfigError) as error:
+            sec_policy.load_revocations(str(path))
+        assert str(path) in str(error.value)
 
 
 def test_key_files_private_ones_readable_by_the_owner_only(tmp_path):

@@ -1,4 +1,4 @@
-"""SEC's access-control policy file (issue 16): which certified party may do what, in the spirit of
+"""SEC's access-control policy file and its revocations file (issue 16): which certified party may do what, in the spirit of
 SROS2's permissions file. Today it says which Proxies (request origins) each party speaks for; a
 party's request from another origin is refused (``spoofed_origin``). YAML::
 
@@ -48,3 +48,23 @@ def parse(data, where='the SEC policy'):
                               % (where, party, origins))
         allowed[party] = list(origins)
     return allowed
+
+
+def load_revocations(path):
+    """The parties the revocations file names (``revoked: [party, ...]``); none if the file is missing.
+    ConfigError names the file and the problem."""
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except FileNotFoundError:
+        return []
+    except OSError as e:
+        raise ConfigError('revocations %s cannot be read: %s' % (path, e.strerror or e))
+    except yaml.YAMLError as e:
+        raise ConfigError('revocations %s is not YAML: %s' % (path, str(e).splitlines()[0]))
+    if data is None:
+        return []
+    if not isinstance(data, dict) or set(data) != {'revoked'} or not isinstance(data['revoked'], list) \
+            or not all(isinstance(p, str) and p for p in data['revoked']):
+        raise ConfigError('revocations %s: expected exactly one key, revoked (a list of party names)' % path)
+    return list(data['revoked'])

@@ -5,9 +5,11 @@ payload for its recipient, Ed25519 signs it for its sender; the CA signs each pa
 Nothing here logs or returns key material in error messages.
 """
 import base64
+import collections
 import fnmatch
 import json
 import os
+import struct
 
 import nacl.exceptions
 import nacl.public
@@ -21,7 +23,7 @@ SIGNATURE_BYTES = 64
 class Rejected(AftError):
     """A message refused by SEC. ``kind``: unsigned, bad_signature, unknown_party, tampered, replay,
     undecryptable, misaddressed (signed for another party), spoofed_origin (a party sending as a
-    Proxy that is not its own)."""
+    Proxy that is not its own), revoked, expired, bad_certificate, stale_status."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))
@@ -107,22 +109,177 @@ def read_public(directory, name):
 
 
 # -- certificates ---------------------------------------------------------------------------------
-def _certificate_content(name, box_public, verify_public):
-    return b'aft-cert-v1|' + name.encode() + b'|' + box_public + verify_public
+# A certificate binds a party's name to its public keys, under a serial number (revocation names it)
+# and an expiry, both in the CA's own time: nobody compares wall clocks with the CA's (issue 16).
+Cert = collections.namedtuple('Cert', 'box_public verify_public serial not_after')
 
 
-def certify(ca, name, box_public, verify_public):
-    """The CA's signature over a party's public keys."""
-    return ca.signing.sign(_certificate_content(name, box_public, verify_public)).signature
+def _certificate_content(name, box_public, verify_public, serial, not_after):
+    return (b'aft-cert-v2|' + name.encode() + b'|' + bytes(box_public) + bytes(verify_public)
+            + struct.pack('>Qd', serial, not_after))
 
 
-def check_certificate(ca_verify_public, name, box_public, verify_public, signature):
-    """Raise Rejected('bad_certificate') unless the CA signed these keys for this name."""
+def certify(ca, name, box_public, verify_public, serial, not_after):
+    """The CA's signature over a party's public keys, serial and expiry (CA time, s)."""
+    return ca.signing.sign(_certificate_content(name, box_public, verify_public, serial, not_after)).signature
+
+
+def check_certificate(ca_verify_public, name, box_public, verify_public, serial, not_after, signature):
+    """The Cert, or Rejected('bad_certificate') unless the CA signed these keys, serial and expiry
+    for this name."""
     try:
         nacl.signing.VerifyKey(bytes(ca_verify_public)).verify(
-            _certificate_content(name, bytes(box_public), bytes(verify_public)), bytes(signature))
-    except (nacl.exceptions.BadSignatureError, ValueError, TypeError):
+            _certificate_content(name, box_public, verify_public, serial, not_after), bytes(signature))
+    except (nacl.exceptions.BadSignatureError, ValueError, TypeError, struct.error):
         raise Rejected('bad_certificate', 'the certificate of %s is not signed by the CA' % name)
+    return Cert(bytes(box_public), bytes(verify_public), serial, not_after)
+
+
+def _status_content(ca_time, seq, revoked):
+    return b'aft-status-v1|' + struct.pack('>dQ', ca_time, seq) + b''.join(struct.pack('>Q', r) for r in
+                                                                          sorted(revoked))
+
+
+def sign_status(ca, ca_time, seq, revoked):
+    """The CA's signed status: its time, a sequence number that only grows, the revoked serials."""
+    return ca.signing.sign(_status_content(ca_time, seq, revoked)).signature
+
+
+class CertificateBook(object):
+    """The certificates a gate holds, judged by the CA's signed status (its time and revocations).
+
+    The CA publishes its status every period; ``on_status`` takes one only if the CA signed it and
+    its sequence number is newer (a replayed status is refused), then drops every certificate it
+    revokes. Expiry is judged in the CA's time, carried forward by this gate's monotonic clock from
+    the last status (``now``: monotonic seconds): no wall clock is compared with another. A revoked
+    key is thus refused within one status period of its revocation, plus delivery."""
+
+    def __init__(self, ca_verify_public, silent_after=3.0):
+        self.ca_verify = bytes(ca_verify_public)
+        self.silent_after = silent_after
+        self.peers = {}          # party -> Cert
+        self.revoked = set()     # serials
+        self.seq = None          # the last status taken
+        self.ca_time = None      # the CA's time in it ...
+        self.heard_at = None     # ... and when (monotonic) it came
+
+    def on_status(self, ca_time, seq, revoked, signature, now):
+        """Take a status; returns the parties whose certificate it ends. Rejected: not the CA's
+        (bad_signature) or not newer than the last (stale_status)."""
+        try:
+            nacl.signing.VerifyKey(self.ca_verify).verify(_status_content(ca_time, seq, revoked), bytes(signature))
+        except (nacl.exceptions.BadSignatureError, ValueError, TypeError, struct.error):
+            raise Rejected('bad_signature', 'a certificate status not signed by the CA')
+        if self.seq is not None and seq <= self.seq:
+            raise Rejected('stale_status', 'certificate status %d is not newer than %d (a replay)' % (seq, self.seq))
+        self.seq, self.ca_time, self.heard_at = seq, ca_time, now
+        self.revoked = set(revoked)
+        return self._drop_invalid(now)
+
+    def ca_now(self, now):
+        """The CA's time now, as this gate can tell (None before any status)."""
+        return None if self.ca_time is None else self.ca_time + (now - self.heard_at)
+
+    def silent(self, now):
+        """Seconds since the last status if longer than silent_after (or none ever came), else None."""
+        if self.heard_at is None:
+            return float('inf')
+        waited = now - self.heard_at
+        return waited if waited > self.silent_after else None
+
+    def add(self, party, cert, now):
+        """Hold a checked certificate, unless revoked or expired (Rejected)."""
+        why = self._invalid(cert, now)
+        if why:
+            raise Rejected(why[0], 'the certificate of %s (serial %d) %s' % (party, cert.serial, why[1]))
+        self.peers[party] = cert
+        return cert
+
+    def get(self, party, now):
+        """The valid certificate held for party, or None (none held, or it expired: fetch again)."""
+        cert = self.peers.get(party)
+        if cert is not None and self._invalid(cert, now):
+            del self.peers[party]
+            return None
+        return cert
+
+    def _invalid(self, cert, now):
+        if cert.serial in self.revoked:
+            return ('revoked', 'is revoked')
+        ca_now = self.ca_now(now)
+        if ca_now is not None and cert.not_after <= ca_now:
+            return ('expired', 'expired at CA time %.1f (now %.1f)' % (cert.not_after, ca_now))
+        return None
+
+    def _drop_invalid(self, now):
+        dropped = sorted(p for p, c in self.peers.items() if self._invalid(c, now))
+        for party in dropped:
+            del self.peers[party]
+        return dropped
+
+
+class Issuer(object):
+    """The certification authority's book: a certificate per party (serial, expiry in CA time), the
+    revoked serials, and its signed status. ``now``: the CA's own clock (s).
+
+    - a party's keys changing (a rotation: a new .pub) get a new certificate; the old serial is
+      revoked at once (the gate re-reads its key file, so the pause is one certificate fetch);
+    - a certificate past half its validity is renewed on the next ask (a new serial; the old one
+      stays valid until it expires);
+    - a party named in the revocations has every serial it holds revoked and gets no new one until
+      it is named no more."""
+
+    def __init__(self, ca, validity):
+        self.ca = ca
+        self.validity = validity
+        self.keys = {}           # party -> (box_public, verify_public)
+        self.issued = {}         # party -> (Cert, signature)
+        self.serials = {}        # party -> every serial issued to it
+        self.revoked = set()
+        self.barred = set()      # parties named in the revocations
+        self.next_serial = 1
+        self.seq = 0
+
+    def set_keys(self, party, box_public, verify_public):
+        keys = (bytes(box_public), bytes(verify_public))
+        old = self.keys.get(party)
+        self.keys[party] = keys
+        if old is not None and old != keys and party in self.issued:
+            self.revoked.add(self.issued.pop(party)[0].serial)   # rotated: the old key is refused
+            return True
+        return False
+
+    def bar(self, parties):
+        """The parties the revocations name now; returns those newly barred."""
+        parties = set(parties)
+        newly = parties - self.barred
+        for party in parties:
+            self.revoked.update(self.serials.get(party, ()))
+            self.issued.pop(party, None)
+        self.barred = parties
+        return sorted(newly)
+
+    def certificate(self, party, now):
+        """(Cert, signature) for party, or Rejected (unknown_party, revoked)."""
+        if party in self.barred:
+            raise Rejected('revoked', 'party %s is revoked' % party)
+        if party not in self.keys:
+            raise Rejected('unknown_party', 'no certificate for party %r' % party)
+        held = self.issued.get(party)
+        if held is None or held[0].not_after - now < self.validity / 2.0:
+            serial, self.next_serial = self.next_serial, self.next_serial + 1
+            box, verify = self.keys[party]
+            cert = Cert(box, verify, serial, now + self.validity)
+            held = (cert, certify(self.ca, party, box, verify, serial, cert.not_after))
+            self.issued[party] = held
+            self.serials.setdefault(party, []).append(serial)
+        return held
+
+    def status(self, now):
+        """(ca_time, seq, revoked serials, signature): the next status to publish."""
+        self.seq += 1
+        revoked = sorted(self.revoked)
+        return now, self.seq, revoked, sign_status(self.ca, now, self.seq, revoked)
 
 
 # -- messages -------------------------------------------------------------------------------------

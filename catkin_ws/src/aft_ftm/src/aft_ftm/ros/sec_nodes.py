@@ -2,9 +2,10 @@
 and replies between the client's Proxy and the server's FTM (SEC_C and SEC_S)."""
 import os
 import threading
+import time
 
 import rospy
-from aft_msgs.msg import Reply, Request
+from aft_msgs.msg import CertificateStatus, Reply, Request
 from aft_msgs.srv import Certificate, CertificateResponse
 
 from .. import config, health, sec_policy, security
@@ -19,31 +20,83 @@ from .protocol_node import ROLES
 
 
 class CertificationAuthorityNode(object):
-    """Certifies the public keys of the parties it knows (files <party>.pub next to its ca.key).
+    """Certifies the public keys of the parties it knows (files <party>.pub next to its ca.key), with
+    a serial number and an expiry in its own time, and publishes its signed status (its time, the
+    revoked serials) every ~status_period (security.Issuer, security.CertificateBook).
 
-    Parameters: ~keys_dir (str, required), ~parties (list of party names, required)
+    Parameters: ~keys_dir (str, required), ~parties (list of party names, required),
+        ~validity (float, 86400 s): a certificate's life; renewed past half of it,
+        ~status_period (float, 0.5 s): how often the status is published, the key files re-read (a
+            changed .pub is a key rotation: the old certificate is revoked) and the revocations re-read,
+        ~revocations (str, <keys_dir>/revoked.yaml): ``revoked: [party, ...]``, written by the operator
+            (its file permissions are its authentication); a missing file revokes nothing, a malformed
+            one changes nothing (logged, naming the problem).
     Services: ~certificate (aft_msgs/Certificate)
+    Publishes: ~status (aft_msgs/CertificateStatus, latched)
     """
 
     def __init__(self):
-        keys_dir = param('keys_dir', config.non_empty_str, required=True)
-        parties = param('parties', config.some_names, required=True)
-        self.ca = security.read_party(keys_dir, 'ca')
-        self.certificates = {}
-        for name in parties:
-            box, verify = security.read_public(keys_dir, name)
-            self.certificates[name] = (box, verify, security.certify(self.ca, name, box, verify))
+        self.keys_dir = param('keys_dir', config.non_empty_str, required=True)
+        self.parties = param('parties', config.some_names, required=True)
+        self.status_period = param('status_period', config.positive_float, 0.5)
+        self.revocations = param('revocations', config.non_empty_str, os.path.join(self.keys_dir, 'revoked.yaml'))
+        self.issuer = security.Issuer(security.read_party(self.keys_dir, 'ca'),
+                                      param('validity', config.positive_float, 86400.0))
+        self.lock = threading.Lock()
+        self.revocations_seen = None
+        self._reload()
 
     def setup(self, timeout):
+        self.status_pub = rospy.Publisher('~status', CertificateStatus, queue_size=1, latch=True)
         rospy.Service('~certificate', Certificate, self._on_certificate)
-        rospy.loginfo('%s: certifying %s', rospy.get_name(), ', '.join(sorted(self.certificates)))
+        self._publish_status()
+        threading.Thread(target=self._loop, name='ca-status', daemon=True).start()
+        rospy.loginfo('%s: certifying %s', rospy.get_name(), ', '.join(sorted(self.parties)))
         return True
 
+    def _reload(self):
+        """The parties' public keys (a changed one is a rotation) and the revocations file."""
+        for name in self.parties:
+            box, verify = security.read_public(self.keys_dir, name)
+            with self.lock:
+                rotated = self.issuer.set_keys(name, box, verify)
+            if rotated:
+                rospy.logwarn('%s: the keys of %s changed: its old certificate is revoked', rospy.get_name(), name)
+        try:
+            barred = sec_policy.load_revocations(self.revocations)
+        except config.ConfigError as e:
+            if str(e) != self.revocations_seen:
+                self.revocations_seen = str(e)
+                rospy.logerr('%s: %s (the revocations in force are kept)', rospy.get_name(), e)
+            return
+        self.revocations_seen = None
+        with self.lock:
+            newly = self.issuer.bar(barred)
+        if newly:
+            rospy.logwarn('%s: revoked: %s', rospy.get_name(), ', '.join(newly))
+
+    def _publish_status(self):
+        with self.lock:
+            ca_time, seq, revoked, signature = self.issuer.status(time.time())
+        self.status_pub.publish(CertificateStatus(ca_time=ca_time, seq=seq, revoked=revoked, signature=signature))
+
+    def _loop(self):
+        while not rospy.is_shutdown():
+            time.sleep(self.status_period)
+            try:
+                self._reload()
+            except config.ConfigError as e:   # a key file unreadable meanwhile: the last keys stay
+                rospy.logerr_throttle(10.0, '%s: %s' % (rospy.get_name(), e))
+            self._publish_status()
+
     def _on_certificate(self, req):
-        cert = self.certificates.get(req.party)
-        if cert is None:
-            return CertificateResponse(found=False, message='no certificate for party %r' % req.party)
-        return CertificateResponse(found=True, box_public=cert[0], verify_public=cert[1], signature=cert[2])
+        try:
+            with self.lock:
+                cert, signature = self.issuer.certificate(req.party, time.time())
+        except security.Rejected as e:
+            return CertificateResponse(found=False, message=str(e))
+        return CertificateResponse(found=True, box_public=cert.box_public, verify_public=cert.verify_public,
+                                   serial=cert.serial, not_after=cert.not_after, signature=signature)
 
 
 class SecGateNode(object):
@@ -67,8 +120,12 @@ class SecGateNode(object):
         ~policy (server side, path, default none): the access-control policy file (aft_ftm.sec_policy):
             which party may send as which origin. Without it each origin is bound to the first party
             whose verified request used it (a warning in the log and in the diagnostics).
+        ~ca_silent_after (float, 3 s): the CA's status unheard this long raises ``ca_silent`` (revocations
+            cannot reach this gate meanwhile)
     Services called: certificate (aft_msgs/Certificate): the CA's.
-    Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply)
+    Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
+        certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
+        dropped at once, and its party's messages refused (``revoked``, ``expired``)
     Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm)
     Services: ~rebind (aft_msgs/Rebind)
     """
@@ -89,7 +146,8 @@ class SecGateNode(object):
                            {'requests_in': self._on_request, 'replies_in': self._on_reply},
                            listeners={'requests_out': _ResendOnConnect(self)})
         self.sent = {}            # client side: (origin, id) -> sealed request not answered yet
-        self.peers = {}           # party -> (box_public, verify_public), certified
+        self.book = security.CertificateBook(self.ca_verify, param('ca_silent_after', config.positive_float, 3.0))
+        self.ca_silent_told = False
         policy = param('policy', config.optional_name, '')
         self.policy = policy or None
         self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
@@ -112,6 +170,7 @@ class SecGateNode(object):
             except security.Rejected as e:
                 rospy.logerr('%s: %s', rospy.get_name(), e)
                 return False
+        self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
         for name in ('requests_out', 'replies_out', 'replies_in', 'alarms'):
             self.ports.bind(name)
         if self.role != Role.BACKUP:
@@ -121,6 +180,7 @@ class SecGateNode(object):
             rospy.logwarn('%s: %s not connected yet', rospy.get_name(), missing)
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._health)
+        threading.Thread(target=self._watch_ca, name='ca-watch', daemon=True).start()
         if self.side == 'server' and self.policy is None:
             rospy.logwarn('%s: no SEC policy (~policy): each origin is bound to the first party whose signed request '
                           'uses it', rospy.get_name())
@@ -128,29 +188,56 @@ class SecGateNode(object):
 
     def _health(self):
         with self.lock:
-            return health.sec_gate(self.side, self.me.name, self.role, len(self.peers), len(self.sent),
+            return health.sec_gate(self.side, self.me.name, self.role, len(self.book.peers), len(self.sent),
                                    self.rejected, policy=self.policy if self.side == 'server' else '')
 
     def _peer(self, party):
-        """The certified public keys of party (fetched from the CA once, then kept)."""
+        """The certified public keys of party: held while valid, else fetched from the CA and checked."""
+        now = time.monotonic()
         with self.lock:
-            keys = self.peers.get(party)
-        if keys is not None:
-            return keys
+            cert = self.book.get(party, now)
+        if cert is not None:
+            return cert.box_public, cert.verify_public
         try:
-            cert = self.certificate(party=party)
+            answer = self.certificate(party=party)
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.certificate = self.certificate.fresh()
             raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
-        if not cert.found:
-            raise security.Rejected('unknown_party', cert.message)
-        security.check_certificate(self.ca_verify, party, cert.box_public, cert.verify_public, cert.signature)
-        keys = (bytes(cert.box_public), bytes(cert.verify_public))
+        if not answer.found:
+            kind = 'revoked' if answer.message.startswith('revoked') else 'unknown_party'
+            raise security.Rejected(kind, answer.message)
+        cert = security.check_certificate(self.ca_verify, party, answer.box_public, answer.verify_public,
+                                          answer.serial, answer.not_after, answer.signature)
         with self.lock:
-            self.peers[party] = keys
-        return keys
+            self.book.add(party, cert, time.monotonic())
+        return cert.box_public, cert.verify_public
 
-    def _reject(self, error, msg):
+    def _on_status(self, status):
+        try:
+            with self.lock:
+                dropped = self.book.on_status(status.ca_time, status.seq, status.revoked, status.signature,
+                                              time.monotonic())
+        except security.Rejected as e:
+            self._reject(e)
+            return
+        self.ca_silent_told = False
+        if dropped:
+            rospy.logwarn('%s: the certificates of %s are revoked or expired: their messages are refused',
+                          rospy.get_name(), ', '.join(dropped))
+
+    def _watch_ca(self):
+        """Never silent: a CA whose status stops coming cannot revoke anything meanwhile."""
+        while not rospy.is_shutdown():
+            time.sleep(1.0)
+            with self.lock:
+                silent = self.book.silent(time.monotonic())
+            if silent and not self.ca_silent_told:
+                self.ca_silent_told = True
+                alarm(self.ports, 'sec', 'ca_silent', 'no status from the certification authority for %s: '
+                      'a revocation cannot reach %s' % ('ever' if silent == float('inf') else '%.1f s' % silent,
+                                                         rospy.get_name()))
+
+    def _reject(self, error, msg=None):
         self.rejected += 1
         alarm(self.ports, 'sec', error.kind, error.detail, msg)
 
