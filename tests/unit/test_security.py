@@ -147,18 +147,34 @@ def test_a_status_not_signed_by_the_ca_or_replayed_is_refused_and_changes_nothin
     assert book.revoked == {99} and book.silent(4.0) is None and book.silent(6.0) == pytest.approx(4.0)
 
 
-def test_a_rotated_key_gets_a_new_certificate_and_the_old_one_is_revoked():
-    issuer = security.Issuer(CA, validity=100.0)
-    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
-    old, _ = issuer.certificate('client', 0.0)
-    assert issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public) is False   # unchanged
+def test_a_rotated_key_gets_a_new_certificate_and_the_old_one_ends_after_the_overlap():
+    issuer = security.Issuer(CA, validity=100.0, overlap=10.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, now=0.0)
+    book = security.CertificateBook(CA.verify_public)
+    book.on_status(*issuer.status(0.0), now=0.0)
+    old = fetch(issuer, book, 'client', 0.0, 0.0)
+    assert issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, now=1.0) is False   # unchanged
     fresh = Party.generate('client')
-    assert issuer.set_keys('client', fresh.box_public, fresh.verify_public) is True
-    new, _ = issuer.certificate('client', 1.0)
+    assert issuer.set_keys('client', fresh.box_public, fresh.verify_public, now=2.0) is True
+    new = fetch(issuer, book, 'client', 2.5, 0.5)
     assert new.verify_public == fresh.verify_public and new.serial != old.serial
+    # During the overlap a gate holds both, newest first: a message signed with either key is taken.
+    book.on_status(*issuer.status(5.0), now=5.0)
+    assert book.candidates('client', 5.0) == [new, old]
+    book.on_status(*issuer.status(12.5), now=12.5)       # overlap over: the old serial revoked
     assert old.serial in issuer.revoked and new.serial not in issuer.revoked
+    assert book.candidates('client', 12.5) == [new]
     with pytest.raises(Rejected, match='unknown_party'):
         issuer.certificate('nobody', 1.0)
+
+
+def test_key_files_are_replaced_whole(tmp_path):
+    security.write_party(str(tmp_path), CLIENT)
+    fresh = Party.generate('client')
+    security.write_party(str(tmp_path), fresh)
+    assert security.read_public(str(tmp_path), 'client') == (fresh.box_public, fresh.verify_public)
+    assert security.read_party(str(tmp_path), 'client').verify_public == fresh.verify_public
+    assert sorted(os.listdir(str(tmp_path))) == ['client.key', 'client.pub']
 
 
 def test_the_revocations_file_is_read_or_refused_naming_the_problem(tmp_path):

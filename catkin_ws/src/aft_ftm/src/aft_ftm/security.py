@@ -66,14 +66,23 @@ def write_party(directory, party):
     """<party>.key (private, mode 0600) and <party>.pub (public) in directory."""
     _check_name(party.name)
     os.makedirs(directory, exist_ok=True)
-    private = os.path.join(directory, party.name + '.key')
-    fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    # Each file replaced whole (a rotation rewrites them while gates and the CA read them): the
+    # public key first, so that the CA may certify it before its owner signs with it.
+    _replace(os.path.join(directory, party.name + '.pub'), 0o644,
+             {'box': base64.b64encode(party.box_public).decode(),
+              'verify': base64.b64encode(party.verify_public).decode()})
+    _replace(os.path.join(directory, party.name + '.key'), 0o600,
+             {'box': base64.b64encode(bytes(party.box_private)).decode(),
+              'sign': base64.b64encode(bytes(party.signing)).decode()})
+
+
+def _replace(path, mode, data):
+    temporary = '%s.tmp-%d' % (path, os.getpid())
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
     with os.fdopen(fd, 'w') as f:
-        json.dump({'box': base64.b64encode(bytes(party.box_private)).decode(),
-                   'sign': base64.b64encode(bytes(party.signing)).decode()}, f)
-    with open(os.path.join(directory, party.name + '.pub'), 'w') as f:
-        json.dump({'box': base64.b64encode(party.box_public).decode(),
-                   'verify': base64.b64encode(party.verify_public).decode()}, f)
+        json.dump(data, f)
+    os.chmod(temporary, mode)
+    os.replace(temporary, path)
 
 
 def _read_json(path, what):
@@ -157,7 +166,8 @@ class CertificateBook(object):
     def __init__(self, ca_verify_public, silent_after=3.0):
         self.ca_verify = bytes(ca_verify_public)
         self.silent_after = silent_after
-        self.peers = {}          # party -> Cert
+        self.peers = {}          # party -> Cert: the newest held
+        self.previous = {}       # party -> Cert: the one before (a rotated key, valid until revoked)
         self.revoked = set()     # serials
         self.seq = None          # the last status taken
         self.ca_time = None      # the CA's time in it ...
@@ -192,8 +202,20 @@ class CertificateBook(object):
         why = self._invalid(cert, now)
         if why:
             raise Rejected(why[0], 'the certificate of %s (serial %d) %s' % (party, cert.serial, why[1]))
+        held = self.peers.get(party)
+        if held is not None and held.serial != cert.serial:
+            self.previous[party] = held
         self.peers[party] = cert
         return cert
+
+    def candidates(self, party, now):
+        """The valid certificates held for party, newest first (a rotated key's old one second)."""
+        found = [self.get(party, now)]
+        old = self.previous.get(party)
+        if old is not None and self._invalid(old, now):
+            del self.previous[party]
+            old = None
+        return [c for c in found + [old] if c is not None]
 
     def get(self, party, now):
         """The valid certificate held for party, or None (none held, or it expired: fetch again)."""
@@ -215,6 +237,8 @@ class CertificateBook(object):
         dropped = sorted(p for p, c in self.peers.items() if self._invalid(c, now))
         for party in dropped:
             del self.peers[party]
+        for party in [p for p, c in self.previous.items() if self._invalid(c, now)]:
+            del self.previous[party]
         return dropped
 
 
@@ -222,16 +246,19 @@ class Issuer(object):
     """The certification authority's book: a certificate per party (serial, expiry in CA time), the
     revoked serials, and its signed status. ``now``: the CA's own clock (s).
 
-    - a party's keys changing (a rotation: a new .pub) get a new certificate; the old serial is
-      revoked at once (the gate re-reads its key file, so the pause is one certificate fetch);
+    - a party's keys changing (a rotation: a new .pub) get a new certificate; the old one stays
+      valid for ``overlap`` seconds (messages signed with the old key meanwhile are still taken,
+      while every gate fetches the new certificate), then is revoked;
     - a certificate past half its validity is renewed on the next ask (a new serial; the old one
       stays valid until it expires);
     - a party named in the revocations has every serial it holds revoked and gets no new one until
       it is named no more."""
 
-    def __init__(self, ca, validity):
+    def __init__(self, ca, validity, overlap=10.0):
         self.ca = ca
         self.validity = validity
+        self.overlap = overlap
+        self.retiring = {}       # serial -> CA time from which it is revoked (a rotated key)
         self.keys = {}           # party -> (box_public, verify_public)
         self.issued = {}         # party -> (Cert, signature)
         self.serials = {}        # party -> every serial issued to it
@@ -240,12 +267,13 @@ class Issuer(object):
         self.next_serial = 1
         self.seq = 0
 
-    def set_keys(self, party, box_public, verify_public):
+    def set_keys(self, party, box_public, verify_public, now=0.0):
+        """A party's public keys (read again every period); returns True if they changed (rotated)."""
         keys = (bytes(box_public), bytes(verify_public))
         old = self.keys.get(party)
         self.keys[party] = keys
         if old is not None and old != keys and party in self.issued:
-            self.revoked.add(self.issued.pop(party)[0].serial)   # rotated: the old key is refused
+            self.retiring[self.issued.pop(party)[0].serial] = now + self.overlap
             return True
         return False
 
@@ -278,6 +306,10 @@ class Issuer(object):
     def status(self, now):
         """(ca_time, seq, revoked serials, signature): the next status to publish."""
         self.seq += 1
+        for serial, until in list(self.retiring.items()):
+            if until <= now:
+                self.revoked.add(serial)
+                del self.retiring[serial]
         revoked = sorted(self.revoked)
         return now, self.seq, revoked, sign_status(self.ca, now, self.seq, revoked)
 

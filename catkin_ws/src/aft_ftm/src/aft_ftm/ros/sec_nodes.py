@@ -26,6 +26,7 @@ class CertificationAuthorityNode(object):
 
     Parameters: ~keys_dir (str, required), ~parties (list of party names, required),
         ~validity (float, 86400 s): a certificate's life; renewed past half of it,
+        ~rotation_overlap (float, 10 s): a rotated key's old certificate stays valid this long,
         ~status_period (float, 0.5 s): how often the status is published, the key files re-read (a
             changed .pub is a key rotation: the old certificate is revoked) and the revocations re-read,
         ~revocations (str, <keys_dir>/revoked.yaml): ``revoked: [party, ...]``, written by the operator
@@ -41,7 +42,8 @@ class CertificationAuthorityNode(object):
         self.status_period = param('status_period', config.positive_float, 0.5)
         self.revocations = param('revocations', config.non_empty_str, os.path.join(self.keys_dir, 'revoked.yaml'))
         self.issuer = security.Issuer(security.read_party(self.keys_dir, 'ca'),
-                                      param('validity', config.positive_float, 86400.0))
+                                      param('validity', config.positive_float, 86400.0),
+                                      param('rotation_overlap', config.positive_float, 10.0))
         self.lock = threading.Lock()
         self.revocations_seen = None
         self._reload()
@@ -59,9 +61,10 @@ class CertificationAuthorityNode(object):
         for name in self.parties:
             box, verify = security.read_public(self.keys_dir, name)
             with self.lock:
-                rotated = self.issuer.set_keys(name, box, verify)
+                rotated = self.issuer.set_keys(name, box, verify, time.time())
             if rotated:
-                rospy.logwarn('%s: the keys of %s changed: its old certificate is revoked', rospy.get_name(), name)
+                rospy.logwarn('%s: the keys of %s changed: a new certificate; the old one is revoked in %.1f s',
+                              rospy.get_name(), name, self.issuer.overlap)
         try:
             barred = sec_policy.load_revocations(self.revocations)
         except config.ConfigError as e:
@@ -134,6 +137,10 @@ class SecGateNode(object):
         self.side = param('side', config.choice('client', 'server'), required=True)
         keys_dir = param('keys_dir', config.non_empty_str, required=True)
         self.me = security.read_party(keys_dir, param('party', config.non_empty_str, required=True))
+        self.keys_dir = keys_dir
+        self.previous_me = None   # the key before a rotation: replies sealed for it are still opened
+        self.key_file = self._key_file_id()
+        self.refetched = {}       # party -> when its certificate was last fetched again after a bad signature
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
@@ -181,6 +188,7 @@ class SecGateNode(object):
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._health)
         threading.Thread(target=self._watch_ca, name='ca-watch', daemon=True).start()
+        threading.Thread(target=self._watch_own_key, name='key-watch', daemon=True).start()
         if self.side == 'server' and self.policy is None:
             rospy.logwarn('%s: no SEC policy (~policy): each origin is bound to the first party whose signed request '
                           'uses it', rospy.get_name())
@@ -211,6 +219,69 @@ class SecGateNode(object):
         with self.lock:
             self.book.add(party, cert, time.monotonic())
         return cert.box_public, cert.verify_public
+
+    def _open(self, party, blob, header):
+        """Verify and decipher a blob from party: with each certificate held for it (a rotated key's
+        old one too), for each key of this gate's own (its old one too); after a bad signature with
+        all of them, its certificate fetched again once (at most once a second: it may have rotated)."""
+        for attempt in (0, 1):
+            self._peer(party)
+            with self.lock:
+                certs = self.book.candidates(party, time.monotonic())
+            mine = [self.me] + ([self.previous_me] if self.previous_me is not None else [])
+            error = None
+            for cert in certs:
+                for me in mine:
+                    try:
+                        return security.open_sealed(me, cert.verify_public, blob, header)
+                    except security.Rejected as e:
+                        error = e
+                        if e.kind != 'undecryptable':
+                            break   # this certificate's signature or header: the next certificate
+            now = time.monotonic()
+            if attempt or error.kind != 'bad_signature' or now - self.refetched.get(party, -1e9) < 1.0:
+                raise error
+            self.refetched[party] = now
+            with self.lock:
+                self.book.peers.pop(party, None)   # kept as the previous one when the new one comes
+                if certs:
+                    self.book.previous[party] = certs[0]
+        raise error
+
+    def _key_file_id(self):
+        try:
+            info = os.stat(os.path.join(self.keys_dir, self.me.name + '.key'))
+            return (info.st_ino, info.st_mtime_ns, info.st_size)
+        except OSError:
+            return None
+
+    def _watch_own_key(self, period=0.2):
+        """A rotation of this gate's own key (a new <party>.key): signed with it only once the CA
+        certifies it (it re-reads the public keys every period), so no message is signed with a key
+        that no gate can check yet; the old key still opens what was sealed for it."""
+        candidate = None
+        while not rospy.is_shutdown():
+            time.sleep(period)
+            seen = self._key_file_id()
+            if seen != self.key_file:
+                try:
+                    candidate = security.read_party(self.keys_dir, self.me.name)
+                    self.key_file = seen
+                except config.ConfigError as e:
+                    rospy.logwarn_throttle(10.0, '%s: the new key cannot be read yet: %s' % (rospy.get_name(), e))
+                    continue
+                if candidate.verify_public == self.me.verify_public:
+                    candidate = None
+            if candidate is None:
+                continue
+            try:
+                answer = self.certificate(party=self.me.name)
+            except (rospy.ServiceException, rospy.ROSException):
+                continue
+            if answer.found and bytes(answer.verify_public) == candidate.verify_public:
+                self.previous_me, self.me, candidate = self.me, candidate, None
+                rospy.logwarn('%s: signing with the rotated key of %s now (certificate %d)', rospy.get_name(),
+                              self.me.name, answer.serial)
 
     def _on_status(self, status):
         try:
@@ -250,9 +321,8 @@ class SecGateNode(object):
                                                                          self.server_party), request.payload)
             else:
                 party = security.sender_of(request.payload)
-                _, verify = self._peer(party)
-                payload = security.open_sealed(self.me, verify, request.payload,
-                                               security.header_of(request, security.REQUEST_FIELDS, self.me.name))
+                payload = self._open(party, request.payload,
+                                     security.header_of(request, security.REQUEST_FIELDS, self.me.name))
                 with self.lock:
                     self.origins.bind(party, request.origin)
                     self.replays.check(request.origin, request.id)
@@ -296,9 +366,8 @@ class SecGateNode(object):
                     return
                 if security.sender_of(reply.payload) != self.server_party:
                     raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
-                _, verify = self._peer(self.server_party)
-                payload = security.open_sealed(self.me, verify, reply.payload,
-                                               security.header_of(reply, security.REPLY_FIELDS, self.me.name))
+                payload = self._open(self.server_party, reply.payload,
+                                     security.header_of(reply, security.REPLY_FIELDS, self.me.name))
         except security.Rejected as e:
             self._reject(e, reply)
             return
