@@ -293,3 +293,23 @@ def test_the_policy_file_is_read_or_refused_naming_the_problem(tmp_path):
         assert str(bad) in str(error.value) and words in str(error.value), (text, str(error.value))
     with pytest.raises(ConfigError, match='cannot be read'):
         sec_policy.load(str(tmp_path / 'missing.yaml'))
+
+
+def test_sec_keygen_rotates_a_partys_keys_and_refuses_the_ca_or_an_unknown_party(tmp_path):
+    import subprocess
+    import sys
+    tool = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'nodes', 'sec_keygen')
+
+    def run(*args):
+        return subprocess.run([sys.executable, tool] + list(args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              universal_newlines=True)
+    assert run(str(tmp_path), 'client').returncode == 0
+    before = security.read_public(str(tmp_path), 'client')
+    ca = security.read_public(str(tmp_path), 'ca')
+    done = run('--rotate', str(tmp_path), 'client')
+    assert done.returncode == 0 and 'client: rotated' in done.stdout
+    assert security.read_public(str(tmp_path), 'client') != before and security.read_public(str(tmp_path), 'ca') == ca
+    for args, words in [(('--rotate', str(tmp_path), 'ca'), "CA's key is not rotated"),
+                        (('--rotate', str(tmp_path), 'ghost'), 'ghost has no key')]:
+        refused = run(*args)
+        assert refused.returncode == 2 and words in refused.stdout
