@@ -81,16 +81,20 @@ def test_a_process_is_signalled_only_while_pid_start_time_and_command_line_all_m
 ])
 def test_a_heartbeat_counts_only_from_the_services_own_publishing_process(pid, owned, published, why):
     asked = []
-    origins = trust.HeartbeatOrigins(lambda callerid, p: asked.append((callerid, p)) or published)
-    verdict = origins.judge('/svc', pid, lambda p: owned)
+    origins = trust.HeartbeatOrigins(lambda connection, p: asked.append((connection, p)) or published)
+    verdict = origins.judge({'callerid': '/svc'}, pid, lambda p: owned)
     assert (verdict is None) if why is None else (why in verdict)
 
 
-def test_a_verified_sender_is_remembered_and_checked_again_for_another_pid():
+def test_a_verified_sender_is_remembered_per_connection_and_checked_again_otherwise():
     asked = []
-    origins = trust.HeartbeatOrigins(lambda callerid, p: asked.append(p) or p == 7)
+    origins = trust.HeartbeatOrigins(lambda connection, p: asked.append(p) or p == connection['pid'])
+    first = {'callerid': '/svc', 'pid': 7}
     for _ in range(5):
-        assert origins.judge('/svc', 7, lambda p: True) is None
+        assert origins.judge(first, 7, lambda p: True) is None
     assert asked == [7]                                   # one check, then remembered
-    assert 'is another process' in origins.judge('/svc', 8, lambda p: True)   # the restarted service's pid
-    assert origins.judge('/svc', 7, lambda p: False) is not None              # no longer the service's
+    # the restarted service: same node name, a new connection and pid; an old connection with it
+    again = {'callerid': '/svc', 'pid': 8}
+    assert origins.judge(again, 8, lambda p: True) is None
+    assert 'is another process' in origins.judge(first, 8, lambda p: True)
+    assert origins.judge(first, 7, lambda p: False) is not None              # no longer the service's

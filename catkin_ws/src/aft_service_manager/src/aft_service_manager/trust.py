@@ -108,27 +108,32 @@ def same_process(entry, proc):
 
 
 class HeartbeatOrigins(object):
-    """Judges where a heartbeat comes from. ``published_by(callerid, pid)``: whether process pid is the
-    one that published on the connection from node callerid (True, False, or None if that cannot be
-    told); ``owns(pid)`` (given to judge): the service's child or a descendant of it. A verified
-    (callerid, pid) pair is remembered, and checked again once the pid is no longer the service's."""
+    """Judges where a heartbeat comes from. ``published_by(connection, pid)``: whether process pid is
+    the one that published on that connection (True, False, or None if that cannot be told);
+    ``owns(pid)`` (given to judge): the service's child or a descendant of it. A verified
+    (connection, pid) pair is remembered (connections are told apart by identity: rospy gives every
+    message of one connection the same header dict), and checked again for another pid."""
 
     def __init__(self, published_by):
         self.published_by = published_by
-        self.verified = {}   # callerid -> pid
+        self.verified = {}   # id(connection) -> (connection, pid); the connection kept so its id stays its own
 
-    def judge(self, callerid, pid, owns):
+    def judge(self, connection, pid, owns):
         """None if the beat is the service's own; else why it is refused."""
         if not pid or pid < 0:
             return 'it names no process (pid %r)' % pid
         if not owns(pid):
             return 'pid %d is not a process of this service' % pid
-        if self.verified.get(callerid) == pid:
+        known = self.verified.get(id(connection))
+        if known is not None and known[0] is connection and known[1] == pid:
             return None
-        sender = self.published_by(callerid, pid)
+        sender = self.published_by(connection, pid)
+        caller = connection.get('callerid', '?') if isinstance(connection, dict) else '?'
         if sender is None:
-            return 'the process that published it (node %s) cannot be found' % (callerid or '?')
+            return 'the connection that carried it (from node %s) cannot be found' % caller
         if not sender:
-            return 'it claims pid %d, but node %s that published it is another process' % (pid, callerid or '?')
-        self.verified[callerid] = pid
+            return 'it claims pid %d, but node %s that published it is another process' % (pid, caller)
+        if len(self.verified) > 256:
+            self.verified.clear()   # bounded: connections come and go with restarts
+        self.verified[id(connection)] = (connection, pid)
         return None

@@ -115,19 +115,18 @@ class Child(object):
             self.kill(timeout)
 
 
-def publisher_port(topic, callerid):
-    """The TCP port of node callerid's publisher that this node's subscription to topic is connected
-    to, or None."""
+def publisher_port(topic, header):
+    """The TCP port of the publisher whose connection to this node's subscription to topic carried a
+    message (its ``_connection_header``: rospy gives every message of a connection that very dict), or None."""
     from rospy.impl.registration import get_topic_manager
     impl = get_topic_manager().get_subscriber_impl(topic)
     for connection in list(getattr(impl, 'connections', None) or ()):
-        header = getattr(connection, 'header', None) or {}
         sock = getattr(connection, 'socket', None)
-        if header.get('callerid') == callerid and sock is not None:
+        if getattr(connection, 'header', None) is header and sock is not None:
             try:
                 return sock.getpeername()[1]
             except OSError:
-                continue
+                return None
     return None
 
 
@@ -285,10 +284,10 @@ class ServiceManagerNode(object):
             pids = [child.pid]
         self.replaced[name] = (self.replaced.get(name, []) + pids)[-64:]
 
-    def _published_by(self, callerid, pid):
-        """Whether process pid published on the heartbeat subscription's connection from node callerid:
-        it listens on the TCP port that connection reaches (None: no such connection)."""
-        port = publisher_port(self.heartbeat_topic, callerid)
+    def _published_by(self, header, pid):
+        """Whether process pid published on the heartbeat subscription's connection whose header this
+        is: it listens on the TCP port that connection reaches (None: no such connection)."""
+        port = publisher_port(self.heartbeat_topic, header)
         if port is None:
             return None
         try:
@@ -371,8 +370,8 @@ class ServiceManagerNode(object):
             if child is None or beat.pid in self.replaced.get(beat.name, ()):
                 self.stale_heartbeats += 1     # a replaced (or stopped) process's last words
                 return
-            callerid = (getattr(beat, '_connection_header', None) or {}).get('callerid', '')
-            why = self.origins.judge(callerid, beat.pid, child.owns)
+            header = getattr(beat, '_connection_header', None) or {}
+            why = self.origins.judge(header, beat.pid, child.owns)
             if why:
                 self.refused_heartbeats += 1
                 rospy.logwarn_throttle(5.0, '%s: heartbeat for %s refused (%d so far): %s'
