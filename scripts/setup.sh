@@ -9,7 +9,7 @@ APT_PACKAGES=(
   ros-core catkin python3-rospy python3-roslaunch python3-rostest python3-rosnode python3-rosservice
   python3-rostopic python3-rosgraph ros-message-generation python3-genpy python3-genmsg python3-gencpp
   python3-genlisp libstd-msgs-dev python3-std-msgs ros-std-msgs python3-std-srvs libstd-srvs-dev
-  python3-psutil python3-yaml python3-nacl python3-venv python3-pip cmake g++ make procps rosbash
+  python3-psutil python3-yaml python3-nacl python3-cryptography python3-venv python3-pip cmake g++ make procps rosbash
   python3-rosbag python3-rosgraph-msgs python3-sensor-msgs python3-geometry-msgs python3-diagnostic-msgs
 )
 

@@ -16,16 +16,25 @@ from .errors import ConfigError
 PARTY_KEYS = ('origins',)
 
 
-def load(path):
-    """{party: [origin patterns]} from the policy file at path."""
+def read_yaml(path, what, missing=False):
+    """The YAML in path (``missing`` if there is no file, when given); ConfigError naming ``what``,
+    the file and the problem."""
     try:
         with open(path) as f:
-            data = yaml.safe_load(f)
+            return yaml.safe_load(f)
+    except FileNotFoundError as e:
+        if missing is not False:
+            return missing
+        raise ConfigError('%s %s cannot be read: %s' % (what, path, e.strerror or e))
     except OSError as e:
-        raise ConfigError('SEC policy %s cannot be read: %s' % (path, e.strerror or e))
+        raise ConfigError('%s %s cannot be read: %s' % (what, path, e.strerror or e))
     except yaml.YAMLError as e:
-        raise ConfigError('SEC policy %s is not YAML: %s' % (path, str(e).splitlines()[0]))
-    return parse(data, path)
+        raise ConfigError('%s %s is not YAML: %s' % (what, path, str(e).splitlines()[0]))
+
+
+def load(path):
+    """{party: [origin patterns]} from the policy file at path."""
+    return parse(read_yaml(path, 'SEC policy'), path)
 
 
 def parse(data, where='the SEC policy'):
@@ -53,15 +62,7 @@ def parse(data, where='the SEC policy'):
 def load_revocations(path):
     """The parties the revocations file names (``revoked: [party, ...]``); none if the file is missing.
     ConfigError names the file and the problem."""
-    try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
-    except FileNotFoundError:
-        return []
-    except OSError as e:
-        raise ConfigError('revocations %s cannot be read: %s' % (path, e.strerror or e))
-    except yaml.YAMLError as e:
-        raise ConfigError('revocations %s is not YAML: %s' % (path, str(e).splitlines()[0]))
+    data = read_yaml(path, 'revocations', missing=None)
     if data is None:
         return []
     if not isinstance(data, dict) or set(data) != {'revoked'} or not isinstance(data['revoked'], list) \

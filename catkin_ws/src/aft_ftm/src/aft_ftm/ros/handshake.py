@@ -29,6 +29,7 @@ import struct
 import threading
 
 HANDSHAKE_TIMEOUT = 10.0   # s: a header is a few hundred bytes; rospy answers in milliseconds
+INBOUND_HOOKS = []   # hook(server, sock, client_addr) -> the socket to hand to rospy, or None (closed): TLS
 MAX_HEADER_BYTES = 16 << 20   # a header carries a message definition: kilobytes; 'POST' reads as 1.4 GB
 
 
@@ -52,7 +53,7 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
         if previous is None or previous > timeout:
             sock.settimeout(timeout)
         try:
-            if buffer.tell() == 0:   # nothing read yet: the length comes first
+            if buffer.tell() == 0 and not hasattr(sock, 'getpeercert'):   # TLS cannot peek: TLS read it whole
                 length = _announced_length(sock)
                 if length is not None and length > max_bytes:
                     raise HandshakeRefused('not a TCPROS handshake: a header of %d bytes announced (%r)'
@@ -72,7 +73,9 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
 def peer_hung_up(sock):
     """True if the peer has closed (or reset) its end: an orderly EOF is waiting. Data or nothing
     yet: False. Never waits (rospy's sockets may carry a timeout, which recv would wait out) and
-    consumes nothing."""
+    consumes nothing. A TLS socket cannot be peeked at: False (its peer is authenticated)."""
+    if hasattr(sock, 'getpeercert'):
+        return False
     poller = select.poll()
     poller.register(sock, select.POLLIN | select.POLLPRI)
     if not poller.poll(0):
@@ -124,10 +127,18 @@ def threaded(callback):
         topic_handler = getattr(self, 'topic_connection_handler', None)
         if topic_handler is not None and not getattr(topic_handler, 'one_subscriber_at_a_time', False):
             self.topic_connection_handler = one_subscriber_at_a_time(topic_handler, log=_rospy_info)   # accept thread: no race
-        threading.Thread(target=callback, args=(self, sock, client_addr), daemon=True,
+        threading.Thread(target=_with_hooks, args=(callback, self, sock, client_addr), daemon=True,
                          name='tcpros-inbound-%s:%s' % tuple(client_addr[:2])).start()
     handle.threaded = True
     return handle
+
+
+def _with_hooks(callback, server, sock, client_addr):
+    for hook in list(INBOUND_HOOKS):
+        sock = hook(server, sock, client_addr)
+        if sock is None:
+            return
+    callback(server, sock, client_addr)
 
 
 def bound_handshakes(timeout=HANDSHAKE_TIMEOUT):

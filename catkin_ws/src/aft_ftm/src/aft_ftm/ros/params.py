@@ -43,6 +43,22 @@ def wants_help(argv):
     return any(a in ('-h', '--help') for a in argv[1:])
 
 
+def secure_from_environment(environ=None):
+    """Install mutual TLS (aft_ftm.ros.tls_transport) if AFT_TLS_DIR is set: the party is AFT_TLS_PARTY,
+    the policy AFT_TLS_POLICY (both required then). Returns the party, or None (no TLS)."""
+    import os
+    environ = os.environ if environ is None else environ
+    directory = environ.get('AFT_TLS_DIR')
+    if not directory:
+        return None
+    party, policy = environ.get('AFT_TLS_PARTY'), environ.get('AFT_TLS_POLICY')
+    if not party or not policy:
+        raise ConfigError('AFT_TLS_DIR is set (%s): AFT_TLS_PARTY and AFT_TLS_POLICY must be set too' % directory)
+    from .. import tls
+    from .tls_transport import install
+    return install(directory, party, tls.Permissions.load(policy))
+
+
 def run_node(name, factory, setup_timeout=30.0, variants=None):
     """init_node, build the node object, setup(), spin. Exits non-zero with a clear message on failure.
     ``--help`` prints node_help() and exits 0 without contacting the master."""
@@ -53,6 +69,11 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
     from .handshake import bound_handshakes
     from .rejoin import keep_registered
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
+    try:
+        secure_from_environment()   # mutual TLS on every TCPROS connection, where the environment asks for it
+    except ConfigError as e:
+        sys.stderr.write('%s: %s\n' % (name, e))
+        sys.exit(2)
     rospy.init_node(name)
     try:
         keep_registered()   # registers again with a restarted ROS master

@@ -1,0 +1,189 @@
+"""Mutual TLS for TCPROS (issue 16): every topic and service connection between AFT-ROS nodes
+authenticated by a certificate of its party (a site, the witness, a client site), ciphered, and
+allowed by an access-control policy, as SROS does for ROS 1 and SROS2 for ROS 2. No rospy here:
+keys and certificates (the ``cryptography`` library, X.509, ECDSA P-256), the TLS contexts
+(Python's ``ssl``, OpenSSL), the policy, and the judgement of one connection.
+
+The policy file (YAML; names are fnmatch patterns of resolved topic and service names)::
+
+    plaintext: [/rosout, /account]   # names open to peers without TLS (ROS tools, the unmodified
+                                     # application's own client and server)
+    parties:
+      master:
+        publish: [/ftm/checkpoints/master, /master/*]
+        subscribe: ['*']
+        serve: [/master/*]
+        call: ['*']
+
+A connection is judged at both ends: the subscriber checks that the publisher's party may publish
+the topic, the publisher that the subscriber's may subscribe; the caller that the server's party may
+serve the service, the server that the caller's may call it. A peer without a certificate is allowed
+only on a plaintext name. TLS itself gives freshness (a recorded connection cannot be replayed) and
+integrity on every message of the connection.
+"""
+import datetime
+import fnmatch
+import os
+import ssl
+
+from .errors import ConfigError
+
+ACTIONS = ('publish', 'subscribe', 'serve', 'call')
+TLS_RECORD = (0x16, 0x03)   # a TLS handshake record: content type 22, version 3.x
+
+
+def looks_like_tls(first):
+    """Whether the first bytes of an inbound connection are a TLS ClientHello (TCPROS starts with a
+    4-byte little-endian header length: a header of 0x0316.. bytes (200 kB) is not a real one)."""
+    return len(first) >= 3 and first[0] == TLS_RECORD[0] and first[1] == TLS_RECORD[1] and first[2] <= 0x04
+
+
+# -- keys and certificates ------------------------------------------------------------------------
+def _names(directory, party):
+    return os.path.join(directory, party + '.tls.key'), os.path.join(directory, party + '.tls.crt')
+
+
+def make_authority(directory, days=3650):
+    """ca.tls.key (0600) and ca.tls.crt in directory, unless there; returns the certificate's path."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+    key_path, crt_path = _names(directory, 'ca')
+    if os.path.exists(crt_path):
+        return crt_path
+    os.makedirs(directory, exist_ok=True)
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, 'aft-ros tls ca')])
+    now = datetime.datetime.utcnow()
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+            .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .sign(key, hashes.SHA256()))
+    _write(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()), 0o600)
+    _write(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+    return crt_path
+
+
+def issue(directory, party, days=30):
+    """<party>.tls.key (0600) and <party>.tls.crt, signed by the CA of directory (common name: the
+    party). Replaces an existing pair (a rotation)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+    _check_party(party)
+    ca_key_path, ca_crt_path = _names(directory, 'ca')
+    with open(ca_key_path, 'rb') as f:
+        ca_key = serialization.load_pem_private_key(f.read(), None)
+    with open(ca_crt_path, 'rb') as f:
+        ca_cert = x509.load_pem_x509_certificate(f.read())
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.utcnow()
+    cert = (x509.CertificateBuilder().subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, party)]))
+            .issuer_name(ca_cert.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5)).not_valid_after(now + datetime.timedelta(days=days))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .sign(ca_key, hashes.SHA256()))
+    key_path, crt_path = _names(directory, party)
+    _write(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                       serialization.NoEncryption()), 0o600)
+    _write(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+    return crt_path
+
+
+def _write(path, data, mode):
+    temporary = '%s.tmp-%d' % (path, os.getpid())
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, 'wb') as f:
+        f.write(data)
+    os.replace(temporary, path)
+
+
+def _check_party(party):
+    if not party or not all(c.isalnum() or c in '_-' for c in party) or party == 'ca':
+        raise ConfigError('TLS party name must be letters, digits, - or _ (and not ca), got %r' % (party,))
+    return party
+
+
+def contexts(directory, party):
+    """(server context, client context) of party: its certificate, and only peers the CA certified."""
+    key_path, crt_path = _names(directory, _check_party(party))
+    ca_crt = _names(directory, 'ca')[1]
+    made = []
+    for purpose in (ssl.Purpose.CLIENT_AUTH, ssl.Purpose.SERVER_AUTH):
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER if purpose is ssl.Purpose.CLIENT_AUTH
+                                 else ssl.PROTOCOL_TLS_CLIENT)
+        context.minimum_version = ssl.TLSVersion.TLSv1_3
+        context.check_hostname = False      # a party is named by its certificate, not by a host name
+        context.verify_mode = ssl.CERT_REQUIRED
+        try:
+            context.load_cert_chain(crt_path, key_path)
+            context.load_verify_locations(ca_crt)
+        except (OSError, ssl.SSLError) as e:
+            raise ConfigError('TLS files of party %s in %s cannot be used: %s' % (party, directory, e))
+        made.append(context)
+    return tuple(made)
+
+
+def party_of(peer_certificate):
+    """The common name of a peer certificate as ssl.SSLSocket.getpeercert() gives it, or None."""
+    for entry in (peer_certificate or {}).get('subject', ()):
+        for key, value in entry:
+            if key == 'commonName':
+                return value
+    return None
+
+
+# -- the policy -------------------------------------------------------------------------------------
+class Permissions(object):
+    """Who may publish, subscribe, serve or call what (see the module docstring)."""
+
+    def __init__(self, parties, plaintext=()):
+        self.parties = parties
+        self.plaintext_names = list(plaintext)
+
+    @classmethod
+    def load(cls, path):
+        from .sec_policy import read_yaml
+        return cls.parse(read_yaml(path, 'TLS policy'), path)
+
+    @classmethod
+    def parse(cls, data, where='the TLS policy'):
+        if not isinstance(data, dict) or not set(data) <= {'plaintext', 'parties'} or 'parties' not in data \
+                or not isinstance(data['parties'], dict):
+            raise ConfigError('%s: expected the keys parties (a mapping) and, optionally, plaintext (a list)' % where)
+        plaintext = data.get('plaintext') or []
+        if not isinstance(plaintext, list) or not all(isinstance(n, str) and n for n in plaintext):
+            raise ConfigError('%s: plaintext must be a list of names' % where)
+        parties = {}
+        for party, rules in data['parties'].items():
+            rules = {} if rules is None else rules
+            if not isinstance(rules, dict):
+                raise ConfigError('%s: party %r: expected a mapping of %s' % (where, party, ', '.join(ACTIONS)))
+            unknown = sorted(str(k) for k in set(rules) - set(ACTIONS))
+            if unknown:
+                raise ConfigError('%s: party %r: unknown key(s) %s (known: %s)' % (where, party, ', '.join(unknown),
+                                                                                 ', '.join(ACTIONS)))
+            for action, names in rules.items():
+                if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+                    raise ConfigError('%s: party %r: %s must be a list of names' % (where, party, action))
+            parties[str(party)] = dict((a, list(rules.get(a) or [])) for a in ACTIONS)
+        return cls(parties, plaintext)
+
+    def plaintext(self, name):
+        return any(fnmatch.fnmatchcase(name, p) for p in self.plaintext_names)
+
+    def allows(self, party, action, name):
+        """None if party may do action on name; else why not. party None: a peer without TLS."""
+        if party is None:
+            return None if self.plaintext(name) else '%s needs TLS: a peer without a certificate may not %s it' % (
+                name, action)
+        patterns = self.parties.get(party, {}).get(action)
+        if patterns is None:
+            return 'party %s is in no policy' % party
+        if any(fnmatch.fnmatchcase(name, p) for p in patterns):
+            return None
+        return 'party %s may not %s %s' % (party, action, name)

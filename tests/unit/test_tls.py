@@ -1,0 +1,99 @@
+"""Mutual TLS's pure parts (aft_ftm.tls): the policy, the first bytes, certificates and contexts
+(two parties shaking hands over a socket pair, a stranger's certificate refused). No ROS."""
+import socket
+import ssl
+import struct
+import threading
+
+import pytest
+
+from aft_ftm import tls
+from aft_ftm.errors import ConfigError
+
+POLICY = {'plaintext': ['/rosout', '/account'],
+          'parties': {'master': {'publish': ['/ftm/checkpoints/master'], 'subscribe': ['*'], 'serve': ['/master/*'],
+                                 'call': ['/aft/witness/*']},
+                      'client': {'subscribe': ['/ftm/pro2pxy']}}}
+
+
+@pytest.mark.parametrize('party,action,name,allowed', [
+    ('master', 'publish', '/ftm/checkpoints/master', True),
+    ('master', 'publish', '/ftm/checkpoints/slave', False),
+    ('client', 'publish', '/ftm/checkpoints/master', False),
+    ('client', 'subscribe', '/ftm/pro2pxy', True),
+    ('client', 'call', '/master/set_role', False),
+    ('master', 'serve', '/master/protocol/set_role', True),
+    ('mallory', 'call', '/aft/witness/request', False),     # certified, but in no policy
+    (None, 'call', '/aft/witness/request', False),          # no certificate
+    (None, 'subscribe', '/rosout', True),                   # plaintext names
+    (None, 'call', '/account', True),
+])
+def test_the_policy_allows_each_party_what_it_names_and_nothing_else(party, action, name, allowed):
+    why = tls.Permissions.parse(POLICY).allows(party, action, name)
+    assert (why is None) == allowed, why
+
+
+@pytest.mark.parametrize('data,words', [
+    ([], 'expected the keys parties'),
+    ({'parties': {}, 'other': 1}, 'expected the keys parties'),
+    ({'parties': {'a': {'publish': '/x'}}}, 'publish must be a list'),
+    ({'parties': {'a': {'write': ['/x']}}}, 'unknown key(s) write'),
+    ({'parties': {'a': ['/x']}}, 'expected a mapping'),
+    ({'parties': {}, 'plaintext': '/rosout'}, 'plaintext must be a list'),
+])
+def test_a_malformed_policy_is_refused_naming_the_problem(data, words):
+    with pytest.raises(ConfigError) as error:
+        tls.Permissions.parse(data, 'policy.yaml')
+    assert 'policy.yaml' in str(error.value) and words in str(error.value)
+
+
+def test_a_tls_hello_is_told_from_a_tcpros_header():
+    assert tls.looks_like_tls(bytes([0x16, 0x03, 0x01]))
+    for length in (0, 150, 4000, 2 ** 20):
+        assert not tls.looks_like_tls(struct.pack('<I', length)[:3])
+    assert not tls.looks_like_tls(b'PO') and not tls.looks_like_tls(b'POST')
+
+
+def _shake(server_context, client_context):
+    """Handshake over a socket pair; (party the server saw, party the client saw) or the error."""
+    a, b = socket.socketpair()
+    seen = {}
+
+    def serve():
+        try:
+            s = server_context.wrap_socket(a, server_side=True)
+            seen['server'] = tls.party_of(s.getpeercert())
+            s.sendall(b'x')
+        except (ssl.SSLError, OSError) as e:
+            seen['server_error'] = e
+            a.close()
+    thread = threading.Thread(target=serve)
+    thread.start()
+    try:
+        c = client_context.wrap_socket(b)
+        c.recv(1)
+        seen['client'] = tls.party_of(c.getpeercert())
+    except (ssl.SSLError, OSError) as e:
+        seen['client_error'] = e
+    thread.join(5)
+    b.close()
+    return seen
+
+
+def test_two_certified_parties_name_each_other_and_a_strangers_certificate_is_refused(tmp_path):
+    home, elsewhere = str(tmp_path / 'home'), str(tmp_path / 'elsewhere')
+    tls.make_authority(home)
+    tls.make_authority(elsewhere)
+    for party in ('master', 'client'):
+        tls.issue(home, party)
+    tls.issue(elsewhere, 'master')                          # same name, another CA
+    server, _ = tls.contexts(home, 'master')
+    _, client = tls.contexts(home, 'client')
+    assert _shake(server, client) == {'server': 'client', 'client': 'master'}
+    _, stranger = tls.contexts(elsewhere, 'master')
+    seen = _shake(server, stranger)
+    assert 'server' not in seen and 'client' not in seen, seen
+    with pytest.raises(ConfigError, match='ghost'):
+        tls.contexts(home, 'ghost')
+    with pytest.raises(ConfigError):
+        tls.issue(home, 'ca')
