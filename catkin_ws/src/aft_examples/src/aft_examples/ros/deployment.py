@@ -71,7 +71,7 @@ class PbrDeployment(object):
 
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
-                 cache_bytes=None, link_monitor=False, watch_required=True):
+                 cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -114,10 +114,21 @@ class PbrDeployment(object):
             replica.update(inner=inner, faulty=str(bool(faulty)).lower())
 
         self.env = env
+        # Mutual TLS on every TCPROS connection (issue 16): each site's nodes are its party; 'operator'
+        # (the process that drives and checks) and 'client2' (a certified party the policy trusts
+        # with nothing) are made too. tls_env(party) is the environment a process of that party needs.
+        self.tls_dir = os.path.join(log_dir, 'tls') if tls_policy else None
+        self.tls_policy = tls_policy
+        if tls_policy:
+            from aft_ftm import tls
+            tls.make_authority(self.tls_dir)
+            for party in ('master', 'slave', 'client', 'operator', 'client2'):
+                tls.issue(self.tls_dir, party)
 
         def site(name, launch_file, **args):
             self.launch_args[name] = (launch_file, args)
-            return Site(name, roslaunch('aft_examples', launch_file, **args), env, os.path.join(log_dir, name + '.log'))
+            return Site(name, roslaunch('aft_examples', launch_file, **args), self.site_env(name),
+                        os.path.join(log_dir, name + '.log'))
         if one_host:
             self.sites = {'all': site('all', 'demo_one_host.launch', **replica)}
         else:
@@ -128,6 +139,17 @@ class PbrDeployment(object):
                               **replica),
                 'client': site('client', 'demo_client_site.launch', **client),
             }
+
+    def tls_env(self, party, base=None):
+        """The environment of a process of party under this deployment's TLS (base, default os.environ)."""
+        env = dict(os.environ if base is None else base)
+        env.update(AFT_TLS_DIR=self.tls_dir, AFT_TLS_PARTY=party, AFT_TLS_POLICY=self.tls_policy)
+        return env
+
+    def site_env(self, name):
+        if not self.tls_policy:
+            return self.env
+        return self.tls_env('master' if name == 'all' else name, self.env)
 
     def _site_exited(self):
         """Why a started site is not coming up (its roslaunch exited, or a node of it died in its
@@ -185,7 +207,7 @@ class PbrDeployment(object):
         old = self.sites[name]
         old.stop(grace=2.0)
         clean_dead_nodes()   # the dead site's registrations would stall the new nodes' connections
-        site = Site(name, roslaunch('aft_examples', launch_file, **args), self.env,
+        site = Site(name, roslaunch('aft_examples', launch_file, **args), self.site_env(name),
                     os.path.join(self.log_dir, '%s.%d.log' % (name, int(time.time() * 1000))))
         self.sites[name] = site
         return site.start()

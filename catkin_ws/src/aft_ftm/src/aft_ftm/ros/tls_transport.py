@@ -111,6 +111,10 @@ def _guard_handlers(server):
 def _guard(handler, action, key):
     def handle(sock, client_addr, header):
         name = header.get(key, '?')
+        if header.get('probe') == '1' and action == 'call':
+            # rospy.wait_for_service's probe: a bare header, in clear, closed unanswered; it learns only
+            # that the service is there, which the master tells anyone
+            return handler(sock, client_addr, header)
         why = _STATE['permissions'].allows(_PEERS.get(sock), action, name)
         if why:
             _refused(client_addr, name, why)

@@ -1,0 +1,137 @@
+"""The PBR bank with mutual TLS on every TCPROS connection (issue 16): an attacker on the graph,
+without a certificate or with one the policy trusts with nothing, tries the control plane of a
+running pair under client load: a forged checkpoint, a forged failure report, a heartbeat that
+announces the primary's fail-stop, a role change of the backup's Protocol, a state written into the
+primary's server. Each is refused (the refusing node raises ``tls connection_refused``), none
+changes anything (no failover, the servers' states equal the clients' model); then the primary site
+loses power and the backup takes over under TLS with every call answered exactly once.
+Runs in a process of its own with a master of its own; every process it starts carries the test's
+AFT_TEST_TAG and is killed at the end."""
+from leftovers import run_tagged
+
+SCRIPT = r'''
+import os, subprocess, sys, tempfile, time
+import rospkg, rospy
+from aft_msgs.msg import Alarm
+from aft_msgs.srv import Account, GetState
+from aft_examples.bank import Account as Model, operation
+from aft_examples.ros.deployment import PbrDeployment, witness_status
+from aft_examples.ros.bank_nodes import account_caller
+from aft_ftm.ros.graph import start_master
+from aft_ftm.ros.params import secure_from_environment
+from aft_ftm.sites import wait_until
+
+ATTACK = r"""
+import sys, time, rospy
+from aft_msgs.msg import Checkpoint, Failure, Heartbeat, Reply
+from aft_msgs.srv import SetRole, SetState
+from aft_ftm.ros.params import secure_from_environment
+secure_from_environment()
+rospy.init_node(sys.argv[1])
+pubs = [rospy.Publisher('/ftm/checkpoints/master', Checkpoint, queue_size=10, latch=True),
+        rospy.Publisher('/slave/failures', Failure, queue_size=10, latch=True),
+        rospy.Publisher('/ftm/heartbeat/master', Heartbeat, queue_size=10, latch=True)]
+for seq in range(1, 40):
+    pubs[0].publish(Checkpoint(seq=10 ** 6 + seq, first_seq=1, sender='/master/after', epoch=2, state=b'{"balance": 1}'))
+    pubs[1].publish(Failure(site='master', reason='forged', detected=rospy.Time.now()))
+    pubs[2].publish(Heartbeat(site='master', seq=10 ** 6 + seq, stopping='forged', stamp=rospy.Time.now()))
+    time.sleep(0.05)
+for name, kind, request in (('/slave/protocol/set_role', SetRole, dict(role=2, last_seq=0, epoch=3)),
+                            ('/master/bank_server/set_state', SetState, dict(state=b'{"balance": 1000000}'))):
+    try:
+        rospy.ServiceProxy(name, kind)(**request)
+        print('CALL %s served' % name)
+    except Exception as e:
+        print('CALL %s refused: %s' % (name, str(e)[:160]))
+subscribers = sum(p.get_num_connections() for p in pubs)
+print('SUBSCRIBERS %d' % subscribers)
+"""
+
+log_dir = tempfile.mkdtemp(prefix='aft_tls_pbr_')
+attack = os.path.join(log_dir, 'attack.py')
+with open(attack, 'w') as f:
+    f.write(ATTACK)
+with_tls = sys.argv[1] == 'tls'
+policy = os.path.join(rospkg.RosPack().get_path('aft_examples'), 'config', 'tls_policy.yaml')
+core = start_master(log_dir)
+deployment = PbrDeployment(log_dir, tls_policy=policy if with_tls else None)
+try:
+    if with_tls:
+        os.environ.update(deployment.tls_env('operator'))
+        secure_from_environment()
+    rospy.init_node('operator')
+    alarms = []
+    rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
+    print('started in %.1f s' % deployment.start())
+    call = account_caller(rospy.ServiceProxy('/account', Account, persistent=True))
+    model, wrong, done = Model(), 0, 0
+
+    def calls(n):
+        global wrong, done
+        for _ in range(n):
+            op, amount = operation(done)
+            if tuple(call(op, amount)) != tuple(model.apply(op, amount)):
+                wrong += 1
+            done += 1
+    calls(50)
+    for name, party in (('plain_attacker', None), ('client2_attacker', 'client2')):
+        env = deployment.tls_env(party) if party and with_tls else dict(
+            (k, v) for k, v in os.environ.items() if not k.startswith('AFT_TLS_'))
+        attacker = subprocess.run([sys.executable, attack, name], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                  env=env, timeout=90, universal_newlines=True)
+        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS')))))
+        calls(25)
+    status = witness_status()
+    print('AFTER ATTACKS epoch %d primary %s backup %s' % (status.epoch, status.primary, status.backup))
+    if not with_tls:
+        sys.exit(0)   # the control: what the same attacks do to a pair without TLS (printed above)
+    states = [rospy.ServiceProxy('/%s/bank_server/get_state' % s, GetState)().state for s in ('master', 'slave')]
+    expected = Model(*model.snapshot())
+    for site, state in zip(('master', 'slave'), states):
+        got = Model()
+        got.set_state(state)
+        print('STATE %s %s' % (site, 'equal' if got.snapshot() == expected.snapshot() else 'DIFFERS %r %r' % (got.snapshot(), expected.snapshot())))
+    refusals = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'connection_refused']
+    print('REFUSALS %d by %s' % (len(refusals), sorted(set(a.source for a in refusals))))
+    deployment.sites['master'].power_off()
+    started = time.monotonic()
+    calls(50)
+    got = Model()
+    got.set_state(rospy.ServiceProxy('/slave/bank_server/get_state', GetState)().state)
+    print('FAILOVER calls %d wrong %d slave %s (50 calls in %.2f s after the power loss)' % (
+        done, wrong, 'equal' if got.snapshot() == model.snapshot() else 'DIFFERS', time.monotonic() - started))
+finally:
+    deployment.teardown()
+    core.stop()
+'''
+
+
+def test_without_tls_the_same_attacker_changes_roles_and_state():
+    """The control: the attacks are real. On the default deployment (no TLS) the plain attacker's calls
+    are served and its forgeries reach the replicas: the pair is no longer what it was."""
+    code, output = run_tagged(SCRIPT, args=('open',), timeout=300, home_prefix='aft_tls_pbr_home_')
+    assert code == 0, output[-5000:]
+    attacked = [l for l in output.splitlines() if l.startswith('plain_attacker')]
+    assert attacked and 'served' in attacked[0] and 'SUBSCRIBERS 0' not in attacked[0], output[-3000:]
+    after = [l for l in output.splitlines() if l.startswith('AFTER ATTACKS')]
+    assert after and after[0] != 'AFTER ATTACKS epoch 2 primary master backup slave', after
+
+
+def test_the_control_plane_refuses_every_forgery_and_the_failover_holds_under_tls():
+    code, output = run_tagged(SCRIPT, args=('tls',), timeout=300, home_prefix='aft_tls_pbr_home_')
+    assert code == 0, output[-5000:]
+    lines = output.splitlines()
+
+    def line(prefix):
+        found = [l for l in lines if l.startswith(prefix)]
+        assert found, (prefix, output[-5000:])
+        return found[-1]
+    for attacker in ('plain_attacker', 'client2_attacker'):
+        text = line(attacker)
+        assert text.count('CALL ') == 2 and text.count(' refused: ') == 2 and ' served' not in text, text
+        assert 'SUBSCRIBERS 0' in text, text
+    assert line('AFTER ATTACKS') == 'AFTER ATTACKS epoch 2 primary master backup slave'
+    assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
+    assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')
+    failover = line('FAILOVER')
+    assert 'wrong 0 slave equal' in failover and failover.startswith('FAILOVER calls 150 '), failover
