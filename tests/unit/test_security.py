@@ -313,3 +313,33 @@ def test_sec_keygen_rotates_a_partys_keys_and_refuses_the_ca_or_an_unknown_party
                         (('--rotate', str(tmp_path), 'ghost'), 'ghost has no key')]:
         refused = run(*args)
         assert refused.returncode == 2 and words in refused.stdout
+
+
+def test_a_rotation_ends_every_certificate_of_the_old_key_a_renewal_made_too():
+    issuer = security.Issuer(CA, validity=100.0, overlap=10.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, now=0.0)
+    first, _ = issuer.certificate('client', 0.0)
+    renewed, _ = issuer.certificate('client', 60.0)           # past half its life: a second serial, same key
+    assert renewed.serial != first.serial
+    fresh = Party.generate('client')
+    issuer.set_keys('client', fresh.box_public, fresh.verify_public, now=61.0)
+    issuer.status(72.0)
+    assert {first.serial, renewed.serial} <= issuer.revoked
+
+
+def test_a_restarted_ca_keeps_its_revocations_and_its_status_stays_newer():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    old, _ = issuer.certificate('client', 1000.0)
+    issuer.bar(['client'])
+    book = security.CertificateBook(CA.verify_public)
+    book.on_status(*issuer.status(1001.0), now=1.0)
+    saved = json.loads(json.dumps(issuer.state()))
+    again = security.Issuer(CA, validity=100.0)               # the CA restarted, the party allowed again
+    again.restore(saved)
+    again.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    assert book.on_status(*again.status(1002.0), now=2.0) == []   # newer than before the restart
+    new, _ = again.certificate('client', 1002.0)
+    assert new.serial != old.serial and old.serial in again.revoked
+    with pytest.raises(ValueError):
+        again.restore({'revoked': 'x'})

@@ -27,6 +27,7 @@ POLICY = {'plaintext': ['/rosout', '/account'],
     (None, 'call', '/aft/witness/request', False),          # no certificate
     (None, 'subscribe', '/rosout', True),                   # plaintext names
     (None, 'call', '/account', True),
+    ('client', 'call', '/account', True),                   # a plaintext name is open to a certified peer too
 ])
 def test_the_policy_allows_each_party_what_it_names_and_nothing_else(party, action, name, allowed):
     why = tls.Permissions.parse(POLICY).allows(party, action, name)
@@ -48,10 +49,15 @@ def test_a_malformed_policy_is_refused_naming_the_problem(data, words):
 
 
 def test_a_tls_hello_is_told_from_a_tcpros_header():
-    assert tls.looks_like_tls(bytes([0x16, 0x03, 0x01]))
-    for length in (0, 150, 4000, 2 ** 20):
-        assert not tls.looks_like_tls(struct.pack('<I', length)[:3])
-    assert not tls.looks_like_tls(b'PO') and not tls.looks_like_tls(b'POST')
+    assert tls.looks_like_tls(bytes([0x16, 0x03, 0x01, 0x02, 0x00, 0x01]))     # a ClientHello of 512 bytes
+    for length in (0, 150, 790, 4000, 66326, 2 ** 20):
+        for first_field in (5, 40, 300):
+            header = struct.pack('<I', length) + struct.pack('<I', first_field)
+            assert not tls.looks_like_tls(header[:tls.PEEK]) or (66326 <= length and 256 <= first_field < 512), \
+                (length, first_field)
+    assert not tls.looks_like_tls(struct.pack('<I', 790) + b'\x05\x00')      # 16 03 00 00: not TLS
+    assert not tls.looks_like_tls(bytes([0x16, 0x03, 0x01, 0x00, 0x00, 0x01]))  # an empty record
+    assert not tls.looks_like_tls(b'PO') and not tls.looks_like_tls(b'POST /RPC2')
 
 
 def _shake(server_context, client_context):

@@ -9,6 +9,7 @@ import collections
 import fnmatch
 import json
 import os
+import secrets
 import struct
 
 import nacl.exceptions
@@ -264,7 +265,6 @@ class Issuer(object):
         self.serials = {}        # party -> every serial issued to it
         self.revoked = set()
         self.barred = set()      # parties named in the revocations
-        self.next_serial = 1
         self.seq = 0
 
     def set_keys(self, party, box_public, verify_public, now=0.0):
@@ -272,10 +272,26 @@ class Issuer(object):
         keys = (bytes(box_public), bytes(verify_public))
         old = self.keys.get(party)
         self.keys[party] = keys
-        if old is not None and old != keys and party in self.issued:
-            self.retiring[self.issued.pop(party)[0].serial] = now + self.overlap
+        if old is not None and old != keys:
+            # Every certificate of the old key ends (a renewal may have made more than one).
+            self.issued.pop(party, None)
+            for serial in self.serials.get(party, ()):
+                if serial not in self.revoked:
+                    self.retiring.setdefault(serial, now + self.overlap)
             return True
         return False
+
+    def state(self):
+        """What must outlive a restart of the CA: the revoked serials and those being retired."""
+        return {'revoked': sorted(self.revoked), 'retiring': dict((str(k), v) for k, v in self.retiring.items())}
+
+    def restore(self, state):
+        """The state() a previous run saved (ValueError if it is not one)."""
+        try:
+            self.revoked |= set(int(r) for r in state['revoked'])
+            self.retiring.update((int(k), float(v)) for k, v in state['retiring'].items())
+        except (KeyError, TypeError, ValueError, AttributeError):
+            raise ValueError('not a CA state: %r' % (state,))
 
     def bar(self, parties):
         """The parties the revocations name now; returns those newly barred."""
@@ -295,7 +311,10 @@ class Issuer(object):
             raise Rejected('unknown_party', 'no certificate for party %r' % party)
         held = self.issued.get(party)
         if held is None or held[0].not_after - now < self.validity / 2.0:
-            serial, self.next_serial = self.next_serial, self.next_serial + 1
+            # Random serials: a restarted CA never gives a new certificate a serial revoked before.
+            serial = secrets.randbits(63) | 1
+            while serial in self.revoked or serial in self.retiring:
+                serial = secrets.randbits(63) | 1
             box, verify = self.keys[party]
             cert = Cert(box, verify, serial, now + self.validity)
             held = (cert, certify(self.ca, party, box, verify, serial, cert.not_after))
@@ -304,8 +323,9 @@ class Issuer(object):
         return held
 
     def status(self, now):
-        """(ca_time, seq, revoked serials, signature): the next status to publish."""
-        self.seq += 1
+        """(ca_time, seq, revoked serials, signature): the next status to publish. The sequence
+        number follows the CA's clock (milliseconds), so a restarted CA goes on above its last one."""
+        self.seq = max(self.seq + 1, int(now * 1000))
         for serial, until in list(self.retiring.items()):
             if until <= now:
                 self.revoked.add(serial)

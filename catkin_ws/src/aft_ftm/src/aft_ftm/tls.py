@@ -32,10 +32,19 @@ ACTIONS = ('publish', 'subscribe', 'serve', 'call')
 TLS_RECORD = (0x16, 0x03)   # a TLS handshake record: content type 22, version 3.x
 
 
+PEEK = 6   # bytes of an inbound connection looked at before deciding
+
+
 def looks_like_tls(first):
-    """Whether the first bytes of an inbound connection are a TLS ClientHello (TCPROS starts with a
-    4-byte little-endian header length: a header of 0x0316.. bytes (200 kB) is not a real one)."""
-    return len(first) >= 3 and first[0] == TLS_RECORD[0] and first[1] == TLS_RECORD[1] and first[2] <= 0x04
+    """Whether the first PEEK bytes of an inbound connection are a TLS ClientHello: a handshake
+    record (22, version 3.1-3.4) of at most 16 kB whose first message is a ClientHello (1). A TCPROS
+    header starts with its 4-byte little-endian length, then its first field's: to look the same it
+    would have to be 66-328 kB long (16 03 0[1-4] 00) with a first field of 256-511 bytes (.. 01),
+    which no rospy header is (a 790-byte one begins 16 03 00 00: not TLS)."""
+    if len(first) < PEEK or first[0] != TLS_RECORD[0] or first[1] != TLS_RECORD[1] or not 1 <= first[2] <= 4:
+        return False
+    record = (first[3] << 8) | first[4]
+    return 0 < record <= 16384 and first[5] == 0x01
 
 
 # -- keys and certificates ------------------------------------------------------------------------
@@ -178,9 +187,10 @@ class Permissions(object):
 
     def allows(self, party, action, name):
         """None if party may do action on name; else why not. party None: a peer without TLS."""
+        if self.plaintext(name):
+            return None   # open to anyone, with a certificate or without
         if party is None:
-            return None if self.plaintext(name) else '%s needs TLS: a peer without a certificate may not %s it' % (
-                name, action)
+            return '%s needs TLS: a peer without a certificate may not %s it' % (name, action)
         patterns = self.parties.get(party, {}).get(action)
         if patterns is None:
             return 'party %s is in no policy' % party

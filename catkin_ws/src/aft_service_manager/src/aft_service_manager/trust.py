@@ -12,7 +12,8 @@ service is alive, must come from itself or from its own children. No rospy.
   command line, and signalled only while all three still match (a pid is reused).
 - :class:`HeartbeatOrigins`: a heartbeat counts only if it comes from the service's own process
   tree: the claimed pid must be the child or a descendant (pid 0 is no longer a pass), and it must
-  be the process that published it (it listens on the port of the connection that carried it).
+  be the process that published it (it holds the other end of the very connection that carried
+  it, on this host: a process elsewhere listening on the same port number does not pass).
 """
 import json
 import os

@@ -73,15 +73,18 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
 def peer_hung_up(sock):
     """True if the peer has closed (or reset) its end: an orderly EOF is waiting. Data or nothing
     yet: False. Never waits (rospy's sockets may carry a timeout, which recv would wait out) and
-    consumes nothing. A TLS socket cannot be peeked at: False (its peer is authenticated)."""
-    if hasattr(sock, 'getpeercert'):
+    consumes nothing. A TLS socket is peeked at below its TLS layer (records, not data, are left
+    in place), unless TLS data is already buffered in it (then it is not hung up)."""
+    tls_socket = hasattr(sock, 'getpeercert')
+    if tls_socket and sock.pending():
         return False
     poller = select.poll()
     poller.register(sock, select.POLLIN | select.POLLPRI)
     if not poller.poll(0):
         return False
     try:
-        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b''
+        receive = socket.socket.recv if tls_socket else type(sock).recv   # the kernel's socket, not TLS's
+        return receive(sock, 1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b''
     except (BlockingIOError, InterruptedError, socket.timeout):
         return False
     except OSError:   # reset, or closed here meanwhile

@@ -1,5 +1,6 @@
 """SEC (paper section 5.3.2): a certification authority, and gates that cipher and sign requests
 and replies between the client's Proxy and the server's FTM (SEC_C and SEC_S)."""
+import json
 import os
 import threading
 import time
@@ -46,6 +47,16 @@ class CertificationAuthorityNode(object):
                                       param('rotation_overlap', config.positive_float, 10.0))
         self.lock = threading.Lock()
         self.revocations_seen = None
+        # The revoked serials outlive a restart of the CA (a rotated key stays refused).
+        self.state_path = os.path.join(self.keys_dir, 'ca_state.json')
+        self.saved = None
+        if os.path.exists(self.state_path):
+            try:
+                with open(self.state_path) as f:
+                    self.issuer.restore(json.load(f))
+            except (OSError, ValueError) as e:
+                raise config.ConfigError('the CA state %s cannot be used (%s): move it away to start afresh '
+                                         '(the revocations it held are then lost)' % (self.state_path, e))
         self._reload()
 
     def setup(self, timeout):
@@ -81,6 +92,17 @@ class CertificationAuthorityNode(object):
     def _publish_status(self):
         with self.lock:
             ca_time, seq, revoked, signature = self.issuer.status(time.time())
+            state = self.issuer.state()
+        if state != self.saved:
+            try:
+                temporary = self.state_path + '.tmp'
+                with open(temporary, 'w') as f:
+                    json.dump(state, f)
+                os.replace(temporary, self.state_path)
+                self.saved = state
+            except OSError as e:
+                rospy.logerr_throttle(10.0, '%s: the CA state cannot be saved in %s: %s' % (rospy.get_name(),
+                                                                                          self.state_path, e))
         self.status_pub.publish(CertificateStatus(ca_time=ca_time, seq=seq, revoked=revoked, signature=signature))
 
     def _loop(self):
@@ -141,6 +163,7 @@ class SecGateNode(object):
         self.previous_me = None   # the key before a rotation: replies sealed for it are still opened
         self.key_file = self._key_file_id()
         self.refetched = {}       # party -> when its certificate was last fetched again after a bad signature
+        self.ca_lock = threading.Lock()
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
@@ -207,7 +230,8 @@ class SecGateNode(object):
         if cert is not None:
             return cert.box_public, cert.verify_public
         try:
-            answer = self.certificate(party=party)
+            with self.ca_lock:   # one CA call at a time on the persistent connection (receive threads, key watch)
+                answer = self.certificate(party=party)
         except (rospy.ServiceException, rospy.ROSException) as e:
             self.certificate = self.certificate.fresh()
             raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
@@ -275,7 +299,8 @@ class SecGateNode(object):
             if candidate is None:
                 continue
             try:
-                answer = self.certificate(party=self.me.name)
+                with self.ca_lock:
+                    answer = self.certificate(party=self.me.name)
             except (rospy.ServiceException, rospy.ROSException):
                 continue
             if answer.found and bytes(answer.verify_public) == candidate.verify_public:

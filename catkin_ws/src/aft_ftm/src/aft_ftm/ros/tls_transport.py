@@ -31,6 +31,7 @@ def install(directory, party, permissions):
     """Mutual TLS for every TCPROS connection of this process (idempotent)."""
     import rospy.impl.tcpros_base as base
     from . import handshake
+    handshake.bound_handshakes()   # the inbound hook runs in the per-connection threads it makes
     server, client = tls.contexts(directory, party)
     _STATE.update(server=server, client=client, permissions=permissions, party=party)
     if not getattr(base.TCPROSTransport.write_header, 'tls', False):
@@ -66,11 +67,13 @@ def _secure_outbound(transport):
     except (ssl.SSLError, OSError) as e:
         _refused(transport.dest_address, name, 'TLS with %s:%s failed: %s' % (transport.dest_address + (e,)))
         plain.close()
+        transport.socket = None   # not a half-made connection rospy would go on reading
         raise TransportInitError('TLS refused for %s: %s' % (name, e))
     why = permissions.allows(tls.party_of(secured.getpeercert()), action, name)
     if why:
         _refused(transport.dest_address, name, why)
         secured.close()
+        transport.socket = None
         raise TransportInitError('refused by the TLS policy: %s' % why)
     secured.settimeout(timeout)
     transport.socket = secured
@@ -81,7 +84,7 @@ def _accept(server, sock, client_addr):
     _guard_handlers(server)
     try:
         sock.settimeout(HANDSHAKE_TIMEOUT)
-        first = sock.recv(3, socket.MSG_PEEK | socket.MSG_WAITALL)
+        first = sock.recv(tls.PEEK, socket.MSG_PEEK | socket.MSG_WAITALL)
         if tls.looks_like_tls(first):
             secured = _STATE['server'].wrap_socket(sock, server_side=True)
             secured.settimeout(None)
@@ -132,6 +135,8 @@ def _refused(peer, name, why):
     with _LOCK:
         if now - _TOLD.get(key, -1e9) < 10.0:
             return
+        if len(_TOLD) > 1000:   # names an attacker chooses: bounded
+            _TOLD.clear()
         _TOLD[key] = now
     rospy.logwarn('%s: tls connection_refused: %s from %s: %s', rospy.get_name(), name, key[0], why)
     try:

@@ -115,16 +115,17 @@ class Child(object):
             self.kill(timeout)
 
 
-def publisher_port(topic, header):
-    """The TCP port of the publisher whose connection to this node's subscription to topic carried a
-    message (its ``_connection_header``: rospy gives every message of a connection that very dict), or None."""
+def publisher_endpoints(topic, header):
+    """(this end, the publisher's end) of the connection of this node's subscription to topic that
+    carried a message (its ``_connection_header``: rospy gives every message of a connection that very
+    dict), as (host, port) pairs; None if there is none."""
     from rospy.impl.registration import get_topic_manager
     impl = get_topic_manager().get_subscriber_impl(topic)
     for connection in list(getattr(impl, 'connections', None) or ()):
         sock = getattr(connection, 'socket', None)
         if getattr(connection, 'header', None) is header and sock is not None:
             try:
-                return sock.getpeername()[1]
+                return sock.getsockname()[:2], sock.getpeername()[:2]
             except OSError:
                 return None
     return None
@@ -286,12 +287,14 @@ class ServiceManagerNode(object):
 
     def _published_by(self, header, pid):
         """Whether process pid published on the heartbeat subscription's connection whose header this
-        is: it listens on the TCP port that connection reaches (None: no such connection)."""
-        port = publisher_port(self.heartbeat_topic, header)
-        if port is None:
+        is: it holds that very connection's other end (its local address is the publisher's end, its
+        remote address this end), on this host (None: no such connection)."""
+        ends = publisher_endpoints(self.heartbeat_topic, header)
+        if ends is None:
             return None
+        mine, theirs = ends
         try:
-            return any(c.status == psutil.CONN_LISTEN and c.laddr and c.laddr[1] == port
+            return any(c.laddr and c.raddr and tuple(c.laddr[:2]) == tuple(theirs) and tuple(c.raddr[:2]) == tuple(mine)
                        for c in psutil.Process(pid).connections('tcp'))
         except psutil.Error:
             return False
