@@ -2,7 +2,7 @@
 name, or false suspicions. No ROS."""
 import random
 
-from aft_examples.suspicions import Verdict, format_summary, judge, rejoin_of, sites_touched, summary
+from aft_examples.suspicions import Verdict, format_summary, judge, logged_verdicts, merge, rejoin_of, sites_touched, summary
 
 
 def record(index, start, healed_at, sites, kind='kill', outcome='failover', unavailable=0.04):
@@ -103,3 +103,38 @@ def test_the_rejoin_alarm_is_read_by_its_words():
     assert rejoin_of('peer_watched', 'site master re-joined (epoch 4): watched again') == 'master'
     assert rejoin_of('peer_back', 'site master, declared failed, is heard again') is None
     assert rejoin_of('peer_watched', 'garbage') is None
+
+
+def test_a_site_a_fault_blinded_may_declare_its_peer_and_that_is_no_false_suspicion():
+    # Partitioned, the backup declares the primary failed (its own side of the cut); a kill of the backup's
+    # Before does not blind its crash detector: a verdict by it about the primary then is a false suspicion.
+    records = [dict(record(0, 10.0, 18.0, {'slave'}, kind='partition'), target='backup'),
+               dict(record(1, 20.0, 28.0, {'slave'}, kind='kill'), target='backup/before'),
+               dict(record(2, 30.0, 38.0, {'slave'}, kind='freeze_node'), target='backup/crash_detector')]
+    verdicts = [Verdict(10.03, 'slave', 'master', 'cut off'), Verdict(20.05, 'slave', 'master', 'not blinded'),
+                Verdict(31.0, 'slave', 'master', 'thawed detector')]
+    explained, false, detections = judge(verdicts, records)
+    assert [v.reason for v in explained] == ['cut off', 'thawed detector']
+    assert [v.reason for v in false] == ['not blinded']
+    assert detections == {}                      # neither times its fault: the site declared is not the one hit
+
+
+def test_verdicts_the_runner_could_not_hear_are_read_from_the_sites_logs():
+    lines = ['[WARN] [1795676798.580123]: /slave/crash_detector: site master failed: no heartbeat for 31.5 ms (timeout 30.0 ms)',
+             '[WARN] [1795676798.700000]: /slave/after: pbr alone: slave goes on ALONE',
+             '[WARN] [1795676799.000000]: /master/crash_detector: site slave failed: it announced its fail-stop: x']
+    logged = logged_verdicts(lines)
+    assert [(v.reporter, v.failed) for v in logged] == [('slave', 'master'), ('master', 'slave')]
+    heard = [Verdict(1795676799.01, 'master', 'slave', 'it announced its fail-stop: x')]
+    merged = merge(heard, logged)
+    assert len(merged) == 2 and merged[0].reporter == 'slave' and heard[0] in merged
+
+
+def test_a_readmission_before_the_repair_does_not_end_the_faults_window():
+    # The killed backup, excluded, re-admitted by a join in flight (epoch 10) before the runner relaunched
+    # it, then declared failed again: still the fault's doing. A re-join after the relaunch ends the window.
+    rec = dict(record(0, 1.0, 9.0, {'slave'}), repaired_from=1.4)
+    verdicts = [Verdict(1.03, 'master', 'slave', 'first'), Verdict(1.09, 'master', 'slave', 'again'),
+                Verdict(6.5, 'master', 'slave', 'after its re-join')]
+    explained, false, _ = judge(verdicts, [rec], rejoins=[(1.06, 'slave'), (6.0, 'slave')])
+    assert [v.reason for v in explained] == ['first', 'again'] and [v.reason for v in false] == ['after its re-join']

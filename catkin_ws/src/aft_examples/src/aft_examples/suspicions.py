@@ -1,7 +1,8 @@
 """The crash detectors' verdicts heard during a campaign, judged against the faults injected. No ROS.
 
 A verdict (a replica's crash detector declaring its peer site failed) is *explained* when it falls
-inside the window of a fault that touched the site it names: from the fault's start until the
+inside the window of a fault that touched the site it names, or blinded the site that judged it
+(a partitioned, rate-limited or frozen site declares its peer failed): from the fault's start until the
 deployment was whole again (``healed_at``), and before that site re-joined (its peer's
 ``peer_watched`` alarm). Any other verdict is a **false suspicion**: a site that nothing touched was
 declared failed (while nodes started, during an adaptation, during a fault of another site, after a
@@ -14,6 +15,7 @@ The detection time of a fault is the time from its start to the first verdict ab
 touched (faults of one site only: a partition of the pair has no single victim).
 """
 import collections
+import re
 
 from .history import percentile
 
@@ -35,6 +37,16 @@ def sites_touched(target, primary, backup):
     return touched
 
 
+BLINDING = ('partition', 'partition_pair', 'bandwidth', 'freeze_site')
+
+
+def blinds(record):
+    """Whether the fault can make the site it touched stop hearing its peer (its link cut or
+    throttled, the whole site or its crash detector frozen)."""
+    return record['kind'] in BLINDING or (record['kind'] == 'freeze_node'
+                                          and str(record.get('target', '')).endswith('crash_detector'))
+
+
 def judge(verdicts, records, rejoins=()):
     """(explained, false, detections): the verdicts inside the window of a fault that touched the
     site they name, the others, and per fault of one site the seconds from its start to its first
@@ -45,15 +57,26 @@ def judge(verdicts, records, rejoins=()):
         cause = None
         for record in records:
             stop = record.get('healed_at') or record.get('end') or record['start']
-            stop = min([stop] + [t for t, site in rejoins if site == verdict.failed and record['start'] < t])
-            if record['start'] <= verdict.time <= stop and verdict.failed in record.get('sites', ()):
+            touched = record.get('sites', ())
+            # The fault touched the site declared failed, or blinded the one that judged it (a
+            # partitioned, rate-limited or frozen site, or its frozen crash detector, declares its peer
+            # failed: the fault's doing, not a suspicion of a sound pair).
+            named = verdict.failed if verdict.failed in touched else \
+                verdict.reporter if verdict.reporter in touched and blinds(record) else None
+            if named is None:
+                continue
+            # A re-join ends the window: the site was whole again. Only one after the repair began (a
+            # relaunch): before it, the site the fault hit may still be re-admitted on its way down.
+            since = max(record['start'], record.get('repaired_from') or record['start'])
+            stop = min([stop] + [t for t, site in rejoins if site == named and since < t])
+            if record['start'] <= verdict.time <= stop:
                 cause = record
                 break
         if cause is None:
             false.append(verdict)
             continue
         explained.append(verdict)
-        if len(cause.get('sites', ())) == 1 and cause['index'] not in detections:
+        if len(cause.get('sites', ())) == 1 and verdict.failed in cause['sites'] and cause['index'] not in detections:
             detections[cause['index']] = verdict.time - cause['start']
     return explained, false, detections
 
@@ -79,6 +102,31 @@ def summary(verdicts, records, rejoins=()):
         'failover_unavailable_ms_p99': percentile(failovers, 99),
         'failover_rejoin_ms_median': percentile(rejoins, 50),
     }
+
+
+_LOGGED = re.compile(r'\[(?:WARN|INFO|ERROR)\] \[(\d+\.\d+)\]: /(\w+)/crash_detector: site (\w+) failed: (.*)')
+
+
+def logged_verdicts(lines):
+    """The verdicts the crash detectors logged (the sites' own logs): what the runner could not hear
+    (a partitioned site's verdict does not reach it) is there."""
+    found = []
+    for line in lines:
+        m = _LOGGED.search(line)
+        if m:
+            found.append(Verdict(float(m.group(1)), m.group(2), m.group(3), m.group(4).strip()))
+    return found
+
+
+def merge(heard, logged, tolerance=0.05):
+    """The verdicts heard, and those logged that no heard one matches (same reporter and site, within
+    tolerance seconds)."""
+    merged = list(heard)
+    for verdict in logged:
+        if not any(v.reporter == verdict.reporter and v.failed == verdict.failed and abs(v.time - verdict.time) <= tolerance
+                   for v in heard):
+            merged.append(verdict)
+    return sorted(merged)
 
 
 def rejoin_of(kind, detail):

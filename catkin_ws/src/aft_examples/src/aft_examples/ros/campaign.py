@@ -703,6 +703,8 @@ class Segment(object):
             self.unfinished_clients = unfinished
         finally:
             deployment.teardown()
+        # A verdict the runner could not hear (a partitioned site's) is in that site's own log.
+        self.verdicts = suspicions.merge(self.verdicts, suspicions.logged_verdicts(_log_lines(self.log_dir)))
         self.result = history.check(self.ops, self.finals, self.kills, self.ended)
         windows = [r['start'] for r in self.records[1:]] + [self.ended]
         for record, stop in zip(self.records, windows):
@@ -752,6 +754,15 @@ class Segment(object):
         else:
             record['outcome'] = 'absorbed'
         return record
+
+
+def _log_lines(log_dir):
+    """Every line of the sites' logs of a segment (its directory, and the one of a second start)."""
+    import glob
+    for path in sorted(glob.glob(os.path.join(log_dir, '*.log')) + glob.glob(os.path.join(log_dir + '.2', '*.log'))):
+        with open(path, errors='replace') as f:
+            for line in f:
+                yield line
 
 
 def in_background(function):
