@@ -190,3 +190,38 @@ def test_answer_and_add_are_not_interleaved_and_a_stuck_header_holds_nobody():
         for pair in pairs:
             for s in pair:
                 s.close()
+
+
+class _NoPeek(object):
+    """A socket that, as a TLS socket, cannot be peeked at (getpeercert marks it)."""
+
+    def __init__(self, sock):
+        self.sock = sock
+
+    def getpeercert(self):
+        return {}
+
+    def recv(self, size, flags=0):
+        if flags:
+            raise ValueError('non-zero flags not allowed in calls to recv() on a TLS socket')
+        return self.sock.recv(size)
+
+    def gettimeout(self):
+        return self.sock.gettimeout()
+
+    def settimeout(self, value):
+        self.sock.settimeout(value)
+
+
+def test_a_tls_peer_is_bound_too_its_length_read_not_peeked():
+    server, client = socket.socketpair()
+    try:
+        client.sendall(header({'service': '/master/set_role', 'callerid': '/x'}))
+        got = bounded(read_ros_handshake_header, 10.0)(_NoPeek(server), io.BytesIO(), 4096)
+        assert got['service'] == '/master/set_role'
+        client.sendall(struct.pack('<I', 2 ** 31) + b'x' * 100)     # a certified peer announcing 2 GB
+        with pytest.raises(HandshakeRefused, match='2147483648 bytes announced'):
+            bounded(read_ros_handshake_header, 10.0)(_NoPeek(server), io.BytesIO(), 4096)
+    finally:
+        server.close()
+        client.close()

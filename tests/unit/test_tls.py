@@ -103,3 +103,18 @@ def test_two_certified_parties_name_each_other_and_a_strangers_certificate_is_re
         tls.contexts(home, 'ghost')
     with pytest.raises(ConfigError):
         tls.issue(home, 'ca')
+
+
+def test_a_party_is_given_its_own_files_and_the_cas_certificate_only(tmp_path):
+    authority = str(tmp_path / 'authority')
+    tls.make_authority(authority)
+    tls.issue(authority, 'master')
+    tls.issue(authority, 'slave')
+    given = tls.export_party(authority, 'master', str(tmp_path / 'master'))
+    import os
+    assert sorted(os.listdir(given)) == ['ca.tls.crt', 'master.tls.crt', 'master.tls.key']
+    assert oct(os.stat(given).st_mode & 0o777) == oct(0o700)
+    assert oct(os.stat(os.path.join(given, 'master.tls.key')).st_mode & 0o777) == oct(0o600)
+    server, client = tls.contexts(given, 'master')          # enough to speak TLS as master
+    with pytest.raises(ConfigError):
+        tls.contexts(given, 'slave')                         # and nothing more

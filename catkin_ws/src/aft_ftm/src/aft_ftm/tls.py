@@ -103,6 +103,19 @@ def issue(directory, party, days=30):
     return crt_path
 
 
+def export_party(directory, party, destination):
+    """A directory of party's own (made 0700): its key and certificate and the CA's certificate, never
+    the CA's key nor another party's: what one machine of that party is given. Returns it."""
+    import shutil
+    _check_party(party)
+    os.makedirs(destination, mode=0o700, exist_ok=True)
+    for path in _names(directory, party) + (_names(directory, 'ca')[1],):
+        target = os.path.join(destination, os.path.basename(path))
+        shutil.copyfile(path, target)
+        os.chmod(target, 0o600 if path.endswith('.key') else 0o644)
+    return destination
+
+
 def _write(path, data, mode):
     temporary = '%s.tmp-%d' % (path, os.getpid())
     fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)

@@ -121,9 +121,11 @@ class PbrDeployment(object):
         self.tls_policy = tls_policy
         if tls_policy:
             from aft_ftm import tls
-            tls.make_authority(self.tls_dir)
+            authority = os.path.join(self.tls_dir, 'authority')   # the CA's key stays here, given to nobody
+            tls.make_authority(authority)
             for party in ('master', 'slave', 'client', 'operator', 'client2'):
-                tls.issue(self.tls_dir, party)
+                tls.issue(authority, party)
+                tls.export_party(authority, party, os.path.join(self.tls_dir, party))
 
         def site(name, launch_file, **args):
             self.launch_args[name] = (launch_file, args)
@@ -143,7 +145,7 @@ class PbrDeployment(object):
     def tls_env(self, party, base=None):
         """The environment of a process of party under this deployment's TLS (base, default os.environ)."""
         env = dict(os.environ if base is None else base)
-        env.update(AFT_TLS_DIR=self.tls_dir, AFT_TLS_PARTY=party, AFT_TLS_POLICY=self.tls_policy)
+        env.update(AFT_TLS_DIR=os.path.join(self.tls_dir, party), AFT_TLS_PARTY=party, AFT_TLS_POLICY=self.tls_policy)
         return env
 
     def site_env(self, name):

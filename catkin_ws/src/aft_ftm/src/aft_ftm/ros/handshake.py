@@ -46,6 +46,17 @@ def _announced_length(sock):
     return struct.unpack('<I', first)[0]
 
 
+def _read_exactly(sock, count):
+    """count bytes, or fewer if the peer closes first."""
+    data = b''
+    while len(data) < count:
+        chunk = sock.recv(count - len(data))
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
 def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
     """read_ros_handshake_header bounded to timeout seconds per header and max_bytes per header."""
     def read_bounded(sock, buffer, buff_size):
@@ -53,8 +64,15 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
         if previous is None or previous > timeout:
             sock.settimeout(timeout)
         try:
-            if buffer.tell() == 0 and not hasattr(sock, 'getpeercert'):   # TLS cannot peek: TLS read it whole
-                length = _announced_length(sock)
+            if buffer.tell() == 0:   # nothing read yet: the length comes first
+                if hasattr(sock, 'getpeercert'):
+                    # A TLS socket cannot be peeked at: its 4 length bytes are read into the buffer,
+                    # where the reader takes them as its own.
+                    first = _read_exactly(sock, 4)
+                    buffer.write(first)
+                    length = struct.unpack('<I', first)[0] if len(first) == 4 else None
+                else:
+                    length = _announced_length(sock)
                 if length is not None and length > max_bytes:
                     raise HandshakeRefused('not a TCPROS handshake: a header of %d bytes announced (%r)'
                                            % (length, struct.pack('<I', length)))
