@@ -343,3 +343,14 @@ def test_a_restarted_ca_keeps_its_revocations_and_its_status_stays_newer():
     assert new.serial != old.serial and old.serial in again.revoked
     with pytest.raises(ValueError):
         again.restore({'revoked': 'x'})
+
+
+def test_a_certificate_fetched_again_keeps_the_held_one_as_the_previous():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    book = security.CertificateBook(CA.verify_public)
+    held = fetch(issuer, book, 'client', 0.0, 0.0)
+    book.fetch_again('client')
+    assert book.get('client', 0.0) is None and book.candidates('client', 0.0) == [held]
+    book.fetch_again('nobody')                               # none held: nothing changes
+    assert 'nobody' not in book.previous

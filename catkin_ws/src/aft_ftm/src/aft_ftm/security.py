@@ -209,6 +209,13 @@ class CertificateBook(object):
         self.peers[party] = cert
         return cert
 
+    def fetch_again(self, party):
+        """Its held certificate may be stale (its key rotated): the next get() returns None, so the
+        certificate is fetched again; the one held is kept as the previous one meanwhile."""
+        held = self.peers.pop(party, None)
+        if held is not None:
+            self.previous[party] = held
+
     def candidates(self, party, now):
         """The valid certificates held for party, newest first (a rotated key's old one second)."""
         found = [self.get(party, now)]

@@ -267,9 +267,7 @@ class SecGateNode(object):
                 raise error
             self.refetched[party] = now
             with self.lock:
-                self.book.peers.pop(party, None)   # kept as the previous one when the new one comes
-                if certs:
-                    self.book.previous[party] = certs[0]
+                self.book.fetch_again(party)
         raise error
 
     def _key_file_id(self):
