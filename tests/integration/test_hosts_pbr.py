@@ -2,9 +2,10 @@
 each), with fencing across hosts by the hosts' power switch. Needs root; skipped (with the reason)
 where namespaces cannot be made.
 
-- a power loss of the master host (link down first, then its processes killed) mid-run: every
-  request answered exactly once, SLAVE's state equal to a failure-free run, and SLAVE promoted its
-  Protocol only after the switch confirmed MASTER off;
+- a power loss of the master host (link down first, then its processes killed) mid-run, with mutual
+  TLS on every connection as `make demo-pbr` runs it: every request answered exactly once, SLAVE's
+  state equal to a failure-free run, SLAVE promoted its Protocol only after the switch confirmed
+  MASTER off, and no connection between the demo's own parties refused by the policy;
 - a partition of the master host (its processes alive, its link down): SLAVE powers it off through
   the switch before promoting, so at most one primary ever answers; every request exactly once;
 - a switch that refuses: no promotion (a request stays unanswered while MASTER is cut off), the
@@ -95,9 +96,15 @@ def assert_fenced_before_promotion(record, host):
     assert fence['start'] + fence['seconds'] <= promote['start'] + 1e-4, (fence, promote)
 
 
+def demo_tls_policy():
+    import os
+    import rospkg
+    return os.path.join(rospkg.RosPack().get_path('aft_examples'), 'config', 'tls_policy.yaml')
+
+
 def test_power_loss_of_the_master_host(deployment, seed):
     rng = random.Random(seed)
-    d = deployment()
+    d = deployment(tls_policy=demo_tls_policy())
     count, crash_at = 300, rng.randint(60, 200)
     records, summary, crash = d.drive(count, fault_after=crash_at, fault=lambda: d.power_off('master'), rng=rng)
     assert summary == dict(correct=count, lost=0, duplicated=0, reordered=0, errors=0), (seed, summary)
@@ -105,8 +112,14 @@ def test_power_loss_of_the_master_host(deployment, seed):
     record = d.last_failover('slave')
     assert_fenced_before_promotion(record, 'master')
     assert d.node_pids('master') == [] and d.hosts.state('master') == 'off'
+    refused = [a for a in d.alarms() if a.get('mechanism') == 'tls']
+    assert refused == [], refused   # the demo's parties, under its policy, are never refused
+    import glob
+    logged = [line for path in glob.glob(d.log_dir + '/*.log') for line in open(path, errors='replace')
+              if 'tls connection_refused' in line]
+    assert logged == [], logged[:5]
     waits = [r[2] - max(r[1], crash['wall']) for r in records if r[2] > crash['wall']]
-    report('hosts PBR: master host power loss (link down first): detected %.1f ms after it, failover %.1f ms, '
+    report('hosts PBR (mutual TLS): master host power loss (link down first): detected %.1f ms after it, failover %.1f ms, '
            'fencing call %.1f ms' % ((record['detected_wall'] - crash['wall']) * 1e3, max(waits) * 1e3,
                                      step(record, 'FAIL_SILENCE')['seconds'] * 1e3))
 

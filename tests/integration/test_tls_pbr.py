@@ -2,7 +2,8 @@
 without a certificate or with one the policy trusts with nothing, tries the control plane of a
 running pair under client load: a forged checkpoint, a forged failure report, a heartbeat that
 announces the primary's fail-stop, a role change of the backup's Protocol, a state written into the
-primary's server. Each is refused (the refusing node raises ``tls connection_refused``), none
+primary's server; then a sweep of the whole graph as the master lists it: a default message of the
+right type on every topic somebody subscribes to, a call of every service. Each is refused (the refusing node raises ``tls connection_refused``), none
 changes anything (no failover, the servers' states equal the clients' model); then the primary site
 loses power and the backup takes over under TLS with every call answered exactly once.
 Runs in a process of its own with a master of its own; every process it starts carries the test's
@@ -45,6 +46,42 @@ for name, kind, request in (('/slave/protocol/set_role', SetRole, dict(role=2, l
         print('CALL %s refused: %s' % (name, str(e)[:160]))
 subscribers = sum(p.get_num_connections() for p in pubs)
 print('SUBSCRIBERS %d' % subscribers)
+if len(sys.argv) > 2:
+    # the sweep: a default message of the right type on every topic somebody subscribes to, and a
+    # call with a default request of every service, read from the master as any process can
+    import rosgraph, roslib.message, rosservice
+    from aft_ftm import tls
+    permissions = tls.Permissions.load(sys.argv[2])
+    me = rospy.get_name()
+    master = rosgraph.Master(me)
+    _, subscribed, services = master.getSystemState()
+    types = dict(master.getTopicTypes())
+    forged = []
+    for topic, nodes in sorted(subscribed):
+        if permissions.plaintext(topic) or topic not in types or nodes == [me]:
+            continue
+        kind = roslib.message.get_message_class(types[topic])
+        publisher = rospy.Publisher(topic, kind, queue_size=10, latch=True)
+        publisher.publish(kind())
+        forged.append((topic, publisher))
+    time.sleep(2.0)   # every subscriber of those topics is told of this publisher and tries it
+    connected = [t for t, p in forged if p.get_num_connections()]
+    served, refused, unknown = [], 0, 0
+    for name, providers in sorted(services):
+        if permissions.plaintext(name) or name.startswith(me + '/') or providers == ['/rosout']:
+            continue   # the application's open names; this process's own; the roscore's log node
+        try:
+            kind = rosservice.get_service_class_by_name(name)
+        except Exception:
+            unknown += 1
+            continue
+        try:
+            rospy.ServiceProxy(name, kind)(kind._request_class())
+            served.append(name)
+        except Exception:
+            refused += 1
+    print('SWEEP topics %d connected %s services refused %d unknown %d served %s'
+          % (len(forged), connected, refused, unknown, served))
 """
 
 log_dir = tempfile.mkdtemp(prefix='aft_tls_pbr_')
@@ -77,9 +114,9 @@ try:
     for name, party in (('plain_attacker', None), ('client2_attacker', 'client2')):
         env = deployment.tls_env(party) if party and with_tls else dict(
             (k, v) for k, v in os.environ.items() if not k.startswith('AFT_TLS_'))
-        attacker = subprocess.run([sys.executable, attack, name], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        attacker = subprocess.run([sys.executable, attack, name] + ([policy] if with_tls else []), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                   env=env, timeout=90, universal_newlines=True)
-        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS')))))
+        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'SWEEP')))))
         calls(25)
     status = witness_status()
     print('AFTER ATTACKS epoch %d primary %s backup %s' % (status.epoch, status.primary, status.backup))
@@ -128,8 +165,13 @@ def test_the_control_plane_refuses_every_forgery_and_the_failover_holds_under_tl
         return found[-1]
     for attacker in ('plain_attacker', 'client2_attacker'):
         text = line(attacker)
-        assert text.count('CALL ') == 2 and text.count(' refused: ') == 2 and ' served' not in text, text
+        assert text.count('CALL ') == 2 and text.count(' refused: ') == 2 and ' served' not in text[:text.index('SWEEP')], text
         assert 'SUBSCRIBERS 0' in text, text
+        sweep = text[text.index('SWEEP'):].split()
+        topics, services_refused, unknown = int(sweep[2]), int(sweep[7]), int(sweep[9])
+        assert topics >= 15 and text.endswith(' connected [] services refused %d unknown %d served []'
+                                                % (services_refused, unknown)), text
+        assert services_refused >= 30 and unknown <= 2, text
     assert line('AFTER ATTACKS') == 'AFTER ATTACKS epoch 2 primary master backup slave'
     assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
     assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')

@@ -5,14 +5,18 @@ configuration); a plain rospy process with no certificate (what ROS 1 lets any a
 call fails and its subscription gets nothing); a process with a valid certificate of a party the
 policy does not let call the witness (refused) but lets subscribe (served); and a publisher with a
 certificate whose party may not publish a topic the checker subscribes to (the checker refuses it).
-Every refusal is logged by the node that refused it. Runs in a process of its own with a master of
-its own; every process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
+Every refusal is logged by the node that refused it. Then, on the running graph: a party's
+certificate revoked (the CA's list re-signed) has its live connection cut and its reconnections
+and new calls refused; a certificate that expires has its live connection cut. Runs in a process of its own with a master of
+its own; 20 connections stalled in their handshake (half after a ClientHello's first bytes) hold up
+no allowed call and are closed by the node. Every process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_tagged
 
 SCRIPT = r'''
-import os, subprocess, sys, tempfile, textwrap, time
-import rospy
-from aft_msgs.msg import Configuration
+import datetime, os, socket, subprocess, sys, tempfile, textwrap, threading, time
+import rosgraph, rospy
+from rospy.core import parse_rosrpc_uri
+from aft_msgs.msg import Alarm, Configuration
 from aft_msgs.srv import Witness
 from std_msgs.msg import String
 from aft_ftm import tls
@@ -30,17 +34,19 @@ with open(policy, 'w') as f:
     f.write(textwrap.dedent("""
         plaintext: [/rosout]
         parties:
-          witness: {publish: ['/witness/*', /rosout], serve: ['/witness/*']}
-          master: {subscribe: ['/witness/*', '/aft_test/*'], call: ['/witness/*'], publish: [/rosout]}
-          client: {subscribe: [/witness/configuration], publish: [/rosout]}
+          witness: {publish: ['/witness/*', /rosout, /aft/alarms], serve: ['/witness/*']}
+          master: {subscribe: ['/witness/*', '/aft_test/*', /aft/alarms], call: ['/witness/*'],
+                   publish: [/rosout, /aft_test/ticks, /aft/alarms]}
+          client: {subscribe: [/witness/configuration, /aft_test/ticks], publish: [/rosout, /aft/alarms]}
+          brief: {subscribe: [/aft_test/ticks], publish: [/rosout, /aft/alarms]}
         """))
 
-def env(party=None):
+def env(party=None, directory=keys):
     e = dict(os.environ)
     for k in ('AFT_TLS_DIR', 'AFT_TLS_PARTY', 'AFT_TLS_POLICY'):
         e.pop(k, None)
     if party:
-        e.update(AFT_TLS_DIR=keys, AFT_TLS_PARTY=party, AFT_TLS_POLICY=policy)
+        e.update(AFT_TLS_DIR=directory, AFT_TLS_PARTY=party, AFT_TLS_POLICY=policy)
     return e
 
 ATTACK = r"""
@@ -70,6 +76,20 @@ sys.stdout.flush()
 attack = os.path.join(log_dir, 'attack.py')
 with open(attack, 'w') as f:
     f.write(ATTACK)
+LISTEN = r"""
+import sys, time, rospy
+from std_msgs.msg import String
+from aft_ftm.ros.params import secure_from_environment
+secure_from_environment()
+rospy.init_node(sys.argv[1])
+heard = []
+rospy.Subscriber('/aft_test/ticks', String, lambda m: heard.append(time.time()))
+time.sleep(float(sys.argv[2]))
+print('HEARD %d, the last at %.3f' % (len(heard), heard[-1] if heard else 0), flush=True)
+"""
+listen = os.path.join(log_dir, 'listen.py')
+with open(listen, 'w') as f:
+    f.write(LISTEN)
 
 core = start_master(log_dir)
 procs = []
@@ -79,6 +99,8 @@ try:
     os.environ.update(env('master'))
     secure_from_environment()
     rospy.init_node('checker')
+    alarms = []
+    rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
     rospy.wait_for_service('/witness/request', 30)
     answer = rospy.ServiceProxy('/witness/request', Witness)(op=0, site='checker')
     configurations = []
@@ -86,6 +108,31 @@ try:
     if not wait_until(lambda: configurations, 8.0, 0.05):
         sys.exit('the allowed party got no configuration')
     print('ALLOWED served: epoch %d, configuration heard' % answer.epoch)
+    # -- a hang: connections that stall in the handshake (TLS begun and left, or silent) hold nothing up
+    host, port = parse_rosrpc_uri(rosgraph.Master('/checker').lookupService('/witness/request'))
+    stalled = []
+    for i in range(20):
+        s = socket.create_connection((host, port), timeout=5.0)
+        if i % 2:
+            s.sendall(bytes([0x16, 0x03, 0x01, 0x02, 0x00, 0x01]))   # a ClientHello's first bytes, no more
+        stalled.append(s)
+    begun = time.monotonic()
+    rospy.ServiceProxy('/witness/request', Witness)(op=0, site='checker')
+    print('STALLED 20 handshakes: an allowed call served in %.3f s' % (time.monotonic() - begun))
+    def closed(s):
+        s.settimeout(0.01)
+        try:
+            return s.recv(1) == b''
+        except socket.timeout:
+            return False
+        except OSError:
+            return True
+    shut = set()
+    wait_until(lambda: shut.update(i for i, s in enumerate(stalled) if i not in shut and closed(s)) or len(shut) == 20,
+               15.0, 0.05)
+    print('STALLED closed by the node: %d of 20, %.1f s after' % (len(shut), time.monotonic() - begun))
+    for s in stalled:
+        s.close()
     commands = []
     rospy.Subscriber('/aft_test/commands', String, commands.append)
     results = {}
@@ -99,6 +146,48 @@ try:
     print('FORGED commands refused')
     out = open(log_dir + '/witness.out').read()
     print('WITNESS refusals: %d' % out.count('tls connection_refused'))
+
+    # -- on the running graph: a revoked certificate, an expiring one
+    ticks = rospy.Publisher('/aft_test/ticks', String, queue_size=10)
+    done = threading.Event()
+    def tick():
+        while not done.wait(0.01):
+            ticks.publish(String(data='tick'))
+    threading.Thread(target=tick, daemon=True).start()
+    tls.issue(keys, 'brief', lifetime=datetime.timedelta(seconds=12))
+    from cryptography import x509
+    with open(os.path.join(keys, 'brief.tls.crt'), 'rb') as f:
+        brief_end = x509.load_pem_x509_certificate(f.read()).not_valid_after.replace(
+            tzinfo=datetime.timezone.utc).timestamp()
+    listeners = [subprocess.Popen([sys.executable, listen, name, '22'], stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, env=env(party), universal_newlines=True)
+                 for name, party in (('listener', 'client'), ('brief_listener', 'brief'))]
+    procs.extend(listeners)
+    peers = lambda: set(c.endpoint_id for c in ticks.impl.connections)
+    if not wait_until(lambda: peers() >= {'/listener', '/brief_listener'}, 10.0, 0.01):
+        sys.exit('the listeners did not connect before the brief certificate ended: %s' % peers())
+    stolen = tls.export_party(keys, 'client', os.path.join(log_dir, 'stolen'))   # kept by an attacker: no list
+    revoked_at = time.time()
+    tls.revoke(keys, ['client'])
+    if not wait_until(lambda: '/listener' not in peers(), 5.0, 0.002):
+        sys.exit('the revoked party is still connected 5 s after the revocation')
+    print('REVOKED cut after %.3f s' % (time.time() - revoked_at))
+    again = subprocess.run([sys.executable, attack, 'revoked_attacker', '0.5'], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, env=env('client', stolen), timeout=60, universal_newlines=True).stdout
+    print('revoked_attacker: %s' % ' | '.join(l for l in again.splitlines() if l.startswith(('CALL', 'SUBSCRIPTION'))))
+    if not wait_until(lambda: '/brief_listener' not in peers(), max(0.0, brief_end - time.time()) + 5.0, 0.002):
+        sys.exit('the expired certificate is still connected 5 s after its end')
+    print('EXPIRED cut %.3f s after the certificate ended' % (time.time() - brief_end))
+    back = wait_until(lambda: peers() & {'/listener', '/brief_listener'}, 2.0, 0.01)
+    print('RECONNECTED %s' % (sorted(back) or 'none'))
+    done.set()
+    for p in listeners:
+        out, _ = p.communicate(timeout=40)
+        print('%s %s' % (p.args[2], [l for l in out.splitlines() if l.startswith('HEARD')]))
+    out = open(log_dir + '/witness.out').read()
+    print('WITNESS revoked refusals: %d' % out.count('is revoked'))
+    wait_until(lambda: ('/checker', 'certificate_expired') in set((a.source, a.kind) for a in alarms), 3.0)
+    print('ALARMS %s' % ' '.join(sorted(set('%s:%s' % (a.source, a.kind) for a in alarms if a.mechanism == 'tls'))))
 finally:
     for p in procs:
         p.terminate()
@@ -117,3 +206,18 @@ def test_only_certified_parties_the_policy_allows_reach_a_tls_node():
     assert 'FORGED commands refused' in output
     refusals = [line for line in output.splitlines() if line.startswith('WITNESS refusals')]
     assert refusals and int(refusals[0].split(': ')[1]) >= 2, output[-3000:]
+    served = [line for line in output.splitlines() if line.startswith('STALLED 20')][0]
+    assert float(served.split()[-2]) < 2.0, served     # not held up behind 20 stalled handshakes (5 s each)
+    assert 'STALLED closed by the node: 20 of 20' in output, output[-3000:]
+    # revocation and expiry on the running graph
+    assert 'REVOKED cut after' in output and 'EXPIRED cut' in output, output[-4000:]
+    assert 'RECONNECTED none' in output, output[-3000:]
+    revoked = [line for line in output.splitlines() if line.startswith('revoked_attacker')][0]
+    assert 'CALL refused' in revoked and 'SUBSCRIPTION nothing' in revoked, revoked
+    heard = [line for line in output.splitlines() if line.startswith(('listener', 'brief_listener'))]
+    assert len(heard) == 2 and all('HEARD 0' not in line for line in heard), heard   # each was served before
+    heard = [line for line in output.splitlines() if line.startswith('ALARMS')][0].split()
+    for alarm in ('/witness:connection_refused', '/checker:certificate_revoked', '/checker:certificate_expired'):
+        assert alarm in heard, (alarm, heard)     # raised on /aft/alarms, not only logged
+    revoked_refusals = [line for line in output.splitlines() if line.startswith('WITNESS revoked refusals')]
+    assert int(revoked_refusals[0].split(': ')[1]) >= 1, output[-3000:]

@@ -118,3 +118,48 @@ def test_a_party_is_given_its_own_files_and_the_cas_certificate_only(tmp_path):
     server, client = tls.contexts(given, 'master')          # enough to speak TLS as master
     with pytest.raises(ConfigError):
         tls.contexts(given, 'slave')                         # and nothing more
+
+
+def test_a_revocation_list_revokes_only_what_the_ca_signed_and_never_goes_back(tmp_path):
+    import os
+    home, elsewhere = str(tmp_path / 'home'), str(tmp_path / 'elsewhere')
+    tls.make_authority(home)
+    tls.make_authority(elsewhere)
+    for party in ('master', 'client'):
+        tls.issue(home, party)
+    tls.issue(elsewhere, 'client')
+    held = tls.Revocations.of_directory(home)
+    path, number = tls.revoke(home, ['client'])
+    with open(path, 'rb') as f:
+        first = f.read()
+    client = tls.serial_of(home, 'client')
+    assert number == 1 and held.take(first) == {client} and held.revoked(client)
+    assert not held.revoked(tls.serial_of(home, 'master'))
+    assert held.take(first) == frozenset()                   # the same list again: nothing new
+    _, number = tls.revoke(home, ['master'])
+    with open(path, 'rb') as f:
+        second = f.read()
+    assert number == 2 and held.take(second) == {tls.serial_of(home, 'master')} and held.revoked(client)
+    with pytest.raises(ConfigError, match='older than the one held'):
+        held.take(first)                                     # a replayed old list takes nothing back
+    assert held.revoked(tls.serial_of(home, 'master')) and held.number == 2
+    tls.revoke(elsewhere, ['client'])                        # a list of another CA
+    with open(os.path.join(elsewhere, tls.CRL), 'rb') as f:
+        with pytest.raises(ConfigError, match='not signed by the CA'):
+            held.take(f.read())
+    with pytest.raises(ConfigError, match='cannot be read'):
+        held.take(second[:-40])                              # cut short
+    altered = bytearray(second)
+    altered[len(altered) // 2] ^= 0x01                       # one bit changed
+    with pytest.raises(ConfigError):
+        held.take(bytes(altered))
+    assert held.number == 2 and held.serials == {client, tls.serial_of(home, 'master')}
+    given = tls.export_party(home, 'client', str(tmp_path / 'client'))
+    assert tls.CRL in os.listdir(given)                      # a party is given the list too
+
+
+def test_a_peer_certificate_names_its_serial_and_end():
+    serial, end = tls.serial_and_end({'serialNumber': '1F', 'notAfter': 'Jan  5 09:34:43 2031 GMT'})
+    import calendar
+    assert serial == 31 and end == calendar.timegm((2031, 1, 5, 9, 34, 43))
+    assert tls.serial_and_end({}) == (0, None)

@@ -20,6 +20,11 @@ the topic, the publisher that the subscriber's may subscribe; the caller that th
 serve the service, the server that the caller's may call it. A peer without a certificate is allowed
 only on a plaintext name. TLS itself gives freshness (a recorded connection cannot be replayed) and
 integrity on every message of the connection.
+
+Revocation follows the X.509 way: the CA signs a certificate revocation list (``ca.tls.crl``,
+``revoke``) with a number one higher each time; the operator copies it to every party's directory
+(as CRLs are distributed); each node follows its copy (``Revocations``: only a list the CA signed,
+never an older one) and refuses, and cuts, connections of a revoked certificate.
 """
 import datetime
 import fnmatch
@@ -76,9 +81,9 @@ def make_authority(directory, days=3650):
     return crt_path
 
 
-def issue(directory, party, days=30):
+def issue(directory, party, days=30, lifetime=None):
     """<party>.tls.key (0600) and <party>.tls.crt, signed by the CA of directory (common name: the
-    party). Replaces an existing pair (a rotation)."""
+    party), valid for days (or lifetime, a timedelta). Replaces an existing pair (a rotation)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -93,7 +98,8 @@ def issue(directory, party, days=30):
     now = datetime.datetime.utcnow()
     cert = (x509.CertificateBuilder().subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, party)]))
             .issuer_name(ca_cert.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(minutes=5)).not_valid_after(now + datetime.timedelta(days=days))
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + (lifetime or datetime.timedelta(days=days)))
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
             .sign(ca_key, hashes.SHA256()))
     key_path, crt_path = _names(directory, party)
@@ -109,11 +115,117 @@ def export_party(directory, party, destination):
     import shutil
     _check_party(party)
     os.makedirs(destination, mode=0o700, exist_ok=True)
-    for path in _names(directory, party) + (_names(directory, 'ca')[1],):
+    for path in _names(directory, party) + (_names(directory, 'ca')[1], os.path.join(directory, CRL)):
+        if path.endswith(CRL) and not os.path.exists(path):
+            continue
         target = os.path.join(destination, os.path.basename(path))
         shutil.copyfile(path, target)
         os.chmod(target, 0o600 if path.endswith('.key') else 0o644)
     return destination
+
+
+CRL = 'ca.tls.crl'
+
+
+def _authority(directory):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+    ca_key_path, ca_crt_path = _names(directory, 'ca')
+    try:
+        with open(ca_key_path, 'rb') as f:
+            ca_key = serialization.load_pem_private_key(f.read(), None)
+        with open(ca_crt_path, 'rb') as f:
+            return ca_key, x509.load_pem_x509_certificate(f.read())
+    except (OSError, ValueError) as e:
+        raise ConfigError('no usable TLS CA in %s: %s' % (directory, e))
+
+
+def serial_of(directory, party):
+    """The serial number of party's certificate in directory."""
+    from cryptography import x509
+    path = _names(directory, _check_party(party))[1]
+    try:
+        with open(path, 'rb') as f:
+            return x509.load_pem_x509_certificate(f.read()).serial_number
+    except (OSError, ValueError) as e:
+        raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
+
+
+def revoke(directory, parties=(), serials=(), days=7):
+    """Revoke the current certificates of parties (and the certificates of serials) of the CA in
+    directory: <directory>/ca.tls.crl is signed again listing every serial revoked so far, its CRL
+    number one higher. Returns (the CRL's path, its number)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    ca_key, ca_cert = _authority(directory)
+    path = os.path.join(directory, CRL)
+    held = Revocations(ca_cert.public_key())
+    if os.path.exists(path):
+        with open(path, 'rb') as f:
+            held.take(f.read())
+    revoked = set(held.serials) | set(int(s) for s in serials) | set(serial_of(directory, p) for p in parties)
+    number = (held.number or 0) + 1
+    now = datetime.datetime.utcnow()
+    builder = (x509.CertificateRevocationListBuilder().issuer_name(ca_cert.subject).last_update(now)
+               .next_update(now + datetime.timedelta(days=days)).add_extension(x509.CRLNumber(number), critical=False))
+    for serial in sorted(revoked):
+        builder = builder.add_revoked_certificate(
+            x509.RevokedCertificateBuilder().serial_number(serial).revocation_date(now).build())
+    crl = builder.sign(ca_key, hashes.SHA256())
+    _write(path, crl.public_bytes(serialization.Encoding.PEM), 0o644)
+    return path, number
+
+
+class Revocations(object):
+    """The certificates the CA revoked, as far as one party knows: taken only from a revocation list
+    the CA signed, and never from one older (by its CRL number) than the list held, so a replayed old
+    list cannot take a revocation back."""
+
+    def __init__(self, ca_public_key):
+        self.key = ca_public_key
+        self.number = None
+        self.serials = frozenset()
+
+    @classmethod
+    def of_directory(cls, directory):
+        from cryptography import x509
+        try:
+            with open(_names(directory, 'ca')[1], 'rb') as f:
+                return cls(x509.load_pem_x509_certificate(f.read()).public_key())
+        except (OSError, ValueError) as e:
+            raise ConfigError('no usable TLS CA certificate in %s: %s' % (directory, e))
+
+    def take(self, data):
+        """Take a CRL (PEM bytes): returns the serials it newly revokes. Raises ConfigError, changing
+        nothing, for a list that is malformed, not signed by the CA, older than the one held, or of
+        the same number with other serials."""
+        from cryptography import x509
+        try:
+            crl = x509.load_pem_x509_crl(data)
+            signed = crl.is_signature_valid(self.key)
+        except (ValueError, TypeError) as e:
+            raise ConfigError('the TLS revocation list cannot be read: %s' % e)
+        if not signed:
+            raise ConfigError('the TLS revocation list is not signed by the CA')
+        try:
+            number = crl.extensions.get_extension_for_class(x509.CRLNumber).value.crl_number
+        except x509.ExtensionNotFound:
+            raise ConfigError('the TLS revocation list has no CRL number')
+        serials = frozenset(r.serial_number for r in crl)
+        if self.number is not None and number < self.number:
+            raise ConfigError('the TLS revocation list number %d is older than the one held (%d): refused'
+                              % (number, self.number))
+        if number == self.number and serials != self.serials:
+            raise ConfigError('the TLS revocation list number %d differs from the one held under that number'
+                              % number)
+        if not serials >= self.serials:
+            raise ConfigError('the TLS revocation list number %d takes back revoked serials: refused' % number)
+        new = serials - self.serials
+        self.number, self.serials = number, serials
+        return new
+
+    def revoked(self, serial):
+        return serial in self.serials
 
 
 def _write(path, data, mode):
@@ -148,6 +260,13 @@ def contexts(directory, party):
             raise ConfigError('TLS files of party %s in %s cannot be used: %s' % (party, directory, e))
         made.append(context)
     return tuple(made)
+
+
+def serial_and_end(peer_certificate):
+    """(serial number, not-after in seconds since the epoch) of a getpeercert() dictionary."""
+    serial = int((peer_certificate or {}).get('serialNumber', '0'), 16)
+    end = (peer_certificate or {}).get('notAfter')
+    return serial, (ssl.cert_time_to_seconds(end) if end else None)
 
 
 def party_of(peer_certificate):

@@ -61,7 +61,7 @@ class BankDriver(object):
 
     def _on_alarm(self, msg):
         with self.lock:
-            self.alarms.append({'kind': msg.kind, 'source': msg.source, 'detail': msg.detail,
+            self.alarms.append({'mechanism': msg.mechanism, 'kind': msg.kind, 'source': msg.source, 'detail': msg.detail,
                                 'stamp': msg.stamp.to_sec()})
 
     def write(self, data):

@@ -123,7 +123,7 @@ class PbrDeployment(object):
             from aft_ftm import tls
             authority = os.path.join(self.tls_dir, 'authority')   # the CA's key stays here, given to nobody
             tls.make_authority(authority)
-            for party in ('master', 'slave', 'client', 'operator', 'client2'):
+            for party in ('master', 'slave', 'client', 'witness', 'operator', 'client2'):
                 tls.issue(authority, party)
                 tls.export_party(authority, party, os.path.join(self.tls_dir, party))
 

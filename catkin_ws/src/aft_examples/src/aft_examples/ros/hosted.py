@@ -111,6 +111,10 @@ class HostedDeployment(object):
 
     def __init__(self, log_dir, hosts=None, power_switch=True, monitor=False, **pbr_args):
         plan = PbrDeployment(log_dir, **pbr_args)   # its launch arguments, not started
+        self.tls = plan if plan.tls_policy else None   # its TLS files: each host's processes get its party's
+        if self.tls and monitor:
+            raise ValueError('mutual TLS with the Monitoring Engine on emulated hosts is not supported: the '
+                             'nodes it starts on each site\'s host would need that site\'s party')
         self.monitor = monitor    # the Monitoring Engine (monitor.launch, running pbr) in the witness host
         self.log_dir = log_dir
         self.launch_args = dict(plan.launch_args)
@@ -125,9 +129,16 @@ class HostedDeployment(object):
         self.master_uri = None
 
     # -- start and stop ----------------------------------------------------------------------------
-    def _env(self, host):
+    # the TLS party of each host's processes (the driver on the client host is the operator)
+    TLS_PARTIES = {'client': 'client', 'master': 'master', 'slave': 'slave', 'witness': 'witness'}
+
+    def _env(self, host, party=None):
         ip = self.hosts.ip(host)
-        return dict(os.environ, ROS_IP=ip, ROS_HOSTNAME=ip, ROS_MASTER_URI=self.master_uri)
+        env = dict(os.environ, ROS_IP=ip, ROS_HOSTNAME=ip, ROS_MASTER_URI=self.master_uri)
+        party = party or self.TLS_PARTIES.get(host)
+        if self.tls and party:
+            env = self.tls.tls_env(party, env)
+        return env
 
     def _site(self, name, host, argv):
         host_ns = self.hosts.topology.host(host).namespace
@@ -185,7 +196,8 @@ class HostedDeployment(object):
     def _start_driver(self, timeout):
         log = open(os.path.join(self.log_dir, 'bank_driver.log'), 'ab')
         try:
-            popen = self.hosts.run_in('client', ['rosrun', 'aft_examples', 'bank_driver'], env=self._env('client'),
+            popen = self.hosts.run_in('client', ['rosrun', 'aft_examples', 'bank_driver'],
+                                      env=self._env('client', party='operator'),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
         finally:
             log.close()

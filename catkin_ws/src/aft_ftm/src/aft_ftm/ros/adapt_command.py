@@ -82,6 +82,8 @@ def main(argv):
         return 2
     if not options.lease > 0:
         parser.error('--lease must be > 0 s, got %r' % options.lease)
+    from aft_ftm.ros.params import secure_from_environment
+    secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
     rospy.init_node('aft_adapt', anonymous=True, disable_signals=True)
     from .adaptation_engine import Engine
     engine = Engine(log=functools.partial(print, flush=True), lease=options.lease)

@@ -56,6 +56,8 @@ def main(argv=None):
     if not options.site.strip('/') or '/' in options.site.strip('/'):
         parser.error('--site must be a site name such as master, got %r' % options.site)
     import rospy
+    from aft_ftm.ros.params import secure_from_environment
+    secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
     rospy.init_node('fail_site_%s' % options.site.strip('/'), anonymous=True, disable_signals=True)
     return 0 if fail_site(options.site.strip('/'), options.reason, options.timeout) else 1
 

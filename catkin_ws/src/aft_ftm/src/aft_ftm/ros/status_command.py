@@ -30,6 +30,8 @@ def main(argv):
                 entry = report_of(status)
                 if entry is not None:
                     reports[entry[0]] = entry[1]
+    from aft_ftm.ros.params import secure_from_environment
+    secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
     rospy.init_node('aft_status', anonymous=True, disable_signals=True)
     rospy.Subscriber('/diagnostics', DiagnosticArray, on_array)
     rospy.sleep(args.wait)

@@ -11,7 +11,16 @@ environment names a TLS directory (AFT_TLS_DIR, with AFT_TLS_PARTY and AFT_TLS_P
   a peer in clear only on a plaintext name.
 A refused connection is closed (rospy logs it; the peer gets the reason in the TCPROS error header
 where there is one) and an alarm ``tls connection_refused`` is raised, at most once per peer and
-name every 10 s."""
+name every 10 s.
+
+Revocation and expiry on a running graph: the node follows the CA's revocation list in its TLS
+directory (``ca.tls.crl``, checked every CRL_PERIOD); a certificate it revokes is refused from then
+on, and every live connection of it is cut (alarm ``tls certificate_revoked``); a connection whose
+peer certificate has expired is cut too (``tls certificate_expired``: OpenSSL refuses it at the next
+handshake). A list not signed by the CA, or older than the one held, is refused (``tls bad_crl``)
+and changes nothing; this node's own certificate revoked raises ``tls own_certificate_revoked``."""
+import collections
+import os
 import socket
 import ssl
 import threading
@@ -19,12 +28,17 @@ import time
 import weakref
 
 from .. import tls
+from ..errors import ConfigError
 
 HANDSHAKE_TIMEOUT = 5.0
+CRL_PERIOD = 0.25   # s between two looks at the revocation list and the live connections' expiry
 _STATE = {}
 _PEERS = weakref.WeakKeyDictionary()   # inbound socket -> its peer's party (None: in clear)
+_LIVE = weakref.WeakKeyDictionary()    # TLS socket -> (peer party, certificate serial, not-after s)
 _TOLD = {}
 _LOCK = threading.Lock()
+_PENDING = collections.deque(maxlen=200)   # alarms not yet published (the watcher publishes them)
+PUBLISHER_SETTLE = 0.5   # s a new publisher is given to be heard before the first alarm goes out
 
 
 def install(directory, party, permissions):
@@ -33,7 +47,23 @@ def install(directory, party, permissions):
     from . import handshake
     handshake.bound_handshakes()   # the inbound hook runs in the per-connection threads it makes
     server, client = tls.contexts(directory, party)
-    _STATE.update(server=server, client=client, permissions=permissions, party=party)
+    revocations = tls.Revocations.of_directory(directory)
+    crl = os.path.join(directory, tls.CRL)
+    seen = _crl_stat(crl)
+    if seen is not None:
+        with open(crl, 'rb') as f:
+            try:
+                revocations.take(f.read())
+            except ConfigError as e:
+                raise ConfigError('%s: %s' % (crl, e))
+    own = tls.serial_of(directory, party)
+    if revocations.revoked(own):
+        raise ConfigError('the TLS certificate of party %s in %s is revoked (%s)' % (party, directory, crl))
+    started = bool(_STATE)
+    _STATE.update(server=server, client=client, permissions=permissions, party=party, revocations=revocations,
+                  crl=crl, crl_seen=seen, own_serial=own)
+    if not started:
+        threading.Thread(target=_follow_revocations, name='tls_revocations', daemon=True).start()
     if not getattr(base.TCPROSTransport.write_header, 'tls', False):
         original = base.TCPROSTransport.write_header
 
@@ -69,13 +99,15 @@ def _secure_outbound(transport):
         plain.close()
         transport.socket = None   # not a half-made connection rospy would go on reading
         raise TransportInitError('TLS refused for %s: %s' % (name, e))
-    why = permissions.allows(tls.party_of(secured.getpeercert()), action, name)
+    certificate = secured.getpeercert()
+    why = _revoked(certificate) or permissions.allows(tls.party_of(certificate), action, name)
     if why:
         _refused(transport.dest_address, name, why)
         secured.close()
         transport.socket = None
         raise TransportInitError('refused by the TLS policy: %s' % why)
     secured.settimeout(timeout)
+    _keep(secured, certificate)
     transport.socket = secured
 
 
@@ -87,8 +119,15 @@ def _accept(server, sock, client_addr):
         first = sock.recv(tls.PEEK, socket.MSG_PEEK | socket.MSG_WAITALL)
         if tls.looks_like_tls(first):
             secured = _STATE['server'].wrap_socket(sock, server_side=True)
+            certificate = secured.getpeercert()
+            why = _revoked(certificate)
+            if why:
+                _refused(client_addr, '(handshake)', why)
+                secured.close()
+                return None
             secured.settimeout(None)
-            _PEERS[secured] = tls.party_of(secured.getpeercert())
+            _PEERS[secured] = tls.party_of(certificate)
+            _keep(secured, certificate)
             return secured
         sock.settimeout(None)
         _PEERS[sock] = None
@@ -128,8 +167,91 @@ def _guard(handler, action, key):
     return handle
 
 
-def _refused(peer, name, why):
+def _revoked(certificate):
+    serial, _ = tls.serial_and_end(certificate)
+    if _STATE['revocations'].revoked(serial):
+        return 'certificate %x of party %s is revoked' % (serial, tls.party_of(certificate))
+    return None
+
+
+def _keep(secured, certificate):
+    serial, end = tls.serial_and_end(certificate)
+    with _LOCK:
+        _LIVE[secured] = (tls.party_of(certificate), serial, end)
+
+
+def _crl_stat(path):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _follow_revocations():
+    """The watcher thread: the revocation list again when its file changed, and every live
+    connection whose certificate is revoked or has expired cut (bounded: CRL_PERIOD per round)."""
+    while True:
+        time.sleep(CRL_PERIOD)
+        try:
+            _look_once(time.time())
+        except Exception as e:   # never let the watcher die silently
+            _alarm('watch_failed', 'the TLS revocation watcher: %s' % e)
+        try:
+            _publish_pending(time.monotonic())
+        except Exception:   # shutting down: the log lines stand
+            pass
+
+
+def _publish_pending(now):
+    """The alarms raised so far, on /aft/alarms: the publisher is made once the node is initialised
+    and given PUBLISHER_SETTLE to be heard, so the first refusal's alarm is not lost."""
     import rospy
+    if not rospy.core.is_initialized() or rospy.is_shutdown():
+        return
+    if 'alarms' not in _STATE:
+        from aft_msgs.msg import Alarm
+        _STATE['alarms'] = rospy.Publisher('/aft/alarms', Alarm, queue_size=100)
+        _STATE['alarms_since'] = now
+    if now - _STATE['alarms_since'] < PUBLISHER_SETTLE:
+        return
+    while _PENDING:
+        _STATE['alarms'].publish(_PENDING.popleft())
+
+
+def _look_once(now):
+    crl = _STATE['crl']
+    seen = _crl_stat(crl)
+    if seen is not None and seen != _STATE['crl_seen']:
+        _STATE['crl_seen'] = seen
+        try:
+            with open(crl, 'rb') as f:
+                new = _STATE['revocations'].take(f.read())
+        except (OSError, ConfigError) as e:
+            _alarm('bad_crl', '%s: %s (the list held stays)' % (crl, e))
+            new = ()
+        if _STATE['own_serial'] in new:
+            _alarm('own_certificate_revoked', 'this node\'s certificate (party %s) is revoked by %s: its peers '
+                   'refuse it' % (_STATE['party'], crl))
+    with _LOCK:
+        live = list(_LIVE.items())
+    for sock, (party, serial, end) in live:
+        if _STATE['revocations'].revoked(serial):
+            why = ('certificate_revoked', 'cut the connection of party %s: its certificate %x is revoked' % (party, serial))
+        elif end is not None and now > end:
+            why = ('certificate_expired', 'cut the connection of party %s: its certificate %x expired' % (party, serial))
+        else:
+            continue
+        with _LOCK:
+            _LIVE.pop(sock, None)
+        try:
+            socket.socket.shutdown(sock, socket.SHUT_RDWR)   # wakes rospy's reader; it drops the connection
+        except OSError:
+            pass
+        _alarm(*why)
+
+
+def _refused(peer, name, why):
     key = (str(peer[0]) if peer else '?', name)
     now = time.monotonic()
     with _LOCK:
@@ -138,13 +260,13 @@ def _refused(peer, name, why):
         if len(_TOLD) > 1000:   # names an attacker chooses: bounded
             _TOLD.clear()
         _TOLD[key] = now
-    rospy.logwarn('%s: tls connection_refused: %s from %s: %s', rospy.get_name(), name, key[0], why)
-    try:
-        from aft_msgs.msg import Alarm
-        publisher = _STATE.get('alarms')
-        if publisher is None:
-            publisher = _STATE['alarms'] = rospy.Publisher('/aft/alarms', Alarm, queue_size=100)
-        publisher.publish(Alarm(source=rospy.get_name(), mechanism='tls', kind='connection_refused',
-                                detail='%s from %s: %s' % (name, key[0], why), stamp=rospy.Time.now()))
-    except Exception:   # before init_node, or shutting down: the log line above stands
-        pass
+    _alarm('connection_refused', '%s from %s: %s' % (name, key[0], why))
+
+
+def _alarm(kind, detail):
+    """Log it now; the watcher publishes it within CRL_PERIOD (once the node is initialised)."""
+    import rospy
+    from aft_msgs.msg import Alarm
+    rospy.logwarn('%s: tls %s: %s', rospy.get_name(), kind, detail)
+    _PENDING.append(Alarm(source=rospy.get_name(), mechanism='tls', kind=kind, detail=detail,
+                          stamp=rospy.Time.from_sec(time.time())))
