@@ -47,41 +47,13 @@ for name, kind, request in (('/slave/protocol/set_role', SetRole, dict(role=2, l
 subscribers = sum(p.get_num_connections() for p in pubs)
 print('SUBSCRIBERS %d' % subscribers)
 if len(sys.argv) > 2:
-    # the sweep: a default message of the right type on every topic somebody subscribes to, and a
-    # call with a default request of every service, read from the master as any process can
-    import rosgraph, roslib.message, rosservice
+    # the sweep (aft_ftm.ros.intruder): a default message of the right type on every topic somebody
+    # subscribes to, and a call with a default request of every service, read from the master
     from aft_ftm import tls
-    permissions = tls.Permissions.load(sys.argv[2])
-    me = rospy.get_name()
-    master = rosgraph.Master(me)
-    _, subscribed, services = master.getSystemState()
-    types = dict(master.getTopicTypes())
-    forged = []
-    for topic, nodes in sorted(subscribed):
-        if permissions.plaintext(topic) or topic not in types or nodes == [me]:
-            continue
-        kind = roslib.message.get_message_class(types[topic])
-        publisher = rospy.Publisher(topic, kind, queue_size=10, latch=True)
-        publisher.publish(kind())
-        forged.append((topic, publisher))
-    time.sleep(2.0)   # every subscriber of those topics is told of this publisher and tries it
-    connected = [t for t, p in forged if p.get_num_connections()]
-    served, refused, unknown = [], 0, 0
-    for name, providers in sorted(services):
-        if permissions.plaintext(name) or name.startswith(me + '/') or providers == ['/rosout']:
-            continue   # the application's open names; this process's own; the roscore's log node
-        try:
-            kind = rosservice.get_service_class_by_name(name)
-        except Exception:
-            unknown += 1
-            continue
-        try:
-            rospy.ServiceProxy(name, kind)(kind._request_class())
-            served.append(name)
-        except Exception:
-            refused += 1
+    from aft_ftm.ros.intruder import sweep
+    got = sweep(tls.Permissions.load(sys.argv[2]))
     print('SWEEP topics %d connected %s services refused %d unknown %d served %s'
-          % (len(forged), connected, refused, unknown, served))
+          % (len(got['topics']), got['connected'], got['refused'], len(got['unknown']), got['served']))
 """
 
 log_dir = tempfile.mkdtemp(prefix='aft_tls_pbr_')

@@ -95,6 +95,14 @@ def test_the_shipped_rejoin_scenario_brings_board_a_back_between_the_two_power_l
     assert 'pbr' in s['mechanisms'] and s['control'] is None
 
 
+def test_an_intrusion_is_carried_out_by_the_runner_and_takes_only_its_time():
+    s = scenarios.load('intrusion')
+    assert [(f['kind'], f['at']) for f in s['faults']] == [('intrusion', 4.0), ('power_loss', 15.0)]
+    assert 'intrusion' in scenarios.PROCESS_FAULTS   # the runner starts the intruders, not the simulator
+    with pytest.raises(scenarios.ScenarioError, match='unknown key'):
+        parse('faults: [{kind: intrusion, at: 3, sensor: imu}]\n')
+
+
 def test_the_control_experiment_removes_exactly_one_mechanism():
     s = parse('control: {disable: tr_imu, hazard: gap_violation}\n')
     control = scenarios.without(s, 'tr_imu')

@@ -10,7 +10,7 @@ import pytest
 from aft_ftm import tls
 from aft_ftm.errors import ConfigError
 
-POLICY = {'plaintext': ['/rosout', '/account'],
+POLICY = {'plaintext': ['/rosout', '/account'], 'readable': ['/sensors/*'],
           'parties': {'master': {'publish': ['/ftm/checkpoints/master'], 'subscribe': ['*'], 'serve': ['/master/*'],
                                  'call': ['/aft/witness/*']},
                       'client': {'subscribe': ['/ftm/pro2pxy']}}}
@@ -28,6 +28,10 @@ POLICY = {'plaintext': ['/rosout', '/account'],
     (None, 'subscribe', '/rosout', True),                   # plaintext names
     (None, 'call', '/account', True),
     ('client', 'call', '/account', True),                   # a plaintext name is open to a certified peer too
+    (None, 'subscribe', '/sensors/laser_0', True),          # readable: a recorder without TLS listens
+    (None, 'publish', '/sensors/laser_0', False),           # but may not speak on it
+    ('client', 'publish', '/sensors/laser_0', False),       # nor may a party the policy does not name
+    (None, 'subscribe', '/ftm/pro2pxy', False),
 ])
 def test_the_policy_allows_each_party_what_it_names_and_nothing_else(party, action, name, allowed):
     why = tls.Permissions.parse(POLICY).allows(party, action, name)
@@ -41,6 +45,7 @@ def test_the_policy_allows_each_party_what_it_names_and_nothing_else(party, acti
     ({'parties': {'a': {'write': ['/x']}}}, 'unknown key(s) write'),
     ({'parties': {'a': ['/x']}}, 'expected a mapping'),
     ({'parties': {}, 'plaintext': '/rosout'}, 'plaintext must be a list'),
+    ({'parties': {}, 'readable': [3]}, 'readable must be a list'),
 ])
 def test_a_malformed_policy_is_refused_naming_the_problem(data, words):
     with pytest.raises(ConfigError) as error:

@@ -8,6 +8,8 @@ The policy file (YAML; names are fnmatch patterns of resolved topic and service 
 
     plaintext: [/rosout, /account]   # names open to peers without TLS (ROS tools, the unmodified
                                      # application's own client and server)
+    readable: ['/sensors/*']         # topics a peer without TLS may subscribe to, never publish
+                                     # (a recorder such as rosbag record, which has no TLS)
     parties:
       master:
         publish: [/ftm/checkpoints/master, /master/*]
@@ -282,9 +284,10 @@ def party_of(peer_certificate):
 class Permissions(object):
     """Who may publish, subscribe, serve or call what (see the module docstring)."""
 
-    def __init__(self, parties, plaintext=()):
+    def __init__(self, parties, plaintext=(), readable=()):
         self.parties = parties
         self.plaintext_names = list(plaintext)
+        self.readable_names = list(readable)
 
     @classmethod
     def load(cls, path):
@@ -293,12 +296,14 @@ class Permissions(object):
 
     @classmethod
     def parse(cls, data, where='the TLS policy'):
-        if not isinstance(data, dict) or not set(data) <= {'plaintext', 'parties'} or 'parties' not in data \
-                or not isinstance(data['parties'], dict):
-            raise ConfigError('%s: expected the keys parties (a mapping) and, optionally, plaintext (a list)' % where)
-        plaintext = data.get('plaintext') or []
-        if not isinstance(plaintext, list) or not all(isinstance(n, str) and n for n in plaintext):
-            raise ConfigError('%s: plaintext must be a list of names' % where)
+        if not isinstance(data, dict) or not set(data) <= {'plaintext', 'readable', 'parties'} \
+                or 'parties' not in data or not isinstance(data['parties'], dict):
+            raise ConfigError('%s: expected the keys parties (a mapping) and, optionally, plaintext and readable '
+                              '(lists)' % where)
+        plaintext, readable = data.get('plaintext') or [], data.get('readable') or []
+        for key, names in (('plaintext', plaintext), ('readable', readable)):
+            if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+                raise ConfigError('%s: %s must be a list of names' % (where, key))
         parties = {}
         for party, rules in data['parties'].items():
             rules = {} if rules is None else rules
@@ -312,7 +317,7 @@ class Permissions(object):
                 if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
                     raise ConfigError('%s: party %r: %s must be a list of names' % (where, party, action))
             parties[str(party)] = dict((a, list(rules.get(a) or [])) for a in ACTIONS)
-        return cls(parties, plaintext)
+        return cls(parties, plaintext, readable)
 
     def plaintext(self, name):
         return any(fnmatch.fnmatchcase(name, p) for p in self.plaintext_names)
@@ -322,6 +327,8 @@ class Permissions(object):
         if self.plaintext(name):
             return None   # open to anyone, with a certificate or without
         if party is None:
+            if action == 'subscribe' and any(fnmatch.fnmatchcase(name, p) for p in self.readable_names):
+                return None   # readable: anyone may listen, nobody without a certificate may speak
             return '%s needs TLS: a peer without a certificate may not %s it' % (name, action)
         patterns = self.parties.get(party, {}).get(action)
         if patterns is None:

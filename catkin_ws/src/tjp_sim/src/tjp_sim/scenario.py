@@ -16,7 +16,10 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   ``backup``, the boards' roles at the start: board_a and board_b); a board's power losses and
   returns alternate, a power loss first;
   ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
-  (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`
+  (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`; ``intrusion`` takes nothing more:
+  an intruder on the car's network (aft_ftm's ``intruder``, once in clear and, under TLS, once with
+  a certificate the policy trusts with nothing) forges a message on every topic and calls every
+  service
 - ``managed_tjp`` [false]: those TJP nodes run under aft_ftm's service manager
 - ``events`` [[]]: ``pedestrian`` (``at``, ``ahead`` m in front of the bumper [3.0], ``leaves`` sim s
   [never]); ``adapt`` (``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}], and
@@ -48,7 +51,8 @@ MECHANISMS = ('pbr', 'tr_imu', 'tr_ultrasonic', 'triplication_vote', 'alarm_and_
 SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
 # The boards of controllerPid, and the names that designate them (the roles are those at the start).
 BOARDS = {'board_a': 'board_a', 'board_b': 'board_b', 'primary': 'board_a', 'backup': 'board_b'}
-PROCESS_FAULTS = ('power_loss', 'board_back', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang')
+PROCESS_FAULTS = ('power_loss', 'board_back', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang',
+                  'intrusion')
 MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {
@@ -101,7 +105,7 @@ def _fault(where, item, duration, rng):
     extra = {'stuck': ['value'], 'offset': ['offset'], 'noise': ['sigma'], 'spikes': ['probability', 'magnitude'],
              'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'board_back': ['board'],
              'simulator_crash': [],
-             'master_crash': [], 'node_crash': ['node'], 'node_hang': ['node']}
+             'master_crash': [], 'node_crash': ['node'], 'node_hang': ['node'], 'intrusion': []}
     if kind not in extra:
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
     sensor = kind in VALUE_KINDS or kind == 'crash'

@@ -25,6 +25,7 @@ The lists other than ``states`` may be missing or empty: nothing of that kind ha
 - :func:`text`: the summary for a human, one aligned ``label: value`` line per metric.
 """
 import bisect
+import os
 
 from .world import ULTRASONIC_RANGE
 from .control import Mode, SafetyDistance
@@ -302,6 +303,16 @@ def text(summary):
         '%s: %s, paused %s, %s' % (_at(a.get('t')), a.get('script', '?'), _ms(a.get('pause')),
                                    'ok' if a.get('ok') else 'FAILED')
         for a in s['adaptations']]))
+    if 'tls' in s:
+        lines.append(('mutual TLS', 'on (%s): %d TLS alarm(s), %d refusal(s) of the car\'s own nodes' % (
+            os.path.basename(s['tls']['policy']), s['tls']['alarms'], len(s['tls']['policy_gaps'])),
+            s['tls']['policy_gaps'][:3]))
+    if s.get('intrusions'):
+        lines.append(('intruders', '%d' % len(s['intrusions']), [
+            '%s: %s' % (i['party'], i['error'] if i.get('error') else
+                        '%d topics forged, heard on %d; %d services called, %d refused, %d served'
+                        % (len(i['topics']), len(i['connected']), i['services'], i['refused'], len(i['served'])))
+            for i in s['intrusions']]))
     if 'verdict' in s:
         verdict = s['verdict']
         lines.append(('verdict', 'OK' if verdict['ok'] else 'FAILED', ['- ' + p for p in verdict['problems']]))

@@ -68,9 +68,11 @@ def install(directory, party, permissions):
         original = base.TCPROSTransport.write_header
 
         def write_header(self):
-            if self.dest_address is not None and self.socket is not None and \
-                    not isinstance(self.socket, ssl.SSLSocket):
-                _secure_outbound(self)
+            # (no protocol: rospy is closing the connection, and writes no header either)
+            protocol = self.protocol
+            if self.dest_address is not None and self.socket is not None and protocol is not None \
+                    and not isinstance(self.socket, ssl.SSLSocket):
+                _secure_outbound(self, protocol)
             return original(self)
         write_header.tls = True
         base.TCPROSTransport.write_header = write_header
@@ -82,9 +84,9 @@ def active():
     return bool(_STATE)
 
 
-def _secure_outbound(transport):
+def _secure_outbound(transport, protocol):
     from rospy.exceptions import TransportInitError
-    fields = transport.protocol.get_header_fields() if transport.protocol is not None else {}
+    fields = protocol.get_header_fields()
     name, action = (fields['topic'], 'publish') if 'topic' in fields else (fields.get('service', '?'), 'serve')
     permissions = _STATE['permissions']
     if permissions.plaintext(name):

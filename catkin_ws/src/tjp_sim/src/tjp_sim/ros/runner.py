@@ -14,6 +14,7 @@ import json
 import os
 import signal
 import socket
+import subprocess
 import threading
 import time
 import uuid
@@ -63,7 +64,8 @@ def board_nodes(board, pbr):
 class ScenarioRun(object):
     """One run of a scenario (a dict from tjp_sim.scenario) into directory out."""
 
-    def __init__(self, scenario, path, out, gui=False, log=print, setup_timeout=90.0, until_hazard=None):
+    def __init__(self, scenario, path, out, gui=False, log=print, setup_timeout=90.0, until_hazard=None,
+                 tls_policy=None):
         self.scenario, self.path, self.out, self.gui, self.log = scenario, path, out, gui, log
         self.until_hazard = until_hazard   # end the run once this hazard has shown (a control experiment)
         self.live = None
@@ -79,10 +81,34 @@ class ScenarioRun(object):
         self.threads = []
         self.adaptations = []
         self.engines = []    # adaptation engines: what they launched is stopped with the run
+        self.intrusions = []  # what each intruder reported (aft_ftm.ros.intruder.sweep)
+        # Mutual TLS (issue 16): the car, each board and the operator (this runner, the adaptation
+        # engine in it and what the engine starts) are parties with certificates of their own.
+        self.tls_policy = tls_policy
+        self.tls_dir = os.path.join(out, 'tls') if tls_policy else None
 
     # -- processes -------------------------------------------------------------------------------
+    TLS_PARTIES = ('car', 'board_a', 'board_b', 'operator', 'recorder', 'intruder')
+
+    def _make_tls(self):
+        from aft_ftm import tls
+        authority = os.path.join(self.tls_dir, 'authority')   # the CA's key stays here
+        tls.make_authority(authority)
+        for party in self.TLS_PARTIES:
+            tls.issue(authority, party)
+            tls.export_party(authority, party, os.path.join(self.tls_dir, party))
+
+    def tls_env(self, party, base=None):
+        """The environment of a process of party under this run's TLS (base, default the run's)."""
+        env = dict(self.env if base is None else base)
+        if self.tls_policy and party:
+            env.update(AFT_TLS_DIR=os.path.join(self.tls_dir, party), AFT_TLS_PARTY=party,
+                       AFT_TLS_POLICY=self.tls_policy)
+        return env
+
     def _site(self, name, argv):
-        site = Site(name, argv, env=self.env, log_path=os.path.join(self.out, 'logs', name + '.log'))
+        party = name if name in self.TLS_PARTIES else None   # the master: no TLS
+        site = Site(name, argv, env=self.tls_env(party), log_path=os.path.join(self.out, 'logs', name + '.log'))
         self.sites[name] = site.start()
         return site
 
@@ -101,26 +127,36 @@ class ScenarioRun(object):
 
     def start(self):
         os.makedirs(os.path.join(self.out, 'logs'), exist_ok=True)
+        if self.tls_policy:
+            self._make_tls()
         self._site('master', ['rosmaster', '--core', '-p', str(self.port)])
         master = rosgraph.Master(RUNNER, master_uri=self.env['ROS_MASTER_URI'])
         if not wait_until(lambda: self._answers(master), 20.0):
             raise RunError('the ROS master on port %d did not start' % self.port)
         master.setParam('/use_sim_time', True)
         master.setParam('/run_id', str(uuid.uuid4()))   # the launches started at once must share one
-        self._site('recorder', ['/usr/lib/rosbag/record', '-O', self.bag, '--tcpnodelay', '__name:=' + RECORDER[1:]]
-                   + TOPICS)
+        if self.tls_policy:   # rosbag record has no TLS: a rospy recorder that has
+            self._site('recorder', ['rosrun', 'tjp_sim', 'recorder', '-O', self.bag, '__name:=' + RECORDER[1:]] + TOPICS)
+        else:
+            self._site('recorder', ['/usr/lib/rosbag/record', '-O', self.bag, '--tcpnodelay',
+                                    '__name:=' + RECORDER[1:]] + TOPICS)
         self._site('car', ['roslaunch', 'tjp_sim', 'car.launch'] + self._launch_args())
         self._site('board_a', self._board_argv('board_a', 'primary'))
         if self.pbr:
             self._site('board_b', self._board_argv('board_b', 'backup'))
         # The runner's own node, on simulated time, on this run's master.
         os.environ.update(ROS_MASTER_URI=self.env['ROS_MASTER_URI'])
+        if self.tls_policy:
+            from aft_ftm.ros.params import secure_from_environment
+            os.environ.update(self.tls_env('operator', {}))
+            secure_from_environment()
         rospy.init_node(RUNNER[1:], disable_signals=True)
         with warnings.catch_warnings():   # queue_size=None is chosen: publish synchronously, drop nothing
             warnings.simplefilter('ignore')
             self.events = rospy.Publisher('/tjp/events', String, queue_size=None, tcp_nodelay=True)
         self.alarm_kinds = set()
-        rospy.Subscriber('/aft/alarms', Alarm, lambda msg: self.alarm_kinds.add(msg.kind), tcp_nodelay=True)
+        self.tls_alarms = []   # what the TLS layer of any node raised (a refused connection, a cut one)
+        rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
         if self.until_hazard:
             self.live = LiveHazards(self.scenario)
         t0 = time.monotonic()
@@ -130,6 +166,11 @@ class ScenarioRun(object):
                            % (self.setup_timeout, ', '.join(missing[:6]), os.path.join(self.out, 'logs')))
         self.log('scenario %s: %d nodes up and connected in %.1f s' % (self.scenario['name'],
                                                                        len(self.expected_nodes()), time.monotonic() - t0))
+
+    def _on_alarm(self, msg):
+        self.alarm_kinds.add(msg.kind)
+        if msg.mechanism == 'tls':
+            self.tls_alarms.append('%s %s: %s' % (msg.source, msg.kind, msg.detail))
 
     def _board_argv(self, board, role):
         """The command that starts a board: with PBR in ``role``, paired with the other board."""
@@ -281,10 +322,34 @@ class ScenarioRun(object):
         elif kind == 'master_crash':
             self.event('fault', fault='master_crash', target='rosmaster')
             self.sites['master'].power_off()
+        elif kind == 'intrusion':
+            self.event('fault', fault='intrusion', target='graph')
+            thread = threading.Thread(target=self._intrude, daemon=True)
+            self.threads.append(thread)
+            thread.start()
         elif kind == 'adapt':
             thread = threading.Thread(target=self._adapt, args=(item,), daemon=True)
             self.threads.append(thread)
             thread.start()
+
+    def _intrude(self):
+        """The intruder (aft_ftm's ``intruder``) in clear, and under TLS with the certificate of
+        party intruder, which the policy trusts with nothing; what got through goes to the summary."""
+        parties = [None] + (['intruder'] if self.tls_policy else [])
+        for party in parties:
+            env = {k: v for k, v in self.tls_env(party).items() if party or not k.startswith('AFT_TLS_')}
+            argv = ['rosrun', 'aft_ftm', 'intruder', '--hold', '1.0'] + (['--policy', self.tls_policy]
+                                                                       if self.tls_policy else [])
+            try:
+                done = subprocess.run(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, timeout=90,
+                                      universal_newlines=True)
+                got = json.loads(done.stdout.strip().splitlines()[-1])
+            except (subprocess.TimeoutExpired, ValueError, IndexError) as e:
+                got = {'error': 'the intruder did not report: %s' % e}
+            got['party'] = party or 'none (in clear)'
+            self.intrusions.append(got)
+            self.event('intrusion', party=got['party'], connected=len(got.get('connected', [])),
+                       served=len(got.get('served', [])), refused=got.get('refused', 0), error=got.get('error', ''))
 
     def _adapt(self, item):
         from aft_ftm.adaptation import ScriptError
@@ -423,11 +488,12 @@ def stop_expected(scenario):
     return scenario['expect']['stop_within'] is not None or control.get('hazard') == 'no_stop'
 
 
-def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until_hazard=False):
+def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until_hazard=False, tls_policy=None):
     """Run scenario name (a file or shipped name), with mechanism disable removed if given (the
     control experiment). With until_hazard (a control experiment only), the run ends HAZARD_MARGIN_S
     of road time after the scenario's control hazard has shown, not at its duration. Returns the
-    summary (with its verdict and hazards); writes summary.json, run.bag and plot.png into out."""
+    summary (with its verdict and hazards); writes summary.json, run.bag and plot.png into out.
+    With tls_policy, every connection between the car's nodes is mutual TLS under that policy."""
     path = scenarios.path_of(name)
     scenario = scenarios.load(name)
     if disable:
@@ -437,7 +503,7 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
         raise RunError('ending at the hazard is for a control experiment: a scenario with a control hazard, '
                        'run without its mechanism')
     runner = ScenarioRun(scenario, path, out, gui=gui, log=log,
-                         until_hazard=scenario['control']['hazard'] if until_hazard else None)
+                         until_hazard=scenario['control']['hazard'] if until_hazard else None, tls_policy=tls_policy)
     try:
         runner.start()
         ended = runner.run()
@@ -460,6 +526,23 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
                    ended_at_hazard=runner.until_hazard is not None and ended.startswith('the control experiment'),
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
+    if runner.intrusions:
+        summary['intrusions'] = runner.intrusions
+        through = ['%s: %s' % (i['party'], i.get('error') or 'heard on %s, served %s' % (i['connected'], i['served']))
+                   for i in runner.intrusions if i.get('error') or i['connected'] or i['served']]
+        if through:
+            summary['verdict']['ok'] = False
+            summary['verdict']['problems'].append('the intruder got through: %s' % '; '.join(through))
+    if tls_policy:
+        # A connection between two of the car's own parties that the policy refuses is one the car
+        # needed and lost: the run fails. Refusals of the intruders, and handshakes that rospy
+        # retried, are counted and shown.
+        own = tuple('party %s may not' % p for p in ScenarioRun.TLS_PARTIES if p != 'intruder')
+        gaps = [a for a in runner.tls_alarms if any(o in a for o in own)]
+        summary['tls'] = {'policy': tls_policy, 'alarms': len(runner.tls_alarms), 'policy_gaps': gaps}
+        if gaps:
+            summary['verdict']['ok'] = False
+            summary['verdict']['problems'].append('the TLS policy refused the car\'s own nodes: %s' % '; '.join(gaps[:3]))
     if plot:
         from ..plot import plot as draw
         summary['plot'] = draw(record, os.path.join(out, 'plot.png'), title='%s (seed %d)' % (scenario['name'],

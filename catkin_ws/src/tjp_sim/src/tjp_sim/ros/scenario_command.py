@@ -11,6 +11,11 @@ from .. import summary as summaries
 from ..errors import TjpError
 
 
+def tls_policy():
+    import rospkg
+    return os.path.join(rospkg.RosPack().get_path('tjp_sim'), 'config', 'tls_policy.yaml')
+
+
 def main(argv):
     parser = argparse.ArgumentParser(prog='scenario', description=__doc__)
     parser.add_argument('scenario', help='a scenario file, or the name of one shipped in tjp_sim/scenarios')
@@ -24,6 +29,8 @@ def main(argv):
     parser.add_argument('--gui', action='store_true', help="open pybullet's window")
     parser.add_argument('--no-plot', action='store_true', help='do not draw plot.png')
     parser.add_argument('--json', action='store_true', help='print the summary as JSON instead of text')
+    parser.add_argument('--tls', action='store_true',
+                        help='mutual TLS on every connection between the car\'s nodes (tjp_sim/config/tls_policy.yaml)')
     options = parser.parse_args(argv)
     try:
         scenario = scenarios.load(options.scenario)
@@ -46,7 +53,8 @@ def main(argv):
     log = (lambda line: print(line, file=sys.stderr)) if options.json else print
     try:
         summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,
-                               plot=not options.no_plot, log=log, until_hazard=options.until_hazard)
+                               plot=not options.no_plot, log=log, until_hazard=options.until_hazard,
+                               tls_policy=tls_policy() if options.tls else None)
     except (RunError, TjpError) as e:
         print('scenario: the run failed: %s' % e, file=sys.stderr)
         return 2
