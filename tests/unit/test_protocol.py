@@ -345,3 +345,41 @@ def test_a_backup_listening_from_set_up_keeps_a_bounded_queue_and_takes_over_exa
     final = state_backup if crashed else state_primary
     assert len(final) == len(set(final)), 'seed %d: executed twice: %s' % (seed, final)
     assert set(final) == set(answered) - refused, 'seed %d: state %s, answered %s' % (seed, final, answered)
+
+
+@pytest.mark.parametrize('seed', range(40))
+def test_a_site_that_joined_by_state_transfer_never_executes_an_answered_request_again(seed):
+    """Replay protection across a re-join (issue 16): a request answered before a state transfer,
+    re-sent or replayed whole (its signed oldest_pending unchanged) to the site that joined and then
+    took over, is answered from the cache or dropped, never executed, for every origin, including
+    one whose Proxy has since moved past all its requests (its replies pruned). The transfer carries
+    the After's recent replies (pbr_nodes/lfr: forget below each reply's oldest_pending, then store)."""
+    rng = random.Random(seed)
+    primary = ProtocolCore(Role.ALONE)
+    recent = DuplicateCache()
+    answered = []
+    proxies = {'/p%d' % i: {'next': 1, 'pending': []} for i in range(rng.randint(1, 5))}
+    for _ in range(rng.randint(5, 80)):
+        origin = rng.choice(sorted(proxies))
+        proxy = proxies[origin]
+        if proxy['pending'] and (len(proxy['pending']) >= 3 or rng.random() < 0.5):
+            sent = proxy['pending'].pop(rng.randrange(len(proxy['pending'])))   # its answer comes back
+            answered.append(sent)
+            continue
+        sent = request(origin=origin, rid=proxy['next'], oldest_pending=min([p.id for p in proxy['pending']] +
+                                                                            [proxy['next']]))
+        proxy['next'] += 1
+        proxy['pending'].append(sent)
+        actions = primary.on_request(sent, 0)
+        for action in actions:   # executed at once: one request at a time, no queue here
+            assert isinstance(action, Forward)
+            done = reply(origin=origin, rid=sent.id, oldest_pending=sent.oldest_pending)
+            primary.on_result(done, 0)
+            recent.forget_below(done.origin, done.oldest_pending)
+            recent.store(done)
+    joined = ProtocolCore(Role.BACKUP)
+    joined.on_state_transfer(recent.replies(), 1, '/master/after')
+    joined.set_role(Role.ALONE, 0)
+    for old in answered + [p for proxy in proxies.values() for p in proxy['pending']]:   # every one executed
+        again = joined.on_request(request(origin=old.origin, rid=old.id, oldest_pending=old.oldest_pending), 1)
+        assert not any(isinstance(a, Forward) for a in again), (seed, old.origin, old.id, kinds(again))
