@@ -206,10 +206,10 @@ def _follow_revocations():
 
 
 def _publish_pending(now):
-    """The alarms raised so far, on /aft/alarms: the publisher is made once the node is initialised
-    and given PUBLISHER_SETTLE to be heard, so the first refusal's alarm is not lost."""
+    """The alarms raised so far, on /aft/alarms: the publisher is made at the first alarm once the
+    node is initialised, and given PUBLISHER_SETTLE to be heard, so that alarm is not lost."""
     import rospy
-    if not rospy.core.is_initialized() or rospy.is_shutdown():
+    if not _PENDING or not rospy.core.is_initialized() or rospy.is_shutdown():
         return
     if 'alarms' not in _STATE:
         from aft_msgs.msg import Alarm
