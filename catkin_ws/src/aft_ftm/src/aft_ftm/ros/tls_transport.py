@@ -97,6 +97,10 @@ def _secure_outbound(transport, protocol):
     try:
         secured = _STATE['client'].wrap_socket(plain)
     except (ssl.SSLError, OSError) as e:
+        if transport.done or transport.protocol is None:
+            # rospy closed this connection meanwhile (a duplicate of a connection it has, a subscription
+            # going away): it shut the socket down under the handshake. Not a refusal.
+            raise TransportInitError('closed during the TLS handshake for %s' % name)
         _refused(transport.dest_address, name, 'TLS with %s:%s failed: %s' % (transport.dest_address + (e,)))
         plain.close()
         transport.socket = None   # not a half-made connection rospy would go on reading
