@@ -61,9 +61,10 @@ attack = os.path.join(log_dir, 'attack.py')
 with open(attack, 'w') as f:
     f.write(ATTACK)
 with_tls = sys.argv[1] == 'tls'
+mechanism = sys.argv[2] if len(sys.argv) > 2 else 'pbr'
 policy = os.path.join(rospkg.RosPack().get_path('aft_examples'), 'config', 'tls_policy.yaml')
 core = start_master(log_dir)
-deployment = PbrDeployment(log_dir, tls_policy=policy if with_tls else None)
+deployment = PbrDeployment(log_dir, mechanism=mechanism, tls_policy=policy if with_tls else None)
 try:
     if with_tls:
         os.environ.update(deployment.tls_env('operator'))
@@ -102,6 +103,9 @@ try:
         print('STATE %s %s' % (site, 'equal' if got.snapshot() == expected.snapshot() else 'DIFFERS %r %r' % (got.snapshot(), expected.snapshot())))
     refusals = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'connection_refused']
     print('REFUSALS %d by %s' % (len(refusals), sorted(set(a.source for a in refusals))))
+    own = [a.detail for a in refusals if any('party %s may not' % p in a.detail
+                                             for p in ('master', 'slave', 'client', 'witness', 'operator'))]
+    print('OWN REFUSALS %d %s' % (len(own), own[:3]))   # the deployment's own parties, refused by its policy
     deployment.sites['master'].power_off()
     started = time.monotonic()
     calls(50)
@@ -127,7 +131,17 @@ def test_without_tls_the_same_attacker_changes_roles_and_state():
 
 
 def test_the_control_plane_refuses_every_forgery_and_the_failover_holds_under_tls():
-    code, output = run_tagged(SCRIPT, args=('tls',), timeout=300, home_prefix='aft_tls_pbr_home_')
+    check_under_tls('pbr')
+
+
+def test_lfr_under_tls_refuses_every_forgery_and_fails_over():
+    """The same attacks and sweep against Leader-Follower Replication (its own topics: the leader's
+    notifications, the followers' acknowledgements), under the same policy."""
+    check_under_tls('lfr')
+
+
+def check_under_tls(mechanism):
+    code, output = run_tagged(SCRIPT, args=('tls', mechanism), timeout=300, home_prefix='aft_tls_pbr_home_')
     assert code == 0, output[-5000:]
     lines = output.splitlines()
 
@@ -147,5 +161,6 @@ def test_the_control_plane_refuses_every_forgery_and_the_failover_holds_under_tl
     assert line('AFTER ATTACKS') == 'AFTER ATTACKS epoch 2 primary master backup slave'
     assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
     assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')
+    assert line('OWN REFUSALS').startswith('OWN REFUSALS 0 '), line('OWN REFUSALS')
     failover = line('FAILOVER')
     assert 'wrong 0 slave equal' in failover and failover.startswith('FAILOVER calls 150 '), failover
