@@ -168,3 +168,36 @@ def test_a_peer_certificate_names_its_serial_and_end():
     import calendar
     assert serial == 31 and end == calendar.timegm((2031, 1, 5, 9, 34, 43))
     assert tls.serial_and_end({}) == (0, None)
+
+
+def test_the_highest_list_number_taken_is_kept_and_never_lowered(tmp_path):
+    directory = str(tmp_path)
+    assert tls.held_number(directory) is None
+    tls.remember_number(directory, 3)
+    tls.remember_number(directory, 2)                        # an older list: the number stays
+    assert tls.held_number(directory) == 3
+    with open(tmp_path / tls.HELD, 'w') as f:
+        f.write('{"number": "x"}')
+    with pytest.raises(ConfigError, match='must be an integer'):
+        tls.held_number(directory)
+
+
+def test_a_serial_is_read_as_alarms_print_it(tmp_path):
+    home = str(tmp_path)
+    tls.make_authority(home)
+    tls.issue(home, 'client')
+    serial = tls.serial_of(home, 'client')
+    _, number = tls.revoke(home, serials=['%x' % serial])   # as an alarm names it
+    held = tls.Revocations.of_directory(home)
+    with open(tmp_path / tls.CRL, 'rb') as f:
+        held.take(f.read())
+    assert number == 1 and held.revoked(serial) and held.next_update is not None
+    with pytest.raises(ConfigError, match='hexadecimal'):
+        tls.revoke(home, serials=['not-a-serial'])
+
+
+def test_a_party_resumes_no_session_its_certificate_is_judged_at_every_connection(tmp_path):
+    tls.make_authority(str(tmp_path))
+    tls.issue(str(tmp_path), 'master')
+    server, _ = tls.contexts(str(tmp_path), 'master')
+    assert server.num_tickets == 0

@@ -165,7 +165,7 @@ def revoke(directory, parties=(), serials=(), days=7):
     if os.path.exists(path):
         with open(path, 'rb') as f:
             held.take(f.read())
-    revoked = set(held.serials) | set(int(s) for s in serials) | set(serial_of(directory, p) for p in parties)
+    revoked = set(held.serials) | set(_serial(s) for s in serials) | set(serial_of(directory, p) for p in parties)
     number = (held.number or 0) + 1
     now = datetime.datetime.utcnow()
     builder = (x509.CertificateRevocationListBuilder().issuer_name(ca_cert.subject).last_update(now)
@@ -178,6 +178,43 @@ def revoke(directory, parties=(), serials=(), days=7):
     return path, number
 
 
+HELD = 'ca.tls.crl.held'   # the highest list number a party's nodes have taken: no rollback across restarts
+
+
+def held_number(directory):
+    """The highest revocation list number a node of this directory took, or None."""
+    import json
+    path = os.path.join(directory, HELD)
+    try:
+        with open(path) as f:
+            number = json.load(f)['number']
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError('%s cannot be read (%s): remove it only if the revocation list is right' % (path, e))
+    if not isinstance(number, int):
+        raise ConfigError('%s: the number must be an integer, got %r' % (path, number))
+    return number
+
+
+def remember_number(directory, number):
+    """Keep number as the highest list number taken (never lowers it)."""
+    import json
+    held = held_number(directory)
+    if held is None or number > held:
+        _write(os.path.join(directory, HELD), json.dumps({'number': number}).encode(), 0o600)
+
+
+def _serial(value):
+    """A serial number: an int, or a string in hexadecimal as alarms and logs print it."""
+    if isinstance(value, int):
+        return value
+    try:
+        return int(str(value), 16)
+    except ValueError:
+        raise ConfigError('a certificate serial is hexadecimal, got %r' % (value,))
+
+
 class Revocations(object):
     """The certificates the CA revoked, as far as one party knows: taken only from a revocation list
     the CA signed, and never from one older (by its CRL number) than the list held, so a replayed old
@@ -187,6 +224,7 @@ class Revocations(object):
         self.key = ca_public_key
         self.number = None
         self.serials = frozenset()
+        self.next_update = None   # when the CA said it would sign a newer list (seconds since the epoch)
 
     @classmethod
     def of_directory(cls, directory):
@@ -224,6 +262,8 @@ class Revocations(object):
             raise ConfigError('the TLS revocation list number %d takes back revoked serials: refused' % number)
         new = serials - self.serials
         self.number, self.serials = number, serials
+        if crl.next_update is not None:
+            self.next_update = crl.next_update.replace(tzinfo=datetime.timezone.utc).timestamp()
         return new
 
     def revoked(self, serial):
@@ -255,6 +295,8 @@ def contexts(directory, party):
         context.minimum_version = ssl.TLSVersion.TLSv1_3
         context.check_hostname = False      # a party is named by its certificate, not by a host name
         context.verify_mode = ssl.CERT_REQUIRED
+        if purpose is ssl.Purpose.CLIENT_AUTH:
+            context.num_tickets = 0   # no session resumption: every connection shows a certificate judged now
         try:
             context.load_cert_chain(crt_path, key_path)
             context.load_verify_locations(ca_crt)

@@ -50,6 +50,11 @@ def sweep(permissions=None, hold=2.0, log=None):
         try:
             rospy.ServiceProxy(name, kind)(kind._request_class())
             report['served'].append(name)
-        except Exception:
+        except rospy.ServiceException as e:
+            if 'responded with an error' in str(e):   # its handler ran (and refused the default request)
+                report['served'].append(name)
+            else:
+                report['refused'] += 1
+        except Exception:   # the connection refused (TLS, policy), the node gone
             report['refused'] += 1
     return report

@@ -56,12 +56,19 @@ def install(directory, party, permissions):
                 revocations.take(f.read())
             except ConfigError as e:
                 raise ConfigError('%s: %s' % (crl, e))
+    held = tls.held_number(directory)
+    if held is not None and (revocations.number is None or revocations.number < held):
+        raise ConfigError('%s: the revocation list is %s, but list %d was taken here before: a rollback '
+                          '(copy the CA\'s newest list)' % (crl, 'missing' if revocations.number is None
+                                                             else 'number %d' % revocations.number, held))
+    if revocations.number is not None:
+        tls.remember_number(directory, revocations.number)
     own = tls.serial_of(directory, party)
     if revocations.revoked(own):
         raise ConfigError('the TLS certificate of party %s in %s is revoked (%s)' % (party, directory, crl))
     started = bool(_STATE)
     _STATE.update(server=server, client=client, permissions=permissions, party=party, revocations=revocations,
-                  crl=crl, crl_seen=seen, own_serial=own)
+                  crl=crl, crl_seen=seen, own_serial=own, directory=directory)
     if not started:
         threading.Thread(target=_follow_revocations, name='tls_revocations', daemon=True).start()
     if not getattr(base.TCPROSTransport.write_header, 'tls', False):
@@ -105,6 +112,9 @@ def _secure_outbound(transport, protocol):
         plain.close()
         transport.socket = None   # not a half-made connection rospy would go on reading
         raise TransportInitError('TLS refused for %s: %s' % (name, e))
+    if transport.done or transport.protocol is None:   # rospy closed it while the handshake ran
+        secured.close()
+        raise TransportInitError('closed during the TLS handshake for %s' % name)
     certificate = secured.getpeercert()
     why = _revoked(certificate) or permissions.allows(tls.party_of(certificate), action, name)
     if why:
@@ -173,10 +183,13 @@ def _guard(handler, action, key):
     return handle
 
 
-def _revoked(certificate):
-    serial, _ = tls.serial_and_end(certificate)
+def _revoked(certificate, now=None):
+    """Why a peer certificate is refused (revoked, or past its end), or None."""
+    serial, end = tls.serial_and_end(certificate)
     if _STATE['revocations'].revoked(serial):
         return 'certificate %x of party %s is revoked' % (serial, tls.party_of(certificate))
+    if end is not None and (time.time() if now is None else now) > end:
+        return 'certificate %x of party %s has expired' % (serial, tls.party_of(certificate))
     return None
 
 
@@ -202,11 +215,20 @@ def _follow_revocations():
         try:
             _look_once(time.time())
         except Exception as e:   # never let the watcher die silently
-            _alarm('watch_failed', 'the TLS revocation watcher: %s' % e)
+            try:
+                _alarm('watch_failed', 'the TLS revocation watcher: %s' % e)
+            except Exception:
+                pass
         try:
             _publish_pending(time.monotonic())
-        except Exception:   # shutting down: the log lines stand
-            pass
+        except Exception as e:   # shutting down; else said once, the alarms kept for the next round
+            if not _STATE.get('publish_failed'):
+                _STATE['publish_failed'] = True
+                try:
+                    import rospy
+                    rospy.logerr('TLS alarms cannot be published (kept): %s', e)
+                except Exception:
+                    pass
 
 
 def _publish_pending(now):
@@ -217,12 +239,13 @@ def _publish_pending(now):
         return
     if 'alarms' not in _STATE:
         from aft_msgs.msg import Alarm
-        _STATE['alarms'] = rospy.Publisher('/aft/alarms', Alarm, queue_size=100)
+        _STATE['alarms'] = rospy.Publisher('/aft/alarms', Alarm, queue_size=_PENDING.maxlen * 2)
         _STATE['alarms_since'] = now
     if now - _STATE['alarms_since'] < PUBLISHER_SETTLE:
         return
     while _PENDING:
-        _STATE['alarms'].publish(_PENDING.popleft())
+        _STATE['alarms'].publish(_PENDING[0])
+        _PENDING.popleft()   # only once published
 
 
 def _look_once(now):
@@ -236,9 +259,21 @@ def _look_once(now):
         except (OSError, ConfigError) as e:
             _alarm('bad_crl', '%s: %s (the list held stays)' % (crl, e))
             new = ()
+        else:
+            try:
+                tls.remember_number(_STATE['directory'], _STATE['revocations'].number)
+            except (OSError, ConfigError) as e:
+                _alarm('crl_not_kept', 'the revocation list number cannot be kept in %s: %s (a restart could '
+                       'take an older list)' % (_STATE['directory'], e))
         if _STATE['own_serial'] in new:
             _alarm('own_certificate_revoked', 'this node\'s certificate (party %s) is revoked by %s: its peers '
                    'refuse it' % (_STATE['party'], crl))
+    revocations = _STATE['revocations']
+    if revocations.next_update is not None and now > revocations.next_update \
+            and _STATE.get('stale_told') != revocations.number:
+        _STATE['stale_told'] = revocations.number
+        _alarm('stale_crl', 'the revocation list %s (number %d) is past its next update: the CA has not '
+               'signed a newer one' % (crl, revocations.number))
     with _LOCK:
         live = list(_LIVE.items())
     for sock, (party, serial, end) in live:
@@ -258,7 +293,7 @@ def _look_once(now):
 
 
 def _refused(peer, name, why):
-    key = (str(peer[0]) if peer else '?', name)
+    key = (str(peer[0]) if peer else '?', name, why[:120])   # each peer's reason apart (one host, NAT)
     now = time.monotonic()
     with _LOCK:
         if now - _TOLD.get(key, -1e9) < 10.0:
@@ -274,5 +309,10 @@ def _alarm(kind, detail):
     import rospy
     from aft_msgs.msg import Alarm
     rospy.logwarn('%s: tls %s: %s', rospy.get_name(), kind, detail)
+    with _LOCK:
+        if len(_PENDING) == _PENDING.maxlen:   # a flood (an attacker's): the oldest goes, counted and said
+            _STATE['alarms_dropped'] = _STATE.get('alarms_dropped', 0) + 1
+            rospy.logwarn('%s: tls: %d alarm(s) not published (more than %d waiting)', rospy.get_name(),
+                          _STATE['alarms_dropped'], _PENDING.maxlen)
     _PENDING.append(Alarm(source=rospy.get_name(), mechanism='tls', kind=kind, detail=detail,
                           stamp=rospy.Time.from_sec(time.time())))

@@ -17,6 +17,7 @@ class Recorder(object):
         self.bag = rosbag.Bag(path + '.active', 'w')
         self.lock = threading.Lock()
         self.classes = {}
+        self.unknown = {}
         self.count = 0
         self.subscribers = [rospy.Subscriber(t, rospy.AnyMsg, self._on_message, callback_args=t, tcp_nodelay=True)
                             for t in topics]
@@ -30,7 +31,14 @@ class Recorder(object):
             pytype = self.classes.get(kind)
             if pytype is None:
                 pytype = self.classes[kind] = roslib.message.get_message_class(kind)
-            self.bag.write(topic, (kind, msg._buff, header['md5sum'], pytype), rospy.Time.now(), raw=True)
+            if pytype is None:   # a type this machine does not know: said once per type, never silent
+                self.unknown[kind] = self.unknown.get(kind, 0) + 1
+                if self.unknown[kind] == 1:
+                    rospy.logerr('%s: messages of type %s on %s cannot be recorded (type unknown here)',
+                                 rospy.get_name(), kind, topic)
+                return
+            self.bag.write(topic, (kind, msg._buff, header['md5sum'], pytype), rospy.Time.now(), raw=True,
+                           connection_header=header)
             self.count += 1
 
     def close(self):
@@ -49,14 +57,16 @@ def main(argv):
     parser.add_argument('-O', dest='path', required=True, help='the bag to write')
     parser.add_argument('topics', nargs='+')
     options = parser.parse_args(rospy.myargv(argv))
+    done = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):   # first: a stop during the set-up still closes the bag
+        signal.signal(signum, lambda *_: done.set())
     secure_from_environment()
     rospy.init_node('tjp_record', disable_signals=True)
     recorder = Recorder(options.path, options.topics)
-    done = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: done.set())
-    while not done.wait(0.5) and not rospy.is_shutdown():
-        pass
-    recorder.close()
-    rospy.signal_shutdown('recorded %d messages' % recorder.count)
+    try:
+        while not done.wait(0.5) and not rospy.is_shutdown():
+            pass
+    finally:
+        recorder.close()
+        rospy.signal_shutdown('recorded %d messages' % recorder.count)
     return 0

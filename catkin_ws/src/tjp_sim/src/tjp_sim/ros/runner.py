@@ -341,10 +341,12 @@ class ScenarioRun(object):
             argv = ['rosrun', 'aft_ftm', 'intruder', '--hold', '1.0'] + (['--policy', self.tls_policy]
                                                                        if self.tls_policy else [])
             try:
-                done = subprocess.run(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, timeout=90,
+                done = subprocess.run(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, timeout=28,
                                       universal_newlines=True)
                 got = json.loads(done.stdout.strip().splitlines()[-1])
-            except (subprocess.TimeoutExpired, ValueError, IndexError) as e:
+                if not isinstance(got, dict) or not {'connected', 'served', 'refused', 'topics'} <= set(got):
+                    raise ValueError('not a report: %r' % (got,))
+            except Exception as e:   # timed out, died, said something else: the verdict says so
                 got = {'error': 'the intruder did not report: %s' % e}
             got['party'] = party or 'none (in clear)'
             self.intrusions.append(got)
@@ -526,6 +528,9 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
                    ended_at_hazard=runner.until_hazard is not None and ended.startswith('the control experiment'),
                    hazards=summaries.hazards(summary, scenario['expect']['min_gap_fraction'], stop_expected(scenario)),
                    bag=runner.bag, seed=scenario['seed'], rate=scenario['rate'])
+    expected = sum(1 for f in scenario['faults'] if f['kind'] == 'intrusion') * (2 if tls_policy else 1)
+    if expected and len(runner.intrusions) < expected:   # an intruder thread that never reported
+        runner.intrusions += [{'party': '?', 'error': 'no report'}] * (expected - len(runner.intrusions))
     if runner.intrusions:
         summary['intrusions'] = runner.intrusions
         through = ['%s: %s' % (i['party'], i.get('error') or 'heard on %s, served %s' % (i['connected'], i['served']))
