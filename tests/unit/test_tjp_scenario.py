@@ -103,6 +103,17 @@ def test_an_intrusion_is_carried_out_by_the_runner_and_takes_only_its_time():
         parse('faults: [{kind: intrusion, at: 3, sensor: imu}]\n')
 
 
+def test_a_managed_tjp_without_the_mechanisms_its_nodes_read_is_refused():
+    # the managed nodes read /tjp/imu_tr and /tjp/laser_voted: without those mechanisms the car never
+    # drove, and the run still said OK
+    with pytest.raises(scenarios.ScenarioError, match='managed_tjp needs .*triplication_vote missing'):
+        parse('managed_tjp: true\nmechanisms: [pbr, tr_imu, tr_ultrasonic, alarm_and_stop]\n')
+    s = parse('managed_tjp: true\n')
+    with pytest.raises(scenarios.ScenarioError, match='tr_imu missing'):
+        scenarios.without(s, 'tr_imu')
+    assert scenarios.without(s, 'pbr')['managed_tjp']
+
+
 def test_the_control_experiment_removes_exactly_one_mechanism():
     s = parse('control: {disable: tr_imu, hazard: gap_violation}\n')
     control = scenarios.without(s, 'tr_imu')

@@ -227,6 +227,7 @@ def parse(text, source='scenario'):
     }
     if not isinstance(scenario['managed_tjp'], bool):
         raise ScenarioError('%s: managed_tjp must be true or false, got %r' % (source, scenario['managed_tjp']))
+    _check_managed(source, scenario)
     scenario['initial_gap'] = _number(source + ': initial_gap',
                                       data.get('initial_gap', SafetyDistance()(scenario['initial_speed'])), positive=True)
     for key, check in (('faults', _fault), ('events', _event)):
@@ -275,10 +276,25 @@ def load(name):
     return parse(text, source=os.path.basename(path))
 
 
+# The managed TJP's nodes (config/tjp_services.yaml) read the outputs of these mechanisms:
+# measureManager the IMU's time redundancy, distanceSecurityCalculator the lasers' vote.
+MANAGED_NEEDS = ('tr_imu', 'triplication_vote')
+
+
+def _check_managed(source, scenario):
+    missing = [m for m in MANAGED_NEEDS if m not in scenario['mechanisms']]
+    if scenario['managed_tjp'] and missing:
+        raise ScenarioError('%s: managed_tjp needs the mechanisms %s (the managed nodes read their outputs: '
+                            'config/tjp_services.yaml); %s missing, the car would never drive'
+                            % (source, ', '.join(MANAGED_NEEDS), ', '.join(missing)))
+
+
 def without(scenario, mechanism):
     """The control experiment's scenario: the same one with a mechanism removed."""
     if mechanism not in scenario['mechanisms']:
         raise ScenarioError('scenario %s has no mechanism %s to remove (it has %s)'
                             % (scenario['name'], mechanism, ', '.join(scenario['mechanisms'])))
-    return dict(scenario, mechanisms=[m for m in scenario['mechanisms'] if m != mechanism],
-                name='%s-without-%s' % (scenario['name'], mechanism))
+    control = dict(scenario, mechanisms=[m for m in scenario['mechanisms'] if m != mechanism],
+                   name='%s-without-%s' % (scenario['name'], mechanism))
+    _check_managed('scenario %s without %s' % (scenario['name'], mechanism), control)
+    return control
