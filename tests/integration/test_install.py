@@ -58,7 +58,10 @@ def in_install_space(prefix, work, script, tag, timeout):
 def test_the_install_space_holds_the_packages_and_nothing_of_the_source_tree(install_space):
     work, prefix = install_space
     code, out = in_install_space(prefix, work, 'echo "$ROS_PACKAGE_PATH"; rospack list-names; '
-                                 'python3 -c "import aft_ftm, aft_examples, tjp_sim; print(aft_ftm.__file__)"',
+                                 'python3 -c "import aft_ftm, aft_examples, tjp_sim; print(aft_ftm.__file__)"; '
+                                 'ls "$(rospack find aft_examples)/config/tls_policy.yaml" '
+                                 '"$(rospack find aft_examples)/config/sec_policy.yaml" '
+                                 '"$(rospack find tjp_sim)/config/tls_policy.yaml"',   # the demos' policies
                                  uuid.uuid4().hex, 60)
     assert code == 0, out
     assert ROOT not in out.replace(prefix, ''), 'the install space points into the source tree:\n%s' % out
