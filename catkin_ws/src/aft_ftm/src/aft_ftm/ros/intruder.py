@@ -16,8 +16,8 @@ import rosservice
 
 
 def sweep(permissions=None, hold=2.0, log=None):
-    """Returns {'topics': [...tried], 'connected': [...], 'services': n tried, 'refused': n,
-    'unknown': [...services whose type could not be read], 'served': [...]}."""
+    """Returns {'topics': [...tried], 'connected': [...], 'services': n tried, 'called': [...their names],
+    'refused': n, 'unknown': [...services whose type could not be read], 'served': [...]}."""
     me = rospy.get_name()
     master = rosgraph.Master(me)
     _, subscribed, services = master.getSystemState()
@@ -35,13 +35,14 @@ def sweep(permissions=None, hold=2.0, log=None):
         forged.append((topic, publisher))
     time.sleep(hold)
     report = {'topics': [t for t, _ in forged], 'connected': [t for t, p in forged if p.get_num_connections()],
-              'services': 0, 'refused': 0, 'unknown': [], 'served': []}
+              'services': 0, 'called': [], 'refused': 0, 'unknown': [], 'served': []}
     for _, publisher in forged:
         publisher.unregister()
     for name, providers in sorted(services):
         if open_name(name) or name.startswith(me + '/') or providers == ['/rosout']:
             continue
         report['services'] += 1
+        report['called'].append(name)
         try:
             kind = rosservice.get_service_class_by_name(name)
         except Exception:   # gone, or its type not given to this caller
