@@ -16,9 +16,12 @@ name every 10 s.
 Revocation and expiry on a running graph: the node follows the CA's revocation list in its TLS
 directory (``ca.tls.crl``, checked every CRL_PERIOD); a certificate it revokes is refused from then
 on, and every live connection of it is cut (alarm ``tls certificate_revoked``); a connection whose
-peer certificate has expired is cut too (``tls certificate_expired``: OpenSSL refuses it at the next
-handshake). A list not signed by the CA, or older than the one held, is refused (``tls bad_crl``)
-and changes nothing; this node's own certificate revoked raises ``tls own_certificate_revoked``."""
+peer certificate has expired is cut too (``tls certificate_expired``) and refused at every later
+handshake (no session is resumed). A list not signed by the CA, or older than the one held, is
+refused (``tls bad_crl``) and changes nothing; the highest list number taken is kept in the
+directory (``ca.tls.crl.held``), so a restarted node refuses an older or missing list; a list past
+its next update raises ``tls stale_crl``; this node's own certificate revoked raises
+``tls own_certificate_revoked``."""
 import collections
 import os
 import socket
@@ -183,14 +186,21 @@ def _guard(handler, action, key):
     return handle
 
 
-def _revoked(certificate, now=None):
-    """Why a peer certificate is refused (revoked, or past its end), or None."""
-    serial, end = tls.serial_and_end(certificate)
+def _judged(party, serial, end, now):
+    """(alarm kind, why) if a certificate is no longer accepted (revoked, or past its end), else None:
+    the one rule for a new connection and for a live one."""
     if _STATE['revocations'].revoked(serial):
-        return 'certificate %x of party %s is revoked' % (serial, tls.party_of(certificate))
-    if end is not None and (time.time() if now is None else now) > end:
-        return 'certificate %x of party %s has expired' % (serial, tls.party_of(certificate))
+        return 'certificate_revoked', 'certificate %x of party %s is revoked' % (serial, party)
+    if end is not None and now > end:
+        return 'certificate_expired', 'certificate %x of party %s has expired' % (serial, party)
     return None
+
+
+def _revoked(certificate):
+    """Why a peer certificate is refused at its handshake, or None."""
+    serial, end = tls.serial_and_end(certificate)
+    judged = _judged(tls.party_of(certificate), serial, end, time.time())
+    return judged[1] if judged else None
 
 
 def _keep(secured, certificate):
@@ -277,11 +287,8 @@ def _look_once(now):
     with _LOCK:
         live = list(_LIVE.items())
     for sock, (party, serial, end) in live:
-        if _STATE['revocations'].revoked(serial):
-            why = ('certificate_revoked', 'cut the connection of party %s: its certificate %x is revoked' % (party, serial))
-        elif end is not None and now > end:
-            why = ('certificate_expired', 'cut the connection of party %s: its certificate %x expired' % (party, serial))
-        else:
+        judged = _judged(party, serial, end, now)
+        if judged is None:
             continue
         with _LOCK:
             _LIVE.pop(sock, None)
@@ -289,7 +296,7 @@ def _look_once(now):
             socket.socket.shutdown(sock, socket.SHUT_RDWR)   # wakes rospy's reader; it drops the connection
         except OSError:
             pass
-        _alarm(*why)
+        _alarm(judged[0], 'cut the connection: %s' % judged[1])
 
 
 def _refused(peer, name, why):
