@@ -19,6 +19,7 @@ from aft_ftm import hosts_exec
 from aft_ftm.hosts_exec import Hosts, PlatformError
 from aft_ftm.power_switch import parse_spec
 from aft_ftm.power_switch_exec import call_switch
+from aft_ftm.sites import pid_gone
 from reporting import report
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -176,7 +177,7 @@ def test_traffic_partition_rate_freeze_power_off():
             for popen in started_in_a:
                 assert popen.poll() is not None, popen.args
             for pid in killed:
-                assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+                assert pid_gone(pid), pid
             assert hosts.processes('a') == []
             report('emulated hosts: power loss of A killed %d processes; B\'s open connection saw nothing in 1 s'
                    % len(killed))

@@ -4,9 +4,7 @@ import subprocess
 import sys
 import time
 
-import psutil
-
-from aft_ftm.sites import Site, launch_failure, power_off, process_tree
+from aft_ftm.sites import Site, launch_failure, pid_gone, power_off, process_tree
 
 # A parent whose children start their own sessions, as roslaunch's nodes do.
 TREE = ('import os, subprocess, sys, time\n'
@@ -31,7 +29,7 @@ def test_power_off_kills_every_process_of_the_site_even_in_other_sessions():
         assert len({os.getsid(p) for p in pids}) == 4
         assert site.power_off() == 4
         time.sleep(0.05)
-        assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != 'zombie']
+        assert not [p for p in pids if not pid_gone(p)]
     finally:
         site.stop(grace=1)
 
@@ -41,7 +39,7 @@ def test_stop_never_raises_and_leaves_nothing():
     pids = [p.pid for p in process_tree(site.pid)]
     site.stop(grace=1)
     site.stop(grace=1)
-    assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != 'zombie']
+    assert not [p for p in pids if not pid_gone(p)]
 
 
 # Eight threads that each append to a file as fast as they can: any instruction they run shows.

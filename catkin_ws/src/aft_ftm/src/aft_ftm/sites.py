@@ -79,6 +79,15 @@ def _dead(proc):
         return True
 
 
+def pid_gone(pid):
+    """The process ``pid`` runs no more: gone, or a zombie. One read, so a process that exits
+    between two looks (exists, then its status) is not an error."""
+    try:
+        return _dead(psutil.Process(pid))
+    except psutil.NoSuchProcess:
+        return True
+
+
 def _stopped(proc):
     """Gone, a zombie, or every one of its threads stopped (a group stop is done by each thread
     itself: the main thread stopped does not mean the others have)."""
