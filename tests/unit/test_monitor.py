@@ -5,8 +5,8 @@ import pytest
 
 from aft_ftm.change_model import Application, select
 from aft_ftm.errors import ConfigError
-from aft_ftm.mechanisms import CRASH, SAFETY_VIOLATION, TRANSIENT_VALUE
-from aft_ftm.monitor import MonitorCore, MonitorState, TransitionError, transition
+from aft_ftm.mechanisms import CRASH, SAFETY_VIOLATION, TAMPERING, TRANSIENT_VALUE
+from aft_ftm.monitor import ForgedAlarm, MonitorCore, MonitorState, TransitionError, transition
 from fakes import FakeClock
 
 SITES = ['master', 'slave']
@@ -172,6 +172,18 @@ def test_alarm_showing_no_fault_changes_nothing():
     assert core.alarm('pbr', 'checkpoint_late', clock.now) is None
     assert core.model().faults == {CRASH}
     assert 'checkpoint_late' in core.history[-1][1]
+
+
+def test_an_alarm_in_another_nodes_name_is_refused_and_changes_nothing():
+    core, clock = monitor(('pbr',))
+    with pytest.raises(ForgedAlarm) as error:
+        core.alarm('sec', 'bad_signature', clock.now, source='/master/sec_gate', sender='/slave/protocol')
+    assert '/master/sec_gate' in str(error.value) and '/slave/protocol' in str(error.value)
+    assert core.model().faults == {CRASH}
+    assert run(core, clock, 5.0) == []                 # no adaptation chosen by it
+    assert core.alarm('sec', 'bad_signature', clock.now, source='/master/sec_gate',
+                      sender='/master/sec_gate') == TAMPERING   # the node itself: taken
+    assert core.alarm('tr', 'no_majority', clock.now) == TRANSIENT_VALUE   # no sender known (a unit's own call)
 
 
 # -- invalid input changes nothing -------------------------------------------------------------------

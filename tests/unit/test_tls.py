@@ -46,11 +46,30 @@ def test_the_policy_allows_each_party_what_it_names_and_nothing_else(party, acti
     ({'parties': {'a': ['/x']}}, 'expected a mapping'),
     ({'parties': {}, 'plaintext': '/rosout'}, 'plaintext must be a list'),
     ({'parties': {}, 'readable': [3]}, 'readable must be a list'),
+    ({'parties': {'a': {'nodes': []}}}, 'nodes is empty'),
+    ({'parties': {'a': {'nodes': '/a/*'}}}, 'nodes must be a list'),
 ])
 def test_a_malformed_policy_is_refused_naming_the_problem(data, words):
     with pytest.raises(ConfigError) as error:
         tls.Permissions.parse(data, 'policy.yaml')
     assert 'policy.yaml' in str(error.value) and words in str(error.value)
+
+
+@pytest.mark.parametrize('party,callerid,allowed', [
+    ('master', '/master/tr_before', True),
+    ('master', '/slave/tr_before', False),     # a site naming itself as a node of the other
+    ('master', '/monitor', False),
+    ('master', '', False),                     # no caller id at all
+    ('client', '/anything', True),             # a party without nodes is not bound to names
+    (None, '/master/tr_before', True),         # nor is a peer without TLS (plaintext names only)
+])
+def test_a_party_with_nodes_may_call_itself_only_by_their_names(party, callerid, allowed):
+    policy = dict(POLICY, parties=dict(POLICY['parties'], master=dict(POLICY['parties']['master'],
+                                                                       nodes=['/master/*'])))
+    why = tls.Permissions.parse(policy).names_node(party, callerid)
+    assert (why is None) == allowed, why
+    if not allowed:
+        assert party in why and (callerid or '(none)') in why
 
 
 def test_a_tls_hello_is_told_from_a_tcpros_header():

@@ -22,6 +22,10 @@ class TransitionError(AftError):
     """An event the monitor's state machine does not allow in its current state (a caller bug)."""
 
 
+class ForgedAlarm(AftError):
+    """An alarm whose source is not the node that sent it."""
+
+
 class MonitorState(enum.Enum):
     WATCHING = 0   # the running composition is consistent, or the selection keeps it anyway
     ADAPTING = 1   # a decision was handed out; waiting for adapted() or adaptation_failed()
@@ -170,9 +174,16 @@ class MonitorCore(object):
             self._note(now, "bandwidth %s: now supports '%s' mechanisms (was '%s')"
                        % (change_model.bandwidth_text(self.bytes_per_s), after, before))
 
-    def alarm(self, mechanism, kind, now):
-        """An alarm raised by a mechanism; returns the fault kind it shows (added to F) or None."""
+    def alarm(self, mechanism, kind, now, source=None, sender=None):
+        """An alarm raised by a mechanism; returns the fault kind it shows (added to F) or None.
+        ``source`` is the node the alarm names, ``sender`` the node it came from (the connection's
+        caller id, bound to a TLS party by the policy's ``nodes``): an alarm in another node's name is
+        refused (ForgedAlarm), F unchanged, since a forged alarm would choose the adaptation."""
         now = _time(now)
+        if sender is not None and source != sender:
+            self._note(now, 'alarm %s/%s in the name of %s came from %s: refused, F unchanged'
+                       % (mechanism, kind, source, sender))
+            raise ForgedAlarm('an alarm %s/%s in the name of %s came from %s' % (mechanism, kind, source, sender))
         fault = change_model.observed_fault(mechanism, kind)
         if fault is None:
             self._note(now, 'alarm %s/%s shows no fault kind: F unchanged' % (mechanism, kind))

@@ -12,6 +12,7 @@ The policy file (YAML; names are fnmatch patterns of resolved topic and service 
                                      # (a recorder such as rosbag record, which has no TLS)
     parties:
       master:
+        nodes: ['/master/*']         # the node names it may run (optional: any name if absent)
         publish: [/ftm/checkpoints/master, /master/*]
         subscribe: ['*']
         serve: [/master/*]
@@ -20,7 +21,9 @@ The policy file (YAML; names are fnmatch patterns of resolved topic and service 
 A connection is judged at both ends: the subscriber checks that the publisher's party may publish
 the topic, the publisher that the subscriber's may subscribe; the caller that the server's party may
 serve the service, the server that the caller's may call it. A peer without a certificate is allowed
-only on a plaintext name. TLS itself gives freshness (a recorded connection cannot be replayed) and
+only on a plaintext name. A party with ``nodes`` is bound to them: a connection whose peer names
+itself (its caller id) outside them is refused, so a message's caller id, and an alarm's source,
+name a node of the party that holds the certificate. TLS itself gives freshness (a recorded connection cannot be replayed) and
 integrity on every message of the connection.
 
 Revocation follows the X.509 way: the CA signs a certificate revocation list (``ca.tls.crl``,
@@ -326,8 +329,9 @@ def party_of(peer_certificate):
 class Permissions(object):
     """Who may publish, subscribe, serve or call what (see the module docstring)."""
 
-    def __init__(self, parties, plaintext=(), readable=()):
+    def __init__(self, parties, plaintext=(), readable=(), nodes=None):
         self.parties = parties
+        self.nodes = dict(nodes or {})   # party: the patterns of its node names (absent: any name)
         self.plaintext_names = list(plaintext)
         self.readable_names = list(readable)
 
@@ -346,23 +350,39 @@ class Permissions(object):
         for key, names in (('plaintext', plaintext), ('readable', readable)):
             if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
                 raise ConfigError('%s: %s must be a list of names' % (where, key))
-        parties = {}
+        parties, nodes = {}, {}
+        keys = ACTIONS + ('nodes',)
         for party, rules in data['parties'].items():
             rules = {} if rules is None else rules
             if not isinstance(rules, dict):
-                raise ConfigError('%s: party %r: expected a mapping of %s' % (where, party, ', '.join(ACTIONS)))
-            unknown = sorted(str(k) for k in set(rules) - set(ACTIONS))
+                raise ConfigError('%s: party %r: expected a mapping of %s' % (where, party, ', '.join(keys)))
+            unknown = sorted(str(k) for k in set(rules) - set(keys))
             if unknown:
                 raise ConfigError('%s: party %r: unknown key(s) %s (known: %s)' % (where, party, ', '.join(unknown),
-                                                                                 ', '.join(ACTIONS)))
+                                                                                 ', '.join(keys)))
             for action, names in rules.items():
                 if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
                     raise ConfigError('%s: party %r: %s must be a list of names' % (where, party, action))
+                if action == 'nodes' and not names:
+                    raise ConfigError('%s: party %r: nodes is empty (no node could run; leave it out for '
+                                      'any name)' % (where, party))
             parties[str(party)] = dict((a, list(rules.get(a) or [])) for a in ACTIONS)
-        return cls(parties, plaintext, readable)
+            if 'nodes' in rules:
+                nodes[str(party)] = list(rules['nodes'])
+        return cls(parties, plaintext, readable, nodes)
 
     def plaintext(self, name):
         return any(fnmatch.fnmatchcase(name, p) for p in self.plaintext_names)
+
+    def names_node(self, party, callerid):
+        """None if a peer of party may call itself callerid (its node's name); else why not. A peer
+        without TLS (None), and a party without ``nodes``, are not bound to names."""
+        patterns = self.nodes.get(party)
+        if party is None or patterns is None:
+            return None
+        if callerid and any(fnmatch.fnmatchcase(callerid, p) for p in patterns):
+            return None
+        return 'party %s may not run a node named %s' % (party, callerid or '(none)')
 
     def allows(self, party, action, name):
         """None if party may do action on name; else why not. party None: a peer without TLS."""

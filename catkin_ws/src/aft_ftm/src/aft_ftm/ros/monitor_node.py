@@ -13,7 +13,7 @@ from .. import change_model, config, mechanisms
 from ..adaptation import ScriptError
 from ..change_model import Application as AppModel
 from ..errors import ConfigError
-from ..monitor import MonitorCore, transition
+from ..monitor import ForgedAlarm, MonitorCore, transition
 from .params import param
 from .witness_client import CONFIGURATION_TOPIC
 
@@ -60,13 +60,15 @@ class MonitorNode(object):
         ~period (float, 0.1 s): how often the model is checked.
     Subscribes:
         <ftm_ns>/heartbeat/<site> (aft_msgs/Heartbeat): R, the sites alive.
-        alarms (aft_msgs/Alarm): faults observed by the mechanisms extend F.
+        alarms (aft_msgs/Alarm): faults observed by the mechanisms extend F; an alarm whose source is
+            not the node that sent it (the connection's caller id) is refused, F unchanged.
         ~declare_faults (std_msgs/String, comma-separated kinds): the operator changes F.
         ~application (aft_msgs/Application): the application declares A (a new version).
         ~bandwidth (std_msgs/Float64, bytes/s): available bandwidth between the sites, from a link monitor.
     Publishes:
         ~model (std_msgs/String, JSON, latched): F, A, R, the running composition and the selection.
         ~events (std_msgs/String, JSON, latched): each decision, adaptation report or failure.
+        alarms (aft_msgs/Alarm): forged_alarm, for each alarm refused.
     """
 
     def __init__(self):
@@ -93,12 +95,14 @@ class MonitorNode(object):
         self.suffix = ''
         self.work = queue.Queue()
         self.engine = None
+        self.forged = 0   # alarms refused: their source is not the node that sent them
 
     def setup(self, timeout):
         from .adaptation_engine import Engine
         self.engine = Engine(log=lambda text: rospy.loginfo('%s: %s', rospy.get_name(), text))
         self.model_pub = rospy.Publisher('~model', String, queue_size=1, latch=True)
         self.events = rospy.Publisher('~events', String, queue_size=100, latch=True)
+        self.alarms = rospy.Publisher('alarms', Alarm, queue_size=100)
         for site in self.sites:
             rospy.Subscriber('%s/heartbeat/%s' % (self.ftm_ns, site), Heartbeat, self._on_heartbeat, site)
         rospy.Subscriber('alarms', Alarm, self._on_alarm)
@@ -126,8 +130,17 @@ class MonitorNode(object):
                     self._event({'event': 'site re-joined', 'site': site, 'epoch': conf.epoch})
 
     def _on_alarm(self, msg):
-        with self.lock:
-            fault = self.core.alarm(msg.mechanism, msg.kind, time.monotonic())
+        sender = (getattr(msg, '_connection_header', None) or {}).get('callerid')
+        try:
+            with self.lock:
+                fault = self.core.alarm(msg.mechanism, msg.kind, time.monotonic(), msg.source, sender)
+        except ForgedAlarm as e:
+            self.forged += 1
+            detail = '%s: refused, F unchanged (%d so far)' % (e, self.forged)
+            rospy.logwarn('%s: monitor forged_alarm: %s', rospy.get_name(), detail)
+            self.alarms.publish(Alarm(source=rospy.get_name(), mechanism='monitor', kind='forged_alarm',
+                                      detail=detail, stamp=rospy.Time.now()))
+            return
         if fault:
             rospy.logwarn('%s: %s alarm %s: F now includes %s', rospy.get_name(), msg.mechanism, msg.kind, fault)
 

@@ -86,6 +86,12 @@ def install(directory, party, permissions):
             return original(self)
         write_header.tls = True
         base.TCPROSTransport.write_header = write_header
+        read_original = base.TCPROSTransport.read_header
+
+        def read_header(self):
+            read_original(self)
+            _check_caller(self)
+        base.TCPROSTransport.read_header = read_header
     handshake.INBOUND_HOOKS[:] = [_accept]
     return party
 
@@ -128,6 +134,21 @@ def _secure_outbound(transport, protocol):
     secured.settimeout(timeout)
     _keep(secured, certificate)
     transport.socket = secured
+    transport.tls_party = tls.party_of(certificate)   # the peer's header is bound to it (_read_header)
+
+
+def _check_caller(transport):
+    """After the peer's header is read on an outbound connection: its caller id must be a node name its
+    party may run (Permissions.names_node), or the connection is refused and closed."""
+    from rospy.exceptions import TransportInitError
+    party = getattr(transport, 'tls_party', None)
+    header = getattr(transport, 'header', None) or {}
+    why = _STATE['permissions'].names_node(party, header.get('callerid')) if party is not None else None
+    if why:
+        name = header.get('topic') or header.get('service') or '?'
+        _refused(transport.dest_address, name, why)
+        transport.close()
+        raise TransportInitError('refused by the TLS policy: %s' % why)
 
 
 def _accept(server, sock, client_addr):
@@ -176,7 +197,9 @@ def _guard(handler, action, key):
             # rospy.wait_for_service's probe: a bare header, in clear, closed unanswered; it learns only
             # that the service is there, which the master tells anyone
             return handler(sock, client_addr, header)
-        why = _STATE['permissions'].allows(_PEERS.get(sock), action, name)
+        party = _PEERS.get(sock)
+        why = _STATE['permissions'].allows(party, action, name) or \
+            _STATE['permissions'].names_node(party, header.get('callerid'))
         if why:
             _refused(client_addr, name, why)
             return 'refused by the TLS policy: %s' % why
