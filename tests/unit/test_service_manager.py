@@ -153,6 +153,44 @@ def test_restarts_within_the_limit_then_the_limit_escalates_to_the_safe_state():
     assert sup['a'].errors['exit'] == 3
 
 
+def test_the_back_off_grows_with_consecutive_faults_up_to_its_cap_and_a_stable_run_resets_it():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 100, restart_delay: 0.1, restart_delay_factor: 3,'
+                            ' restart_delay_max: 1.0, stable_after: 5}\n'))
+    dead = ALIVE._replace(alive=False, exit_code=1)
+    now, delays = 0.0, []
+    for _ in range(5):
+        running(sup, 'a', now)
+        decision = sup.check('a', dead, now + 0.5, GB)
+        assert decision.actions == [('kill', 'a')] and sup['a'].state == State.RESTARTING   # the spawn is held
+        held = sup.next_due()
+        delays.append(round(held - (now + 0.5), 6))
+        assert sup.due(held - 1e-6) == [] and sup.due(held) == [('spawn', 'a')] and sup.due(held) == []
+        now = held
+    assert delays == [0.1, 0.3, 0.9, 1.0, 1.0]
+    running(sup, 'a', now)
+    assert sup.check('a', ALIVE, now + 5.01, GB) is None        # ran 5 s: the run of faults is over
+    sup.check('a', dead, now + 6.0, GB)
+    assert round(sup.next_due() - (now + 6.0), 6) == 0.1
+    assert sup['a'].restarts_in_window(now + 6.0) == 6          # the restart limit still counts every one
+
+
+def test_a_restart_the_back_off_holds_can_be_stopped_or_hurried_by_an_operator_and_limits_still_apply():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1, restart_delay: 10}\n'
+                            '  b: {command: y, restart_delay: 10}\n'))
+    dead = ALIVE._replace(alive=False, exit_code=1)
+    running(sup, 'a')
+    sup.check('a', dead, 1.0, GB)
+    ok, actions, _ = sup.stop('a', 2.0)
+    assert ok and sup['a'].state == State.STOPPED and sup.next_due() is None and sup.due(20.0) == []
+    running(sup, 'b')
+    sup.check('b', dead, 1.0, GB)
+    ok, actions, _ = sup.restart('b', 2.0)
+    assert ok and actions == [('kill', 'b'), ('spawn', 'b')] and sup.next_due() is None
+    running(sup, 'a', 3.0)                                       # a: its one restart is used
+    decision = sup.check('a', dead, 4.0, GB)
+    assert sup['a'].state == State.FAILED and 'restart limit' in decision.escalate
+
+
 def test_restarts_older_than_the_window_do_not_count():
     sup = Supervisor(config('  a: {command: x, restart_limit: 1, restart_window: 5}\n'))
     dead = ALIVE._replace(alive=False, exit_code=1)
@@ -278,7 +316,8 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
     rng = random.Random(7)
     c = config('  tg: {command: x, critical: true}\n  pub: {command: y, on_failure: alert}\n'
                '  c4g: {command: z, terminate_with: [tg], restart_with: [pub], restart_limit: 2, restart_window: 5}\n'
-               '  oms: {command: w, on_failure: terminate}\n')
+               '  oms: {command: w, on_failure: terminate}\n'
+               '  slow: {command: v, restart_delay: 0.3, restart_with: [pub], terminate_with: [oms]}\n')
     for _ in range(30):
         sup = Supervisor(c)
         now = 0.0
@@ -304,6 +343,7 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
                 sup.spawn_failed(name, now, 'no such file')
             elif move == 'clear':
                 sup.clear_safe_state(now)
+            actions += sup.due(now)          # held restarts, as the manager's loop spawns them
             for verb, target in actions:     # as the manager carries them out
                 if verb == 'spawn':
                     sup[target].spawned(now)

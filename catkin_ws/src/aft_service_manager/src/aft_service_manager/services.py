@@ -147,6 +147,24 @@ def _action(where, value):
     return value
 
 
+def _channel(where, value):
+    if value not in ('local', 'ros'):
+        raise ServiceConfigError('%s must be local or ros, got %r' % (where, value))
+    return value
+
+
+def _arguments(where, value):
+    if not isinstance(value, list) or not all(isinstance(a, str) and a for a in value):
+        raise ServiceConfigError('%s must be a list of arguments, got %r' % (where, value))
+    return list(value)
+
+
+def _at_least_one(where, value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1:
+        raise ServiceConfigError('%s must be a number >= 1, got %r' % (where, value))
+    return float(value)
+
+
 def _text(where, value):
     if not isinstance(value, str):
         raise ServiceConfigError('%s must be a string, got %r' % (where, value))
@@ -185,6 +203,20 @@ SERVICE_KEYS = collections.OrderedDict([
                                      'sanity check; false: it starts clean')),
     ('state_file', (None, _optional(_text), 'where the service saves its state (default: <state_dir>/<name>.json)')),
     ('autostart', (True, _flag, 'started when the manager starts')),
+    ('heartbeat_channel', ('local', _channel, 'local: beats through the manager\'s local channel (a memory write per '
+                                              'beat; aft_service_manager.channel); ros: on the ROS heartbeat topic')),
+    ('warm_spare', (False, _flag, 'keep a standby instance started, set up and idle beside the active one; a '
+                                  'restart promotes it (its first output within milliseconds), and a new spare '
+                                  'is started behind it')),
+    ('spare_args', ([], _arguments, 'arguments added to a spare\'s command ({n}: its instance number), so that it '
+                                    'does not clash with the active instance, e.g. [__name:=c4g_{n}, '
+                                    '~output:=/c4g/output]')),
+    ('restart_delay', (0.0, _non_negative, 'back-off: the delay (s) before the first restart after a fault; '
+                                           'multiplied by restart_delay_factor at each consecutive one')),
+    ('restart_delay_factor', (2.0, _at_least_one, 'back-off: the growth of the delay per consecutive fault')),
+    ('restart_delay_max', (30.0, _positive, 'back-off: the delay never exceeds this (s)')),
+    ('stable_after', (10.0, _positive, 'back-off: running this long (s) ends a run of consecutive faults (the '
+                                       'next restart is again after restart_delay)')),
 ])
 MANAGER_KEYS = collections.OrderedDict([
     ('period', (0.01, _positive, "the manager's cycle (s): how often it checks every service")),
@@ -338,6 +370,8 @@ class Service(object):
         self.starts = 0
         self.history = []                      # (now, from, to, reason)
         self.alerted = set()                   # fault kinds alerted and still present (alerted once)
+        self.consecutive = 0                   # faults since it last ran for stable_after (the back-off)
+        self.spawn_at = None                   # a restart held back by the back-off: when to spawn
 
     def _change(self, state, now, reason):
         if state == self.state:
@@ -349,6 +383,7 @@ class Service(object):
 
     def spawned(self, now):
         """Its process was (re)started."""
+        self.spawn_at = None
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
         self.starts += 1
@@ -364,6 +399,13 @@ class Service(object):
         self.reported_error = None     # an ok heartbeat: no error reported any more
         if self.state == State.STARTING:
             self._change(State.RUNNING, now, 'heard from')
+
+    def restart_delay(self):
+        """The back-off before the restart after the current run of consecutive faults."""
+        c = self.config
+        if not c['restart_delay'] or self.consecutive < 1:
+            return 0.0
+        return min(c['restart_delay_max'], c['restart_delay'] * c['restart_delay_factor'] ** (self.consecutive - 1))
 
     def restarts_in_window(self, now):
         while self.restarts and now - self.restarts[0] > self.config['restart_window']:
@@ -408,6 +450,8 @@ class Supervisor(object):
                 return None
         if s.state != State.RUNNING:
             return None
+        if s.consecutive and now - s.since >= s.config['stable_after']:
+            s.consecutive = 0   # a stable run: the back-off starts again from restart_delay
         found = detect(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
         if found is None:
             s.alerted.clear()
@@ -420,6 +464,7 @@ class Supervisor(object):
         """A fault of service name: count it, decide and return what to do."""
         s = self.services[name]
         s.errors[kind] += 1
+        s.consecutive += 1
         s._change(State.ERROR, now, '%s: %s' % (kind, detail))
         action = s.config['on_failure']
         escalate = None
@@ -432,7 +477,7 @@ class Supervisor(object):
                 escalate = '%s: restart limit exhausted after %s' % (name, kind)
             else:
                 s.restarts.append(now)
-                actions += self._restart(name, now, 'failure action restart after %s' % kind)
+                actions += self._restart(name, now, 'failure action restart after %s' % kind, delay=s.restart_delay())
         elif action == 'alert':
             if kind in ('exit', 'start_timeout'):
                 s._change(State.STOPPED, now, 'alerted; it is not running')
@@ -460,23 +505,44 @@ class Supervisor(object):
         for other in self.services[name].config['terminate_with']:
             o = self.services[other]
             if o.state in (State.STARTING, State.RUNNING, State.ERROR, State.RESTARTING):
+                o.spawn_at = None
                 o._change(State.STOPPED, now, 'terminated with %s' % name)
                 actions.append(('kill', other))
         return actions
 
-    def _restart(self, name, now, why, seen=None):
+    def _restart(self, name, now, why, seen=None, delay=0.0):
         """Actions restarting name: terminate its terminate_with first, restart it, then its dependants
-        (restart_with, followed transitively) that are running or starting; stopped ones stay stopped."""
+        (restart_with, followed transitively) that are running or starting; stopped ones stay stopped.
+        With a back-off delay, the spawn is held (``spawn_at``) and carried out by :meth:`due`."""
         seen = set() if seen is None else seen
         seen.add(name)
         s = self.services[name]
         actions = self._terminate_with(name, now)
-        s._change(State.RESTARTING, now, why)
-        actions += [('kill', name), ('spawn', name)]
+        s._change(State.RESTARTING, now, why + (' (back-off %.2f s)' % delay if delay else ''))
+        actions.append(('kill', name))
+        if delay:
+            s.spawn_at = now + delay
+        else:
+            actions.append(('spawn', name))
         for other in s.config['restart_with']:
             if other not in seen and self.services[other].state in (State.STARTING, State.RUNNING):
                 actions += self._restart(other, now, 'restarted with %s' % name, seen)
         return actions
+
+    def due(self, now):
+        """The spawns the back-off held that are due now: [('spawn', name)]."""
+        actions = []
+        for name, s in self.services.items():
+            if s.spawn_at is not None and now >= s.spawn_at:
+                s.spawn_at = None
+                if s.state == State.RESTARTING:
+                    actions.append(('spawn', name))
+        return actions
+
+    def next_due(self):
+        """When the earliest held spawn is due (None: none held)."""
+        times = [s.spawn_at for s in self.services.values() if s.spawn_at is not None]
+        return min(times) if times else None
 
     def _escalate(self, reason, now):
         if self.safe_state is None:
@@ -499,9 +565,9 @@ class Supervisor(object):
         s = self.services[name]
         if s.state == State.STOPPED:
             return False, [], '%s is already stopped' % name
-        if s.state == State.RESTARTING:
+        if s.state == State.RESTARTING and s.spawn_at is None:
             return False, [], '%s is restarting: wait until it settles' % name
-        was = s.state
+        was, s.spawn_at = s.state, None    # (a restart the back-off holds is called off)
         s._change(State.STOPPED, now, 'stopped by an operator')
         return True, ([] if was == State.FAILED else [('kill', name)]), 'stopping %s' % name
 
@@ -509,8 +575,9 @@ class Supervisor(object):
         s = self.services[name]
         if s.state == State.FAILED:
             return False, [], '%s has failed: start it instead' % name
-        if s.state in (State.ERROR, State.RESTARTING):
+        if s.state == State.ERROR or (s.state == State.RESTARTING and s.spawn_at is None):
             return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
+        s.spawn_at = None   # an operator's restart does not wait for the back-off
         return True, self._restart(name, now, 'restarted by an operator'), 'restarting %s' % name
 
     def clear_safe_state(self, now):

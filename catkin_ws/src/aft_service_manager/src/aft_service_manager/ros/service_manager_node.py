@@ -1,7 +1,9 @@
 """The service manager as a ROS node: spawns the configured services as child processes, watches
 them, and carries out the decisions of aft_service_manager.services.Supervisor."""
 import json
+import math
 import os
+import select
 import signal
 import subprocess
 import threading
@@ -16,7 +18,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger, TriggerResponse
 
 from aft_ftm import config as params
-from aft_service_manager import trust
+from aft_service_manager import channel, trust
 from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
 from aft_ftm.ros.params import param
 from aft_service_manager.ros.service_heartbeat import TOPIC
@@ -47,11 +49,38 @@ class Child(object):
     """A service's process (a session of its own, so that everything it starts goes with it) and
     what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
 
-    def __init__(self, popen, cpu_window):
+    def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0):
         self.popen = popen
         self.proc = psutil.Process(popen.pid)
+        self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
         self.cpu_window = cpu_window
         self.cpu_marks = []   # (wall time, cpu seconds)
+        self.slot = slot      # its beat slot (local channel), or None
+        self.beats = 0        # beats seen in the slot
+        self.spare = spare    # a warm spare, not yet promoted
+        self.ready = False    # a spare that said it is set up
+        self.instance = instance
+
+    def close(self):
+        """Release what the manager holds of it (once it is killed or gone)."""
+        if self.pidfd is not None:
+            os.close(self.pidfd)
+            self.pidfd = None
+        if self.slot is not None:
+            self.slot.close()
+            try:
+                os.unlink(self.slot.path)
+            except OSError:
+                pass
+            self.slot = None
+
+    def read_beat(self):
+        """(monotonic time of the last beat, status) if it beat since the last read, else None."""
+        seen = self.slot.read() if self.slot is not None else None
+        if seen is None or seen[0] == self.beats:
+            return None
+        self.beats = seen[0]
+        return seen[1], seen[2]
 
     @property
     def pid(self):
@@ -110,9 +139,10 @@ class Child(object):
             os.killpg(self.popen.pid, signal.SIGTERM)
             self.popen.wait(timeout)
         except ProcessLookupError:
-            return
+            pass
         except subprocess.TimeoutExpired:
             self.kill(timeout)
+        self.close()
 
 
 def publisher_endpoints(topic, header):
@@ -136,9 +166,14 @@ class ServiceManagerNode(object):
 
     Parameters:
         ~config (str, required): the configuration file (YAML; keys in aft_service_manager.services)
-        ~resource_period (float, 0.1 s): how often CPU, memory and stopped processes are measured
-            (exit status, heartbeats and reported errors are checked every manager period)
+        ~resource_period (float, 0.1 s): how often CPU, memory and stopped processes are measured, for
+            the services with limits or without heartbeats (an exit is seen at once, through the
+            process's pidfd; a heartbeat timeout at its deadline, on the manager's period)
         ~heartbeat_topic (str, /aft/service_heartbeat): where the services' heartbeats come
+    The local channel (aft_service_manager.channel): each service spawned here gets a beat slot and
+    the manager's socket (<state_dir>/manager_<name>.sock) in its environment, and beats there
+    unless its heartbeat_channel is ros. A warm spare (warm_spare: true) is spawned with AFT_SPARE=1
+    and spare_args, and promoted with SIGUSR1.
     Subscribes:
         (~heartbeat_topic) (aft_msgs/ServiceHeartbeat): every service's heartbeats (passed to the services
             as AFT_HEARTBEAT_TOPIC); a beat from a process the manager has replaced is ignored
@@ -186,6 +221,14 @@ class ServiceManagerNode(object):
         self.published_safe = None    # the safe state last published (its reason, None: not in it)
         self.pid_file = os.path.join(self.config['manager']['state_dir'],
                                      'manager%s.pids' % rospy.get_name().replace('/', '_'))
+        self.prefix = 'manager%s' % rospy.get_name().replace('/', '_')
+        self.spares = {}              # name -> Child: its warm spare, idle until promoted
+        self.instances = 0            # a number per process spawned (a spare's {n})
+        self.spare_retry = {}         # name -> when to try again to start its spare (it died)
+        self.local = None             # the manager's end of the local channel
+        self.wake_r, self.wake_w = os.pipe()   # a command or a ROS heartbeat wakes the loop
+        os.set_blocking(self.wake_w, False)
+        self.wakes = 0                # loop iterations (the bench's cost of supervision)
 
     def setup(self, timeout):
         self.safe_pub = rospy.Publisher('safe_state', SafeState, queue_size=1, latch=True)
@@ -198,6 +241,7 @@ class ServiceManagerNode(object):
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         rospy.on_shutdown(self.shutdown)
         self._kill_orphans()
+        self.local = channel.ManagerSocket(channel.socket_path(self.config['manager']['state_dir'], self.prefix))
         now = time.monotonic()
         with self.lock:
             for name, service in self.supervisor.services.items():
@@ -209,37 +253,96 @@ class ServiceManagerNode(object):
 
     # -- processes -------------------------------------------------------------------------------
     def _spawn(self, name, now):
+        """Start name: promote its warm spare if one is ready, else a cold start; then (re)make its spare."""
         service = self.supervisor[name]
-        cfg, manager = service.config, self.config['manager']
+        spare = self.spares.get(name)
+        if spare is not None and spare.ready and spare.alive():
+            del self.spares[name]
+            try:
+                os.kill(spare.pid, signal.SIGUSR1)
+            except OSError as e:   # gone meanwhile: a cold start instead
+                spare.close()
+                rospy.logwarn('%s: the spare of %s cannot be promoted: %s', rospy.get_name(), name, e)
+            else:
+                spare.spare = False
+                self.children[name] = spare
+                self._record_pids()
+                service.spawned(now)
+                self._event('spawned', name, 'warm spare pid %d promoted' % spare.pid, now, starts=service.starts,
+                            pid=spare.pid, promoted=True)
+                self._ensure_spare(name)
+                return
+        try:
+            child = self._start_process(name, spare=False)
+        except (OSError, psutil.Error) as e:
+            self.supervisor.spawn_failed(name, now, str(e))
+            self._event('spawn_failed', name, str(e), now)
+            return
+        self.children[name] = child
+        self._record_pids()
+        service.spawned(now)
+        self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
+        self._ensure_spare(name)
+
+    def _start_process(self, name, spare):
+        """A process of service name (its active instance, or a warm spare), in a session of its own,
+        with its local channel; raises OSError or psutil.Error (nothing left running)."""
+        cfg, manager = self.supervisor[name].config, self.config['manager']
+        self.instances += 1
         state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
         env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file, AFT_HEARTBEAT_TOPIC=self.heartbeat_topic,
                    AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
+        slot = None
+        command = list(cfg['command'])
+        if spare:
+            command += [a.replace('{n}', str(self.instances)) for a in cfg['spare_args']]
+            env[channel.ENV_SPARE] = '1'
+        if cfg['heartbeat_channel'] == 'local' or spare:
+            slot = channel.BeatSlot(channel.slot_path(manager['state_dir'], '%s.%s.%d' % (
+                self.prefix, name, self.instances)), create=True)
+            env.update({channel.ENV_SLOT: slot.path, channel.ENV_SOCKET: self.local.address()})
         popen = None
         try:
-            popen = subprocess.Popen(cfg['command'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
-            self.children[name] = Child(popen, cfg['cpu_window'])
-        except (OSError, psutil.Error) as e:
+            popen = subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+            return Child(popen, cfg['cpu_window'], slot, spare, self.instances)
+        except BaseException:
             if popen is not None:   # started but cannot be watched: not left running unwatched
                 try:
                     os.killpg(popen.pid, signal.SIGKILL)
                 except OSError:
                     pass
                 threading.Thread(target=popen.wait, daemon=True).start()
-            self.supervisor.spawn_failed(name, now, str(e))
-            self._event('spawn_failed', name, str(e), now)
+            if slot is not None:
+                slot.close()
+                os.unlink(slot.path)
+            raise
+
+    def _ensure_spare(self, name):
+        """Start name's warm spare if it should have one and has none (it sets up while the active one runs)."""
+        service = self.supervisor[name]
+        if not service.config['warm_spare'] or name in self.spares or \
+                service.state not in (State.STARTING, State.RUNNING):
             return
-        finally:
-            self._record_pids()
-        service.spawned(now)
-        self._event('spawned', name, 'pid %d' % popen.pid, now, starts=service.starts, pid=popen.pid)
+        if time.monotonic() < self.spare_retry.get(name, 0.0):
+            return
+        try:
+            self.spares[name] = self._start_process(name, spare=True)
+        except (OSError, psutil.Error) as e:
+            self.spare_retry[name] = time.monotonic() + 1.0
+            rospy.logwarn('%s: the warm spare of %s cannot be started: %s', rospy.get_name(), name, e)
+            return
+        self._record_pids()
+        self._event('spare_started', name, 'pid %d' % self.spares[name].pid, time.monotonic(),
+                    pid=self.spares[name].pid)
 
     def _record_pids(self):
         """The process groups of the running services (pid, start time, command line), so that a
         manager started after this one was killed can stop what it left behind; written atomically,
         0600, in the private state directory."""
         try:
-            trust.write_private_json(self.pid_file, {n: trust.describe(c.proc) for n, c in self.children.items()
-                                                     if c.alive()})
+            records = {n: trust.describe(c.proc) for n, c in self.children.items() if c.alive()}
+            records.update(('%s (spare)' % n, trust.describe(c.proc)) for n, c in self.spares.items() if c.alive())
+            trust.write_private_json(self.pid_file, records)
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
                                    % (rospy.get_name(), self.pid_file, e))
@@ -275,6 +378,17 @@ class ServiceManagerNode(object):
         if child is not None:
             self._replaced(name, child)
             child.kill(self.config['manager']['kill_timeout'])
+            child.close()
+            self._record_pids()
+        if self.supervisor[name].state in (State.STOPPED, State.FAILED):
+            self._kill_spare(name)   # no spare is kept for a service that does not run
+
+    def _kill_spare(self, name):
+        spare = self.spares.pop(name, None)
+        if spare is not None:
+            self._replaced(name, spare)
+            spare.kill(self.config['manager']['kill_timeout'])
+            spare.close()
             self._record_pids()
 
     def _replaced(self, name, child):
@@ -309,20 +423,23 @@ class ServiceManagerNode(object):
 
     def _act(self, decision, now):
         for verb, name in decision.actions:
-            try:
-                if verb == 'kill':
-                    self._kill(name)
-                elif verb == 'spawn':
-                    self._spawn(name, now)
-                elif verb == 'run':
-                    self._run_program(name, decision.kind)
-                elif verb == 'alert':
-                    rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
-            except Exception as e:   # one failed action must not leave the others undone
-                rospy.logerr('%s: %s %s failed: %s: %s', rospy.get_name(), verb, name, type(e).__name__, e)
-                if verb == 'spawn' and self.supervisor[name].state in (State.RESTARTING, State.STARTING):
-                    self.supervisor.spawn_failed(name, now, str(e))
+            self._act_one(verb, name, decision, now)
         self._sync_safe_state()
+
+    def _act_one(self, verb, name, decision, now):
+        try:
+            if verb == 'kill':
+                self._kill(name)
+            elif verb == 'spawn':
+                self._spawn(name, now)
+            elif verb == 'run':
+                self._run_program(name, decision.kind)
+            elif verb == 'alert':
+                rospy.logerr('%s: ALERT %s: %s: %s', rospy.get_name(), name, decision.kind, decision.detail)
+        except Exception as e:   # one failed action must not leave the others undone
+            rospy.logerr('%s: %s %s failed: %s: %s', rospy.get_name(), verb, name, type(e).__name__, e)
+            if verb == 'spawn' and self.supervisor[name].state in (State.RESTARTING, State.STARTING):
+                self.supervisor.spawn_failed(name, now, str(e))
 
     def _sync_safe_state(self):
         """Publish the safe state whenever the supervisor's has changed (whatever changed it)."""
@@ -332,34 +449,159 @@ class ServiceManagerNode(object):
 
     # -- the loop --------------------------------------------------------------------------------
     def _loop(self):
+        """Event-driven, as s6 and systemd supervise: the loop sleeps until something happens or a
+        deadline falls due, and beats do not wake it. It wakes when a process ends (its pidfd), a
+        service says something on the local channel (first beat, an error, a spare ready), a command
+        or a ROS heartbeat comes (the wake pipe), or the earliest deadline falls due: a heartbeat
+        timeout (the last beat plus the timeout, read from the slot then), a start timeout, a
+        resource sample, a held restart, the diagnostics. Deadlines fall on the manager's period."""
         next_resources = next_diagnostics = 0.0
-        tick = time.monotonic()
         while not rospy.is_shutdown():
             now = time.monotonic()
             resources = now >= next_resources
             if resources:
                 next_resources = now + self.resource_period
             with self.lock:
+                self.wakes += 1
+                self._read_beats()
+                self._read_channel(now)
+                for verb, name in self.supervisor.due(now):
+                    self._act_one(verb, name, None, now)
                 for name in list(self.supervisor.services):
-                    child = self.children.get(name)
-                    if child is None:
-                        continue
-                    try:
-                        was = self.supervisor[name].state
-                        decision = self.supervisor.check(name, child.sample(resources), now, self.total_memory)
-                        if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
-                            child.cpu_marks = []   # its CPU is judged from now on, not its start-up
-                        if decision is not None:
-                            self._event('fault', name, decision.detail, now, kind=decision.kind,
-                                        actions=decision.actions, escalate=decision.escalate)
-                            self._act(decision, time.monotonic())
-                    except Exception as e:   # the manager must outlive any one service's trouble
-                        rospy.logerr('%s: while checking %s: %s: %s', rospy.get_name(), name, type(e).__name__, e)
+                    self._check(name, now, resources and self._sampled(name))
+                for name in list(self.spare_retry):
+                    if now >= self.spare_retry[name]:
+                        del self.spare_retry[name]
+                        self._ensure_spare(name)
+                self._sync_safe_state()
+                # (a process whose end is seen already is not polled again: its pidfd stays readable)
+                fds = [self.wake_r, self.local.fileno()] + [
+                    c.pidfd for c in list(self.children.values()) + list(self.spares.values())
+                    if c.pidfd is not None and c.popen.returncode is None]
+                deadline = min(self._deadlines(next_resources, next_diagnostics))
             if now >= next_diagnostics:
                 next_diagnostics = now + 1.0
                 self._publish_diagnostics()
-            tick = max(tick + self.period, time.monotonic() - self.period)
-            time.sleep(max(0.0, tick - time.monotonic()))
+            # on the period's grid, and at most one timed check per period (an alerted fault's
+            # deadline stays in the past)
+            period = self.period
+            wake = max(math.ceil(deadline / period) * period + 1e-4, now + period)
+            poller = select.poll()
+            for fd in fds:
+                poller.register(fd, select.POLLIN)
+            try:
+                events = poller.poll(max(0.0, (wake - time.monotonic()) * 1e3))
+            except InterruptedError:
+                events = []
+            if any(fd == self.wake_r for fd, _ in events):
+                try:
+                    os.read(self.wake_r, 4096)
+                except BlockingIOError:
+                    pass
+
+    def _sampled(self, name):
+        """Whether name's process is measured (CPU, memory, stopped): with limits, or with no
+        heartbeat to show a hang."""
+        c = self.supervisor[name].config
+        return c['cpu_limit'] is not None or c['memory_limit'] is not None or c['heartbeat_timeout'] is None
+
+    def _deadlines(self, next_resources, next_diagnostics):
+        yield next_diagnostics
+        if any(self._sampled(n) for n in self.children):
+            yield next_resources
+        due = self.supervisor.next_due()
+        if due is not None:
+            yield due
+        for t in self.spare_retry.values():
+            yield t
+        for name in self.children:
+            s = self.supervisor[name]
+            c = s.config
+            if s.state == State.STARTING:
+                yield s.started_at + (c['start_timeout'] if c['heartbeat_timeout'] is not None else c['start_grace'])
+            elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None:
+                yield s.last_heard + c['heartbeat_timeout']
+
+    def _check(self, name, now, resources):
+        child = self.children.get(name)
+        if child is None:
+            return
+        try:
+            was = self.supervisor[name].state
+            decision = self.supervisor.check(name, child.sample(resources), now, self.total_memory)
+            if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
+                child.cpu_marks = []   # its CPU is judged from now on, not its start-up
+            if decision is not None:
+                self._event('fault', name, decision.detail, now, kind=decision.kind,
+                            actions=decision.actions, escalate=decision.escalate)
+                self._act(decision, time.monotonic())
+        except Exception as e:   # the manager must outlive any one service's trouble
+            rospy.logerr('%s: while checking %s: %s: %s', rospy.get_name(), name, type(e).__name__, e)
+
+    def _read_beats(self):
+        """The beats in the slots of the active instances (one memory read each)."""
+        for name, child in list(self.children.items()):
+            seen = child.read_beat()
+            if seen is None:
+                continue
+            self._heard(name, child, seen[0], seen[1], 'reported in its beat' if seen[1] == 'error' else '')
+        for name, spare in list(self.spares.items()):
+            if not spare.alive():
+                self._spare_died(name, spare)
+
+    def _read_channel(self, now):
+        """What the services said on the local channel, each checked against the sender's pid."""
+        for pid, text in self.local.receive():
+            said = channel.parse(text)
+            name = said[1] if said else None
+            if name not in self.supervisor.services:
+                self.unknown_heartbeats += 1
+                rospy.logwarn_throttle(5.0, '%s: local channel: %r from pid %s names no service' % (
+                    rospy.get_name(), text[:80], pid))
+                continue
+            verb, detail = said[0], said[2]
+            child, spare = self.children.get(name), self.spares.get(name)
+            if spare is not None and pid is not None and spare.owns(pid):
+                if verb == 'ready' and not spare.ready:
+                    spare.ready = True
+                    self._event('spare_ready', name, 'pid %d' % spare.pid, now, pid=spare.pid)
+                continue
+            if child is None or pid is None or not child.owns(pid):
+                self.refused_heartbeats += 1
+                rospy.logwarn_throttle(5.0, '%s: local channel: %r from pid %s, not a process of %s: refused (%d so far)'
+                                       % (rospy.get_name(), text[:80], pid, name, self.refused_heartbeats))
+                continue
+            if verb == 'error':
+                self._heard(name, child, now, 'error', detail)
+            elif verb in ('started', 'ok'):
+                seen = child.read_beat()
+                if seen is not None:
+                    self._heard(name, child, seen[0], seen[1], '')
+
+    def _heard(self, name, child, at, status, detail):
+        self.heartbeats += 1
+        service = self.supervisor[name]
+        was = service.state
+        service.heard(at, status, detail)
+        if was == State.STARTING and service.state == State.RUNNING:
+            child.cpu_marks = []
+            self._event('running', name, 'heard from', time.monotonic(), started_at=service.started_at)
+
+    def _spare_died(self, name, spare):
+        self.spares.pop(name, None)
+        code = spare.popen.poll()
+        spare.close()
+        self.supervisor[name].errors['spare_exit'] += 1
+        self.spare_retry[name] = time.monotonic() + 1.0
+        self._event('spare_exit', name, 'the warm spare (pid %d) exited with status %s; another in 1 s'
+                    % (spare.pid, code), time.monotonic())
+        self._record_pids()
+
+    def _wake(self):
+        try:
+            os.write(self.wake_w, b'x')
+        except (BlockingIOError, OSError):
+            pass   # a wake is pending already
 
     def _on_heartbeat(self, beat):
         now = time.monotonic()
@@ -380,13 +622,10 @@ class ServiceManagerNode(object):
                 rospy.logwarn_throttle(5.0, '%s: heartbeat for %s refused (%d so far): %s'
                                        % (rospy.get_name(), beat.name, self.refused_heartbeats, why))
                 return
-            self.heartbeats += 1
-            service = self.supervisor[beat.name]
-            was = service.state
-            service.heard(now, beat.status, beat.detail)
-            if was == State.STARTING and service.state == State.RUNNING:
-                child.cpu_marks = []
-                self._event('running', beat.name, 'heard from', now, started_at=service.started_at)
+            was = self.supervisor[beat.name].state
+            self._heard(beat.name, child, now, beat.status, beat.detail)
+            if beat.status == 'error' or was != self.supervisor[beat.name].state:
+                self._wake()   # decided on now, not at the next deadline
 
     # -- reporting -------------------------------------------------------------------------------
     def _event(self, event, name, detail, now, **extra):
@@ -407,7 +646,11 @@ class ServiceManagerNode(object):
                 if name and n != name:
                     continue
                 child = self.children.get(n)
+                spare = self.spares.get(n)
                 out[n] = {'state': s.state.name.lower(), 'reason': s.reason, 'pid': child.pid if child else None,
+                          'warm_spare': None if spare is None else {'pid': spare.pid, 'ready': spare.ready},
+                          'channel': s.config['heartbeat_channel'], 'consecutive_faults': s.consecutive,
+                          'restart_held_s': None if s.spawn_at is None else round(s.spawn_at - time.monotonic(), 3),
                           'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
                           'errors': dict(s.errors), 'critical': s.config['critical'],
                           'period': s.config['period'], 'spare': s.config['spare']}
@@ -472,6 +715,7 @@ class ServiceManagerNode(object):
                     self._spawn(name, now)
             self._event('command', req.name, message, now, verb=verb, accepted=ok)
             self._sync_safe_state()
+        self._wake()   # the loop watches the processes as they are now
         return ServiceCommandResponse(success=ok, message=message, status=json.dumps(self.status(req.name)))
 
     def _on_clear(self, _req):
@@ -482,11 +726,12 @@ class ServiceManagerNode(object):
         return TriggerResponse(success=ok, message=message)
 
     def shutdown(self):
-        """Stop every service, those being stopped too: SIGTERM to all, then SIGKILL to those still
-        running after kill_timeout. Never raises."""
+        """Stop every service, those being stopped too, and their spares: SIGTERM to all, then SIGKILL
+        to those still running after kill_timeout. Never raises."""
         with self.lock:
-            children = list(self.children.values()) + list(self.stopping.values())
-            self.children, self.stopping = {}, {}
+            children = list(self.children.values()) + list(self.stopping.values()) + list(self.spares.values())
+            self.children, self.stopping, self.spares = {}, {}, {}
+        self._wake()
         try:
             for child in children:
                 try:
@@ -499,6 +744,9 @@ class ServiceManagerNode(object):
                     child.popen.wait(max(0.0, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     child.kill(0.2)
+                child.close()
+            if self.local is not None:
+                self.local.close()
             os.unlink(self.pid_file)
         except Exception:   # shutdown paths never raise
             pass

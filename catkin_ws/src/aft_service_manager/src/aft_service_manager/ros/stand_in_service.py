@@ -28,7 +28,10 @@ class StandInServiceNode(object):
     Publishes:
         ~output (std_msgs/UInt64): the counter, each cycle
         ~restored (std_msgs/String, latched): JSON {restored, reason, counter} at start
-        /aft/service_heartbeat (aft_msgs/ServiceHeartbeat): each cycle
+        /aft/service_heartbeat (aft_msgs/ServiceHeartbeat): each cycle, unless the manager gave it
+            its local channel (aft_service_manager.channel)
+    A warm spare (AFT_SPARE=1, started by the manager) makes its publishers, says it is ready and
+    waits: no output, no state read, until the manager promotes it (SIGUSR1).
     Services:
         ~fault (aft_msgs/InjectFault): mode crash (SIGSEGV), exit (status 3), hang (SIGSTOP of itself),
             leak (magnitude MB more each cycle), hog (a busy thread), error (reported in the heartbeat)
@@ -48,6 +51,25 @@ class StandInServiceNode(object):
         self.leaked = []
 
     def setup(self, timeout):
+        # Everything a consumer must have connected to is made first; a warm spare then waits idle
+        # (publishing nothing) until the manager promotes it, and only then restores the state.
+        self.restored_pub = rospy.Publisher('~restored', String, queue_size=1, latch=True)
+        self.output = rospy.Publisher('~output', UInt64, queue_size=10, tcp_nodelay=True)
+        self.heartbeat = Heartbeat()
+        if self.heartbeat.spare:
+            threading.Thread(target=self._promoted, name='spare', daemon=True).start()
+        else:
+            self._start()
+        return True
+
+    def _promoted(self):
+        while not rospy.is_shutdown() and not self.heartbeat.wait_promoted(0.5):
+            pass
+        if not rospy.is_shutdown():
+            rospy.loginfo('%s: promoted from warm spare', rospy.get_name())
+            self._start()
+
+    def _start(self):
         reason = 'restoring not asked for: clean start'
         restored = False
         if self.restore:
@@ -57,13 +79,10 @@ class StandInServiceNode(object):
                 rospy.logwarn('%s: %s', rospy.get_name(), reason)
             else:
                 self.counter, restored, reason = state['counter'], True, 'restored'
-        pub = rospy.Publisher('~restored', String, queue_size=1, latch=True)
-        pub.publish(String(data=json.dumps({'restored': restored, 'reason': reason, 'counter': self.counter})))
-        self.output = rospy.Publisher('~output', UInt64, queue_size=10, tcp_nodelay=True)
-        self.heartbeat = Heartbeat()
-        rospy.Service('~fault', InjectFault, self._on_fault)
         threading.Thread(target=self._loop, name='cycle', daemon=True).start()
-        return True
+        self.restored_pub.publish(String(data=json.dumps({'restored': restored, 'reason': reason,
+                                                          'counter': self.counter})))
+        rospy.Service('~fault', InjectFault, self._on_fault)
 
     def _loop(self):
         tick = time.monotonic()

@@ -1,0 +1,128 @@
+"""The service manager's local channel (aft_service_manager.channel) with real processes, no ROS:
+beats through a shared slot, what wakes the manager through its socket with the sender's pid
+stamped by the kernel, and a warm spare held until its promotion."""
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+
+from aft_service_manager import channel
+
+
+def test_a_beat_is_seen_in_the_slot_with_its_time_and_status(tmp_path):
+    path = channel.slot_path(str(tmp_path), 'c4g')
+    reader = channel.BeatSlot(path, create=True)
+    assert reader.read() is None                          # no beat yet
+    writer = channel.BeatSlot(path)
+    before = time.monotonic()
+    writer.write()
+    beats, at, status = reader.read()
+    assert (beats, status) == (1, 'ok') and before <= at <= time.monotonic()
+    writer.write('error')
+    assert reader.read()[0::2] == (2, 'error')
+    assert os.stat(path).st_mode & 0o777 == 0o600
+
+
+def test_a_beat_caught_half_written_is_not_taken(tmp_path):
+    path = channel.slot_path(str(tmp_path), 'a')
+    reader = channel.BeatSlot(path, create=True)
+    channel.BeatSlot(path).write()
+    struct.pack_into('<Q', reader.map, 0, 3)             # a writer stopped mid-beat: the count is odd
+    assert reader.read() is None
+
+
+def test_a_file_that_is_no_slot_is_refused(tmp_path):
+    path = tmp_path / 'short.beat'
+    path.write_bytes(b'12')
+    try:
+        channel.BeatSlot(str(path))
+    except ValueError as e:
+        assert 'not a beat slot' in str(e)
+    else:
+        raise AssertionError('a 2-byte file was taken as a slot')
+
+
+SERVICE = r'''
+import os, sys, time
+from aft_service_manager.channel import ServiceEnd
+end = ServiceEnd.from_environment('c4g')
+if os.environ.get('AFT_SPARE') == '1':
+    print('promoted' if end.wait_promoted(10.0) else 'never promoted', flush=True)
+end.beat()
+end.beat()
+end.beat('error', 'joint limit')
+time.sleep(0.2)
+'''
+
+
+def run_service(tmp_path, manager, spare=False):
+    slot = channel.BeatSlot(channel.slot_path(str(tmp_path), 'c4g.1'), create=True)
+    env = dict(os.environ, AFT_BEAT_FILE=slot.path, AFT_MANAGER_SOCKET=manager.address())
+    if spare:
+        env['AFT_SPARE'] = '1'
+    return slot, subprocess.Popen([sys.executable, '-c', SERVICE], env=env, stdout=subprocess.PIPE,
+                                  universal_newlines=True)
+
+
+def wait_for(manager, count, timeout=10.0):
+    got, deadline = [], time.monotonic() + timeout
+    while len(got) < count and time.monotonic() < deadline:
+        got += manager.receive()
+        time.sleep(0.005)
+    return got
+
+
+def test_what_must_wake_the_manager_comes_with_the_senders_pid(tmp_path):
+    manager = channel.ManagerSocket(channel.socket_path(str(tmp_path), 'manager_sm'))
+    try:
+        slot, proc = run_service(tmp_path, manager)
+        said = wait_for(manager, 2)
+        proc.wait(10)
+        # the first beat and the error woke it; the second ok beat did not (the slot has it)
+        assert said == [(proc.pid, 'started c4g '), (proc.pid, 'error c4g joint limit')]
+        assert slot.read()[0::2] == (3, 'error')
+        assert [channel.parse(t) for _, t in said] == [('started', 'c4g', ''), ('error', 'c4g', 'joint limit')]
+        assert channel.parse('promote c4g') is None and channel.parse('ok') is None
+    finally:
+        manager.close()
+    assert not os.path.exists(manager.path)
+
+
+def test_a_long_state_directory_puts_the_socket_in_the_abstract_namespace(tmp_path):
+    deep = tmp_path / ('d' * 90)
+    deep.mkdir()
+    address = channel.socket_path(str(deep), 'manager_sm')
+    assert address.startswith('\0')
+    manager = channel.ManagerSocket(address)
+    try:
+        _, proc = run_service(tmp_path, manager)
+        said = wait_for(manager, 2)
+        proc.wait(10)
+        assert [t for _, t in said] == ['started c4g ', 'error c4g joint limit'] and said[0][0] == proc.pid
+    finally:
+        manager.close()
+
+
+def test_a_warm_spare_says_it_is_ready_and_does_nothing_until_promoted(tmp_path):
+    manager = channel.ManagerSocket(channel.socket_path(str(tmp_path), 'manager_sm'))
+    try:
+        slot, proc = run_service(tmp_path, manager, spare=True)
+        assert wait_for(manager, 1) == [(proc.pid, 'ready c4g ')]
+        time.sleep(0.3)
+        assert slot.read() is None and manager.receive() == []   # idle: no beat, nothing said
+        promoted = time.monotonic()
+        os.kill(proc.pid, signal.SIGUSR1)
+        said = wait_for(manager, 1)
+        assert said[0] == (proc.pid, 'started c4g ')
+        assert time.monotonic() - promoted < 1.0
+        out, _ = proc.communicate(timeout=10)
+        assert out.strip() == 'promoted'
+    finally:
+        manager.close()
+
+
+def test_without_a_channel_in_its_environment_a_service_has_none(tmp_path):
+    assert channel.ServiceEnd.from_environment('a', {}) is None
+    assert channel.ServiceEnd.from_environment('a', {'AFT_BEAT_FILE': str(tmp_path / 'x')}) is None
