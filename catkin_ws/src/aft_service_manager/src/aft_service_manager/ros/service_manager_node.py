@@ -18,7 +18,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger, TriggerResponse
 
 from aft_ftm import config as params
-from aft_service_manager import channel, trust
+from aft_service_manager import channel, tree, trust
 from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
 from aft_ftm.ros.params import param
 from aft_service_manager.ros.service_heartbeat import TOPIC
@@ -49,8 +49,9 @@ class Child(object):
     """A service's process (a session of its own, so that everything it starts goes with it) and
     what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
 
-    def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0):
+    def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0, tree=None, handle=None):
         self.popen = popen
+        self.tree, self.handle = tree, handle   # every process of it, wherever they went (aft_service_manager.tree)
         self.proc = psutil.Process(popen.pid)
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
         self.cpu_window = cpu_window
@@ -63,6 +64,9 @@ class Child(object):
 
     def close(self):
         """Release what the manager holds of it (once it is killed or gone)."""
+        if self.tree is not None and self.handle is not None:
+            self.tree.kill(self.handle, 0.0)   # its cgroup removed if empty
+            self.handle = None
         if self.pidfd is not None:
             os.close(self.pidfd)
             self.pidfd = None
@@ -110,8 +114,9 @@ class Child(object):
         return Sample(True, None, stopped, cpu, rss)
 
     def kill(self, timeout):
-        """SIGKILL the whole session at once (a faulty service is not asked). It is reaped here if it
-        dies within 0.2 s (it almost always does), else by a thread, so the manager's loop never waits long."""
+        """SIGKILL the whole session at once (a faulty service is not asked), then every other process
+        of it (its tree: those in sessions of their own too). It is reaped here if it dies within
+        0.2 s (it almost always does), else by a thread, so the manager's loop never waits long."""
         try:
             os.killpg(self.popen.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
@@ -120,13 +125,21 @@ class Child(object):
             self.popen.wait(min(timeout, 0.2))
         except subprocess.TimeoutExpired:
             threading.Thread(target=self.popen.wait, daemon=True).start()
+        self._kill_tree(min(timeout, 0.5))
+
+    def _kill_tree(self, timeout):
+        if self.tree is not None and self.handle is not None and not self.tree.kill(self.handle, timeout):
+            rospy.logerr('service process tree %s: processes left after %.1f s: %s', self.handle, timeout,
+                         self.tree.members(self.handle))
 
     def alive(self):
         return self.popen.poll() is None
 
     def owns(self, pid):
-        """Whether pid is this service's process or one of its descendants."""
+        """Whether pid is this service's process or one of its descendants (or in its tree)."""
         if pid == self.popen.pid:
+            return True
+        if self.tree is not None and self.handle is not None and self.tree.owns(self.handle, pid):
             return True
         try:
             return any(p.pid == pid for p in self.proc.children(recursive=True))
@@ -142,6 +155,7 @@ class Child(object):
             pass
         except subprocess.TimeoutExpired:
             self.kill(timeout)
+        self._kill_tree(timeout)   # what it left in sessions of its own goes too
         self.close()
 
 
@@ -226,6 +240,7 @@ class ServiceManagerNode(object):
         self.instances = 0            # a number per process spawned (a spare's {n})
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
         self.local = None             # the manager's end of the local channel
+        self.tree = tree.make(self.prefix.replace('/', '_'))   # a cgroup per instance, or a tag
         self.wake_r, self.wake_w = os.pipe()   # a command or a ROS heartbeat wakes the loop
         os.set_blocking(self.wake_w, False)
         self.wakes = 0                # loop iterations (the bench's cost of supervision)
@@ -241,6 +256,10 @@ class ServiceManagerNode(object):
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         rospy.on_shutdown(self.shutdown)
         self._kill_orphans()
+        for handle in self.tree.leftovers():   # whatever escaped the pid file: the trees themselves
+            rospy.logwarn('%s: killing %s, left by an earlier manager', rospy.get_name(), handle)
+            self.tree.kill(handle, self.config['manager']['kill_timeout'])
+        rospy.loginfo('%s: every process of a service is tracked by %s', rospy.get_name(), self.tree.describe())
         self.local = channel.ManagerSocket(channel.socket_path(self.config['manager']['state_dir'], self.prefix))
         now = time.monotonic()
         with self.lock:
@@ -303,8 +322,10 @@ class ServiceManagerNode(object):
             env.update({channel.ENV_SLOT: slot.path, channel.ENV_SOCKET: self.local.address()})
         popen = None
         try:
-            popen = subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL, start_new_session=True)
-            return Child(popen, cfg['cpu_window'], slot, spare, self.instances)
+            prefix, extra, handle = self.tree.prepare('%s-%d' % (name, self.instances))
+            env.update(extra)
+            popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True)
+            return Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle)
         except BaseException:
             if popen is not None:   # started but cannot be watched: not left running unwatched
                 try:
@@ -374,21 +395,17 @@ class ServiceManagerNode(object):
                 pass
 
     def _kill(self, name):
-        child = self.children.pop(name, None)
+        """Kill name's active process (and its spare too if the service is not to run)."""
+        self._kill_from(self.children, name)
+        if self.supervisor[name].state in (State.STOPPED, State.FAILED):
+            self._kill_from(self.spares, name)   # no spare is kept for a service that does not run
+
+    def _kill_from(self, processes, name):
+        child = processes.pop(name, None)
         if child is not None:
             self._replaced(name, child)
             child.kill(self.config['manager']['kill_timeout'])
             child.close()
-            self._record_pids()
-        if self.supervisor[name].state in (State.STOPPED, State.FAILED):
-            self._kill_spare(name)   # no spare is kept for a service that does not run
-
-    def _kill_spare(self, name):
-        spare = self.spares.pop(name, None)
-        if spare is not None:
-            self._replaced(name, spare)
-            spare.kill(self.config['manager']['kill_timeout'])
-            spare.close()
             self._record_pids()
 
     def _replaced(self, name, child):
@@ -461,27 +478,18 @@ class ServiceManagerNode(object):
             resources = now >= next_resources
             if resources:
                 next_resources = now + self.resource_period
-            with self.lock:
-                self.wakes += 1
-                self._read_beats()
-                self._read_channel(now)
-                for verb, name in self.supervisor.due(now):
-                    self._act_one(verb, name, None, now)
-                for name in list(self.supervisor.services):
-                    self._check(name, now, resources and self._sampled(name))
-                for name in list(self.spare_retry):
-                    if now >= self.spare_retry[name]:
-                        del self.spare_retry[name]
-                        self._ensure_spare(name)
-                self._sync_safe_state()
-                # (a process whose end is seen already is not polled again: its pidfd stays readable)
-                fds = [self.wake_r, self.local.fileno()] + [
-                    c.pidfd for c in list(self.children.values()) + list(self.spares.values())
-                    if c.pidfd is not None and c.popen.returncode is None]
-                deadline = min(self._deadlines(next_resources, next_diagnostics))
-            if now >= next_diagnostics:
-                next_diagnostics = now + 1.0
-                self._publish_diagnostics()
+            try:
+                with self.lock:
+                    fds, deadline = self._cycle(now, resources, next_resources, next_diagnostics)
+                if now >= next_diagnostics:
+                    next_diagnostics = now + 1.0
+                    self._publish_diagnostics()
+                    self.tree.sweep()
+            except Exception as e:   # the loop must outlive anything (and shutdown closes what it uses)
+                if rospy.is_shutdown():
+                    return
+                rospy.logerr('%s: supervision cycle: %s: %s', rospy.get_name(), type(e).__name__, e)
+                fds, deadline = [self.wake_r], now + self.period
             # on the period's grid, and at most one timed check per period (an alerted fault's
             # deadline stays in the past)
             period = self.period
@@ -498,6 +506,27 @@ class ServiceManagerNode(object):
                     os.read(self.wake_r, 4096)
                 except BlockingIOError:
                     pass
+
+    def _cycle(self, now, resources, next_resources, next_diagnostics):
+        """One wake of the loop: beats, what the channel said, held restarts, every check; returns
+        the descriptors to wait on and the next deadline."""
+        self.wakes += 1
+        self._read_beats()
+        self._read_channel(now)
+        for verb, name in self.supervisor.due(now):
+            self._act_one(verb, name, None, now)
+        for name in list(self.supervisor.services):
+            self._check(name, now, resources and self._sampled(name))
+        for name in list(self.spare_retry):
+            if now >= self.spare_retry[name]:
+                del self.spare_retry[name]
+                self._ensure_spare(name)
+        self._sync_safe_state()
+        # (a process whose end is seen already is not polled again: its pidfd stays readable)
+        fds = [self.wake_r, self.local.fileno()] + [
+            c.pidfd for c in list(self.children.values()) + list(self.spares.values())
+            if c.pidfd is not None and c.popen.returncode is None]
+        return fds, min(self._deadlines(next_resources, next_diagnostics))
 
     def _sampled(self, name):
         """Whether name's process is measured (CPU, memory, stopped): with limits, or with no
@@ -744,9 +773,11 @@ class ServiceManagerNode(object):
                     child.popen.wait(max(0.0, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     child.kill(0.2)
+                child._kill_tree(0.5)   # what it started in sessions of its own goes too
                 child.close()
             if self.local is not None:
                 self.local.close()
+            self.tree.close()
             os.unlink(self.pid_file)
         except Exception:   # shutdown paths never raise
             pass

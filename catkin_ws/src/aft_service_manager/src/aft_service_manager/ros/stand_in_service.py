@@ -91,7 +91,10 @@ class StandInServiceNode(object):
             self.counter += 1
             if self.leak_mb:
                 self.leaked.append(bytearray(int(self.leak_mb * 1e6)))
-            self.output.publish(UInt64(data=self.counter))
+            try:
+                self.output.publish(UInt64(data=self.counter))
+            except rospy.ROSException:   # shutting down: its topics are closed
+                break
             self.heartbeat.beat('error', self.error) if self.error else self.heartbeat.beat()
             now = time.monotonic()
             if now - last_save >= self.save_every:
