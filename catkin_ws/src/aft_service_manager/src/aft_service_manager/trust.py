@@ -93,8 +93,10 @@ def describe(proc):
     return {'pid': proc.pid, 'create_time': proc.create_time(), 'cmdline': proc.cmdline()}
 
 
-def same_process(entry, proc):
-    """None if psutil process proc is the one entry describes; else why not."""
+def same_process(entry, proc, command_line=True):
+    """None if psutil process proc is the one entry describes; else why not. Without
+    ``command_line``, by its pid and start time only (a service started through a wrapper that
+    execs it may have been recorded before the exec)."""
     try:
         pid, started, cmdline = int(entry['pid']), float(entry['create_time']), list(entry['cmdline'])
     except (KeyError, TypeError, ValueError):
@@ -103,7 +105,7 @@ def same_process(entry, proc):
         return 'pid %d is not %d' % (proc.pid, pid)
     if abs(proc.create_time() - started) > START_TIME_SLACK:
         return 'pid %d was started at %.2f, not %.2f: the pid was reused' % (pid, proc.create_time(), started)
-    if proc.cmdline() != cmdline:
+    if command_line and proc.cmdline() != cmdline:
         return 'pid %d runs %r, not %r' % (pid, proc.cmdline()[:4], cmdline[:4])
     return None
 

@@ -45,6 +45,29 @@ def resolve_rosrun(command, where):
     return [found[0]] + command[3:]
 
 
+class AdoptedProcess(object):
+    """What the manager needs of a Popen, for a service process an earlier manager started (it is not
+    this manager's child: its end is seen through its pidfd, its exit status is not known)."""
+
+    def __init__(self, pid):
+        self.pid = pid
+        self.returncode = None
+        self._fd = os.pidfd_open(pid)
+
+    def poll(self):
+        if self.returncode is None and select.select([self._fd], [], [], 0)[0]:
+            self.returncode = 'unknown (adopted)'
+            os.close(self._fd)
+        return self.returncode
+
+    def wait(self, timeout=None):
+        if self.returncode is None:
+            if not select.select([self._fd], [], [], timeout)[0]:
+                raise subprocess.TimeoutExpired('adopted pid %d' % self.pid, timeout)
+            self.poll()
+        return self.returncode
+
+
 class Child(object):
     """A service's process (a session of its own, so that everything it starts goes with it) and
     what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
@@ -159,6 +182,13 @@ class Child(object):
         self.close()
 
 
+def _instance_of(handle):
+    """The instance number in a tree's handle (``.../<name>-<n>`` or ``<owner>.<name>-<n>.<tag>``), 0 if none."""
+    import re
+    found = re.findall(r'-(\d+)', str(handle))
+    return int(found[-1]) if found else 0
+
+
 def publisher_endpoints(topic, header):
     """(this end, the publisher's end) of the connection of this node's subscription to topic that
     carried a message (its ``_connection_header``: rospy gives every message of a connection that very
@@ -255,17 +285,24 @@ class ServiceManagerNode(object):
             rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         rospy.on_shutdown(self.shutdown)
-        self._kill_orphans()
-        for handle in self.tree.leftovers():   # whatever escaped the pid file: the trees themselves
-            rospy.logwarn('%s: killing %s, left by an earlier manager', rospy.get_name(), handle)
-            self.tree.kill(handle, self.config['manager']['kill_timeout'])
-        rospy.loginfo('%s: every process of a service is tracked by %s', rospy.get_name(), self.tree.describe())
+        # the socket first: what adopted services say from now on reaches it
         self.local = channel.ManagerSocket(channel.socket_path(self.config['manager']['state_dir'], self.prefix))
+        with self.lock:
+            adopted = self._kill_orphans()
+        for handle in self.tree.leftovers():   # whatever escaped the pid file: the trees themselves
+            if handle not in adopted:
+                rospy.logwarn('%s: killing %s, left by an earlier manager', rospy.get_name(), handle)
+                self.tree.kill(handle, self.config['manager']['kill_timeout'])
+            self.instances = max(self.instances, _instance_of(handle))
+        rospy.loginfo('%s: every process of a service is tracked by %s', rospy.get_name(), self.tree.describe())
         now = time.monotonic()
         with self.lock:
+            self._record_pids()
             for name, service in self.supervisor.services.items():
-                if service.config['autostart']:
+                if service.config['autostart'] and name not in self.children:
                     self._spawn(name, now)
+                elif name in self.children:
+                    self._ensure_spare(name)
             self._sync_safe_state()
         threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
         return True
@@ -360,29 +397,67 @@ class ServiceManagerNode(object):
         """The process groups of the running services (pid, start time, command line), so that a
         manager started after this one was killed can stop what it left behind; written atomically,
         0600, in the private state directory."""
+        def record(name, child):
+            return dict(trust.describe(child.proc), service=name, spare=child.spare, ready=child.ready,
+                        tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance)
         try:
-            records = {n: trust.describe(c.proc) for n, c in self.children.items() if c.alive()}
-            records.update(('%s (spare)' % n, trust.describe(c.proc)) for n, c in self.spares.items() if c.alive())
+            records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
+            records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
             trust.write_private_json(self.pid_file, records)
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
                                    % (rospy.get_name(), self.pid_file, e))
 
+    def _adopt(self, name, entry, proc, now):
+        """Take over a service instance an earlier manager of this name left running (it was killed
+        or crashed): its process, tree and beat slot, without restarting it. True if adopted."""
+        service = self.supervisor.services.get(entry.get('service'))
+        handle, slot_file = entry.get('tree'), entry.get('slot')
+        if service is None or not handle or not self.tree.owns(handle, proc.pid):
+            return False
+        spare = bool(entry.get('spare'))
+        if entry['service'] in (self.spares if spare else self.children):
+            return False
+        slot = channel.BeatSlot(slot_file) if slot_file else None
+        child = Child(AdoptedProcess(proc.pid), service.config['cpu_window'], slot, spare,
+                      int(entry.get('instance') or 0), self.tree, handle)
+        child.proc = proc
+        child.ready = bool(entry.get('ready'))
+        child.beats = slot.read()[0] if slot and slot.read() else 0
+        self.instances = max(self.instances, child.instance)
+        if spare:
+            self.spares[entry['service']] = child
+        else:
+            self.children[entry['service']] = child
+            service.spawned(now)
+            self._event('adopted', entry['service'], 'pid %d, left running by an earlier manager' % proc.pid, now,
+                        pid=proc.pid)
+        rospy.logwarn('%s: adopted %s (pid %d), left running by an earlier manager', rospy.get_name(), name, proc.pid)
+        return True
+
     def _kill_orphans(self):
-        """Kill the services an earlier manager of the same name left running (it was killed): each
-        process group only if its leader is still the process recorded (pid, start time, command line)."""
+        """Adopt the service instances an earlier manager of the same name left running (it was
+        killed), each only if it is still the process recorded (pid and start time) and still in the
+        recorded tree; kill any other it left (process group checked by pid, start time and command
+        line). Returns the trees adopted."""
+        adopted = []
         try:
             recorded = trust.read_private_json(self.pid_file)
         except (OSError, ValueError) as e:
             rospy.logwarn('%s: the pid file %s is not trusted, nothing in it is signalled: %s', rospy.get_name(),
                           self.pid_file, e)
-            return
+            return adopted
+        now = time.monotonic()
         for name, entry in (recorded or {}).items() if isinstance(recorded, dict) else ():
             try:
                 proc = psutil.Process(int(entry['pid']))
-                why = trust.same_process(entry, proc) or (None if os.getpgid(proc.pid) == proc.pid else
-                                                          'pid %d leads no process group' % proc.pid)
-            except (psutil.Error, OSError, KeyError, TypeError, ValueError):
+                started = trust.same_process(entry, proc, command_line=False)
+                if not started and self._adopt(name, entry, proc, now):
+                    adopted.append(entry['tree'])
+                    continue
+                why = started or trust.same_process(entry, proc) or (
+                    None if os.getpgid(proc.pid) == proc.pid else 'pid %d leads no process group' % proc.pid)
+            except (psutil.Error, OSError, KeyError, TypeError, ValueError, AttributeError):
                 continue   # gone: nothing to stop
             if why:
                 rospy.logwarn('%s: %s left by an earlier manager is not signalled: %s', rospy.get_name(), name, why)
@@ -393,6 +468,7 @@ class ServiceManagerNode(object):
                 os.killpg(proc.pid, signal.SIGKILL)
             except OSError:
                 pass
+        return adopted
 
     def _kill(self, name):
         """Kill name's active process (and its spare too if the service is not to run)."""
@@ -548,6 +624,8 @@ class ServiceManagerNode(object):
             c = s.config
             if s.state == State.STARTING:
                 yield s.started_at + (c['start_timeout'] if c['heartbeat_timeout'] is not None else c['start_grace'])
+                if self.children[name].slot is not None and self.children[name].beats:
+                    yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
             elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None:
                 yield s.last_heard + c['heartbeat_timeout']
 
@@ -593,6 +671,7 @@ class ServiceManagerNode(object):
             if spare is not None and pid is not None and spare.owns(pid):
                 if verb == 'ready' and not spare.ready:
                     spare.ready = True
+                    self._record_pids()   # a manager that adopts it knows it may promote it
                     self._event('spare_ready', name, 'pid %d' % spare.pid, now, pid=spare.pid)
                 continue
             if child is None or pid is None or not child.owns(pid):
