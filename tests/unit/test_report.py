@@ -44,8 +44,12 @@ def car_run(hazards, ok=True, ratio=0.9):
 def sm_period(share, detect_n=2, missed=0):
     stat = {'n': detect_n, 'median_ms': 5.0, 'min_ms': 4.0, 'max_ms': 6.0}
     fault = {'detect': stat, 'restart': stat, 'recovery': stat, 'kinds': ['exit'], 'missed': missed}
-    return {'faults': {'crash': dict(fault), 'hang': dict(fault)}, 'com_ms': 0.3,
-            'cpu': {'manager_cpu_percent': 10.0, 'services_cpu_percent': 30.0, 'manager_share_percent': share}}
+    return {'faults': {'crash': dict(fault), 'hang': dict(fault)}, 'warm': {'crash': dict(fault), 'hang': dict(fault)},
+            'com_ms': 0.3,
+            'cpu': {'channel': 'local', 'manager_cpu_percent': 0.2, 'services_cpu_percent': 7.0,
+                    'manager_share_percent': share, 'manager_of_services_percent': share},
+            'cpu_ros': {'channel': 'ros', 'manager_cpu_percent': 6.8, 'services_cpu_percent': 23.0,
+                        'manager_share_percent': 23.0, 'manager_of_services_percent': 29.6}}
 
 
 def calls(sent, answered):
@@ -77,7 +81,10 @@ def figures():
                                                   'hang_detected_within_5s': False},
                             'condition': {'0.001': {'detect_restart_com_ms': 450.0,
                                                     'fits': {'C4G': False, 'OmsCom': False},
-                                                    'detect_alone_fits': {'C4G': False, 'OmsCom': True}}}},
+                                                    'detect_alone_fits': {'C4G': False, 'OmsCom': True}}},
+                            'condition_cold': {'0.001': {'detect_restart_com_ms': 500.0,
+                                                         'fits': {'C4G': False, 'OmsCom': False},
+                                                         'detect_alone_fits': {'C4G': False, 'OmsCom': True}}}},
         'car': {'rows': [{'entity': 'laser', 'failure_mode': 'inconsistent data', 'mechanism': 'triplication_vote',
                           'scenario': 'laser_value_faults', 'hazard': 'collision',
                           'with': car_run([]), 'without': car_run(['collision'], ok=False)}],
@@ -268,3 +275,15 @@ def test_a_campaign_that_did_not_run_is_said_missing(figures):
     text = report.build(figures)
     assert '## Campaign: seeded faults against the bank, checked by its history' in text
     assert not [t for t, _, _ in report.targets(figures) if t.startswith('campaign')]
+
+
+def test_the_service_manager_section_sets_the_designs_side_by_side(figures):
+    text = '\n'.join(report.service_manager_lines(figures))
+    assert '| 1 ms | cold restart |' in text and '| 1 ms | warm spare |' in text
+    assert 'roslaunch respawn' in text
+    assert 'ROS heartbeats: manager' in text and 'local channel: manager' in text and '29.6 %' in text
+    assert 'warm spare, crash' in text and 'cold restart, crash' in text
+    claim = [c for c in report.claims(figures) if c['key'] == 'overhead'][0]
+    assert 'local channel' in claim['measured'] and 'with ROS heartbeats: 30 %' in claim['measured']
+    condition = [c for c in report.claims(figures) if c['key'] == 'availability_condition'][0]
+    assert condition['measured'].startswith('warm spare:') and 'cold restart: 500 ms' in condition['measured']

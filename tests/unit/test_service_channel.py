@@ -126,3 +126,26 @@ def test_a_warm_spare_says_it_is_ready_and_does_nothing_until_promoted(tmp_path)
 def test_without_a_channel_in_its_environment_a_service_has_none(tmp_path):
     assert channel.ServiceEnd.from_environment('a', {}) is None
     assert channel.ServiceEnd.from_environment('a', {'AFT_BEAT_FILE': str(tmp_path / 'x')}) is None
+
+
+def test_the_watchdog_fires_only_when_the_beats_stop(tmp_path):
+    """The kernel watches the beats: each re-arms the timer; it fires (its descriptor readable) only
+    a timeout after the last one, so a healthy service never wakes the manager."""
+    import select
+    watchdog = channel.Watchdog()
+    try:
+        slot = channel.BeatSlot(channel.slot_path(str(tmp_path), 'a'), create=True)
+        end = channel.ServiceEnd('a', slot.path, '/nonexistent.sock', watchdog=(channel.Watchdog(watchdog.fd), 0.1))
+        started = time.monotonic()
+        while time.monotonic() - started < 0.5:           # beats every 20 ms for 0.5 s: never fires
+            end.beat()
+            stopped = time.monotonic()                    # the last beat
+            assert not select.select([watchdog], [], [], 0.02)[0]
+        assert not watchdog.fired()
+        assert select.select([watchdog], [], [], 2.0)[0]  # the beats stop: it fires a timeout later
+        assert 0.09 <= time.monotonic() - stopped < 1.0
+        assert watchdog.fired() and not watchdog.fired()  # read once, then cleared
+        watchdog.arm(0)                                    # disarmed: never fires
+        assert not select.select([watchdog], [], [], 0.2)[0]
+    finally:
+        watchdog.close()

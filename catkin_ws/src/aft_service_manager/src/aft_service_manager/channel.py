@@ -15,12 +15,20 @@ Two parts, both in the manager's private state directory (0700, its own):
   the manager checks against the service's own process tree (nobody else can write in the
   directory, and a pid cannot be forged).
 
+- a **watchdog timer** per service with a heartbeat timeout (a Linux timerfd the manager makes and
+  the service inherits, ``AFT_WATCHDOG_FD``): each beat re-arms it for the timeout (one system
+  call, under a microsecond); it fires, and wakes the manager, only when the service has not beaten
+  for the timeout. So a healthy service costs the manager no wake at all: hangs are watched by the
+  kernel, as systemd's ``WatchdogSec`` and a hardware watchdog are.
+
 A warm spare (``AFT_SPARE=1``) sets itself up, says ``ready``, and waits for SIGUSR1, the manager's
 promotion; then it restores the saved state and starts its cycle.
 
 Both ends are plain Python; :class:`ServiceEnd` is what a service uses (through
 ``aft_service_manager.ros.service_heartbeat.Heartbeat``, or directly).
 """
+import ctypes
+import ctypes.util
 import mmap
 import os
 import signal
@@ -35,6 +43,62 @@ STATUS = {'ok': 0, 'error': 1}
 MAX_DATAGRAM = 4096
 
 ENV_SLOT, ENV_SOCKET, ENV_SPARE = 'AFT_BEAT_FILE', 'AFT_MANAGER_SOCKET', 'AFT_SPARE'
+ENV_WATCHDOG, ENV_WATCHDOG_TIMEOUT = 'AFT_WATCHDOG_FD', 'AFT_WATCHDOG_TIMEOUT'
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [('tv_sec', ctypes.c_long), ('tv_nsec', ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [('it_interval', _Timespec), ('it_value', _Timespec)]
+
+
+_LIBC = None
+
+
+def _libc():
+    global _LIBC
+    if _LIBC is None:
+        _LIBC = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
+    return _LIBC
+
+
+class Watchdog(object):
+    """A timerfd on CLOCK_MONOTONIC (Python before 3.13 has no binding: libc through ctypes).
+    ``arm(seconds)`` (re)starts it, 0 stops it; the descriptor is readable once it fired."""
+    CLOCK_MONOTONIC, TFD_NONBLOCK = 1, os.O_NONBLOCK
+
+    def __init__(self, fd=None):
+        if fd is None:
+            fd = _libc().timerfd_create(self.CLOCK_MONOTONIC, self.TFD_NONBLOCK)
+            if fd < 0:
+                raise OSError(ctypes.get_errno(), 'timerfd_create: %s' % os.strerror(ctypes.get_errno()))
+        self.fd = fd
+        self._spec = _Itimerspec()
+
+    def fileno(self):
+        return self.fd
+
+    def arm(self, seconds):
+        whole = int(seconds)
+        self._spec.it_value.tv_sec, self._spec.it_value.tv_nsec = whole, int((seconds - whole) * 1e9)
+        if seconds > 0 and not (whole or self._spec.it_value.tv_nsec):
+            self._spec.it_value.tv_nsec = 1
+        if _libc().timerfd_settime(self.fd, 0, ctypes.byref(self._spec), None) != 0:
+            raise OSError(ctypes.get_errno(), 'timerfd_settime: %s' % os.strerror(ctypes.get_errno()))
+
+    def fired(self):
+        """Whether it fired since the last call (its count read and cleared)."""
+        try:
+            return struct.unpack('Q', os.read(self.fd, 8))[0] > 0
+        except BlockingIOError:
+            return False
+
+    def close(self):
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
 
 
 def slot_path(state_dir, name):
@@ -155,8 +219,9 @@ class ServiceEnd(object):
     """The service's end, from its environment (None from :meth:`from_environment` when the manager
     gave it no channel: a service started by hand, or on another host, beats on the ROS topic)."""
 
-    def __init__(self, name, slot_file, socket_path, spare=False):
+    def __init__(self, name, slot_file, socket_path, spare=False, watchdog=None):
         self.name = name
+        self.watchdog = watchdog   # (Watchdog, timeout): re-armed at each beat
         self.slot = BeatSlot(slot_file)
         self.socket_path = socket_path
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -178,7 +243,10 @@ class ServiceEnd(object):
             return None
         address = environ[ENV_SOCKET]
         address = '\0' + address[1:] if address.startswith('@') else address   # the abstract namespace
-        return cls(name, environ[ENV_SLOT], address, environ.get(ENV_SPARE) == '1')
+        watchdog = None
+        if environ.get(ENV_WATCHDOG) and environ.get(ENV_WATCHDOG_TIMEOUT):
+            watchdog = (Watchdog(int(environ[ENV_WATCHDOG])), float(environ[ENV_WATCHDOG_TIMEOUT]))
+        return cls(name, environ[ENV_SLOT], address, environ.get(ENV_SPARE) == '1', watchdog)
 
     def send(self, verb, detail=''):
         try:
@@ -190,6 +258,8 @@ class ServiceEnd(object):
     def beat(self, status='ok', detail=''):
         """Each cycle. The first beat, and any change of status, also wake the manager."""
         self.slot.write(status)
+        if self.watchdog is not None:
+            self.watchdog[0].arm(self.watchdog[1])
         if status != self.status:
             self.send('started' if self.status is None and status == 'ok' else status, detail)
             self.status = status

@@ -72,8 +72,9 @@ class Child(object):
     """A service's process (a session of its own, so that everything it starts goes with it) and
     what the manager measures of it: CPU use over a window, memory, whether it is stopped."""
 
-    def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0, tree=None, handle=None):
+    def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0, tree=None, handle=None, watchdog=None):
         self.popen = popen
+        self.watchdog = watchdog   # its kernel watchdog (channel.Watchdog), re-armed by each beat, or None
         self.tree, self.handle = tree, handle   # every process of it, wherever they went (aft_service_manager.tree)
         self.proc = psutil.Process(popen.pid)
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
@@ -93,6 +94,9 @@ class Child(object):
         if self.pidfd is not None:
             os.close(self.pidfd)
             self.pidfd = None
+        if self.watchdog is not None:
+            self.watchdog.close()
+            self.watchdog = None
         if self.slot is not None:
             self.slot.close()
             try:
@@ -274,6 +278,7 @@ class ServiceManagerNode(object):
         self.wake_r, self.wake_w = os.pipe()   # a command or a ROS heartbeat wakes the loop
         os.set_blocking(self.wake_w, False)
         self.wakes = 0                # loop iterations (the bench's cost of supervision)
+        self.cycle_cpu = self.diagnostics_cpu = 0.0   # CPU seconds the loop spent checking, and on diagnostics
 
     def setup(self, timeout):
         self.safe_pub = rospy.Publisher('safe_state', SafeState, queue_size=1, latch=True)
@@ -348,7 +353,7 @@ class ServiceManagerNode(object):
         state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
         env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file, AFT_HEARTBEAT_TOPIC=self.heartbeat_topic,
                    AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
-        slot = None
+        slot = watchdog = None
         command = list(cfg['command'])
         if spare:
             command += [a.replace('{n}', str(self.instances)) for a in cfg['spare_args']]
@@ -359,11 +364,18 @@ class ServiceManagerNode(object):
             env.update({channel.ENV_SLOT: slot.path, channel.ENV_SOCKET: self.local.address()})
         popen = None
         try:
+            if slot is not None and cfg['heartbeat_timeout'] is not None:
+                watchdog = channel.Watchdog()
+                env.update({channel.ENV_WATCHDOG: str(watchdog.fd),
+                            channel.ENV_WATCHDOG_TIMEOUT: repr(cfg['heartbeat_timeout'])})
             prefix, extra, handle = self.tree.prepare('%s-%d' % (name, self.instances))
             env.update(extra)
-            popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True)
-            return Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle)
+            popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True,
+                                     pass_fds=(watchdog.fd,) if watchdog else ())
+            return Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle, watchdog)
         except BaseException:
+            if watchdog is not None:
+                watchdog.close()
             if popen is not None:   # started but cannot be watched: not left running unwatched
                 try:
                     os.killpg(popen.pid, signal.SIGKILL)
@@ -554,13 +566,17 @@ class ServiceManagerNode(object):
             resources = now >= next_resources
             if resources:
                 next_resources = now + self.resource_period
+            cpu = time.thread_time()
             try:
                 with self.lock:
                     fds, deadline = self._cycle(now, resources, next_resources, next_diagnostics)
+                self.cycle_cpu += time.thread_time() - cpu
                 if now >= next_diagnostics:
                     next_diagnostics = now + 1.0
+                    cpu = time.thread_time()
                     self._publish_diagnostics()
                     self.tree.sweep()
+                    self.diagnostics_cpu += time.thread_time() - cpu
             except Exception as e:   # the loop must outlive anything (and shutdown closes what it uses)
                 if rospy.is_shutdown():
                     return
@@ -601,7 +617,8 @@ class ServiceManagerNode(object):
         # (a process whose end is seen already is not polled again: its pidfd stays readable)
         fds = [self.wake_r, self.local.fileno()] + [
             c.pidfd for c in list(self.children.values()) + list(self.spares.values())
-            if c.pidfd is not None and c.popen.returncode is None]
+            if c.pidfd is not None and c.popen.returncode is None] + [
+            c.watchdog.fd for c in self.children.values() if c.watchdog is not None]
         return fds, min(self._deadlines(next_resources, next_diagnostics))
 
     def _sampled(self, name):
@@ -626,8 +643,9 @@ class ServiceManagerNode(object):
                 yield s.started_at + (c['start_timeout'] if c['heartbeat_timeout'] is not None else c['start_grace'])
                 if self.children[name].slot is not None and self.children[name].beats:
                     yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
-            elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None:
-                yield s.last_heard + c['heartbeat_timeout']
+            elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None \
+                    and self.children[name].watchdog is None:
+                yield s.last_heard + c['heartbeat_timeout']   # (with a watchdog, the kernel wakes the loop)
 
     def _check(self, name, now, resources):
         child = self.children.get(name)
@@ -648,6 +666,8 @@ class ServiceManagerNode(object):
     def _read_beats(self):
         """The beats in the slots of the active instances (one memory read each)."""
         for name, child in list(self.children.items()):
+            if child.watchdog is not None:
+                child.watchdog.fired()   # (cleared: the check below judges the beat's age)
             seen = child.read_beat()
             if seen is None:
                 continue
@@ -763,7 +783,8 @@ class ServiceManagerNode(object):
                           'errors': dict(s.errors), 'critical': s.config['critical'],
                           'period': s.config['period'], 'spare': s.config['spare']}
             return {'services': out, 'safe_state': self.supervisor.safe_state,
-                    'refused_heartbeats': self.refused_heartbeats}
+                    'refused_heartbeats': self.refused_heartbeats, 'wakes': self.wakes, 'tree': self.tree.describe(),
+                    'cycle_cpu_s': round(self.cycle_cpu, 6), 'diagnostics_cpu_s': round(self.diagnostics_cpu, 6)}
 
     def _publish_diagnostics(self):
         status = self.status()
