@@ -44,10 +44,33 @@ class CgroupTree(object):
     """One cgroup per instance under ``<root>/aft_service_manager/<owner>``."""
     kind = 'cgroup'
 
+    STALE = 60.0   # s: an empty cgroup this old is litter of a manager that was killed
+
     def __init__(self, root, owner):
         self.base = os.path.join(root, 'aft_service_manager', owner)
+        self._remove_litter(os.path.dirname(self.base))
         os.makedirs(self.base, exist_ok=True)
         self.emptied = set()   # cgroups whose processes are dead but not yet reaped (rmdir: busy)
+
+    def _remove_litter(self, top):
+        """Empty cgroups left by managers that were killed (any owner's), once old enough that no
+        manager is about to start a process in them."""
+        now = time.time()
+        try:
+            owners = [os.path.join(top, d) for d in os.listdir(top)]
+        except OSError:
+            return
+        for owner in owners:
+            try:
+                instances = [os.path.join(owner, d) for d in os.listdir(owner)
+                             if os.path.isdir(os.path.join(owner, d))]
+                for path in instances:
+                    if not self.members(path) and now - os.stat(path).st_mtime > self.STALE:
+                        os.rmdir(path)
+                if now - os.stat(owner).st_mtime > self.STALE:
+                    os.rmdir(owner)
+            except OSError:
+                continue   # busy, or in use: left
 
     def describe(self):
         return 'cgroup v2 (%s)' % self.base
@@ -75,6 +98,20 @@ class CgroupTree(object):
 
     def _mount(self):
         return self.base[:self.base.index('/aft_service_manager/')]
+
+    def signal(self, path):
+        """SIGKILL every process of the instance now, without waiting for their end."""
+        try:
+            with open(os.path.join(path, 'cgroup.kill'), 'w') as f:
+                f.write('1')
+            return
+        except OSError:
+            pass   # before Linux 5.14, or gone: each member
+        for pid in self.members(path):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
 
     def kill(self, path, timeout=2.0):
         """Kill every process of the instance; True once none is left (then the cgroup is removed)."""
@@ -166,6 +203,14 @@ class TaggedTree(object):
             return psutil.Process(pid).environ().get(TAG) == tag
         except (psutil.Error, OSError):
             return False
+
+    def signal(self, tag):
+        for pid in self.members(tag):
+            if pid != os.getpid():
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except OSError:
+                    pass
 
     def kill(self, tag, timeout=2.0):
         deadline = time.monotonic() + timeout

@@ -140,19 +140,35 @@ class Child(object):
             cpu = 100.0 * (self.cpu_marks[-1][1] - first[1]) / (now - first[0])
         return Sample(True, None, stopped, cpu, rss)
 
-    def kill(self, timeout):
-        """SIGKILL the whole session at once (a faulty service is not asked), then every other process
-        of it (its tree: those in sessions of their own too). It is reaped here if it dies within
-        0.2 s (it almost always does), else by a thread, so the manager's loop never waits long."""
+    def kill(self, timeout, wait=True):
+        """SIGKILL the whole session at once (a faulty service is not asked), and every other process
+        of it (its tree: those in sessions of their own too). With ``wait``, it is reaped here if it
+        dies within 0.2 s (it almost always does), else by a thread, so the manager's loop never
+        waits long; without, the caller ends it (:meth:`end`) off the loop: once SIGKILL is sent,
+        nothing of it runs again, and its replacement need not wait for the kernel's clean-up."""
         try:
             os.killpg(self.popen.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+        if self.tree is not None and self.handle is not None:
+            self.tree.signal(self.handle)
+        if not wait:
+            return
         try:
             self.popen.wait(min(timeout, 0.2))
         except subprocess.TimeoutExpired:
             threading.Thread(target=self.popen.wait, daemon=True).start()
         self._kill_tree(min(timeout, 0.5))
+
+    def end(self, timeout):
+        """After kill(wait=False), off the manager's loop: reap it, wait for its whole tree to be gone,
+        release what the manager holds of it."""
+        try:
+            self.popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            rospy.logerr('service process %d not reaped %.1f s after SIGKILL', self.popen.pid, timeout)
+        self._kill_tree(timeout)
+        self.close()
 
     def _kill_tree(self, timeout):
         if self.tree is not None and self.handle is not None and not self.tree.kill(self.handle, timeout):
@@ -492,8 +508,9 @@ class ServiceManagerNode(object):
         child = processes.pop(name, None)
         if child is not None:
             self._replaced(name, child)
-            child.kill(self.config['manager']['kill_timeout'])
-            child.close()
+            child.kill(self.config['manager']['kill_timeout'], wait=False)
+            threading.Thread(target=child.end, args=(self.config['manager']['kill_timeout'],), daemon=True,
+                             name='end_%s' % name).start()
             self._record_pids()
 
     def _replaced(self, name, child):
