@@ -21,7 +21,9 @@ Two parts, both in the manager's private state directory (0700, its own):
   for the timeout. So a healthy service costs the manager no wake at all: hangs are watched by the
   kernel, as systemd's ``WatchdogSec`` and a hardware watchdog are.
 
-A warm spare (``AFT_SPARE=1``) sets itself up, says ``ready``, and waits for SIGUSR1, the manager's
+A warm spare (``AFT_SPARE=1``) sets itself up, says ``ready``, and waits for a byte on the pipe the
+manager gave it (``AFT_PROMOTE_FD``; the thread that waits wakes at once), or for SIGUSR1 (a
+manager that adopted the spare has no pipe to it), the manager's
 promotion; then it restores the saved state and starts its cycle.
 
 Both ends are plain Python; :class:`ServiceEnd` is what a service uses (through
@@ -31,6 +33,7 @@ import ctypes
 import ctypes.util
 import mmap
 import os
+import select
 import signal
 import socket
 import struct
@@ -44,6 +47,7 @@ MAX_DATAGRAM = 4096
 
 ENV_SLOT, ENV_SOCKET, ENV_SPARE = 'AFT_BEAT_FILE', 'AFT_MANAGER_SOCKET', 'AFT_SPARE'
 ENV_WATCHDOG, ENV_WATCHDOG_TIMEOUT = 'AFT_WATCHDOG_FD', 'AFT_WATCHDOG_TIMEOUT'
+ENV_PROMOTE = 'AFT_PROMOTE_FD'
 
 
 class _Timespec(ctypes.Structure):
@@ -227,11 +231,17 @@ class ServiceEnd(object):
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.spare = spare
         self.promoted = threading.Event()
+        self.promote_fds = []   # readable once promoted: the manager's pipe, and this process's own
         if not spare:
             self.promoted.set()
         elif threading.current_thread() is threading.main_thread():
-            # before 'ready': SIGUSR1 would otherwise end the process
-            signal.signal(signal.SIGUSR1, lambda *_: self.promoted.set())
+            # before 'ready': SIGUSR1 would otherwise end the process. Its handler writes to a pipe
+            # of this process's own, so the waiting thread wakes as for the manager's byte.
+            own_r, own_w = os.pipe()
+            self.promote_fds.append(own_r)
+            signal.signal(signal.SIGUSR1, lambda *_: os.write(own_w, b'p'))
+            if os.environ.get(ENV_PROMOTE, '').isdigit():
+                self.promote_fds.append(int(os.environ[ENV_PROMOTE]))
         else:
             raise RuntimeError('a warm spare\'s channel must be made in its main thread (its SIGUSR1 handler)')
         self.status = None
@@ -267,6 +277,9 @@ class ServiceEnd(object):
     def wait_promoted(self, timeout=None):
         """A warm spare, set up (its publishers made): say it is ready, then wait for the manager's
         SIGUSR1. True once promoted (at once for an instance that is no spare)."""
-        if not self.promoted.is_set():
-            self.send('ready')
-        return self.promoted.wait(timeout)
+        if self.promoted.is_set():
+            return True
+        self.send('ready')
+        if select.select(self.promote_fds, [], [], timeout)[0]:
+            self.promoted.set()
+        return self.promoted.is_set()

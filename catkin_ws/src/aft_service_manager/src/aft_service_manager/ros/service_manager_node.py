@@ -75,6 +75,7 @@ class Child(object):
     def __init__(self, popen, cpu_window, slot=None, spare=False, instance=0, tree=None, handle=None, watchdog=None):
         self.popen = popen
         self.watchdog = watchdog   # its kernel watchdog (channel.Watchdog), re-armed by each beat, or None
+        self.promote_w = None      # a spare's promotion pipe (write end), or None
         self.tree, self.handle = tree, handle   # every process of it, wherever they went (aft_service_manager.tree)
         self.proc = psutil.Process(popen.pid)
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
@@ -97,6 +98,9 @@ class Child(object):
         if self.watchdog is not None:
             self.watchdog.close()
             self.watchdog = None
+        if self.promote_w is not None:
+            os.close(self.promote_w)
+            self.promote_w = None
         if self.slot is not None:
             self.slot.close()
             try:
@@ -200,6 +204,9 @@ class Child(object):
             self.kill(timeout)
         self._kill_tree(timeout)   # what it left in sessions of its own goes too
         self.close()
+
+
+SPARE_AFTER_PROMOTION = 0.1   # s
 
 
 def _instance_of(handle):
@@ -336,18 +343,26 @@ class ServiceManagerNode(object):
         if spare is not None and spare.ready and spare.alive():
             del self.spares[name]
             try:
-                os.kill(spare.pid, signal.SIGUSR1)
+                if spare.promote_w is not None:
+                    os.write(spare.promote_w, b'p')      # its waiting thread wakes at once
+                else:
+                    os.kill(spare.pid, signal.SIGUSR1)   # adopted: no pipe to it
             except OSError as e:   # gone meanwhile: a cold start instead
                 spare.close()
                 rospy.logwarn('%s: the spare of %s cannot be promoted: %s', rospy.get_name(), name, e)
             else:
                 spare.spare = False
+                if spare.promote_w is not None:
+                    os.close(spare.promote_w)
+                    spare.promote_w = None
                 self.children[name] = spare
                 self._record_pids()
                 service.spawned(now)
                 self._event('spawned', name, 'warm spare pid %d promoted' % spare.pid, now, starts=service.starts,
                             pid=spare.pid, promoted=True)
-                self._ensure_spare(name)
+                # the next spare a little later: its fork and start-up would take the CPU the promoted
+                # instance needs for its first cycle (2 cores)
+                self.spare_retry[name] = time.monotonic() + SPARE_AFTER_PROMOTION
                 return
         try:
             child = self._start_process(name, spare=False)
@@ -370,10 +385,13 @@ class ServiceManagerNode(object):
         env = dict(os.environ, AFT_SERVICE=name, AFT_STATE_FILE=state_file, AFT_HEARTBEAT_TOPIC=self.heartbeat_topic,
                    AFT_RESTORE_STATE='1' if cfg['restore_state'] else '0')
         slot = watchdog = None
+        promote_r = promote_w = None
         command = list(cfg['command'])
         if spare:
             command += [a.replace('{n}', str(self.instances)) for a in cfg['spare_args']]
             env[channel.ENV_SPARE] = '1'
+            promote_r, promote_w = os.pipe()
+            env[channel.ENV_PROMOTE] = str(promote_r)
         if cfg['heartbeat_channel'] == 'local' or spare:
             slot = channel.BeatSlot(channel.slot_path(manager['state_dir'], '%s.%s.%d' % (
                 self.prefix, name, self.instances)), create=True)
@@ -387,9 +405,13 @@ class ServiceManagerNode(object):
             prefix, extra, handle = self.tree.prepare('%s-%d' % (name, self.instances))
             env.update(extra)
             popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True,
-                                     pass_fds=(watchdog.fd,) if watchdog else ())
-            return Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle, watchdog)
+                                     pass_fds=tuple(fd for fd in (watchdog and watchdog.fd, promote_r) if fd))
+            child = Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle, watchdog)
+            child.promote_w, promote_w = promote_w, None
+            return child
         except BaseException:
+            if promote_w is not None:
+                os.close(promote_w)
             if watchdog is not None:
                 watchdog.close()
             if popen is not None:   # started but cannot be watched: not left running unwatched
@@ -402,6 +424,9 @@ class ServiceManagerNode(object):
                 slot.close()
                 os.unlink(slot.path)
             raise
+        finally:
+            if promote_r is not None:
+                os.close(promote_r)   # the spare's end: this process keeps the other
 
     def _ensure_spare(self, name):
         """Start name's warm spare if it should have one and has none (it sets up while the active one runs)."""
@@ -507,8 +532,8 @@ class ServiceManagerNode(object):
     def _kill_from(self, processes, name):
         child = processes.pop(name, None)
         if child is not None:
+            child.kill(self.config['manager']['kill_timeout'], wait=False)   # first: its replacement waits on it
             self._replaced(name, child)
-            child.kill(self.config['manager']['kill_timeout'], wait=False)
             threading.Thread(target=child.end, args=(self.config['manager']['kill_timeout'],), daemon=True,
                              name='end_%s' % name).start()
             self._record_pids()
@@ -516,7 +541,8 @@ class ServiceManagerNode(object):
     def _replaced(self, name, child):
         """Remember the pids of a child the manager stops: their last heartbeats are stale, not forged."""
         try:
-            pids = [child.pid] + [p.pid for p in child.proc.children(recursive=True)]
+            pids = [child.pid] + (child.tree.members(child.handle) if child.tree is not None and child.handle
+                                  else [p.pid for p in child.proc.children(recursive=True)])
         except psutil.Error:
             pids = [child.pid]
         self.replaced[name] = (self.replaced.get(name, []) + pids)[-64:]

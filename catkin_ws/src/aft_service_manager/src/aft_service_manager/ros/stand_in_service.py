@@ -82,7 +82,10 @@ class StandInServiceNode(object):
         threading.Thread(target=self._loop, name='cycle', daemon=True).start()
         self.restored_pub.publish(String(data=json.dumps({'restored': restored, 'reason': reason,
                                                           'counter': self.counter})))
-        rospy.Service('~fault', InjectFault, self._on_fault)
+        # its service registered once its first cycles are out (the master's XML-RPC takes
+        # milliseconds of the interpreter a promoted spare needs for its first output)
+        threading.Timer(0.05 if self.heartbeat.spare else 0.0,
+                        lambda: rospy.Service('~fault', InjectFault, self._on_fault)).start()
 
     def _loop(self):
         tick = time.monotonic()
