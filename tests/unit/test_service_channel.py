@@ -149,3 +149,33 @@ def test_the_watchdog_fires_only_when_the_beats_stop(tmp_path):
         assert not select.select([watchdog], [], [], 0.2)[0]
     finally:
         watchdog.close()
+
+
+def test_a_spare_is_promoted_by_the_managers_byte_and_never_by_the_managers_death(tmp_path):
+    """The promotion pipe: a byte promotes the spare at once. Its end closing (the manager died,
+    nothing was written) is no promotion: the spare stays idle, for the next manager to adopt it and
+    promote it by SIGUSR1, rather than run beside the active instance."""
+    manager = channel.ManagerSocket(channel.socket_path(str(tmp_path), 'manager_sm'))
+    try:
+        for died in (False, True):
+            slot = channel.BeatSlot(channel.slot_path(str(tmp_path), 'c4g.%d' % died), create=True)
+            r, w = os.pipe()
+            env = dict(os.environ, AFT_BEAT_FILE=slot.path, AFT_MANAGER_SOCKET=manager.address(), AFT_SPARE='1',
+                       AFT_PROMOTE_FD=str(r))
+            proc = subprocess.Popen([sys.executable, '-c', SERVICE], env=env, stdout=subprocess.PIPE,
+                                    universal_newlines=True, pass_fds=(r,))
+            os.close(r)
+            assert wait_for(manager, 1) == [(proc.pid, 'ready c4g ')]
+            if not died:
+                os.write(w, b'p')
+                os.close(w)
+            else:
+                os.close(w)                                   # the manager is gone
+                time.sleep(0.6)
+                assert slot.read() is None and proc.poll() is None, 'promoted by its manager\'s death'
+                os.kill(proc.pid, signal.SIGUSR1)             # the next manager, which adopted it
+            assert wait_for(manager, 2)[0] == (proc.pid, 'started c4g ')
+            out, _ = proc.communicate(timeout=10)
+            assert out.strip() == 'promoted'
+    finally:
+        manager.close()

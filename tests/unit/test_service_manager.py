@@ -397,3 +397,14 @@ def test_saving_replaces_the_file_whole(tmp_path):
         store.save({'i': i})
     assert json.loads(json.loads((tmp_path / 'a.json').read_text())['state']) == {'i': 19}
     assert [p.name for p in tmp_path.iterdir()] == ['a.json']   # no temporary file left
+
+
+def test_a_held_restart_holds_the_dependants_too_and_spawns_them_with_it():
+    sup = Supervisor(config('  c4g: {command: z, restart_with: [pub], restart_delay: 0.5}\n'
+                            '  pub: {command: y}\n'))
+    running(sup, 'c4g')
+    running(sup, 'pub')
+    decision = sup.check('c4g', ALIVE._replace(alive=False, exit_code=1), 1.0, GB)
+    assert decision.actions == [('kill', 'c4g'), ('kill', 'pub')]        # nothing spawned yet
+    assert sup['pub'].state == State.RESTARTING and sup.due(1.4) == []
+    assert sup.due(1.5) == [('spawn', 'c4g'), ('spawn', 'pub')]

@@ -36,6 +36,7 @@ import os
 import select
 import signal
 import socket
+import stat
 import struct
 import threading
 import time
@@ -219,6 +220,22 @@ def parse(text):
     return parts[0], parts[1], parts[2] if len(parts) > 2 else ''
 
 
+def _inherited(number, kind):
+    """The descriptor an environment variable names, if this process really holds one of that kind
+    (a 'pipe', or a /proc link such as 'anon_inode:[timerfd]'); None otherwise. The variable passes
+    to descendants that the descriptor did not (roslaunch and subprocess close descriptors), where
+    the number names something else."""
+    if not number.isdigit():
+        return None
+    fd = int(number)
+    try:
+        if kind == 'pipe':
+            return fd if stat.S_ISFIFO(os.fstat(fd).st_mode) else None
+        return fd if os.readlink('/proc/self/fd/%d' % fd) == kind else None
+    except OSError:
+        return None
+
+
 class ServiceEnd(object):
     """The service's end, from its environment (None from :meth:`from_environment` when the manager
     gave it no channel: a service started by hand, or on another host, beats on the ROS topic)."""
@@ -240,8 +257,9 @@ class ServiceEnd(object):
             own_r, own_w = os.pipe()
             self.promote_fds.append(own_r)
             signal.signal(signal.SIGUSR1, lambda *_: os.write(own_w, b'p'))
-            if os.environ.get(ENV_PROMOTE, '').isdigit():
-                self.promote_fds.append(int(os.environ[ENV_PROMOTE]))
+            promote = _inherited(os.environ.pop(ENV_PROMOTE, ''), 'pipe')
+            if promote is not None:
+                self.promote_fds.append(promote)
         else:
             raise RuntimeError('a warm spare\'s channel must be made in its main thread (its SIGUSR1 handler)')
         self.status = None
@@ -254,8 +272,9 @@ class ServiceEnd(object):
         address = environ[ENV_SOCKET]
         address = '\0' + address[1:] if address.startswith('@') else address   # the abstract namespace
         watchdog = None
-        if environ.get(ENV_WATCHDOG) and environ.get(ENV_WATCHDOG_TIMEOUT):
-            watchdog = (Watchdog(int(environ[ENV_WATCHDOG])), float(environ[ENV_WATCHDOG_TIMEOUT]))
+        fd = _inherited(environ.pop(ENV_WATCHDOG, ''), 'anon_inode:[timerfd]')
+        if fd is not None and environ.get(ENV_WATCHDOG_TIMEOUT):
+            watchdog = (Watchdog(fd), float(environ[ENV_WATCHDOG_TIMEOUT]))
         return cls(name, environ[ENV_SLOT], address, environ.get(ENV_SPARE) == '1', watchdog)
 
     def send(self, verb, detail=''):
@@ -269,7 +288,10 @@ class ServiceEnd(object):
         """Each cycle. The first beat, and any change of status, also wake the manager."""
         self.slot.write(status)
         if self.watchdog is not None:
-            self.watchdog[0].arm(self.watchdog[1])
+            try:
+                self.watchdog[0].arm(self.watchdog[1])
+            except OSError:   # supervision never stops the service's cycle: the manager's deadline remains
+                self.watchdog = None
         if status != self.status:
             self.send('started' if self.status is None and status == 'ok' else status, detail)
             self.status = status
@@ -280,6 +302,15 @@ class ServiceEnd(object):
         if self.promoted.is_set():
             return True
         self.send('ready')
-        if select.select(self.promote_fds, [], [], timeout)[0]:
-            self.promoted.set()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self.promoted.is_set():
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                break
+            for fd in select.select(self.promote_fds, [], [], left)[0]:
+                if os.read(fd, 1):
+                    self.promoted.set()
+                else:   # the manager's end closed (it died): not a promotion; its successor signals
+                    self.promote_fds.remove(fd)
+                    os.close(fd)
         return self.promoted.is_set()

@@ -526,7 +526,8 @@ class Supervisor(object):
             actions.append(('spawn', name))
         for other in s.config['restart_with']:
             if other not in seen and self.services[other].state in (State.STARTING, State.RUNNING):
-                actions += self._restart(other, now, 'restarted with %s' % name, seen)
+                # held as long as the service they depend on (then spawned after it, by due())
+                actions += self._restart(other, now, 'restarted with %s' % name, seen, delay)
         return actions
 
     def due(self, now):

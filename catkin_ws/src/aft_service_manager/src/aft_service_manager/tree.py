@@ -100,18 +100,16 @@ class CgroupTree(object):
         return self.base[:self.base.index('/aft_service_manager/')]
 
     def signal(self, path):
-        """SIGKILL every process of the instance now, without waiting for their end."""
+        """SIGKILL every process of the instance now, without waiting for their end (the kernel's
+        ``cgroup.kill`` reaches a process forking meanwhile too; without it, passes until no member
+        is left, at most 50 ms)."""
         try:
             with open(os.path.join(path, 'cgroup.kill'), 'w') as f:
                 f.write('1')
             return
         except OSError:
             pass   # before Linux 5.14, or gone: each member
-        for pid in self.members(path):
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except OSError:
-                pass
+        _kill_passes(lambda: self.members(path))
 
     def kill(self, path, timeout=2.0):
         """Kill every process of the instance; True once none is left (then the cgroup is removed)."""
@@ -205,12 +203,7 @@ class TaggedTree(object):
             return False
 
     def signal(self, tag):
-        for pid in self.members(tag):
-            if pid != os.getpid():
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                except OSError:
-                    pass
+        _kill_passes(lambda: [p for p in self.members(tag) if p != os.getpid()])
 
     def kill(self, tag, timeout=2.0):
         deadline = time.monotonic() + timeout
@@ -246,6 +239,22 @@ class TaggedTree(object):
 
     def close(self, timeout=0.0):
         pass
+
+
+def _kill_passes(members, limit=0.05):
+    """SIGKILL members() until a pass finds none alive that was not signalled already (a process
+    forked during a pass is caught by the next), for at most ``limit`` seconds."""
+    signalled, deadline = set(), time.monotonic() + limit
+    while True:
+        fresh = [p for p in members() if p not in signalled]
+        for pid in fresh:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        signalled.update(fresh)
+        if not fresh or time.monotonic() > deadline:
+            return
 
 
 def make(owner, prefer_cgroup=True):

@@ -277,6 +277,9 @@ def _publish_pending(now):
     if now - _STATE['alarms_since'] < PUBLISHER_SETTLE:
         return
     while _PENDING:
+        # its source is this node's name now (an alarm queued before init_node had none yet, and the
+        # Monitoring Engine takes an alarm only from the node it names)
+        _PENDING[0].source = rospy.get_name()
         _STATE['alarms'].publish(_PENDING[0])
         _PENDING.popleft()   # only once published
 

@@ -53,18 +53,22 @@ class AdoptedProcess(object):
         self.pid = pid
         self.returncode = None
         self._fd = os.pidfd_open(pid)
+        self._lock = threading.Lock()
 
     def poll(self):
-        if self.returncode is None and select.select([self._fd], [], [], 0)[0]:
-            self.returncode = 'unknown (adopted)'
-            os.close(self._fd)
-        return self.returncode
+        return self.wait(0.0, raise_timeout=False)
 
-    def wait(self, timeout=None):
-        if self.returncode is None:
-            if not select.select([self._fd], [], [], timeout)[0]:
-                raise subprocess.TimeoutExpired('adopted pid %d' % self.pid, timeout)
-            self.poll()
+    def wait(self, timeout=None, raise_timeout=True):
+        # the pidfd stays open until the process is seen gone (a close under a waiter is not raced)
+        fd = self._fd
+        if self.returncode is None and fd is not None and select.select([fd], [], [], timeout)[0]:
+            with self._lock:
+                if self.returncode is None:
+                    self.returncode = 'unknown (adopted)'
+                    os.close(self._fd)
+                    self._fd = None
+        if self.returncode is None and raise_timeout:
+            raise subprocess.TimeoutExpired('adopted pid %d' % self.pid, timeout)
         return self.returncode
 
 
@@ -76,6 +80,7 @@ class Child(object):
         self.popen = popen
         self.watchdog = watchdog   # its kernel watchdog (channel.Watchdog), re-armed by each beat, or None
         self.promote_w = None      # a spare's promotion pipe (write end), or None
+        self.closed_lock = threading.Lock()
         self.tree, self.handle = tree, handle   # every process of it, wherever they went (aft_service_manager.tree)
         self.proc = psutil.Process(popen.pid)
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
@@ -88,7 +93,11 @@ class Child(object):
         self.instance = instance
 
     def close(self):
-        """Release what the manager holds of it (once it is killed or gone)."""
+        """Release what the manager holds of it (once it is killed or gone). Once, whoever calls."""
+        with self.closed_lock:
+            self._close()
+
+    def _close(self):
         if self.tree is not None and self.handle is not None:
             self.tree.kill(self.handle, 0.0)   # its cgroup removed if empty
             self.handle = None
@@ -294,6 +303,7 @@ class ServiceManagerNode(object):
                                      'manager%s.pids' % rospy.get_name().replace('/', '_'))
         self.prefix = 'manager%s' % rospy.get_name().replace('/', '_')
         self.spares = {}              # name -> Child: its warm spare, idle until promoted
+        self.closing = False          # shutting down: nothing more is spawned
         self.instances = 0            # a number per process spawned (a spare's {n})
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
         self.local = None             # the manager's end of the local channel
@@ -309,9 +319,6 @@ class ServiceManagerNode(object):
         self.events_pub = rospy.Publisher('~events', String, queue_size=100)
         rospy.Subscriber(self.heartbeat_topic, ServiceHeartbeat, self._on_heartbeat, queue_size=1000, tcp_nodelay=True)
         self.safe_pub.publish(SafeState(active=False, reason='', stamp=rospy.Time.now()))
-        for verb in ('start', 'stop', 'restart', 'status'):
-            rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
-        rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         rospy.on_shutdown(self.shutdown)
         # the socket first: what adopted services say from now on reaches it
         self.local = channel.ManagerSocket(channel.socket_path(self.config['manager']['state_dir'], self.prefix))
@@ -333,6 +340,10 @@ class ServiceManagerNode(object):
                     self._ensure_spare(name)
             self._sync_safe_state()
         threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
+        # the operators' services last: no command meets a manager still adopting or spawning
+        for verb in ('start', 'stop', 'restart', 'status'):
+            rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
+        rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         return True
 
     # -- processes -------------------------------------------------------------------------------
@@ -369,6 +380,8 @@ class ServiceManagerNode(object):
         except (OSError, psutil.Error) as e:
             self.supervisor.spawn_failed(name, now, str(e))
             self._event('spawn_failed', name, str(e), now)
+            if service.state in (State.STOPPED, State.FAILED):
+                self._kill_from(self.spares, name)
             return
         self.children[name] = child
         self._record_pids()
@@ -379,6 +392,8 @@ class ServiceManagerNode(object):
     def _start_process(self, name, spare):
         """A process of service name (its active instance, or a warm spare), in a session of its own,
         with its local channel; raises OSError or psutil.Error (nothing left running)."""
+        if self.closing:
+            raise OSError('the manager is shutting down')
         cfg, manager = self.supervisor[name].config, self.config['manager']
         self.instances += 1
         state_file = cfg['state_file'] or os.path.join(manager['state_dir'], name + '.json')
@@ -687,8 +702,9 @@ class ServiceManagerNode(object):
                 if self.children[name].slot is not None and self.children[name].beats:
                     yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
             elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None \
-                    and self.children[name].watchdog is None:
-                yield s.last_heard + c['heartbeat_timeout']   # (with a watchdog, the kernel wakes the loop)
+                    and not (self.children[name].watchdog is not None and self.children[name].beats):
+                # (a service beating in its slot re-arms its watchdog: the kernel wakes the loop)
+                yield s.last_heard + c['heartbeat_timeout']
 
     def _check(self, name, now, resources):
         child = self.children.get(name)
@@ -736,6 +752,9 @@ class ServiceManagerNode(object):
                     spare.ready = True
                     self._record_pids()   # a manager that adopts it knows it may promote it
                     self._event('spare_ready', name, 'pid %d' % spare.pid, now, pid=spare.pid)
+                continue
+            if pid is not None and pid in self.replaced.get(name, ()):
+                self.stale_heartbeats += 1   # the last words of an instance the manager replaced
                 continue
             if child is None or pid is None or not child.owns(pid):
                 self.refused_heartbeats += 1
@@ -877,10 +896,10 @@ class ServiceManagerNode(object):
                     child = self.children.pop(name, None)
                     if child is not None:
                         self._replaced(name, child)
-                    if child is not None:
                         self.stopping[name] = child
                         threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),
                                          daemon=True).start()
+                    self._kill_from(self.spares, name)   # a service that does not run keeps no spare
                 elif action == 'kill':
                     self._kill(name)
                 elif action == 'spawn':
@@ -901,6 +920,7 @@ class ServiceManagerNode(object):
         """Stop every service, those being stopped too, and their spares: SIGTERM to all, then SIGKILL
         to those still running after kill_timeout. Never raises."""
         with self.lock:
+            self.closing = True   # nothing is spawned from now on
             children = list(self.children.values()) + list(self.stopping.values()) + list(self.spares.values())
             self.children, self.stopping, self.spares = {}, {}, {}
         self._wake()
@@ -912,12 +932,15 @@ class ServiceManagerNode(object):
                     pass
             deadline = time.monotonic() + self.config['manager']['kill_timeout']
             for child in children:
-                try:
-                    child.popen.wait(max(0.0, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    child.kill(0.2)
-                child._kill_tree(0.5)   # what it started in sessions of its own goes too
-                child.close()
+                try:   # each on its own: one child's trouble leaves none of the others running
+                    try:
+                        child.popen.wait(max(0.0, deadline - time.monotonic()))
+                    except subprocess.TimeoutExpired:
+                        child.kill(0.2)
+                    child._kill_tree(0.5)   # what it started in sessions of its own goes too
+                    child.close()
+                except Exception as e:
+                    rospy.logerr('%s: stopping pid %d: %s: %s', rospy.get_name(), child.pid, type(e).__name__, e)
             if self.local is not None:
                 self.local.close()
             self.tree.close()
