@@ -921,9 +921,16 @@ class ServiceManagerNode(object):
         to those still running after kill_timeout. Never raises."""
         with self.lock:
             self.closing = True   # nothing is spawned from now on
-            children = list(self.children.values()) + list(self.stopping.values()) + list(self.spares.values())
+            spares = list(self.spares.values())
+            children = list(self.children.values()) + list(self.stopping.values())
             self.children, self.stopping, self.spares = {}, {}, {}
         self._wake()
+        for spare in spares:   # idle, nothing to save: killed at once
+            try:
+                spare.kill(0.2)
+                spare.close()
+            except Exception as e:
+                rospy.logerr('%s: stopping spare %d: %s: %s', rospy.get_name(), spare.pid, type(e).__name__, e)
         try:
             for child in children:
                 try:
@@ -941,9 +948,11 @@ class ServiceManagerNode(object):
                     child.close()
                 except Exception as e:
                     rospy.logerr('%s: stopping pid %d: %s: %s', rospy.get_name(), child.pid, type(e).__name__, e)
+            for handle in self.tree.leftovers():   # anything of this manager's a race let through
+                self.tree.kill(handle, 0.5)
             if self.local is not None:
                 self.local.close()
-            self.tree.close()
+            self.tree.close(0.3)
             os.unlink(self.pid_file)
         except Exception:   # shutdown paths never raise
             pass
