@@ -52,6 +52,17 @@ def start(kind, script):
     return t, handle, proc, left
 
 
+def clean_up(t, proc, left):
+    """Whatever a failed test left: the processes it started, its tree."""
+    for p in left:
+        try:
+            os.kill(p, 9)
+        except OSError:
+            pass
+    proc.kill()
+    t.close()
+
+
 @pytest.mark.parametrize('kind', kinds())
 @pytest.mark.parametrize('script', [DAEMON, LAUNCHER], ids=['daemon', 'sessions'])
 def test_killing_the_tree_leaves_nothing_of_the_service(kind, script):
@@ -70,13 +81,7 @@ def test_killing_the_tree_leaves_nothing_of_the_service(kind, script):
         if t.kind == 'cgroup':
             assert not os.path.exists(handle)         # its cgroup removed
     finally:
-        for p in left:
-            try:
-                os.kill(p, 9)
-            except OSError:
-                pass
-        proc.kill()
-        t.close()
+        clean_up(t, proc, left)
 
 
 @pytest.mark.parametrize('kind', kinds())
@@ -88,12 +93,7 @@ def test_a_new_manager_finds_what_an_earlier_one_left(kind):
         assert again.leftovers() == [handle]
         assert again.kill(handle, 5.0) and again.leftovers() == []
     finally:
-        for p in left:
-            try:
-                os.kill(p, 9)
-            except OSError:
-                pass
-        t.close()
+        clean_up(t, proc, left)
 
 
 def test_the_cgroup_v2_mount_is_found_in_mountinfo(tmp_path):
