@@ -4,7 +4,10 @@ import subprocess
 import sys
 import time
 
-from aft_ftm.sites import Site, launch_failure, pid_gone, power_off, process_tree
+import psutil
+
+from aft_ftm.sites import (PF_EXITING, Site, kill_all, launch_failure, pid_gone, power_off, process_tree,
+                           stop_trees, thread_silent)
 
 # A parent whose children start their own sessions, as roslaunch's nodes do.
 TREE = ('import os, subprocess, sys, time\n'
@@ -54,23 +57,55 @@ BUSY = ('import sys, threading\n'
         'threading.Event().wait()\n')
 
 
-def test_fail_silence_returns_without_the_tear_down_and_nothing_runs_after_it(tmp_path):
-    """power_off(until_dead=False), what Recovery's fail-silence does: it returns once every thread
-    of every process was seen stopped and SIGKILL sent; from then on not one more line is written,
-    though the kernel may still be tearing the processes down."""
-    for round_ in range(5):
+# A launcher that respawns its busy child (as roslaunch's respawn="true" does) the moment it dies.
+RESPAWNING = ('import subprocess, sys, time\n'
+              'child = [sys.executable, "-c", sys.argv[1], sys.argv[2]]\n'
+              'proc = subprocess.Popen(child, stdout=subprocess.PIPE, start_new_session=True)\n'
+              'print(proc.stdout.readline().decode().strip(), proc.pid, flush=True)\n'
+              'while True:\n'
+              '    proc.wait()\n'
+              '    proc = subprocess.Popen(child, start_new_session=True)\n')
+
+
+def test_stop_trees_silences_a_site_at_once_and_its_launcher_respawns_nothing(tmp_path):
+    """What Recovery's fail-silence does before a promotion: the launcher stopped first, its known node
+    next, then the rest of its tree; it returns once not one thread runs (not one more line is written)
+    while every process is still there (its tear-down comes after the promotion, with kill_all), and the
+    launcher, stopped before its node, never respawns it."""
+    for round_ in range(3):
         out = tmp_path / ('busy%d' % round_)
-        proc = subprocess.Popen([sys.executable, '-c', BUSY, str(out)], stdout=subprocess.PIPE)
+        launcher = subprocess.Popen([sys.executable, '-c', RESPAWNING, BUSY, str(out)], stdout=subprocess.PIPE,
+                                    start_new_session=True)
         try:
-            assert proc.stdout.readline().strip() == b'ready'
+            ready, child = launcher.stdout.readline().split()
+            assert ready == b'ready'
             time.sleep(0.02)
-            assert power_off(proc.pid, until_dead=False) == 1
+            procs = stop_trees([psutil.Process(launcher.pid)], [psutil.Process(int(child))])
+            assert sorted(p.pid for p in procs) == sorted([launcher.pid, int(child)])
             size = os.path.getsize(out)
             time.sleep(0.1)
-            assert os.path.getsize(out) == size, 'a thread ran after fail-silence returned (round %d)' % round_
+            assert os.path.getsize(out) == size, 'a thread ran after stop_trees returned (round %d)' % round_
+            assert [p.status() for p in procs] == [psutil.STATUS_STOPPED] * 2
+            kill_all(procs)
+            launcher.wait(5)
+            time.sleep(0.1)
+            assert pid_gone(int(child))
+            assert os.path.getsize(out) == size, 'the launcher respawned its node (round %d)' % round_
         finally:
-            proc.kill()
-            proc.wait()
+            launcher.kill()
+            launcher.wait()
+            for proc in psutil.process_iter(['cmdline']):
+                if str(out) in (proc.info['cmdline'] or []):
+                    proc.kill()
+
+
+def test_a_thread_is_silent_stopped_dead_or_exiting_whatever_its_name():
+    stat = '42 (a) b (c)) %s 1 42 42 0 -1 %d 0 0'
+    assert not thread_silent(stat % ('R', 0x400040))
+    assert not thread_silent(stat % ('S', 0x400040))
+    assert thread_silent(stat % ('S', 0x400040 | PF_EXITING))   # in do_exit: never back to user space
+    for state in 'TtZX':
+        assert thread_silent(stat % (state, 0x400040))
 
 
 def test_power_off_of_a_missing_process_is_a_no_op():

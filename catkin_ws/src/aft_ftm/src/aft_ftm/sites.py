@@ -32,26 +32,25 @@ def _signal_all(procs, sig):
             pass
 
 
-def power_off(pid, timeout=5.0, on_stopped=None, until_dead=True, snapshot=None):
-    """SIGSTOP then SIGKILL pid and every descendant. Returns the number of processes killed.
+def power_off(pid, timeout=5.0, on_stopped=None, snapshot=None):
+    """SIGSTOP then SIGKILL pid and every descendant, as a power loss would end them; returns once
+    they are dead. Returns the number of processes killed.
 
     on_stopped() is called the moment every process is stopped: that is when the site stops
-    computing, the instant a power loss would happen. until_dead False: return once SIGKILL is
-    sent, without waiting for the kernel to tear the processes down (see power_off_trees).
+    computing, the instant a power loss would happen.
     """
-    return power_off_trees([pid], timeout, on_stopped, until_dead, snapshot)
+    return power_off_trees([pid], timeout, on_stopped, snapshot)
 
 
-def power_off_trees(pids, timeout=5.0, on_stopped=None, until_dead=True, snapshot=None):
+def power_off_trees(pids, timeout=5.0, on_stopped=None, snapshot=None):
     """power_off() of several process trees at the same instant: every process of every tree is
     stopped before any is killed, so none sees another go. Returns the number of processes killed.
 
     Every thread of every process is seen stopped (or the process gone) before SIGKILL is sent: from
-    then on none of them runs another instruction of its own, and SIGKILL pending on a stopped
-    process means it never resumes. That is the fail-silence a promotion waits for; the kernel's
-    tear-down of the killed processes (20-160 ms for a site of eight rospy nodes on 2 cores) is
-    waited for only with until_dead (a power loss's emulation: its sockets are closed by then).
-    snapshot: the trees' processes as the caller just listed them (one scan of /proc fewer)."""
+    then on none of them runs another instruction of its own. Then the kernel's tear-down of the
+    killed processes (20-160 ms for a site of eight rospy nodes on 2 cores; their sockets are closed
+    by then) is waited for. snapshot: the trees' processes as the caller just listed them (one scan
+    of /proc fewer). A failover does not wait for the tear-down: see stop_trees."""
     procs = list(snapshot) if snapshot is not None else [proc for pid in pids for proc in process_tree(pid)]
     _signal_all(procs, signal.SIGSTOP)
     # Children forked between the snapshot and the stop are caught by a second look.
@@ -60,14 +59,11 @@ def power_off_trees(pids, timeout=5.0, on_stopped=None, until_dead=True, snapsho
         if proc.pid not in seen:
             procs.append(proc)
             _signal_all([proc], signal.SIGSTOP)
-    running = wait_stopped(procs, timeout)
+    wait_stopped(procs, timeout)
     if on_stopped is not None:
         on_stopped()
     _signal_all(procs, signal.SIGKILL)
-    if until_dead:
-        wait_dead(procs, timeout)
-    elif running:   # never seen stopped (in the kernel's uninterruptible sleep): seen dead, then
-        wait_dead(running, timeout)
+    wait_dead(procs, timeout)
     return len(procs)
 
 
@@ -88,9 +84,20 @@ def pid_gone(pid):
         return True
 
 
+PF_EXITING = 0x4   # include/linux/sched.h: the thread is in do_exit, never to run user code again
+
+
+def thread_silent(stat):
+    """Whether a thread, from the text of its /proc/PID/task/TID/stat, runs no more instruction of its
+    own: stopped, a zombie, dead, or exiting (PF_EXITING in its flags, the 9th field: set as it
+    enters do_exit, after which it never returns to user space)."""
+    fields = stat.rsplit(')', 1)[1].split()
+    return fields[0] in ('T', 't', 'Z', 'X') or bool(int(fields[6]) & PF_EXITING)
+
+
 def _stopped(proc):
-    """Gone, a zombie, or every one of its threads stopped (a group stop is done by each thread
-    itself: the main thread stopped does not mean the others have)."""
+    """Gone, a zombie, or every one of its threads silent (thread_silent: a group stop or exit is done
+    by each thread itself: the main thread stopped does not mean the others have)."""
     try:
         tids = os.listdir('/proc/%d/task' % proc.pid)
     except OSError:
@@ -98,12 +105,43 @@ def _stopped(proc):
     for tid in tids:
         try:
             with open('/proc/%d/task/%s/stat' % (proc.pid, tid)) as f:
-                state = f.read().rsplit(')', 1)[1].split()[0]
-        except (OSError, IndexError):
+                silent = thread_silent(f.read())
+        except (OSError, IndexError, ValueError):
             continue   # that thread ended meanwhile
-        if state not in ('T', 't', 'Z', 'X'):
+        if not silent:
             return False
     return True
+
+
+def stop_trees(roots, first=(), timeout=5.0):
+    """Fail-silence at once, for a promotion that must not wait for (nor share the cores with) the
+    kernel's tear-down of a failed site: the roots (psutil.Process of launchers, checked by the
+    caller) are stopped first (they neither fork nor respawn, and no child is re-parented), then the
+    processes ``first`` (known nodes: a psutil.Process checks that its pid is still theirs), then
+    every other process of the roots' trees. Returns those processes once every thread of them is
+    silent (stopped, exiting or gone: see thread_silent); a process in the kernel's uninterruptible
+    sleep is killed and seen dead. The caller kills them all (kill_all) once its promotion is done:
+    a stopped process never resumes, and its tear-down then competes with nothing urgent."""
+    _signal_all(roots, signal.SIGSTOP)
+    _signal_all(first, signal.SIGSTOP)
+    seen = {p.pid for p in first}
+    procs = list(first)
+    for root in roots:
+        for proc in process_tree(root.pid):
+            if proc.pid not in seen:
+                seen.add(proc.pid)
+                procs.append(proc)
+    _signal_all(procs, signal.SIGSTOP)
+    running = wait_stopped(procs, timeout)
+    if running:
+        _signal_all(running, signal.SIGKILL)
+        wait_dead(running, timeout)
+    return procs
+
+
+def kill_all(procs):
+    """SIGKILL every process of procs (psutil.Process: a pid reused since is not signalled)."""
+    _signal_all(procs, signal.SIGKILL)
 
 
 def _wait_all(procs, done, timeout, poll):

@@ -107,16 +107,27 @@ class NamespaceFence(object):
         except psutil.NoSuchProcess:
             return False
 
-    def kill(self):
-        """SIGKILL every known local node still running as the same process. Returns their names."""
-        killed = []
+    def processes(self):
+        """{name: psutil.Process} of every known local node still running as the same process (not this
+        one). A psutil.Process checks, before each signal, that its pid was not reused since."""
         with self.lock:
             known = dict(self.known)
+        procs = {}
         for name, (pid, created) in sorted(known.items()):
             try:
                 proc = psutil.Process(pid)
-                if proc.create_time() != created or pid == os.getpid():
-                    continue   # the pid now belongs to another process
+                if proc.create_time() == created and pid != os.getpid():
+                    procs[name] = proc
+            except psutil.NoSuchProcess:
+                continue
+        return procs
+
+    def kill(self, procs=None):
+        """SIGKILL every known local node still running as the same process (or those of ``procs``, from
+        processes()). Returns their names."""
+        killed = []
+        for name, proc in sorted((self.processes() if procs is None else procs).items()):
+            try:
                 proc.send_signal(signal.SIGKILL)
                 killed.append(name)
             except psutil.NoSuchProcess:

@@ -1,6 +1,5 @@
 """Recovery: fail-silence of the failed site, then failover or going on alone."""
 import json
-import os
 import threading
 import time
 
@@ -15,8 +14,10 @@ from ..power_switch import FenceState, Fencing, SwitchError, parse_spec
 from ..power_switch_exec import call_switch
 from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
+from ..realtime import RealtimeBurst
+from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
-from ..sites import power_off, process_tree, this_host
+from ..sites import kill_all, stop_trees, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
@@ -84,6 +85,10 @@ class RecoveryNode(object):
         ~fence_retry (float, 1 s): how soon a switch that did not confirm is asked again.
         ~master_check_period (float, 1 s): how often the ROS master is probed (each probe limited to it).
         ~master_alarm_repeat (float, 60 s): how often the alarm master_unreachable is repeated while it lasts.
+        ~realtime_priority (int 0-99, aft_ftm.detector.DEFAULT_REALTIME_PRIORITY; 0 = off): a failover's
+            steps run under SCHED_FIFO at this priority (aft_ftm.realtime), and at the usual priority the
+            rest of the time. Without the privilege it warns, raises the alarm ``recovery_priority``, and
+            fails over at the usual priority.
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
         /aft/witness/configuration (aft_msgs/Configuration): this site's role.
@@ -131,11 +136,22 @@ class RecoveryNode(object):
         except SwitchError as e:
             raise config.ConfigError('%s: %s' % (rospy.resolve_name('~power_switch'), e))
         self.fence_timeout = param('fence_timeout', config.positive_float, 10.0)
+        priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
+        try:
+            self.burst = RealtimeBurst(priority)
+        except ValueError as e:
+            raise config.ConfigError('%s: %s' % (rospy.resolve_name('~realtime_priority'), e))
+        self.priority_told = self.burst.check() is None
+        if not self.priority_told:
+            rospy.logwarn('%s: %s: failovers run at the usual priority', rospy.get_name(), self.burst.error)
         self.promotion_waits = False   # PROMOTE_PROTOCOL held back until the switch confirms
         self.claim = self.role != Role.BACKUP   # launched as the first primary
         if self.witness is not None:
             self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
         self.lock = threading.Lock()
+        self.started = time.monotonic()
+        self.lock_stopped = threading.Lock()
+        self.stopped = []   # processes of the failed site stopped by fail-silence, killed after the plan
         self.recovered = False
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
@@ -209,7 +225,20 @@ class RecoveryNode(object):
                       'adapted until it is back' % (self.master.unreachable_for(time.monotonic()), why))
             elif decision == Decision.BACK:
                 rospy.loginfo('%s: the ROS master answers again', rospy.get_name())
+            self._tell_priority_refused()
             time.sleep(max(0.0, self.master_period - (time.monotonic() - t0)))
+
+    def _tell_priority_refused(self):
+        """The alarm that failovers run without real-time priority: once, when a subscriber of the alarms
+        is connected (published at once, it would reach nobody), or 10 s after the start in any case."""
+        if self.priority_told:
+            return
+        publisher = self.ports.publisher('alarms')
+        if (publisher is not None and publisher.get_num_connections() > 0) or time.monotonic() - self.started > 10.0:
+            self.priority_told = True
+            alarm(self.ports, 'pbr', 'recovery_priority', 'the Recovery of site %s runs failovers without '
+                  'real-time priority (%s): under load they take longer' % (self.site or rospy.get_name(),
+                                                                          self.burst.error))
 
     def _on_alarm(self, msg):
         """Every alarm of this site's nodes (a degraded state) is also an event of this site."""
@@ -318,7 +347,11 @@ class RecoveryNode(object):
                       'role_before': role.name if role else None, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
             self._start = time.monotonic()
-            self._run_plan(plan(role, self.witness is not None), failure, record)
+            with self.burst():
+                try:
+                    self._run_plan(plan(role, self.witness is not None), failure, record)
+                finally:
+                    self._kill_stopped()
             record['seconds'] = time.monotonic() - self._start
             record['done_wall'] = time.time()
             witness_steps = [st for st in record['steps'] if st['step'] in {g.name for g in GATES}]
@@ -329,8 +362,11 @@ class RecoveryNode(object):
                 self.role = role_after(role) if role else None
             record['role_after'] = self.role.name if self.role else None
         rospy.logwarn('%s: recovery from the failure of %s in %.1f ms: %s', rospy.get_name(), failure.site,
-                      record['seconds'] * 1e3, ', '.join('%s%s' % (s['step'], '' if s['ok'] else ' FAILED')
+                      record['seconds'] * 1e3, ', '.join('%s %.1f ms%s' % (s['step'], s['seconds'] * 1e3,
+                                                                          '' if s['ok'] else ' FAILED')
                                                           for s in record['steps']) or 'nothing to do')
+        for st in record['steps']:
+            rospy.loginfo('%s: %s: %s', rospy.get_name(), st['step'], st['detail'])
         self._event(record)
         if record['role_before'] is None and self.witness is not None:
             # Excluded or deposed: the peer's failure leaves nobody with the state. Never silent.
@@ -439,11 +475,26 @@ class RecoveryNode(object):
             if not outcome.confirmed:
                 raise RuntimeError(outcome.detail)
             done.append(outcome.detail)
+        t0 = time.monotonic()
+        nodes = self.fence.processes()
+        roots = []
         if failure.pid > 0 and failure.host == this_host():
-            done.append(self._power_off_launcher(failure))
-        killed = self.fence.kill()
-        done.append('%d nodes of %s killed by pid' % (len(killed), self.peer_ns))
-        return '; '.join(done)
+            launcher, why = self._launcher(failure)
+            roots = [launcher] if launcher is not None else []
+            done.append(why)
+        # Stopped now, killed once the promotion is done (kill_stopped): their tear-down must not take
+        # the cores from the promotion. A stopped process runs no more instruction; it never resumes.
+        stopped = stop_trees(roots, list(nodes.values()))
+        with self.lock_stopped:
+            self.stopped.extend(stopped)
+        done.append('%d processes of %s stopped (%d nodes learned by pid)' % (len(stopped), failure.site, len(nodes)))
+        return '%s in %.1f ms' % ('; '.join(done), (time.monotonic() - t0) * 1e3)
+
+    def _kill_stopped(self):
+        """Kill the processes fail-silence stopped."""
+        with self.lock_stopped:
+            stopped, self.stopped = self.stopped, []
+        kill_all(stopped)
 
     def _ask_switch(self):
         """One call of the power switch (state FENCING); settles the Fencing. A switch that does not
@@ -497,19 +548,18 @@ class RecoveryNode(object):
             raise RuntimeError(outcome.detail)
         return outcome.detail
 
-    def _power_off_launcher(self, failure):
+    def _launcher(self, failure):
+        """(psutil.Process of the failed site's launcher on this host, or None; what was found)."""
         try:
-            created = psutil.Process(failure.pid).create_time()
+            launcher = psutil.Process(failure.pid)
+            created = launcher.create_time()
         except psutil.NoSuchProcess:
-            return 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
+            return None, 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
         if not same_process(created, failure.detected.to_sec() - failure.silence):
-            return 'pid %d now belongs to another process: not killed' % failure.pid
-        tree = process_tree(failure.pid)
-        if os.getpid() in [p.pid for p in tree]:
-            return 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        # Stopped, then killed: the promotion need not wait for the kernel to tear them down.
-        return '%d processes of the launcher of %s killed' % (
-            power_off(failure.pid, until_dead=False, snapshot=tree), failure.site)
+            return None, 'pid %d now belongs to another process: not killed' % failure.pid
+        if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
+            return None, 'launcher %d also runs this replica: only the name space is killed' % failure.pid
+        return launcher, 'launcher %d of %s' % (failure.pid, failure.site)
 
     def _clean_master(self):
         """Ask the failed site's remaining nodes to shut down, and unregister the dead ones. Best effort,
