@@ -99,7 +99,7 @@ class Sites(unittest.TestCase):
     def state_of(self, site):
         get = rospy.ServiceProxy('/%s/bank_server/get_state' % site, GetState)
         model = Model()
-        model.set_state(get().state)
+        model.set_state(bytes(get().state).partition(b'\0')[0])   # without the ballast, if any
         return model.snapshot()
 
     def assert_exactly_once(self, count, survivor):
@@ -124,12 +124,13 @@ class PbrSites(Sites):
     DETECTION_TIMEOUT = 0.03   # the crash detectors' timeout (s), heartbeats every 10 ms
     SERVER_TIMEOUT = None      # Proceed's server timeout (s); None: the launch files' default
     CACHE_BYTES = None         # bound of the replicas' reply caches (bytes); None: the launch files' default
+    BALLAST_BYTES = 0          # inert bytes added to the bank server's state (0: its ~60 bytes, sent whole)
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
                              mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE,
                              timeout=self.DETECTION_TIMEOUT, server_timeout=self.SERVER_TIMEOUT,
-                             cache_bytes=self.CACHE_BYTES)
+                             cache_bytes=self.CACHE_BYTES, ballast_bytes=self.BALLAST_BYTES)
 
 
 class MechanismSite(Sites):

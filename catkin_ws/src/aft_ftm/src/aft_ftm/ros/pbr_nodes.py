@@ -10,6 +10,7 @@ from std_msgs.msg import String
 
 from .. import config, health
 from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
+from ..delta import DeltaDecoder, DeltaEncoder, DeltaError
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import DuplicateCache, Role, check_role_change
@@ -87,6 +88,11 @@ class PbrAfterNode(AfterNode):
             transfer is captured, so that the state holds exactly the requests whose replies it carries.
         ~cache_bytes (int, 64 MiB): bound of the replies kept for a state transfer (those clients
             have not confirmed); the Protocol's reply cache has the same bound and refuses first.
+        ~incremental (bool, true): a checkpoint carries what changed in the state since the previous
+            one (aft_ftm.delta, computed here from getState: no change to the server), when that is
+            under half the state; the backup rebuilds the whole state, checks it (CRC) and refuses a
+            delta that does not apply (it joins again). A state transfer is always whole.
+        ~delta_min_bytes (int, 1024): states smaller than this are always sent whole.
     Services called:
         get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
         the witness (aft_msgs/Witness).
@@ -149,6 +155,9 @@ class PbrAfterNode(AfterNode):
         if self.receiver is not None and self.peer:
             self.receiver.expect = '/%s/' % self.peer
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
+        self.incremental = param('incremental', config.flag, True)
+        self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
+        self.decoder = DeltaDecoder()
         self.joiner = None          # (site, incarnation) of the backup being joined
         self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
@@ -217,6 +226,9 @@ class PbrAfterNode(AfterNode):
             epoch = sender.epoch if sender is not None else receiver.epoch if receiver is not None else 0
             extra = [('following', receiver.state.name), ('last_checkpoint', receiver.last_seq)] \
                 if receiver is not None and self.role == Role.BACKUP else []
+            if sender is not None:   # what the checkpoints' states cost, against whole states every time
+                extra += [('checkpoint_state_bytes', self.encoder.sent_bytes),
+                          ('whole_state_bytes', self.encoder.state_bytes)]
             return health.replica_after(
                 self.site, 'pbr', self.role, epoch, self.peer, held=len(sender.held) if sender is not None else 0,
                 stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else None,
@@ -278,9 +290,10 @@ class PbrAfterNode(AfterNode):
                 problem = 'cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error)
             else:
                 seq = self.sender.hold(reply, time.monotonic())
+                payload, delta = self.encoder.next(state) if self.incremental else (state, False)
                 self.ports.publish('checkpoints', Checkpoint(
                     seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
-                    state=state, epoch=self.sender.epoch))
+                    state=payload, delta=delta, epoch=self.sender.epoch))
                 return None
         self.side.fail_stop(problem)
         return None
@@ -399,6 +412,7 @@ class PbrAfterNode(AfterNode):
                 self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
                 return
             seq = sender.join(join.after, time.monotonic())
+            self.encoder.reset(state)   # the joiner holds this state: the next checkpoints are deltas on it
             self.joiner = (join.site, join.incarnation)
             cache = self.recent.replies()
             self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
@@ -462,6 +476,15 @@ class PbrAfterNode(AfterNode):
             elif decision == Decision.FENCED:
                 error = ('%s is no longer a backup of %s%s' % (self.name, cp.sender, ': ' + self.receiver.invalid
                          if self.receiver is not None and self.receiver.invalid else ''))
+            state = None
+            if decision == Decision.APPLY_FULL or decision == Decision.APPLY \
+                    and cp.reply.status != Reply.NOT_EXECUTED:   # a refusal carries no state
+                try:
+                    state = self.decoder.state(cp.state, cp.delta)
+                except DeltaError as e:
+                    # Refused, changing nothing: this backup no longer mirrors its primary (it joins again).
+                    error = 'checkpoint %d from %s: %s' % (cp.seq, cp.sender, e)
+                    decision = Decision.GAP
             tell = None
             if decision in HARMLESS:
                 tell = ('%s_checkpoint' % decision.name.lower(), 'checkpoint %d from %s refused, nothing changed: %s'
@@ -493,9 +516,9 @@ class PbrAfterNode(AfterNode):
                                                         epoch=cp.epoch))
             if decision == Decision.APPLY_FULL:
                 self.followed_since = time.monotonic()
-            if decision == Decision.APPLY_FULL or decision == Decision.APPLY \
-                    and cp.reply.status != Reply.NOT_EXECUTED:   # a refusal carries no state
-                self.pending_state = (cp.seq, cp.state)
+            if state is not None:
+                self.decoder.accept(state)
+                self.pending_state = (cp.seq, state)
                 if self.apply_period == 0 or decision == Decision.APPLY_FULL:
                     self._apply_locked()
         if tell is not None:
