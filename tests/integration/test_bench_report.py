@@ -19,8 +19,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_bench', 'src'))
 from aft_bench import report  # noqa: E402
 
-BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'detection',
-           'campaign')
+BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'state',
+           'detection', 'campaign')
 
 
 @pytest.fixture(scope='module')

@@ -287,3 +287,30 @@ def test_the_service_manager_section_sets_the_designs_side_by_side(figures):
     assert 'local channel' in claim['measured'] and 'with ROS heartbeats: 30 %' in claim['measured']
     condition = [c for c in report.claims(figures) if c['key'] == 'availability_condition'][0]
     assert condition['measured'].startswith('warm spare:') and 'cold restart: 500 ms' in condition['measured']
+
+
+def state_run(size, incremental, per_request, identical=True):
+    return {'state_bytes': size, 'incremental': incremental, 'requests': 50, 'bytes_per_request': per_request,
+            'checkpoints': 50, 'latency_median_s': 0.007, 'latency_p99_s': 0.02, 'backup_state_identical': identical,
+            'replies_right': True}
+
+
+def test_the_large_state_section_and_its_target_follow_the_figures(figures):
+    figures['state'] = {'runs': [state_run(1000061, False, 1010216.0), state_run(1000061, True, 275.0)]}
+    text = report.build(figures)
+    assert '| 1000061 B | incremental | 275 |' in text
+    target = [t for t in report.targets(figures) if 'bytes between replicas' in t[0]]
+    assert target == [(target[0][0], '275 B', True)]
+    figures['state']['runs'][1] = state_run(1000061, True, 4000.0, identical=False)
+    assert [t[2] for t in report.targets(figures) if 'bytes between replicas' in t[0]] == [False]
+    assert '**no**' in report.build(figures)
+    del figures['state']
+    assert not [t for t in report.targets(figures) if 'bytes between replicas' in t[0]]
+
+
+def test_the_latency_ratio_over_runs_is_judged_9_of_10(figures):
+    figures['pbr']['latency_runs'] = {'ratios': [1.1] * 9 + [1.4], 'at_most_1_3': 9}
+    row = [t for t in report.targets(figures) if 'in at least 9 runs' in t[0]]
+    assert row and row[0][2] and row[0][1].startswith('9 of 10')
+    figures['pbr']['latency_runs'] = {'ratios': [1.1] * 8 + [1.4] * 2, 'at_most_1_3': 8}
+    assert not [t for t in report.targets(figures) if 'in at least 9 runs' in t[0]][0][2]
