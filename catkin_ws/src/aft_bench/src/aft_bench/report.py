@@ -518,8 +518,11 @@ def targets(f):
     big = [r for r in get(f, 'state.runs') or [] if r['incremental'] and r['state_bytes'] >= 1000000]
     if big:
         worst = max(r['bytes_per_request'] for r in big)
-        out.append(('1 MB state, a few bytes changed per request: PBR bytes between replicas per request < 2 KB',
-                    '%.0f B' % worst, worst < 2048))
+        right = all(r['backup_state_identical'] and r['replies_right'] for r in big)
+        out.append(('1 MB state, a few bytes changed per request: PBR bytes between replicas per request < 2 KB, '
+                    'the backup ending with the same state',
+                    '%.0f B%s' % (worst, '' if right else ', **the backup state differs or replies were wrong**'),
+                    worst < 2048 and right))
     default = get(f, 'detection.default_rule')
     rule = get(f, 'detection.rules.%s' % default) if default else None
     if rule and rule.get('detection_median_ms') is not None:

@@ -10,9 +10,11 @@ import os
 
 
 class RealtimeBurst(object):
-    """``with burst():`` runs the block, and the threads it starts (they inherit the policy), under
-    SCHED_FIFO at ``priority``; the calling thread goes back to SCHED_OTHER after it. priority 0: off.
-    A refusal (no CAP_SYS_NICE) is remembered in ``error`` and the block runs at the usual priority."""
+    """``with burst():`` runs the block in the calling thread under SCHED_FIFO at ``priority``, and
+    the thread goes back to its own policy after it. Threads and processes the block starts do not
+    inherit it (SCHED_RESET_ON_FORK): a timer or a fence agent it starts runs at the usual priority.
+    priority 0: off. A refusal (no CAP_SYS_NICE) is remembered in ``error`` and the block runs at the
+    usual priority."""
 
     def __init__(self, priority):
         if not 0 <= priority <= 99:
@@ -28,15 +30,16 @@ class RealtimeBurst(object):
 
     @contextlib.contextmanager
     def __call__(self):
-        boosted = False
+        before = None
         if self.priority and self.error is None:
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
-                boosted = True
+                before = (os.sched_getscheduler(0), os.sched_getparam(0))
+                os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(self.priority))
             except OSError as e:
+                before = None
                 self.error = 'SCHED_FIFO %d refused: %s' % (self.priority, e)
         try:
-            yield boosted
+            yield before is not None
         finally:
-            if boosted:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            if before is not None:
+                os.sched_setscheduler(0, *before)

@@ -25,10 +25,11 @@ def process_tree(pid):
 
 
 def _signal_all(procs, sig):
+    """Signal every process; one that is gone, or that may not be signalled, does not stop the others."""
     for proc in procs:
         try:
             proc.send_signal(sig)
-        except psutil.NoSuchProcess:
+        except psutil.Error:   # gone (NoSuchProcess), or AccessDenied: its wait says it is still running
             pass
 
 
@@ -50,7 +51,7 @@ def power_off_trees(pids, timeout=5.0, on_stopped=None, snapshot=None):
     then on none of them runs another instruction of its own. Then the kernel's tear-down of the
     killed processes (20-160 ms for a site of eight rospy nodes on 2 cores; their sockets are closed
     by then) is waited for. snapshot: the trees' processes as the caller just listed them (one scan
-    of /proc fewer). A failover does not wait for the tear-down: see stop_trees."""
+    of /proc fewer). A failover does not wait for the tear-down: see silence_trees."""
     procs = list(snapshot) if snapshot is not None else [proc for pid in pids for proc in process_tree(pid)]
     _signal_all(procs, signal.SIGSTOP)
     # Children forked between the snapshot and the stop are caught by a second look.
@@ -98,6 +99,8 @@ def thread_silent(stat):
 def _stopped(proc):
     """Gone, a zombie, or every one of its threads silent (thread_silent: a group stop or exit is done
     by each thread itself: the main thread stopped does not mean the others have)."""
+    if not proc.is_running():   # gone, or its pid reused since: not this process any more
+        return True
     try:
         tids = os.listdir('/proc/%d/task' % proc.pid)
     except OSError:
@@ -113,35 +116,30 @@ def _stopped(proc):
     return True
 
 
-def stop_trees(roots, first=(), timeout=5.0):
-    """Fail-silence at once, for a promotion that must not wait for (nor share the cores with) the
-    kernel's tear-down of a failed site: the roots (psutil.Process of launchers, checked by the
+def silence_trees(roots, first=(), timeout=5.0):
+    """Fail-silence at once, for a promotion: the roots (psutil.Process of launchers, checked by the
     caller) are stopped first (they neither fork nor respawn, and no child is re-parented), then the
-    processes ``first`` (known nodes: a psutil.Process checks that its pid is still theirs), then
-    every other process of the roots' trees. Returns those processes once every thread of them is
-    silent (stopped, exiting or gone: see thread_silent); a process in the kernel's uninterruptible
-    sleep is killed and seen dead. The caller kills them all (kill_all) once its promotion is done:
-    a stopped process never resumes, and its tear-down then competes with nothing urgent."""
+    processes ``first`` (known nodes: a psutil.Process checks that its pid is still theirs), then every
+    other process of the roots' trees, looked for twice (a child forked meanwhile is caught by the
+    second look). Once every thread of them is silent (stopped, exiting or gone: see thread_silent)
+    they are all sent SIGKILL, and it returns them without waiting for the kernel's tear-down: from
+    then on none runs another instruction, and none can be resumed (a SIGCONT from anyone is moot)."""
     _signal_all(roots, signal.SIGSTOP)
     _signal_all(first, signal.SIGSTOP)
     seen = {p.pid for p in first}
     procs = list(first)
-    for root in roots:
-        for proc in process_tree(root.pid):
-            if proc.pid not in seen:
-                seen.add(proc.pid)
-                procs.append(proc)
-    _signal_all(procs, signal.SIGSTOP)
+    for _ in range(2):
+        for root in roots:
+            for proc in process_tree(root.pid):
+                if proc.pid not in seen:
+                    seen.add(proc.pid)
+                    procs.append(proc)
+                    _signal_all([proc], signal.SIGSTOP)
     running = wait_stopped(procs, timeout)
-    if running:
-        _signal_all(running, signal.SIGKILL)
+    _signal_all(procs, signal.SIGKILL)
+    if running:   # never seen stopped (in the kernel's uninterruptible sleep): seen dead, then
         wait_dead(running, timeout)
     return procs
-
-
-def kill_all(procs):
-    """SIGKILL every process of procs (psutil.Process: a pid reused since is not signalled)."""
-    _signal_all(procs, signal.SIGKILL)
 
 
 def _wait_all(procs, done, timeout, poll):

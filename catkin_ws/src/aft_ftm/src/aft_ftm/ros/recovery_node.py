@@ -17,7 +17,7 @@ from ..protocol import Role
 from ..realtime import RealtimeBurst
 from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import GATES, Step, plan, role_after, role_in, same_process, start_plan
-from ..sites import kill_all, stop_trees, this_host
+from ..sites import silence_trees, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
@@ -150,8 +150,6 @@ class RecoveryNode(object):
             self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
         self.lock = threading.Lock()
         self.started = time.monotonic()
-        self.lock_stopped = threading.Lock()
-        self.stopped = []   # processes of the failed site stopped by fail-silence, killed after the plan
         self.recovered = False
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
@@ -347,11 +345,7 @@ class RecoveryNode(object):
                       'role_before': role.name if role else None, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
             self._start = time.monotonic()
-            with self.burst():
-                try:
-                    self._run_plan(plan(role, self.witness is not None), failure, record)
-                finally:
-                    self._kill_stopped()
+            self._run_plan(plan(role, self.witness is not None), failure, record)
             record['seconds'] = time.monotonic() - self._start
             record['done_wall'] = time.time()
             witness_steps = [st for st in record['steps'] if st['step'] in {g.name for g in GATES}]
@@ -392,7 +386,8 @@ class RecoveryNode(object):
     def _run_step(self, step, failure, record, do=None):
         t0 = time.monotonic()
         try:
-            detail = (do or self._do)(step, failure)
+            with self.burst():   # this thread only: what it starts runs at the usual priority
+                detail = (do or self._do)(step, failure)
             ok = True
         except Exception as e:   # a failed step is reported, and the next ones still run
             detail, ok = str(e), False
@@ -482,19 +477,12 @@ class RecoveryNode(object):
             launcher, why = self._launcher(failure)
             roots = [launcher] if launcher is not None else []
             done.append(why)
-        # Stopped now, killed once the promotion is done (kill_stopped): their tear-down must not take
-        # the cores from the promotion. A stopped process runs no more instruction; it never resumes.
-        stopped = stop_trees(roots, list(nodes.values()))
-        with self.lock_stopped:
-            self.stopped.extend(stopped)
-        done.append('%d processes of %s stopped (%d nodes learned by pid)' % (len(stopped), failure.site, len(nodes)))
+        # Every thread seen stopped, then all killed: none runs another instruction or can be resumed, and
+        # the promotion does not wait for their tear-down.
+        killed = silence_trees(roots, list(nodes.values()))
+        done.append('%d processes of %s stopped and killed (%d nodes learned by pid)' % (
+            len(killed), failure.site, len(nodes)))
         return '%s in %.1f ms' % ('; '.join(done), (time.monotonic() - t0) * 1e3)
-
-    def _kill_stopped(self):
-        """Kill the processes fail-silence stopped."""
-        with self.lock_stopped:
-            stopped, self.stopped = self.stopped, []
-        kill_all(stopped)
 
     def _ask_switch(self):
         """One call of the power switch (state FENCING); settles the Fencing. A switch that does not
