@@ -5,7 +5,7 @@ from aft_ftm import config
 from aft_ftm.errors import ConfigError, RebindError
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
 from aft_ftm.protocol import Role
-from aft_ftm.recovery import Step, plan, role_after, same_process, start_plan
+from aft_ftm.recovery import Step, failed_steps, plan, role_after, same_process, start_plan
 
 SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
          'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
@@ -84,3 +84,18 @@ def test_parameter_converters_name_the_parameter_and_value(convert, value, ok):
     else:
         with pytest.raises(ConfigError, match=r'~p .*%s' % repr(value).replace('.', r'\.')):
             convert('~p', value)
+
+
+def test_a_failed_promotion_is_named_for_its_alarm_and_a_refused_witness_is_left_to_its_own():
+    def step(name, ok, detail=''):
+        return {'step': name, 'ok': ok, 'detail': detail, 'start': 0.0, 'seconds': 0.001}
+    done = {'steps': [step('WITNESS_PROMOTE', True), step('FAIL_SILENCE', True), step('PROMOTE_AFTER', True),
+                      step('PROMOTE_PROTOCOL', True)]}
+    assert failed_steps(done) == ''
+    lfr = {'steps': [step('WITNESS_PROMOTE', True), step('FAIL_SILENCE', True),
+                     step('PROMOTE_AFTER', False, '/master/after refused: computed 0 of the 1 forwarded requests'),
+                     step('PROMOTE_PROTOCOL', False, 'not promoted: the After was not promoted')]}
+    assert failed_steps(lfr) == ('PROMOTE_AFTER: /master/after refused: computed 0 of the 1 forwarded requests; '
+                                 'PROMOTE_PROTOCOL: not promoted: the After was not promoted')
+    refused = {'steps': [step('WITNESS_PROMOTE', False, 'the witness refused PROMOTE: excluded')]}
+    assert failed_steps(refused) == ''   # promotion_refused is raised for it already

@@ -49,6 +49,15 @@ def plan(role, witness=False):
     return waves(steps)
 
 
+def failed_steps(record):
+    """The steps of a finished recovery record that failed, other than the witness's vote (a refused or
+    unreachable witness raises its own alarm): '' if none, else 'STEP: why; ...'. A failover whose
+    promotion failed leaves the service with nobody to serve it: never silent (alarm promotion_failed)."""
+    gates = {g.name for g in GATES}
+    return '; '.join('%s: %s' % (st['step'], st['detail']) for st in record.get('steps', ())
+                     if not st['ok'] and st['step'] not in gates)
+
+
 def start_plan():
     """The steps when the witness names this site the first primary at start: it serves from its own
     server's state (nothing to fence, nobody to wait for)."""
