@@ -1,4 +1,4 @@
-"""A short campaign (issue 15): scripts/campaign with 32 faults (two segments of 16; AFT_CAMPAIGN_FAULTS) on the PBR and LFR bank, two
+"""A short campaign (issue 15): scripts/campaign with 28 faults (two segments of 14; AFT_CAMPAIGN_FAULTS) on the PBR and LFR bank, two
 client processes each through its own Proxy, every fault healed before the next; the history checker
 must find no violation. The sites are adaptable (`--adapt`): the adaptations are drawn among the faults (each
 about once per 39: an update of the primary's After, a PBR <-> LFR switch, TR composed into each replica's
@@ -17,11 +17,13 @@ import tempfile
 import time
 import uuid
 
+from aft_examples import schedule
+from aft_examples.ros.campaign import AdaptingBackend
 from leftovers import kill_tagged
 from reporting import report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 32))
+FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 28))
 
 
 def test_a_short_campaign_finds_no_violation():
@@ -49,7 +51,12 @@ def test_a_short_campaign_finds_no_violation():
     assert run.returncode == 0, 'seed %d: exit %d\n%s' % (seed, run.returncode, output[-6000:])
     summary = json.load(open(os.path.join(out, 'campaign.json')))
     assert len(summary['records']) == FAULTS and not summary['violations']
-    assert {'kill', 'freeze_node', 'freeze_site', 'power_loss'} <= {r['kind'] for r in summary['records']}
+    # Every fault drawn ran, in order, as drawn (which kinds a short schedule draws depends on its seed:
+    # with 32 faults 8 % of seeds drew no power loss or no site freeze, and a fixed set here failed them).
+    drawn = schedule.make(FAULTS, seed, AdaptingBackend().offered, ('pbr', 'lfr'), max(1, FAULTS // 2))
+    assert [(r['index'], r['kind'], r['target']) for r in summary['records']] == \
+        [(f.index, f.kind, f.target) for f in drawn]
+    assert len({r['kind'] for r in summary['records']} - {'adapt'}) >= 2
     adaptations = [r for r in summary['records'] if r['kind'] == 'adapt']
     assert {'update', 'switch', 'compose'} <= {r['target'] for r in adaptations} or FAULTS < 39, adaptations
     assert any(r['outcome'] == 'adapted' for r in adaptations) or not adaptations, \
