@@ -122,11 +122,10 @@ class NamespaceFence(object):
                 continue
         return procs
 
-    def kill(self, procs=None):
-        """SIGKILL every known local node still running as the same process (or those of ``procs``, from
-        processes()). Returns their names."""
+    def kill(self):
+        """SIGKILL every known local node still running as the same process. Returns their names."""
         killed = []
-        for name, proc in sorted((self.processes() if procs is None else procs).items()):
+        for name, proc in sorted(self.processes().items()):
             try:
                 proc.send_signal(signal.SIGKILL)
                 killed.append(name)
