@@ -57,12 +57,17 @@ class StageNode(object):
         """Called when ~suspend is asked, before waiting for quiescence."""
 
     def setup(self, timeout):
+        # Output first, input only once the output is heard: rospy delivers input at once but drops what
+        # is published before a subscriber connected, so a stage that took input earlier could lose a
+        # request for good (campaign --adapt, seed 15, segment 13: a relaunched follower's TR After
+        # published a decided reply before its Protocol's connection came, and the pair never healed).
+        # Chained stage by stage, a Protocol whose to_before is connected has its whole pipeline connected.
+        deadline = time.monotonic() + timeout
         self.ports.bind('out', self.OUT_TOPIC)
-        connected = ['out']
-        if self.bind_input:
+        missing = wait_for_connections(self.ports, ['out'], timeout)
+        if not missing and self.bind_input:
             self.ports.bind('inp', self.IN_TOPIC)
-            connected.append('inp')
-        missing = wait_for_connections(self.ports, connected, timeout)
+            missing = wait_for_connections(self.ports, ['inp'], max(0.0, deadline - time.monotonic()))
         if missing:
             rospy.logerr('%s: ports %s not connected within %.1f s', self.name, missing, timeout)
             return False

@@ -61,9 +61,12 @@ class LfrBeforeNode(BeforeNode):
 
     def setup(self, timeout):
         self.ports.bind('forward')
+        if not super(LfrBeforeNode, self).setup(timeout):
+            return False
+        # The leader's forwards are taken only once this Before's own pipeline is connected (see StageNode).
         self.ports.bind('forwarded', 'peer_forward')
         rospy.Service('~set_role', SetRole, self._on_set_role)
-        return super(LfrBeforeNode, self).setup(timeout)
+        return True
 
     def handle(self, request):
         with self.lock:
