@@ -61,11 +61,13 @@ class LfrBeforeNode(BeforeNode):
 
     def setup(self, timeout):
         self.ports.bind('forward')
+        # Offered first: the LFR After waits for it before it takes input, and this Before's pipeline
+        # connects only once the After does (see StageNode.setup).
+        rospy.Service('~set_role', SetRole, self._on_set_role)
         if not super(LfrBeforeNode, self).setup(timeout):
             return False
         # The leader's forwards are taken only once this Before's own pipeline is connected (see StageNode).
         self.ports.bind('forwarded', 'peer_forward')
-        rospy.Service('~set_role', SetRole, self._on_set_role)
         return True
 
     def handle(self, request):
