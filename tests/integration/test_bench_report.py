@@ -20,7 +20,7 @@ sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_bench', 'src'))
 from aft_bench import report  # noqa: E402
 
 BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'state',
-           'detection', 'campaign')
+           'clients', 'detection', 'campaign')
 
 
 @pytest.fixture(scope='module')

@@ -103,6 +103,7 @@ class Deployment(object):
         self.checker = checker
         self.on_site_stopped = None
         self.alarms = []            # (time, incarnation, node, kind, key, detail)
+        self.batched = 0            # checkpoints that covered more than one request (group commit)
         self.witness = WitnessModel(self, initial_primary, witness_host)
         self.sites = {'a': Site(self, 'a', 'b', claims=True), 'b': Site(self, 'b', 'a', claims=False)}
         self.proxies = [ProxyModel(self, '/proxy%d' % i, 1000 * (i + 1)) for i in range(proxies)]

@@ -20,7 +20,8 @@ it applied, in order; a reply's value is its position in that list.
 """
 import types
 
-from aft_ftm.checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
+from aft_ftm.checkpoint import (HARMLESS, NOT_EXECUTED, BatchError, CheckpointReceiver, CheckpointSender, Decision,
+                                Follow, GroupCommit, Need, is_refusal)
 from aft_ftm.detector import PeerState
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Answer as AnswerAction, DuplicateCache, Forward, ProtocolCore, Refuse, Role, key
@@ -51,6 +52,7 @@ class Params(object):
         self.startup = (0.005, 0.03)    # how long a node takes to set up
         self.cache_bytes = 64 << 20     # Protocol and After ~cache_bytes
         self.fence = 1.0                # probability that fail-silence reaches the failed site
+        self.max_batch = 1              # Protocol ~max_batch (group commit; ROS: 16 for PBR not adaptable)
         # Fixes of adapter rules that the simulation found to break a property, or liveness (see
         # tests/unit/test_replication_sim.py, which replays each finding with its flag off):
         # PbrAfterNode._on_set_role, PRIMARY -> ALONE (Recovery's AFTER_ALONE): raise the 'alone' alarm.
@@ -90,6 +92,8 @@ def copy_msg(msg):
         m.reply = copy_reply(m.reply)
     if getattr(m, 'cache', None):
         m.cache = [copy_reply(r) for r in m.cache]
+    if isinstance(getattr(m, 'batch', None), list):   # a checkpoint's batch (a request's is a pair)
+        m.batch = [copy_reply(r) for r in m.batch]
     return m
 
 
@@ -165,7 +169,7 @@ class ProtocolModel(Node):
     def __init__(self, site):
         super(ProtocolModel, self).__init__(site, 'protocol')
         p = self.env.params
-        self.core = ProtocolCore(Role.BACKUP, cache_bytes=p.cache_bytes)
+        self.core = ProtocolCore(Role.BACKUP, cache_bytes=p.cache_bytes, max_batch=p.max_batch)
         self.bound = False
         self.hung = None
         self.site_role = SiteRole(site.name)
@@ -232,8 +236,9 @@ class ProtocolModel(Node):
     def on_stored(self, cp):
         if cp.full:
             self.core.on_state_transfer(cp.cache, cp.seq, cp.sender)
-        else:
-            self.core.on_stored(cp.reply, cp.seq, cp.sender)
+        else:   # ProtocolNode._on_stored: a group commit's batch, then its last reply
+            for reply in list(getattr(cp, 'batch', None) or []) + [cp.reply]:
+                self.core.on_stored(reply, cp.seq, cp.sender)
         self.core.epoch = max(self.core.epoch, cp.epoch)
         for waiting in list(self.waiting):
             if self.core.can_take_over(waiting[0]['last_seq']):
@@ -295,7 +300,7 @@ class ProtocolModel(Node):
                 r = action.request
                 refusal = ns(id=r.id, origin=r.origin, client=r.client, attempt=r.attempt,
                              oldest_pending=r.oldest_pending, ok=False, value=None, error=action.reason,
-                             epoch=self.core.epoch, refusal=True)
+                             epoch=self.core.epoch, refusal=True, status=NOT_EXECUTED, batch=getattr(r, 'batch', (0, 0)))
                 if not self.env.params.fix_replicated_refusal:
                     self.answer(refusal)
                 elif self.core.role != Role.BACKUP:
@@ -356,7 +361,7 @@ class ProceedModel(Node):
         self.world.send(self, after, 'prd2aft', after.handle if after else None,
                         ns(id=request.id, origin=request.origin, client=request.client, attempt=request.attempt,
                            oldest_pending=request.oldest_pending, ok=True, value=value, error='', epoch=0,
-                           refusal=False))
+                           refusal=False, status=0, batch=getattr(request, 'batch', (0, 0))))
 
     def _answered(self, call):
         request, abandoned = call
@@ -429,6 +434,7 @@ class AfterModel(Node):
         self.receiver = self._observed(ObservedReceiver(join=True))
         self.receiver.expect = '/%s/' % site.peer
         self.recent = DuplicateCache(max_bytes=p.cache_bytes)
+        self.group = GroupCommit()
         self.joiner = None
         self.asking = False          # witness_lock: one witness request at a time
         self.transferring = False    # fix_quiescent_join: a state transfer is being prepared
@@ -484,31 +490,44 @@ class AfterModel(Node):
 
     # -- primary ---------------------------------------------------------------------------------
     def handle(self, reply):
+        """PbrAfterNode.handle, group commit included."""
         if self.sender is None or self.sender.deposed:
             return
         reply.epoch = self.sender.epoch
         self.remember(reply)
         if not self.sender.needs_checkpoint():
-            self.release([reply])
+            self.release(self.group.flush() + [reply])
             return
-        if reply.refusal:
+        try:
+            replies = self.group.add(reply)
+        except BatchError as e:
+            self.sender.depose('group commit broken: %s' % e)
+            self.fail_stop('group commit broken: %s' % e)
+            return
+        if replies is None:
+            return
+        if all(is_refusal(r) for r in replies):
             # fix_replicated_refusal: a refusal changes no state, and the state now may already hold the
             # request executing (its reply not here yet): the checkpoint carries the reply alone.
-            seq = self.sender.hold(reply, self.world.now)
+            seq = self.sender.hold(replies[-1], self.world.now, replies[:-1])
             self.send_peer('checkpoints', 'on_checkpoint', ns(
-                seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(reply),
-                state=None, epoch=self.sender.epoch, full=False, cache=None))
+                seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
+                batch=[copy_reply(r) for r in replies[:-1]], state=None, epoch=self.sender.epoch, full=False,
+                cache=None))
             return
         state, error = self.capture()
         if state is None:
             self.sender.depose('cannot capture the server state')
             self.fail_stop('cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error))
             return
-        seq = self.sender.hold(reply, self.world.now)
-        self.world.log('%s checkpoint %d (%s/%d) epoch %d', self.name, seq, reply.origin, reply.id, self.sender.epoch)
+        seq = self.sender.hold(replies[-1], self.world.now, replies[:-1])
+        self.env.batched += len(replies) > 1
+        self.world.log('%s checkpoint %d (%s) epoch %d', self.name, seq,
+                       ' '.join('%s/%d' % (r.origin, r.id) for r in replies), self.sender.epoch)
         self.send_peer('checkpoints', 'on_checkpoint', ns(
-            seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(reply), state=state,
-            epoch=self.sender.epoch, full=False, cache=None))
+            seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
+            batch=[copy_reply(r) for r in replies[:-1]], state=state, epoch=self.sender.epoch, full=False,
+            cache=None))
 
     def on_ack(self, ack):
         if ack.to and ack.to != self.name:
@@ -723,9 +742,12 @@ class AfterModel(Node):
         protocol = self.own('protocol')
         stored = protocol.on_stored if protocol else None
         if decision == Decision.APPLY:
-            self.remember(cp.reply)
+            batch = list(getattr(cp, 'batch', None) or [])
+            for reply in batch + [cp.reply]:
+                self.remember(reply)
             self.world.send(self, protocol, 'aft2pro_s', stored, ns(
-                seq=cp.seq, sender=cp.sender, reply=copy_reply(cp.reply), full=False, cache=None, epoch=cp.epoch))
+                seq=cp.seq, sender=cp.sender, reply=copy_reply(cp.reply), batch=[copy_reply(r) for r in batch],
+                full=False, cache=None, epoch=cp.epoch))
         elif decision == Decision.APPLY_FULL:
             for reply in cp.cache:
                 self.remember(reply)

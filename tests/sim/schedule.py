@@ -137,6 +137,7 @@ class Result(object):
         self.calls = sum(len(p.opened) for p in env.proxies)
         self.unanswered = sum(len(p.unanswered()) for p in env.proxies)
         self.refused = sum(1 for p in env.proxies for e in p.opened if e.reply is not None and not e.reply.ok)
+        self.batched = env.batched
         self.alarms = checker.alarm_counts()
         self.transitions = checker.transition_counts
         w = env.witness.witness
@@ -286,6 +287,7 @@ def summary(results):
         total['calls'] += r.calls
         total['unanswered'] += r.unanswered
         total['refused'] += r.refused
+        total['batched'] += r.batched
         total['stuck schedules'] += bool(r.unanswered)
         total['failovers'] += r.failovers
         total['violations'] += r.violation is not None

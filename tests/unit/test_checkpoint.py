@@ -1,7 +1,8 @@
 """PBR checkpoint logic: replies held until acknowledged, ordering, gaps and fencing. No ROS."""
 import pytest
 
-from aft_ftm.checkpoint import CheckpointReceiver, CheckpointSender, Decision, Follow, Need
+from aft_ftm.checkpoint import (BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow, GroupCommit, Need,
+                                 is_refusal)
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Role
 from fakes import reply
@@ -245,3 +246,61 @@ def test_the_senders_and_receivers_role_change_only_along_the_allowed_edges():
     receiver.accept(1, '/master/after')
     receiver.promote()
     assert receiver.role == Role.ALONE and receiver.decide(2, '/master/after') == Decision.FENCED
+
+
+# -- group commit ---------------------------------------------------------------------------------------
+
+def batched(rid, left, size=None, status=0):
+    r = reply(rid=rid)
+    r.batch, r.status = (left, left if size is None and left else size or 0), status
+    return r
+
+
+def test_a_batch_is_checkpointed_once_its_last_reply_came_and_released_whole_on_its_ack():
+    group, sender = GroupCommit(), CheckpointSender(Role.PRIMARY)
+    assert group.add(batched(1, 3)) is None and group.add(batched(2, 2, 3)) is None
+    replies = group.add(batched(3, 1, 3))
+    assert [r.id for r in replies] == [1, 2, 3] and group.replies == []
+    seq = sender.hold(replies[-1], 0, replies[:-1])
+    released, need = sender.on_ack(seq, ok=True)
+    assert [r.id for r in released] == [1, 2, 3] and need == Need.NOTHING
+
+
+def test_a_batch_held_when_the_backup_is_lost_is_released_whole_in_order():
+    sender = CheckpointSender(Role.PRIMARY)
+    sender.hold(batched(2, 1, 2), 0, [batched(1, 2)])
+    sender.hold(batched(3, 1), 0)
+    assert [r.id for r in sender.go_alone()] == [1, 2, 3]
+
+
+def test_a_reply_outside_any_batch_is_checkpointed_alone_and_a_refusal_may_come_mid_batch():
+    group = GroupCommit()
+    assert [r.id for r in group.add(batched(7, 0))] == [7]
+    assert group.add(batched(1, 2)) is None
+    assert [r.id for r in group.add(batched(9, 0, status=2))] == [9]       # the Protocol's own refusal
+    assert [r.id for r in group.add(batched(2, 1, 2))] == [1, 2]
+    assert is_refusal(batched(9, 0, status=2)) and not is_refusal(batched(1, 1))
+
+
+@pytest.mark.parametrize('second', [batched(3, 1, 3), batched(2, 0), batched(3, 3), batched(2, 2, 4)])
+def test_a_batch_that_does_not_count_down_is_broken(second):
+    # One reply lost or out of order, or an executed reply outside the batch (a node dropped its number):
+    # a state captured now could hold a request whose reply it does not carry. The After fail-stops.
+    group = GroupCommit()
+    group.add(batched(1, 3))
+    with pytest.raises(BatchError):
+        group.add(second)
+
+
+def test_a_batch_whose_first_reply_was_lost_is_broken():
+    # Found by the simulation (seed 1090 of loss,local, max_batch 4): the first reply of a batch lost
+    # inside the site, the next two checkpointed as a batch with a state holding the first: the new
+    # primary executed it again after a failover.
+    with pytest.raises(BatchError):
+        GroupCommit().add(batched(2, 2, 3))
+
+
+def test_a_batch_flushed_when_its_site_goes_on_alone_leaves_nothing_gathered():
+    group = GroupCommit()
+    group.add(batched(1, 2))
+    assert [r.id for r in group.flush()] == [1] and group.flush() == []

@@ -383,3 +383,45 @@ def test_a_site_that_joined_by_state_transfer_never_executes_an_answered_request
     for old in answered + [p for proxy in proxies.values() for p in proxy['pending']]:   # every one executed
         again = joined.on_request(request(origin=old.origin, rid=old.id, oldest_pending=old.oldest_pending), 1)
         assert not any(isinstance(a, Forward) for a in again), (seed, old.origin, old.id, kinds(again))
+
+
+# -- group commit (max_batch > 1) ---------------------------------------------------------------------
+
+def test_requests_queued_while_a_batch_executes_go_as_the_next_batch_each_numbered_left_and_size():
+    core = ProtocolCore(Role.PRIMARY, max_batch=3)
+    first = core.on_request(request(rid=1), 0)
+    assert kinds(first) == [('Forward', 1)] and first[0].request.batch == (1, 1)
+    for rid in (2, 3, 4, 5):
+        assert core.on_request(request(rid=rid), 0) == []       # a batch executes: they queue
+    # The batch's result releases the next batch, at most max_batch, in arrival order.
+    actions = core.on_result(reply(rid=1), 0)
+    assert kinds(actions) == [('Answer', 1), ('Forward', 2), ('Forward', 3), ('Forward', 4)]
+    assert [a.request.batch for a in actions[1:]] == [(3, 3), (2, 3), (1, 3)]
+    # Nothing more is forwarded until every result of the batch came back, whatever their order.
+    assert kinds(core.on_result(reply(rid=3), 0)) == [('Answer', 3)]
+    assert kinds(core.on_result(reply(rid=2), 0)) == [('Answer', 2)]
+    actions = core.on_result(reply(rid=4), 0)
+    assert kinds(actions) == [('Answer', 4), ('Forward', 5)] and actions[1].request.batch == (1, 1)
+    assert core.stats.executed == 5 and core.batches == 3
+
+
+def test_a_copy_of_a_request_of_the_executing_batch_is_joined_and_a_stray_result_changes_nothing():
+    core = ProtocolCore(Role.PRIMARY, max_batch=4)
+    core.on_request(request(rid=1), 0)
+    core.on_request(request(rid=2), 0)
+    core.on_request(request(rid=3), 0)
+    core.on_result(reply(rid=1), 0)                      # 2 and 3 execute as one batch
+    assert core.on_request(request(rid=3), 1) == [] and core.stats.joined == 1
+    assert core.on_result(reply(rid=9), 1) == [] and core.stats.stray_results == 1
+    assert core.current.id == 2 and core.overdue(31, 30).id == 2 and core.overdue(30, 30) is None
+
+
+def test_one_at_a_time_requests_carry_no_batch_number():
+    core = ProtocolCore(Role.PRIMARY)
+    actions = core.on_request(request(rid=1), 0)
+    assert not hasattr(actions[0].request, 'batch')      # aft_msgs/Request.batch stays [0, 0]
+
+
+def test_max_batch_below_1_is_refused():
+    with pytest.raises(ValueError):
+        ProtocolCore(Role.PRIMARY, max_batch=0)

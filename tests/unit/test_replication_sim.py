@@ -134,6 +134,18 @@ def test_random_schedules_with_a_reply_cache_always_full_keep_every_property():
     assert REPLAY or sum(r.refused for r in results) > 100
 
 
+def test_random_schedules_with_group_commit_keep_every_property():
+    """Issue 18: the Protocol forwards the requests queued meanwhile as one batch (up to 4) and After
+    checkpoints the batch once, after its last reply: every property holds through the same faults,
+    and many checkpoints did cover several requests."""
+    results = check_all(seeds(SCHEDULES * 3 // 5), NET, **dict(OFF, max_batch=4))
+    total = summary(results)
+    report('replication sim, group commit (max_batch 4): %d schedules, %d calls, %d failovers, %d checkpoints '
+           'covering several requests' % (total['schedules'], total['calls'], total['failovers'], total['batched']))
+    if not REPLAY and not NET and SCHEDULES >= 2500:   # what the default run must have drawn
+        assert total['batched'] > 100 and total['failovers'] > 100
+
+
 @pytest.mark.parametrize('net', ['dup', 'loss', 'loss,local'])
 def test_losses_and_duplicates_cost_progress_never_a_property(net):
     """Duplicates and losses between hosts, and the loss of any message at all, cost progress (calls

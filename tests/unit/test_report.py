@@ -310,6 +310,30 @@ def test_the_large_state_section_and_its_target_follow_the_figures(figures):
     assert not [t for t in report.targets(figures) if 'bytes between replicas' in t[0]]
 
 
+def clients_row(name, n, throughput, ratio=None):
+    return {'configuration': name, 'clients': n, 'calls': int(throughput * 4), 'throughput_per_s': throughput,
+            'latency_median_s': 0.004, 'latency_p99_s': 0.02, 'throughput_vs_direct': ratio,
+            'requests_per_checkpoint': 3.5 if ratio is not None else None}
+
+
+def test_the_concurrent_clients_section_its_target_and_its_plot_follow_the_figures(figures, tmp_path):
+    figures['clients'] = {'seconds': 4.0, 'rows': [clients_row('direct', 8, 10000.0),
+                                                   clients_row('PBR, max_batch 16', 8, 900.0, 0.09),
+                                                   clients_row('PBR, max_batch 1', 8, 300.0, 0.03)]}
+    figures['clients']['failovers'] = [{'clients': 4, 'failover_s': 0.0512, 'calls_across': 4}]
+    text = report.build(figures)
+    assert '| PBR, max_batch 16 | 8 | 900 |' in text and '| 9 % | 3.50 |' in text
+    assert '4 clients 51.2 ms' in text
+    target = [t for t in report.targets(figures) if '8 concurrent clients' in t[0]]
+    assert target and target[0][2] is False and target[0][1].startswith('9 %')
+    figures['clients']['rows'][1] = clients_row('PBR, max_batch 16', 8, 6000.0, 0.6)
+    assert [t[2] for t in report.targets(figures) if '8 concurrent clients' in t[0]] == [True]
+    assert report_plots.clients(figures, str(tmp_path / 'clients.png'))
+    del figures['clients']
+    assert not [t for t in report.targets(figures) if '8 concurrent clients' in t[0]]
+    assert report_plots.clients(figures, str(tmp_path / 'none.png')) is None
+
+
 def test_the_latency_ratio_over_runs_is_judged_9_of_10(figures):
     figures['pbr']['latency_runs'] = {'ratios': [1.1] * 9 + [1.4], 'at_most_1_3': 9}
     row = [t for t in report.targets(figures) if 'in at least 9 runs' in t[0]]

@@ -25,6 +25,7 @@ SECTIONS = [
     'The ROS master as a single point of failure',
     'Healing: the witness, re-joins, state transfer, memory',
     'Large states: bytes between replicas, whole against incremental checkpoints',
+    'Concurrent clients: group commit against one request at a time',
     'Failure detection under load: fixed timeouts against phi accrual',
     'Campaign: seeded faults against the bank, checked by its history',
     'Consistency checks',
@@ -44,6 +45,7 @@ COMMANDS = {
     'master': 'scripts/bench_master',
     'healing': 'scripts/bench_healing',
     'state': 'scripts/bench_state',
+    'clients': 'scripts/bench_clients',
     'detection': 'scripts/bench_detection',
     'campaign': 'scripts/campaign --faults N --seed S',
     'car': 'rosrun tjp_sim scenario NAME [--without MECHANISM] --json',
@@ -523,6 +525,12 @@ def targets(f):
                     'the backup ending with the same state',
                     '%.0f B%s' % (worst, '' if right else ', **the backup state differs or replies were wrong**'),
                     worst < 2048 and right))
+    eight = [r for r in get(f, 'clients.rows') or [] if r['clients'] == 8 and r['configuration'] == 'PBR, max_batch 16']
+    if eight and eight[0].get('throughput_vs_direct') is not None:
+        out.append(('8 concurrent clients: PBR throughput (group commit) >= 50 % of the same server called directly',
+                    '%.0f %% (%.0f calls/s, latency p99 %s)' % (100 * eight[0]['throughput_vs_direct'],
+                                                               eight[0]['throughput_per_s'], ms(eight[0]['latency_p99_s'], 1)),
+                    eight[0]['throughput_vs_direct'] >= 0.5))
     default = get(f, 'detection.default_rule')
     rule = get(f, 'detection.rules.%s' % default) if default else None
     if rule and rule.get('detection_median_ms') is not None:
@@ -796,6 +804,31 @@ def state_lines(f):
     return lines
 
 
+def clients_lines(f):
+    rows = get(f, 'clients.rows')
+    if not rows:
+        return [_missing(f, 'clients')]
+    lines = ['The bank under PBR, one deployment per Protocol setting (`~max_batch` 16: group commit; 1: one request '
+             'at a time, each checkpointed); N client processes call for %.0f s the primary\'s server directly, then '
+             'PBR through the Proxy; throughput against the direct calls of the same deployment:' %
+             (get(f, 'clients.seconds') or 0), '']
+    lines += table(['configuration', 'clients', 'calls/s', 'latency median', 'p99', 'vs direct', 'requests per checkpoint'],
+                   [[r['configuration'], r['clients'], '%.0f' % r['throughput_per_s'], ms(r['latency_median_s'], 2),
+                     ms(r['latency_p99_s'], 2),
+                     '%.0f %%' % (100 * r['throughput_vs_direct']) if r.get('throughput_vs_direct') is not None else '',
+                     '%.2f' % r['requests_per_checkpoint'] if r.get('requests_per_checkpoint') else '']
+                    for r in rows])
+    failovers = [x for x in get(f, 'clients.failovers') or [] if x.get('failover_s') is not None]
+    if failovers:
+        lines += ['', 'Failover against the number of clients (group commit; the primary site powered off in the '
+                  'middle of a window, a fresh deployment each): ' + ', '.join(
+                      '%d clients %s' % (x['clients'], ms(x['failover_s'], 1)) for x in failovers) +
+                  ' (the longest wait of a call across the power loss).']
+    if get(f, 'plots.clients'):
+        lines += ['', '![throughput and p99 against clients](%s)' % get(f, 'plots.clients')]
+    return lines
+
+
 def healing_lines(f):
     h = get(f, 'healing')
     if not h or 'failover' not in h:
@@ -1048,7 +1081,7 @@ def build(f):
                 (resources_lines, 'mechanisms'), (failover_lines, 'pbr'), (adaptation_lines, 'adaptation'),
                 (buffering_lines, 'buffering'), (service_manager_lines, 'service_manager'), (car_lines, 'car'),
                 (master_lines, 'master'), (healing_lines, 'healing'), (state_lines, 'state'),
-                (detection_lines, 'detection'),
+                (clients_lines, 'clients'), (detection_lines, 'detection'),
                 (campaign_lines, 'campaign'), (_consistency_lines, None), (_steps_lines, None)]
     for title, (builder, key) in zip(SECTIONS, builders):
         try:

@@ -123,7 +123,34 @@ def car(figures, path):
     return _save(fig, path)
 
 
-PLOTS = (('latency', latency), ('failover', failover), ('adaptation', adaptation), ('car', car))
+def clients(figures, path):
+    """Throughput and p99 latency against the number of concurrent clients, per configuration."""
+    rows = get(figures, 'clients.rows')
+    if not rows:
+        return None
+    counts = sorted({r['clients'] for r in rows})
+    names = sorted({r['configuration'] for r in rows}, key=lambda n: (not n.startswith('direct'), n))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    for name in names:
+        mine = sorted((r for r in rows if r['configuration'] == name), key=lambda r: r['clients'])
+        xs = [r['clients'] for r in mine]
+        ax1.plot(xs, [r['throughput_per_s'] for r in mine], marker='o', label=name)
+        ax2.plot(xs, [(r['latency_p99_s'] or 0) * 1e3 for r in mine], marker='o', label=name)
+    for ax, label in ((ax1, 'throughput (calls/s, log)'), (ax2, 'latency p99 (ms)')):
+        ax.set_xscale('log', base=2)
+        ax.set_xticks(counts)
+        ax.set_xticklabels([str(n) for n in counts])
+        ax.set_xlabel('concurrent clients')
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    ax1.set_yscale('log')
+    ax1.legend(fontsize=8)
+    ax1.set_title('Throughput')
+    ax2.set_title('Latency p99')
+    return _save(fig, path)
+
+
+PLOTS = (('latency', latency), ('failover', failover), ('adaptation', adaptation), ('car', car), ('clients', clients))
 
 
 def draw_all(figures, folder):

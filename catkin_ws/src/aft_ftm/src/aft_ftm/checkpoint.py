@@ -34,12 +34,12 @@ from .protocol import Role, check_role_change
 
 
 class Held(object):
-    """A reply waiting for the backup's acknowledgment."""
-    __slots__ = ('seq', 'reply', 'since')
+    """The replies of one checkpoint (one, or a group commit's batch), waiting for its acknowledgment."""
+    __slots__ = ('seq', 'replies', 'since')
 
-    def __init__(self, seq, reply, since):
+    def __init__(self, seq, replies, since):
         self.seq = seq
-        self.reply = reply
+        self.replies = replies
         self.since = since
 
 
@@ -78,10 +78,11 @@ class CheckpointSender(object):
     def needs_checkpoint(self):
         return self.role == Role.PRIMARY and not self.deposed
 
-    def hold(self, reply, now):
-        """Register a checkpoint for reply; returns its sequence number."""
+    def hold(self, reply, now, batch=()):
+        """Register a checkpoint for reply, and for the replies of its batch before it (group commit);
+        returns its sequence number. They are released together, in order, once it is acknowledged."""
         self.seq += 1
-        self.held[self.seq] = Held(self.seq, reply, now)
+        self.held[self.seq] = Held(self.seq, list(batch) + ([reply] if reply is not None else []), now)
         return self.seq
 
     def join(self, joiner, now):
@@ -118,7 +119,7 @@ class CheckpointSender(object):
             return [], Need.EXCLUDE
         if ok:
             self.acked += 1
-            return [held.reply], Need.NOTHING
+            return list(held.replies), Need.NOTHING
         # The backup could not apply it: it no longer mirrors us. Exclude it before going on.
         self.refused += 1
         self.held[seq] = held
@@ -142,7 +143,7 @@ class CheckpointSender(object):
         """The backup is gone: release every held reply, send no more checkpoints."""
         self._change_role(Role.ALONE)
         self.joiner = self.join_seq = self.join_since = None
-        released = [self.held[s].reply for s in sorted(self.held)]
+        released = [r for s in sorted(self.held) for r in self.held[s].replies]
         self.held.clear()
         return released
 
@@ -158,6 +159,58 @@ class CheckpointSender(object):
         if self.join_since is not None and now - self.join_since > timeout:
             return True
         return any(now - h.since > timeout for h in self.held.values())
+
+
+class BatchError(Exception):
+    """The replies of a batch did not come as the Protocol numbered them (one lost or out of order)."""
+
+
+class GroupCommit(object):
+    """Primary's After, group commit: gathers the replies of one batch (aft_ftm.protocol) until its last,
+    so that one state captured then, with the Protocol forwarding nothing meanwhile, covers them all.
+
+    ``add(reply)`` returns the replies to checkpoint together, in order, once the batch is complete (at
+    once for a reply outside any batch: ``batch`` 0), and None while more of it are executing. The
+    replies of a batch come as the Protocol numbered them, (n, n), (n-1, n), ..., (1, n) (one pipeline, one
+    connection per hop, so in order): anything else (one lost, the first included) raises BatchError, and the caller must fail-stop, since a state
+    captured then could hold a request whose reply it does not carry.
+    """
+
+    def __init__(self):
+        self.replies = []       # the batch so far (its last not there yet)
+
+    def add(self, reply):
+        left, size = tuple(getattr(reply, 'batch', None) or (0, 0))
+        if left == 0:
+            if self.replies and not is_refusal(reply):
+                raise BatchError('%s/%d was executed outside its batch while %d replies of a batch wait for '
+                                 'its last' % (reply.origin, reply.id, len(self.replies)))
+            return [reply]   # a Protocol's own refusal (never forwarded) may come in the middle of a batch
+        if not self.replies and left != size:
+            raise BatchError('%s/%d came with %d of its batch of %d left: the first %d never came' % (
+                reply.origin, reply.id, left, size, size - left))
+        if self.replies and tuple(self.replies[-1].batch) != (left + 1, size):
+            before = self.replies[-1]
+            raise BatchError('%s/%d came with %d of its batch of %d left after %s/%d with %d of %d left' % (
+                reply.origin, reply.id, left, size, before.origin, before.id, before.batch[0], before.batch[1]))
+        self.replies.append(reply)
+        if left > 1:
+            return None
+        replies, self.replies = self.replies, []
+        return replies
+
+    def flush(self):
+        """The replies gathered so far (the batch is released without a checkpoint: no backup any more)."""
+        replies, self.replies = self.replies, []
+        return replies
+
+
+def is_refusal(reply):
+    """A reply that changed nothing (aft_msgs/Reply NOT_EXECUTED): its checkpoint carries no state."""
+    return getattr(reply, 'status', 0) == NOT_EXECUTED
+
+
+NOT_EXECUTED = 2   # aft_msgs/Reply.NOT_EXECUTED (this module does not import the messages)
 
 
 class Decision(enum.Enum):

@@ -1,8 +1,12 @@
 """The Protocol of an FTM graph: duplicate detection and one request at a time.
 
 A Protocol receives requests from Proxies, answers duplicates from a reply cache,
-and hands other requests one at a time to Before (so that a state captured after a
-request reflects exactly the requests before it). In a backup replica it does not
+and hands other requests to Before one batch at a time (so that a state captured after a
+batch reflects exactly the requests of the batches before it and of this one). A batch is one
+request unless ``max_batch`` is above 1 (PBR's group commit: the requests that queued while a
+batch executed and was checkpointed go as the next batch, executed back to back, and covered by
+one checkpoint; each carries ``batch``: how many of its batch are left including itself, and the
+batch's size, so that After knows the last, and knows if one is missing). In a backup replica it does not
 execute anything: it stores the replies that checkpoints carry, so that after a
 failover re-sent requests that were already executed are answered from the cache.
 
@@ -166,18 +170,24 @@ class ProtocolStats(object):
 class ProtocolCore(object):
     """Duplicate detection and sequencing, as an explicit state machine.
 
-    Pipeline state: idle (``current is None``) or executing ``current``. Role: see Role.
-    Each method returns the list of actions (Forward, Answer) for the adapter to carry out.
+    Pipeline state: idle (``executing`` empty) or executing the batch ``executing`` (request key ->
+    request, in the order forwarded; one request unless max_batch > 1). A new batch starts only once
+    every result of the previous one came back. Role: see Role. Each method returns the list of
+    actions (Forward, Answer) for the adapter to carry out.
     """
 
-    def __init__(self, role, cache_capacity=100000, cache_bytes=0):
+    def __init__(self, role, cache_capacity=100000, cache_bytes=0, max_batch=1):
+        if max_batch < 1:
+            raise ValueError('max_batch must be at least 1, not %r' % (max_batch,))
+        self.max_batch = max_batch
         self.role = role
         self.epoch = 0              # the configuration epoch, stamped on every answer
         self.cache = DuplicateCache(cache_capacity, cache_bytes)
         self.queue = collections.deque()
         self.queued_keys = set()
-        self.current = None
+        self.executing = collections.OrderedDict()
         self.started_at = None
+        self.batches = 0            # batches forwarded (requests forwarded: stats.executed)
         self.last_stored_seq = 0
         self.stored_sender = None
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
@@ -205,7 +215,7 @@ class ProtocolCore(object):
             # definite answer, never an execution the client was told did not happen.
             self.stats.refused += 1
             return [Refuse(request, self.refused[k])]
-        if k in self.queued_keys or (self.current is not None and key(self.current) == k):
+        if k in self.queued_keys or k in self.executing:
             # A re-send of a request not answered yet: its reply will answer both.
             self.stats.joined += 1
             return []
@@ -221,14 +231,15 @@ class ProtocolCore(object):
         return self._dispatch(now)
 
     def on_result(self, reply, now):
-        """The result of the executing request came back from After."""
-        current = self.current
-        if current is None or key(current) != key(reply):
+        """The result of an executing request came back from After (the next batch starts once the
+        whole batch's results did)."""
+        if self.executing.pop(key(reply), None) is None:
             self.stats.stray_results += 1
             return []
         self.epoch = max(self.epoch, getattr(reply, 'epoch', 0))
         self.cache.store(reply)
-        self.current = None
+        if self.executing:
+            return [self._answer(reply)]
         self.started_at = None
         return [self._answer(reply)] + self._dispatch(now)
 
@@ -236,7 +247,7 @@ class ProtocolCore(object):
         """A refusal came back from After: this Protocol's own (the backup holds it now, so a copy sent
         to it after a failover gets the same answer), or an inner mechanism's refusal of the executing
         request. It is the request's outcome: kept and answered."""
-        if self.current is not None and key(self.current) == key(reply):
+        if key(reply) in self.executing:
             return self.on_result(reply, now)
         self.epoch = max(self.epoch, getattr(reply, 'epoch', 0))
         self.cache.store(reply)
@@ -266,10 +277,16 @@ class ProtocolCore(object):
         self.on_stored(None, seq, sender)
 
     def overdue(self, now, timeout):
-        """The executing request if it has been executing for longer than timeout, else None."""
-        if self.current is not None and now - self.started_at > timeout:
-            return self.current
+        """The first executing request whose result has not come back if its batch has been executing
+        for longer than timeout, else None."""
+        if self.executing and now - self.started_at > timeout:
+            return next(iter(self.executing.values()))
         return None
+
+    @property
+    def current(self):
+        """The first executing request whose result has not come back, or None when idle."""
+        return next(iter(self.executing.values())) if self.executing else None
 
     # -- role -------------------------------------------------------------------
     def can_take_over(self, last_seq):
@@ -338,7 +355,9 @@ class ProtocolCore(object):
 
     def _dispatch(self, now):
         actions = []
-        while self.role != Role.BACKUP and self.current is None and self.queue:
+        if self.role == Role.BACKUP or self.executing:
+            return actions
+        while self.queue and len(self.executing) < self.max_batch:
             request = self.queue.popleft()
             k = key(request)
             self.queued_keys.discard(k)
@@ -351,8 +370,14 @@ class ProtocolCore(object):
             if self.cache.full():   # queued while a backup: refused now, by the replica that serves
                 actions.append(self._refuse(request))
                 continue
-            self.current = request
-            self.started_at = now
+            self.executing[k] = request
             self.stats.executed += 1
             actions.append(Forward(request))
+        if self.executing:
+            self.started_at = now
+            self.batches += 1
+            if self.max_batch > 1:   # else 0: the messages as they were before group commit
+                batch = [a.request for a in actions if isinstance(a, Forward)]
+                for i, request in enumerate(batch):
+                    request.batch = (len(batch) - i, len(batch))
         return actions

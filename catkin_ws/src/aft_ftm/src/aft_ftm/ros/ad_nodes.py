@@ -20,7 +20,7 @@ def _app_request(request):
 
 def _error(msg, detail):
     return Reply(id=msg.id, origin=msg.origin, client=msg.client, oldest_pending=msg.oldest_pending,
-                 attempt=msg.attempt, status=Reply.ERROR, error=detail)
+                 attempt=msg.attempt, batch=msg.batch, status=Reply.ERROR, error=detail)
 
 
 class AdBeforeNode(BeforeNode):

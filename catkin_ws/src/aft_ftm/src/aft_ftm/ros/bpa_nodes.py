@@ -183,7 +183,7 @@ class ProceedNode(StageNode):
 
     def handle(self, request):
         reply = Reply(id=request.id, origin=request.origin, client=request.client,
-                      oldest_pending=request.oldest_pending, attempt=request.attempt)
+                      oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch)
         with self._lock:
             if self.failed:
                 return None   # fail-stopped: the next primary executes it

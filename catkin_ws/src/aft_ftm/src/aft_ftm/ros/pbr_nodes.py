@@ -4,12 +4,13 @@ import threading
 import time
 
 import rospy
-from aft_msgs.msg import Checkpoint, CheckpointAck, Join, Reply
+from aft_msgs.msg import Checkpoint, CheckpointAck, Join
 from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
 from .. import config, health
-from ..checkpoint import HARMLESS, CheckpointReceiver, CheckpointSender, Decision, Follow, Need
+from ..checkpoint import (HARMLESS, BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow,
+                          GroupCommit, Need, is_refusal)
 from ..delta import DeltaDecoder, DeltaEncoder, DeltaError
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -155,6 +156,7 @@ class PbrAfterNode(AfterNode):
         if self.receiver is not None and self.peer:
             self.receiver.expect = '/%s/' % self.peer
         self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
+        self.group = GroupCommit()  # primary: the replies of a batch until its last (the Protocol's ~max_batch)
         self.incremental = param('incremental', config.flag, True)
         self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
         self.decoder = DeltaDecoder()
@@ -237,9 +239,9 @@ class PbrAfterNode(AfterNode):
 
     # -- suspension (adaptation) ---------------------------------------------------
     def quiescent(self):
-        """Primary: every checkpoint acknowledged (no reply held)."""
+        """Primary: every checkpoint acknowledged (no reply held), no batch gathering."""
         with self.lock:
-            return self.sender is None or not self.sender.held
+            return self.sender is None or not (self.sender.held or self.group.replies)
 
     def before_suspend(self):
         """Backup: apply the newest checkpointed state now, so a replacement After (or another
@@ -271,30 +273,41 @@ class PbrAfterNode(AfterNode):
             reply.epoch = self.sender.epoch
             self._remember(reply)
             if not self.sender.needs_checkpoint():
+                # Alone: nothing to checkpoint; a batch gathered while there was a backup goes out with it.
+                self._release(self.group.flush())
                 return reply
-            if reply.status == Reply.NOT_EXECUTED:
-                # A refusal changes no state (and the state may already hold the request executing now,
-                # its reply not here yet): the checkpoint carries the refusal alone, so that the backup
-                # answers a copy of the request the same way.
-                seq = self.sender.hold(reply, time.monotonic())
-                self.ports.publish('checkpoints', Checkpoint(
-                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
-                    epoch=self.sender.epoch))
-                return None
-            state, error = self._capture()
-            if state is None:
-                # The request ran but cannot be checkpointed: replying would leave the backup behind.
-                # Fail-stop: this site falls silent, the backup takes over and executes the request
-                # that the Proxy re-sends.
-                self.sender.depose('cannot capture the server state')
-                problem = 'cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error)
+            try:
+                replies = self.group.add(reply)
+            except BatchError as e:
+                self.sender.depose('group commit broken: %s' % e)
+                problem = 'group commit broken: %s' % e
+                replies = None
             else:
-                seq = self.sender.hold(reply, time.monotonic())
-                payload, delta = self.encoder.next(state) if self.incremental else (state, False)
-                self.ports.publish('checkpoints', Checkpoint(
-                    seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, reply=reply,
-                    state=payload, delta=delta, epoch=self.sender.epoch))
-                return None
+                if replies is None:
+                    return None   # more of its batch are executing: one checkpoint covers them all
+                if all(is_refusal(r) for r in replies):
+                    # A refusal changes no state (and the state may already hold the request executing now,
+                    # its reply not here yet): the checkpoint carries the refusal alone, so that the backup
+                    # answers a copy of the request the same way.
+                    seq = self.sender.hold(replies[-1], time.monotonic(), replies[:-1])
+                    self.ports.publish('checkpoints', Checkpoint(
+                        seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
+                        reply=replies[-1], batch=replies[:-1], epoch=self.sender.epoch))
+                    return None
+                state, error = self._capture()
+                if state is None:
+                    # The requests ran but cannot be checkpointed: replying would leave the backup behind.
+                    # Fail-stop: this site falls silent, the backup takes over and executes the requests
+                    # that the Proxies re-send.
+                    self.sender.depose('cannot capture the server state')
+                    problem = 'cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error)
+                else:
+                    seq = self.sender.hold(replies[-1], time.monotonic(), replies[:-1])
+                    payload, delta = self.encoder.next(state) if self.incremental else (state, False)
+                    self.ports.publish('checkpoints', Checkpoint(
+                        seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
+                        reply=replies[-1], batch=replies[:-1], state=payload, delta=delta, epoch=self.sender.epoch))
+                    return None
         self.side.fail_stop(problem)
         return None
 
@@ -478,7 +491,7 @@ class PbrAfterNode(AfterNode):
                          if self.receiver is not None and self.receiver.invalid else ''))
             state = None
             if decision == Decision.APPLY_FULL or decision == Decision.APPLY \
-                    and cp.reply.status != Reply.NOT_EXECUTED:   # a refusal carries no state
+                    and not all(is_refusal(r) for r in list(cp.batch) + [cp.reply]):   # refusals carry no state
                 try:
                     state = self.decoder.state(cp.state, cp.delta)
                 except DeltaError as e:
@@ -507,8 +520,10 @@ class PbrAfterNode(AfterNode):
             self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=not error, error=error, epoch=epoch,
                                                           to=cp.sender))
             if decision == Decision.APPLY:
-                self._remember(cp.reply)
-                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, reply=cp.reply, epoch=cp.epoch))
+                for reply in list(cp.batch) + [cp.reply]:
+                    self._remember(reply)
+                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, reply=cp.reply, batch=cp.batch,
+                                                        epoch=cp.epoch))
             elif decision == Decision.APPLY_FULL:
                 for reply in cp.cache:
                     self._remember(reply)

@@ -22,8 +22,9 @@ ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
 
 
 class ProtocolNode(object):
-    """Answers duplicate requests from its reply cache and hands the others, one at a time,
-    to Before. As a backup it executes nothing and stores the replies checkpoints carry.
+    """Answers duplicate requests from its reply cache and hands the others, one at a time (or one
+    batch at a time, ~max_batch), to Before. As a backup it executes nothing and stores the replies
+    checkpoints carry.
 
     Parameters:
         ~role (primary | backup | alone, default primary): a backup starts with ``requests`` unbound; a
@@ -43,6 +44,10 @@ class ProtocolNode(object):
             reply cache full) is answered through After, which replicates the refusal to the backup like
             a result, so that a copy of the request sent after a failover gets the same answer and is
             never executed. A backup refuses nothing (the request waits for a promotion).
+        ~max_batch (int, 1): group commit (PBR): the requests queued while a batch executes go as the next
+            batch, up to this many, back to back, each numbered (aft_msgs/Request ``batch``) so that PBR's
+            After checkpoints the batch once, after its last. 1: one request at a time, as every other
+            mechanism needs (LFR's Before and After take one request at a time).
         ~listen_as_backup (bool, false): bind ``requests`` even as a backup (queued, not executed,
             until promoted): for a Protocol behind an entry node (a SEC gate, which Recovery binds).
         ~bind_input (bool, true): false starts with ``requests`` unbound, whatever the role (a
@@ -74,7 +79,8 @@ class ProtocolNode(object):
         self.listen_as_backup = param('listen_as_backup', config.flag, False)
         self.bind_input = param('bind_input', config.flag, True)
         self.replicate_refusals = param('replicate_refusals', config.flag, False)
-        self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes)
+        max_batch = param('max_batch', config.positive_int, 1)
+        self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes, max_batch)
         self.hung = None   # the request whose outcome is unknown, once one is
         self.site_role = SiteRole(self.site)
         self.lock = threading.Condition()
@@ -141,7 +147,8 @@ class ProtocolNode(object):
     def _refuse(self, action):
         r = action.request
         refusal = Reply(id=r.id, origin=r.origin, client=r.client, oldest_pending=r.oldest_pending,
-                        attempt=r.attempt, status=Reply.NOT_EXECUTED, error=action.reason, epoch=self.core.epoch)
+                        attempt=r.attempt, batch=r.batch, status=Reply.NOT_EXECUTED, error=action.reason,
+                        epoch=self.core.epoch)
         if not self.replicate_refusals:
             self.ports.publish('replies', refusal)
         elif self.core.role != Role.BACKUP:
@@ -180,8 +187,9 @@ class ProtocolNode(object):
         with self.lock:
             if checkpoint.full:
                 self.core.on_state_transfer(checkpoint.cache, checkpoint.seq, checkpoint.sender)
-            else:
-                self.core.on_stored(checkpoint.reply, checkpoint.seq, checkpoint.sender)
+            else:   # a group commit's batch, then its last reply
+                for reply in list(checkpoint.batch) + [checkpoint.reply]:
+                    self.core.on_stored(reply, checkpoint.seq, checkpoint.sender)
             self.core.epoch = max(self.core.epoch, checkpoint.epoch)
             self.lock.notify_all()
 

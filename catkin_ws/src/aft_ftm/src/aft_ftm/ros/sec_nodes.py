@@ -355,7 +355,8 @@ class SecGateNode(object):
             return
         out = Request(id=request.id, origin=request.origin, client=request.client,
                       service_type=request.service_type, oldest_pending=request.oldest_pending,
-                      attempt=request.attempt, payload=payload, epoch=request.epoch, transfer=request.transfer)
+                      attempt=request.attempt, payload=payload, epoch=request.epoch, transfer=request.transfer,
+                      batch=request.batch)
         if self.side == 'client':
             with self.lock:
                 self.sent[(request.origin, request.id)] = out
@@ -399,7 +400,7 @@ class SecGateNode(object):
                 self.sent.pop((reply.origin, reply.id), None)
         self.ports.publish('replies_out', Reply(id=reply.id, origin=reply.origin, client=reply.client,
                                                 oldest_pending=reply.oldest_pending, attempt=reply.attempt,
-                                                status=reply.status, error=reply.error, payload=payload,
+                                                batch=reply.batch, status=reply.status, error=reply.error, payload=payload,
                                                 epoch=reply.epoch))
 
 

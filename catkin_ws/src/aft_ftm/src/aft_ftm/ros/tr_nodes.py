@@ -32,7 +32,7 @@ def execution(request, k):
     """A copy of request numbered as its k-th execution."""
     return Request(id=request.id, origin=request.origin, client=request.client,
                    service_type=request.service_type, oldest_pending=request.oldest_pending,
-                   attempt=request.attempt * SPAN + k, payload=request.payload)
+                   attempt=request.attempt * SPAN + k, payload=request.payload, batch=request.batch)
 
 
 class TrBeforeNode(BeforeNode):
@@ -184,7 +184,7 @@ class TrBeforeNode(BeforeNode):
         """Answer request "not executed" (its state could not be saved, nothing ran): the client may retry."""
         self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
                                            oldest_pending=request.oldest_pending, attempt=request.attempt,
-                                           status=Reply.ERROR,
+                                           batch=request.batch, status=Reply.ERROR,
                                            error='not executed: time redundancy cannot save the server state: %s'
                                            % why))
         return None
@@ -321,4 +321,5 @@ class TrAfterNode(AfterNode):
     @staticmethod
     def _error(reply, detail):
         return Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
-                     attempt=reply.attempt, status=Reply.ERROR, error='time redundancy: %s' % detail)
+                     attempt=reply.attempt, batch=reply.batch, status=Reply.ERROR,
+                     error='time redundancy: %s' % detail)
