@@ -413,7 +413,7 @@ def test_a_copy_of_a_request_of_the_executing_batch_is_joined_and_a_stray_result
     core.on_result(reply(rid=1), 0)                      # 2 and 3 execute as one batch
     assert core.on_request(request(rid=3), 1) == [] and core.stats.joined == 1
     assert core.on_result(reply(rid=9), 1) == [] and core.stats.stray_results == 1
-    assert core.current.id == 2 and core.overdue(31, 30).id == 2 and core.overdue(30, 30) is None
+    assert core.current.id == 2 and core.overdue(61, 30).id == 2 and core.overdue(60, 30) is None   # 2 executing
 
 
 def test_one_at_a_time_requests_carry_no_batch_number():
@@ -425,3 +425,16 @@ def test_one_at_a_time_requests_carry_no_batch_number():
 def test_max_batch_below_1_is_refused():
     with pytest.raises(ValueError):
         ProtocolCore(Role.PRIMARY, max_batch=0)
+
+
+def test_a_batch_is_overdue_after_the_timeout_per_request_still_executing_counted_from_its_last_result():
+    # A batch's results come together, after its checkpoint: 4 requests of 2 s each within a 5 s bound
+    # must not look hung at 5 s (review: a healthy primary was fail-stopped by the 30 s backstop).
+    core = ProtocolCore(Role.ALONE, max_batch=4)
+    core.on_request(request(rid=0), 0)
+    for rid in (1, 2, 3, 4):
+        core.on_request(request(rid=rid), 0)
+    core.on_result(reply(rid=0), 0)                      # 1-4 execute as one batch from t=0
+    assert core.overdue(19.9, 5) is None and core.overdue(20.1, 5).id == 1
+    core.on_result(reply(rid=1), 12)                     # progress: 3 left, 15 s from t=12
+    assert core.overdue(26.9, 5) is None and core.overdue(27.1, 5).id == 2

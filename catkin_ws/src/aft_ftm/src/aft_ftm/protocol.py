@@ -239,6 +239,7 @@ class ProtocolCore(object):
         self.epoch = max(self.epoch, getattr(reply, 'epoch', 0))
         self.cache.store(reply)
         if self.executing:
+            self.started_at = now   # the batch progresses: the rest of it has its own time again
             return [self._answer(reply)]
         self.started_at = None
         return [self._answer(reply)] + self._dispatch(now)
@@ -277,9 +278,10 @@ class ProtocolCore(object):
         self.on_stored(None, seq, sender)
 
     def overdue(self, now, timeout):
-        """The first executing request whose result has not come back if its batch has been executing
-        for longer than timeout, else None."""
-        if self.executing and now - self.started_at > timeout:
+        """The first executing request whose result has not come back if no result of its batch came for
+        longer than timeout per request still executing (a batch's results come together, once its
+        checkpoint is acknowledged: its requests run one after the other, each bounded), else None."""
+        if self.executing and now - self.started_at > timeout * len(self.executing):
             return next(iter(self.executing.values()))
         return None
 

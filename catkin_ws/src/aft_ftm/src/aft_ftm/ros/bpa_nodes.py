@@ -61,7 +61,8 @@ class StageNode(object):
         # is published before a subscriber connected, so a stage that took input earlier could lose a
         # request for good (campaign --adapt, seed 15, segment 13: a relaunched follower's TR After
         # published a decided reply before its Protocol's connection came, and the pair never healed).
-        # Chained stage by stage, a Protocol whose to_before is connected has its whole pipeline connected.
+        # Chained stage by stage, a Protocol whose to_before is connected has its whole pipeline connected
+        # (up to a nested Protocol standing in for a Proceed, which takes requests once its own pipeline is).
         deadline = time.monotonic() + timeout
         self.ports.bind('out', self.OUT_TOPIC)
         missing = wait_for_connections(self.ports, ['out'], timeout)
@@ -71,9 +72,14 @@ class StageNode(object):
         if missing:
             rospy.logerr('%s: ports %s not connected within %.1f s', self.name, missing, timeout)
             return False
+        self.connected()
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._report)
         return True
+
+    def connected(self):
+        """Called once the pipeline is connected, before ~rebind and ~suspend are offered (which tell an
+        adaptation that this node is ready): a subclass binds here what must not be heard earlier."""
 
     def health(self):
         """This node's health (an aft_ftm.health.Report); subclasses with state say more."""

@@ -64,11 +64,12 @@ class LfrBeforeNode(BeforeNode):
         # Offered first: the LFR After waits for it before it takes input, and this Before's pipeline
         # connects only once the After does (see StageNode.setup).
         rospy.Service('~set_role', SetRole, self._on_set_role)
-        if not super(LfrBeforeNode, self).setup(timeout):
-            return False
-        # The leader's forwards are taken only once this Before's own pipeline is connected (see StageNode).
+        return super(LfrBeforeNode, self).setup(timeout)
+
+    def connected(self):
+        # The leader's forwards are taken only once this Before's own pipeline is connected (see StageNode),
+        # and before ~rebind is offered: an adaptation resumes the Protocols once it sees it.
         self.ports.bind('forwarded', 'peer_forward')
-        return True
 
     def handle(self, request):
         with self.lock:
