@@ -209,6 +209,8 @@ def test_a_fault_whose_role_no_site_plays_now_is_not_injected_rather_than_a_cras
     from aft_examples.ros import campaign
     monkeypatch.setattr(campaign, 'witness_status',
                         lambda *a, **k: types.SimpleNamespace(epoch=7, primary='master', backup=''))
+    # The pair was seen whole (the backup excluded just after: heal first is the next test's).
+    monkeypatch.setattr(campaign, 'whole', lambda deployment: None)
     touched = []
 
     class Deployment(object):
@@ -231,3 +233,30 @@ def test_a_fault_whose_role_no_site_plays_now_is_not_injected_rather_than_a_cras
         assert record['outcome'] == 'not_injected', record
         assert "no site is the backup now (witness: epoch 7, primary 'master', backup '')" in record['what']
     assert not touched
+
+
+def test_a_pair_not_whole_when_a_fault_comes_is_healed_before_it_and_never_hit_twice(monkeypatch):
+    """Test campaign seed 26369: a freeze of the backup absorbed, its exclusion came after the heal had
+    looked; a kill of the lone primary's Proceed 0.2 s later lost the only state. A fault now comes
+    only once the pair is whole again; one that cannot be healed ends the segment, not injected."""
+    import types
+    from aft_examples import schedule
+    from aft_examples.ros import campaign
+    healed = []
+    monkeypatch.setattr(campaign, 'whole', lambda deployment: 'the pair is not whole')
+    monkeypatch.setattr(campaign, 'witness_status',
+                        lambda *a, **k: types.SimpleNamespace(epoch=9, primary='slave', backup=''))
+    monkeypatch.setattr(campaign, 'heal', lambda *a, **k: healed.append(a) or ([], 'still not whole'))
+
+    class Backend(campaign.ProcessBackend):
+        def inject(self, *args):
+            raise AssertionError('a fault was injected into a pair that is not whole')
+
+    class Deployment(object):
+        def shape(self):
+            return 'pbr'
+    segment = campaign.Segment([], '/nonexistent', Backend(), log=lambda *a: None)
+    fault = schedule.Fault(index=6, segment=0, mechanism='pbr', kind='kill', target='primary/proceed', duration=0.0,
+                           gap=0.0)
+    record = segment._one(fault, Deployment(), random.Random(1))
+    assert len(healed) == 1 and record['outcome'] == 'unhealed: still not whole', record
