@@ -126,12 +126,12 @@ def test_every_adaptation_names_the_nodes_running_then_whatever_came_before(seed
             graph = {n for n in graph if not n.startswith('/%s/' % backup)} | launched_graph(backup, args['inner'])
             continue
         fault = Fault(index, 0, 'pbr', 'adapt', step, 0.0, 0.0)
-        if step == 'update' and deployment.mechanism == 'lfr':
-            with pytest.raises(CampaignError, match='PBR After; the pair runs lfr'):
-                adaptation_plan(fault, deployment, primary, backup)
-            continue
         plan = adaptation_plan(fault, deployment, primary, backup)
         script = load(plan)
+        if step == 'update':   # PBR or LFR: the new After of the mechanism that runs, beside the Before that runs
+            launched = dict(script.launch[0].args)
+            assert launched['mechanism'] == deployment.mechanism, (seed, index)
+            assert '/%s/%s' % (primary, launched['before']) == deployment.node(primary, 'before'), (seed, index)
         touched = set(script.suspend) | set(script.retire) | {b.node for b in script.bind if not b.topic}
         assert touched <= graph, 'seed %d step %d %s: not running: %s' % (seed, index, plan.what, touched - graph)
         graph = (graph - set(script.retire)) | new_nodes(script)

@@ -337,7 +337,7 @@ class ProcessBackend(FaultBackend):
 class AdaptingBackend(ProcessBackend):
     """The faults of one host, plus adaptations of adaptable sites by the adaptation engine
     (aft_ftm.ros.adaptation_engine), under load, in the prepared order:
-    - update: the primary's After replaced by a new version (update_after.yaml; PBR only);
+    - update: the primary's After (PBR, or LFR leader's) replaced by a new version (update_after.yaml);
     - switch: PBR <-> LFR on both replicas (switch.yaml);
     - compose: TR stands in for each replica's Proceed (compose.yaml), or, where it already does, a
       plain Proceed again (decompose.yaml).
@@ -396,19 +396,18 @@ class Plan(object):
 
 def adaptation_plan(fault, deployment, primary, backup):
     """The adaptation fault (target update, switch or compose) stands for, given what the pair runs
-    now (deployment.mechanism, .inner, .suffix). Raises CampaignError where it does not apply (an
-    update of an LFR pair). No ROS."""
+    now (deployment.mechanism, .inner, .suffix). Raises CampaignError for an adaptation not offered. No ROS."""
     index, suffix = fault.index, deployment.suffix
     if fault.target == 'update':
-        if deployment.mechanism != 'pbr':
-            raise CampaignError('fault %d: the update replaces a PBR After; the pair runs %s now'
-                                % (index, deployment.shape()))
         old, new = suffix.get((primary, 'after'), ''), '_v%d' % (index + 2)
 
         def apply(d):
             d.suffix[(primary, 'after')] = new
-        return Plan('update_after', ['site:=%s' % primary, 'peer:=%s' % backup, 'old:=%s' % old, 'new:=%s' % new],
-                    'update of %s/after%s to after%s' % (primary, old, new), apply)
+        # An LFR leader's new After drives the Before that runs (it did not start one of its own).
+        before = 'before%s' % suffix.get((primary, 'before'), '')
+        return Plan('update_after', ['site:=%s' % primary, 'peer:=%s' % backup, 'old:=%s' % old, 'new:=%s' % new,
+                                     'mechanism:=%s' % deployment.mechanism, 'before:=%s' % before],
+                    'update of %s/after%s to after%s (%s)' % (primary, old, new, deployment.mechanism), apply)
     if fault.target == 'switch':
         to = 'lfr' if deployment.mechanism == 'pbr' else 'pbr'
         new = '_%s%d' % (to, index)

@@ -84,6 +84,25 @@ def owners_of_process(pid):
     return [owner] if owner is not None else []
 
 
+
+def wait_for_service(name, timeout):
+    """Wait until the service answers a probe: None once it does, else why not (no provider registered
+    with the master, or the registered provider not answering). The deadline is on the monotonic clock:
+    rospy.wait_for_service counts on the wall clock, and gives up at once when it jumps forward."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            rospy.wait_for_service(name, max(0.05, min(1.0, deadline - time.monotonic())))
+            return None
+        except rospy.ROSException:
+            time.sleep(0.02)   # a wall clock that jumped makes rospy give up at once: no busy loop
+        if time.monotonic() >= deadline:
+            try:
+                uri = rosgraph.Master(rospy.get_name()).lookupService(name)
+            except Exception as e:   # rosgraph.MasterError: no provider; OSError: no master
+                return 'no provider registered with the ROS master (%s)' % e
+            return 'its provider %s does not answer' % uri
+
 class LeaseKeeper(object):
     """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds,
     from a thread of its own (with service connections of its own: rospy's are not shared
@@ -496,10 +515,9 @@ class Engine(object):
     def _proxy(self, name, cls):
         proxy = self._proxies.get(name)
         if proxy is None:
-            try:
-                rospy.wait_for_service(name, self.service_timeout)
-            except rospy.ROSException:
-                raise StepError('service %s is not available' % name)
+            why = wait_for_service(name, self.service_timeout)
+            if why:
+                raise StepError('service %s is not available within %.1f s: %s' % (name, self.service_timeout, why))
             proxy = self._proxies[name] = rospy.ServiceProxy(name, cls, persistent=True)
         return proxy
 

@@ -323,11 +323,12 @@ class LfrAfterNode(AfterNode):
                 return
         why = 'the follower did not compute a request for %.1f s' % self.ack_timeout
         if self.witness is None:
-            rospy.logerr('%s: %s: going on ALONE', self.name, why)
             with self.lock:
                 released = self.core.go_alone(why=why)
             for reply in released:
                 self.ports.publish('out', reply)
+            # A degraded state is never silent, with or without a witness.
+            self.side.tell('alone', '%s goes on ALONE, no witness (%s)' % (self.site or self.name, why))
             return
         self.side.alone(self._exclude, why)
 
@@ -516,6 +517,7 @@ class LfrAfterNode(AfterNode):
                     # The results of every forwarded request Before passed on (fenced now) are needed.
                     return SetRoleResponse(success=False, message='computed %d of the %d forwarded requests'
                                            % (core.computed, req.last_seq))
+                leading = core.role == Role.PRIMARY
                 released, kept = core.set_role(role, req.epoch, req.initial)
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
@@ -524,5 +526,8 @@ class LfrAfterNode(AfterNode):
             return SetRoleResponse(success=True, message=kept, last_seq=last_seq)
         for reply in released:
             self.ports.publish('out', reply)
+        if leading and role == Role.ALONE:   # Recovery's order after the follower failed: never silent
+            self.side.tell('alone', '%s goes on ALONE at epoch %d: its follower failed%s' % (
+                self.site or self.name, req.epoch, ' and the witness excluded it' if self.witness else ''))
         rospy.loginfo('%s: role is now %s (epoch %d)', self.name, role.name, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)
