@@ -1,4 +1,4 @@
-"""A short campaign (issue 15): scripts/campaign with 24 faults (two segments of 12; AFT_CAMPAIGN_FAULTS) on the PBR and LFR bank, two
+"""A short campaign (issue 15): scripts/campaign with 20 faults (two segments of 10; AFT_CAMPAIGN_FAULTS) on the PBR and LFR bank, two
 client processes each through its own Proxy, every fault healed before the next; the history checker
 must find no violation. The sites are adaptable (`--adapt`): the adaptations are drawn among the faults (each
 about once per 39: an update of the primary's After, a PBR <-> LFR switch, TR composed into each replica's
@@ -23,7 +23,7 @@ from leftovers import kill_tagged
 from reporting import report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 24))
+FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 20))
 
 
 def test_a_short_campaign_finds_no_violation():

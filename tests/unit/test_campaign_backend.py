@@ -260,3 +260,36 @@ def test_a_pair_not_whole_when_a_fault_comes_is_healed_before_it_and_never_hit_t
                            gap=0.0)
     record = segment._one(fault, Deployment(), random.Random(1))
     assert len(healed) == 1 and record['outcome'] == 'unhealed: still not whole', record
+
+
+def test_heal_powers_off_no_site_while_the_witness_cannot_be_asked(monkeypatch):
+    """Seed 15, segment 20: the ROS master did not answer in a 10 s stall; heal read 'nobody is primary'
+    from that silence and powered off the fail-stopped site the witness named primary (with the only
+    state). While witness_status() is None, heal judges nothing; once it answers, it acts on what it says."""
+    import types
+    from aft_examples.ros import campaign
+    answers = [None] * 5 + [types.SimpleNamespace(epoch=11, primary='slave', backup='')] * 3
+    monkeypatch.setattr(campaign, 'SETTLE', 0.0)
+    monkeypatch.setattr(campaign.time, 'sleep', lambda s: None)
+    monkeypatch.setattr(campaign, 'witness_status', lambda: answers.pop(0) if len(answers) > 1 else answers[0])
+    monkeypatch.setattr(campaign, 'whole', lambda deployment: None if not answers[:-1] else 'not whole')
+    powered_off = []
+
+    class Site(object):
+        def __init__(self, name):
+            self.name = name
+
+        def alive(self):
+            return True
+
+        def power_off(self):
+            powered_off.append((self.name, len(answers)))
+
+    class Deployment(object):
+        sites = {'master': Site('master'), 'slave': Site('slave')}
+    monkeypatch.setattr(campaign, '_down', lambda site: False)
+    fail_stopped = {'master': 10.0, 'slave': 10.0}   # both said they fail-stopped
+    campaign.heal(Deployment(), log=lambda *a: None, fail_stopped=fail_stopped)
+    # Nothing while the witness was unknown; then master only (slave is the witness's primary).
+    assert powered_off and all(name == 'master' for name, _ in powered_off), powered_off
+    assert all(left <= 3 for _, left in powered_off), powered_off

@@ -1,4 +1,5 @@
-"""The adaptation engine's wait for a service: on the monotonic clock, and saying why it failed."""
+"""Services waited for or asked with care: the adaptation engine's wait (monotonic clock, why it failed), and
+a replica node's question to its crash detector before a hang fail-stops its site."""
 import rospy
 
 from aft_ftm.ros import adaptation_engine
@@ -37,3 +38,54 @@ def test_a_service_that_never_answers_is_waited_for_in_short_probes_then_said_wh
 def test_a_service_that_answers_is_no_problem(monkeypatch):
     monkeypatch.setattr(adaptation_engine.rospy, 'wait_for_service', lambda name, timeout: None)
     assert adaptation_engine.wait_for_service('/x', 5.0) is None
+
+
+# -- a replica node asks its site's crash detector about the peer (aft_ftm.ros.peer_check) ----------
+
+def test_the_peer_check_tells_alive_failed_unknown_and_no_detector_apart(monkeypatch):
+    import types
+    from aft_ftm.ros import peer_check
+    from aft_ftm.ros.deadline import CallTimeout
+    check = peer_check.PeerCheck('master')
+    assert check.service == '/master/crash_detector/peer_status'
+    registered = {'value': True}
+
+    class Master(object):
+        def __init__(self, caller):
+            pass
+
+        def lookupService(self, name):
+            if not registered['value']:
+                raise peer_check.rosgraph.MasterError('no provider')
+            return 'rosrpc://127.0.0.1:1'
+    monkeypatch.setattr(peer_check.rosgraph, 'Master', Master)
+    fresh = []
+    check.proxy = types.SimpleNamespace(fresh=lambda: fresh.append(1) or check.proxy)
+
+    def answering(alive, why):
+        return lambda function, timeout: types.SimpleNamespace(alive=alive, why=why)
+    check.deadline = types.SimpleNamespace(call=answering(True, 'site slave: heard 3.0 ms ago'))
+    assert check.alive() is True and check.why == 'site slave: heard 3.0 ms ago'
+    check.deadline = types.SimpleNamespace(call=answering(False, 'site slave: declared failed'))
+    assert check.alive() is False
+
+    def frozen(function, timeout):
+        raise CallTimeout('no answer within 0.500 s')
+    check.deadline = types.SimpleNamespace(call=frozen)
+    assert check.alive() is None and 'did not answer' in check.why
+
+    def refused(function, timeout):
+        raise rospy.ServiceException('unable to connect')
+    check.deadline = types.SimpleNamespace(call=refused)
+    assert check.alive() is None and 'cannot be asked' in check.why   # registered, but not answering
+    registered['value'] = False
+    assert check.alive() is True and 'no crash detector offers' in check.why   # a launch without one
+    assert len(fresh) == 3   # every failed call gets a new connection next time
+
+
+def test_a_hang_rule_outside_a_replica_asks_nobody_and_waits():
+    from aft_ftm.recovery import OnHang
+    from aft_ftm.ros.peer_check import HangRule
+    rule = HangRule('')
+    assert rule.peer is None and rule.on_hang() == OnHang.WAIT
+    assert rule.why_wait() == 'not in a replica: nobody else can execute it'

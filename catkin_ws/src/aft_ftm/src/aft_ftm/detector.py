@@ -157,6 +157,20 @@ class HeartbeatMonitor(object):
                                % self.startup_grace, silence, None)
         return None
 
+    def can_take_over(self, now, within):
+        """(alive, why): may the peer take over now? Only if it was heard within ``within`` seconds of real
+        time, and is neither declared failed nor announcing its fail-stop. This detector's own stalls are
+        not excused here, unlike in the verdict: a node that asks stays with its site when unsure, and
+        asks again (aft_ftm.recovery.SiteRole.on_hang)."""
+        if self.state == PeerState.FAILED or self.announcement is not None:
+            return False, 'declared failed'
+        if self.state == PeerState.UNKNOWN:
+            return False, 'never heard'
+        silence = now - self.last_heard
+        if silence > within:
+            return False, 'silent for %.1f ms' % (silence * 1e3)
+        return True, 'heard %.1f ms ago' % (silence * 1e3)
+
     def _change(self, state):
         """The one place the peer's state changes; an edge not in EDGES is a bug."""
         if (self.state, state) not in EDGES:

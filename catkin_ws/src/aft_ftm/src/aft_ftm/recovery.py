@@ -115,6 +115,13 @@ class SiteRole(object):
     answer instead, with an alarm. A site in no replica (``site`` empty) always waits (there is
     nobody to fail over to); a site with no configuration heard (no witness) keeps fail-stop, as
     before the witness: its peer is assumed to be there.
+
+    A configuration that still names a backup is not enough: the backup may have failed a moment
+    before, the witness not told yet (campaign seed 15, segment 20: the backup's server killed, the
+    machine stalled 10 s, then the primary's server call timed out; the primary fail-stopped, and
+    both copies of the state were gone). So the site's crash detector is asked too (``peer_alive``:
+    True, False, or None when it does not answer): only a peer heard alive now may take over. When
+    unsure the node waits, and asks again while it waits (:meth:`on_hang` again).
     """
 
     def __init__(self, site):
@@ -129,7 +136,22 @@ class SiteRole(object):
     def alone(self):
         return self.role == Role.ALONE
 
-    def on_hang(self):
+    def on_hang(self, peer_alive=None):
+        """What a hang of the server does now. peer_alive: a function answering whether the peer may
+        take over (True, False, None: unknown), called only when the configuration leaves it to the peer;
+        None: no detector to ask (the peer is assumed there)."""
         if not self.site or self.alone():
             return OnHang.WAIT
+        if peer_alive is not None and peer_alive() is not True:
+            return OnHang.WAIT
         return OnHang.FAIL_STOP
+
+    def why_wait(self, peer_why):
+        """Why a hang does not fail-stop this site (on_hang gave WAIT), in words; peer_why: the
+        detector's last answer."""
+        if not self.site:
+            return 'not in a replica: nobody else can execute it'
+        if self.alone():
+            return 'site %s serves alone: a fail-stop would stop the service' % self.site
+        return 'the peer of site %s cannot take over now (%s): a fail-stop could lose the only state' % (
+            self.site, peer_why)

@@ -566,7 +566,12 @@ def heal(deployment, log=print, fail_stopped=None, acted=None):
                 deployment.relaunch(name)
                 done.append('%s relaunched' % name)
                 waiting_since[name] = time.monotonic()
-        status = witness_status() or _Status
+        status = witness_status()
+        if status is None:
+            # The master or the witness does not answer: whom it names is unknown, and a site powered
+            # off on that guess could be the one holding the state (seed 15 segment 20, in a stall).
+            time.sleep(0.05)
+            continue
         for name in REPLICAS:
             if name in (status.primary, status.backup):
                 waiting_since.pop(name, None)

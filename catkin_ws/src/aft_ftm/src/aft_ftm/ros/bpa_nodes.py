@@ -4,6 +4,7 @@ Each node has one input port and one output port of the generic graph. Before an
 After default to pass-through; Proceed calls the real server. Mechanism-specific
 behaviours subclass them (see :mod:`aft_ftm.ros.pbr_nodes`).
 """
+import concurrent.futures
 import threading
 import time
 
@@ -14,7 +15,7 @@ from aft_msgs.msg import Reply
 from .. import config, health, service_errors
 from ..errors import ConfigError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..recovery import OnHang, SiteRole
+from ..recovery import OnHang
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
 from .diagnostics import Diagnostics
@@ -22,6 +23,7 @@ from .envelope import deserialize, serialize, service_class
 from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import PersistentService
+from .peer_check import HangRule
 from .ports import Ports, wait_for_connections
 from .witness_client import follow_site_role
 
@@ -121,14 +123,19 @@ class ProceedNode(StageNode):
     (which kills the hung server) and executes the request, once. Outside a replica it raises an
     alarm and answers only when the call returns. So does a replica whose site serves alone (the
     witness's configuration names no backup): it holds the only copy of the state, and a fail-stop
-    would turn a slow server into a stopped service (aft_ftm.recovery.SiteRole). Alone, a
-    connection that breaks (the server died, its state with it) still fail-stops the replica.
+    would turn a slow server into a stopped service (aft_ftm.recovery.SiteRole). So does a replica
+    whose peer cannot take over now, as its site's crash detector says (failed a moment ago, the
+    witness not told yet; silent): it waits, asking again every 0.1 s, and fail-stops once the peer
+    can. Alone, a connection that breaks (the server died, its state with it) still fail-stops the replica.
 
     Parameters:
         ~server_timeout (float, 5 s): the longest a call of the server may take.
         ~site (str, default ''): the replica site this Proceed belongs to ('' : none).
+        ~detector (str, default /<site>/crash_detector): the site's crash detector, asked whether the
+            peer may take over (aft_msgs/PeerStatus ``peer_status``).
     Services called:
-        server (the application's type): remap to the server replica's service (paper: prd2srv).
+        server (the application's type): remap to the server replica's service (paper: prd2srv);
+        <detector>/peer_status, in a replica, when the server hangs.
     Subscribes: bfr2prd (aft_msgs/Request), port ``inp``; /aft/witness/configuration
         (aft_msgs/Configuration), in a replica: whether its site serves alone.  Publishes: prd2aft (aft_msgs/Reply), port ``out``;
         fail_stop (aft_msgs/Failure), port ``fail_stop`` (to the site's crash detector); alarms
@@ -149,7 +156,9 @@ class ProceedNode(StageNode):
         self._deadline = Deadline('server-call')
         self.failed = None    # why this replica fail-stopped: nothing more is executed
         self.calling_since = None   # monotonic time the server call in progress started
-        self.site_role = SiteRole(self.site)
+        # Asked before a hang fail-stops the site, and again every recheck seconds while it waits.
+        self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
+        self.recheck = 0.1
 
     def health(self):
         since = self.calling_since
@@ -159,7 +168,7 @@ class ProceedNode(StageNode):
     def setup(self, timeout):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.site_role)
+        self.configuration = follow_site_role(self.hang.site_role)
         if not super(ProceedNode, self).setup(timeout):
             return False
         threading.Thread(target=self._open_server, name='open-server', daemon=True).start()
@@ -241,7 +250,7 @@ class ProceedNode(StageNode):
             # request to whichever replica takes over.
             rospy.logwarn('%s: shutting down, %s/%d left to the next primary', self.name, request.origin, request.id)
             return None
-        if late is not None and self.site_role.on_hang() == OnHang.WAIT:
+        if late is not None and self.hang.on_hang() == OnHang.WAIT:
             return self._wait_late(request, late, problem)
         if self.site:
             return self._fail_stop(problem)
@@ -259,18 +268,25 @@ class ProceedNode(StageNode):
 
     def _wait_late(self, request, late, problem):
         """The late call's response, once the server answers (nobody else can execute the request):
-        alarmed when the wait starts and when it ends."""
-        who = ('site %s serves alone: fail-stopping it would stop the service' % self.site if self.site
-               else 'not in a replica: nobody else can execute it')
+        alarmed when the wait starts and when it ends. While it waits, the peer is asked again: one
+        that can take over now (heard again after a stall, say) does, this site fail-stopping."""
+        who = self.hang.why_wait()
         alarm(self.ports, 'proceed', 'server_hangs', '%s (%s): the request is answered once the server does'
               % (problem, who), request)
-        try:
-            response = late.result()
-        except Exception as e:   # the late call's own outcome, whatever it raised
-            if not self.site or (isinstance(e, rospy.ServiceException) and 'responded with an error' in str(e)):
-                raise
-            # The hung call's connection broke: the server died, and the only state with it.
-            return self._fail_stop('%s; then the call failed: %s' % (problem, e))
+        while True:
+            try:
+                response = late.result(self.recheck)
+                break
+            except concurrent.futures.TimeoutError:
+                if rospy.is_shutdown():
+                    return None
+                if self.site and self.hang.on_hang() == OnHang.FAIL_STOP:
+                    return self._fail_stop('%s; its peer can take over now (%s)' % (problem, self.hang.peer.why))
+            except Exception as e:   # the late call's own outcome, whatever it raised
+                if not self.site or (isinstance(e, rospy.ServiceException) and 'responded with an error' in str(e)):
+                    raise
+                # The hung call's connection broke: the server died, and the only state with it.
+                return self._fail_stop('%s; then the call failed: %s' % (problem, e))
         alarm(self.ports, 'proceed', 'server_answered_late', 'the server %s answered %s/%d after %.3f s' % (
             self.server_name, request.origin, request.id, time.monotonic() - self.calling_since), request)
         return response

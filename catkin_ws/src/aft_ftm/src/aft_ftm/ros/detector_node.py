@@ -6,6 +6,7 @@ import time
 import psutil
 import rospy
 from aft_msgs.msg import Configuration, Failure, Heartbeat
+from aft_msgs.srv import PeerStatus, PeerStatusResponse
 
 from .. import config, health
 from ..detector import DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor, PeerState, PhiAccrualMonitor
@@ -66,6 +67,9 @@ class CrashDetectorNode(object):
             more: the heartbeats stop for good, so that the peer fences this site and takes over.
     Services:
         ~rebind (aft_msgs/Rebind)
+        ~peer_status (aft_msgs/PeerStatus): may the peer take over now (heard within ~timeout, not
+            declared failed)? Asked by a node of this site whose server hangs, before it fail-stops the
+            site (aft_ftm.recovery.SiteRole).
     """
 
     def __init__(self):
@@ -139,6 +143,7 @@ class CrashDetectorNode(object):
             self.ports.bind(name)
         self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
+        rospy.Service('~peer_status', PeerStatus, self._on_peer_status)
         self._realtime()
         if self.follow_witness:
             self.configuration = rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration,
@@ -226,6 +231,14 @@ class CrashDetectorNode(object):
             heard = self.monitor.last_heard
             return health.detector(self.site, self.peer, self.monitor.state.name,
                                    time.monotonic() - heard if heard is not None else None, self.stopped)
+
+    def _on_peer_status(self, _req):
+        with self.lock:
+            now = time.monotonic()
+            alive, why = self.monitor.can_take_over(now, self.timeout)
+            heard, state = self.monitor.last_heard, self.monitor.state.name
+        return PeerStatusResponse(alive=alive, state=state, silence=-1.0 if heard is None else now - heard,
+                                  why='site %s: %s' % (self.peer, why))
 
     def _on_heartbeat(self, beat):
         if beat.stopping:

@@ -10,12 +10,13 @@ from .. import config, health
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
-from ..recovery import OnHang, SiteRole
+from ..recovery import OnHang
 from .alarms import alarm
 from .diagnostics import Diagnostics
 from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
+from .peer_check import HangRule
 from .witness_client import follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
@@ -37,6 +38,9 @@ class ProtocolNode(object):
             the request stays unanswered until its result comes. A backstop: Proceed's
             ~server_timeout normally acts first.
         ~site (str, default ''): the replica site this Protocol belongs to.
+        ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before
+            the processing timeout fail-stops the site: a peer that cannot (failed a moment ago, the
+            witness not told yet) leaves the request waiting, with the alarm (aft_ftm.recovery.SiteRole).
         ~cache_capacity (int, 100000): safety limit of the reply cache (entries).
         ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
             "not executed" (the client may retry) until clients confirm replies, never forgotten.
@@ -82,7 +86,7 @@ class ProtocolNode(object):
         max_batch = param('max_batch', config.positive_int, 1)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes, max_batch)
         self.hung = None   # the request whose outcome is unknown, once one is
-        self.site_role = SiteRole(self.site)
+        self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
         self.lock = threading.Condition()
         self.ports = Ports(
             [PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
@@ -110,7 +114,7 @@ class ProtocolNode(object):
         self.ports.bind('stored', 'aft2pro_s')
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.site_role)
+        self.configuration = follow_site_role(self.hang.site_role)
         linked = ['to_before', 'from_after']
         if self.replicate_refusals:
             self.ports.bind('refusals', 'prd2aft')
@@ -201,12 +205,11 @@ class ProtocolNode(object):
             self.hung = request
         problem = 'no result for %s/%d after %.1f s: its outcome is unknown' % (
             request.origin, request.id, self.processing_timeout)
-        if self.site_role.on_hang() == OnHang.FAIL_STOP:
+        if self.hang.on_hang() == OnHang.FAIL_STOP:
             fail_stop(self.ports, self.site, problem)
         else:
             alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known%s'
-                  % (' (site %s serves alone: a fail-stop would stop the service)' % self.site if self.site else ''),
-                  request)
+                  % (' (%s)' % self.hang.why_wait() if self.site else ''), request)
 
     def _on_set_role(self, req):
         role = Role(req.role)

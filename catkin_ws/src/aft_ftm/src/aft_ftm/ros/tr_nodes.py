@@ -9,7 +9,7 @@ from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config, health
 from ..errors import ConfigError
-from ..recovery import OnHang, SiteRole
+from ..recovery import OnHang
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
 from .alarms import alarm
@@ -18,6 +18,7 @@ from .deadline import CallTimeout, Deadline
 from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import PersistentService
+from .peer_check import HangRule
 from .witness_client import follow_site_role
 
 
@@ -59,7 +60,9 @@ class TrBeforeNode(BeforeNode):
             execution again, may take (a set_state past it: no execution again, the same alarm or
             fail-stop; the request is answered with TR's error).
         ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
-    Services called: get_state, set_state (the server's state manager).
+        ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before a
+            hang fail-stops the site (as Proceed's).
+    Services called: get_state, set_state (the server's state manager); <detector>/peer_status.
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``; /aft/witness/configuration
         (aft_msgs/Configuration), in a replica: whether its site serves alone.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; aft2pro (aft_msgs/Reply), port ``errors``:
@@ -84,14 +87,14 @@ class TrBeforeNode(BeforeNode):
         self.pending_restore = None   # (future, (origin, id)): a restore abandoned past its deadline
         self.capturing_since = None   # monotonic time the state capture in progress started
         self.failed = None            # why this replica fail-stopped: nothing more is executed
-        self.site_role = SiteRole(self.site)
+        self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
 
     def setup(self, timeout):
         self.ports.bind('errors', 'aft2pro')
         self.ports.bind('alarms')
         if self.site:
             self.ports.bind('fail_stop')
-        self.configuration = follow_site_role(self.site_role)
+        self.configuration = follow_site_role(self.hang.site_role)
         try:
             for name in ('get_state', 'set_state'):
                 rospy.wait_for_service(name, timeout)
@@ -150,7 +153,7 @@ class TrBeforeNode(BeforeNode):
             problem = 'the server state manager %s did not answer within %.3f s (it hangs)' % (
                 rospy.resolve_name('get_state'), self.server_timeout)
             self.get_state = self.get_state.fresh()
-            if self.site_role.on_hang() == OnHang.FAIL_STOP:
+            if self.hang.on_hang() == OnHang.FAIL_STOP:
                 self._fail_stop(problem)
                 return None
             alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed%s' % (
@@ -173,7 +176,7 @@ class TrBeforeNode(BeforeNode):
         return execution(request, 0)
 
     def _alone(self):
-        return (' (site %s serves alone: a fail-stop would stop the service)' % self.site) if self.site else ''
+        return (' (%s)' % self.hang.why_wait()) if self.site else ''
 
     def _fail_stop(self, problem):
         """This replica fail-stops: nothing more is executed or answered; its peer takes over."""
@@ -213,7 +216,7 @@ class TrBeforeNode(BeforeNode):
                            'nothing executes until that restore has returned, which undoes %s/%d' % (
                                (rospy.resolve_name('set_state'), self.server_timeout) + key))
                 self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
-                if self.site_role.on_hang() == OnHang.FAIL_STOP:
+                if self.hang.on_hang() == OnHang.FAIL_STOP:
                     self._fail_stop(problem)
                     return RepeatResponse(success=False, message=FAIL_STOPPED + problem)
                 alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed again%s' % (

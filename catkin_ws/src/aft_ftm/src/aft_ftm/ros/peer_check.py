@@ -1,0 +1,64 @@
+"""A replica node asks its site's crash detector whether the peer may take over now
+(aft_msgs/PeerStatus), before a hang of its server fail-stops the site (aft_ftm.recovery.SiteRole)."""
+import rosgraph
+import rospy
+from aft_msgs.srv import PeerStatus
+
+from ..recovery import SiteRole
+from .deadline import CallTimeout, Deadline
+from .persistent_service import PersistentService
+
+
+class HangRule(object):
+    """What a hang of a replica node's server does (aft_ftm.recovery.SiteRole.on_hang): by its site's
+    role (``site_role``, kept up to date from the witness's configurations by
+    witness_client.follow_site_role) and its peer's liveness (the site's crash detector, asked)."""
+
+    def __init__(self, site, detector=None):
+        self.site_role = SiteRole(site)
+        self.peer = PeerCheck(site, detector) if site else None
+
+    def on_hang(self):
+        return self.site_role.on_hang(self.peer.alive if self.peer else None)
+
+    def why_wait(self):
+        return self.site_role.why_wait(self.peer.why if self.peer else '')
+
+
+class PeerCheck(object):
+    """``alive()``: True, False, or None when the detector does not answer within ``timeout``; ``why``:
+    the last answer in words. A site whose launch runs no crash detector (none registered under
+    ``detector``) keeps the rule from before the detector was asked: the peer is assumed there."""
+
+    def __init__(self, site, detector=None, timeout=0.5):
+        self.service = (detector or '/%s/crash_detector' % site) + '/peer_status'
+        self.timeout = timeout
+        self.proxy = PersistentService(self.service, PeerStatus)
+        self.deadline = Deadline('peer-status')
+        self.why = 'not asked yet'
+
+    def alive(self):
+        try:
+            answer = self.deadline.call(self.proxy, self.timeout)
+        except CallTimeout:
+            self.proxy = self.proxy.fresh()
+            self.why = 'the crash detector (%s) did not answer within %.1f s' % (self.service, self.timeout)
+            return None
+        except (rospy.ServiceException, rospy.ROSException, OSError) as e:
+            self.proxy = self.proxy.fresh()
+            if not self._registered():
+                self.why = 'no crash detector offers %s: the peer is assumed able to take over' % self.service
+                return True
+            self.why = 'the crash detector (%s) cannot be asked: %s' % (self.service, e)
+            return None
+        self.why = answer.why
+        return answer.alive
+
+    def _registered(self):
+        try:
+            rosgraph.Master(rospy.get_name()).lookupService(self.service)
+        except rosgraph.MasterError:
+            return False
+        except Exception:   # the master cannot be reached: no conclusion, so not "no detector"
+            return True
+        return True
