@@ -6,7 +6,7 @@ import time
 import psutil
 import rospy
 from aft_msgs.srv import Rebind, RebindRequest, SetNodes, SetNodesResponse, SetRole
-from aft_msgs.msg import Alarm
+from aft_msgs.msg import Alarm, Failure
 from std_msgs.msg import String
 
 from .. import config, health
@@ -93,6 +93,10 @@ class RecoveryNode(object):
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
         /aft/witness/configuration (aft_msgs/Configuration): this site's role.
         /aft/alarms (aft_msgs/Alarm): the alarms of this site's nodes, recorded on ~events too.
+        fail_stop (aft_msgs/Failure): this site's own fail-stop (its nodes publish it to the crash
+            detector). A site that fail-stopped takes nothing over: a verdict about the peer that reaches
+            Recovery afterwards (reported before the detector heard the fail-stop) is refused with the
+            alarm ``promotion_refused``.
     Publishes:
         ~events (std_msgs/String, latched): one JSON record per recovery (steps, durations), per start,
             per configuration change, and per alarm of this site's nodes (``"event": "alarm"``).
@@ -151,6 +155,7 @@ class RecoveryNode(object):
         self.lock = threading.Lock()
         self.started = time.monotonic()
         self.recovered = False
+        self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
         self.granted = 0       # the epoch the witness granted to the recovery under way
@@ -201,6 +206,7 @@ class RecoveryNode(object):
         if self.witness is not None:
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.alarm_log = rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
+        self.own_fail_stop = rospy.Subscriber('fail_stop', Failure, self._on_own_fail_stop, tcp_nodelay=True)
         self.diagnostics = Diagnostics(self._health, self.site)
         threading.Thread(target=self._watch_master, name='watch-master', daemon=True).start()
         return True
@@ -332,12 +338,30 @@ class RecoveryNode(object):
         except (rospy.ServiceException, rospy.ROSException):   # the broken connection is closed: retried
             return self.set_role_nodes[index](**request)
 
+    def _on_own_fail_stop(self, failure):
+        with self.lock:
+            first = self.stopped is None
+            self.stopped = self.stopped or failure.reason or 'fail-stop'
+        if first:
+            self._event({'event': 'fail_stop', 'reason': self.stopped})
+
     def _on_failure(self, failure, retried_role=None):
         retry = False
         with self.lock:
             if self.recovered:
                 return
             self.recovered = True
+            stopped = self.stopped
+        if stopped is not None:
+            # A verdict its crash detector reported before it heard this site's own fail-stop (the stall
+            # of campaign seed 15, segment 20): a fail-stopped site never becomes the primary, nor the lone one.
+            alarm(self.ports, 'pbr', 'promotion_refused', '%s failed, but site %s fail-stopped itself (%s): it '
+                  'takes nothing over; nobody serves until a replica holding the state returns'
+                  % (failure.site, self.site or rospy.get_namespace().strip('/'), stopped))
+            self._event({'failed_site': failure.site, 'reason': failure.reason, 'steps': [], 'ok': False,
+                         'refused': 'this site fail-stopped: %s' % stopped, 'detected_wall': failure.detected.to_sec()})
+            return
+        with self.lock:
             # A retry keeps the role of its first attempt: the witness may have granted that attempt late,
             # and the configuration it published since names this site alone, with nothing promoted yet.
             role = retried_role or self.role
