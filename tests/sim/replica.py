@@ -75,6 +75,13 @@ class Params(object):
         # CrashDetectorNode._on_configuration: a peer watched again counts as heard now, so that one dead
         # already (its ADMIT granted late) is declared failed after ~timeout, not never.
         self.fix_rewatch_heard = True
+        # ProceedNode, ProtocolNode (aft_ftm.ros.peer_check.HangRule): a hang fail-stops the site only if its
+        # crash detector hears the peer able to take over now, not on a configuration naming a backup alone
+        # (the 1000-fault --adapt campaign, seed 15, segment 20); Proceed asks again every recheck while it waits.
+        self.fix_ask_detector = True
+        self.recheck = 0.02             # Proceed: how often a hang waited out for the peer is decided again (ROS: 0.1)
+        # RecoveryNode._on_own_fail_stop: a site that fail-stopped refuses a verdict about its peer afterwards.
+        self.fix_own_fail_stop = True
         for name, value in overrides.items():
             if not hasattr(self, name):
                 raise AttributeError('no parameter %r' % name)
@@ -148,10 +155,25 @@ class Node(Process):
         self.env.alarm(self, kind, detail, key)
 
     def fail_stop(self, problem):
-        """aft_ftm.ros.fail_stop.fail_stop: a Failure to the site's crash detector, and an alarm."""
+        """aft_ftm.ros.fail_stop.fail_stop: a Failure to the site's crash detector (and its Recovery, which
+        follows the same topic), and an alarm."""
         self.alarm('fail_stop', 'site %s stops serving: %s' % (self.site.name, problem))
         detector = self.site.node('detector')
         self.world.send(self, detector, 'fail_stop', detector.on_fail_stop if detector else None, problem)
+        recovery = self.site.node('recovery')
+        if recovery is not None and recovery is not self:
+            self.world.send(self, recovery, 'fail_stop', recovery.on_own_fail_stop, problem)
+
+    def peer_alive(self):
+        """aft_ftm.ros.peer_check.PeerCheck.alive: the site's crash detector, asked (None: no answer)."""
+        detector = self.site.node('detector')
+        if detector is None:
+            return None
+        return detector.state == PeerState.ALIVE
+
+    def hang_rule(self):
+        """What a hang does now (HangRule.on_hang), as the adapters' rule is set."""
+        return self.site_role.on_hang(self.peer_alive if self.env.params.fix_ask_detector else None)
 
     def own(self, kind):
         return self.site.node(kind)
@@ -251,7 +273,7 @@ class ProtocolModel(Node):
             return
         self.hung = request
         problem = 'no result for %s/%d: its outcome is unknown' % (request.origin, request.id)
-        if self.site_role.on_hang() == OnHang.FAIL_STOP or not self.env.params.fix_wait_alone:
+        if self.hang_rule() == OnHang.FAIL_STOP or not self.env.params.fix_wait_alone:
             self.fail_stop(problem)
         else:
             self.alarm('request_hangs', problem + ': site %s serves alone, it waits' % self.site.name)
@@ -380,10 +402,25 @@ class ProceedModel(Node):
         if call is not self.call:
             return   # answered in time
         request = call[0]
-        if self.site_role.on_hang() == OnHang.WAIT and self.env.params.fix_wait_alone:
-            self.alarm('server_hangs', 'the server did not answer %s/%d (it hangs): site %s serves alone, waits'
-                       % (request.origin, request.id, self.site.name))
+        if self.hang_rule() == OnHang.WAIT and self.env.params.fix_wait_alone:
+            self.alarm('server_hangs', 'the server did not answer %s/%d (it hangs): site %s serves alone or its '
+                       'peer cannot take over, waits' % (request.origin, request.id, self.site.name))
+            if self.env.params.fix_ask_detector:
+                self.world.after(self.env.params.recheck, self.receive, self._recheck, (call,), True)
             return   # still busy: _answered ends it
+        self._give_up(call)
+
+    def _recheck(self, call):
+        """Waiting out a hang: a peer that can take over now does, this site fail-stopping."""
+        if call is not self.call or self.failed:
+            return
+        if self.hang_rule() == OnHang.FAIL_STOP:
+            self._give_up(call)
+        else:
+            self.world.after(self.env.params.recheck, self.receive, self._recheck, (call,), True)
+
+    def _give_up(self, call):
+        request = call[0]
         call[1] = True
         self.call = None
         self.busy = False
@@ -907,6 +944,7 @@ class RecoveryModel(Node):
         self.last_seq = None
         self.listening = False
         self.records = []
+        self.stopped = None   # its own site's fail-stop, heard on the site's fail_stop topic
         # Recovery handles few messages, each starting slow work (service calls, killing processes):
         # where it stalls matters more than where the busy nodes do.
         self.hiccups = 10.0
@@ -952,10 +990,17 @@ class RecoveryModel(Node):
         if self.role is None and before is not None:
             self.alarm('out_of_configuration', '%s is in no configuration of epoch %d' % (self.site.name, conf.epoch))
 
+    def on_own_fail_stop(self, reason):
+        self.stopped = self.stopped or reason
+
     def on_failure(self, failure, role=None):
         if not self.listening or self.recovered:
             return
         self.recovered = True
+        if self.stopped is not None and self.env.params.fix_own_fail_stop:
+            self.alarm('promotion_refused', '%s failed, but site %s fail-stopped itself (%s): it takes nothing over'
+                       % (failure.site, self.site.name, self.stopped))
+            return
         self.spawn(self._recover(failure, role), blocking=True)
 
     def _recover(self, failure, retried_role):

@@ -44,6 +44,10 @@ What the simulation found (each replayed below or in a unit test, with its seed)
     nobody serves again although it holds the only state (liveness; a hand-written schedule).
   * fix_retry_role, fix_confirm_not_admitted, fix_rewatch_heard: liveness (no property above breaks,
     but nobody ever serves although a live replica holds the state; seeds 659, 3088, 1434).
+  * fix_ask_detector (the 1000-fault --adapt campaign on ROS, seed 15, segment 20): the backup dies, the
+    witness not told yet, then the primary's server hangs; trusting the configuration that still names
+    the backup, the primary fail-stops, and nobody serves again (liveness; a hand-written schedule: 20 000
+    random ones with it and fix_own_fail_stop off break no property, since only liveness is lost).
   (Seeds as of issue 15, where the backup's Protocol hears the clients from set-up, and hangs that
   end, waited out by a site alone: the schedules of the earlier seeds changed with them.)
 - Issue 15, the backup's Protocol bound to the clients from set-up (a failover needs no ROS master):
@@ -287,6 +291,36 @@ def test_adapter_finding_a_lone_primary_fail_stopped_on_a_hang_serves_nobody_tho
     as_is = run(seed, scenario=scenario)
     assert as_is.violation is None and as_is.unanswered, as_is.report()
     proposed = run(seed, scenario=lone_primary_hangs())
+    assert proposed.violation is None and not proposed.unanswered, proposed.report()
+
+
+def backup_lost_then_primary_hangs():
+    """The 1000-fault --adapt campaign, seed 15, segment 20: the backup crashes for good while the primary's
+    Recovery is stalled (the witness is not told: its configuration still names the backup); the primary's
+    server then hangs 0.3 s (two server timeouts) while a client calls; Recovery wakes at 0.8 s. No call is
+    in flight at the crash (as in the ROS test): no checkpoint waits for the lost backup, so the After does
+    not exclude it before the hang is decided."""
+    return case([(0.28, 'stall', 'a', ('recovery',), 0.52), (0.3, 'crash', 'b'), (0.32, 'hang', 'a', 0.3)],
+                steady(0.15, 0.23) + steady(0.36, 1.0))
+
+
+@pytest.mark.parametrize('seed', CASE_SEEDS)
+def test_case_4_a_primary_whose_backup_just_failed_waits_out_its_hung_server(seed):
+    result, serving, alarms = outcome(backup_lost_then_primary_hangs(), seed)
+    assert serving == 'a#1' and 'server_hangs' in alarms and 'fail_stop' not in alarms, alarms
+    assert_exactly_once(result)
+
+
+@pytest.mark.parametrize('seed', CASE_SEEDS)
+def test_adapter_finding_a_configuration_naming_a_dead_backup_made_the_only_state_holder_fail_stop(seed):
+    """fix_ask_detector (segment 20): as it was, the primary trusts the configuration, fail-stops on the
+    hang, and nobody answers again though it held the only state; asking its crash detector, it waits."""
+    scenario = backup_lost_then_primary_hangs()
+    scenario.params.fix_ask_detector = False
+    as_is = run(seed, scenario=scenario)
+    assert as_is.violation is None and as_is.unanswered, as_is.report()
+    assert 'fail_stop' in {a[3] for a in as_is.env.alarms}
+    proposed = run(seed, scenario=backup_lost_then_primary_hangs())
     assert proposed.violation is None and not proposed.unanswered, proposed.report()
 
 
