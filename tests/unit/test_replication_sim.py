@@ -282,18 +282,6 @@ def test_case_4_a_primary_alone_waits_out_its_hung_server_and_answers_every_call
     assert_exactly_once(result)
 
 
-@pytest.mark.parametrize('seed', CASE_SEEDS)
-def test_adapter_finding_a_lone_primary_fail_stopped_on_a_hang_serves_nobody_though_it_holds_the_state(seed):
-    """fix_wait_alone (CI, healing.test under load): as it was, the lone primary fail-stops on the hang,
-    and the calls are never answered although it holds the only state (liveness, no property breaks)."""
-    scenario = lone_primary_hangs()
-    scenario.params.fix_wait_alone = False
-    as_is = run(seed, scenario=scenario)
-    assert as_is.violation is None and as_is.unanswered, as_is.report()
-    proposed = run(seed, scenario=lone_primary_hangs())
-    assert proposed.violation is None and not proposed.unanswered, proposed.report()
-
-
 def backup_lost_then_primary_hangs():
     """The 1000-fault --adapt campaign, seed 15, segment 20: the backup crashes for good while the primary's
     Recovery is stalled (the witness is not told: its configuration still names the backup); the primary's
@@ -312,15 +300,18 @@ def test_case_4_a_primary_whose_backup_just_failed_waits_out_its_hung_server(see
 
 
 @pytest.mark.parametrize('seed', CASE_SEEDS)
-def test_adapter_finding_a_configuration_naming_a_dead_backup_made_the_only_state_holder_fail_stop(seed):
-    """fix_ask_detector (segment 20): as it was, the primary trusts the configuration, fail-stops on the
-    hang, and nobody answers again though it held the only state; asking its crash detector, it waits."""
-    scenario = backup_lost_then_primary_hangs()
-    scenario.params.fix_ask_detector = False
+@pytest.mark.parametrize('flag, make', [('fix_wait_alone', lone_primary_hangs),
+                                        ('fix_ask_detector', backup_lost_then_primary_hangs)])
+def test_adapter_finding_the_only_state_holder_fail_stopped_on_a_hang_and_nobody_served_again(seed, flag, make):
+    """fix_wait_alone (CI, healing.test under load): a lone primary fail-stopped on the hang. fix_ask_detector
+    (segment 20): a primary trusted the configuration still naming its dead backup, and fail-stopped. As it
+    was, the calls are never answered although it held the only state (liveness, no property breaks)."""
+    scenario = make()
+    setattr(scenario.params, flag, False)
     as_is = run(seed, scenario=scenario)
     assert as_is.violation is None and as_is.unanswered, as_is.report()
     assert 'fail_stop' in {a[3] for a in as_is.env.alarms}
-    proposed = run(seed, scenario=backup_lost_then_primary_hangs())
+    proposed = run(seed, scenario=make())
     assert proposed.violation is None and not proposed.unanswered, proposed.report()
 
 
