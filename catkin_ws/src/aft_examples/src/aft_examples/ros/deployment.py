@@ -72,7 +72,7 @@ class PbrDeployment(object):
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
                  cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None, incremental=True,
-                 max_batch=None):
+                 max_batch=None, ca_validity=None):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -105,6 +105,8 @@ class PbrDeployment(object):
                 security.write_party(keys, security.Party.generate(party))
             replica.update(sec='true', keys_dir=keys)
             client = dict(sec='true', keys_dir=keys, sec_parties='[client, client2, server]')
+            if ca_validity is not None:
+                client['ca_validity'] = ca_validity   # a certificate's life (s; the CA's default: 24 h)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
         if not self.witness:

@@ -34,6 +34,7 @@ class AdBeforeNode(BeforeNode):
     Services: ~rebind (aft_msgs/Rebind)
     """
     MECHANISM = 'ad'
+    WAIT_OUTPUTS = ('to_after', 'errors')
 
     def __init__(self):
         self.checks = assertions.load_all(param('request_assertions', config.name_list, []),

@@ -40,6 +40,9 @@ class StageNode(object):
     IN_TYPE = OUT_TYPE = IN_TOPIC = OUT_TOPIC = None
     MECHANISM = ''   # the mechanism a subclass belongs to ('' for the generic stages)
     STAGE = ''       # before | proceed | after | relay
+    # Other outputs a request or its result may take (bound by the subclass before setup()): heard too
+    # before any input is taken (A&D's Before gives After each request: one lost there hung it for good).
+    WAIT_OUTPUTS = ()
 
     def __init__(self, extra_ports=(), extra_callbacks=None):
         callbacks = {'inp': self._on_input}
@@ -67,7 +70,7 @@ class StageNode(object):
         # (up to a nested Protocol standing in for a Proceed, which takes requests once its own pipeline is).
         deadline = time.monotonic() + timeout
         self.ports.bind('out', self.OUT_TOPIC)
-        missing = wait_for_connections(self.ports, ['out'], timeout)
+        missing = wait_for_connections(self.ports, ['out'] + list(self.WAIT_OUTPUTS), timeout)
         if not missing and self.bind_input:
             self.ports.bind('inp', self.IN_TOPIC)
             missing = wait_for_connections(self.ports, ['inp'], max(0.0, deadline - time.monotonic()))

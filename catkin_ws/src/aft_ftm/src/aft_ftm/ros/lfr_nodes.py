@@ -159,6 +159,7 @@ class LfrAfterNode(AfterNode):
     Services: ~set_role (aft_msgs/SetRole), ~rebind (aft_msgs/Rebind)
     """
     MECHANISM = 'lfr'
+    WAIT_OUTPUTS = ('stored',)
 
     def __init__(self):
         mechanisms.check_application('lfr', param('server_deterministic', config.flag, required=True),

@@ -118,6 +118,7 @@ class PbrAfterNode(AfterNode):
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
     """
     MECHANISM = 'pbr'
+    WAIT_OUTPUTS = ('stored',)
 
     def __init__(self):
         role = ROLES[param('role', config.choice(*ROLES), 'primary')]

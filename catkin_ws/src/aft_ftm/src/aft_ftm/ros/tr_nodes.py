@@ -71,6 +71,7 @@ class TrBeforeNode(BeforeNode):
     Services: ~repeat (aft_msgs/Repeat), ~rebind (aft_msgs/Rebind)
     """
     MECHANISM = 'tr'
+    WAIT_OUTPUTS = ('errors',)
 
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
