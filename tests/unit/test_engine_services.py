@@ -43,10 +43,10 @@ def test_a_service_that_answers_is_no_problem(monkeypatch):
 # -- a replica node asks its site's crash detector about the peer (aft_ftm.ros.peer_check) ----------
 
 def test_the_peer_check_tells_alive_failed_unknown_and_no_detector_apart(monkeypatch):
+    import threading
     import types
     from aft_ftm.ros import peer_check
-    from aft_ftm.ros.deadline import CallTimeout
-    check = peer_check.PeerCheck('master')
+    check = peer_check.PeerCheck('master', timeout=0.2)
     assert check.service == '/master/crash_detector/peer_status'
     registered = {'value': True}
 
@@ -59,28 +59,35 @@ def test_the_peer_check_tells_alive_failed_unknown_and_no_detector_apart(monkeyp
                 raise peer_check.rosgraph.MasterError('no provider')
             return 'rosrpc://127.0.0.1:1'
     monkeypatch.setattr(peer_check.rosgraph, 'Master', Master)
-    fresh = []
-    check.proxy = types.SimpleNamespace(fresh=lambda: fresh.append(1) or check.proxy)
 
-    def answering(alive, why):
-        return lambda function, timeout: types.SimpleNamespace(alive=alive, why=why)
-    check.deadline = types.SimpleNamespace(call=answering(True, 'site slave: heard 3.0 ms ago'))
+    class Proxy(object):
+        def __init__(self, answer):
+            self.answer = answer
+
+        def __call__(self):
+            if isinstance(self.answer, Exception):
+                raise self.answer
+            if isinstance(self.answer, threading.Event):   # a frozen detector
+                self.answer.wait(5.0)
+                return types.SimpleNamespace(alive=True, why='late')
+            return self.answer
+
+        def fresh(self):
+            return self
+    check.proxy = Proxy(types.SimpleNamespace(alive=True, why='site slave: heard 3.0 ms ago'))
     assert check.alive() is True and check.why == 'site slave: heard 3.0 ms ago'
-    check.deadline = types.SimpleNamespace(call=answering(False, 'site slave: declared failed'))
+    check.proxy = Proxy(types.SimpleNamespace(alive=False, why='site slave: declared failed'))
     assert check.alive() is False
-
-    def frozen(function, timeout):
-        raise CallTimeout('no answer within 0.500 s')
-    check.deadline = types.SimpleNamespace(call=frozen)
-    assert check.alive() is None and 'did not answer' in check.why
-
-    def refused(function, timeout):
-        raise rospy.ServiceException('unable to connect')
-    check.deadline = types.SimpleNamespace(call=refused)
+    check.proxy = Proxy(rospy.ServiceException('unable to connect'))
     assert check.alive() is None and 'cannot be asked' in check.why   # registered, but not answering
     registered['value'] = False
     assert check.alive() is True and 'no crash detector offers' in check.why   # a launch without one
-    assert len(fresh) == 3   # every failed call gets a new connection next time
+    # Frozen: no answer within the timeout; asked again while that question hangs, None at once.
+    frozen = threading.Event()
+    check.proxy = Proxy(frozen)
+    assert check.alive() is None and 'did not answer' in check.why
+    assert check.alive() is None
+    frozen.set()
 
 
 def test_a_hang_rule_outside_a_replica_asks_nobody_and_waits():

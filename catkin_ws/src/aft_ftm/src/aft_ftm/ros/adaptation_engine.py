@@ -84,7 +84,6 @@ def owners_of_process(pid):
     return [owner] if owner is not None else []
 
 
-
 def wait_for_service(name, timeout):
     """Wait until the service answers a probe: None once it does, else why not (no provider registered
     with the master, or the registered provider not answering). The deadline is on the monotonic clock:
@@ -95,6 +94,8 @@ def wait_for_service(name, timeout):
             rospy.wait_for_service(name, max(0.05, min(1.0, deadline - time.monotonic())))
             return None
         except rospy.ROSException:
+            if rospy.is_shutdown():
+                return 'this node is shutting down'
             time.sleep(0.02)   # a wall clock that jumped makes rospy give up at once: no busy loop
         if time.monotonic() >= deadline:
             try:
@@ -102,6 +103,7 @@ def wait_for_service(name, timeout):
             except Exception as e:   # rosgraph.MasterError: no provider; OSError: no master
                 return 'no provider registered with the ROS master (%s)' % e
             return 'its provider %s does not answer' % uri
+
 
 class LeaseKeeper(object):
     """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds,

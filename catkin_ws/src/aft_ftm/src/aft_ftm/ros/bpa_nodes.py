@@ -172,6 +172,7 @@ class ProceedNode(StageNode):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
         self.configuration = follow_site_role(self.hang.site_role)
+        self.hang.start()
         if not super(ProceedNode, self).setup(timeout):
             return False
         threading.Thread(target=self._open_server, name='open-server', daemon=True).start()
@@ -276,20 +277,21 @@ class ProceedNode(StageNode):
         who = self.hang.why_wait()
         alarm(self.ports, 'proceed', 'server_hangs', '%s (%s): the request is answered once the server does'
               % (problem, who), request)
-        while True:
-            try:
-                response = late.result(self.recheck)
+        while not late.done():   # (not late.result(timeout): a call that itself timed out looks the same)
+            concurrent.futures.wait([late], self.recheck)
+            if late.done():
                 break
-            except concurrent.futures.TimeoutError:
-                if rospy.is_shutdown():
-                    return None
-                if self.site and self.hang.on_hang() == OnHang.FAIL_STOP:
-                    return self._fail_stop('%s; its peer can take over now (%s)' % (problem, self.hang.peer.why))
-            except Exception as e:   # the late call's own outcome, whatever it raised
-                if not self.site or (isinstance(e, rospy.ServiceException) and 'responded with an error' in str(e)):
-                    raise
-                # The hung call's connection broke: the server died, and the only state with it.
-                return self._fail_stop('%s; then the call failed: %s' % (problem, e))
+            if rospy.is_shutdown():
+                return None
+            if self.site and self.hang.on_hang() == OnHang.FAIL_STOP:
+                return self._fail_stop('%s; its peer can take over now (%s)' % (problem, self.hang.peer.why))
+        try:
+            response = late.result()
+        except Exception as e:   # the late call's own outcome, whatever it raised
+            if not self.site or (isinstance(e, rospy.ServiceException) and 'responded with an error' in str(e)):
+                raise
+            # The hung call's connection broke: the server died, and the only state with it.
+            return self._fail_stop('%s; then the call failed: %s' % (problem, e))
         alarm(self.ports, 'proceed', 'server_answered_late', 'the server %s answered %s/%d after %.3f s' % (
             self.server_name, request.origin, request.id, time.monotonic() - self.calling_since), request)
         return response

@@ -338,7 +338,11 @@ class CrashDetectorNode(object):
         monitor, failure = self.undelivered
         with self.lock:
             current = self.monitor is monitor and monitor.beats_after_failure == 0
-        if not current:
+        if self.stopped is not None:   # a fail-stopped site takes nothing over
+            self.undelivered = None
+            rospy.logwarn('%s: the failure report of %s is dropped: this site fail-stopped', rospy.get_name(),
+                          failure.site)
+        elif not current:
             self.undelivered = None
             rospy.logwarn('%s: the failure report of %s is dropped: %s was heard again before a Recovery '
                           'connected', rospy.get_name(), failure.site, failure.site)

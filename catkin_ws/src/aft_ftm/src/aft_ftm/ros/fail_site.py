@@ -22,16 +22,31 @@ ALARM_KIND = 'fail_stop'
 def fail_site(site, reason, timeout=3.0):
     """Publish the fail-stop of site (a node must be initialised). Returns how many subscribers
     of /site/fail_stop it reached (0: nobody heard it)."""
+    import rosgraph
     import rospy
     from aft_msgs.msg import Alarm, Failure
     alarms = rospy.Publisher('/aft/alarms', Alarm, queue_size=10)
     stop = rospy.Publisher('/%s/fail_stop' % site, Failure, queue_size=10, tcp_nodelay=True)
     deadline = time.monotonic() + timeout
 
-    def wait_for(publisher):   # until it has a subscriber, or the deadline
-        while time.monotonic() < deadline and not rospy.is_shutdown() and not publisher.get_num_connections():
+    def wait_for(publisher, wanted=lambda: 1):   # until it has the subscribers wanted, or the deadline
+        while time.monotonic() < deadline and not rospy.is_shutdown() and publisher.get_num_connections() < wanted():
             time.sleep(0.01)
-    wait_for(stop)   # the stop first: no wait for alarm listeners delays it
+
+    asked = {'at': -1.0, 'count': 1}
+
+    def registered():
+        # Every subscriber the master knows of (the crash detector, and the site's Recovery, which
+        # follows its site's fail-stop too): sent once the first connects, the other could miss it.
+        if time.monotonic() - asked['at'] >= 0.2:
+            asked['at'] = time.monotonic()
+            try:
+                subscribers = dict(rosgraph.Master(rospy.get_name()).getSystemState()[1])
+                asked['count'] = max(1, len(subscribers.get('/%s/fail_stop' % site, ())))
+            except Exception:   # the master cannot be asked: at least one subscriber, as before
+                asked['count'] = 1
+        return asked['count']
+    wait_for(stop, registered)   # the stop first: no wait for alarm listeners delays it
     heard = stop.get_num_connections()
     if heard:
         stop.publish(Failure(site=site, reason=reason, detected=rospy.Time.now()))

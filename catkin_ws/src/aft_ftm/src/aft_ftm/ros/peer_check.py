@@ -1,5 +1,8 @@
 """A replica node asks its site's crash detector whether the peer may take over now
 (aft_msgs/PeerStatus), before a hang of its server fail-stops the site (aft_ftm.recovery.SiteRole)."""
+import threading
+import time
+
 import rosgraph
 import rospy
 from aft_msgs.srv import PeerStatus
@@ -18,6 +21,11 @@ class HangRule(object):
         self.site_role = SiteRole(site)
         self.peer = PeerCheck(site, detector) if site else None
 
+    def start(self):
+        """At the node's set-up: the connection to the detector, opened on a thread of its own."""
+        if self.peer is not None:
+            threading.Thread(target=self.peer.connect, name='peer-status', daemon=True).start()
+
     def on_hang(self):
         return self.site_role.on_hang(self.peer.alive if self.peer else None)
 
@@ -28,31 +36,56 @@ class HangRule(object):
 class PeerCheck(object):
     """``alive()``: True, False, or None when the detector does not answer within ``timeout``; ``why``:
     the last answer in words. A site whose launch runs no crash detector (none registered under
-    ``detector``) keeps the rule from before the detector was asked: the peer is assumed there."""
+    ``detector``) keeps the rule from before the detector was asked: the peer is assumed there.
+
+    ``connect()`` (at set-up, on a thread of its own) opens the connection once the detector is up, so
+    that it is asked without the ROS master (a persistent connection remembers the address), as the
+    failover itself is. Thread-safe; a question left unanswered (a frozen detector) is not asked again
+    until it returns: meanwhile the answer is None at once, with no new thread."""
 
     def __init__(self, site, detector=None, timeout=0.5):
         self.service = (detector or '/%s/crash_detector' % site) + '/peer_status'
         self.timeout = timeout
         self.proxy = PersistentService(self.service, PeerStatus)
-        self.deadline = Deadline('peer-status')
+        self.deadline = Deadline('peer-status', exclusive=True)
+        self.lock = threading.Lock()
         self.why = 'not asked yet'
 
+    def connect(self, period=0.5, patience=120.0):
+        """Open the connection once the detector offers the service (until it does, shutdown, or
+        patience seconds: then it is opened at the first question)."""
+        given_up = time.monotonic() + patience
+        while not rospy.is_shutdown() and time.monotonic() < given_up:
+            proxy = PersistentService(self.service, PeerStatus)
+            try:
+                proxy.connect()
+            except (rospy.ServiceException, rospy.ROSException, OSError):
+                time.sleep(period)
+                continue
+            with self.lock:
+                self.proxy = proxy
+            return True
+        return False
+
     def alive(self):
+        with self.lock:
+            try:
+                alive, self.why = self.deadline.call(self._ask, self.timeout)
+            except CallTimeout:   # CallPending too: the last question has not returned yet
+                self.proxy = self.proxy.fresh()
+                self.why = 'the crash detector (%s) did not answer within %.1f s' % (self.service, self.timeout)
+                return None
+            return alive
+
+    def _ask(self):
         try:
-            answer = self.deadline.call(self.proxy, self.timeout)
-        except CallTimeout:
-            self.proxy = self.proxy.fresh()
-            self.why = 'the crash detector (%s) did not answer within %.1f s' % (self.service, self.timeout)
-            return None
+            answer = self.proxy()
         except (rospy.ServiceException, rospy.ROSException, OSError) as e:
             self.proxy = self.proxy.fresh()
             if not self._registered():
-                self.why = 'no crash detector offers %s: the peer is assumed able to take over' % self.service
-                return True
-            self.why = 'the crash detector (%s) cannot be asked: %s' % (self.service, e)
-            return None
-        self.why = answer.why
-        return answer.alive
+                return True, 'no crash detector offers %s: the peer is assumed able to take over' % self.service
+            return None, 'the crash detector (%s) cannot be asked: %s' % (self.service, e)
+        return answer.alive, answer.why
 
     def _registered(self):
         try:

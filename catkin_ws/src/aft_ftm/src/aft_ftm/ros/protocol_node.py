@@ -86,6 +86,7 @@ class ProtocolNode(object):
         max_batch = param('max_batch', config.positive_int, 1)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes, max_batch)
         self.hung = None   # the request whose outcome is unknown, once one is
+        self.hung_waits = False   # ... waited for because the peer could not take over then (asked again)
         self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
         self.lock = threading.Condition()
         self.ports = Ports(
@@ -115,6 +116,7 @@ class ProtocolNode(object):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
         self.configuration = follow_site_role(self.hang.site_role)
+        self.hang.start()
         linked = ['to_before', 'from_after']
         if self.replicate_refusals:
             self.ports.bind('refusals', 'prd2aft')
@@ -176,6 +178,7 @@ class ProtocolNode(object):
         with self.lock:
             if self.hung is not None and (self.hung.origin, self.hung.id) == (reply.origin, reply.id):
                 self.hung = None   # its outcome is known after all (a site alone waited for it)
+                self.hung_waits = False
         if reply.status == Reply.NOT_EXECUTED:
             with self.lock:
                 self._act(self.core.on_refusal(reply, time.monotonic()))
@@ -200,14 +203,22 @@ class ProtocolNode(object):
     def _check_overdue(self, _event):
         with self.lock:
             request = self.core.overdue(time.monotonic(), self.processing_timeout)
-            if request is None or self.hung is not None:
+            if request is None:
                 return
-            self.hung = request
+            first, self.hung = self.hung is None, self.hung or request
+            waiting = self.hung_waits
         problem = 'no result for %s/%d after %.1f s: its outcome is unknown' % (
             request.origin, request.id, self.processing_timeout)
+        if not first:
+            # Waiting because the peer could not take over then: decided again at each tick, once it can.
+            if waiting and self.hang.on_hang() == OnHang.FAIL_STOP:
+                self.hung_waits = False
+                fail_stop(self.ports, self.site, '%s; its peer can take over now' % problem)
+            return
         if self.hang.on_hang() == OnHang.FAIL_STOP:
             fail_stop(self.ports, self.site, problem)
         else:
+            self.hung_waits = bool(self.site) and not self.hang.site_role.alone()
             alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known%s'
                   % (' (%s)' % self.hang.why_wait() if self.site else ''), request)
 

@@ -426,6 +426,11 @@ class RecoveryNode(object):
                                 'start': t0 - self._start, 'seconds': time.monotonic() - t0})
 
     def _do(self, step, failure):
+        stopped = self.stopped
+        if stopped is not None and step != Step.FAIL_SILENCE:
+            # Its own fail-stop heard during the recovery (the two topics are not ordered): nothing more
+            # is taken over; fencing the failed peer still is harmless.
+            raise RuntimeError('site %s fail-stopped itself (%s): it takes nothing over' % (self.site, stopped))
         if step in (Step.WITNESS_PROMOTE, Step.WITNESS_EXCLUDE):
             op = Op.PROMOTE if step == Step.WITNESS_PROMOTE else Op.EXCLUDE
             try:

@@ -96,6 +96,7 @@ class TrBeforeNode(BeforeNode):
         if self.site:
             self.ports.bind('fail_stop')
         self.configuration = follow_site_role(self.hang.site_role)
+        self.hang.start()
         try:
             for name in ('get_state', 'set_state'):
                 rospy.wait_for_service(name, timeout)
