@@ -570,6 +570,8 @@ def heal(deployment, log=print, fail_stopped=None, acted=None):
         if status is None:
             # The master or the witness does not answer: whom it names is unknown, and a site powered
             # off on that guess could be the one holding the state (seed 15 segment 20, in a stall).
+            # A joiner's patience starts again once it can be asked.
+            waiting_since.clear()
             time.sleep(0.05)
             continue
         for name in REPLICAS:
