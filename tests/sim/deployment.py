@@ -104,6 +104,8 @@ class Deployment(object):
         self.on_site_stopped = None
         self.alarms = []            # (time, incarnation, node, kind, key, detail)
         self.batched = 0            # checkpoints that covered more than one request (group commit)
+        self.parted = 0             # state transfers sent in parts (aft_ftm.transfer)
+        self.parted_joined = 0      # ... whose last part the joiner acknowledged
         self.witness = WitnessModel(self, initial_primary, witness_host)
         self.sites = {'a': Site(self, 'a', 'b', claims=True), 'b': Site(self, 'b', 'a', claims=False)}
         self.proxies = [ProxyModel(self, '/proxy%d' % i, 1000 * (i + 1)) for i in range(proxies)]

@@ -26,6 +26,7 @@ from aft_ftm.detector import PeerState
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Answer as AnswerAction, DuplicateCache, Forward, ProtocolCore, Refuse, Role, key
 from aft_ftm.proxy import PendingTable
+from aft_ftm.transfer import Incoming, Outgoing, TransferError
 from aft_ftm.recovery import GATES, OnHang, SiteRole, Step, plan, role_after, role_in, start_plan
 from aft_ftm.witness import Op, Witness
 
@@ -53,6 +54,8 @@ class Params(object):
         self.cache_bytes = 64 << 20     # Protocol and After ~cache_bytes
         self.fence = 1.0                # probability that fail-silence reaches the failed site
         self.max_batch = 1              # Protocol ~max_batch (group commit; ROS: 16 for PBR not adaptable)
+        self.chunk_items = 3            # After ~chunk_bytes: a state transfer in parts of this many request keys
+        self.transfer_window = 2        # After ~transfer_window: parts sent and not yet acknowledged, at most
         # Fixes of adapter rules that the simulation found to break a property, or liveness (see
         # tests/unit/test_replication_sim.py, which replays each finding with its flag off):
         # PbrAfterNode._on_set_role, PRIMARY -> ALONE (Recovery's AFTER_ALONE): raise the 'alone' alarm.
@@ -479,6 +482,10 @@ class AfterModel(Node):
         self.followed_since = 0.0    # when the last state transfer was accepted
         self.confirming = False      # fix_confirm_not_admitted: a STATUS asked
         self.pending_state = None
+        self.outgoing = None         # the state transfer in parts being sent (aft_ftm.transfer)
+        self.outgoing_template = None
+        self.deferred = []           # checkpoints made while its parts are sent
+        self.incoming = Incoming()   # the parts of the state transfer being received
         self.told = set()
         self.timer(min(0.1, p.ack_timeout / 4), self.check_acks, self._acks_to_check)
         self.timer(p.join_period, self.ask_to_join, self._to_join)
@@ -517,8 +524,46 @@ class AfterModel(Node):
         peer = self.peer('after')
         self.world.send(self, peer, topic, getattr(peer, handler) if peer else None, msg)
 
-    def ack(self, seq, ok, error, epoch, to):
-        self.send_peer('peer_acks', 'on_ack', ns(seq=seq, ok=ok, error=error, epoch=epoch, to=to))
+    def ack(self, seq, ok, error, epoch, to, partial=False, part=0):
+        self.send_peer('peer_acks', 'on_ack', ns(seq=seq, ok=ok, error=error, epoch=epoch, to=to, partial=partial,
+                                                 part=part))
+
+    def send_checkpoint(self, cp):
+        """PbrAfterNode._send_checkpoint: queued behind the parts of a state transfer still to send."""
+        if self.transfer_live() and not self.outgoing.all_sent():
+            self.deferred.append(cp)
+        else:
+            self.send_peer('checkpoints', 'on_checkpoint', cp)
+
+    def transfer_live(self):
+        if self.outgoing is not None and (self.sender is None or self.sender.join_seq != self.outgoing.seq):
+            self.outgoing, self.deferred = None, []
+        return self.outgoing is not None
+
+    def send_parts(self):
+        out, template = self.outgoing, self.outgoing_template
+        for part in out.next_parts():
+            last = part == out.count - 1
+            self.send_peer('checkpoints', 'on_checkpoint', ns(
+                seq=out.seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=None,
+                state=out.parts[part], epoch=template.epoch, full=True, part=part, parts=out.count,
+                cache=[copy_reply(r) for r in template.cache] if last else []))
+        if out.all_sent():
+            deferred, self.deferred = self.deferred, []
+            for cp in deferred:
+                self.send_peer('checkpoints', 'on_checkpoint', cp)
+
+    def on_part_ack(self, ack):
+        if self.sender is None or not self.transfer_live() or ack.seq != self.outgoing.seq or not ack.ok:
+            return
+        try:
+            progress = self.outgoing.acknowledged(ack.part)
+        except TransferError as e:
+            self.resolve(Need.EXCLUDE, 'the joiner acknowledged what was not sent: %s' % e)
+            return
+        if progress:
+            self.sender.progress(ack.seq, self.world.now)
+            self.send_parts()
 
     def release(self, replies):
         protocol = self.own('protocol')
@@ -547,7 +592,7 @@ class AfterModel(Node):
             # fix_replicated_refusal: a refusal changes no state, and the state now may already hold the
             # request executing (its reply not here yet): the checkpoint carries the reply alone.
             seq = self.sender.hold(replies[-1], self.world.now, replies[:-1])
-            self.send_peer('checkpoints', 'on_checkpoint', ns(
+            self.send_checkpoint(ns(
                 seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
                 batch=[copy_reply(r) for r in replies[:-1]], state=None, epoch=self.sender.epoch, full=False,
                 cache=None))
@@ -561,7 +606,7 @@ class AfterModel(Node):
         self.env.batched += len(replies) > 1
         self.world.log('%s checkpoint %d (%s) epoch %d', self.name, seq,
                        ' '.join('%s/%d' % (r.origin, r.id) for r in replies), self.sender.epoch)
-        self.send_peer('checkpoints', 'on_checkpoint', ns(
+        self.send_checkpoint(ns(
             seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
             batch=[copy_reply(r) for r in replies[:-1]], state=state, epoch=self.sender.epoch, full=False,
             cache=None))
@@ -569,8 +614,13 @@ class AfterModel(Node):
     def on_ack(self, ack):
         if ack.to and ack.to != self.name:
             return
+        if getattr(ack, 'partial', False):
+            self.on_part_ack(ack)
+            return
         if self.sender is None:
             return
+        if ack.ok and self.transfer_live() and ack.seq == self.outgoing.seq:
+            self.env.parted_joined += 1
         released, need = self.sender.on_ack(ack.seq, ack.ok)
         self.release(released)
         if need:
@@ -696,9 +746,16 @@ class AfterModel(Node):
         cache = self.recent.replies()
         self.world.log('%s state transfer %d to %s (%d replies) epoch %d', self.name, seq, join.incarnation,
                        len(cache), sender.epoch)
-        self.send_peer('checkpoints', 'on_checkpoint', ns(
-            seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=None, state=state,
-            epoch=sender.epoch, full=True, cache=[copy_reply(r) for r in cache]))
+        template = ns(seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=None, state=state,
+                      epoch=sender.epoch, full=True, cache=[copy_reply(r) for r in cache])
+        out = Outgoing(seq, state, self.env.params.chunk_items, self.env.params.transfer_window)
+        self.outgoing, self.deferred = None, []
+        if out.count == 1:
+            self.send_peer('checkpoints', 'on_checkpoint', template)
+        else:
+            self.env.parted += 1
+            self.outgoing, self.outgoing_template = out, template
+            self.send_parts()
 
     # -- backup ----------------------------------------------------------------------------------
     def _to_join(self):
@@ -750,7 +807,15 @@ class AfterModel(Node):
     def on_checkpoint(self, cp):
         receiver = self.receiver
         decision = receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces, cp.epoch, cp.full)
-        error = ''
+        error = refused_transfer = ''
+        if decision == Decision.APPLY_FULL and getattr(cp, 'parts', 0) > 1:
+            cp.state, error = self.incoming.take(cp)
+            if error:
+                refused_transfer, decision = error, Decision.GAP
+            elif cp.state is None:
+                self.world.log('%s part %d/%d of transfer %d from %s', self.name, cp.part, cp.parts, cp.seq, cp.sender)
+                self.ack(cp.seq, True, '', receiver.epoch, cp.sender, partial=True, part=cp.part)
+                return
         if decision == Decision.GAP:
             error = 'checkpoint %d received after %d: one is missing' % (cp.seq, receiver.last_seq)
         elif decision == Decision.JOINING:
@@ -770,6 +835,8 @@ class AfterModel(Node):
             tell = ('backup_invalid', '%s cannot take over: %s; it joins again' % (self.site.name, error), None)
         elif error and decision == Decision.FENCED:
             tell = ('stale_checkpoint', 'checkpoint %d from %s refused: %s' % (cp.seq, cp.sender, error), cp.sender)
+        elif refused_transfer:
+            tell = ('join_failed', '%s: %s; it asks again' % (self.site.name, refused_transfer), None)
         epoch = receiver.epoch
         if decision in (Decision.APPLY, Decision.APPLY_FULL):
             receiver.accept(cp.seq, cp.sender, cp.epoch)

@@ -138,6 +138,7 @@ class Result(object):
         self.unanswered = sum(len(p.unanswered()) for p in env.proxies)
         self.refused = sum(1 for p in env.proxies for e in p.opened if e.reply is not None and not e.reply.ok)
         self.batched = env.batched
+        self.parted, self.parted_joined = env.parted, env.parted_joined
         self.alarms = checker.alarm_counts()
         self.transitions = checker.transition_counts
         w = env.witness.witness
@@ -288,6 +289,8 @@ def summary(results):
         total['unanswered'] += r.unanswered
         total['refused'] += r.refused
         total['batched'] += r.batched
+        total['parted'] += r.parted
+        total['parted_joined'] += r.parted_joined
         total['stuck schedules'] += bool(r.unanswered)
         total['failovers'] += r.failovers
         total['violations'] += r.violation is not None

@@ -126,13 +126,14 @@ class PbrSites(Sites):
     CACHE_BYTES = None         # bound of the replicas' reply caches (bytes); None: the launch files' default
     BALLAST_BYTES = 0          # inert bytes added to the bank server's state (0: its ~60 bytes, sent whole)
     CA_VALIDITY = None         # SEC: a certificate's life (s); None: the CA's default (24 h)
+    CHUNK_BYTES = None         # PBR: a join's state transfer in parts of this many bytes; None: the default (1 MiB)
 
     def make_deployment(self, log_dir):
         return PbrDeployment(log_dir, one_host=self.ONE_HOST, inner=self.INNER, faulty=self.FAULTY,
                              mechanism=self.MECHANISM, sec=self.SEC, adaptable=self.ADAPTABLE,
                              timeout=self.DETECTION_TIMEOUT, server_timeout=self.SERVER_TIMEOUT,
                              cache_bytes=self.CACHE_BYTES, ballast_bytes=self.BALLAST_BYTES,
-                             ca_validity=self.CA_VALIDITY)
+                             ca_validity=self.CA_VALIDITY, chunk_bytes=self.CHUNK_BYTES)
 
 
 class MechanismSite(Sites):

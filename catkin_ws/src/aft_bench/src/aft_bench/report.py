@@ -858,10 +858,15 @@ def healing_lines(f):
                          ms(j['longest_wait_s'])] for i, j in enumerate(joins)])
     sizes = h.get('sizes') or {}
     if sizes:
-        lines += ['', 'State transfer against the size of the server state (the request cost grows with it: every '
-                  'checkpoint carries the whole state, see issue 18):', '']
-        lines += table(['state', 'transfer acknowledged', 'pause', 'one request'],
-                       [['%d bytes' % int(k), ms(v['transfer_acknowledged_s']), ms(v['pause_s']), ms(v['request_s'])]
+        whole = h.get('sizes_whole') or {}
+        lines += ['', 'State transfer against the size of the server state (in parts of at most 1 MiB, 4 '
+                  'unacknowledged at most; for a state above one part, the same join with the state in one message '
+                  'beside it):', '']
+        lines += table(['state', 'parts', 'transfer acknowledged', 'pause', 'one request',
+                        'one message: transfer acknowledged, pause'],
+                       [['%d bytes' % int(k), v.get('parts', 1), ms(v['transfer_acknowledged_s']), ms(v['pause_s']),
+                         ms(v['request_s']), '%s, %s' % (ms(whole[k]['transfer_acknowledged_s']), ms(whole[k]['pause_s']))
+                         if k in whole else '']
                         for k, v in sorted(sizes.items(), key=lambda kv: int(kv[0]))])
     mem = h.get('memory') or {}
     if mem.get('after_all'):

@@ -100,6 +100,17 @@ class CheckpointSender(object):
         self.join_since = now
         return self.seq
 
+    def progress(self, seq, now):
+        """The joiner acknowledged a part of the state transfer ``seq`` (aft_ftm.transfer): the transfer
+        moves, so its ack timeout, and that of the checkpoints queued behind it, count from now.
+        Returns False (nothing changed) if ``seq`` is not the transfer under way."""
+        if self.deposed or seq != self.join_seq:
+            return False
+        self.join_since = now
+        for held in self.held.values():
+            held.since = now
+        return True
+
     def on_ack(self, seq, ok):
         """The backup answered checkpoint seq. Returns (released replies, Need)."""
         if self.deposed or self.role != Role.PRIMARY or seq < self.session:

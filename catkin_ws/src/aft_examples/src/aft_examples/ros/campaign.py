@@ -63,6 +63,9 @@ def _signal(pids, sig):
             pass
 
 
+CHUNK_BYTES = 16   # PBR After ~chunk_bytes in the campaign's replica sites (aft_ftm.transfer)
+
+
 class CampaignDeployment(object):
     """The sites of a campaign segment, each its own roslaunch process tree: the witness (its record
     in a state file, so that it may be killed and restarted), the replicas MASTER and SLAVE, and per
@@ -85,7 +88,9 @@ class CampaignDeployment(object):
         self.launch = {
             'witness': ('aft_ftm', 'witness.launch', dict(state_file=os.path.join(log_dir, 'witness.state'))),
         }
-        replica = dict(timeout=timeout, server_timeout=self.server_timeout)
+        # A re-join's state transfer goes in parts of 16 bytes (4 per join: the bank's state is about 60
+        # bytes), each acknowledged before more go: the faults drawn also hit transfers in parts.
+        replica = dict(timeout=timeout, server_timeout=self.server_timeout, chunk_bytes=CHUNK_BYTES)
         if adaptable:
             replica['adaptable'] = 'true'   # Before, Proceed and After replaceable while the site serves
         if mechanism != 'pbr':

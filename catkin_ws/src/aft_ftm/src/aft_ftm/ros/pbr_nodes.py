@@ -13,6 +13,7 @@ from ..checkpoint import (HARMLESS, BatchError, CheckpointReceiver, CheckpointSe
                           GroupCommit, Need, is_refusal)
 from ..delta import DeltaDecoder, DeltaEncoder, DeltaError
 from ..errors import RoleError
+from ..transfer import Incoming, Outgoing, TransferError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import DuplicateCache, Role, check_role_change
 from ..witness import Op
@@ -94,6 +95,11 @@ class PbrAfterNode(AfterNode):
             under half the state; the backup rebuilds the whole state, checks it (CRC) and refuses a
             delta that does not apply (it joins again). A state transfer is always whole.
         ~delta_min_bytes (int, 1024): states smaller than this are always sent whole.
+        ~chunk_bytes (int, 1 MiB; 0 = one message): a state transfer (a join) goes in parts of at most this
+            many bytes of state (aft_ftm.transfer), ...
+        ~transfer_window (int, 4): ... at most this many parts sent and not yet acknowledged (back-pressure):
+            the ack timeout then counts from the last part acknowledged, and the checkpoints made meanwhile
+            wait until the last part is sent.
     Services called:
         get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
         the witness (aft_msgs/Witness).
@@ -161,6 +167,12 @@ class PbrAfterNode(AfterNode):
         self.incremental = param('incremental', config.flag, True)
         self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
         self.decoder = DeltaDecoder()
+        self.chunk_bytes = param('chunk_bytes', config.non_negative_int, 1 << 20)
+        self.transfer_window = param('transfer_window', config.positive_int, 4)
+        self.outgoing = None        # primary: the state transfer in parts being sent (aft_ftm.transfer)
+        self.outgoing_template = None   # its checkpoint (every field but the state)
+        self.deferred = []          # primary: checkpoints made while its parts are sent, sent after its last
+        self.incoming = Incoming()  # backup: the parts of the state transfer being received
         self.joiner = None          # (site, incarnation) of the backup being joined
         self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
@@ -291,7 +303,7 @@ class PbrAfterNode(AfterNode):
                     # its reply not here yet): the checkpoint carries the refusal alone, so that the backup
                     # answers a copy of the request the same way.
                     seq = self.sender.hold(replies[-1], time.monotonic(), replies[:-1])
-                    self.ports.publish('checkpoints', Checkpoint(
+                    self._send_checkpoint(Checkpoint(
                         seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                         reply=replies[-1], batch=replies[:-1], epoch=self.sender.epoch))
                     return None
@@ -305,7 +317,7 @@ class PbrAfterNode(AfterNode):
                 else:
                     seq = self.sender.hold(replies[-1], time.monotonic(), replies[:-1])
                     payload, delta = self.encoder.next(state) if self.incremental else (state, False)
-                    self.ports.publish('checkpoints', Checkpoint(
+                    self._send_checkpoint(Checkpoint(
                         seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                         reply=replies[-1], batch=replies[:-1], state=payload, delta=delta, epoch=self.sender.epoch))
                     return None
@@ -316,9 +328,55 @@ class PbrAfterNode(AfterNode):
         for reply in replies:
             self.ports.publish('out', reply)
 
+    def _send_checkpoint(self, cp):
+        """Publish a checkpoint, or (a state transfer's parts still to send) queue it behind them: the
+        joiner must hold the whole transfer before the checkpoints that follow it."""
+        if self._transfer_live() and not self.outgoing.all_sent():
+            self.deferred.append(cp)
+        else:
+            self.ports.publish('checkpoints', cp)
+
+    def _transfer_live(self):
+        """The state transfer in parts is still the sender's join under way (else forget it)."""
+        if self.outgoing is not None and (self.sender is None or self.sender.join_seq != self.outgoing.seq):
+            self.outgoing, self.deferred = None, []
+        return self.outgoing is not None
+
+    def _send_parts(self, template):
+        """Send the parts of the transfer the window allows now; after its last, what was queued behind."""
+        out = self.outgoing
+        for part in out.next_parts():
+            last = part == out.count - 1
+            self.ports.publish('checkpoints', Checkpoint(
+                seq=out.seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
+                epoch=template.epoch, full=True, state=out.parts[part], part=part, parts=out.count,
+                cache=template.cache if last else []))
+        if out.all_sent():
+            deferred, self.deferred = self.deferred, []
+            for cp in deferred:
+                self.ports.publish('checkpoints', cp)
+
+    def _on_part_ack(self, ack):
+        """The joiner holds parts 0 .. ack.part of the transfer: send the next ones (back-pressure)."""
+        problem = None
+        with self.lock:
+            if self.sender is None or not self._transfer_live() or ack.seq != self.outgoing.seq or not ack.ok:
+                return
+            try:
+                if self.outgoing.acknowledged(ack.part):
+                    self.sender.progress(ack.seq, time.monotonic())
+                    self._send_parts(self.outgoing_template)
+            except TransferError as e:
+                problem = str(e)
+        if problem:
+            self._resolve(Need.EXCLUDE, 'the joiner acknowledged what was not sent: %s' % problem)
+
     def _on_ack(self, ack):
         if ack.to and ack.to != self.name:
             return   # another After's (both run side by side while an adaptation replaces one)
+        if ack.partial:
+            self._on_part_ack(ack)
+            return
         with self.lock:
             if self.sender is None:
                 return
@@ -429,13 +487,21 @@ class PbrAfterNode(AfterNode):
             self.encoder.reset(state)   # the joiner holds this state: the next checkpoints are deltas on it
             self.joiner = (join.site, join.incarnation)
             cache = self.recent.replies()
+            out = Outgoing(seq, state, self.chunk_bytes, self.transfer_window)
             self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),
-                                'replies': len(cache), 't0': time.monotonic(), 'sent_wall': time.time()}
-            self.ports.publish('checkpoints', Checkpoint(
-                seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces, epoch=sender.epoch,
-                full=True, state=state, cache=cache))
-            rospy.loginfo('%s: state transfer %d to %s (%d bytes of state, %d replies)', self.name, seq,
-                          join.site, len(state), len(cache))
+                                'replies': len(cache), 'parts': out.count, 't0': time.monotonic(),
+                                'sent_wall': time.time()}
+            template = Checkpoint(seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
+                                  epoch=sender.epoch, full=True, state=state, cache=cache)
+            self.outgoing, self.deferred = None, []
+            if out.count == 1:
+                self.ports.publish('checkpoints', template)
+            else:
+                template.state = b''   # the parts carry it
+                self.outgoing, self.outgoing_template = out, template
+                self._send_parts(template)
+            rospy.loginfo('%s: state transfer %d to %s (%d bytes of state in %d part(s), %d replies)', self.name, seq,
+                          join.site, len(state), out.count, len(cache))
 
     # -- backup -----------------------------------------------------------------
     def _ask_to_join(self, _event):
@@ -478,7 +544,16 @@ class PbrAfterNode(AfterNode):
                 decision = Decision.FENCED
             else:
                 decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces, cp.epoch, cp.full)
-            error = ''
+            error = refused_transfer = ''
+            if decision == Decision.APPLY_FULL and cp.parts > 1:
+                # A state transfer in parts: acknowledge each, apply nothing before the last.
+                cp.state, error = self.incoming.take(cp)
+                if error:
+                    refused_transfer, decision = error, Decision.GAP
+                elif cp.state is None:
+                    self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=True, partial=True, part=cp.part,
+                                                                  epoch=self.receiver.epoch, to=cp.sender))
+                    return
             if decision == Decision.GAP:
                 error = 'checkpoint %d received after %d: one is missing' % (cp.seq, self.receiver.last_seq)
             elif decision == Decision.JOINING:
@@ -513,6 +588,8 @@ class PbrAfterNode(AfterNode):
             elif error and (self.receiver is None or decision == Decision.FENCED):
                 tell = ('stale_checkpoint', 'checkpoint %d from %s refused: %s' % (cp.seq, cp.sender, error),
                         cp.sender)
+            elif refused_transfer:
+                tell = ('join_failed', '%s: %s; it asks again' % (self.site or self.name, refused_transfer), None)
             # Acknowledged once held. A promotion takes this lock and applies the state first.
             epoch = self.receiver.epoch if self.receiver is not None else self.sender.epoch
             if decision in (Decision.APPLY, Decision.APPLY_FULL):

@@ -1,0 +1,104 @@
+"""A state transfer in parts with back-pressure (aft_ftm.transfer, issue 18): the parts a window lets go,
+the backup's assembly in order, and, through any loss, duplicate or reordering of parts drawn from a
+printed seed, a backup that holds the exact state or refuses the transfer, never anything else."""
+import random
+import time
+
+import pytest
+
+from aft_ftm.checkpoint import CheckpointSender, Need
+from aft_ftm.protocol import Role
+from aft_ftm.transfer import Incoming, Outgoing, TransferError, join, split
+
+
+def test_a_state_is_cut_into_parts_of_at_most_chunk_bytes_and_put_back_whole():
+    state = bytes(range(256)) * 10
+    parts = split(state, 1000)
+    assert [len(p) for p in parts] == [1000, 1000, 560]
+    assert join(parts) == state
+    assert split(state, 0) == [state] and split(state, 2560) == [state] and split(b'', 10) == [b'']
+    assert join(split(tuple(range(7)), 3)) == tuple(range(7))   # the simulation's states
+
+
+def test_the_window_bounds_the_parts_in_flight_and_each_acknowledgment_lets_the_next_go():
+    out = Outgoing(7, b'x' * 10, 2, window=2)
+    assert out.count == 5
+    assert out.next_parts() == [0, 1] and out.next_parts() == []   # two unacknowledged: nothing more
+    assert out.acknowledged(0) and out.next_parts() == [2]
+    assert not out.acknowledged(0)                                   # a duplicate is no progress
+    assert out.acknowledged(2) and out.next_parts() == [3, 4]        # cumulative: 1 and 2 held
+    assert out.all_sent()
+    with pytest.raises(TransferError, match='only 5 of 5 were sent|acknowledged'):
+        out.acknowledged(5)
+    with pytest.raises(ValueError):
+        Outgoing(1, b'x', 1, window=0)
+
+
+def test_the_backup_assembles_in_order_acknowledges_a_duplicate_again_and_refuses_a_gap():
+    inc = Incoming()
+    assert inc.receive('/a/after', 9, 0, 3, b'ab') is None
+    assert inc.receive('/a/after', 9, 0, 3, b'ab') is None           # again: changes nothing
+    with pytest.raises(TransferError, match='came after part 0: one is missing'):
+        inc.receive('/a/after', 9, 2, 3, b'ef')
+    assert not inc.holding()                                          # refused whole
+    assert inc.receive('/a/after', 10, 0, 3, b'ab') is None
+    assert inc.receive('/a/after', 10, 1, 3, b'cd') is None
+    with pytest.raises(TransferError, match='transfer 10 of /a/after in 3 parts is being received'):
+        inc.receive('/b/after', 11, 2, 3, b'ef')                      # another sender's part, mid-transfer
+    assert inc.receive('/a/after', 12, 0, 2, b'ab') is None           # a new transfer replaces an unfinished one
+    assert inc.receive('/a/after', 12, 1, 2, b'cd') == b'abcd'
+    with pytest.raises(TransferError):
+        inc.receive('/a/after', 13, 3, 3, b'')                        # not a part of anything
+
+
+def test_whatever_the_link_does_to_the_parts_the_backup_holds_the_exact_state_or_refuses():
+    seed = int(time.time())
+    rng = random.Random(seed)
+    whole = refused = 0
+    for _ in range(500):
+        state = bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 400)))
+        out = Outgoing(1, state, rng.randint(1, 64), rng.randint(1, 4))
+        inc = Incoming()
+        link, got, outcome = [], None, None
+        for _ in range(10 * out.count + 20):        # bounded: a transfer that stalls is given up
+            link += [(p, out.parts[p]) for p in out.next_parts()]
+            if not link:
+                break
+            roll = rng.random()
+            if roll < 0.05:
+                link.pop(rng.randrange(len(link)))                  # lost
+                continue
+            if roll < 0.1:
+                link.append(link[rng.randrange(len(link))])         # duplicated
+            if roll < 0.15 and len(link) > 1:
+                i = rng.randrange(len(link) - 1)
+                link[i], link[i + 1] = link[i + 1], link[i]         # reordered
+            part, data = link.pop(0)
+            try:
+                got = inc.receive('/a/after', 1, part, out.count, data) if out.count > 1 else data
+            except TransferError:
+                outcome = 'refused'
+                break
+            if got is not None:
+                outcome = 'whole'
+                break
+            out.acknowledged(part)
+        if outcome == 'whole':
+            assert got == state, 'seed %d: the assembled state differs from the one sent' % seed
+            whole += 1
+        refused += outcome == 'refused'
+    assert whole > 200 and refused > 10, 'seed %d: %d whole, %d refused' % (seed, whole, refused)
+
+
+def test_each_part_acknowledged_restarts_the_ack_timeout_of_the_transfer_and_of_the_checkpoints_behind_it():
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0)
+    queued = sender.hold('reply', now=0.1)       # made while the parts are sent, sent after the last
+    assert sender.overdue(1.5, 1.0)
+    assert not sender.progress(seq + 1, 1.4)      # not the transfer under way: nothing changes
+    assert sender.progress(seq, 1.4)
+    assert not sender.overdue(2.3, 1.0) and sender.overdue(2.5, 1.0)
+    assert sender.on_ack(seq, True) == ([], Need.ADMIT)
+    assert sender.on_ack(queued, True) == (['reply'], Need.NOTHING)
+    sender.depose('another primary')
+    assert not sender.progress(seq, 3.0)
