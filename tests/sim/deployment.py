@@ -104,6 +104,7 @@ class Deployment(object):
         self.on_site_stopped = None
         self.alarms = []            # (time, incarnation, node, kind, key, detail)
         self.batched = 0            # checkpoints that covered more than one request (group commit)
+        self.caught_up = 0          # checkpoints whose replies went at once while a joiner caught up
         self.parted = 0             # state transfers sent in parts (aft_ftm.transfer)
         self.parted_joined = 0      # ... whose last part the joiner acknowledged
         self.witness = WitnessModel(self, initial_primary, witness_host)

@@ -56,6 +56,7 @@ class Params(object):
         self.max_batch = 1              # Protocol ~max_batch (group commit; ROS: 16 for PBR not adaptable)
         self.chunk_items = 3            # After ~chunk_bytes: a state transfer in parts of this many request keys
         self.transfer_window = 2        # After ~transfer_window: parts sent and not yet acknowledged, at most
+        self.catch_up = True            # After ~catch_up: replies go at once until the joiner holds the transfer
         # Fixes of adapter rules that the simulation found to break a property, or liveness (see
         # tests/unit/test_replication_sim.py, which replays each finding with its flag off):
         # PbrAfterNode._on_set_role, PRIMARY -> ALONE (Recovery's AFTER_ALONE): raise the 'alone' alarm.
@@ -596,6 +597,8 @@ class AfterModel(Node):
                 seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
                 batch=[copy_reply(r) for r in replies[:-1]], state=None, epoch=self.sender.epoch, full=False,
                 cache=None))
+            if self.sender.releases_at_once(seq):
+                self.release(replies)
             return
         state, error = self.capture()
         if state is None:
@@ -610,6 +613,9 @@ class AfterModel(Node):
             seq=seq, first_seq=self.first_seq, sender=self.name, replaces='', reply=copy_reply(replies[-1]),
             batch=[copy_reply(r) for r in replies[:-1]], state=state, epoch=self.sender.epoch, full=False,
             cache=None))
+        if self.sender.releases_at_once(seq):
+            self.env.caught_up += 1
+            self.release(replies)
 
     def on_ack(self, ack):
         if ack.to and ack.to != self.name:
@@ -637,8 +643,7 @@ class AfterModel(Node):
         need = Need.NOTHING
         if self.sender is not None and self.sender.overdue(self.world.now, self.env.params.ack_timeout):
             need = Need.EXCLUDE
-        elif self.sender is not None and self.sender.role == Role.PRIMARY and not self.sender.admitted \
-                and self.sender.join_seq is None and self.joiner is not None:
+        elif self.sender is not None and self.sender.ready_to_admit() and self.joiner is not None:
             need = Need.ADMIT
         if need == Need.EXCLUDE:
             self.resolve(need, 'no acknowledgment from the backup for %.2f s' % self.env.params.ack_timeout)
@@ -740,7 +745,7 @@ class AfterModel(Node):
         if state is None:
             self.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
             return
-        seq = sender.join(join.after, self.world.now)
+        seq = sender.join(join.after, self.world.now, catch_up=self.env.params.catch_up)
         self.role = Role.PRIMARY
         self.joiner = (join.site, join.incarnation)
         cache = self.recent.replies()

@@ -139,6 +139,7 @@ class Result(object):
         self.refused = sum(1 for p in env.proxies for e in p.opened if e.reply is not None and not e.reply.ok)
         self.batched = env.batched
         self.parted, self.parted_joined = env.parted, env.parted_joined
+        self.caught_up = env.caught_up
         self.alarms = checker.alarm_counts()
         self.transitions = checker.transition_counts
         w = env.witness.witness
@@ -290,6 +291,7 @@ def summary(results):
         total['refused'] += r.refused
         total['batched'] += r.batched
         total['parted'] += r.parted
+        total['caught_up'] += r.caught_up
         total['parted_joined'] += r.parted_joined
         total['stuck schedules'] += bool(r.unanswered)
         total['failovers'] += r.failovers

@@ -102,3 +102,28 @@ def test_each_part_acknowledged_restarts_the_ack_timeout_of_the_transfer_and_of_
     assert sender.on_ack(queued, True) == (['reply'], Need.NOTHING)
     sender.depose('another primary')
     assert not sender.progress(seq, 3.0)
+
+
+def test_a_joiner_catching_up_costs_clients_no_wait_and_is_admitted_only_once_it_holds_everything_released():
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    during = sender.hold('r1', now=0.1)
+    assert sender.releases_at_once(during) and not sender.held      # the client has it now, as ALONE
+    assert sender.on_ack(seq, True) == ([], Need.NOTHING)             # the transfer held, r1 not yet
+    assert not sender.ready_to_admit()
+    after = sender.hold('r2', now=0.2)
+    assert not sender.releases_at_once(after)                          # from the transfer's ack on, held
+    assert sender.overdue(1.2, 1.0)                                    # the joiner must acknowledge r1 in time
+    assert sender.on_ack(during, True) == ([], Need.ADMIT)             # it holds all that was released
+    assert sender.on_ack(after, True) == (['r2'], Need.NOTHING)
+    sender.admit(3)
+    assert not sender.ready_to_admit() and not sender.releases_at_once(sender.hold('r3', now=0.3))
+
+
+def test_a_checkpoint_the_catching_up_joiner_refuses_excludes_it():
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    during = sender.hold('r1', now=0.1)
+    assert sender.on_ack(during, False) == ([], Need.EXCLUDE)
+    assert sender.excluded(2) == [] and not sender.catchup and sender.role == Role.ALONE
+    assert sender.on_ack(seq, True) == ([], Need.NOTHING)              # a late answer changes nothing

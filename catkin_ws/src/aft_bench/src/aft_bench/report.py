@@ -860,10 +860,11 @@ def healing_lines(f):
     if sizes:
         whole = h.get('sizes_whole') or {}
         lines += ['', 'State transfer against the size of the server state (in parts of at most 1 MiB, 4 '
-                  'unacknowledged at most; for a state above one part, the same join with the state in one message '
-                  'beside it):', '']
+                  'unacknowledged at most, replies going at once until the joiner holds it; for a state above one '
+                  'part, beside it the same join as before both: the state in one message, every reply held from '
+                  'the transfer on):', '']
         lines += table(['state', 'parts', 'transfer acknowledged', 'pause', 'one request',
-                        'one message: transfer acknowledged, pause'],
+                        'before: transfer acknowledged, pause'],
                        [['%d bytes' % int(k), v.get('parts', 1), ms(v['transfer_acknowledged_s']), ms(v['pause_s']),
                          ms(v['request_s']), '%s, %s' % (ms(whole[k]['transfer_acknowledged_s']), ms(whole[k]['pause_s']))
                          if k in whole else '']

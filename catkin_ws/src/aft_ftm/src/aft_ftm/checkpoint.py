@@ -69,6 +69,11 @@ class CheckpointSender(object):
         self.admitted = role == Role.PRIMARY   # the witness knows our backup (always true without one)
         self.deposed = None     # why the witness refused us: nothing is ever released again
         self.session = first_seq   # acks of checkpoints below this were for an earlier backup: ignored
+        # A join with catch-up: until the joiner holds the state transfer, the replies are released at once (as
+        # ALONE: the witness does not count on the joiner yet) and their checkpoints (seq -> when sent) are
+        # only to be acknowledged before the joiner is admitted.
+        self.catching_up = False
+        self.catchup = {}
 
     def _change_role(self, role):
         """The one place where the sender's role changes (RoleError unless an allowed edge)."""
@@ -80,16 +85,28 @@ class CheckpointSender(object):
 
     def hold(self, reply, now, batch=()):
         """Register a checkpoint for reply, and for the replies of its batch before it (group commit);
-        returns its sequence number. They are released together, in order, once it is acknowledged."""
+        returns its sequence number. They are released together, in order, once it is acknowledged;
+        while a joiner catches up (:meth:`releases_at_once`), the caller releases them at once."""
         self.seq += 1
-        self.held[self.seq] = Held(self.seq, list(batch) + ([reply] if reply is not None else []), now)
+        if self.catching_up:
+            self.catchup[self.seq] = now
+        else:
+            self.held[self.seq] = Held(self.seq, list(batch) + ([reply] if reply is not None else []), now)
         return self.seq
 
-    def join(self, joiner, now):
+    def releases_at_once(self, seq):
+        """Checkpoint seq holds nothing: its replies go to the clients now (a joiner catching up)."""
+        return seq in self.catchup
+
+    def join(self, joiner, now, catch_up=False):
         """A backup asks for a state transfer: returns the seq of the full checkpoint to send it.
 
         From now on every reply is held until the joiner acknowledges it, so that whatever is
-        released, the joiner holds; it becomes the backup once the witness admits it (Need.ADMIT)."""
+        released, the joiner holds; it becomes the backup once the witness admits it (Need.ADMIT).
+        With ``catch_up``, the replies are held only once the joiner acknowledged the state transfer
+        (until then they go at once, as ALONE: clients do not wait for a long transfer), and the joiner is
+        admitted once it acknowledged every checkpoint sent meanwhile too: whatever is released after
+        the admission, the joiner holds, as without catch-up."""
         if self.deposed:
             raise RoleError('deposed: %s' % self.deposed)
         self._change_role(Role.PRIMARY)
@@ -98,7 +115,13 @@ class CheckpointSender(object):
         self.seq += 1
         self.join_seq = self.session = self.seq
         self.join_since = now
+        self.catching_up, self.catchup = catch_up, {}
         return self.seq
+
+    def ready_to_admit(self):
+        """The joiner holds the state transfer and every checkpoint sent while it caught up: ask the witness."""
+        return self.role == Role.PRIMARY and not self.admitted and not self.deposed and self.joiner is not None \
+            and self.join_seq is None and not self.catchup
 
     def progress(self, seq, now):
         """The joiner acknowledged a part of the state transfer ``seq`` (aft_ftm.transfer): the transfer
@@ -109,6 +132,8 @@ class CheckpointSender(object):
         self.join_since = now
         for held in self.held.values():
             held.since = now
+        for queued in self.catchup:
+            self.catchup[queued] = now
         return True
 
     def on_ack(self, seq, ok):
@@ -117,10 +142,17 @@ class CheckpointSender(object):
             return [], Need.NOTHING   # a late answer of a backup excluded since: says nothing of this one
         if seq == self.join_seq:
             self.join_seq = self.join_since = None
+            self.catching_up = False   # the joiner holds the state: from now on every reply waits for it
             if ok:
-                return [], Need.ADMIT
+                return [], Need.ADMIT if not self.catchup else Need.NOTHING
             self.refused += 1
             return [], Need.EXCLUDE
+        if seq in self.catchup:
+            del self.catchup[seq]
+            if not ok:
+                self.refused += 1
+                return [], Need.EXCLUDE
+            return [], Need.ADMIT if self.ready_to_admit() else Need.NOTHING
         held = self.held.pop(seq, None)
         if held is None:
             if ok:
@@ -140,6 +172,7 @@ class CheckpointSender(object):
         """The witness made the joiner our backup in ``epoch``."""
         self.admitted = True
         self.joiner = None
+        self.catching_up = False
         self.epoch = max(self.epoch, epoch)
 
     def excluded(self, epoch):
@@ -154,6 +187,7 @@ class CheckpointSender(object):
         """The backup is gone: release every held reply, send no more checkpoints."""
         self._change_role(Role.ALONE)
         self.joiner = self.join_seq = self.join_since = None
+        self.catching_up, self.catchup = False, {}
         released = [r for s in sorted(self.held) for r in self.held[s].replies]
         self.held.clear()
         return released
@@ -169,7 +203,8 @@ class CheckpointSender(object):
             return False
         if self.join_since is not None and now - self.join_since > timeout:
             return True
-        return any(now - h.since > timeout for h in self.held.values())
+        return any(now - h.since > timeout for h in self.held.values()) or \
+            any(now - since > timeout for since in self.catchup.values())
 
 
 class BatchError(Exception):

@@ -281,6 +281,10 @@ class HostedDeployment(object):
     def alarms(self):
         return self.driver.request(10.0, op='alarms')['alarms']
 
+    def witness_pair(self):
+        """The witness's [epoch, primary, backup] now, asked from the client host."""
+        return self.driver.request(10.0, op='check', services=[], subscriptions=[], wired=None, witness=True)['witness']
+
     def strings(self, topic, last=0):
         """Every std_msgs/String heard on topic since the first call for it (which subscribes: a
         latched topic gives its last message at once), each parsed as JSON; the ``last`` ones only if > 0."""

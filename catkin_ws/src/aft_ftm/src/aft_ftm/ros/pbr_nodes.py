@@ -100,6 +100,10 @@ class PbrAfterNode(AfterNode):
         ~transfer_window (int, 4): ... at most this many parts sent and not yet acknowledged (back-pressure):
             the ack timeout then counts from the last part acknowledged, and the checkpoints made meanwhile
             wait until the last part is sent.
+        ~catch_up (bool, true): while a joiner receives its state transfer, replies go to the clients at once
+            (as ALONE: the witness does not count on the joiner yet) and their checkpoints follow the transfer;
+            replies are held again from the transfer's acknowledgment, and the joiner is admitted once it
+            acknowledged every checkpoint sent meanwhile. False: every reply waits from the transfer on.
     Services called:
         get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
         the witness (aft_msgs/Witness).
@@ -169,6 +173,7 @@ class PbrAfterNode(AfterNode):
         self.decoder = DeltaDecoder()
         self.chunk_bytes = param('chunk_bytes', config.non_negative_int, 1 << 20)
         self.transfer_window = param('transfer_window', config.positive_int, 4)
+        self.catch_up = param('catch_up', config.flag, True)
         self.outgoing = None        # primary: the state transfer in parts being sent (aft_ftm.transfer)
         self.outgoing_template = None   # its checkpoint (every field but the state)
         self.deferred = []          # primary: checkpoints made while its parts are sent, sent after its last
@@ -306,6 +311,8 @@ class PbrAfterNode(AfterNode):
                     self._send_checkpoint(Checkpoint(
                         seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                         reply=replies[-1], batch=replies[:-1], epoch=self.sender.epoch))
+                    if self.sender.releases_at_once(seq):
+                        self._release(replies)   # a joiner catching up: nobody counts on it yet
                     return None
                 state, error = self._capture()
                 if state is None:
@@ -320,6 +327,8 @@ class PbrAfterNode(AfterNode):
                     self._send_checkpoint(Checkpoint(
                         seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                         reply=replies[-1], batch=replies[:-1], state=payload, delta=delta, epoch=self.sender.epoch))
+                    if self.sender.releases_at_once(seq):
+                        self._release(replies)   # a joiner catching up: nobody counts on it yet
                     return None
         self.side.fail_stop(problem)
         return None
@@ -380,10 +389,11 @@ class PbrAfterNode(AfterNode):
         with self.lock:
             if self.sender is None:
                 return
+            record = self.join_record
+            if record is not None and ack.ok and ack.seq == record['seq'] and 'acknowledged_s' not in record:
+                record['acknowledged_s'] = time.monotonic() - record['t0']
             released, need = self.sender.on_ack(ack.seq, ack.ok)
             self._release(released)
-            if need == Need.ADMIT and self.join_record is not None:
-                self.join_record['acknowledged_s'] = time.monotonic() - self.join_record['t0']
         if need:
             self._resolve(need, 'the backup refused checkpoint %d: %s' % (ack.seq, ack.error) if not ack.ok
                           else 'the backup holds the state transfer %d' % ack.seq)
@@ -393,8 +403,7 @@ class PbrAfterNode(AfterNode):
             need = Need.NOTHING
             if self.sender is not None and self.sender.overdue(time.monotonic(), self.ack_timeout):
                 need = Need.EXCLUDE
-            elif self.sender is not None and self.sender.role == Role.PRIMARY and not self.sender.admitted \
-                    and self.sender.join_seq is None and self.joiner is not None:
+            elif self.sender is not None and self.sender.ready_to_admit() and self.joiner is not None:
                 need = Need.ADMIT   # the witness could not be reached earlier: ask again
         if need == Need.EXCLUDE:
             self._resolve(need, 'no acknowledgment from the backup for %.1f s' % self.ack_timeout)
@@ -483,7 +492,7 @@ class PbrAfterNode(AfterNode):
             if state is None:
                 self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
                 return
-            seq = sender.join(join.after, time.monotonic())
+            seq = sender.join(join.after, time.monotonic(), catch_up=self.catch_up)
             self.encoder.reset(state)   # the joiner holds this state: the next checkpoints are deltas on it
             self.joiner = (join.site, join.incarnation)
             cache = self.recent.replies()
