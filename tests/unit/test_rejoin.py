@@ -2,7 +2,7 @@
 import pytest
 
 from aft_ftm.errors import ConfigError
-from aft_ftm.rejoin import Lookup, Rejoin, judge, master_pid
+from aft_ftm.rejoin import Lookup, Rejoin, judge, master_pid, misdirected_shutdown
 
 URI = 'http://10.0.0.2:4101/'
 
@@ -65,3 +65,17 @@ def test_the_period_comes_from_the_environment_and_a_bad_one_is_named():
     for bad in ('soon', '-1', 'nan'):
         with pytest.raises(ConfigError, match='AFT_MASTER_REJOIN_PERIOD'):
             period_from_env({'AFT_MASTER_REJOIN_PERIOD': bad})
+
+
+@pytest.mark.parametrize('message, own, expected', [
+    ('[/slave/crash_detector] Reason: new node registered with same name', '/slave/proceed', True),
+    ('[/slave/proceed] Reason: new node registered with same name', '/slave/proceed', False),   # meant for it
+    ('', '/slave/proceed', False),                                   # rosnode kill: obeyed
+    ('user request', '/slave/proceed', False),
+    ('[/slave/crash_detector] Reason: something else', '/slave/proceed', False),
+])
+def test_a_masters_shutdown_naming_another_node_is_misdirected(message, own, expected):
+    """A host back with its old address: the master's shutdown of a dead node's old address reaches
+    the new process that now has that port (found on emulated hosts: a relaunched site's Proceed shut
+    down for its crash detector). Only a request naming another node is ignored."""
+    assert misdirected_shutdown(message, own) is expected

@@ -22,6 +22,23 @@ in a row). So a third probe looks up the node's own ``~get_loggers`` service, wh
 node registers: gone, or registered to another address, and the node registers everything again.
 """
 import enum
+import re
+
+# rosmaster's words when a node registers under a name another address held (registrations.py): it
+# then asks the old address to shut down, naming the node it means.
+_BUMPED = re.compile(r'^\[(?P<name>[^\]]*)\] Reason: new node registered with same name$')
+
+
+def misdirected_shutdown(message, own_name):
+    """Whether a ROS master's shutdown request (its ``message``) names another node than ``own_name``.
+
+    When a host comes back with its address (a power loss, a site relaunched), its new processes may be
+    given the very ports its dead ones had. A node of the dead site registering again bumps its old
+    registration, and the master sends the shutdown to the old address: to whatever new process now
+    listens there, which plain rospy obeys. The message names the node it is meant for; another node
+    must ignore it."""
+    match = _BUMPED.match(message or '')
+    return bool(match) and match.group('name') != own_name
 
 
 class Lookup(enum.Enum):

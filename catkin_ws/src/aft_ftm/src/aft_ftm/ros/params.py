@@ -67,8 +67,9 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
         print(node_help(name, factory, variants))
         sys.exit(0)
     from .handshake import bound_handshakes
-    from .rejoin import keep_registered
+    from .rejoin import ignore_misdirected_shutdowns, keep_registered
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
+    ignore_misdirected_shutdowns()   # a master's shutdown meant for the dead process this port was
     try:
         secure_from_environment()   # mutual TLS on every TCPROS connection, where the environment asks for it
     except ConfigError as e:

@@ -1,5 +1,6 @@
 """Primary-Backup Replication (paper section 5.2.2): the After of each replica."""
 import json
+import queue
 import threading
 import time
 
@@ -176,6 +177,9 @@ class PbrAfterNode(AfterNode):
         self.catch_up = param('catch_up', config.flag, True)
         self.outgoing = None        # primary: the state transfer in parts being sent (aft_ftm.transfer)
         self.outgoing_template = None   # its checkpoint (every field but the state)
+        # The parts, and the checkpoints behind them, are written by a thread of their own, in order: a
+        # publisher writes synchronously, and a part on a slow link must not hold the lock the replies need.
+        self.outbox = queue.Queue()
         self.deferred = []          # primary: checkpoints made while its parts are sent, sent after its last
         self.incoming = Incoming()  # backup: the parts of the state transfer being received
         self.joiner = None          # (site, incarnation) of the backup being joined
@@ -224,6 +228,7 @@ class PbrAfterNode(AfterNode):
         if not super(PbrAfterNode, self).setup(timeout):
             return False
         self.timer = rospy.Timer(rospy.Duration(min(0.1, self.ack_timeout / 4)), self._check_acks)
+        threading.Thread(target=self._write_outbox, name='transfer-outbox', daemon=True).start()
         if self.apply_period > 0:
             self.applier = rospy.Timer(rospy.Duration(self.apply_period), self._apply_pending)
         if self.witness is not None:
@@ -342,8 +347,23 @@ class PbrAfterNode(AfterNode):
         joiner must hold the whole transfer before the checkpoints that follow it."""
         if self._transfer_live() and not self.outgoing.all_sent():
             self.deferred.append(cp)
+        elif self.outbox.unfinished_tasks:
+            self.outbox.put(cp)   # behind what the outbox has still to write
         else:
             self.ports.publish('checkpoints', cp)
+
+    def _write_outbox(self):
+        while not rospy.is_shutdown():
+            try:
+                cp = self.outbox.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            try:
+                self.ports.publish('checkpoints', cp)
+            except rospy.ROSException as e:   # shutting down: nothing more leaves
+                rospy.logwarn('%s: checkpoint %d not sent: %s', self.name, cp.seq, e)
+            finally:
+                self.outbox.task_done()
 
     def _transfer_live(self):
         """The state transfer in parts is still the sender's join under way (else forget it)."""
@@ -356,14 +376,14 @@ class PbrAfterNode(AfterNode):
         out = self.outgoing
         for part in out.next_parts():
             last = part == out.count - 1
-            self.ports.publish('checkpoints', Checkpoint(
+            self.outbox.put(Checkpoint(
                 seq=out.seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                 epoch=template.epoch, full=True, state=out.parts[part], part=part, parts=out.count,
                 cache=template.cache if last else []))
         if out.all_sent():
             deferred, self.deferred = self.deferred, []
             for cp in deferred:
-                self.ports.publish('checkpoints', cp)
+                self.outbox.put(cp)
 
     def _on_part_ack(self, ack):
         """The joiner holds parts 0 .. ack.part of the transfer: send the next ones (back-pressure)."""

@@ -20,7 +20,7 @@ import rospy
 from rospy.impl.registration import get_service_manager, get_topic_manager
 
 from ..errors import ConfigError
-from ..rejoin import Rejoin, judge, master_pid
+from ..rejoin import Rejoin, judge, master_pid, misdirected_shutdown
 from .fencing import node_api
 from .params import READ
 
@@ -102,6 +102,26 @@ def period_from_env(environ=os.environ):
     if not period >= 0:
         raise ConfigError('AFT_MASTER_REJOIN_PERIOD=%r: expected seconds between checks (0: off)' % text)
     return period
+
+
+def ignore_misdirected_shutdowns():
+    """A master's shutdown request that names another node (aft_ftm.rejoin.misdirected_shutdown: it was
+    meant for a dead process whose port this one now has) is refused with a warning; any other is
+    obeyed, as rospy does. Once per process, any time before the request (``run_node`` calls it).
+    ``AFT_OBEY_EVERY_SHUTDOWN=1`` keeps plain rospy's behaviour (a test's control)."""
+    from rospy.impl import masterslave
+    original = masterslave.ROSHandler.shutdown
+    if os.environ.get('AFT_OBEY_EVERY_SHUTDOWN') == '1' or getattr(original, 'guarded', False):
+        return
+
+    def shutdown(handler, caller_id, msg=''):
+        if misdirected_shutdown(msg, rospy.get_name()):
+            rospy.logwarn('%s: a shutdown request from %s ignored: it names another node (%s), that had this '
+                          'address before (a host or site back with its old address)', rospy.get_name(), caller_id, msg)
+            return 1, 'ignored: %s is not the node named' % rospy.get_name(), 0
+        return original(handler, caller_id, msg)
+    shutdown.guarded = True
+    masterslave.ROSHandler.shutdown = shutdown
 
 
 def keep_registered(period=None):
