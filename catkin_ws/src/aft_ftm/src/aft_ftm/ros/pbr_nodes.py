@@ -122,7 +122,7 @@ class PbrAfterNode(AfterNode):
         join (aft_msgs/Join), port ``join``: to the primary's After
         fail_stop (aft_msgs/Failure), port ``fail_stop``; alarms (aft_msgs/Alarm), port ``alarms``
         ~events (std_msgs/String, latched): one JSON record per state transfer this After sent (joiner,
-            bytes of state, replies, seconds until acknowledged and until admitted)
+            bytes of state, parts, replies, seconds until acknowledged and until admitted)
         /diagnostics (diagnostic_msgs/DiagnosticArray): role, epoch, held replies, whether a backup may
             take over (aft_ftm.health)
     Services:
