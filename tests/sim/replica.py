@@ -821,7 +821,7 @@ class AfterModel(Node):
                 self.world.log('%s part %d/%d of transfer %d from %s', self.name, cp.part, cp.parts, cp.seq, cp.sender)
                 self.ack(cp.seq, True, '', receiver.epoch, cp.sender, partial=True, part=cp.part)
                 return
-        if decision == Decision.GAP:
+        if decision == Decision.GAP and not refused_transfer:
             error = 'checkpoint %d received after %d: one is missing' % (cp.seq, receiver.last_seq)
         elif decision == Decision.JOINING:
             error = '%s holds no state yet: it is joining' % self.name

@@ -220,3 +220,23 @@ def test_a_party_resumes_no_session_its_certificate_is_judged_at_every_connectio
     tls.issue(str(tmp_path), 'master')
     server, _ = tls.contexts(str(tmp_path), 'master')
     assert server.num_tickets == 0
+
+
+def test_an_outbound_connection_closed_before_its_header_came_is_not_judged(monkeypatch):
+    """rospy's read_header returns without reading when the connection was closed meanwhile (its peer
+    died: the car's demo, a board powered off). Nothing was said, so the TLS layer refuses nothing and
+    raises no alarm; it once took that for a car node "named (none)" that its party may not run."""
+    import types
+    from aft_ftm.ros import tls_transport
+    refused = []
+    monkeypatch.setattr(tls_transport, '_refused', lambda *args: refused.append(args))
+    policy = tls.Permissions.parse({'parties': {'car': {'nodes': ['/car/*']}}})
+    monkeypatch.setitem(tls_transport._STATE, 'permissions', policy)
+    closed = types.SimpleNamespace(tls_party='car', header=None, socket=None, dest_address=('10.0.0.1', 1))
+    tls_transport._check_caller(closed)
+    assert refused == []
+    lying = types.SimpleNamespace(tls_party='car', header={'callerid': '/intruder', 'topic': '/t'}, socket=object(),
+                                  dest_address=('10.0.0.1', 1), close=lambda: None)
+    with pytest.raises(Exception, match='refused by the TLS policy'):
+        tls_transport._check_caller(lying)
+    assert refused and 'may not run a node named /intruder' in refused[0][2]

@@ -583,7 +583,7 @@ class PbrAfterNode(AfterNode):
                     self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=True, partial=True, part=cp.part,
                                                                   epoch=self.receiver.epoch, to=cp.sender))
                     return
-            if decision == Decision.GAP:
+            if decision == Decision.GAP and not refused_transfer:
                 error = 'checkpoint %d received after %d: one is missing' % (cp.seq, self.receiver.last_seq)
             elif decision == Decision.JOINING:
                 error = '%s holds no state yet: it is joining' % self.name

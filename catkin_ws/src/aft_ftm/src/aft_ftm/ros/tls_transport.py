@@ -142,7 +142,11 @@ def _check_caller(transport):
     party may run (Permissions.names_node), or the connection is refused and closed."""
     from rospy.exceptions import TransportInitError
     party = getattr(transport, 'tls_party', None)
-    header = getattr(transport, 'header', None) or {}
+    header = getattr(transport, 'header', None)
+    if transport.socket is None or not header:
+        # Closed before a header was read (the peer died, rospy is closing the connection): nothing was
+        # said, so nothing is judged (it once counted as a node of the car "named (none)").
+        return
     why = _STATE['permissions'].names_node(party, header.get('callerid')) if party is not None else None
     if why:
         name = header.get('topic') or header.get('service') or '?'
