@@ -23,7 +23,7 @@ import time
 import psutil
 import pytest
 
-from aft_examples.bank import Account, operation
+from aft_examples.bank import Account, account_state, operation
 from aft_ftm import hosts_exec
 from aft_ftm.hosts_exec import PlatformError
 from aft_ftm.sites import wait_until
@@ -82,7 +82,7 @@ def expected_state(count):
 
 def survivor_state(d, site):
     model = Account()
-    model.set_state(d.server_state(site).partition(b'\0')[0])   # the account without its inert ballast, if any
+    model.set_state(account_state(d.server_state(site)))   # the account without its inert ballast, if any
     return model.snapshot()
 
 

@@ -1,7 +1,11 @@
 """The demo application: errors in the request stream are visible in the replies. No ROS."""
+import random
+import time
+
 import pytest
 
-from aft_examples.bank import Account, InsufficientFunds, ReplyChecker, operation
+from aft_examples.bank import Account, InsufficientFunds, ReplyChecker, StateLayout, account_state, operation
+from aft_ftm.delta import crc, rebuild
 from aft_ftm.errors import StateError
 
 
@@ -80,3 +84,39 @@ def test_checker_classifies_what_happened_to_the_request_stream(server_ops, verd
     assert summary[verdict] >= 1
     assert sum(summary.values()) == summary[verdict]
     assert checker.model.snapshot() == server.snapshot()    # resynchronised on the server's answer
+
+
+@pytest.mark.parametrize('ballast', [0, 3000])
+def test_the_servers_changes_since_any_version_it_named_rebuild_its_state(ballast):
+    """The bank server's own state changes (StateLayout.since), from random versions it named, some
+    forgotten: runs that rebuild exactly its state now, with its CRC, or the whole state."""
+    seed = int(time.time())
+    rng = random.Random(seed)
+    layout, account = StateLayout(ballast, 'inc1'), Account()
+    named = {}   # version -> the whole state at it
+    for step in range(300):
+        for _ in range(rng.randint(0, 3)):
+            account.apply(*operation(rng.randrange(1000)))
+            layout.changed()
+        since = rng.choice(sorted(named) + ['', 'other:1']) if named else ''
+        changes = layout.since(since, account.get_state())
+        now = layout.state(account.get_state())
+        named[changes.version] = now
+        if changes.state is not None:
+            assert changes.state == now
+            assert since not in list(named)[-StateLayout.KNOWN:] or since == changes.version, \
+                'seed %d, step %d: the whole state for a version it knows' % (seed, step)
+            continue
+        assert rebuild(named[since], changes.runs) == now, 'seed %d, step %d' % (seed, step)
+        assert (changes.size, changes.crc) == (len(now), crc(now))
+        assert sum(len(d) for _, _, d in changes.runs) < 200   # the account, never the ballast
+    assert layout.account(layout.state(account.get_state())) == account.get_state()
+    assert account_state(layout.state(account.get_state())) == account.get_state()
+
+
+def test_a_state_of_another_ballast_is_refused_by_its_length():
+    layout = StateLayout(100, 'inc1')
+    with pytest.raises(StateError, match='ballast of 99 bytes, expected 100'):
+        layout.account(b'\xa5' * 99 + b'\0' + Account().get_state())
+    with pytest.raises(StateError, match='ballast of 0 bytes, expected 100'):
+        layout.account(Account().get_state())

@@ -4,7 +4,7 @@ import time
 
 import pytest
 
-from aft_ftm.delta import DeltaDecoder, DeltaEncoder, DeltaError, apply, encode
+from aft_ftm.delta import DeltaDecoder, DeltaEncoder, DeltaError, ServerChanges, apply, crc, encode
 
 
 def mutate(rng, state):
@@ -85,3 +85,128 @@ def test_small_states_and_large_changes_are_sent_whole():
     encoder.next(bytes(4096))
     payload, is_delta = encoder.next(bytes(range(256)) * 16)         # every byte changed
     assert not is_delta and len(payload) == 4096
+
+
+# -- a server's own changes (aft_msgs/GetStateDelta) ------------------------------------------------------
+def told_runs(rng, old, new):
+    """Runs a server could tell for old -> new: the changed middle, sometimes cut in two at random."""
+    limit = min(len(old), len(new))
+    prefix = next((i for i in range(limit) if old[i] != new[i]), limit)
+    suffix = 0
+    while suffix < limit - prefix and old[len(old) - 1 - suffix] == new[len(new) - 1 - suffix]:
+        suffix += 1
+    start, end, data = prefix, len(old) - suffix, new[prefix:len(new) - suffix]
+    if rng.random() < 0.5:
+        cut, at = rng.randint(start, end), rng.randint(0, len(data))
+        return [(start, cut, data[:at]), (cut, end, data[at:])]
+    return [(start, end, data)]
+
+
+class FakeServer(object):
+    """A server that tells its changes since the versions it named (the last few)."""
+
+    def __init__(self, rng, state):
+        self.rng, self.state, self.count, self.versions = rng, state, 0, {}
+
+    def change(self):
+        self.state = mutate(self.rng, self.state)
+        self.count += 1
+
+    def since(self, version):
+        now = 'v%d' % self.count
+        old = self.versions.get(version)
+        self.versions[now] = self.state
+        if old is None or self.rng.random() < 0.1:       # unknown or forgotten: the whole state
+            return ServerChanges(now, state=self.state)
+        return ServerChanges(now, runs=told_runs(self.rng, old, self.state), size=len(self.state),
+                             crc=crc(self.state))
+
+
+def test_the_servers_own_changes_rebuild_on_the_backup_exactly_the_servers_state():
+    seed = int(time.time())
+    rng = random.Random(seed)
+    for case in range(60):
+        server = FakeServer(rng, bytes(rng.getrandbits(8) for _ in range(rng.choice([100, 5000, 20000]))))
+        encoder, decoder = DeltaEncoder(min_size=1024), DeltaDecoder()
+        for step in range(30):
+            for _ in range(rng.randint(0, 2)):
+                server.change()
+            if rng.random() < 0.15:   # a state transfer: whole, no version known
+                encoder.reset(server.state)
+                decoder.accept(server.state)
+                continue
+            if rng.random() < 0.1:    # the server's changes not asked (a failed call): its whole state
+                payload, is_delta = encoder.next(server.state)
+            else:
+                payload, is_delta = encoder.next_changes(server.since(encoder.version or ''))
+            held = decoder.state(payload, is_delta)
+            decoder.accept(held)
+            assert held == server.state, 'seed %d, case %d, step %d' % (seed, case, step)
+            if len(server.state) >= 2048 and is_delta:
+                assert len(payload) < len(server.state) // 2
+
+
+def test_wrong_changes_from_the_server_are_refused_before_anything_is_sent_and_change_nothing():
+    seed = int(time.time())
+    rng = random.Random(seed)
+    wrongs = {
+        'a byte of data': lambda ch: ServerChanges(ch.version, runs=[(s, e, bytes([d[0] ^ 1]) + d[1:]) if d else
+                                                                    (s, e, b'x') for s, e, d in ch.runs],
+                                                   size=ch.size, crc=ch.crc),
+        'the CRC': lambda ch: ServerChanges(ch.version, runs=ch.runs, size=ch.size, crc=ch.crc ^ 0x10),
+        'the size': lambda ch: ServerChanges(ch.version, runs=ch.runs, size=ch.size + 1, crc=ch.crc),
+        'a run out of the state': lambda ch: ServerChanges(ch.version, runs=[(0, 10 ** 9, b'')], size=ch.size,
+                                                           crc=ch.crc),
+        'runs out of order': lambda ch: ServerChanges(ch.version, runs=[(50, 60, b'a'), (10, 20, b'b')],
+                                                      size=ch.size, crc=ch.crc),
+    }
+    for case in range(50):
+        what = rng.choice(sorted(wrongs))
+        server = FakeServer(rng, bytes(rng.getrandbits(8) for _ in range(5000)))
+        server.rng = random.Random(rng.random())
+        encoder, decoder = DeltaEncoder(), DeltaDecoder()
+        first = encoder.next_changes(server.since(''))
+        decoder.accept(decoder.state(*first))
+        server.change()
+        told = server.since(encoder.version)
+        while told.state is not None:   # forgotten at random: ask again for changes
+            told = server.since(encoder.version)
+        before = (encoder.base, encoder.base_crc, encoder.version, encoder.sent_bytes)
+        with pytest.raises(DeltaError):
+            encoder.next_changes(wrongs[what](told))
+        assert (encoder.base, encoder.base_crc, encoder.version, encoder.sent_bytes) == before, \
+            'seed %d, case %d (%s)' % (seed, case, what)
+        # What the After then does: the whole state, whose delta the backup applies to what it holds.
+        assert decoder.state(*encoder.next(server.state)) == server.state, 'seed %d, case %d' % (seed, case)
+
+
+def test_changes_are_refused_without_a_state_of_a_named_version_and_a_whole_answer_names_one():
+    encoder = DeltaEncoder()
+    with pytest.raises(DeltaError, match='no state of a version'):
+        encoder.next_changes(ServerChanges('v1', runs=[], size=0, crc=0))
+    encoder.reset(b'a' * 2000)   # a state transfer: no version
+    with pytest.raises(DeltaError, match='no state of a version'):
+        encoder.next_changes(ServerChanges('v1', runs=[], size=2000, crc=crc(b'a' * 2000)))
+    encoder.next_changes(ServerChanges('v2', state=b'b' * 2000))
+    assert encoder.version == 'v2'
+    payload, is_delta = encoder.next_changes(ServerChanges('v3', runs=[(5, 6, b'c')], size=2000,
+                                                           crc=crc(b'b' * 5 + b'c' + b'b' * 1994)))
+    assert is_delta and len(payload) < 100 and encoder.version == 'v3'
+    encoder.next(b'd' * 2000)    # a whole state captured: its version unknown
+    assert encoder.version is None
+
+
+class Message(object):
+    def __init__(self, **fields):
+        self.__dict__.update(dict(whole=False, state=b'', version='v', size=0, crc=0), **fields)
+
+
+@pytest.mark.parametrize('fields, error', [
+    (dict(starts=[0, 5], ends=[1], lengths=[1, 1], data=b'ab'), '2 starts, 1 ends and 2 lengths'),
+    (dict(starts=[0], ends=[1], lengths=[3], data=b'ab'), 'hold 2 bytes of data, their lengths add up to 3'),
+])
+def test_a_malformed_answer_of_the_server_is_named(fields, error):
+    with pytest.raises(DeltaError, match=error):
+        ServerChanges.from_message(Message(**fields))
+    runs = ServerChanges.from_message(Message(starts=[0, 4], ends=[1, 4], lengths=[2, 1], data=b'abc')).runs
+    assert runs == [(0, 1, b'ab'), (4, 4, b'c')]

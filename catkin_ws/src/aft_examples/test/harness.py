@@ -14,7 +14,7 @@ import rospy
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import Account, GetState
 
-from aft_examples.bank import Account as Model, ReplyChecker, operation
+from aft_examples.bank import Account as Model, ReplyChecker, account_state, operation
 from aft_examples.ros.bank_nodes import account_caller, drive_through_fault
 from aft_examples.ros.deployment import MechanismDeployment, PbrDeployment, last_failover
 
@@ -99,7 +99,7 @@ class Sites(unittest.TestCase):
     def state_of(self, site):
         get = rospy.ServiceProxy('/%s/bank_server/get_state' % site, GetState)
         model = Model()
-        model.set_state(bytes(get().state).partition(b'\0')[0])   # without the ballast, if any
+        model.set_state(account_state(get().state))   # without the ballast, if any
         return model.snapshot()
 
     def assert_exactly_once(self, count, survivor):

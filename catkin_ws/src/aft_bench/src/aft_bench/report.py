@@ -792,6 +792,10 @@ def car_lines(f):
     return lines
 
 
+CHECKPOINTS = {'whole': 'whole', 'computed': 'incremental, computed by the After',
+               'server': 'incremental, told by the server'}
+
+
 def state_lines(f):
     runs = get(f, 'state.runs')
     if not runs:
@@ -800,7 +804,8 @@ def state_lines(f):
              'deployment per row; bytes counted on the primary After\'s checkpoint topic as TCPROS carries them:', '']
     lines += table(['state', 'checkpoints', 'bytes per request between replicas', 'latency median', 'p99',
                     'backup state identical', 'replies right'],
-                   [['%d B' % r['state_bytes'], 'incremental' if r['incremental'] else 'whole',
+                   [['%d B' % r['state_bytes'], CHECKPOINTS.get(r.get('changes'), 'incremental' if r['incremental']
+                                                                 else 'whole'),
                      '%.0f' % r['bytes_per_request'], ms(r['latency_median_s'], 2), ms(r['latency_p99_s'], 2),
                      'yes' if r['backup_state_identical'] else '**no**', 'yes' if r['replies_right'] else '**no**']
                     for r in runs])

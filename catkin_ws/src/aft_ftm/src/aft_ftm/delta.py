@@ -14,6 +14,12 @@ The decoder checks the base it holds against the header before applying (a delta
 base is refused, naming both), and the result against the new CRC (a corrupt delta is refused): a
 refused delta changes nothing, and the backup asks for a full transfer (it joins again).
 
+A server that knows what changed may say so itself (aft_msgs/GetStateDelta, offered beside its
+getState; :class:`ServerChanges`): runs on the state of a version it named, with the new state's
+length and CRC. The encoder applies them to the state it sent last and checks the result against
+that CRC before anything leaves (:meth:`DeltaEncoder.next_changes`): changes that do not rebuild the
+server's state are refused here, by name, and the backup never sees them.
+
 The encoder finds changes by comparing blocks (C-speed slices of ``BLOCK`` bytes, then of ``FINE``
 bytes inside a changed block), so a 1 MB state costs well under a millisecond when little changed.
 """
@@ -84,12 +90,59 @@ def encode(base, new, base_crc=None, new_crc=None):
         prefix = _common_prefix(base, new)
         suffix = _common_suffix(base, new, min(len(base), len(new)) - prefix)
         runs = [(prefix, len(base) - suffix, new[prefix:len(new) - suffix])]
-    parts = [_HEADER.pack(MAGIC, VERSION, len(base), crc(base) if base_crc is None else base_crc, len(new),
-                          crc(new) if new_crc is None else new_crc, len(runs))]
+    return _pack(len(base), crc(base) if base_crc is None else base_crc, len(new),
+                 crc(new) if new_crc is None else new_crc, runs)
+
+
+def _pack(base_len, base_crc, new_len, new_crc, runs):
+    parts = [_HEADER.pack(MAGIC, VERSION, base_len, base_crc, new_len, new_crc, len(runs))]
     for start, end, data in runs:
         parts.append(_RUN.pack(start, end, len(data)))
         parts.append(data)
     return b''.join(parts)
+
+
+def rebuild(base, runs):
+    """The state that runs [(start, end, data)] (in order, not overlapping, within base) turn base into;
+    DeltaError names the first run that is not."""
+    parts, previous = [], 0
+    for index, (start, end, data) in enumerate(runs):
+        if not previous <= start <= end <= len(base):
+            raise DeltaError('run %d of %d (%d-%d) is out of order or out of the %d-byte state'
+                             % (index + 1, len(runs), start, end, len(base)))
+        parts.append(base[previous:start])
+        parts.append(bytes(data))
+        previous = end
+    parts.append(base[previous:])
+    return b''.join(parts)
+
+
+class ServerChanges(object):
+    """A server's own answer to "what changed since version ``since``" (aft_msgs/GetStateDelta):
+    either the whole state (``state``), or ``runs`` [(start, end, data)] on the state of that version,
+    with the new state's ``size`` and ``crc``."""
+
+    def __init__(self, version, state=None, runs=None, size=None, crc=None):
+        if (state is None) == (runs is None):
+            raise ValueError('server changes hold the whole state or runs, not both or neither')
+        self.version, self.state, self.runs, self.size, self.crc = version, state, runs, size, crc
+
+    @classmethod
+    def from_message(cls, m):
+        """From an aft_msgs/GetStateDelta response; DeltaError if its runs do not add up."""
+        if m.whole:
+            return cls(m.version, state=bytes(m.state))
+        if not len(m.starts) == len(m.ends) == len(m.lengths):
+            raise DeltaError('the server sent %d starts, %d ends and %d lengths of runs'
+                             % (len(m.starts), len(m.ends), len(m.lengths)))
+        if sum(m.lengths) != len(m.data):
+            raise DeltaError('the server\'s runs hold %d bytes of data, their lengths add up to %d'
+                             % (len(m.data), sum(m.lengths)))
+        data, runs, at = bytes(m.data), [], 0
+        for start, end, length in zip(m.starts, m.ends, m.lengths):
+            runs.append((start, end, data[at:at + length]))
+            at += length
+        return cls(m.version, runs=runs, size=m.size, crc=m.crc)
 
 
 def apply(base, delta, base_crc=None):
@@ -142,6 +195,7 @@ class DeltaEncoder(object):
         self.min_size = min_size
         self.base = None          # the state of the previous checkpoint sent with a state
         self.base_crc = None
+        self.version = None       # the server's version of base, when the server's own changes gave it
         self.sent_bytes = 0       # state bytes sent (deltas or whole)
         self.state_bytes = 0      # what whole states would have cost
 
@@ -149,9 +203,11 @@ class DeltaEncoder(object):
         """A full state was sent (a state transfer), or nothing is known of the backup's (None)."""
         self.base = bytes(state) if state is not None else None
         self.base_crc = crc(self.base) if state is not None else None
+        self.version = None       # the server's version of base, when the server's own changes gave it
 
-    def next(self, state):
-        """(payload, is_delta) for a checkpoint carrying ``state``; it becomes the next base."""
+    def next(self, state, version=None):
+        """(payload, is_delta) for a checkpoint carrying ``state`` (of the server's ``version``, if it
+        told); it becomes the next base."""
         state = bytes(state)
         payload, is_delta, state_crc = state, False, None
         if self.base is not None and len(state) >= self.min_size:
@@ -159,7 +215,31 @@ class DeltaEncoder(object):
             delta = encode(self.base, state, self.base_crc, state_crc)
             if len(delta) < len(state) // 2:
                 payload, is_delta = delta, True
-        self.base, self.base_crc = state, state_crc if state_crc is not None else crc(state)
+        return self._sent(state, state_crc if state_crc is not None else crc(state), payload, is_delta, version)
+
+    def next_changes(self, changes):
+        """(payload, is_delta) for a checkpoint from the server's own changes (:class:`ServerChanges`)
+        since ``self.version``: its runs are applied to the base and the result checked against the
+        server's size and CRC. DeltaError (nothing changed) if they do not rebuild it: the caller then
+        captures the whole state (``next``)."""
+        if changes.state is not None:
+            return self.next(changes.state, changes.version)
+        if self.base is None or self.version is None:
+            raise DeltaError('the server sent changes, and this After holds no state of a version it named')
+        state = rebuild(self.base, changes.runs)
+        state_crc = crc(state)
+        if len(state) != changes.size or state_crc != changes.crc:
+            raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server says '
+                             '%d bytes (CRC %08x)' % (self.version, len(state), state_crc, changes.size, changes.crc))
+        payload, is_delta = state, False
+        if len(state) >= self.min_size:
+            delta = _pack(len(self.base), self.base_crc, len(state), state_crc, changes.runs)
+            if len(delta) < len(state) // 2:
+                payload, is_delta = delta, True
+        return self._sent(state, state_crc, payload, is_delta, changes.version)
+
+    def _sent(self, state, state_crc, payload, is_delta, version):
+        self.base, self.base_crc, self.version = state, state_crc, version
         self.sent_bytes += len(payload)
         self.state_bytes += len(state)
         return payload, is_delta

@@ -3,14 +3,15 @@ server's state-manager mixin)."""
 import json
 import threading
 import time
+import uuid
 
 import rospy
 from aft_msgs.srv import Account, AccountResponse, InjectFault, InjectFaultResponse
 
 from aft_ftm import config
 from aft_examples.stats import median
-from aft_examples.bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, operation
-from aft_ftm.errors import StateError
+from aft_examples.bank import Account as AccountLogic, InsufficientFunds, ReplyChecker, StateLayout, operation
+from aft_ftm.delta import ServerChanges
 from aft_ftm.ros.params import param
 from aft_ftm.ros.state_manager import StateManager
 
@@ -19,10 +20,15 @@ class BankServerNode(StateManager):
     """A bank account served as a ROS service.
 
     Parameters:
-        ~ballast_bytes (int, 0): bytes of inert state carried with the account (benchmarks of large
+        ~ballast_bytes (int, 0): bytes of inert state carried before the account (benchmarks of large
             states: scripts/bench_healing); a state whose ballast is not that long is refused.
+        ~state_changes (bool, true): offer ~get_state_delta, the changes since a version (aft_examples.bank
+            .StateLayout): the account alone; false: getState only (the framework computes the deltas).
     Services:
-        account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState)
+        account (aft_msgs/Account), ~get_state (aft_msgs/GetState), ~set_state (aft_msgs/SetState),
+        ~get_state_delta (aft_msgs/GetStateDelta) unless ~state_changes is false
+        ~corrupt_state_changes (aft_msgs/InjectFault, ``count``): the next count answers of get_state_delta
+            that carry changes have one byte of them wrong (a faulty server; fault injection for the tests)
         ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
             (fault injection for the tests: a state capture failing once, or for good)
         ~slow_state_restores (aft_msgs/InjectFault, ``count``, ``magnitude`` s): the next count set_state
@@ -35,11 +41,16 @@ class BankServerNode(StateManager):
         self.state_lock = threading.RLock()
         self.capture_faults = 0
         self.slow_restores = (0, 0.0)   # (how many more set_state calls are slow, seconds each)
-        self.ballast = b'\xa5' * param('ballast_bytes', config.non_negative_int, 0)
+        self.layout = StateLayout(param('ballast_bytes', config.non_negative_int, 0), uuid.uuid4().hex[:8])
+        self.offers_changes = param('state_changes', config.flag, True)
+        self.corrupt_changes = 0
 
     def setup(self, timeout):
+        if not self.offers_changes:
+            self.state_changes = None   # hides the method: the mixin then offers getState alone
         self.advertise_state_services()
         rospy.Service('account', Account, self._on_request)
+        rospy.Service('~corrupt_state_changes', InjectFault, self._on_corrupt_changes)
         rospy.Service('~fail_state_captures', InjectFault, self._on_fail_captures)
         rospy.Service('~slow_state_restores', InjectFault, self._on_slow_restores)
         return True
@@ -67,30 +78,43 @@ class BankServerNode(StateManager):
             self.capture_faults = req.count
         return InjectFaultResponse(success=True, message='the next %d state captures fail' % req.count)
 
+    def _on_corrupt_changes(self, req):
+        with self.state_lock:
+            self.corrupt_changes = req.count
+        return InjectFaultResponse(success=True, message='the next %d state changes told are wrong' % req.count)
+
     def _on_request(self, req):
         with self.state_lock:
             try:
                 balance, count, digest = self.account.apply(req.op, req.amount, req.tag)
             except (ValueError, InsufficientFunds) as e:
                 raise rospy.ServiceException(str(e))
+            self.layout.changed()
         return AccountResponse(balance=balance, count=count, digest=digest)
 
-    def get_state(self):
+    def _captured(self):
         if self.capture_faults > 0:
             self.capture_faults -= 1
             raise rospy.ServiceException('injected fault: the state cannot be captured')
-        if self.ballast:
-            return self.account.get_state() + b'\0' + self.ballast
-        return self.account.get_state()
+
+    def get_state(self):
+        self._captured()
+        return self.layout.state(self.account.get_state())
+
+    def state_changes(self, since):
+        self._captured()
+        changes = self.layout.since(since, self.account.get_state())
+        if changes.runs and self.corrupt_changes > 0:
+            self.corrupt_changes -= 1
+            start, end, data = changes.runs[0]
+            wrong = bytes([data[0] ^ 0x01]) + data[1:]   # the CRC still that of the true state
+            changes = ServerChanges(changes.version, runs=[(start, end, wrong)] + changes.runs[1:],
+                                    size=changes.size, crc=changes.crc)
+        return changes
 
     def set_state(self, data):
-        if self.ballast:
-            data = bytes(data)
-            account, _, ballast = data.partition(b'\0')
-            if len(ballast) != len(self.ballast):
-                raise StateError('state ballast of %d bytes, expected %d' % (len(ballast), len(self.ballast)))
-            data = account
-        self.account.set_state(data)
+        self.account.set_state(self.layout.account(data))
+        self.layout.changed()
 
 
 def drive(call, count, checker, on_reply=None, pause=0.0, first=0):

@@ -72,7 +72,8 @@ class PbrDeployment(object):
     def __init__(self, log_dir, period=0.01, timeout=0.03, env=None, one_host=False, inner='', faulty=False,
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
                  cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None, incremental=True,
-                 max_batch=None, ca_validity=None, chunk_bytes=None, catch_up=True):
+                 max_batch=None, ca_validity=None, chunk_bytes=None, catch_up=True,
+                 state_changes=True):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -93,6 +94,8 @@ class PbrDeployment(object):
             replica['chunk_bytes'] = chunk_bytes   # a join's state transfer in parts of this many bytes
         if not catch_up:
             replica['catch_up'] = 'false'   # every reply waits from a join's state transfer on (the baseline)
+        if not state_changes:
+            replica['state_changes'] = 'false'   # the server offers getState alone: PBR computes the deltas
         if max_batch is not None:
             replica['max_batch'] = max_batch   # group commit's bound (1: one request at a time; default: auto)
         if not watch_required:

@@ -6,13 +6,13 @@ import time
 
 import rospy
 from aft_msgs.msg import Checkpoint, CheckpointAck, Join
-from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
+from aft_msgs.srv import GetState, GetStateDelta, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
 from .. import config, health
 from ..checkpoint import (HARMLESS, BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow,
                           GroupCommit, Need, is_refusal)
-from ..delta import DeltaDecoder, DeltaEncoder, DeltaError
+from ..delta import DeltaDecoder, DeltaEncoder, DeltaError, ServerChanges
 from ..errors import RoleError
 from ..transfer import Incoming, Outgoing, TransferError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -96,6 +96,11 @@ class PbrAfterNode(AfterNode):
             under half the state; the backup rebuilds the whole state, checks it (CRC) and refuses a
             delta that does not apply (it joins again). A state transfer is always whole.
         ~delta_min_bytes (int, 1024): states smaller than this are always sent whole.
+        ~server_changes (bool, true): where the server offers ``<get_state>_delta`` (aft_msgs/GetStateDelta:
+            what changed since a version it named), the primary asks it after each request instead of the whole
+            state, applies the runs to the state it checkpointed last and checks the result against the server's
+            CRC. Changes that do not rebuild the server's state raise the ``server_changes_refused`` alarm,
+            that checkpoint is made from the whole state, and the server's changes are not asked again.
         ~chunk_bytes (int, 1 MiB; 0 = one message): a state transfer (a join) goes in parts of at most this
             many bytes of state (aft_ftm.transfer), ...
         ~transfer_window (int, 4): ... at most this many parts sent and not yet acknowledged (back-pressure):
@@ -106,7 +111,8 @@ class PbrAfterNode(AfterNode):
             replies are held again from the transfer's acknowledgment, and the joiner is admitted once it
             acknowledged every checkpoint sent meanwhile. False: every reply waits from the transfer on.
     Services called:
-        get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager.
+        get_state (aft_msgs/GetState), set_state (aft_msgs/SetState): the server's state manager;
+        <get_state>_delta (aft_msgs/GetStateDelta), where the server offers it.
         the witness (aft_msgs/Witness).
     Subscribes:
         prd2aft (aft_msgs/Reply), port ``inp``
@@ -171,6 +177,8 @@ class PbrAfterNode(AfterNode):
         self.group = GroupCommit()  # primary: the replies of a batch until its last (the Protocol's ~max_batch)
         self.incremental = param('incremental', config.flag, True)
         self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
+        self.use_server_changes = param('server_changes', config.flag, True) and self.incremental
+        self.server_changes = None   # the server's <get_state>_delta, once found at set-up
         self.decoder = DeltaDecoder()
         self.chunk_bytes = param('chunk_bytes', config.non_negative_int, 1 << 20)
         self.transfer_window = param('transfer_window', config.positive_int, 4)
@@ -212,6 +220,8 @@ class PbrAfterNode(AfterNode):
             rospy.logerr('%s: the server state manager (%s, %s) is not available: %s', self.name,
                          rospy.resolve_name('get_state'), rospy.resolve_name('set_state'), e)
             return False
+        if self.use_server_changes:
+            self._find_server_changes()
         if self.witness is None or self.in_sync:
             peer_ports = {Role.PRIMARY: ['checkpoints', 'acks'], Role.BACKUP: ['peer_checkpoints', 'peer_acks'],
                           Role.ALONE: []}[self.role]
@@ -253,7 +263,9 @@ class PbrAfterNode(AfterNode):
                 if receiver is not None and self.role == Role.BACKUP else []
             if sender is not None:   # what the checkpoints' states cost, against whole states every time
                 extra += [('checkpoint_state_bytes', self.encoder.sent_bytes),
-                          ('whole_state_bytes', self.encoder.state_bytes)]
+                          ('whole_state_bytes', self.encoder.state_bytes),
+                          ('state_changes', 'told by the server' if self.server_changes is not None else
+                           'computed here' if self.incremental else 'none (whole states)')]
             return health.replica_after(
                 self.site, 'pbr', self.role, epoch, self.peer, held=len(sender.held) if sender is not None else 0,
                 stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else None,
@@ -277,10 +289,49 @@ class PbrAfterNode(AfterNode):
         self.recent.forget_below(reply.origin, reply.oldest_pending)
         self.recent.store(reply)
 
-    def _capture(self):
-        """The server's state, tried twice within ~state_timeout each; None if it cannot be had."""
+    def _find_server_changes(self):
+        """Use the server's <get_state>_delta if it offers one (advertised before its get_state)."""
+        name = rospy.resolve_name('get_state') + '_delta'
+        try:
+            rospy.wait_for_service(name, 0.05)
+            changes = PersistentService(name, GetStateDelta)
+            changes.connect()
+        except (rospy.ROSException, rospy.ServiceException):
+            rospy.loginfo('%s: the server offers no %s: deltas are computed here from its whole state',
+                          self.name, name)
+            return
+        self.server_changes = changes
+        rospy.loginfo('%s: the server tells its own state changes (%s)', self.name, name)
+
+    def _checkpoint_state(self):
+        """(payload, is_delta, None) for the checkpoint of the state after the requests run, from the
+        server's own changes where it tells them, else from its whole state; (None, False, error) if the
+        state cannot be had."""
+        tries = 2
+        if self.server_changes is not None:
+            since = self.encoder.version or ''
+            try:
+                answer = self.state_calls.call(self.server_changes, self.state_timeout, since)
+                return self.encoder.next_changes(ServerChanges.from_message(answer)) + (None,)
+            except DeltaError as e:
+                # Never sent: the backup holds the last checkpoint, and the whole state is captured below.
+                self.server_changes = None
+                alarm(self.ports, 'pbr', 'server_changes_refused', '%s: the changes of %s refused: %s; the whole '
+                      'state is captured from now on' % (self.site or self.name, rospy.resolve_name('get_state') +
+                                                         '_delta', e))
+            except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+                rospy.logwarn('%s: the server\'s state changes failed (%s); its whole state is captured', self.name, e)
+                self.server_changes = self.server_changes.fresh()
+                tries = 1   # that call was the first of the two tries a capture gets
+        state, error = self._capture(tries)
+        if state is None:
+            return None, False, error
+        return self.encoder.next(state) + (None,) if self.incremental else (state, False, None)
+
+    def _capture(self, tries=2):
+        """The server's state, tried twice (tries) within ~state_timeout each; None if it cannot be had."""
         error = None
-        for _ in range(2):
+        for _ in range(tries):
             try:
                 return self.state_calls.call(self.get_state, self.state_timeout).state, None
             except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
@@ -319,8 +370,8 @@ class PbrAfterNode(AfterNode):
                     if self.sender.releases_at_once(seq):
                         self._release(replies)   # a joiner catching up: nobody counts on it yet
                     return None
-                state, error = self._capture()
-                if state is None:
+                payload, delta, error = self._checkpoint_state()
+                if payload is None:
                     # The requests ran but cannot be checkpointed: replying would leave the backup behind.
                     # Fail-stop: this site falls silent, the backup takes over and executes the requests
                     # that the Proxies re-send.
@@ -328,7 +379,6 @@ class PbrAfterNode(AfterNode):
                     problem = 'cannot capture the server state after %s/%d: %s' % (reply.origin, reply.id, error)
                 else:
                     seq = self.sender.hold(replies[-1], time.monotonic(), replies[:-1])
-                    payload, delta = self.encoder.next(state) if self.incremental else (state, False)
                     self._send_checkpoint(Checkpoint(
                         seq=seq, first_seq=self.first_seq, sender=self.name, replaces=self.replaces,
                         reply=replies[-1], batch=replies[:-1], state=payload, delta=delta, epoch=self.sender.epoch))
