@@ -293,7 +293,7 @@ class PbrAfterNode(AfterNode):
         """Use the server's <get_state>_delta if it offers one (advertised before its get_state)."""
         name = rospy.resolve_name('get_state') + '_delta'
         try:
-            rospy.wait_for_service(name, 0.05)
+            rospy.wait_for_service(name, 0.5)   # advertised before get_state: there now, if offered
             changes = PersistentService(name, GetStateDelta)
             changes.connect()
         except (rospy.ROSException, rospy.ServiceException):
