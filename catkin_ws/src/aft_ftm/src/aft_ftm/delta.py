@@ -107,9 +107,12 @@ def rebuild(base, runs):
     DeltaError names the first run that is not."""
     parts, previous = [], 0
     for index, (start, end, data) in enumerate(runs):
-        if not previous <= start <= end <= len(base):
-            raise DeltaError('run %d of %d (%d-%d) is out of order or out of the %d-byte state'
-                             % (index + 1, len(runs), start, end, len(base)))
+        if not start <= end <= len(base):
+            raise DeltaError('run %d of %d (%d-%d) is out of the %d-byte state' % (index + 1, len(runs), start, end,
+                                                                                 len(base)))
+        if start < previous:
+            raise DeltaError('run %d of %d (%d-%d) starts before the end of the previous run (%d): runs must be in '
+                             'order and not overlap' % (index + 1, len(runs), start, end, previous))
         parts.append(base[previous:start])
         parts.append(bytes(data))
         previous = end

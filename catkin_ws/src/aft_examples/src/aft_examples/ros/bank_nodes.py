@@ -29,8 +29,8 @@ class BankServerNode(StateManager):
         ~get_state_delta (aft_msgs/GetStateDelta) unless ~state_changes is false
         ~corrupt_state_changes (aft_msgs/InjectFault, ``count``): the next count answers of get_state_delta
             that carry changes have one byte of them wrong (a faulty server; fault injection for the tests)
-        ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state calls fail
-            (fault injection for the tests: a state capture failing once, or for good)
+        ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state (or get_state_delta)
+            calls fail (fault injection for the tests: a state capture failing once, or for good)
         ~slow_state_restores (aft_msgs/InjectFault, ``count``, ``magnitude`` s): the next count set_state
             calls take magnitude seconds before they apply, the account serving meanwhile (a server
             decoding a large state before it swaps it in; fault injection for the tests)

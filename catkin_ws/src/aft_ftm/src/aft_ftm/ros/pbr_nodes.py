@@ -99,8 +99,9 @@ class PbrAfterNode(AfterNode):
         ~server_changes (bool, true): where the server offers ``<get_state>_delta`` (aft_msgs/GetStateDelta:
             what changed since a version it named), the primary asks it after each request instead of the whole
             state, applies the runs to the state it checkpointed last and checks the result against the server's
-            CRC. Changes that do not rebuild the server's state raise the ``server_changes_refused`` alarm,
-            that checkpoint is made from the whole state, and the server's changes are not asked again.
+            CRC. Changes that do not rebuild the server's state, or 3 failed calls in a row, raise the
+            ``server_changes_refused`` alarm, that checkpoint is made from the whole state, and the server's changes
+            are not asked again. A failed call is the first of the capture's two tries.
         ~chunk_bytes (int, 1 MiB; 0 = one message): a state transfer (a join) goes in parts of at most this
             many bytes of state (aft_ftm.transfer), ...
         ~transfer_window (int, 4): ... at most this many parts sent and not yet acknowledged (back-pressure):
@@ -136,6 +137,7 @@ class PbrAfterNode(AfterNode):
     """
     MECHANISM = 'pbr'
     WAIT_OUTPUTS = ('stored',)
+    CHANGES_FAILURES = 3   # the server's changes failing this many calls in a row are asked no more
 
     def __init__(self):
         role = ROLES[param('role', config.choice(*ROLES), 'primary')]
@@ -179,6 +181,7 @@ class PbrAfterNode(AfterNode):
         self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
         self.use_server_changes = param('server_changes', config.flag, True) and self.incremental
         self.server_changes = None   # the server's <get_state>_delta, once found at set-up
+        self.changes_failures = 0    # its calls failed in a row
         self.decoder = DeltaDecoder()
         self.chunk_bytes = param('chunk_bytes', config.non_negative_int, 1 << 20)
         self.transfer_window = param('transfer_window', config.positive_int, 4)
@@ -310,23 +313,36 @@ class PbrAfterNode(AfterNode):
         tries = 2
         if self.server_changes is not None:
             since = self.encoder.version or ''
+            name = self.server_changes.resolved_name
             try:
                 answer = self.state_calls.call(self.server_changes, self.state_timeout, since)
-                return self.encoder.next_changes(ServerChanges.from_message(answer)) + (None,)
+                changes = self.encoder.next_changes(ServerChanges.from_message(answer))
+                self.changes_failures = 0
+                return changes + (None,)
             except DeltaError as e:
                 # Never sent: the backup holds the last checkpoint, and the whole state is captured below.
-                self.server_changes = None
-                alarm(self.ports, 'pbr', 'server_changes_refused', '%s: the changes of %s refused: %s; the whole '
-                      'state is captured from now on' % (self.site or self.name, rospy.resolve_name('get_state') +
-                                                         '_delta', e))
+                self._stop_server_changes('the changes of %s refused: %s' % (name, e))
             except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-                rospy.logwarn('%s: the server\'s state changes failed (%s); its whole state is captured', self.name, e)
-                self.server_changes = self.server_changes.fresh()
-                tries = 1   # that call was the first of the two tries a capture gets
+                # The call counts as the first of the capture's two tries (a timed-out call stays pending,
+                # and the capture then fails at once, as a hung getState did).
+                tries = 1
+                self.changes_failures += 1
+                if self.changes_failures >= self.CHANGES_FAILURES:
+                    self._stop_server_changes('%d calls of %s in a row failed, the last: %s'
+                                              % (self.changes_failures, name, e))
+                else:
+                    rospy.logwarn('%s: %s failed (%s); the whole state is captured', self.name, name, e)
+                    self.server_changes = self.server_changes.fresh()
         state, error = self._capture(tries)
         if state is None:
             return None, False, error
         return self.encoder.next(state) + (None,) if self.incremental else (state, False, None)
+
+    def _stop_server_changes(self, why):
+        """Ask the server's changes no more (an alarm: every checkpoint now costs a whole getState)."""
+        self.server_changes = None
+        alarm(self.ports, 'pbr', 'server_changes_refused', '%s: %s; the whole state is captured from now on'
+              % (self.site or self.name, why))
 
     def _capture(self, tries=2):
         """The server's state, tried twice (tries) within ~state_timeout each; None if it cannot be had."""
