@@ -29,6 +29,8 @@ class BankServerNode(StateManager):
         ~get_state_delta (aft_msgs/GetStateDelta) unless ~state_changes is false
         ~corrupt_state_changes (aft_msgs/InjectFault, ``count``): the next count answers of get_state_delta
             that carry changes have one byte of them wrong (a faulty server; fault injection for the tests)
+        ~fail_state_changes (aft_msgs/InjectFault, ``count``): the next count get_state_delta calls fail, get_state
+            still answers (fault injection for the tests)
         ~fail_state_captures (aft_msgs/InjectFault, ``count``): the next count get_state (or get_state_delta)
             calls fail (fault injection for the tests: a state capture failing once, or for good)
         ~slow_state_restores (aft_msgs/InjectFault, ``count``, ``magnitude`` s): the next count set_state
@@ -44,6 +46,7 @@ class BankServerNode(StateManager):
         self.layout = StateLayout(param('ballast_bytes', config.non_negative_int, 0), uuid.uuid4().hex[:8])
         self.offers_changes = param('state_changes', config.flag, True)
         self.corrupt_changes = 0
+        self.changes_faults = 0
 
     def setup(self, timeout):
         if not self.offers_changes:
@@ -51,6 +54,7 @@ class BankServerNode(StateManager):
         self.advertise_state_services()
         rospy.Service('account', Account, self._on_request)
         rospy.Service('~corrupt_state_changes', InjectFault, self._on_corrupt_changes)
+        rospy.Service('~fail_state_changes', InjectFault, self._on_fail_changes)
         rospy.Service('~fail_state_captures', InjectFault, self._on_fail_captures)
         rospy.Service('~slow_state_restores', InjectFault, self._on_slow_restores)
         return True
@@ -83,6 +87,11 @@ class BankServerNode(StateManager):
             self.corrupt_changes = req.count
         return InjectFaultResponse(success=True, message='the next %d state changes told are wrong' % req.count)
 
+    def _on_fail_changes(self, req):
+        with self.state_lock:
+            self.changes_faults = req.count
+        return InjectFaultResponse(success=True, message='the next %d state changes fail' % req.count)
+
     def _on_request(self, req):
         with self.state_lock:
             try:
@@ -103,6 +112,9 @@ class BankServerNode(StateManager):
 
     def state_changes(self, since):
         self._captured()
+        if self.changes_faults > 0:
+            self.changes_faults -= 1
+            raise rospy.ServiceException('injected fault: the state changes cannot be told')
         changes = self.layout.since(since, self.account.get_state())
         if changes.runs and self.corrupt_changes > 0:
             self.corrupt_changes -= 1
