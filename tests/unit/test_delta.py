@@ -88,6 +88,23 @@ def test_small_states_and_large_changes_are_sent_whole():
 
 
 # -- a server's own changes (aft_msgs/GetStateDelta) ------------------------------------------------------
+def test_the_servers_changes_are_asked_only_for_a_state_that_goes_as_a_delta():
+    """Under min_size a state goes whole whatever the server tells, and its whole getState is the cheaper
+    call: its changes are asked only once the last state reached min_size, and again not once it shrank."""
+    encoder = DeltaEncoder(min_size=1024)
+    assert not encoder.wants_changes()                  # nothing captured yet: the whole state first
+    encoder.next(bytes(1023))
+    assert not encoder.wants_changes()
+    encoder.next(bytes(1024))
+    assert encoder.wants_changes()
+    encoder.next_changes(ServerChanges(version='v1', state=bytes(5000)))
+    assert encoder.wants_changes()
+    encoder.next(bytes(10))
+    assert not encoder.wants_changes()
+    encoder.reset()
+    assert not encoder.wants_changes()
+
+
 def told_runs(rng, old, new):
     """Runs a server could tell for old -> new: the changed middle, sometimes cut in two at random."""
     limit = min(len(old), len(new))

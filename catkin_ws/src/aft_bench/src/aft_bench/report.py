@@ -492,7 +492,7 @@ def targets(f):
     runs = get(f, 'pbr.latency_runs.ratios') or []
     if len(runs) > 1:
         good = sum(r <= 1.3 for r in runs)
-        out.append(('PBR latency <= 1.3 x the relay chain in at least 9 runs out of 10 (issue 18)',
+        out.append(('PBR latency <= 1.3 x a relay chain of as many messages in at least 9 runs out of 10 (issue 18)',
                     '%d of %d (ratios %.2f-%.2f, median %.2f)' % (good, len(runs), min(runs), max(runs),
                                                                   sorted(runs)[len(runs) // 2]),
                     good >= 0.9 * len(runs)))
@@ -591,9 +591,13 @@ def latency_lines(f):
     lat = get(f, 'pbr.latency')
     if lat:
         lines += ['PBR against its baselines, measured in interleaved rounds in one run (`scripts/bench_pbr`):', '']
-        lines += table(['configuration', 'median', 'p99', 'x relay chain (8 hops)'],
-                       [[n, ms(v['median_s'], 3), ms(v['p99_s'], 3), '%.2f' % v['ratio_to_chain']]
+        lines += table(['configuration', 'median', 'p99', 'x relay chain (8 hops)', 'x as many messages (10 hops)'],
+                       [[n, ms(v['median_s'], 3), ms(v['p99_s'], 3), '%.2f' % v['ratio_to_chain'],
+                         num(v.get('ratio_to_same_messages'), '%.2f')]
                         for n, v in sorted(lat.items(), key=lambda i: i[1]['median_s'])])
+        lines += ['', 'PBR passes 8 topic messages per request and 2 more in its state capture (the getState call); '
+                      'the 10-hop chain passes as many (both chains call the server once, as PBR does). Each round '
+                      'takes blocks of 20 calls of each configuration in turn.']
     else:
         lines.append(_missing(f, 'pbr'))
     return lines

@@ -208,6 +208,12 @@ class DeltaEncoder(object):
         self.base_crc = crc(self.base) if state is not None else None
         self.version = None       # the server's version of base, when the server's own changes gave it
 
+    def wants_changes(self):
+        """Whether to ask the server's own changes for the next checkpoint rather than its whole state: only
+        once the last state is at least ``min_size``. A smaller one is sent whole whatever the server
+        tells, and a whole getState is the cheaper call (the bank's: 0.067 ms, its changes 0.101 ms)."""
+        return self.base is not None and len(self.base) >= self.min_size
+
     def next(self, state, version=None):
         """(payload, is_delta) for a checkpoint carrying ``state`` (of the server's ``version``, if it
         told); it becomes the next base."""

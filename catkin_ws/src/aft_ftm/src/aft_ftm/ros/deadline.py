@@ -9,10 +9,16 @@ An abandoned call is not cancelled: the server may still carry it out later. For
 state (a server's set_state), a later call overtaken by an abandoned one would be undone by it (an
 older state landing after a newer one). ``Deadline(exclusive=True)`` therefore makes no call while
 an abandoned one has not returned: it raises :class:`CallPending` at once instead.
+
+A call of an open :class:`~aft_ftm.ros.persistent_service.PersistentService` needs no worker: it is
+made in the caller's thread, its answer awaited at most the timeout
+(:meth:`~aft_ftm.ros.persistent_service.PersistentService.call_within`), and past it abandoned the
+same way (its future gets the late answer).
 """
 import concurrent.futures
 
 from ..errors import AftError
+from .persistent_service import LateAnswer
 
 
 class CallTimeout(AftError):
@@ -44,6 +50,13 @@ class Deadline(object):
                 raise CallPending('%s: a call abandoned past its deadline has not returned yet, and may still '
                                   'take effect: no other call until it has' % self.name, abandoned)
             self._abandoned = None
+        if getattr(function, 'connected', False) and hasattr(function, 'call_within'):
+            try:
+                return function.call_within(timeout, *args, **kwargs)
+            except LateAnswer as e:
+                if self.exclusive and e.sent:
+                    self._abandoned = e.future
+                raise CallTimeout('no answer within %.3f s' % timeout, e.future)
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
         future = self._executor.submit(function, *args, **kwargs)

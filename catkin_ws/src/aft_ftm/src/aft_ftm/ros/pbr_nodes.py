@@ -101,7 +101,8 @@ class PbrAfterNode(AfterNode):
             state, applies the runs to the state it checkpointed last and checks the result against the server's
             CRC. Changes that do not rebuild the server's state, or 3 failed calls in a row, raise the
             ``server_changes_refused`` alarm, that checkpoint is made from the whole state, and the server's changes
-            are not asked again. A failed call is the first of the capture's two tries.
+            are not asked again. A failed call is the first of the capture's two tries. They are asked only
+            while the state is at least ~delta_min_bytes (below, it goes whole anyway, and getState is cheaper).
         ~chunk_bytes (int, 1 MiB; 0 = one message): a state transfer (a join) goes in parts of at most this
             many bytes of state (aft_ftm.transfer), ...
         ~transfer_window (int, 4): ... at most this many parts sent and not yet acknowledged (back-pressure):
@@ -267,7 +268,9 @@ class PbrAfterNode(AfterNode):
             if sender is not None:   # what the checkpoints' states cost, against whole states every time
                 extra += [('checkpoint_state_bytes', self.encoder.sent_bytes),
                           ('whole_state_bytes', self.encoder.state_bytes),
-                          ('state_changes', 'told by the server' if self.server_changes is not None else
+                          ('state_changes', ('told by the server' if self.encoder.wants_changes() else
+                                             'told by the server from %d bytes' % self.encoder.min_size)
+                           if self.server_changes is not None else
                            'computed here' if self.incremental else 'none (whole states)')]
             return health.replica_after(
                 self.site, 'pbr', self.role, epoch, self.peer, held=len(sender.held) if sender is not None else 0,
@@ -311,7 +314,7 @@ class PbrAfterNode(AfterNode):
         server's own changes where it tells them, else from its whole state; (None, False, error) if the
         state cannot be had."""
         tries = 2
-        if self.server_changes is not None:
+        if self.server_changes is not None and self.encoder.wants_changes():
             since = self.encoder.version or ''
             name = self.server_changes.resolved_name
             try:

@@ -7,13 +7,34 @@ manager): with the master dead those calls fail. :class:`PersistentService` open
 at set-up (:meth:`PersistentService.connect`) and remembers the address the master gave, so that a
 reconnection (the connection broke) also works while the master cannot be reached, as long as the
 service still runs where it did.
+
+:meth:`PersistentService.call_within` makes a call on the open connection in the caller's own
+thread, its answer awaited at most a timeout: a call that may hang costs no hand-over to a worker
+thread (two thread switches, about 70 microseconds of each PBR state capture and server call here).
 """
+import concurrent.futures
+import io
+import select
 import socket
+import threading
+import time
 
 import rosgraph
 import rospy
-from rospy.exceptions import TransportInitError
-from rospy.impl.tcpros_base import TCPROSTransport
+from rospy.exceptions import TransportException, TransportInitError
+from rospy.impl.tcpros_base import TCPROSTransport, recv_buff
+from rospy.msg import args_kwds_to_message, serialize_message
+
+
+class LateAnswer(Exception):
+    """No answer within the timeout. ``future`` gets the late answer (or the call's error) from a thread
+    that goes on reading it; ``sent`` says whether the whole request reached the connection (if not,
+    the server cannot carry it out)."""
+
+    def __init__(self, future, sent):
+        super(LateAnswer, self).__init__('no answer within the timeout')
+        self.future = future
+        self.sent = sent
 
 
 class PersistentService(rospy.ServiceProxy):
@@ -41,6 +62,80 @@ class PersistentService(rospy.ServiceProxy):
             if 'responded with an error' not in str(e):
                 self.reset()
             raise
+
+    def call_within(self, timeout, *args, **kwds):
+        """The call on the open connection (``connected`` must be true), made in this thread, its answer
+        awaited at most ``timeout`` seconds; returns or raises what :meth:`call` would. Past the timeout
+        raises :class:`LateAnswer`: the connection is handed to a thread that reads the late answer into
+        the exception's future, and the next call opens a new one."""
+        transport = self.transport
+        request = args_kwds_to_message(self.request_class, args, kwds)
+        deadline = time.monotonic() + timeout
+        self.seq += 1
+        buff = io.BytesIO()
+        serialize_message(buff, self.seq, request)
+        sock = transport.socket
+        try:
+            # A hung server whose receive buffer is full would block the send for ever: bounded too.
+            sock.settimeout(max(timeout, 1e-3))
+            try:
+                sock.sendall(buff.getvalue())
+            finally:
+                sock.settimeout(None)
+        except socket.timeout:
+            self.reset()   # part of the request unsent: the server never reads it whole
+            future = concurrent.futures.Future()
+            future.set_exception(rospy.ServiceException('service %s: the request could not be sent within %.3f s'
+                                                        % (self.resolved_name, timeout)))
+            raise LateAnswer(future, sent=False)
+        except (OSError, TransportException) as e:
+            self.reset()
+            raise rospy.ServiceException('transport error completing service call: %s' % e)
+        try:
+            response = self._receive(transport, deadline)
+        except rospy.ServiceException as e:
+            if 'responded with an error' not in str(e):
+                self.reset()
+            raise
+        if response is not None:
+            return response
+        self.transport = None   # the late answer's now: the next call opens a new connection
+        future = concurrent.futures.Future()
+
+        def read_late():
+            try:
+                future.set_result(self._receive(transport, None))
+            except BaseException as e:   # the call's own error, as it would have been raised
+                future.set_exception(e)
+            finally:
+                transport.close()
+        threading.Thread(target=read_late, name='late-' + self.resolved_name, daemon=True).start()
+        raise LateAnswer(future, sent=True)
+
+    def _receive(self, transport, deadline):
+        """The response read off the connection, as rospy reads it (raising the server's error answer as
+        ServiceException); None if it is not whole by ``deadline`` (monotonic; None: no limit)."""
+        sock, b, protocol, messages = transport.socket, transport.read_buff, transport.protocol, []
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        try:
+            while True:
+                if b.tell() >= 4:
+                    protocol.read_messages(b, messages, sock)
+                    if messages:
+                        break
+                if deadline is not None:
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not poller.poll(left * 1e3):
+                        return None
+                recv_buff(sock, b, protocol.buff_size)
+        except (TransportException, OSError) as e:
+            raise rospy.ServiceException('transport error completing service call: %s' % e)
+        if len(messages) > 1:
+            raise rospy.ServiceException('service [%s] returned multiple responses: %s'
+                                         % (self.resolved_name, len(messages)))
+        messages[0]._connection_header = transport.header
+        return messages[0]
 
     def reset(self):
         """Close the connection (if open); the next call opens a new one."""

@@ -1,0 +1,179 @@
+"""A service call made in the caller's thread with a deadline (PersistentService.call_within, through
+Deadline): the answer, the server's error answer, a late answer, a late answer in parts, a server
+that reads nothing, a connection that breaks. The server is a fake TCPROS service on a socket pair
+(the handshake done): it reads each request and answers when and how the test says. No ROS master."""
+import socket
+import struct
+import threading
+import time
+
+import pytest
+import rospy
+from aft_msgs.srv import SetState, SetStateResponse
+from rospy.impl.tcpros_base import TCPROSTransport
+from rospy.impl.tcpros_service import TCPROSServiceClient
+
+from aft_ftm.ros.deadline import CallPending, CallTimeout, Deadline
+from aft_ftm.ros.persistent_service import PersistentService
+
+
+class FakeServer(object):
+    """The server's end of the connection: requests read whole, answers written as told."""
+
+    def __init__(self, sock):
+        self.sock = sock
+        self.requests = []
+
+    def read_request(self, timeout=5.0):
+        self.sock.settimeout(timeout)
+        size = struct.unpack('<I', self._read(4))[0]
+        request = SetState._request_class()
+        request.deserialize(self._read(size))
+        self.requests.append(request)
+        return request
+
+    def _read(self, n):
+        data = b''
+        while len(data) < n:
+            chunk = self.sock.recv(n - len(data))
+            if not chunk:
+                raise EOFError('the client closed the connection')
+            data += chunk
+        return data
+
+    def answer_bytes(self, success=True, message=''):
+        body = _serialize(SetStateResponse(success=success, message=message))
+        return b'\x01' + struct.pack('<I', len(body)) + body
+
+    def answer(self, **kwargs):
+        self.sock.sendall(self.answer_bytes(**kwargs))
+
+    def error(self, text):
+        data = text.encode()
+        self.sock.sendall(b'\x00' + struct.pack('<I', len(data)) + data)
+
+
+def _serialize(msg):
+    import io
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    return buff.getvalue()
+
+
+@pytest.fixture
+def pair():
+    client_sock, server_sock = socket.socketpair()
+    proxy = PersistentService('/site/server/set_state', SetState)
+    transport = TCPROSTransport(TCPROSServiceClient(proxy.resolved_name, SetState), proxy.resolved_name)
+    transport.set_socket(client_sock, 'fake')
+    transport.header = {}
+    proxy.transport = transport
+    server = FakeServer(server_sock)
+    yield proxy, server
+    for s in (client_sock, server_sock):
+        s.close()
+
+
+def serve(server, before=0.0, **answer):
+    def run():
+        server.read_request()
+        time.sleep(before)
+        server.answer(**answer)
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_an_answer_within_the_deadline_is_returned_and_the_connection_kept(pair):
+    proxy, server = pair
+    deadline = Deadline('state', exclusive=True)
+    for i in range(3):
+        serve(server, message='applied %d' % i)
+        reply = deadline.call(proxy, 2.0, b'S%d' % i)
+        assert (reply.success, reply.message) == (True, 'applied %d' % i)
+    assert [bytes(r.state) for r in server.requests] == [b'S0', b'S1', b'S2']
+    assert proxy.connected
+    assert deadline._executor is None, 'the calls went through a worker thread'
+
+
+def test_the_servers_error_answer_is_raised_as_rospy_raises_it_and_the_connection_kept(pair):
+    proxy, server = pair
+
+    def run():
+        server.read_request()
+        server.error('the state is corrupt')
+    threading.Thread(target=run, daemon=True).start()
+    with pytest.raises(rospy.ServiceException, match='responded with an error: .*the state is corrupt'):
+        Deadline('state').call(proxy, 2.0, b'bad')
+    assert proxy.connected
+    serve(server)
+    assert Deadline('state').call(proxy, 2.0, b'good').success
+
+
+def test_a_late_answer_lands_in_the_future_and_an_exclusive_deadline_waits_for_it(pair):
+    proxy, server = pair
+    deadline = Deadline('state', exclusive=True)
+    release = threading.Event()
+
+    def run():
+        server.read_request()
+        release.wait(5.0)
+        server.answer(message='late')
+    threading.Thread(target=run, daemon=True).start()
+    started = time.monotonic()
+    with pytest.raises(CallTimeout) as late:
+        deadline.call(proxy, 0.1, b'S1')
+    assert 0.09 <= time.monotonic() - started < 1.0
+    assert not proxy.connected, 'the late answer owns the old connection: the next call opens another'
+    with pytest.raises(CallPending):
+        deadline.call(proxy, 1.0, b'S2')
+    release.set()
+    assert late.value.future.result(5.0).message == 'late'
+    assert [bytes(r.state) for r in server.requests] == [b'S1']
+
+
+def test_an_answer_cut_by_the_deadline_is_read_whole_by_the_late_reader(pair):
+    proxy, server = pair
+    whole = server.answer_bytes(message='x' * 5000)
+    release = threading.Event()
+
+    def run():
+        server.read_request()
+        server.sock.sendall(whole[:7])      # the ok byte, the length and a little of the body
+        release.wait(5.0)
+        server.sock.sendall(whole[7:])
+    threading.Thread(target=run, daemon=True).start()
+    with pytest.raises(CallTimeout) as late:
+        Deadline('state').call(proxy, 0.1, b'S1')
+    release.set()
+    assert late.value.future.result(5.0).message == 'x' * 5000
+
+
+def test_a_server_that_reads_nothing_bounds_the_send_and_the_request_is_never_whole(pair):
+    proxy, server = pair
+    deadline = Deadline('state', exclusive=True)
+    big = b'\x07' * (32 * 1024 * 1024)   # far more than the socket buffers hold
+    started = time.monotonic()
+    with pytest.raises(CallTimeout) as late:
+        deadline.call(proxy, 0.2, big)
+    assert time.monotonic() - started < 3.0
+    with pytest.raises(rospy.ServiceException, match='could not be sent'):
+        late.value.future.result(0)
+    assert not proxy.connected
+    # Nothing can land later (the request never reached the server whole): the next call is not refused.
+    assert not isinstance(late.value, CallPending)
+    with pytest.raises(CallTimeout) as again:
+        deadline.call(lambda: time.sleep(0.5), 0.01)
+    assert not isinstance(again.value, CallPending)
+
+
+def test_a_connection_the_server_closes_is_a_service_error_and_is_closed_here(pair):
+    proxy, server = pair
+
+    def run():
+        server.read_request()
+        server.sock.shutdown(socket.SHUT_RDWR)
+    threading.Thread(target=run, daemon=True).start()
+    with pytest.raises(rospy.ServiceException, match='transport error'):
+        Deadline('state').call(proxy, 2.0, b'S1')
+    assert not proxy.connected
