@@ -149,22 +149,63 @@ def test_an_answer_cut_by_the_deadline_is_read_whole_by_the_late_reader(pair):
     assert late.value.future.result(5.0).message == 'x' * 5000
 
 
-def test_a_server_that_reads_nothing_bounds_the_send_and_the_request_is_never_whole(pair):
+def test_a_request_a_stopped_server_does_not_read_is_sent_late_and_may_still_land(pair):
+    """A request larger than the socket buffers, to a server that reads nothing yet: the send is bounded
+    by the deadline, the rest goes late (as a worker thread would have sent it), and an exclusive
+    deadline makes no other call until the server has read it and answered."""
     proxy, server = pair
     deadline = Deadline('state', exclusive=True)
-    big = b'\x07' * (32 * 1024 * 1024)   # far more than the socket buffers hold
+    big = b'\x07' * (16 * 1024 * 1024)   # far more than the socket buffers hold
+    resume = threading.Event()
+
+    def run():
+        resume.wait(10.0)
+        request = server.read_request(timeout=10.0)
+        server.answer(message='%d bytes' % len(request.state))
+    threading.Thread(target=run, daemon=True).start()
     started = time.monotonic()
     with pytest.raises(CallTimeout) as late:
         deadline.call(proxy, 0.2, big)
     assert time.monotonic() - started < 3.0
-    with pytest.raises(rospy.ServiceException, match='could not be sent'):
-        late.value.future.result(0)
+    assert not late.value.future.done() and not proxy.connected
+    with pytest.raises(CallPending):
+        deadline.call(proxy, 1.0, b'S2')
+    resume.set()
+    assert late.value.future.result(10.0).message == '%d bytes' % len(big)
+    assert bytes(server.requests[0].state) == big
+
+
+def test_a_malformed_answer_is_a_transport_error_and_the_connection_is_not_used_again(pair):
+    proxy, server = pair
+
+    def run():
+        server.read_request()
+        server.sock.sendall(b'\x01' + struct.pack('<I', 3) + b'\xff\xff\xff')   # a string length past the end
+    threading.Thread(target=run, daemon=True).start()
+    with pytest.raises(rospy.ServiceException, match='transport error'):
+        Deadline('state').call(proxy, 2.0, b'S1')
     assert not proxy.connected
-    # Nothing can land later (the request never reached the server whole): the next call is not refused.
-    assert not isinstance(late.value, CallPending)
-    with pytest.raises(CallTimeout) as again:
-        deadline.call(lambda: time.sleep(0.5), 0.01)
-    assert not isinstance(again.value, CallPending)
+
+
+def test_an_error_answer_cut_by_the_deadline_does_not_block_and_lands_in_the_future(pair):
+    proxy, server = pair
+    text = b'the state is refused ' * 50
+    whole = b'\x00' + struct.pack('<I', len(text)) + text
+    release = threading.Event()
+
+    def run():
+        server.read_request()
+        server.sock.sendall(whole[:9])   # rospy would block reading the rest of the error message
+        release.wait(5.0)
+        server.sock.sendall(whole[9:])
+    threading.Thread(target=run, daemon=True).start()
+    started = time.monotonic()
+    with pytest.raises(CallTimeout) as late:
+        Deadline('state').call(proxy, 0.1, b'S1')
+    assert time.monotonic() - started < 1.0
+    release.set()
+    with pytest.raises(rospy.ServiceException, match='responded with an error'):
+        late.value.future.result(5.0)
 
 
 def test_a_connection_the_server_closes_is_a_service_error_and_is_closed_here(pair):

@@ -16,6 +16,7 @@ made in the caller's thread, its answer awaited at most the timeout
 same way (its future gets the late answer).
 """
 import concurrent.futures
+import threading
 
 from ..errors import AftError
 from .persistent_service import LateAnswer
@@ -40,23 +41,28 @@ class Deadline(object):
         self.exclusive = exclusive
         self._executor = None
         self._abandoned = None   # exclusive: the future of the last call abandoned, until it returns
+        self._lock = threading.Lock()   # calls made in the caller's thread, one at a time
 
     def call(self, function, timeout, *args, **kwargs):
         """function(*args, **kwargs), or CallTimeout after timeout seconds (CallPending at once, if
         exclusive and an abandoned call has not returned)."""
-        abandoned = self._abandoned
-        if abandoned is not None:
-            if not abandoned.done():
-                raise CallPending('%s: a call abandoned past its deadline has not returned yet, and may still '
-                                  'take effect: no other call until it has' % self.name, abandoned)
-            self._abandoned = None
         if getattr(function, 'connected', False) and hasattr(function, 'call_within'):
+            # One call at a time, as on the worker: a second caller waits for the first (up to its timeout).
+            if not self._lock.acquire(timeout=timeout):
+                why = '%s: another call did not return within %.3f s' % (self.name, timeout)
+                busy = concurrent.futures.Future()
+                busy.set_exception(CallTimeout(why))
+                raise CallTimeout(why, busy)
             try:
+                self._check_abandoned()
                 return function.call_within(timeout, *args, **kwargs)
             except LateAnswer as e:
-                if self.exclusive and e.sent:
+                if self.exclusive:
                     self._abandoned = e.future
                 raise CallTimeout('no answer within %.3f s' % timeout, e.future)
+            finally:
+                self._lock.release()
+        self._check_abandoned()
         if self._executor is None:
             self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
         future = self._executor.submit(function, *args, **kwargs)
@@ -69,3 +75,12 @@ class Deadline(object):
             if self.exclusive:
                 self._abandoned = future
             raise CallTimeout('no answer within %.3f s' % timeout, future)
+
+    def _check_abandoned(self):
+        """CallPending if exclusive and a call abandoned past its deadline has not returned yet."""
+        abandoned = self._abandoned
+        if abandoned is not None:
+            if not abandoned.done():
+                raise CallPending('%s: a call abandoned past its deadline has not returned yet, and may still '
+                                  'take effect: no other call until it has' % self.name, abandoned)
+            self._abandoned = None

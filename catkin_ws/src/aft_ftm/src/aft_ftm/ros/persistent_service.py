@@ -16,25 +16,33 @@ import concurrent.futures
 import io
 import select
 import socket
+import struct
 import threading
 import time
 
 import rosgraph
 import rospy
-from rospy.exceptions import TransportException, TransportInitError
+from rospy.exceptions import TransportInitError
 from rospy.impl.tcpros_base import TCPROSTransport, recv_buff
 from rospy.msg import args_kwds_to_message, serialize_message
 
 
+def _whole_answer(b):
+    """Whether the buffer holds a whole service answer: its ok byte, its length, and that many bytes."""
+    n = b.tell()
+    if n < 5:
+        return False
+    with b.getbuffer() as view:
+        return n >= 5 + struct.unpack_from('<I', view, 1)[0]
+
+
 class LateAnswer(Exception):
     """No answer within the timeout. ``future`` gets the late answer (or the call's error) from a thread
-    that goes on reading it; ``sent`` says whether the whole request reached the connection (if not,
-    the server cannot carry it out)."""
+    that goes on with the call."""
 
-    def __init__(self, future, sent):
+    def __init__(self, future):
         super(LateAnswer, self).__init__('no answer within the timeout')
         self.future = future
-        self.sent = sent
 
 
 class PersistentService(rospy.ServiceProxy):
@@ -51,7 +59,8 @@ class PersistentService(rospy.ServiceProxy):
 
     @property
     def connected(self):
-        return self.transport is not None
+        transport = self.transport
+        return transport is not None and transport.socket is not None and not transport.done
 
     def call(self, *args, **kwds):
         """rospy.ServiceProxy.call; a connection that failed (anything but the service's own error
@@ -66,33 +75,19 @@ class PersistentService(rospy.ServiceProxy):
     def call_within(self, timeout, *args, **kwds):
         """The call on the open connection (``connected`` must be true), made in this thread, its answer
         awaited at most ``timeout`` seconds; returns or raises what :meth:`call` would. Past the timeout
-        raises :class:`LateAnswer`: the connection is handed to a thread that reads the late answer into
-        the exception's future, and the next call opens a new one."""
+        raises :class:`LateAnswer`: the connection is handed to a thread that finishes sending the
+        request (a stopped server may not read it all yet) and reads the late answer into the
+        exception's future; the next call opens a new connection."""
         transport = self.transport
         request = args_kwds_to_message(self.request_class, args, kwds)
         deadline = time.monotonic() + timeout
         self.seq += 1
         buff = io.BytesIO()
         serialize_message(buff, self.seq, request)
-        sock = transport.socket
+        data = memoryview(buff.getvalue())
         try:
-            # A hung server whose receive buffer is full would block the send for ever: bounded too.
-            sock.settimeout(max(timeout, 1e-3))
-            try:
-                sock.sendall(buff.getvalue())
-            finally:
-                sock.settimeout(None)
-        except socket.timeout:
-            self.reset()   # part of the request unsent: the server never reads it whole
-            future = concurrent.futures.Future()
-            future.set_exception(rospy.ServiceException('service %s: the request could not be sent within %.3f s'
-                                                        % (self.resolved_name, timeout)))
-            raise LateAnswer(future, sent=False)
-        except (OSError, TransportException) as e:
-            self.reset()
-            raise rospy.ServiceException('transport error completing service call: %s' % e)
-        try:
-            response = self._receive(transport, deadline)
+            sent = self._send(transport.socket, data, deadline)
+            response = self._receive(transport, deadline) if sent == len(data) else None
         except rospy.ServiceException as e:
             if 'responded with an error' not in str(e):
                 self.reset()
@@ -102,25 +97,52 @@ class PersistentService(rospy.ServiceProxy):
         self.transport = None   # the late answer's now: the next call opens a new connection
         future = concurrent.futures.Future()
 
-        def read_late():
+        def finish_late():
             try:
+                if sent < len(data):
+                    transport.socket.sendall(data[sent:])
                 future.set_result(self._receive(transport, None))
-            except BaseException as e:   # the call's own error, as it would have been raised
+            except rospy.ServiceException as e:   # the call's own error, as it would have been raised
                 future.set_exception(e)
+            except Exception as e:
+                future.set_exception(rospy.ServiceException('transport error completing service call: %s' % e))
             finally:
                 transport.close()
-        threading.Thread(target=read_late, name='late-' + self.resolved_name, daemon=True).start()
-        raise LateAnswer(future, sent=True)
+        threading.Thread(target=finish_late, name='late-' + self.resolved_name, daemon=True).start()
+        raise LateAnswer(future)
+
+    @staticmethod
+    def _send(sock, data, deadline):
+        """Send what the socket takes of data until deadline; the bytes sent (a server that reads
+        nothing fills the buffers: the rest is sent late). ServiceException if the connection fails."""
+        poller = select.poll()
+        poller.register(sock, select.POLLOUT)
+        sent = 0
+        sock.setblocking(False)
+        try:
+            while sent < len(data):
+                try:
+                    sent += sock.send(data[sent:])
+                except (BlockingIOError, InterruptedError):
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not poller.poll(left * 1e3):
+                        break
+        except OSError as e:
+            raise rospy.ServiceException('transport error completing service call: %s' % e)
+        finally:
+            sock.setblocking(True)
+        return sent
 
     def _receive(self, transport, deadline):
         """The response read off the connection, as rospy reads it (raising the server's error answer as
-        ServiceException); None if it is not whole by ``deadline`` (monotonic; None: no limit)."""
+        ServiceException); None if it is not whole by ``deadline`` (monotonic; None: no limit). rospy's
+        reader is given only a whole answer (it would block reading the rest of an error message)."""
         sock, b, protocol, messages = transport.socket, transport.read_buff, transport.protocol, []
         poller = select.poll()
         poller.register(sock, select.POLLIN)
         try:
             while True:
-                if b.tell() >= 4:
+                if _whole_answer(b):
                     protocol.read_messages(b, messages, sock)
                     if messages:
                         break
@@ -129,7 +151,9 @@ class PersistentService(rospy.ServiceProxy):
                     if left <= 0 or not poller.poll(left * 1e3):
                         return None
                 recv_buff(sock, b, protocol.buff_size)
-        except (TransportException, OSError) as e:
+        except rospy.ServiceException:
+            raise   # the server's error answer
+        except Exception as e:   # a broken connection, a malformed answer (genpy's DeserializationError)
             raise rospy.ServiceException('transport error completing service call: %s' % e)
         if len(messages) > 1:
             raise rospy.ServiceException('service [%s] returned multiple responses: %s'
