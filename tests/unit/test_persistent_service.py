@@ -218,3 +218,26 @@ def test_a_connection_the_server_closes_is_a_service_error_and_is_closed_here(pa
     with pytest.raises(rospy.ServiceException, match='transport error'):
         Deadline('state').call(proxy, 2.0, b'S1')
     assert not proxy.connected
+
+
+def test_a_tls_connection_is_called_through_the_worker_thread(pair):
+    """TLS (aft_ftm.ros.tls_transport) keeps decrypted bytes where poll does not see them: such a
+    connection is never called in the caller's thread."""
+    import ssl
+    proxy, _ = pair
+    assert proxy.can_call_within
+    plain = socket.socket()
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.check_hostname = False
+    tls = context.wrap_socket(plain, do_handshake_on_connect=False)
+    try:
+        proxy.transport.socket = tls
+        assert proxy.connected and not proxy.can_call_within
+        deadline = Deadline('state')
+        # The unconnected socket fails, on the worker; rospy's broken pipe (TransportTerminated, no
+        # ROSException: it escaped every caller) is a service error, and the connection is closed.
+        with pytest.raises(rospy.ServiceException, match='transport error'):
+            deadline.call(proxy, 2.0, b'S1')
+        assert deadline._executor is not None and not proxy.connected
+    finally:
+        tls.close()

@@ -46,7 +46,7 @@ class Deadline(object):
     def call(self, function, timeout, *args, **kwargs):
         """function(*args, **kwargs), or CallTimeout after timeout seconds (CallPending at once, if
         exclusive and an abandoned call has not returned)."""
-        if getattr(function, 'connected', False) and hasattr(function, 'call_within'):
+        if getattr(function, 'can_call_within', False):
             # One call at a time, as on the worker: a second caller waits for the first (up to its timeout).
             if not self._lock.acquire(timeout=timeout):
                 why = '%s: another call did not return within %.3f s' % (self.name, timeout)

@@ -16,13 +16,14 @@ import concurrent.futures
 import io
 import select
 import socket
+import ssl
 import struct
 import threading
 import time
 
 import rosgraph
 import rospy
-from rospy.exceptions import TransportInitError
+from rospy.exceptions import TransportException, TransportInitError
 from rospy.impl.tcpros_base import TCPROSTransport, recv_buff
 from rospy.msg import args_kwds_to_message, serialize_message
 
@@ -62,18 +63,29 @@ class PersistentService(rospy.ServiceProxy):
         transport = self.transport
         return transport is not None and transport.socket is not None and not transport.done
 
+    @property
+    def can_call_within(self):
+        """Whether :meth:`call_within` may be used now: the connection is open, and plain TCP (a TLS
+        connection, aft_ftm.ros.tls_transport, buffers what it decrypted where poll does not see it;
+        its calls go through a worker thread)."""
+        return self.connected and not isinstance(self.transport.socket, ssl.SSLSocket)
+
     def call(self, *args, **kwds):
         """rospy.ServiceProxy.call; a connection that failed (anything but the service's own error
-        answer) is closed, so that the next call opens a new one."""
+        answer) is closed, so that the next call opens a new one. A request rospy could not write (a
+        broken pipe: its TransportTerminated is no ROSException) is a ServiceException here."""
         try:
             return super(PersistentService, self).call(*args, **kwds)
         except (rospy.ServiceException, rospy.ROSException) as e:
             if 'responded with an error' not in str(e):
                 self.reset()
             raise
+        except TransportException as e:
+            self.reset()
+            raise rospy.ServiceException('transport error completing service call: %s' % e)
 
     def call_within(self, timeout, *args, **kwds):
-        """The call on the open connection (``connected`` must be true), made in this thread, its answer
+        """The call on the open connection (``can_call_within`` must be true), made in this thread, its answer
         awaited at most ``timeout`` seconds; returns or raises what :meth:`call` would. Past the timeout
         raises :class:`LateAnswer`: the connection is handed to a thread that finishes sending the
         request (a stopped server may not read it all yet) and reads the late answer into the
