@@ -28,6 +28,11 @@ from rospy.impl.tcpros_base import TCPROSTransport, recv_buff
 from rospy.msg import args_kwds_to_message, serialize_message
 
 
+def _transport_error(e):
+    """The ServiceException rospy raises for a broken or garbled connection."""
+    return rospy.ServiceException('transport error completing service call: %s' % e)
+
+
 def _whole_answer(b):
     """Whether the buffer holds a whole service answer: its ok byte, its length, and that many bytes."""
     n = b.tell()
@@ -77,12 +82,11 @@ class PersistentService(rospy.ServiceProxy):
         try:
             return super(PersistentService, self).call(*args, **kwds)
         except (rospy.ServiceException, rospy.ROSException) as e:
-            if 'responded with an error' not in str(e):
-                self.reset()
+            self._failed(e)
             raise
         except TransportException as e:
             self.reset()
-            raise rospy.ServiceException('transport error completing service call: %s' % e)
+            raise _transport_error(e)
 
     def call_within(self, timeout, *args, **kwds):
         """The call on the open connection (``can_call_within`` must be true), made in this thread, its answer
@@ -101,8 +105,7 @@ class PersistentService(rospy.ServiceProxy):
             sent = self._send(transport.socket, data, deadline)
             response = self._receive(transport, deadline) if sent == len(data) else None
         except rospy.ServiceException as e:
-            if 'responded with an error' not in str(e):
-                self.reset()
+            self._failed(e)
             raise
         if response is not None:
             return response
@@ -117,7 +120,7 @@ class PersistentService(rospy.ServiceProxy):
             except rospy.ServiceException as e:   # the call's own error, as it would have been raised
                 future.set_exception(e)
             except Exception as e:
-                future.set_exception(rospy.ServiceException('transport error completing service call: %s' % e))
+                future.set_exception(_transport_error(e))
             finally:
                 transport.close()
         threading.Thread(target=finish_late, name='late-' + self.resolved_name, daemon=True).start()
@@ -140,7 +143,7 @@ class PersistentService(rospy.ServiceProxy):
                     if left <= 0 or not poller.poll(left * 1e3):
                         break
         except OSError as e:
-            raise rospy.ServiceException('transport error completing service call: %s' % e)
+            raise _transport_error(e)
         finally:
             sock.setblocking(True)
         return sent
@@ -166,12 +169,17 @@ class PersistentService(rospy.ServiceProxy):
         except rospy.ServiceException:
             raise   # the server's error answer
         except Exception as e:   # a broken connection, a malformed answer (genpy's DeserializationError)
-            raise rospy.ServiceException('transport error completing service call: %s' % e)
+            raise _transport_error(e)
         if len(messages) > 1:
             raise rospy.ServiceException('service [%s] returned multiple responses: %s'
                                          % (self.resolved_name, len(messages)))
         messages[0]._connection_header = transport.header
         return messages[0]
+
+    def _failed(self, e):
+        """After a call that raised e: the connection is closed unless the server answered (its own error)."""
+        if 'responded with an error' not in str(e):
+            self.reset()
 
     def reset(self):
         """Close the connection (if open); the next call opens a new one."""
