@@ -2,6 +2,8 @@
 Deadline): the answer, the server's error answer, a late answer, a late answer in parts, a server
 that reads nothing, a connection that breaks. The server is a fake TCPROS service on a socket pair
 (the handshake done): it reads each request and answers when and how the test says. No ROS master."""
+import concurrent.futures
+import re
 import socket
 import struct
 import threading
@@ -241,3 +243,201 @@ def test_a_tls_connection_is_called_through_the_worker_thread(pair):
         assert deadline._executor is not None and not proxy.connected
     finally:
         tls.close()
+
+
+# -- random schedules: several callers, every kind of answer, drawn from a printed seed -----------------
+
+BEHAVIOURS = ('now', 'now', 'delay', 'parts', 'error', 'close', 'garbage')
+
+
+class Reconnecting(PersistentService):
+    """A PersistentService whose connect() opens a new socket pair served by a FakeServer thread (as a
+    reconnection to the server would)."""
+
+    def __init__(self, serve_connection):
+        super(Reconnecting, self).__init__('/site/server/set_state', SetState)
+        self.serve_connection = serve_connection
+        self.sockets = []
+
+    def connect(self):
+        if self.transport is not None:
+            return
+        client_sock, server_sock = socket.socketpair()
+        self.sockets += [client_sock, server_sock]
+        transport = TCPROSTransport(TCPROSServiceClient(self.resolved_name, SetState), self.resolved_name)
+        transport.set_socket(client_sock, 'fake')
+        transport.header = {}
+        threading.Thread(target=self.serve_connection, args=(server_sock,), daemon=True).start()
+        self.transport = transport
+
+
+class Schedule(object):
+    """The server's side of a random schedule: each request (its state is its id) answered as its plan says.
+    ``received``: the ids in the order the server read them; ``overlaps``: requests read while an earlier
+    one could still take effect (with an exclusive Deadline there must be none)."""
+
+    def __init__(self, plans):
+        self.plans = plans
+        self.lock = threading.Lock()
+        self.received, self.outstanding, self.overlaps = [], set(), []
+
+    def serve_connection(self, sock):
+        server = FakeServer(sock)
+        try:
+            while True:
+                try:
+                    request = server.read_request(timeout=20.0)
+                except (EOFError, OSError):
+                    return
+                i = int(bytes(request.state))
+                with self.lock:
+                    if self.outstanding:
+                        self.overlaps.append((i, sorted(self.outstanding)))
+                    self.received.append(i)
+                    self.outstanding.add(i)
+                if not self._act(server, i):
+                    return
+        finally:
+            sock.close()
+
+    def _act(self, server, i):
+        """Carry out request i's plan; False once the connection is closed. Request i stops being able to
+        take effect before its last byte is written (a set_state applies before it answers)."""
+        behaviour, delay, split = self.plans[i][1:]
+        done = lambda: self._finish(i)   # noqa: E731
+        if behaviour in ('delay', 'close', 'garbage'):
+            time.sleep(delay)
+        if behaviour in ('now', 'delay'):
+            done()
+            server.answer(message='ok %d' % i)
+        elif behaviour == 'parts':
+            whole = server.answer_bytes(message='ok %d ' % i + 'x' * 3000)
+            server.sock.sendall(whole[:split])
+            time.sleep(delay)
+            done()
+            server.sock.sendall(whole[split:])
+        elif behaviour == 'error':
+            done()
+            server.error('refused %d' % i)
+        elif behaviour == 'close':
+            done()
+            server.sock.shutdown(socket.SHUT_RDWR)
+            return False
+        else:   # garbage: a string length past the end of the answer
+            done()
+            server.sock.sendall(b'\x01' + struct.pack('<I', 3) + b'\xff\xff\xff')
+            return False
+        return True
+
+    def _finish(self, i):
+        with self.lock:
+            self.outstanding.discard(i)
+
+
+def _draw_plans(rng, callers, calls):
+    """{id: (caller, behaviour, delay, split)}; ids are numbered per caller."""
+    plans = {}
+    for c in range(callers):
+        for k in range(calls):
+            plans[c * 1000 + k] = (c, rng.choice(BEHAVIOURS), rng.uniform(0.0, 0.25), rng.randint(1, 400))
+    return plans
+
+
+def _expected(plan, outcome):
+    """Whether a call's outcome (kind, text) fits its plan: its own answer, its own error, or the transport
+    error of a connection closed or garbled under it."""
+    behaviour = plan[1]
+    kind, text = outcome
+    if kind == 'answer':
+        return behaviour in ('now', 'delay', 'parts') and text.split(' ')[:2] == ['ok', str(plan[-1])]
+    if kind == 'error':
+        return behaviour == 'error' and re.search(r'refused %d\b' % plan[-1], text) is not None
+    if kind == 'transport':
+        return behaviour in ('close', 'garbage')
+    return False
+
+
+def _outcome(e):
+    text = str(e)
+    if isinstance(e, rospy.ServiceException) and 'responded with an error' in text:
+        return 'error', text
+    if isinstance(e, rospy.ServiceException) and 'transport error' in text:
+        return 'transport', text
+    return 'other', '%s: %s' % (type(e).__name__, text)
+
+
+@pytest.mark.parametrize('callers,exclusive', [(1, True), (3, True), (3, False)])
+def test_random_schedules_every_caller_gets_its_own_answer_or_a_named_timeout(callers, exclusive):
+    """Callers in several threads share one Deadline and one connection; the server answers at once,
+    late, in parts, with an error, closes the connection or garbles the answer, at random. Every call
+    ends within its timeout (plus slack) with its own answer, its own error, a transport error where the
+    server broke the connection, or a CallTimeout: its future then gets the call's own outcome, or says
+    it was never sent (and the server never saw it). With an exclusive Deadline the server never reads a
+    request while an earlier one may still take effect."""
+    import os
+    import random
+    base = int(os.environ.get('AFT_SEED', int(time.time()) % 100000))
+    for seed in range(base, base + 3):
+        rng = random.Random(seed)
+        calls = 12
+        plans = _draw_plans(rng, callers, calls)
+        timeouts = {i: rng.uniform(0.03, 0.15) for i in plans}
+        schedule = Schedule(plans)
+        proxy = Reconnecting(schedule.serve_connection)
+        proxy.connect()
+        deadline = Deadline('state', exclusive=exclusive)
+        outcomes, problems = {}, []
+
+        def caller(c):
+            for k in range(calls):
+                i = c * 1000 + k
+                started = time.monotonic()
+                try:
+                    reply = deadline.call(proxy, timeouts[i], str(i).encode())
+                    outcomes[i] = ('answer', reply.message)
+                except CallPending as e:
+                    outcomes[i] = ('pending', e)
+                except CallTimeout as e:
+                    outcomes[i] = ('timeout', e.future)
+                except Exception as e:   # every other error must be the call's own (checked below)
+                    outcomes[i] = _outcome(e)
+                took = time.monotonic() - started
+                if took > timeouts[i] + 1.0:
+                    problems.append('call %d took %.3f s against a timeout of %.3f s' % (i, took, timeouts[i]))
+        threads = [threading.Thread(target=caller, args=(c,), daemon=True) for c in range(callers)]
+        try:
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(60.0)
+            assert not any(t.is_alive() for t in threads), 'seed %d: a caller did not finish in 60 s' % seed
+            for i in sorted(plans):
+                kind, value = outcomes[i]
+                plan = plans[i] + (i,)
+                if kind == 'pending':
+                    if i in schedule.received:
+                        problems.append('call %d: CallPending, yet the server read it' % i)
+                    continue
+                if kind == 'timeout':
+                    try:
+                        result = value.result(10.0)
+                        kind, value = 'answer', result.message
+                    except CallTimeout:   # not sent: another call kept the connection
+                        if i in schedule.received:
+                            problems.append('call %d: not sent, yet the server read it' % i)
+                        continue
+                    except concurrent.futures.TimeoutError:
+                        problems.append('call %d: its late outcome never came (plan %s)' % (i, plan[1:4]))
+                        continue
+                    except Exception as e:
+                        kind, value = _outcome(e)
+                if not _expected(plan, (kind, value)):
+                    problems.append('call %d (plan %s, %.3f s delay): got %s %r' % (i, plan[1], plan[2], kind,
+                                                                                   str(value)[:120]))
+            if exclusive and schedule.overlaps:
+                problems.append('requests read while earlier ones could still take effect: %s' % schedule.overlaps)
+            assert not problems, 'seed %d (AFT_SEED=%d replays it): %s' % (seed, seed, problems)
+        finally:
+            proxy.reset()
+            for s in proxy.sockets:
+                s.close()

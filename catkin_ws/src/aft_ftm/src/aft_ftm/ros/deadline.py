@@ -17,9 +17,10 @@ same way (its future gets the late answer).
 """
 import concurrent.futures
 import threading
+import time
 
 from ..errors import AftError
-from .persistent_service import LateAnswer
+from .persistent_service import Busy, LateAnswer, NotConnected
 
 
 class CallTimeout(AftError):
@@ -41,37 +42,43 @@ class Deadline(object):
         self.exclusive = exclusive
         self._executor = None
         self._abandoned = None   # exclusive: the future of the last call abandoned, until it returns
-        self._lock = threading.Lock()   # calls made in the caller's thread, one at a time
+        self._lock = threading.Lock()   # the worker, for callers in several threads
 
     def call(self, function, timeout, *args, **kwargs):
         """function(*args, **kwargs), or CallTimeout after timeout seconds (CallPending at once, if
         exclusive and an abandoned call has not returned)."""
+        end = time.monotonic() + timeout
         if getattr(function, 'can_call_within', False):
-            # One call at a time, as on the worker: a second caller waits for the first (up to its timeout).
-            if not self._lock.acquire(timeout=timeout):
-                why = '%s: another call did not return within %.3f s' % (self.name, timeout)
-                busy = concurrent.futures.Future()
-                busy.set_exception(CallTimeout(why))
-                raise CallTimeout(why, busy)
+            self._check_abandoned()
             try:
-                self._check_abandoned()
                 return function.call_within(timeout, *args, **kwargs)
             except LateAnswer as e:
                 if self.exclusive:
                     self._abandoned = e.future
                 raise CallTimeout('no answer within %.3f s' % timeout, e.future)
-            finally:
-                self._lock.release()
+            except Busy as e:
+                # Not sent: its future says so (a caller waiting on it must not wait for ever).
+                busy = concurrent.futures.Future()
+                busy.set_exception(CallTimeout('%s: %s' % (self.name, e)))
+                raise CallTimeout('%s: %s' % (self.name, e), busy)
+            except NotConnected:
+                # Another caller's late answer took the connection meanwhile: the worker's way, which
+                # opens a new one, in the time left.
+                timeout = max(0.0, end - time.monotonic())
         self._check_abandoned()
-        if self._executor is None:
-            self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
-        future = self._executor.submit(function, *args, **kwargs)
+        with self._lock:
+            if self._executor is None:
+                self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
+            executor = self._executor
+        future = executor.submit(function, *args, **kwargs)
         try:
             return future.result(timeout)
         except concurrent.futures.TimeoutError:
             # The worker is stuck in the call: leave it, and give the next call a fresh one.
-            self._executor.shutdown(wait=False)
-            self._executor = None
+            with self._lock:
+                if self._executor is executor:
+                    executor.shutdown(wait=False)
+                    self._executor = None
             if self.exclusive:
                 self._abandoned = future
             raise CallTimeout('no answer within %.3f s' % timeout, future)

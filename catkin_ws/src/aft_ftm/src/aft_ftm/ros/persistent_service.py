@@ -51,6 +51,15 @@ class LateAnswer(Exception):
         self.future = future
 
 
+class Busy(Exception):
+    """Another call held the connection for the whole timeout: this one was not sent."""
+
+
+class NotConnected(Exception):
+    """The connection is not open (or is TLS) by the time this call has it: nothing was sent; the call is
+    to be made with :meth:`PersistentService.call`, which opens one."""
+
+
 class PersistentService(rospy.ServiceProxy):
     """A persistent rospy.ServiceProxy that can connect without the master.
 
@@ -62,6 +71,10 @@ class PersistentService(rospy.ServiceProxy):
     def __init__(self, name, service_class):
         super(PersistentService, self).__init__(name, service_class, persistent=True)
         self.master_misses = 0
+        # One call at a time on the connection, whichever way it is made (a request written while
+        # another call's answer is read would take that answer). A call that hangs keeps it: a caller
+        # that gives up on it goes on with fresh().
+        self._lock = threading.Lock()
 
     @property
     def connected(self):
@@ -79,24 +92,37 @@ class PersistentService(rospy.ServiceProxy):
         """rospy.ServiceProxy.call; a connection that failed (anything but the service's own error
         answer) is closed, so that the next call opens a new one. A request rospy could not write (a
         broken pipe: its TransportTerminated is no ROSException) is a ServiceException here."""
-        try:
-            return super(PersistentService, self).call(*args, **kwds)
-        except (rospy.ServiceException, rospy.ROSException) as e:
-            self._failed(e)
-            raise
-        except TransportException as e:
-            self.reset()
-            raise _transport_error(e)
+        with self._lock:
+            try:
+                self.connect()
+                return super(PersistentService, self).call(*args, **kwds)
+            except (rospy.ServiceException, rospy.ROSException) as e:
+                self._failed(e)
+                raise
+            except TransportException as e:
+                self.reset()
+                raise _transport_error(e)
 
     def call_within(self, timeout, *args, **kwds):
-        """The call on the open connection (``can_call_within`` must be true), made in this thread, its answer
-        awaited at most ``timeout`` seconds; returns or raises what :meth:`call` would. Past the timeout
-        raises :class:`LateAnswer`: the connection is handed to a thread that finishes sending the
-        request (a stopped server may not read it all yet) and reads the late answer into the
-        exception's future; the next call opens a new connection."""
-        transport = self.transport
-        request = args_kwds_to_message(self.request_class, args, kwds)
+        """The call on the open connection, made in this thread, its answer awaited at most ``timeout``
+        seconds (waiting for another call to be done with the connection included); returns or raises
+        what :meth:`call` would. Past the timeout raises :class:`LateAnswer`: the connection is handed
+        to a thread that finishes sending the request (a stopped server may not read it all yet) and
+        reads the late answer into the exception's future; the next call opens a new connection.
+        Nothing sent: :class:`Busy` (another call kept the connection for the whole timeout) or
+        :class:`NotConnected` (``can_call_within`` is false once the connection is this call's)."""
         deadline = time.monotonic() + timeout
+        if not self._lock.acquire(timeout=timeout):
+            raise Busy('another call on %s did not return within %.3f s' % (self.resolved_name, timeout))
+        try:
+            if not self.can_call_within:
+                raise NotConnected(self.resolved_name)
+            return self._call_within(self.transport, deadline, args, kwds)
+        finally:
+            self._lock.release()
+
+    def _call_within(self, transport, deadline, args, kwds):
+        request = args_kwds_to_message(self.request_class, args, kwds)
         self.seq += 1
         buff = io.BytesIO()
         serialize_message(buff, self.seq, request)

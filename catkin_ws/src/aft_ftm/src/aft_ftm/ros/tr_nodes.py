@@ -108,6 +108,10 @@ class TrBeforeNode(BeforeNode):
             self.get_state()   # read-only: opens the persistent connection now, not on the first request
         except (rospy.ServiceException, rospy.ROSException):
             self.get_state = self.get_state.fresh()
+        try:
+            self.set_state.connect()   # opened, not called: the first restore needs no master either
+        except rospy.ServiceException:
+            self.set_state = self.set_state.fresh()
         rospy.Service('~repeat', Repeat, self._on_repeat)
         return super(TrBeforeNode, self).setup(timeout)
 
@@ -217,7 +221,7 @@ class TrBeforeNode(BeforeNode):
                 problem = ('the server state manager %s did not restore the state within %.3f s (it hangs); '
                            'nothing executes until that restore has returned, which undoes %s/%d' % (
                                (rospy.resolve_name('set_state'), self.server_timeout) + key))
-                self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                self.set_state = self.set_state.fresh()
                 if self.hang.on_hang() == OnHang.FAIL_STOP:
                     self._fail_stop(problem)
                     return RepeatResponse(success=False, message=FAIL_STOPPED + problem)
@@ -225,7 +229,7 @@ class TrBeforeNode(BeforeNode):
                     (problem,) + key + (self._alone(),)))
                 return RepeatResponse(success=False, message='state not restored: %s' % problem)
             except (rospy.ServiceException, rospy.ROSException) as e:
-                self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
+                self.set_state = self.set_state.fresh()
                 if self.site:   # this replica's failure: its peer executes the request (see handle)
                     problem = 'the server state manager %s failed: %s' % (rospy.resolve_name('set_state'), e)
                     self._fail_stop(problem)
