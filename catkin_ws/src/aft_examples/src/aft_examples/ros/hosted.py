@@ -38,8 +38,9 @@ class DriverError(RuntimeError):
 class Driver(object):
     """The orchestrator's end of a ``bank_driver`` process (aft_examples.ros.bank_driver)."""
 
-    def __init__(self, popen):
+    def __init__(self, popen, log_path=None):
         self.popen = popen
+        self.log_path = log_path
         self.lines = queue.Queue()
         self._reader = threading.Thread(target=self._read, name='driver-reader', daemon=True)
         self._reader.start()
@@ -58,7 +59,8 @@ class Driver(object):
         try:
             item = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
         except queue.Empty:
-            raise DriverError('the bank driver did not answer %s within its deadline' % what)
+            raise DriverError('the bank driver did not answer %s within its deadline (its log: %s)' % (
+                what, self.log_path))
         if item is None:
             raise DriverError('the bank driver exited (code %s) during %s' % (self.popen.poll(), what))
         return item
@@ -194,14 +196,15 @@ class HostedDeployment(object):
         return time.monotonic() - started
 
     def _start_driver(self, timeout):
-        log = open(os.path.join(self.log_dir, 'bank_driver.log'), 'ab')
+        log_path = os.path.join(self.log_dir, 'bank_driver.log')
+        log = open(log_path, 'ab')
         try:
             popen = self.hosts.run_in('client', ['rosrun', 'aft_examples', 'bank_driver'],
                                       env=self._env('client', party='operator'),
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
         finally:
             log.close()
-        self.driver = Driver(popen)
+        self.driver = Driver(popen, log_path)
         self.driver.wait_ready(timeout)
 
     def why_down(self):
