@@ -18,6 +18,7 @@ from ..errors import RoleError
 from ..lfr import Ack, ConfChange, Forwarded, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out, State
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
+from ..transfer import Incoming, Outgoing, TransferError
 from ..witness import Op
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
@@ -141,6 +142,10 @@ class LfrAfterNode(AfterNode):
             (suspended while a state transfer is captured and the follower admitted) and Before
             (told to forward once the follower is admitted, and to stop once it is excluded).
         ~cache_bytes (int, 64 MiB): bound of the replies kept for a state transfer.
+        ~chunk_bytes (int, 1 MiB; 0 = one message), ~transfer_window (int, 4): a state transfer goes in
+            parts of at most chunk_bytes, at most transfer_window of them sent and not yet acknowledged
+            (aft_ftm.transfer, as PBR's): the ack timeout counts from the last part acknowledged, so a
+            large state on a slow link joins (the Protocol stays suspended until it is whole).
     Services called (with a witness): get_state, set_state (the server's state manager), the witness,
         the Protocol's ~suspend/~resume, the Before's ~set_role.
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``; acks (aft_msgs/Notify), port ``acks``;
@@ -176,7 +181,11 @@ class LfrAfterNode(AfterNode):
         protocol = param('protocol', config.non_empty_str, 'protocol') if witness else ''
         before = param('before', config.non_empty_str, 'before')
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
+        self.chunk_bytes = param('chunk_bytes', config.non_negative_int, 1 << 20)
+        self.transfer_window = param('transfer_window', config.positive_int, 4)
         self.in_sync = param('in_sync', config.flag, False)
+        self.outgoing = None        # leader: the state transfer in parts being sent (aft_ftm.transfer)
+        self.incoming = Incoming()  # follower: the parts of the state transfer being received
         super(LfrAfterNode, self).__init__(
             extra_ports=[PortSpec('acks', SUBSCRIBE, 'aft_msgs/Notify'),
                          PortSpec('peer_acks', PUBLISH, 'aft_msgs/Notify'),
@@ -292,6 +301,9 @@ class LfrAfterNode(AfterNode):
     def _on_ack(self, ack):
         # rospy gives every received message its publisher's node name in the connection header.
         sender = getattr(ack, '_connection_header', {}).get('callerid')
+        if ack.partial:
+            self._on_part_ack(ack, sender)
+            return
         with self.lock:
             answer, reply = self.core.on_ack(ack.origin, ack.id, time.monotonic(), sender)
             if answer == Ack.TRANSFER:
@@ -301,6 +313,18 @@ class LfrAfterNode(AfterNode):
         elif answer == Ack.STRAY:
             self.side.tell('stray_ack', 'ack of %s/%d from %s ignored: %s does not follow %s' % (
                 ack.origin, ack.id, sender, sender, self.name), sender)
+
+    def _on_part_ack(self, ack, sender):
+        """The joiner holds parts 0 .. ack.part of the transfer being sent: the window opens."""
+        with self.lock:
+            out = self.outgoing
+            if out is None or ack.id != out.seq or not self.core.from_peer(sender):
+                return   # a transfer given up, or another's: nothing to open
+            try:
+                if out.acknowledged(ack.part):
+                    self.lock.notify_all()
+            except TransferError as e:
+                rospy.logwarn('%s: %s', self.name, e)
 
     def _on_peer_refusal(self, refusal):
         """Follower: the leader refused a request; a copy sent here after a failover gets the same answer."""
@@ -400,16 +424,19 @@ class LfrAfterNode(AfterNode):
             transfer = self.core.start_transfer(join.site, t0)
             if transfer is None:
                 return
+            out = Outgoing(transfer.seq, state, self.chunk_bytes, self.transfer_window)
             record = {'event': 'join', 'joiner': join.site, 'seq': transfer.seq, 'state_bytes': len(state),
-                      'replies': len(transfer.cache), 'sent_wall': time.time()}
-            self.ports.publish('transfer', Checkpoint(seq=transfer.seq, first_seq=transfer.seq, sender=self.name,
-                                                      epoch=self.core.epoch, full=True, state=state,
-                                                      cache=transfer.cache))
-            acknowledged = self.lock.wait_for(lambda: transfer.acknowledged_s is not None, timeout=self.ack_timeout)
-            self.core.end_transfer()
+                      'replies': len(transfer.cache), 'parts': out.count, 'sent_wall': time.time()}
+            self.outgoing = out
+            try:
+                acknowledged = self._send_transfer(out, transfer)
+            finally:
+                self.outgoing = None
+                self.core.end_transfer()
         if not acknowledged:
-            self.side.tell('join_failed', '%s did not acknowledge the state transfer within %.1f s'
-                           % (join.site, self.ack_timeout))
+            self.side.tell('join_failed', '%s did not acknowledge %s of the state transfer within %.1f s'
+                           % (join.site, 'part %d of %d' % (out.held, out.count) if out.count > 1 else 'all',
+                              self.ack_timeout))
             return
         record['acknowledged_s'] = transfer.acknowledged_s
         grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation)
@@ -435,6 +462,24 @@ class LfrAfterNode(AfterNode):
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
 
+    def _send_transfer(self, out, transfer):
+        """Send the transfer's parts as the window allows, each acknowledgment opening it further
+        (self.lock held; waiting releases it). True once the follower acknowledged the whole transfer,
+        False if it was silent ack_timeout (from the start, or from the last part it acknowledged)."""
+        while True:
+            for part in out.next_parts():
+                last = part == out.count - 1
+                self.ports.publish('transfer', Checkpoint(
+                    seq=transfer.seq, first_seq=transfer.seq, sender=self.name, epoch=self.core.epoch, full=True,
+                    state=out.parts[part], cache=transfer.cache if last else [],
+                    part=part if out.count > 1 else 0, parts=out.count if out.count > 1 else 0))
+            held = out.held
+            if not self.lock.wait_for(lambda: transfer.acknowledged_s is not None or out.held > held,
+                                      timeout=self.ack_timeout):
+                return False
+            if transfer.acknowledged_s is not None:
+                return True
+
     # -- joins (follower side) ---------------------------------------------------------
     def _ask_to_join(self, _event):
         with self.lock:
@@ -457,6 +502,17 @@ class LfrAfterNode(AfterNode):
     def _on_transfer(self, cp):
         with self.lock:
             problem = self.core.check_transfer(cp.seq, cp.sender, cp.epoch, cp.full)
+            if problem is None and cp.parts > 1:
+                # In parts: each acknowledged as it comes; nothing is set before the last. A part out of
+                # order (one lost) refuses the transfer: the follower asks for another (join_period).
+                whole, refused = self.incoming.take(cp)
+                if refused:
+                    self.side.tell('join_failed', '%s: %s; it asks again' % (self.site, refused))
+                    return
+                if whole is None:
+                    self.ports.publish('peer_acks', Notify(origin='', id=cp.seq, partial=True, part=cp.part))
+                    return
+                cp.state = whole
             if problem is None:
                 problem = self._fence(cp.seq)
             if problem is None:
@@ -485,7 +541,7 @@ class LfrAfterNode(AfterNode):
             answer = self.state_calls.call(
                 lambda: self.before_role(role=Role.BACKUP.value, last_seq=seq), self.ack_timeout)
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            self.before_role = rospy.ServiceProxy(self.before_name + '/set_role', SetRole, persistent=True)
+            self.before_role = self.before_role.fresh()
             return 'cannot fence Before %s against the requests forwarded before the transfer: %s' % (
                 self.before_name, e)
         if not answer.success:
