@@ -16,7 +16,9 @@ where namespaces cannot be made.
 
 Every process and namespace is removed at the end, pass or fail (checked by name).
 """
+import json
 import random
+import subprocess
 import tempfile
 import threading
 import time
@@ -354,3 +356,51 @@ def test_lfr_a_large_state_rejoins_over_a_slow_link_in_parts(deployment, seed):
            'sent (ack timeout 1 s), admitted after %.2f s; the longest client wait meanwhile %.2f s; %d failed '
            'joins before (seed %d)' % (join['parts'], join['acknowledged_s'], join['admitted_s'],
                                        max(waits, default=0.0), len(failed), seed))
+
+
+def _received_bytes(d, host):
+    """Bytes host's link has received so far (its interface's counter, read in its namespace)."""
+    h = d.hosts.topology.host(host)
+    out = subprocess.run(['ip', '-n', h.namespace, '-j', '-s', 'link', 'show', 'dev', h.host_if],
+                         stdout=subprocess.PIPE, check=True, timeout=10).stdout
+    return json.loads(out)[0]['stats64']['rx']['bytes']
+
+
+def test_lfr_a_joiner_cut_off_mid_transfer_holds_the_leader_only_for_the_ack_timeout(deployment, seed):
+    """LFR's leader suspends its Protocol while it transfers its state to a joiner. The joiner's host
+    is cut off (link down, processes alive) for 5 s once a seeded part of its 2 MB transfer arrived over
+    its 8 Mbit/s link. In parts, the leader gives up 1 s (the ack timeout) after the last part
+    acknowledged, raises join_failed and serves alone: the clients' calls meanwhile wait far less than
+    the cut. (In one message, rospy's write of the transfer blocks until the link takes it, holding the
+    leader, and the clients, for the whole cut.) Healed, the joiner asks again and joins; every request
+    exactly once, both states equal to a failure-free run's."""
+    rng = random.Random(seed)
+    d = deployment(mechanism='lfr', ballast_bytes=2000000, chunk_bytes=65536, timeout=0.15)
+    _slave_joins(d)            # subscribed from now on
+    sent = rng.randint(10, 30)
+    d.drive(sent)
+    sent, before = _slave_back_on_a_slow_link(d, sent)
+    start = _received_bytes(d, 'slave')
+    into = rng.randint(300000, 1200000)
+    assert wait_until(lambda: _received_bytes(d, 'slave') - start > into, 60.0, 0.01), \
+        'the transfer to the joiner did not start within 60 s: %d bytes' % (_received_bytes(d, 'slave') - start)
+    d.hosts.partition('slave')
+    cut = time.monotonic()
+    records, summary, _ = d.drive(5, first=sent)   # they wait for the leader to give the transfer up
+    sent += 5
+    waits = [r[2] - r[1] for r in records]
+    time.sleep(max(0.0, cut + 5.0 - time.monotonic()))
+    alarms = d.alarms()
+    d.hosts.heal('slave')
+    assert max(waits) < 3.5, 'calls waited %.2f s during a 5 s cut: the leader was held by the joiner (seed %d)' % (
+        max(waits), seed)
+    failed = [a['detail'] for a in alarms if a['kind'] == 'join_failed']
+    assert any('part' in f for f in failed), (seed, [(a['kind'], a['detail']) for a in alarms])
+    _, sent = _drive_until_the_slave_is_backup(d, sent)
+    _, summary, _ = d.drive(10, first=sent)
+    sent += 10
+    assert summary == dict(correct=sent, lost=0, duplicated=0, reordered=0, errors=0), (seed, summary)
+    assert survivor_state(d, 'master') == expected_state(sent), seed
+    assert wait_until(lambda: survivor_state(d, 'slave') == expected_state(sent), 10.0), seed
+    report('hosts LFR: the joiner cut off for 5 s %.1f MB into its 2 MB transfer; calls meanwhile waited at most '
+           '%.2f s; %s; it re-joined once healed (seed %d)' % (into / 1e6, max(waits), failed[-1][:120], seed))

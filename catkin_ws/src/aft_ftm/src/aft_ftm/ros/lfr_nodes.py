@@ -5,6 +5,7 @@ a follower joins by one state transfer (the server's getState/setState), as a PB
 
 The decisions (and each node's role) live in aft_ftm.lfr, without ROS; these nodes carry them out."""
 import json
+import queue
 import threading
 import time
 
@@ -186,6 +187,11 @@ class LfrAfterNode(AfterNode):
         self.in_sync = param('in_sync', config.flag, False)
         self.outgoing = None        # leader: the state transfer in parts being sent (aft_ftm.transfer)
         self.incoming = Incoming()  # follower: the parts of the state transfer being received
+        # Leader: the parts are written by a thread of their own. rospy writes a message synchronously:
+        # on a slow or cut link a part blocks until the link takes it, and must hold neither the lock
+        # nor the suspended Protocol (the join gives up after the ack timeout, whatever the writer does).
+        self.to_write = queue.Queue()
+        self.writing = False        # the writer is in a write (a part the link has not taken yet)
         super(LfrAfterNode, self).__init__(
             extra_ports=[PortSpec('acks', SUBSCRIBE, 'aft_msgs/Notify'),
                          PortSpec('peer_acks', PUBLISH, 'aft_msgs/Notify'),
@@ -261,6 +267,8 @@ class LfrAfterNode(AfterNode):
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
             self.configuration = self.witness.subscribe(self._on_configuration)
         rospy.Service('~set_role', SetRole, self._on_set_role)
+        if self.witness is not None:
+            threading.Thread(target=self._write_parts, name='transfer-writer', daemon=True).start()
         return True
 
     def health(self):
@@ -401,7 +409,29 @@ class LfrAfterNode(AfterNode):
         elif decision == JoinDecision.TRANSFER:
             self.side.alone(self._transfer, join)
 
+    def _write_parts(self):
+        """The writer: each queued part in order, unless its transfer was given up meanwhile."""
+        while not rospy.is_shutdown():
+            try:
+                part = self.to_write.get(timeout=1.0)
+            except queue.Empty:
+                continue
+            with self.lock:
+                wanted = self.outgoing is not None and self.outgoing.seq == part.seq
+                self.writing = wanted
+            if wanted:
+                try:
+                    self.ports.publish('transfer', part)
+                finally:
+                    self.writing = False
+
     def _transfer(self, join):
+        if self.writing or not self.to_write.empty():
+            # The link to the joiner has not taken the last transfer's part yet (slow, or cut): a new
+            # transfer would queue behind it while the Protocol waits. The joiner asks again.
+            rospy.loginfo_throttle(5.0, '%s: %s asks to join while a part of the last transfer is still being '
+                                   'written: it asks again later' % (self.name, join.site))
+            return
         with self.lock:
             alone = self.core.state == State.ALONE
         if alone and self.side.quiesce_protocol(True):
@@ -463,13 +493,13 @@ class LfrAfterNode(AfterNode):
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
 
     def _send_transfer(self, out, transfer):
-        """Send the transfer's parts as the window allows, each acknowledgment opening it further
-        (self.lock held; waiting releases it). True once the follower acknowledged the whole transfer,
+        """Queue the transfer's parts for the writer as the window allows, each acknowledgment opening it
+        further (self.lock held; waiting releases it). True once the follower acknowledged the whole transfer,
         False if it was silent ack_timeout (from the start, or from the last part it acknowledged)."""
         while True:
             for part in out.next_parts():
                 last = part == out.count - 1
-                self.ports.publish('transfer', Checkpoint(
+                self.to_write.put(Checkpoint(
                     seq=transfer.seq, first_seq=transfer.seq, sender=self.name, epoch=self.core.epoch, full=True,
                     state=out.parts[part], cache=transfer.cache if last else [],
                     part=part if out.count > 1 else 0, parts=out.count if out.count > 1 else 0))
