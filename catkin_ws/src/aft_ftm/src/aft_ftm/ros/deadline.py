@@ -36,6 +36,14 @@ class CallPending(CallTimeout):
     call is made until it has (Deadline(exclusive=True))."""
 
 
+def _not_sent(why):
+    """The CallTimeout of a call that was never sent: its future says so (a caller waiting on it must
+    not wait for ever)."""
+    busy = concurrent.futures.Future()
+    busy.set_exception(CallTimeout(why))
+    return CallTimeout(why, busy)
+
+
 class Deadline(object):
     def __init__(self, name='deadline', exclusive=False):
         self.name = name
@@ -43,10 +51,24 @@ class Deadline(object):
         self._executor = None
         self._abandoned = None   # exclusive: the future of the last call abandoned, until it returns
         self._lock = threading.Lock()   # the worker, for callers in several threads
+        self._exclusive = threading.Lock()   # exclusive: one call at a time
 
     def call(self, function, timeout, *args, **kwargs):
         """function(*args, **kwargs), or CallTimeout after timeout seconds (CallPending at once, if
         exclusive and an abandoned call has not returned)."""
+        if not self.exclusive:
+            return self._call(function, timeout, *args, **kwargs)
+        # Exclusive: one call at a time, so that a call abandoned by one caller is recorded before
+        # another caller checks for it.
+        end = time.monotonic() + timeout
+        if not self._exclusive.acquire(timeout=timeout):
+            raise _not_sent('%s: another call did not return within %.3f s' % (self.name, timeout))
+        try:
+            return self._call(function, max(0.0, end - time.monotonic()), *args, **kwargs)
+        finally:
+            self._exclusive.release()
+
+    def _call(self, function, timeout, *args, **kwargs):
         end = time.monotonic() + timeout
         if getattr(function, 'can_call_within', False):
             self._check_abandoned()
@@ -57,20 +79,17 @@ class Deadline(object):
                     self._abandoned = e.future
                 raise CallTimeout('no answer within %.3f s' % timeout, e.future)
             except Busy as e:
-                # Not sent: its future says so (a caller waiting on it must not wait for ever).
-                busy = concurrent.futures.Future()
-                busy.set_exception(CallTimeout('%s: %s' % (self.name, e)))
-                raise CallTimeout('%s: %s' % (self.name, e), busy)
+                raise _not_sent('%s: %s' % (self.name, e))
             except NotConnected:
                 # Another caller's late answer took the connection meanwhile: the worker's way, which
                 # opens a new one, in the time left.
                 timeout = max(0.0, end - time.monotonic())
         self._check_abandoned()
-        with self._lock:
+        with self._lock:   # submitted here: another caller's timeout may shut this executor down
             if self._executor is None:
                 self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
             executor = self._executor
-        future = executor.submit(function, *args, **kwargs)
+            future = executor.submit(function, *args, **kwargs)
         try:
             return future.result(timeout)
         except concurrent.futures.TimeoutError:

@@ -422,6 +422,8 @@ class LfrAfterNode(AfterNode):
             if wanted:
                 try:
                     self.ports.publish('transfer', part)
+                except Exception as e:   # a port rebound or closed meanwhile: that transfer is not acknowledged
+                    rospy.logwarn('%s: part %d of state transfer %d not sent: %s', self.name, part.part, part.seq, e)
                 finally:
                     self.writing = False
 
@@ -450,11 +452,19 @@ class LfrAfterNode(AfterNode):
             self.get_state = self.get_state.fresh()
             self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, e))
             return
+        out = Outgoing(0, state, self.chunk_bytes, self.transfer_window)
+        # The Protocol's suspension lease must outlast the transfer: each part may take up to the ack
+        # timeout. Renewed now, and checked again before the follower is admitted.
+        why = self.side.hold_protocol(2 * self.state_timeout + (out.count + 1) * self.ack_timeout)
+        if why:
+            self.side.tell('join_failed', 'cannot transfer the state to %s: the Protocol is not held: %s'
+                           % (join.site, why))
+            return
         with self.lock:
             transfer = self.core.start_transfer(join.site, t0)
             if transfer is None:
                 return
-            out = Outgoing(transfer.seq, state, self.chunk_bytes, self.transfer_window)
+            out.seq = transfer.seq
             record = {'event': 'join', 'joiner': join.site, 'seq': transfer.seq, 'state_bytes': len(state),
                       'replies': len(transfer.cache), 'parts': out.count, 'sent_wall': time.time()}
             self.outgoing = out
@@ -469,6 +479,13 @@ class LfrAfterNode(AfterNode):
                               self.ack_timeout))
             return
         record['acknowledged_s'] = transfer.acknowledged_s
+        why = self.side.hold_protocol(2 * self.state_timeout)
+        if why:
+            # It resumed by itself meanwhile (its lease ran out): requests ran that the transferred
+            # state does not hold. Admitting the follower would make it diverge.
+            self.side.tell('join_failed', 'state transfer %d to %s not admitted: the Protocol ran requests '
+                           'during it (%s); it asks again' % (transfer.seq, join.site, why))
+            return
         grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation)
         if grant is None:
             return

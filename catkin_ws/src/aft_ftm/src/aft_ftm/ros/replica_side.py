@@ -109,6 +109,20 @@ class ReplicaSide(object):
             return False
         return True
 
+    def hold_protocol(self, lease):
+        """The Protocol suspended by quiesce_protocol kept suspended ``lease`` seconds more (its lease
+        renewed): None if it is, else why not (its lease ran out and it resumed by itself, or it cannot
+        be reached). A state transfer checks it before it counts on the Protocol having run nothing."""
+        if self.protocol_suspend is None:
+            return None
+        try:
+            answer = self.protocol_calls.call(lambda: self.protocol_suspend(renew=True, lease=lease),
+                                              self.state_timeout)
+        except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+            self._protocol_proxies()
+            return 'the Protocol cannot be reached: %s' % e
+        return None if answer.success else answer.message
+
     def fail_stop(self, problem):
         """This replica falls silent: its site fail-stops (Recovery's peer takes over), or, outside a
         site, the node stops."""
