@@ -54,12 +54,20 @@ def publisher_links(node, caller='/aft_deployment'):
             for topic, publishers in pubs if node in publishers}
 
 
+def unwired(node, caller='/aft_deployment'):
+    """{topic: the subscribers the master knows that node's publisher is not connected to} for the
+    topics where some are missing ({} when it is wired), or None when node cannot be asked."""
+    links = publisher_links(node, caller)
+    if links is None:
+        return None
+    return {topic: subscribers - connected for topic, (subscribers, connected) in links.items()
+            if len(connected) < len(subscribers)}
+
+
 def wired(node, caller='/aft_deployment'):
     """True when every publisher of node is connected to every subscriber the master knows for its
     topic (a subscription registered is not yet a connection: the subscriber connects afterwards)."""
-    links = publisher_links(node, caller)
-    return links is not None and all(len(connected) >= len(subscribers)
-                                     for subscribers, connected in links.values())
+    return unwired(node, caller) == {}
 
 
 def wait_for_graph(services=(), subscriptions=(), timeout=60.0, abort=None):

@@ -68,10 +68,12 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
         sys.exit(0)
     from .handshake import bound_handshakes
     from .rejoin import ignore_misdirected_shutdowns, keep_registered
+    from .subscription_keeper import keep_subscriptions
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
     ignore_misdirected_shutdowns()   # a master's shutdown meant for the dead process this port was
     try:
         secure_from_environment()   # mutual TLS on every TCPROS connection, where the environment asks for it
+        keep_subscriptions()   # connects again the publishers rospy gave up on
     except ConfigError as e:
         sys.stderr.write('%s: %s\n' % (name, e))
         sys.exit(2)

@@ -91,16 +91,16 @@ def _loop(period):
                 rospy.logwarn('%s: registering again failed (%s); will retry', caller_id, e)
 
 
-def period_from_env(environ=os.environ):
-    text = environ.get('AFT_MASTER_REJOIN_PERIOD', '')
+def period_from_env(environ=os.environ, name='AFT_MASTER_REJOIN_PERIOD', default=DEFAULT_PERIOD):
+    text = environ.get(name, '')
     if not text:
-        return DEFAULT_PERIOD
+        return default
     try:
         period = float(text)
     except ValueError:
         period = -1.0
     if not period >= 0:
-        raise ConfigError('AFT_MASTER_REJOIN_PERIOD=%r: expected seconds between checks (0: off)' % text)
+        raise ConfigError('%s=%r: expected seconds between checks (0: off)' % (name, text))
     return period
 
 

@@ -10,8 +10,10 @@ back, and writes the summary (JSON) and the plot.
 
 A scenario's own master makes every run independent, and lets a scenario kill the master.
 """
+import glob
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -28,7 +30,7 @@ from aft_msgs.msg import Alarm, CarCommand, CarState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from aft_ftm.ros.graph import wired
+from aft_ftm.ros.graph import unwired
 from aft_ftm.sites import Site, process_tree, wait_dead, wait_until
 
 from .. import resources
@@ -162,10 +164,30 @@ class ScenarioRun(object):
         t0 = time.monotonic()
         missing = self._wait_ready(master)
         if missing:
-            raise RunError('the car did not come up within %.0f s: %s (logs in %s)'
-                           % (self.setup_timeout, ', '.join(missing[:6]), os.path.join(self.out, 'logs')))
+            raise RunError('the car did not come up within %.0f s: %s (logs in %s)%s'
+                           % (self.setup_timeout, ', '.join(missing[:6]), os.path.join(self.out, 'logs'),
+                              self._warnings_of(missing[:6])))
         self.log('scenario %s: %d nodes up and connected in %.1f s' % (self.scenario['name'],
                                                                        len(self.expected_nodes()), time.monotonic() - t0))
+
+    def _warnings_of(self, missing, lines=6):
+        """The last warnings and errors the nodes named in ``missing`` logged, and the TLS alarms heard:
+        the logs directory is gone with the machine a CI run was on, the error message is not."""
+        named = sorted(set(re.findall(r'(/[A-Za-z_][\w/]*)', ' '.join(missing))))
+        told = []
+        for node in named:
+            pattern = os.path.join(self.out, 'logs', '*', node.strip('/').replace('/', '-') + '-[0-9]*.log')
+            for path in sorted({os.path.realpath(p) for p in glob.glob(pattern) if not p.endswith('-stdout.log')}):
+                try:
+                    with open(path, errors='replace') as f:
+                        found = [line.rstrip()[:300] for line in f if re.match(r'\[[\w.]+\]\[(WARN|ERROR|FATAL)', line)]
+                except OSError:
+                    continue
+                if found:
+                    told.append('%s:\n  %s' % (os.path.basename(path), '\n  '.join(found[-lines:])))
+        if self.tls_alarms:
+            told.append('TLS alarms:\n  %s' % '\n  '.join(self.tls_alarms[-lines:]))
+        return ''.join('\n' + t for t in told)
 
     def _on_alarm(self, msg):
         self.alarm_kinds.add(msg.kind)
@@ -201,7 +223,13 @@ class ScenarioRun(object):
             recording = {t for t, nodes in subs if RECORDER in nodes}
             gone += ['recorder on %s' % t for t in ('/car/state', '/tjp/events') if t not in recording]
             if not gone:
-                gone = ['%s not connected' % n for n in nodes + [RECORDER] if not wired(n, RUNNER)]
+                for n in nodes + [RECORDER]:
+                    links = unwired(n, RUNNER)
+                    if links is None:
+                        gone.append('%s not connected (it does not answer)' % n)
+                    elif links:
+                        gone.append('%s not connected (%s)' % (n, '; '.join(
+                            '%s to %s' % (topic, ', '.join(sorted(subs))) for topic, subs in sorted(links.items()))))
             if not gone and self.events.get_num_connections() < 1:
                 gone = ['recorder not connected to the runner']
             return gone
