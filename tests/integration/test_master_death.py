@@ -20,14 +20,14 @@ from leftovers import kill_tagged
 from reporting import report
 
 SCRIPT = r'''
-import json, sys, tempfile, threading, time
+import json, sys, tempfile, time
 import rosgraph
 import rospy
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import Account, GetState
 from std_msgs.msg import String
 from aft_examples.bank import Account as Model, ReplyChecker, operation
-from aft_examples.ros.bank_nodes import account_caller, drive
+from aft_examples.ros.bank_nodes import account_caller, drive_with_faults
 from aft_examples.ros.deployment import PbrDeployment, start_retrying
 from aft_ftm.ros.graph import start_master
 from aft_ftm.sites import wait_until
@@ -55,24 +55,18 @@ try:
     slave_state = rospy.ServiceProxy('/slave/bank_server/get_state', GetState, persistent=True)
     slave_state()
     checker = ReplyChecker()
-    at = {KILL_AT: threading.Event(), OFF_AT: threading.Event()}
-    faults, done = {}, threading.Event()
+    faults = {}
 
-    def inject():
-        if at[KILL_AT].wait(LIMIT):
-            faults['roscore_killed'] = core.power_off()
-            faults['roscore_wall'] = time.time()
-        if at[OFF_AT].wait(LIMIT):
-            faults['master_site_killed'] = deployment.sites['master'].power_off()
-            faults['master_site_wall'] = deployment.sites['master'].powered_off_at
+    def kill_roscore():
+        faults['roscore_killed'] = core.power_off()
+        faults['roscore_wall'] = time.time()
 
-    def client():
-        faults['records'] = drive(account_caller(account), COUNT, checker,
-                                  on_reply=lambda i: at[i + 1].set() if i + 1 in at else None)
-        done.set()
-    threading.Thread(target=inject, daemon=True).start()
-    threading.Thread(target=client, daemon=True).start()
-    if not done.wait(LIMIT):
+    def power_off_master():
+        faults['master_site_killed'] = deployment.sites['master'].power_off()
+        faults['master_site_wall'] = deployment.sites['master'].powered_off_at
+    faults['records'], _ = drive_with_faults(account_caller(account), COUNT, checker,
+                                             [(KILL_AT, kill_roscore), (OFF_AT, power_off_master)], LIMIT)
+    if faults['records'] is None:
         sys.exit('not every call answered within %.0f s: %s; faults %s; slave recovery %s' % (
             LIMIT, checker.summary(), {k: v for k, v in faults.items() if k != 'records'},
             [e for e in events if 'failed_site' in e or e.get('last_recovery')][-1:]))

@@ -86,6 +86,10 @@ class Params(object):
         self.recheck = 0.02             # Proceed: how often a hang waited out for the peer is decided again (ROS: 0.1)
         # RecoveryNode._on_own_fail_stop: a site that fail-stopped refuses a verdict about its peer afterwards.
         self.fix_own_fail_stop = True
+        # ProtocolNode._on_set_role: a Protocol that lacks stored replies (ProtocolCore counts stored checkpoints
+        # without a gap) asks its After for every reply it holds (~stored_replies) before it takes over; else it
+        # waits for the messages that were lost, and the take-over is refused.
+        self.fix_stored_gap = True
         for name, value in overrides.items():
             if not hasattr(self, name):
                 raise AttributeError('no parameter %r' % name)
@@ -264,7 +268,7 @@ class ProtocolModel(Node):
             self.core.on_state_transfer(cp.cache, cp.seq, cp.sender)
         else:   # ProtocolNode._on_stored: a group commit's batch, then its last reply
             for reply in list(getattr(cp, 'batch', None) or []) + [cp.reply]:
-                self.core.on_stored(reply, cp.seq, cp.sender)
+                self.core.on_stored(reply, cp.seq, cp.sender, getattr(cp, 'first_seq', 0))
         self.core.epoch = max(self.core.epoch, cp.epoch)
         for waiting in list(self.waiting):
             if self.core.can_take_over(waiting[0]['last_seq']):
@@ -288,7 +292,16 @@ class ProtocolModel(Node):
             self._set_role(*waiting)
             return
         self.waiting.append(waiting)
+        if self.env.params.fix_stored_gap:
+            self.spawn(self._fetch_stored())
         self.world.after(self.env.params.take_over_wait, self.receive, self._give_up, (waiting,), True)
+
+    def _fetch_stored(self):
+        """ProtocolNode._fetch_stored: every reply the After holds (the messages that stored some were lost)."""
+        answer = yield Call(self.own('after'), 'stored_replies')
+        if answer.success:
+            self.on_stored(ns(full=True, cache=answer.cache, seq=answer.seq, sender=answer.sender,
+                              epoch=answer.epoch))
 
     def _give_up(self, waiting):
         if waiting in self.waiting:
@@ -855,8 +868,8 @@ class AfterModel(Node):
             for reply in batch + [cp.reply]:
                 self.remember(reply)
             self.world.send(self, protocol, 'aft2pro_s', stored, ns(
-                seq=cp.seq, sender=cp.sender, reply=copy_reply(cp.reply), batch=[copy_reply(r) for r in batch],
-                full=False, cache=None, epoch=cp.epoch))
+                seq=cp.seq, first_seq=cp.first_seq, sender=cp.sender, reply=copy_reply(cp.reply),
+                batch=[copy_reply(r) for r in batch], full=False, cache=None, epoch=cp.epoch))
         elif decision == Decision.APPLY_FULL:
             for reply in cp.cache:
                 self.remember(reply)
@@ -904,6 +917,14 @@ class AfterModel(Node):
             self.tell('excluded', '%s was excluded at epoch %d (%s)' % (self.site.name, conf.epoch, conf.reason))
 
     # -- role changes ----------------------------------------------------------------------------
+    def srv_stored_replies(self, respond, kwargs):
+        """PbrAfterNode._on_stored_replies: every reply held, for the Protocol about to take over."""
+        if self.receiver is None or not self.receiver.sender:
+            respond(ns(success=False, message='follows no primary'))
+            return
+        respond(ns(success=True, message='', seq=self.receiver.last_seq, sender=self.receiver.sender,
+                   epoch=self.receiver.epoch, cache=[copy_reply(r) for r in self.recent.replies()]))
+
     def srv_set_role(self, respond, kwargs):
         role, epoch, p = kwargs['role'], kwargs.get('epoch', 0), self.env.params
         went_alone = False

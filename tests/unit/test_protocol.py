@@ -186,6 +186,62 @@ def test_stored_checkpoint_numbers_are_counted_per_sending_after():
     assert core.can_take_over(40) and not core.can_take_over(41)
 
 
+def test_stored_checkpoints_are_counted_without_a_gap_and_a_state_transfer_closes_one():
+    """Found by the simulation (loss,local, seed 13403): the message storing checkpoint 2's reply was lost
+    and 3's came; comparing the highest number, the backup took over and executed request 2 again."""
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1), seq=1, sender='/master/after', first_seq=1)
+    core.on_stored(reply(rid=3, oldest_pending=1), seq=3, sender='/master/after', first_seq=1)   # 2 lost
+    assert core.stored_gap == 2 and core.last_stored_seq == 1
+    assert not core.can_take_over(3)
+    # the After, promoted, sends every reply it holds
+    core.on_state_transfer([reply(rid=1), reply(rid=2, oldest_pending=1), reply(rid=3, oldest_pending=1)], 3,
+                           '/master/after')
+    assert core.stored_gap is None and core.can_take_over(3)
+    core.on_request(request(rid=2, oldest_pending=1), 0)
+    answers = core.set_role(Role.ALONE, 0)
+    assert kinds(answers) == [('Answer', 2)] and core.stats.executed == 0
+
+
+def test_checkpoints_stored_out_of_order_close_their_gap_and_a_sender_heard_late_has_one():
+    core = ProtocolCore(Role.BACKUP)
+    for seq in (1, 3, 4, 2):
+        core.on_stored(reply(rid=seq), seq=seq, sender='/master/after', first_seq=1)
+    assert core.stored_gap is None and core.can_take_over(4)
+    # a replacement After numbered from 10, whose first checkpoint's message was lost
+    core.on_stored(reply(rid=12), seq=11, sender='/master/after_2', first_seq=10)
+    assert core.stored_gap == 10 and not core.can_take_over(11)
+    # without first_seq (an older sender), the first number heard counts as its first
+    core.on_stored(reply(rid=13), seq=20, sender='/master/after_3')
+    assert core.stored_gap is None and core.can_take_over(20)
+    # a group commit's replies come one by one with one number
+    for rid in (14, 15, 16):
+        core.on_stored(reply(rid=rid), seq=21, sender='/master/after_3')
+    assert core.last_stored_seq == 21
+
+
+def test_numbers_kept_beyond_a_gap_are_bounded_and_the_gap_stays():
+    from aft_ftm.protocol import MAX_AHEAD
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1), seq=1, sender='/a', first_seq=1)
+    for seq in range(3, 3 + MAX_AHEAD + 50):
+        core.on_stored(reply(rid=seq), seq=seq, sender='/a', first_seq=1)
+    assert len(core._ahead) == MAX_AHEAD and core.stored_gap == 2
+    core.on_stored(reply(rid=2), seq=2, sender='/a', first_seq=1)
+    assert core.stored_gap == MAX_AHEAD + 3 and not core.can_take_over(MAX_AHEAD + 10)   # never too early
+    core.on_state_transfer([], MAX_AHEAD + 60, '/a')
+    assert core.stored_gap is None and core.can_take_over(MAX_AHEAD + 60)
+
+
+def test_a_state_transfer_heard_after_the_take_over_brings_back_no_reply_its_proxy_confirmed():
+    core = ProtocolCore(Role.BACKUP)
+    core.on_stored(reply(rid=1), seq=1, sender='/a', first_seq=1)
+    core.set_role(Role.ALONE, 0)
+    core.on_request(request(rid=5, oldest_pending=5), 0)   # the Proxy has every answer below 5
+    core.on_state_transfer([reply(rid=1), reply(rid=2)], 1, '/a')
+    assert core.cache.lookup(('/proxy', 1, 0)) is None and core.cache.lookup(('/proxy', 2, 0)) is None
+
+
 def test_a_request_queued_while_backup_and_answered_meanwhile_is_not_executed_at_promotion():
     """Found by the simulation (tests/unit/test_replication_sim.py): a backup being promoted queues the
     re-sent request 7, then stores its reply from the primary's last checkpoint (it answered a re-send

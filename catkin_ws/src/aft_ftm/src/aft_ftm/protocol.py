@@ -103,6 +103,8 @@ class Role(enum.Enum):
 
 
 # Allowed role changes, each with the event that causes it.
+MAX_AHEAD = 4096   # checkpoint numbers kept beyond a gap (a state transfer closes any gap)
+
 ROLE_EDGES = {
     (Role.BACKUP, Role.ALONE): 'the primary failed: the backup takes over',
     (Role.PRIMARY, Role.ALONE): 'the backup failed: the primary goes on without checkpoints',
@@ -188,8 +190,10 @@ class ProtocolCore(object):
         self.executing = collections.OrderedDict()
         self.started_at = None
         self.batches = 0            # batches forwarded (requests forwarded: stats.executed)
-        self.last_stored_seq = 0
+        self.last_stored_seq = 0    # the checkpoints of stored_sender whose replies are all stored: up to here
         self.stored_sender = None
+        self._ahead = set()         # checkpoint numbers stored beyond a gap
+        self._highest = 0           # the highest checkpoint number of stored_sender heard
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
         self.stored_high = {}       # origin -> the highest request id whose reply a checkpoint brought (backup)
@@ -254,28 +258,57 @@ class ProtocolCore(object):
         self.cache.store(reply)
         return [self._answer(reply)]
 
-    def on_stored(self, reply, seq, sender=None):
-        """A backup stores the reply carried by checkpoint ``seq`` of After ``sender``.
+    def on_stored(self, reply, seq, sender=None, first_seq=0):
+        """A backup stores the reply carried by checkpoint ``seq`` of After ``sender`` (a group
+        commit's replies come one by one with the same seq).
 
         Sequence numbers are per sending After: when an adaptation replaces the After, the count
-        starts again from the new one's first checkpoint (can_take_over compares with it).
+        starts again from the new one's first checkpoint, ``first_seq`` (0: unknown, the first number
+        heard from it then counts as its first). Checkpoints are counted without a gap
+        (``last_stored_seq``): a lost message (a broken connection, a Protocol restarted) leaves its
+        replies missing, and can_take_over false, until a state transfer (the After sends one when it
+        is promoted) brings every reply it holds.
         """
         if reply is not None:
-            self._forget_below(reply.origin, reply.oldest_pending)
-            self.cache.store(reply)
-            self.stored_high[reply.origin] = max(reply.id, self.stored_high.get(reply.origin, reply.id))
-        if sender != self.stored_sender:
-            self.stored_sender = sender
-            self.last_stored_seq = seq
-        else:
-            self.last_stored_seq = max(self.last_stored_seq, seq)
-        self.stats.stored += 1
+            self._store(reply)
+        self._count(seq, sender, first_seq)
 
     def on_state_transfer(self, replies, seq, sender):
-        """A backup joined: the replies its primary's clients may ask for again, as of checkpoint seq."""
+        """A backup joined, or its After is taking over: the replies its primary's clients may ask for
+        again, as of checkpoint seq."""
         for reply in replies:
-            self.on_stored(reply, seq, sender)
-        self.on_stored(None, seq, sender)
+            self._store(reply)
+        self._count(seq, sender, full=True)
+
+    @property
+    def stored_gap(self):
+        """The first checkpoint number whose replies never came, while later ones did; else None."""
+        return self.last_stored_seq + 1 if self._highest > self.last_stored_seq else None
+
+    def _store(self, reply):
+        self._forget_below(reply.origin, reply.oldest_pending)
+        if reply.id >= self.watermarks[reply.origin]:   # (below, its Proxy has it: a late state transfer's copy)
+            self.cache.store(reply)
+        self.stored_high[reply.origin] = max(reply.id, self.stored_high.get(reply.origin, reply.id))
+        self.stats.stored += 1
+
+    def _count(self, seq, sender, first_seq=0, full=False):
+        if sender != self.stored_sender:
+            self.stored_sender = sender
+            self._ahead = set()
+            self.last_stored_seq = self._highest = seq if full or not first_seq else first_seq - 1
+        self._highest = max(self._highest, seq)
+        if full:
+            if seq > self.last_stored_seq:
+                self.last_stored_seq = seq
+                self._ahead = {s for s in self._ahead if s > seq}
+        elif seq == self.last_stored_seq + 1:
+            self.last_stored_seq = seq
+        elif seq > self.last_stored_seq + 1 and len(self._ahead) < MAX_AHEAD:
+            self._ahead.add(seq)   # (beyond the bound a gap only stays longer: never a wrong take-over)
+        while self._ahead and self.last_stored_seq + 1 in self._ahead:
+            self.last_stored_seq += 1
+            self._ahead.discard(self.last_stored_seq)
 
     def overdue(self, now, timeout):
         """The first executing request whose result has not come back if no result of its batch came for
@@ -292,7 +325,7 @@ class ProtocolCore(object):
 
     # -- role -------------------------------------------------------------------
     def can_take_over(self, last_seq):
-        """True when the replies of every checkpoint up to last_seq are stored."""
+        """True when the replies of every checkpoint up to last_seq are stored (none missing below it)."""
         return self.last_stored_seq >= last_seq
 
     def set_role(self, role, now, epoch=0):

@@ -156,6 +156,28 @@ def drive(call, count, checker, on_reply=None, pause=0.0, first=0):
     return records
 
 
+def drive_with_faults(call, count, checker, faults, limit):
+    """drive() count operations in a thread of its own while another runs each fault of ``faults``, a
+    list of (replies, fault()) in order, once that many replies came back. Returns (the records, or
+    None if the calls did not all end within limit seconds; {replies: what that fault() returned})."""
+    at = {after: threading.Event() for after, _ in faults}
+    done, out = {}, {}
+
+    def inject():
+        for after, fault in faults:
+            if not at[after].wait(limit):
+                return
+            out[after] = fault()
+
+    def client():
+        done['records'] = drive(call, count, checker, on_reply=lambda i: at[i + 1].set() if i + 1 in at else None)
+    threading.Thread(target=inject, daemon=True).start()
+    worker = threading.Thread(target=client, daemon=True)
+    worker.start()
+    worker.join(limit)
+    return done.get('records'), out
+
+
 def account_proxy(timeout):
     """A proxy of the ``account`` service once it is offered (within timeout), else None (logged)."""
     try:

@@ -6,7 +6,8 @@ import time
 
 import rospy
 from aft_msgs.msg import Checkpoint, CheckpointAck, Join
-from aft_msgs.srv import GetState, GetStateDelta, SetRole, SetRoleResponse, SetState
+from aft_msgs.srv import GetState, GetStateDelta, SetRole, SetRoleResponse, SetState, StoredReplies, \
+    StoredRepliesResponse
 from std_msgs.msg import String
 
 from .. import config, health
@@ -135,6 +136,8 @@ class PbrAfterNode(AfterNode):
             take over (aft_ftm.health)
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend, ~resume (aft_msgs/Suspend)
+        ~stored_replies (aft_msgs/StoredReplies): every reply held, as of the last checkpoint applied, for
+            its Protocol about to take over when messages that stored some of them were lost.
     """
     MECHANISM = 'pbr'
     WAIT_OUTPUTS = ('stored',)
@@ -250,8 +253,18 @@ class PbrAfterNode(AfterNode):
             self.configuration = self.witness.subscribe(self._on_configuration)
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         rospy.Service('~set_role', SetRole, self._on_set_role)
+        rospy.Service('~stored_replies', StoredReplies, self._on_stored_replies)
         rospy.loginfo('%s: ready as %s', self.name, self.role.name)
         return True
+
+    def _on_stored_replies(self, _req):
+        """Every reply held, for the Protocol about to take over (some messages that stored them may be lost)."""
+        with self.lock:
+            if self.receiver is None or not self.receiver.sender:
+                return StoredRepliesResponse(success=False, message='%s follows no primary' % self.name)
+            return StoredRepliesResponse(success=True, message='', seq=self.receiver.last_seq,
+                                         sender=self.receiver.sender, epoch=self.receiver.epoch,
+                                         cache=self.recent.replies())
 
     @property
     def role(self):
@@ -698,8 +711,8 @@ class PbrAfterNode(AfterNode):
             if decision == Decision.APPLY:
                 for reply in list(cp.batch) + [cp.reply]:
                     self._remember(reply)
-                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, reply=cp.reply, batch=cp.batch,
-                                                        epoch=cp.epoch))
+                self.ports.publish('stored', Checkpoint(seq=cp.seq, first_seq=cp.first_seq, sender=cp.sender,
+                                                        reply=cp.reply, batch=cp.batch, epoch=cp.epoch))
             elif decision == Decision.APPLY_FULL:
                 for reply in cp.cache:
                     self._remember(reply)

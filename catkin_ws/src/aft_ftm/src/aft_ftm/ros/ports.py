@@ -147,6 +147,17 @@ class Ports(object):
         handle = self._handles.get(name)
         return handle.get_num_connections() if handle is not None else 0
 
+    def publisher_of(self, name):
+        """The node name of a publisher a subscribed port is connected to (from its connection header;
+        no call to the master), or None."""
+        handle = self._handles.get(name)
+        impl = getattr(handle, 'impl', None)
+        for connection in list(impl.connections) if impl is not None else []:
+            caller = (getattr(connection, 'header', None) or {}).get('callerid')
+            if caller and not connection.done:
+                return caller
+        return None
+
     def rebind(self, port, topic, direction, activate, queue_size=0, dry_run=False, connect_timeout=0.0):
         """Validate then apply a rebind; raises RebindError with nothing changed.
 

@@ -4,7 +4,7 @@ import time
 
 import rospy
 from aft_msgs.msg import Reply
-from aft_msgs.srv import SetRole, SetRoleResponse
+from aft_msgs.srv import SetRole, SetRoleResponse, StoredReplies
 
 from .. import config, health
 from ..errors import RoleError
@@ -12,14 +12,18 @@ from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
 from ..recovery import OnHang
 from .alarms import alarm
+from .deadline import Deadline
 from .diagnostics import Diagnostics
 from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
 from .peer_check import HangRule
+from .persistent_service import PersistentService
 from .witness_client import follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
+STORED_REPLIES_SEARCH = 60.0   # s a backup looks for its After's ~stored_replies after set-up
+STORED_REPLIES_TIMEOUT = 1.0   # s for the call, when taking over (of the 2 s the stored replies are waited for)
 
 
 class ProtocolNode(object):
@@ -72,6 +76,10 @@ class ProtocolNode(object):
     Services:
         ~rebind (aft_msgs/Rebind), ~set_role (aft_msgs/SetRole), ~suspend and ~resume (aft_msgs/Suspend):
         suspended, it holds the requests arriving and answers once nothing is executing.
+    Calls:
+        <its After>/stored_replies (aft_msgs/StoredReplies), a backup taking over that lacks some stored replies
+        (counted per checkpoint, without a gap): every reply its After holds (PBR's After offers it; the
+        connection is made at set-up, named by the header of the After's connection on ``from_after``).
     """
 
     def __init__(self):
@@ -89,6 +97,8 @@ class ProtocolNode(object):
         self.hung_waits = False   # ... waited for because the peer could not take over then (asked again)
         self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
         self.lock = threading.Condition()
+        self.stored_replies = None   # backup: its After's ~stored_replies, connected at set-up (no master then)
+        self.after_calls = Deadline('stored-replies')
         self.ports = Ports(
             [PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
              PortSpec('replies', PUBLISH, 'aft_msgs/Reply'),
@@ -131,6 +141,9 @@ class ProtocolNode(object):
         rospy.Service('~set_role', SetRole, self._on_set_role)
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._health, self.site)
+        if self.core.role == Role.BACKUP:
+            threading.Thread(target=self._find_stored_replies, args=(STORED_REPLIES_SEARCH,), daemon=True,
+                             name='stored-replies').start()
         rospy.loginfo('%s: ready as %s', self.name, self.core.role.name)
         return True
 
@@ -192,13 +205,19 @@ class ProtocolNode(object):
 
     def _on_stored(self, checkpoint):
         with self.lock:
+            gap = self.core.stored_gap
             if checkpoint.full:
                 self.core.on_state_transfer(checkpoint.cache, checkpoint.seq, checkpoint.sender)
             else:   # a group commit's batch, then its last reply
                 for reply in list(checkpoint.batch) + [checkpoint.reply]:
-                    self.core.on_stored(reply, checkpoint.seq, checkpoint.sender)
+                    self.core.on_stored(reply, checkpoint.seq, checkpoint.sender, checkpoint.first_seq)
             self.core.epoch = max(self.core.epoch, checkpoint.epoch)
+            now_gap = self.core.stored_gap
             self.lock.notify_all()
+        if now_gap is not None and gap is None:
+            rospy.logwarn('%s: the replies of checkpoint %d of %s never came (checkpoint %d did): taking over, this '
+                          'Protocol asks its After for every reply it holds', self.name, now_gap, checkpoint.sender,
+                          checkpoint.seq)
 
     def _check_overdue(self, _event):
         with self.lock:
@@ -222,8 +241,65 @@ class ProtocolNode(object):
             alarm(self.ports, 'protocol', 'request_hangs', problem + ': it stays unanswered until it is known%s'
                   % (' (%s)' % self.hang.why_wait() if self.site else ''), request)
 
+    def _connect_stored_replies(self, wait):
+        """A connection to the ~stored_replies service of the After that publishes this Protocol's results
+        (named by its connection's header), if it offers one (PBR's After does); else None."""
+        after = self.ports.publisher_of('from_after')
+        if not after:
+            return None
+        name = after + '/stored_replies'
+        current = self.stored_replies
+        if current is not None and current.resolved_name == name:
+            return current
+        try:
+            rospy.wait_for_service(name, wait)
+            service = PersistentService(name, StoredReplies)
+            service.connect()
+        except (rospy.ROSException, rospy.ServiceException, OSError):
+            return None   # not offered (yet), or the master is away
+        self.stored_replies = service
+        return service
+
+    def _find_stored_replies(self, within):
+        """Connected at set-up, in the background: a failover must not need the ROS master."""
+        end = time.monotonic() + within
+        while time.monotonic() < end and not rospy.is_shutdown():
+            if self._connect_stored_replies(1.0) is not None:
+                return
+            time.sleep(0.5)
+
+    def _fetch_stored(self, last_seq):
+        """Every reply the After holds, stored before taking over: the messages that brought some of them
+        may be lost (a connection inside the site broken, this Protocol restarted)."""
+        service = self._connect_stored_replies(0.5)   # the one connected at set-up, unless its After changed
+        if service is None:   # an After that offers none: the messages are waited for
+            return
+        try:
+            answer = self.after_calls.call(service, STORED_REPLIES_TIMEOUT)
+        except Exception as e:   # a timeout, a broken connection: the messages are waited for
+            rospy.logwarn('%s: replies up to checkpoint %d not stored; asking %s failed: %s', self.name, last_seq,
+                          service.resolved_name, e)
+            return
+        if not answer.success:
+            rospy.logwarn('%s: replies up to checkpoint %d not stored; %s: %s', self.name, last_seq,
+                          service.resolved_name, answer.message)
+            return
+        with self.lock:
+            have, gap = self.core.last_stored_seq, self.core.stored_gap
+            self.core.on_state_transfer(answer.cache, answer.seq, answer.sender)
+            self.core.epoch = max(self.core.epoch, answer.epoch)
+            self.lock.notify_all()
+        rospy.logwarn('%s: replies stored up to checkpoint %d%s, %d asked: %d replies taken from its After (%s, as of '
+                      'checkpoint %d) before taking over', self.name, have,
+                      ' (a gap: later ones came)' if gap is not None else '', last_seq, len(answer.cache),
+                      answer.sender, answer.seq)
+
     def _on_set_role(self, req):
         role = Role(req.role)
+        with self.lock:
+            complete = self.core.can_take_over(req.last_seq)
+        if not complete:
+            self._fetch_stored(req.last_seq)
         with self.lock:
             if not self.lock.wait_for(lambda: self.core.can_take_over(req.last_seq), timeout=2.0):
                 return SetRoleResponse(success=False, message='replies up to checkpoint %d not stored (have %d)'
