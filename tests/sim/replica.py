@@ -90,6 +90,9 @@ class Params(object):
         # without a gap) asks its After for every reply it holds (~stored_replies) before it takes over; else it
         # waits for the messages that were lost, and the take-over is refused.
         self.fix_stored_gap = True
+        # ProtocolNode._quiescent, _resumed: a Protocol found quiescent for a suspension starts nothing until it
+        # is resumed, even if promoted meanwhile (an After's state transfer is captured under that suspension).
+        self.fix_hold_when_suspended = True
         for name, value in overrides.items():
             if not hasattr(self, name):
                 raise AttributeError('no parameter %r' % name)
@@ -241,6 +244,8 @@ class ProtocolModel(Node):
 
     def _check_quiescence(self):
         if self.quiescence and self.quiescent():
+            if self.env.params.fix_hold_when_suspended:
+                self.core.hold()   # ProtocolNode._quiescent: nothing starts until resumed
             waiters, self.quiescence = self.quiescence, []
             for respond in waiters:
                 respond(Answer(True, 'quiescent'))
@@ -258,6 +263,7 @@ class ProtocolModel(Node):
 
     def srv_resume(self, respond, kwargs):
         self.suspended = False
+        self.act(self.core.release(self.world.now))
         held, self.held = self.held, []
         for request in held:
             self.act(self.core.on_request(request, self.world.now))

@@ -186,6 +186,20 @@ def test_stored_checkpoint_numbers_are_counted_per_sending_after():
     assert core.can_take_over(40) and not core.can_take_over(41)
 
 
+def test_a_suspended_protocol_promoted_meanwhile_executes_nothing_until_resumed():
+    """Found by the simulation (loss,local, group commit, seed 39848): the After suspended its Protocol, a
+    quiescent backup, to capture a join's state transfer; Recovery promoted the Protocol meanwhile, which
+    executed its queue under the capture: the state held a request whose reply the transfer lacked."""
+    core = ProtocolCore(Role.BACKUP, max_batch=4)
+    core.on_request(request(rid=1), 0)
+    core.on_request(request(rid=2), 0)
+    core.hold()
+    assert core.set_role(Role.ALONE, 0) == [] and core.current is None
+    assert core.on_request(request(rid=3), 0) == []
+    assert kinds(core.release(0)) == [('Forward', 1), ('Forward', 2), ('Forward', 3)]
+    assert core.release(0) == []   # resumed twice (a rollback resumes every node): nothing more
+
+
 def test_stored_checkpoints_are_counted_without_a_gap_and_a_state_transfer_closes_one():
     """Found by the simulation (loss,local, seed 13403): the message storing checkpoint 2's reply was lost
     and 3's came; comparing the highest number, the backup took over and executed request 2 again."""

@@ -177,6 +177,18 @@ def test_a_lost_message_of_stored_replies_is_made_good_by_the_after_when_it_take
     assert proposed.violation is None and not proposed.unanswered, proposed.report()
 
 
+def test_a_protocol_promoted_while_suspended_for_a_join_executes_nothing_under_the_capture():
+    """Seed 39848 of loss,local with group commit: the primary's After suspended its Protocol (a quiescent
+    backup still) to capture a join's state transfer; the Protocol, promoted meanwhile, executed its queue
+    under the capture, one result was lost inside the site, and the state transferred held a request
+    without its reply: the promoted backup answered "not executed" for a request its state held (P2)."""
+    net = parse_net('loss,local')
+    as_is = run(39848, net, max_batch=4, fix_hold_when_suspended=False)
+    assert as_is.violation is not None and as_is.violation.prop.startswith('P2'), as_is.report()
+    proposed = run(39848, net, max_batch=4)
+    assert proposed.violation is None, proposed.report()
+
+
 def test_what_the_protocol_relies_on_each_connection_once():
     """Duplicated within a site, Proceed executes a request twice. TCP does not duplicate."""
     broken = first_violation(range(400), parse_net('dup,local'))

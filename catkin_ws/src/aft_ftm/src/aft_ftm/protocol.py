@@ -194,6 +194,7 @@ class ProtocolCore(object):
         self.stored_sender = None
         self._ahead = set()         # checkpoint numbers stored beyond a gap
         self._highest = 0           # the highest checkpoint number of stored_sender heard
+        self.holding = False        # suspended once quiescent: nothing starts executing until release()
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
         self.stored_high = {}       # origin -> the highest request id whose reply a checkpoint brought (backup)
@@ -323,6 +324,18 @@ class ProtocolCore(object):
         """The first executing request whose result has not come back, or None when idle."""
         return next(iter(self.executing.values())) if self.executing else None
 
+    # -- suspension -------------------------------------------------------------
+    def hold(self):
+        """Suspended (found quiescent): nothing new starts executing, not even after a promotion, until
+        release(). An After captures a state transfer meanwhile: it must hold exactly the requests whose
+        replies it carries (a promotion that executed the backup's queue under it broke that)."""
+        self.holding = True
+
+    def release(self, now):
+        """Resumed: what was queued meanwhile starts."""
+        self.holding = False
+        return self._dispatch(now)
+
     # -- role -------------------------------------------------------------------
     def can_take_over(self, last_seq):
         """True when the replies of every checkpoint up to last_seq are stored (none missing below it)."""
@@ -390,7 +403,7 @@ class ProtocolCore(object):
 
     def _dispatch(self, now):
         actions = []
-        if self.role == Role.BACKUP or self.executing:
+        if self.role == Role.BACKUP or self.executing or self.holding:
             return actions
         while self.queue and len(self.executing) < self.max_batch:
             request = self.queue.popleft()

@@ -77,18 +77,21 @@ class Ports(object):
         self._hold = []   # by default ~suspend holds nothing and waits until no handler runs
         self._quiescent = lambda: True
         self._before_suspend = None
+        self._resumed = lambda: None
         self._checked = {}   # (port, topic, direction, activate) -> when a dry run accepted it
 
-    def suspension(self, hold, quiescent=None, before_suspend=None):
+    def suspension(self, hold, quiescent=None, before_suspend=None, resumed=None):
         """Say what ~suspend holds (input port names) and when the node is quiescent. The ports
         not held keep flowing while the node is suspending, so that what is inside can finish.
-        ``before_suspend()`` runs first (e.g. apply a pending checkpoint)."""
+        ``before_suspend()`` runs first (e.g. apply a pending checkpoint); ``resumed()`` runs once the
+        suspension ended, by ~resume or by the node itself (its lease ran out, its buffer filled)."""
         unknown = [n for n in hold if n not in self.specs]
         if unknown:
             raise ValueError('cannot hold unknown ports %s' % unknown)
         self._hold = list(hold)
         self._quiescent = quiescent or (lambda: True)
         self._before_suspend = before_suspend
+        self._resumed = resumed or (lambda: None)
 
     def bind(self, name, topic=None, queue_size=0):
         """Bind port name to topic (default: the port's own name, so it can be remapped)."""
@@ -307,6 +310,7 @@ class Ports(object):
     def _self_resumed(self, event, detail):
         """The gate ended a suspension on its own (lease expired, buffer full): log and alarm."""
         rospy.logerr('%s: suspension ended by the node itself: %s', rospy.get_name(), detail)
+        self._resumed()
         msg = Alarm(source=rospy.get_name(), mechanism='suspension', kind=event.value, detail=detail,
                     stamp=rospy.Time.now())
         try:
@@ -322,6 +326,7 @@ class Ports(object):
             return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
         before = self.gate.state
         delivered = self.gate.open()
+        self._resumed()
         if before in (GateState.CLOSED, GateState.CLOSING):
             rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
             return SuspendResponse(success=True, message='resumed', held=delivered)

@@ -110,13 +110,22 @@ class ProtocolNode(object):
              PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'requests': self._on_request, 'from_after': self._on_result, 'stored': self._on_stored})
         # Suspended (adaptation), it holds new requests and is quiescent once nothing executes.
-        self.ports.suspension(hold=['requests'], quiescent=self._quiescent)
+        self.ports.suspension(hold=['requests'], quiescent=self._quiescent, resumed=self._resumed)
         self.name = rospy.get_name()
 
     def _quiescent(self):
         with self.lock:
             # A backup's queue waits for a promotion, not for this component: it is not "inside".
-            return self.core.current is None and (self.core.role == Role.BACKUP or not self.core.queue)
+            quiet = self.core.current is None and (self.core.role == Role.BACKUP or not self.core.queue)
+            if quiet:
+                # Found quiescent, it stays so until resumed: a promotion meanwhile queues, and executes
+                # nothing under the state transfer its After captures (the simulation, loss,local, seed 39848).
+                self.core.hold()
+            return quiet
+
+    def _resumed(self):
+        with self.lock:
+            self._act(self.core.release(time.monotonic()))
 
     def setup(self, timeout):
         self.ports.bind('replies', 'pro2pxy')
