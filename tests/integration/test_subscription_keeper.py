@@ -5,8 +5,8 @@ the publisher closes the connection, the transport is closed after a failed hand
 behind as done. CI once saw a car that never came up for 90 s, one publisher "not connected". Here a
 real master, a publisher process (a talker that can drop its subscribers on request) and a listener
 node with the keeper go through faults drawn from a seed (AFT_SEED replays): each of those three
-paths, the talker killed and started again under its name, and the talker frozen for a while (slow,
-not gone: nothing may be done). After each fault the listener must hear the talker again, through
+paths, the talker killed and started again under its name up to 8 s later (a dead registration meanwhile),
+and the talker frozen for 1-8 s (slow, not gone: nothing may be done). After each fault the listener must hear the talker again, through
 exactly one connection, and no message may arrive twice. The control runs the three give-up paths
 with the keeper off: the listener then hears nothing, which shows the faults are real. Every process
 carries the test's AFT_TEST_TAG and is killed at the end."""
@@ -108,13 +108,14 @@ try:
                 if c.socket is not None:
                     c.socket.close()
                     c.socket = None
-        elif fault == 'restart':            # killed and started again under its name
+        elif fault == 'restart':            # killed (its registration left behind), started again under its name
             talker.kill()
             talker.wait(10)
+            time.sleep(rng.uniform(0.0, 8.0))   # past the grace: a dead registration, looked at and left
             talker = start_talker()
-        elif fault == 'freeze':             # slow, not gone
+        elif fault == 'freeze':             # slow, not gone: its connection lives, nothing may be done
             talker.send_signal(signal.SIGSTOP)
-            time.sleep(rng.uniform(1.0, 4.0))
+            time.sleep(rng.uniform(1.0, 8.0))
             talker.send_signal(signal.SIGCONT)
         t1 = time.monotonic()
         if kept:

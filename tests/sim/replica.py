@@ -299,13 +299,13 @@ class ProtocolModel(Node):
             return
         self.waiting.append(waiting)
         if self.env.params.fix_stored_gap:
-            self.spawn(self._fetch_stored())
+            self.spawn(self._fetch_stored(kwargs['last_seq']))
         self.world.after(self.env.params.take_over_wait, self.receive, self._give_up, (waiting,), True)
 
-    def _fetch_stored(self):
+    def _fetch_stored(self, last_seq):
         """ProtocolNode._fetch_stored: every reply the After holds (the messages that stored some were lost)."""
         answer = yield Call(self.own('after'), 'stored_replies')
-        if answer.success:
+        if answer.success and answer.seq >= last_seq:
             self.on_stored(ns(full=True, cache=answer.cache, seq=answer.seq, sender=answer.sender,
                               epoch=answer.epoch))
 
@@ -925,8 +925,8 @@ class AfterModel(Node):
     # -- role changes ----------------------------------------------------------------------------
     def srv_stored_replies(self, respond, kwargs):
         """PbrAfterNode._on_stored_replies: every reply held, for the Protocol about to take over."""
-        if self.receiver is None or not self.receiver.sender:
-            respond(ns(success=False, message='follows no primary'))
+        if self.receiver is None or not self.receiver.sender or self.receiver.state != Follow.PROMOTED:
+            respond(ns(success=False, message='not taking over'))
             return
         respond(ns(success=True, message='', seq=self.receiver.last_seq, sender=self.receiver.sender,
                    epoch=self.receiver.epoch, cache=[copy_reply(r) for r in self.recent.replies()]))

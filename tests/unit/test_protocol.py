@@ -234,6 +234,16 @@ def test_checkpoints_stored_out_of_order_close_their_gap_and_a_sender_heard_late
     assert core.last_stored_seq == 21
 
 
+def test_an_after_started_again_under_its_name_numbers_anew_and_leaves_no_false_gap():
+    core = ProtocolCore(Role.BACKUP)
+    for seq in (1, 2):
+        core.on_stored(reply(rid=seq), seq=seq, sender='/master/after', first_seq=1)
+    core.on_stored(reply(rid=3), seq=900, sender='/master/after', first_seq=900)   # a rollback restarted it
+    assert core.stored_gap is None and core.can_take_over(900)
+    core.on_stored(reply(rid=4), seq=902, sender='/master/after', first_seq=900)   # 901 lost
+    assert core.stored_gap == 901
+
+
 def test_numbers_kept_beyond_a_gap_are_bounded_and_the_gap_stays():
     from aft_ftm.protocol import MAX_AHEAD
     core = ProtocolCore(Role.BACKUP)

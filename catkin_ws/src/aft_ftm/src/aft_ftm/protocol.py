@@ -194,6 +194,7 @@ class ProtocolCore(object):
         self.stored_sender = None
         self._ahead = set()         # checkpoint numbers stored beyond a gap
         self._highest = 0           # the highest checkpoint number of stored_sender heard
+        self._first_seq = 0         # stored_sender's first checkpoint number, when it said it
         self.holding = False        # suspended once quiescent: nothing starts executing until release()
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
@@ -294,10 +295,14 @@ class ProtocolCore(object):
         self.stats.stored += 1
 
     def _count(self, seq, sender, first_seq=0, full=False):
-        if sender != self.stored_sender:
+        # An After started again under its name (a rollback) numbers from a new first_seq: a new sender.
+        if sender != self.stored_sender or (first_seq and self._first_seq and first_seq != self._first_seq):
             self.stored_sender = sender
+            self._first_seq = 0
             self._ahead = set()
             self.last_stored_seq = self._highest = seq if full or not first_seq else first_seq - 1
+        if first_seq:
+            self._first_seq = first_seq
         self._highest = max(self._highest, seq)
         if full:
             if seq > self.last_stored_seq:

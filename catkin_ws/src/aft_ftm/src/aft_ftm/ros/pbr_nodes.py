@@ -262,6 +262,10 @@ class PbrAfterNode(AfterNode):
         with self.lock:
             if self.receiver is None or not self.receiver.sender:
                 return StoredRepliesResponse(success=False, message='%s follows no primary' % self.name)
+            if self.receiver.state != Follow.PROMOTED:
+                # only the After taking over answers (not one an adaptation replaced, still following)
+                return StoredRepliesResponse(success=False, message='%s is not taking over (%s)'
+                                             % (self.name, self.receiver.state.name))
             return StoredRepliesResponse(success=True, message='', seq=self.receiver.last_seq,
                                          sender=self.receiver.sender, epoch=self.receiver.epoch,
                                          cache=self.recent.replies())

@@ -11,6 +11,7 @@ from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
 from ..recovery import OnHang
+from ..suspension import GateState
 from .alarms import alarm
 from .deadline import Deadline
 from .diagnostics import Diagnostics
@@ -23,7 +24,8 @@ from .witness_client import follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
 STORED_REPLIES_SEARCH = 60.0   # s a backup looks for its After's ~stored_replies after set-up
-STORED_REPLIES_TIMEOUT = 1.0   # s for the call, when taking over (of the 2 s the stored replies are waited for)
+STORED_REPLIES_TIMEOUT = 1.0   # s for one call, when taking over
+TAKE_OVER_WAIT = 2.0           # s a take-over waits for the stored replies it lacks (asked, or their messages)
 
 
 class ProtocolNode(object):
@@ -125,6 +127,8 @@ class ProtocolNode(object):
 
     def _resumed(self):
         with self.lock:
+            if self.ports.gate.state in (GateState.CLOSING, GateState.CLOSED):
+                return   # a newer suspension already (a late or stray resume): its hold stays
             self._act(self.core.release(time.monotonic()))
 
     def setup(self, timeout):
@@ -277,40 +281,50 @@ class ProtocolNode(object):
                 return
             time.sleep(0.5)
 
-    def _fetch_stored(self, last_seq):
+    def _fetch_stored(self, last_seq, end):
         """Every reply the After holds, stored before taking over: the messages that brought some of them
-        may be lost (a connection inside the site broken, this Protocol restarted)."""
-        service = self._connect_stored_replies(0.5)   # the one connected at set-up, unless its After changed
-        if service is None:   # an After that offers none: the messages are waited for
+        may be lost (a connection inside the site broken, this Protocol restarted). Tried until ``end``
+        (monotonic); an answer that does not cover checkpoint last_seq is not taken."""
+        why = 'no After offering ~stored_replies found'
+        while time.monotonic() < end:
+            # the one connected at set-up, or the current After's if an adaptation replaced it
+            service = self._connect_stored_replies(min(0.5, max(0.0, end - time.monotonic()))) or self.stored_replies
+            if service is None:
+                break   # an After that offers none: the messages are waited for
+            try:
+                answer = self.after_calls.call(service, max(0.05, min(STORED_REPLIES_TIMEOUT, end - time.monotonic())))
+            except Exception as e:   # a timeout, a broken connection: once more, on a new connection
+                why = 'asking %s failed: %s' % (service.resolved_name, e)
+                self.stored_replies = service.fresh()   # (knows its address: no master needed)
+                time.sleep(0.05)
+                continue
+            if not answer.success or answer.seq < last_seq:
+                why = '%s: %s' % (service.resolved_name, answer.message or 'its replies are as of checkpoint %d only'
+                                  % answer.seq)
+                break
+            with self.lock:
+                have, gap = self.core.last_stored_seq, self.core.stored_gap
+                self.core.on_state_transfer(answer.cache, answer.seq, answer.sender)
+                self.core.epoch = max(self.core.epoch, answer.epoch)
+                self.lock.notify_all()
+            rospy.logwarn('%s: replies stored up to checkpoint %d%s, %d asked: %d replies taken from its After (%s, as '
+                          'of checkpoint %d) before taking over', self.name, have,
+                          ' (a gap: later ones came)' if gap is not None else '', last_seq, len(answer.cache),
+                          answer.sender, answer.seq)
             return
-        try:
-            answer = self.after_calls.call(service, STORED_REPLIES_TIMEOUT)
-        except Exception as e:   # a timeout, a broken connection: the messages are waited for
-            rospy.logwarn('%s: replies up to checkpoint %d not stored; asking %s failed: %s', self.name, last_seq,
-                          service.resolved_name, e)
-            return
-        if not answer.success:
-            rospy.logwarn('%s: replies up to checkpoint %d not stored; %s: %s', self.name, last_seq,
-                          service.resolved_name, answer.message)
-            return
-        with self.lock:
-            have, gap = self.core.last_stored_seq, self.core.stored_gap
-            self.core.on_state_transfer(answer.cache, answer.seq, answer.sender)
-            self.core.epoch = max(self.core.epoch, answer.epoch)
-            self.lock.notify_all()
-        rospy.logwarn('%s: replies stored up to checkpoint %d%s, %d asked: %d replies taken from its After (%s, as of '
-                      'checkpoint %d) before taking over', self.name, have,
-                      ' (a gap: later ones came)' if gap is not None else '', last_seq, len(answer.cache),
-                      answer.sender, answer.seq)
+        rospy.logwarn('%s: replies up to checkpoint %d not stored; %s: the messages are waited for', self.name,
+                      last_seq, why)
 
     def _on_set_role(self, req):
         role = Role(req.role)
+        end = time.monotonic() + TAKE_OVER_WAIT
         with self.lock:
             complete = self.core.can_take_over(req.last_seq)
         if not complete:
-            self._fetch_stored(req.last_seq)
+            self._fetch_stored(req.last_seq, end)
         with self.lock:
-            if not self.lock.wait_for(lambda: self.core.can_take_over(req.last_seq), timeout=2.0):
+            if not self.lock.wait_for(lambda: self.core.can_take_over(req.last_seq),
+                                      timeout=max(0.0, end - time.monotonic())):
                 return SetRoleResponse(success=False, message='replies up to checkpoint %d not stored (have %d)'
                                        % (req.last_seq, self.core.last_stored_seq))
             try:

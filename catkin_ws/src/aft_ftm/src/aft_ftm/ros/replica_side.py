@@ -106,6 +106,13 @@ class ReplicaSide(object):
         if answer is None or not answer.success:
             self.tell('join_failed', 'cannot %s the Protocol for a state transfer: %s'
                       % ('suspend' if suspend else 'resume', error))
+            if suspend:
+                # A suspension that went through after the call gave up would hold the Protocol's
+                # requests (and any start) until its lease ran out: resumed now, whatever happened.
+                try:
+                    self.protocol_calls.call(self.protocol_resume, self.state_timeout)
+                except Exception:   # (a timeout, no proxy): it resumes by itself when its lease runs out, with an alarm
+                    pass
             return False
         return True
 

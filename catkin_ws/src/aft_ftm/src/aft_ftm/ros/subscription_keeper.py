@@ -1,16 +1,17 @@
 """Subscriptions connected again to the publishers rospy gave up on (see aft_ftm.subscriptions).
 
 :func:`keep_subscriptions` (``run_node`` calls it before ``init_node``) records, for each topic, the
-publishers the master last told the node of (every such list goes through rospy's
-``RegManager.publisher_update``: the answer to ``registerSubscriber`` and each ``publisherUpdate``),
-and starts a daemon thread that every ``period`` seconds (env ``AFT_SUBSCRIPTION_CHECK_PERIOD``, 2 s
-by default; 0 turns it off) compares them with each subscription's transports: no call to the master,
-nothing sent while every publisher is connected. A publisher lacking a live or connecting transport
-for ``aft_ftm.subscriptions.GRACE`` seconds is connected again: a transport rospy left behind done is
-removed, and the node's own ``publisherUpdate`` API is told the topic's publishers again (rospy then
-connects the ones it lacks). Each time is logged as a warning that names the topic, the publisher and
-how long it was missing; a registered publisher that does not answer its API is not connected to (a
-host powered off: the master keeps it until someone cleans), and is looked at again after a backoff.
+publishers the master last told the node of (the answer to ``registerSubscriber``, through rospy's
+``RegManager.publisher_update``, and each ``publisherUpdate``, empty lists included), and starts a
+daemon thread that every ``period`` seconds (env ``AFT_SUBSCRIPTION_CHECK_PERIOD``, 2 s by default; 0
+turns it off) compares them with each subscription's transports and the connections rospy is making:
+no call to the master, nothing sent while every publisher is connected. A publisher lacking a live,
+connecting or being-made transport for ``aft_ftm.subscriptions.GRACE`` seconds is connected again: a
+transport rospy left behind done is removed, and rospy's own connecting thread is started for that
+publisher. Each time is logged as a warning that names the topic, the publisher and how long it was
+missing; a registered publisher that does not answer its API, or no longer publishes the topic, is not
+connected to (a host powered off: the master keeps it until someone cleans), and is looked at again
+after a backoff. Each publisher's API is asked at most once per look.
 """
 import threading
 import time
@@ -23,7 +24,6 @@ from .fencing import node_api
 from .rejoin import period_from_env
 
 DEFAULT_PERIOD = 2.0
-CALL_TIMEOUT = 5.0    # s for the node's own publisherUpdate
 PROBE_TIMEOUT = 1.0   # s for a publisher's getPublications before it is connected to again
 
 
@@ -50,33 +50,61 @@ def transports(impl):
     return live, ended
 
 
-_TOLD = {}   # topic -> the publisher URIs the master last told this node of
-_TOLD_LOCK = threading.Lock()
+_TOLD = {}            # topic -> the publisher URIs the master last told this node of
+_CONNECTING = set()   # (topic, uri) rospy is connecting now (its requestTopic retries for up to 32 s)
+_STATE = {}           # 'reg_manager': rospy's RegManager, seen at its first publisher list
+_LOCK = threading.Lock()
 
 
 def record_publisher_lists():
-    """Wrap rospy's RegManager.publisher_update so that each list the master tells is kept (once per process)."""
+    """Keep each publisher list the master tells this node, and which connections rospy is making (once
+    per process). A subscription's first list comes with its registration (RegManager.publisher_update),
+    later ones through the node's publisherUpdate API, which rospy passes on only when it names a
+    publisher: an empty list (the last publisher gone) is recorded there."""
+    from rospy.impl.masterslave import ROSHandler
     from rospy.impl.registration import RegManager
-    original = RegManager.publisher_update
-    if getattr(original, 'recorded', False):
+    if getattr(RegManager.publisher_update, 'recorded', False):
         return
+    update, told, connect = RegManager.publisher_update, ROSHandler.publisherUpdate, RegManager._connect_topic_thread
 
     def publisher_update(self, resolved_name, uris):
-        with _TOLD_LOCK:
+        with _LOCK:
+            _STATE['reg_manager'] = self
             _TOLD[resolved_name] = frozenset(uris)
-        return original(self, resolved_name, uris)
+        return update(self, resolved_name, uris)
+
+    def publisher_update_api(self, caller_id, topic, publishers):
+        answer = told(self, caller_id, topic, publishers)
+        if answer and answer[0] == 1 and isinstance(publishers, (list, tuple)):   # (validated by rospy)
+            with _LOCK:
+                _TOLD[topic] = frozenset(publishers)
+        return answer
+
+    def connect_topic_thread(self, topic, uri):
+        with _LOCK:
+            _CONNECTING.add((topic, uri))
+        try:
+            return connect(self, topic, uri)
+        finally:
+            with _LOCK:
+                _CONNECTING.discard((topic, uri))
     publisher_update.recorded = True
     RegManager.publisher_update = publisher_update
+    ROSHandler.publisherUpdate = publisher_update_api
+    RegManager._connect_topic_thread = connect_topic_thread
 
 
 def told():
-    with _TOLD_LOCK:
-        return dict(_TOLD)
+    """({topic: publisher URIs}, {(topic, uri) being connected by rospy})."""
+    with _LOCK:
+        return dict(_TOLD), set(_CONNECTING)
 
 
-def connect_again(own_uri, topic, uri, impl, publishers):
-    """The ended transports to uri removed from the subscription, then the node's own publisherUpdate
-    told the topic's publishers. Returns how many ended transports were removed."""
+def connect_again(topic, uri, impl):
+    """The ended transports to uri removed from the subscription, then rospy's own connecting thread
+    started for that one publisher (as its registration manager does for each publisher it is told of;
+    not through its queue of updates, which keeps only the newest per topic: a list the master sent
+    meanwhile must not be dropped). Returns how many ended transports were removed."""
     _, ended = transports(impl)
     removed = 0
     for connection in ended:
@@ -86,7 +114,12 @@ def connect_again(own_uri, topic, uri, impl, publishers):
                 removed += 1
             except (ValueError, OSError):   # rospy removed it meanwhile
                 pass
-    node_api(own_uri, CALL_TIMEOUT).publisherUpdate('/master', topic, sorted(publishers))
+    with _LOCK:
+        manager = _STATE.get('reg_manager')
+    if manager is None:
+        raise RuntimeError('rospy has told this node of no publisher list yet')
+    threading.Thread(target=manager._connect_topic_thread, args=(topic, uri), daemon=True,
+                     name='aft-connect-%s' % topic).start()
     return removed
 
 
@@ -95,46 +128,63 @@ def _loop(period, keeper):
         if rospy.core.is_shutdown():
             return
         time.sleep(0.1)
-    caller_id, own_uri = rospy.get_caller_id(), rospy.core.get_node_uri()
+    caller_id = rospy.get_caller_id()
     silent = set()   # (topic, uri) already said not to answer
     names = {}       # publisher URI -> its node name, from the header of a transport it had (for the log)
     while not rospy.core.is_shutdown():
         time.sleep(period)
         if rospy.core.is_shutdown() or rospy.core.is_shutdown_requested():
             break
-        subscriptions = subscribed()
-        lists = told()
-        wanted = {topic: lists[topic] for topic in subscriptions if topic in lists}
-        have = {topic: transports(impl)[0] for topic, impl in subscriptions.items()}
-        if len(names) > 1000:   # publishers come and go: bounded
-            names.clear()
-        for impl in subscriptions.values():
-            for connection in list(impl.connections):
-                caller = (getattr(connection, 'header', None) or {}).get('callerid')
-                if caller:
-                    names[connection.endpoint_id] = caller
-        for topic, uri, missing_s, attempt in keeper.step(time.monotonic(), wanted, have):
-            publisher = '%s (%s)' % (names[uri], uri) if uri in names else uri
+        try:
+            _look(keeper, caller_id, silent, names)
+        except Exception as e:   # never let the keeper die silently
+            rospy.logerr('%s: the subscription keeper failed a look (it goes on): %s', caller_id, e)
+
+
+def _look(keeper, caller_id, silent, names):
+    subscriptions = subscribed()
+    lists, connecting = told()
+    wanted = {topic: lists[topic] for topic in subscriptions if topic in lists}
+    # a publisher rospy is connecting to now counts as had: a second connection would replace the first
+    have = {topic: transports(impl)[0] | {uri for t, uri in connecting if t == topic}
+            for topic, impl in subscriptions.items()}
+    if len(names) > 1000:   # publishers come and go: bounded
+        names.clear()
+    if len(silent) > 1000:
+        silent.clear()
+    for impl in subscriptions.values():
+        for connection in list(impl.connections):
+            caller = (getattr(connection, 'header', None) or {}).get('callerid')
+            if caller:
+                names[connection.endpoint_id] = caller
+    publications = {}   # uri -> its publications, or the error: each publisher asked once per look
+    for topic, uri, missing_s, attempt in keeper.step(time.monotonic(), wanted, have):
+        publisher = '%s (%s)' % (names[uri], uri) if uri in names else uri
+        if uri not in publications:
             try:
-                code, _, publications = node_api(uri, PROBE_TIMEOUT).getPublications(caller_id)
+                code, _, topics = node_api(uri, PROBE_TIMEOUT).getPublications(caller_id)
+                publications[uri] = {name for name, _ in topics} if code == 1 else set()
             except Exception as e:   # a dead registration (a host powered off): not this node's to clean
-                if (topic, uri) not in silent:
-                    silent.add((topic, uri))
-                    rospy.loginfo('%s: subscription %s lacks publisher %s, which does not answer (%s): '
-                                  'looked at again later', caller_id, topic, publisher, e)
-                continue
-            if code != 1 or topic not in {name for name, _ in publications}:
-                continue   # no longer its publisher (the master's updates can arrive out of order)
-            silent.discard((topic, uri))
-            try:
-                removed = connect_again(own_uri, topic, uri, subscriptions[topic], wanted[topic])
-            except Exception as e:
-                rospy.logwarn('%s: subscription %s lacks publisher %s; connecting again failed: %s',
-                              caller_id, topic, publisher, e)
-                continue
-            rospy.logwarn('%s: subscription %s had no connection to publisher %s for %.1f s (rospy gave it up%s): '
-                          'connecting again (attempt %d)', caller_id, topic, publisher, missing_s,
-                          '; %d ended transport(s) removed' % removed if removed else '', attempt)
+                publications[uri] = e
+        found = publications[uri]
+        if isinstance(found, Exception):
+            if (topic, uri) not in silent:
+                silent.add((topic, uri))
+                rospy.loginfo('%s: subscription %s lacks publisher %s, which does not answer (%s): '
+                              'looked at again later', caller_id, topic, publisher, found)
+            continue
+        if topic not in found:
+            continue   # no longer its publisher (the master's updates can arrive out of order)
+        silent.discard((topic, uri))
+        try:
+            removed = connect_again(topic, uri, subscriptions[topic])
+        except Exception as e:
+            rospy.logwarn('%s: subscription %s lacks publisher %s; connecting again failed: %s',
+                          caller_id, topic, publisher, e)
+            continue
+        rospy.logwarn('%s: subscription %s had no connection to publisher %s for %.1f s (rospy gave it up%s): '
+                      'connecting again (attempt %d)', caller_id, topic, publisher, missing_s,
+                      '; %d ended transport(s) removed' % removed if removed else '', attempt)
 
 
 def keep_subscriptions(period=None, keeper=None):
