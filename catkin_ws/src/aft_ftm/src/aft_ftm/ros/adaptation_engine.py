@@ -42,7 +42,7 @@ from ..adaptation import ScriptError, StepError
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from ..where import run_where
-from .graph import publisher_links, roslaunch, wired
+from .graph import roslaunch, unwired
 from .fencing import node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
 from .launch_files import launch_nodes, resolve_launch_file, stopped_with
@@ -633,14 +633,12 @@ class Engine(object):
         connected to and that do not answer their XML-RPC API are not waited for. A site powered
         off leaves its nodes registered until someone cleans the master: a new publisher never
         connects to them. Nothing is unregistered here (a node slow to answer may be alive)."""
-        if wired(node):
+        lacking = unwired(node, rospy.get_name())   # one look at the master and the node
+        if lacking == {}:
             return True
-        if silent is None:
+        if silent is None or lacking is None:
             return False
-        links = publisher_links(node, rospy.get_name())
-        if links is None:
-            return False
-        missing = {sub for subscribers, connected in links.values() for sub in subscribers - connected}
+        missing = set().union(*lacking.values())
         master = self.master
         for sub in missing - set(silent):
             try:

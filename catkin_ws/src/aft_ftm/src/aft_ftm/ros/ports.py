@@ -153,13 +153,9 @@ class Ports(object):
     def publisher_of(self, name):
         """The node name of a publisher a subscribed port is connected to (from its connection header;
         no call to the master), or None."""
-        handle = self._handles.get(name)
-        impl = getattr(handle, 'impl', None)
-        for connection in list(impl.connections) if impl is not None else []:
-            caller = (getattr(connection, 'header', None) or {}).get('callerid')
-            if caller and not connection.done:
-                return caller
-        return None
+        impl = getattr(self._handles.get(name), 'impl', None)
+        callers = publisher_callers(impl, live_only=True) if impl is not None else {}
+        return next(iter(callers.values()), None)
 
     def rebind(self, port, topic, direction, activate, queue_size=0, dry_run=False, connect_timeout=0.0):
         """Validate then apply a rebind; raises RebindError with nothing changed.
@@ -352,6 +348,16 @@ def _writes_to(master, publisher, subscriber, topic, deadline):
     if code != 1:
         return True
     return any(len(c) > 4 and c[1] == subscriber and c[2] == 'o' and c[4] == topic for c in info)
+
+
+def publisher_callers(impl, live_only=False):
+    """{publisher URI: its node name} from the headers of a subscription's transports (no master call)."""
+    callers = {}
+    for connection in list(impl.connections):
+        caller = (getattr(connection, 'header', None) or {}).get('callerid')
+        if caller and not (live_only and connection.done):
+            callers[connection.endpoint_id] = caller
+    return callers
 
 
 def wait_for_connections(ports, names, timeout):

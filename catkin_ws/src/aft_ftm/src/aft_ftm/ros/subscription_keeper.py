@@ -21,6 +21,7 @@ from rospy.impl.registration import get_topic_manager
 
 from ..subscriptions import Keeper
 from .fencing import node_api
+from .ports import publisher_callers
 from .rejoin import period_from_env
 
 DEFAULT_PERIOD = 2.0
@@ -153,10 +154,7 @@ def _look(keeper, caller_id, silent, names):
     if len(silent) > 1000:
         silent.clear()
     for impl in subscriptions.values():
-        for connection in list(impl.connections):
-            caller = (getattr(connection, 'header', None) or {}).get('callerid')
-            if caller:
-                names[connection.endpoint_id] = caller
+        names.update(publisher_callers(impl))
     publications = {}   # uri -> its publications, or the error: each publisher asked once per look
     for topic, uri, missing_s, attempt in keeper.step(time.monotonic(), wanted, have):
         publisher = '%s (%s)' % (names[uri], uri) if uri in names else uri
