@@ -123,3 +123,29 @@ def test_a_state_of_another_ballast_is_refused_by_its_length():
         layout.account(b'\xa5' * 99 + b'\0' + Account().get_state())
     with pytest.raises(StateError, match='ballast of 0 bytes, expected 100'):
         layout.account(Account().get_state())
+
+
+def test_a_slow_fault_still_has_calls_after_it():
+    """drive_through_fault (the failover benchmarks and tests): however long the fault takes to land
+    (a loaded machine stopping a site), some calls are sent after it, so the outage is measured.
+    Seeded: the fault's length and the point it is injected at vary."""
+    from aft_examples.ros.bank_nodes import drive_through_fault
+    from aft_examples.stats import longest_wait
+    seed = random.randrange(1 << 30)
+    rng = random.Random(seed)
+    for _ in range(5):
+        account, checker = Account(), ReplyChecker()
+        slow = rng.uniform(0.02, 0.1)
+
+        def fault():
+            time.sleep(slow)     # far longer than every remaining call together
+            return 1, time.time()
+        count, after = 40, rng.randint(1, 30)
+        records, injected = drive_through_fault(lambda op, amount: account.apply(op, amount), count, checker,
+                                                after, fault, rng)
+        assert len(records) == count and all(ok for *_, ok in records), 'seed %d' % seed
+        sent_after = [r for r in records if r[1] >= injected['wall']]
+        assert len(sent_after) >= 10, 'seed %d: %d calls sent after the fault' % (seed, len(sent_after))
+        assert longest_wait(records, injected['wall']) is not None, 'seed %d' % seed
+    with pytest.raises(ValueError, match='fault_after=35'):
+        drive_through_fault(lambda op, amount: None, 40, ReplyChecker(), 35, fault, rng)

@@ -196,26 +196,42 @@ def account_caller(proxy):
     return call
 
 
-def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003, first=0):
+def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay=0.003, first=0, tail=10):
     """drive() count operations; once fault_after replies came back, after a random delay of up to
     max_delay (so that the fault lands anywhere inside the next request), run fault() in another
     thread. fault() returns (processes affected, wall-clock time of the fault).
 
+    The last ``tail`` operations are sent only once fault() returned (waiting up to 60 s), so that
+    some are always sent after the fault, however slow fault() is (a loaded machine can take longer
+    to stop a site than the client takes for every remaining request): the outage is then measured.
+
     Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
     was never injected.
     """
+    if not 0 < fault_after <= count - tail:
+        raise ValueError('fault_after=%d must leave %d operations after it (count=%d)' % (fault_after, tail, count))
     injected = {}
-    reached = threading.Event()
+    reached, finished = threading.Event(), threading.Event()
 
     def inject():
-        if reached.wait(300):
-            time.sleep(rng.uniform(0, max_delay))
-            injected['processes'], injected['wall'] = fault()
+        try:
+            if reached.wait(300):
+                time.sleep(rng.uniform(0, max_delay))
+                injected['processes'], injected['wall'] = fault()
+        finally:
+            finished.set()
+
+    def on_reply(i):
+        done = i + 1 - first
+        if done >= fault_after:
+            reached.set()
+        if done == count - tail:
+            finished.wait(60)
 
     thread = threading.Thread(target=inject, name='fault', daemon=True)
     thread.start()
-    records = drive(call, count, checker, first=first,
-                    on_reply=lambda i: reached.set() if i + 1 - first >= fault_after else None)
+    records = drive(call, count, checker, first=first, on_reply=on_reply)
+    reached.set()
     thread.join(10)
     if 'wall' not in injected:
         raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))
