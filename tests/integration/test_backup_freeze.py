@@ -1,0 +1,144 @@
+"""A node of the backup site frozen while the primary site is powered off (PBR, the bank).
+
+A backup's node can be slow at the worst moment: a Protocol, After, server, Recovery or crash detector
+descheduled, a garbage collection, a host swapping. Here one node of SLAVE, drawn from a seed, is
+stopped (SIGSTOP) for 0.3-3.5 s (drawn), and MASTER is powered off 0-0.6 s into the freeze (drawn),
+so that the failover runs into it. Two outcomes are right, and the witness's configurations tell
+which one is due:
+- SLAVE was still the backup when MASTER went: the freeze only delays the failover. Once the node
+  runs again, SLAVE serves every call exactly once and its state equals a failure-free run (a step
+  of the recovery that waits longer than its service timeout raises recovery_slow meanwhile).
+- SLAVE was excluded first (its frozen node missed heartbeats or acknowledgments): MASTER was the
+  only replica with the state, so nobody may serve; no call is answered wrongly, and SLAVE's
+  Recovery says it cannot take over.
+Runs in a process of its own with a master of its own; every process it starts carries the test's
+AFT_TEST_TAG and is killed at the end, pass or fail. AFT_SEED replays a run (AFT_FREEZE_NODE picks
+the node)."""
+import os
+import random
+
+from leftovers import run_tagged
+
+SCRIPT = r"""
+import json, os, random, signal, sys, tempfile, threading, time
+import rosgraph, rospy
+from aft_msgs.msg import Alarm, Configuration
+from aft_msgs.srv import Account, GetState
+from std_msgs.msg import String
+from aft_examples.bank import Account as Model, ReplyChecker, operation
+from aft_examples.ros.bank_nodes import account_caller, drive_with_faults
+from aft_examples.ros.deployment import PbrDeployment, start_retrying
+from aft_ftm.ros.fencing import node_api
+from aft_ftm.ros.graph import start_master
+from aft_ftm.sites import wait_until
+
+NODES = ['protocol', 'after', 'bank_server', 'recovery', 'crash_detector', 'before', 'proceed']
+seed = int(sys.argv[1])
+rng = random.Random(seed)
+node = sys.argv[2] if len(sys.argv) > 2 and sys.argv[2] else rng.choice(NODES)
+COUNT, LIMIT = 1500, 25.0
+FREEZE_AT = rng.randrange(40, 150)
+FREEZE_S = rng.uniform(0.3, 3.5)
+OFF_AFTER = rng.uniform(0.0, min(0.8 * FREEZE_S, 0.6))
+print('seed %d: /slave/%s frozen for %.2f s at reply %d, MASTER powered off %.2f s into the freeze'
+      % (seed, node, FREEZE_S, FREEZE_AT, OFF_AFTER), flush=True)
+log_dir = tempfile.mkdtemp(prefix='aft_backup_freeze_')
+core = start_master(log_dir)
+deployment = PbrDeployment(log_dir, timeout=0.15, mechanism='pbr')
+frozen = []
+
+
+def thaw():
+    for pid in frozen:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except OSError:
+            pass
+
+
+def fail(what):
+    sys.exit('seed %d: %s; checker %s; witness %s; recovery %s; alarms %s' % (
+        seed, what, checker.summary(), configurations[-3:], events[-2:], alarms[-6:]))
+
+
+try:
+    rospy.init_node('checker', disable_signals=True)
+    start_retrying(deployment)
+    events, alarms, configurations = [], [], []
+    rospy.Subscriber('/slave/recovery/events', String, lambda m: events.append(json.loads(m.data)))
+    rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append('%s %s: %s' % (m.source, m.kind, m.detail)))
+    rospy.Subscriber('/aft/witness/configuration', Configuration,
+                     lambda m: configurations.append((m.stamp.to_sec(), m.epoch, m.primary, m.backup, m.reason)))
+    account = rospy.ServiceProxy('/account', Account, persistent=True)
+    account.wait_for_service(30)
+    slave_state = rospy.ServiceProxy('/slave/bank_server/get_state', GetState, persistent=True)
+    uri = rosgraph.Master('/checker').lookupNode('/slave/' + node)
+    pid = node_api(uri, 2.0).getPid('/checker')[2]
+    checker = ReplyChecker()
+    faults = {}
+
+    def freeze_then_power_off():
+        os.kill(pid, signal.SIGSTOP)
+        frozen.append(pid)
+        faults['frozen_wall'] = time.time()
+        timer = threading.Timer(FREEZE_S, thaw)
+        timer.daemon = True
+        timer.start()
+        time.sleep(OFF_AFTER)
+        faults['master_site_killed'] = deployment.sites['master'].power_off()
+        faults['master_site_wall'] = deployment.sites['master'].powered_off_at
+    records, _ = drive_with_faults(account_caller(account), COUNT, checker, [(FREEZE_AT, freeze_then_power_off)],
+                                   LIMIT)
+    thaw()
+    summary = checker.summary()
+    if 'master_site_wall' not in faults:
+        fail('the calls ended before MASTER was powered off')
+    wall = faults['master_site_wall']
+    # SLAVE excluded (its frozen node made it miss acknowledgments or heartbeats) before MASTER went:
+    # then MASTER was the only replica with the state, and nobody may serve; that must be said.
+    excluded = any(primary == 'master' and not backup and stamp <= wall
+                   for stamp, _, primary, backup, _ in configurations)
+    if any(summary[k] for k in ('lost', 'duplicated', 'reordered', 'errors')):
+        fail('a wrong answer')
+    if excluded:
+        if records is not None:
+            fail('SLAVE was excluded before the power loss, yet every call was answered')
+        said = ('/slave/recovery promotion_refused', '/slave/recovery out_of_configuration')
+        if not wait_until(lambda: any(a.startswith(said) for a in alarms), 10):
+            fail('SLAVE, excluded, cannot take over, and its Recovery did not say so')
+        outcome = 'excluded first: %d calls answered, then none; said: %s' % (
+            summary['correct'], sorted({a.split(':')[0] for a in alarms if a.startswith(said)}))
+    else:
+        if records is None:
+            fail('SLAVE was the backup when MASTER went, and not every call was answered within %.0f s' % LIMIT)
+        model, expected = Model(), Model()
+        model.set_state(slave_state().state)
+        for i in range(COUNT):
+            expected.apply(*operation(i))
+        if model.snapshot() != expected.snapshot():
+            fail('SLAVE state %s differs from a failure-free run %s' % (model.snapshot(), expected.snapshot()))
+        if not wait_until(lambda: any(e.get('ok') and 'failed_site' in e for e in events), 10):
+            fail('no successful failover record of /slave/recovery')
+        failover = [e for e in events if e.get('ok') and 'failed_site' in e][-1]
+        slowest = max(failover['steps'], key=lambda st: st['seconds'])
+        # A step that waited past ~service_timeout (2 s) for a node of its site is never silent.
+        if slowest['seconds'] > 2.3 and not any(a.startswith('/slave/recovery recovery_slow') for a in alarms):
+            fail('step %s took %.1f s and no recovery_slow alarm said so' % (slowest['step'], slowest['seconds']))
+        outcome = 'took over: every call answered once (slowest step %s, %.2f s)' % (slowest['step'],
+                                                                                   slowest['seconds'])
+    print('FIGURES ' + json.dumps({'node': node, 'freeze_s': round(FREEZE_S, 2), 'outcome': outcome,
+                                   'alarms': sorted(set(a.split(':')[0] for a in alarms))}), flush=True)
+finally:
+    thaw()
+    deployment.teardown()
+    core.stop()
+print('ok')
+"""
+
+
+def test_a_backup_node_frozen_during_the_failover_delays_it_or_is_excluded_loudly():
+    seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
+    node = os.environ.get('AFT_FREEZE_NODE', '')
+    code, output = run_tagged(SCRIPT, args=[str(seed), node], timeout=300, home_prefix='aft_backup_freeze_home_')
+    print(output[-2000:])
+    assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])
