@@ -225,3 +225,33 @@ def test_a_tls_peer_is_bound_too_its_length_read_not_peeked():
     finally:
         server.close()
         client.close()
+
+
+def test_inbound_connections_get_the_unacknowledged_data_limit_that_was_set():
+    """unacknowledged_limit (run_node: AFT_TCP_USER_TIMEOUT, 10 s): every inbound connection accepted
+    after it is aborted by the kernel once data it was sent stays unacknowledged that long, so that a
+    synchronous publisher's write to a subscriber on a dead host blocks no longer (measured on
+    emulated hosts in tests/integration/test_hosts_pbr.py). 0 leaves the kernel's default."""
+    from aft_ftm.ros import handshake
+    got = []
+    handle = threaded(lambda _self, sock, addr: got.append(sock.getsockopt(socket.IPPROTO_TCP,
+                                                                            socket.TCP_USER_TIMEOUT)))
+    server = socket.socket()
+    server.bind(('127.0.0.1', 0))
+    server.listen(2)
+    before = handshake._LIMIT['ms']
+    try:
+        for seconds in (2.5, 0):
+            assert handshake.unacknowledged_limit(seconds) == seconds
+            client = socket.create_connection(server.getsockname())
+            sock, addr = server.accept()
+            handle(None, sock, addr)
+            deadline = time.monotonic() + 5.0
+            while len(got) < (1 if seconds else 2) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            sock.close()
+            client.close()
+        assert got == [2500, 0]
+    finally:
+        handshake._LIMIT['ms'] = before
+        server.close()

@@ -29,6 +29,10 @@ import struct
 import threading
 
 HANDSHAKE_TIMEOUT = 10.0   # s: a header is a few hundred bytes; rospy answers in milliseconds
+# s: an inbound connection whose sent data stays unacknowledged this long is aborted by the kernel
+# (TCP_USER_TIMEOUT), see unacknowledged_limit(). 0: the kernel's own (about 15 min of retransmissions).
+USER_TIMEOUT = 10.0
+_LIMIT = {'ms': 0}
 INBOUND_HOOKS = []   # hook(server, sock, client_addr) -> the socket to hand to rospy, or None (closed): TLS
 MAX_HEADER_BYTES = 16 << 20   # a header carries a message definition: kilobytes; 'POST' reads as 1.4 GB
 
@@ -145,6 +149,11 @@ def threaded(callback):
     """callback(self, sock, addr) run in a daemon thread of its own per connection; the server's
     topic_connection_handler (set by rospy at init_node) wrapped by one_subscriber_at_a_time."""
     def handle(self, sock, client_addr):
+        if _LIMIT['ms']:
+            try:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, _LIMIT['ms'])
+            except (OSError, AttributeError):   # not TCP (a test's socket pair), or not Linux
+                pass
         topic_handler = getattr(self, 'topic_connection_handler', None)
         if topic_handler is not None and not getattr(topic_handler, 'one_subscriber_at_a_time', False):
             self.topic_connection_handler = one_subscriber_at_a_time(topic_handler, log=_rospy_info)   # accept thread: no race
@@ -160,6 +169,21 @@ def _with_hooks(callback, server, sock, client_addr):
         if sock is None:
             return
     callback(server, sock, client_addr)
+
+
+def unacknowledged_limit(seconds=USER_TIMEOUT):
+    """Abort an inbound connection (a subscriber's, a service client's) whose data this node sent stays
+    unacknowledged for ``seconds`` (TCP_USER_TIMEOUT; 0: the kernel's default). A host that lost power
+    sends no FIN or RST: a synchronous rospy publisher's write to a subscriber on it blocks once about
+    20 small messages fill the socket's buffers, and then waits for the kernel to give the connection
+    up, about 15 minutes of retransmissions, holding whatever lock the publishing thread holds (an
+    After's checkpoints to a dead backup host, alarms to a dead site's Recovery). With the limit it
+    waits that long at most, then rospy drops the dead subscriber and goes on. A frozen subscriber
+    whose receive buffer filled is aborted too once frozen that long (rospy then connects again, or
+    the subscription keeper does), so the limit stays well above the freezes of the fault model (3 s).
+    Applies to the connections accepted after the call: call it before init_node (run_node does)."""
+    _LIMIT['ms'] = int(round(seconds * 1000))
+    return seconds
 
 
 def bound_handshakes(timeout=HANDSHAKE_TIMEOUT):

@@ -66,12 +66,14 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
     if wants_help(sys.argv):
         print(node_help(name, factory, variants))
         sys.exit(0)
-    from .handshake import bound_handshakes
-    from .rejoin import ignore_misdirected_shutdowns, keep_registered
+    from .handshake import USER_TIMEOUT, bound_handshakes, unacknowledged_limit
+    from .rejoin import ignore_misdirected_shutdowns, keep_registered, period_from_env
     from .subscription_keeper import keep_subscriptions
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
     ignore_misdirected_shutdowns()   # a master's shutdown meant for the dead process this port was
     try:
+        # no write to a subscriber on a dead host blocks this node for longer
+        unacknowledged_limit(period_from_env(name='AFT_TCP_USER_TIMEOUT', default=USER_TIMEOUT))
         secure_from_environment()   # mutual TLS on every TCPROS connection, where the environment asks for it
         keep_subscriptions()   # connects again the publishers rospy gave up on
     except ConfigError as e:

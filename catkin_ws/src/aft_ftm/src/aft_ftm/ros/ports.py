@@ -63,6 +63,7 @@ class Ports(object):
         self._callbacks = callbacks
         self._listeners = listeners or {}
         self._default_queue = queue_size
+        self._queues = {}   # port -> the queue size it was bound with: a rebind keeps it
         self._handles = {}
         self._topics = {}
         self._lock = threading.RLock()
@@ -94,11 +95,14 @@ class Ports(object):
         self._resumed = resumed or (lambda: None)
 
     def bind(self, name, topic=None, queue_size=0):
-        """Bind port name to topic (default: the port's own name, so it can be remapped)."""
+        """Bind port name to topic (default: the port's own name, so it can be remapped). A queue_size
+        given (0: none) stays the port's for later binds that give none (a rebind)."""
         spec = self.specs[name]
         resolved = rospy.resolve_name(topic if topic else name)
         cls = roslib.message.get_message_class(spec.msg_type)
-        qs = queue_size or self._default_queue
+        if queue_size:
+            self._queues[name] = queue_size
+        qs = self._queues.get(name) or self._default_queue
         with self._lock:
             if self._topics.get(name) == resolved:
                 return 'port %s already bound to %s' % (name, resolved)

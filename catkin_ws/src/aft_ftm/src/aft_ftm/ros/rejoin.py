@@ -100,7 +100,7 @@ def period_from_env(environ=os.environ, name='AFT_MASTER_REJOIN_PERIOD', default
     except ValueError:
         period = -1.0
     if not period >= 0:
-        raise ConfigError('%s=%r: expected seconds between checks (0: off)' % (name, text))
+        raise ConfigError('%s=%r: expected a number of seconds, 0 or more (0: off)' % (name, text))
     return period
 
 

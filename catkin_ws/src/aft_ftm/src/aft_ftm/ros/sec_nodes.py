@@ -18,6 +18,7 @@ from .params import param
 from .persistent_service import open_service
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
+from .proxy_node import REQUEST_QUEUE as REMOTE_QUEUE
 
 
 class CertificationAuthorityNode(object):
@@ -201,8 +202,12 @@ class SecGateNode(object):
                 rospy.logerr('%s: %s', rospy.get_name(), e)
                 return False
         self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
+        # What goes to another host is queued per connection (a dead host must not block the others:
+        # see the Proxy's requests and the Protocol's replies): the client side's requests, the server
+        # side's replies to the clients' gates. A message a queue drops is sent again (the Proxy re-sends).
+        remote = 'requests_out' if self.side == 'client' else 'replies_out'
         for name in ('requests_out', 'replies_out', 'replies_in', 'alarms'):
-            self.ports.bind(name)
+            self.ports.bind(name, queue_size=REMOTE_QUEUE if name == remote else 0)
         if self.role != Role.BACKUP:
             self.ports.bind('requests_in')
         missing = wait_for_connections(self.ports, ['requests_out', 'replies_in'], timeout)
