@@ -427,17 +427,15 @@ rospy.spin()
 '''
 
 
-def test_a_client_hosts_power_loss_holds_the_other_clients_no_longer_than_the_limit(deployment, seed, monkeypatch):
-    """Every Proxy subscribes to the one replies topic, which the Protocol writes synchronously (a queue
-    per Proxy costs a thread hand-off per reply: PBR's median latency rose from about 1.5 to 1.8 ms,
-    measured with bench_pbr, so it is not used). A client host that loses power sends no FIN or RST:
-    the write to its Proxy blocks once its socket's buffers fill (about 20 replies), and the Protocol,
-    under its lock, held every other client with it for the kernel's retransmission time (about 15
-    minutes: the drive below timed out after 90 s). Now the kernel aborts the dead connection once its
-    data is unacknowledged for AFT_TCP_USER_TIMEOUT (10 s by default, 3 s here): a second client host
-    (a stand-in for its Proxy, subscribed to the replies) is powered off while the client calls; every
-    call is answered exactly once and none waits longer than the limit and a margin."""
-    monkeypatch.setenv('AFT_TCP_USER_TIMEOUT', '3')   # the nodes the deployment starts inherit it
+def test_a_client_hosts_power_loss_leaves_the_other_clients_served(deployment, seed):
+    """Every Proxy subscribes to the one replies topic. A client host that loses power sends no FIN or
+    RST: a plain write to its Proxy blocks once its socket's buffers fill (about 20 replies), and the
+    Protocol, under its lock, held every other client with it for the kernel's retransmission time
+    (about 15 minutes: the drive below timed out after 90 s). The Protocol's replies now spill into a
+    buffer per Proxy connection when that Proxy does not read (aft_ftm.ros.spillover); the kernel's
+    limit on unacknowledged data (AFT_TCP_USER_TIMEOUT, 10 s) then ends the dead connection. Here a
+    second client host (a stand-in for its Proxy, subscribed to the replies) is powered off while the
+    client calls: every call is answered exactly once, none waiting more than 1 s."""
     rng = random.Random(seed)
     hosts = hosts_exec.Hosts(list(HOSTS) + ['client2']).__enter__()
     try:
@@ -458,8 +456,8 @@ def test_a_client_hosts_power_loss_holds_the_other_clients_no_longer_than_the_li
         # (the summary counts every call of the deployment's client, those before too)
         assert summary == dict(correct=first + count, lost=0, duplicated=0, reordered=0, errors=0), (seed, summary)
         waits = [r[2] - max(r[1], fault['wall']) for r in records if r[2] > fault['wall']]
-        assert waits and max(waits) < 3.0 + 4.0, (seed, max(waits or [None]))
-        report('hosts PBR: a second client host powered off mid-run (AFT_TCP_USER_TIMEOUT 3 s): the longest wait of '
-               'the other client %.2f s' % max(waits))
+        assert waits and max(waits) < 1.0, (seed, max(waits or [None]))
+        report('hosts PBR: a second client host powered off mid-run: the longest wait of the other client %.1f ms'
+               % (max(waits) * 1e3))
     finally:
         hosts.close()

@@ -16,6 +16,7 @@ from .. import ports as rules
 from ..errors import RebindError
 from ..suspension import Gate, GateState, SuspendError
 from .params import param
+from .spillover import spill_over
 
 # The suspension's parameters, the same for every FTM node: name -> (default, converter, doc).
 SUSPENSION_PARAMS = {
@@ -64,6 +65,7 @@ class Ports(object):
         self._listeners = listeners or {}
         self._default_queue = queue_size
         self._queues = {}   # port -> the queue size it was bound with: a rebind keeps it
+        self._spill = set()   # ports whose publisher's writes never block (bind(spill=True)): kept too
         self._handles = {}
         self._topics = {}
         self._lock = threading.RLock()
@@ -94,14 +96,17 @@ class Ports(object):
         self._before_suspend = before_suspend
         self._resumed = resumed or (lambda: None)
 
-    def bind(self, name, topic=None, queue_size=0):
+    def bind(self, name, topic=None, queue_size=0, spill=False):
         """Bind port name to topic (default: the port's own name, so it can be remapped). A queue_size
-        given (0: none) stays the port's for later binds that give none (a rebind)."""
+        given (0: none) stays the port's for later binds that give none (a rebind). ``spill``: a
+        publisher without a queue whose writes never block (aft_ftm.ros.spillover), kept on rebinds too."""
         spec = self.specs[name]
         resolved = rospy.resolve_name(topic if topic else name)
         cls = roslib.message.get_message_class(spec.msg_type)
         if queue_size:
             self._queues[name] = queue_size
+        if spill:
+            self._spill.add(name)
         qs = self._queues.get(name) or self._default_queue
         with self._lock:
             if self._topics.get(name) == resolved:
@@ -112,6 +117,8 @@ class Ports(object):
                     warnings.simplefilter('ignore')
                     handle = rospy.Publisher(resolved, cls, queue_size=qs, tcp_nodelay=True,
                                              subscriber_listener=self._listeners.get(name))
+                if name in self._spill:
+                    spill_over(handle, warn=rospy.logwarn)
             else:
                 handle = rospy.Subscriber(resolved, cls, self._deliver, callback_args=name, queue_size=qs,
                                           tcp_nodelay=True)

@@ -132,7 +132,11 @@ class ProtocolNode(object):
             self._act(self.core.release(time.monotonic()))
 
     def setup(self, timeout):
-        self.ports.bind('replies', 'pro2pxy')
+        # Every Proxy hears the replies. One whose host lost power (no FIN, no RST) stops reading: a
+        # plain write to it would block, under this node's lock, every client's replies once its socket's
+        # buffers fill (a client host's power loss on emulated hosts). What it cannot take waits in a
+        # buffer of its own connection (aft_ftm.ros.spillover); the others' replies go on at once.
+        self.ports.bind('replies', 'pro2pxy', spill=True)
         self.ports.bind('to_before', 'pro2bfr')
         self.ports.bind('from_after', 'aft2pro')
         self.ports.bind('stored', 'aft2pro_s')
