@@ -255,3 +255,19 @@ def test_inbound_connections_get_the_unacknowledged_data_limit_that_was_set():
     finally:
         handshake._LIMIT['ms'] = before
         server.close()
+
+
+def test_a_limit_the_kernel_cannot_take_is_a_config_error_naming_the_variable():
+    """(An accept thread that died on setsockopt's TypeError would take no connection any more.)"""
+    from aft_ftm.errors import ConfigError
+    from aft_ftm.ros import handshake
+    before = handshake._LIMIT['ms']
+    for bad in (-1.0, 2147484.0, float('inf'), float('nan')):
+        with pytest.raises(ConfigError, match='AFT_TCP_USER_TIMEOUT'):
+            handshake.unacknowledged_limit(bad)
+    assert handshake._LIMIT['ms'] == before
+    s = socket.socket()
+    try:   # the largest limit accepted is one the kernel takes
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, handshake.MAX_USER_TIMEOUT * 1000)
+    finally:
+        s.close()

@@ -21,14 +21,22 @@ class FakeTransport(object):
         self.endpoint_id = '/proxy2'
         self.stat_bytes = self.stat_num_msg = 0
         self.closed = 0
+        self.cleanup_cb = None
+
+    def set_cleanup_callback(self, callback):
+        self.cleanup_cb = callback
 
     def write_data(self, data):
         self.socket.sendall(data)
 
-    def close(self):
+    def close(self):   # as TCPROSTransport.close: once, then the cleanup callback with itself
+        if self.done:
+            return
         self.closed += 1
         self.done = True
         self.socket.close()
+        if self.cleanup_cb:
+            self.cleanup_cb(self)
 
 
 @pytest.fixture
@@ -134,3 +142,36 @@ def test_random_sizes_and_reader_pauses_deliver_the_stream_written(pair):
         conn.write_data(message(i, size))
     thread.join(30)
     assert b''.join(got) == written, 'seed %d' % seed
+
+
+def test_rospy_removes_the_wrapper_itself_when_its_connection_closes(pair):
+    """rospy's topic keeps the wrapper in its list and removes a closed connection by what its cleanup
+    callback is given: the wrapper, which stops taking writes."""
+    writer, _reader = pair
+    conn = SpilloverConnection(FakeTransport(writer))
+    removed = []
+    conn.set_cleanup_callback(removed.append)
+    conn._connection.close()   # closed underneath (rospy's own write_data does so on a broken pipe)
+    assert removed == [conn]
+    with pytest.raises(TransportTerminated):
+        conn.write_data(message(0, 1))
+
+
+def test_a_drain_that_fails_says_what_it_did_not_send_and_closes_the_connection(pair):
+    """The subscriber's host gone: the kernel aborts the connection (TCP_USER_TIMEOUT) under the drain.
+    What waited is not sent; that is said, and the connection is closed so that rospy drops it."""
+    writer, reader = pair
+    warned, removed = [], []
+    conn = SpilloverConnection(FakeTransport(writer), warn=warned.append)
+    conn.set_cleanup_callback(removed.append)
+    for i in range(3000):   # far beyond the buffers: the drain thread has work
+        conn.write_data(message(i, 4096))
+    reader.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
+    reader.close()   # a reset: the drain's sendall fails
+    deadline = time.monotonic() + 10
+    while not removed and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert removed == [conn] and conn._connection.closed == 1
+    assert len(warned) == 1 and 'are not sent' in warned[0] and '/proxy2' in warned[0], warned
+    with pytest.raises(TransportTerminated):
+        conn.write_data(message(0, 1))

@@ -201,15 +201,17 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
     max_delay (so that the fault lands anywhere inside the next request), run fault() in another
     thread. fault() returns (processes affected, wall-clock time of the fault).
 
-    The last ``tail`` operations are sent only once fault() returned (waiting up to 60 s), so that
-    some are always sent after the fault, however slow fault() is (a loaded machine can take longer
-    to stop a site than the client takes for every remaining request): the outage is then measured.
+    The last ``tail`` operations (as many as there are after fault_after) are sent only once fault()
+    returned (waiting up to 60 s), so that some are always sent after the fault, however slow fault()
+    is (a loaded machine can take longer to stop a site than the client takes for every remaining
+    request): the outage is then measured.
 
     Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
     was never injected.
     """
-    if not 0 < fault_after <= count - tail:
-        raise ValueError('fault_after=%d must leave %d operations after it (count=%d)' % (fault_after, tail, count))
+    if not 0 < fault_after <= count:
+        raise ValueError('fault_after=%d: expected 1 .. count (%d)' % (fault_after, count))
+    tail = min(tail, count - fault_after)
     injected = {}
     reached, finished = threading.Event(), threading.Event()
 
@@ -221,11 +223,11 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
         finally:
             finished.set()
 
-    def on_reply(i):
+    def on_reply(i):   # (not called for a failed call: the next reply counts)
         done = i + 1 - first
         if done >= fault_after:
             reached.set()
-        if done == count - tail:
+        if tail and done >= count - tail and not finished.is_set():
             finished.wait(60)
 
     thread = threading.Thread(target=inject, name='fault', daemon=True)

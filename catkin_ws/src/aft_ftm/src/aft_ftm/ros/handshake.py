@@ -32,6 +32,7 @@ HANDSHAKE_TIMEOUT = 10.0   # s: a header is a few hundred bytes; rospy answers i
 # s: an inbound connection whose sent data stays unacknowledged this long is aborted by the kernel
 # (TCP_USER_TIMEOUT), see unacknowledged_limit(). 0: the kernel's own (about 15 min of retransmissions).
 USER_TIMEOUT = 10.0
+MAX_USER_TIMEOUT = (2 ** 31 - 1) // 1000   # s: the socket option is a signed 32-bit count of ms
 _LIMIT = {'ms': 0}
 INBOUND_HOOKS = []   # hook(server, sock, client_addr) -> the socket to hand to rospy, or None (closed): TLS
 MAX_HEADER_BYTES = 16 << 20   # a header carries a message definition: kilobytes; 'POST' reads as 1.4 GB
@@ -181,7 +182,12 @@ def unacknowledged_limit(seconds=USER_TIMEOUT):
     waits that long at most, then rospy drops the dead subscriber and goes on. A frozen subscriber
     whose receive buffer filled is aborted too once frozen that long (rospy then connects again, or
     the subscription keeper does), so the limit stays well above the freezes of the fault model (3 s).
-    Applies to the connections accepted after the call: call it before init_node (run_node does)."""
+    Applies to the connections accepted after the call: call it before init_node (run_node does).
+    Raises ConfigError for a limit the kernel cannot take (below 0, or 2**31 ms and beyond)."""
+    if not 0 <= seconds < MAX_USER_TIMEOUT:
+        from ..errors import ConfigError
+        raise ConfigError('AFT_TCP_USER_TIMEOUT=%r: expected seconds from 0 (the kernel\'s own) to below %d'
+                          % (seconds, MAX_USER_TIMEOUT))
     _LIMIT['ms'] = int(round(seconds * 1000))
     return seconds
 

@@ -405,26 +405,30 @@ class RecoveryNode(object):
         """Run the waves of a plan; a failed gate (the witness's vote) ends it."""
         for wave in waves:
             threads = [threading.Thread(target=self._run_step, args=(step, failure, record)) for step in wave]
+            began = time.monotonic()
             for thread in threads:
                 thread.start()
             for step, thread in zip(wave, threads):
-                self._wait_step(step, thread, failure)
+                self._wait_step(step, thread, failure, began)
             if any(not st['ok'] for st in record['steps'] if Step[st['step']] in GATES):
                 return
 
-    def _wait_step(self, step, thread, failure):
-        """Wait for a step as long as it runs: a frozen node of this site only delays the promotion (its
-        call is answered once the node runs again; a new call would not be, nor would a refusal serve).
-        Never silent: past ~service_timeout, the alarm recovery_slow names the step."""
-        thread.join(self.timeout)
+    def _wait_step(self, step, thread, failure, began):
+        """Wait for a step (started at ``began``) as long as it runs: a frozen node of this site only
+        delays the promotion (its call is answered once the node runs again; a new call would not be,
+        nor would a refusal serve). Never silent: past ~service_timeout (for fencing through a power
+        switch, ~fence_timeout more), the alarm recovery_slow names the step."""
+        patience = self.timeout + (self.fence_timeout if step == Step.FAIL_SILENCE and self.fencing.switch else 0.0)
+        thread.join(max(0.0, began + patience - time.monotonic()))
         if not thread.is_alive():
             return
         why = 'from the failure of %s' % failure.site if failure is not None else 'taking the first primary role'
         alarm(self.ports, 'pbr', 'recovery_slow', 'the recovery of %s %s waits for its step %s, running for %.1f s: '
-              'a node of this site does not answer (frozen, hung or overloaded); nobody serves meanwhile'
-              % (self.site or rospy.get_name(), why, step.name, time.monotonic() - self._start))
+              'what it calls does not answer (a node of this site, the witness or the power switch: frozen, hung '
+              'or overloaded); nobody serves meanwhile'
+              % (self.site or rospy.get_name(), why, step.name, time.monotonic() - began))
         thread.join()
-        rospy.logwarn('%s: step %s ended after %.1f s', rospy.get_name(), step.name, time.monotonic() - self._start)
+        rospy.logwarn('%s: step %s ended after %.1f s', rospy.get_name(), step.name, time.monotonic() - began)
 
     def _run_step(self, step, failure, record, do=None):
         t0 = time.monotonic()

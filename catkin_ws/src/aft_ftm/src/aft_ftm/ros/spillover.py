@@ -48,6 +48,18 @@ class SpilloverConnection(object):
             raise AttributeError(name)
         return getattr(self._connection, name)
 
+    def set_cleanup_callback(self, callback):
+        """rospy's topic removes a closed connection through this callback: it gets this wrapper (the
+        one in its list, found by identity), and the wrapper knows its connection is closed."""
+        def closed(_connection):
+            self._closing()
+            callback(self)
+        self._connection.set_cleanup_callback(closed)
+
+    @property
+    def cleanup_cb(self):
+        return self._connection.cleanup_cb
+
     @property
     def pending_bytes(self):
         with self._lock:
@@ -72,8 +84,9 @@ class SpilloverConnection(object):
                     self._error = TransportTerminated('write to %s failed: %s' % (self._connection.endpoint_id, e))
                     raise self._error
                 if sent == len(data):
-                    self._count(len(data))
+                    self._count(len(data), 1)
                     return True
+                self._count(sent, 0)
                 data = data[sent:]
             self._pending.append(data)
             self._pending_bytes += len(data)
@@ -94,9 +107,9 @@ class SpilloverConnection(object):
             self._lock.notify_all()
         return True
 
-    def _count(self, size):
+    def _count(self, size, messages):
         self._connection.stat_bytes += size
-        self._connection.stat_num_msg += 1
+        self._connection.stat_num_msg += messages
 
     def _drain(self):
         while True:
@@ -112,25 +125,34 @@ class SpilloverConnection(object):
             except (OSError, AttributeError) as e:   # (AttributeError: rospy set the socket to None on close)
                 failed = e
             with self._lock:
-                if failed is not None:
-                    from rospy.exceptions import TransportTerminated
-                    self._error = TransportTerminated('write to %s failed: %s' % (self._connection.endpoint_id,
-                                                                                  failed))
-                    self._pending.clear()
-                    self._pending_bytes = 0
-                    return
-                if self._pending and self._pending[0] is chunk:
-                    self._pending.popleft()
-                    self._pending_bytes -= len(chunk)
-                    self._count(len(chunk))
-                self._lock.notify_all()
+                if failed is None:
+                    if self._pending and self._pending[0] is chunk:
+                        self._pending.popleft()
+                        self._pending_bytes -= len(chunk)
+                        self._count(len(chunk), 1)
+                    self._lock.notify_all()
+                    continue
+                from rospy.exceptions import TransportTerminated
+                lost = (len(self._pending), self._pending_bytes)
+                self._error = TransportTerminated('write to %s failed: %s' % (self._connection.endpoint_id, failed))
+                self._pending.clear()
+                self._pending_bytes = 0
+                closed = self._closed
+            if not closed:   # never silent: said, and the connection closed (rospy drops the subscriber)
+                self._warn('%s; %d messages (%d bytes) waiting for it are not sent: the connection is closed'
+                           % (self._error, lost[0], lost[1]))
+                self.close()
+            return
 
-    def close(self):
+    def _closing(self):
         with self._lock:
             self._closed = True
             self._pending.clear()
             self._pending_bytes = 0
             self._lock.notify_all()
+
+    def close(self):
+        self._closing()
         return self._connection.close()
 
 
@@ -145,6 +167,15 @@ def spill_over(publisher, max_bytes=MAX_BYTES, warn=None):
 
     def add_connection(c):
         return add(SpilloverConnection(c, max_bytes, warn))
-    impl.add_connection = add_connection
-    impl.spills_over = True
+    with impl.c_lock:
+        impl.add_connection = add_connection
+        impl.spills_over = True
+        # A subscriber may have connected between the publisher's registration and now.
+        wrapped = []
+        for c in impl.connections:
+            if not isinstance(c, SpilloverConnection):
+                c = SpilloverConnection(c, max_bytes, warn)
+                c.set_cleanup_callback(impl.remove_connection)
+            wrapped.append(c)
+        impl.connections = wrapped
     return publisher
