@@ -2,10 +2,12 @@
 without a certificate or with one the policy trusts with nothing, tries the control plane of a
 running pair under client load: a forged checkpoint, a forged failure report, a heartbeat that
 announces the primary's fail-stop, a role change of the backup's Protocol, a state written into the
-primary's server; then a sweep of the whole graph as the master lists it: a default message of the
-right type on every topic somebody subscribes to, a call of every service. Each is refused (the refusing node raises ``tls connection_refused``), none
-changes anything (no failover, the servers' states equal the clients' model); then the primary site
-loses power and the backup takes over under TLS with every call answered exactly once.
+primary's server, a shutdown of the backup's Protocol over its XML-RPC API (``rosnode kill``); then
+a sweep of the whole graph as the master lists it: a default message of the right type on every
+topic somebody subscribes to, a call of every service. Each is refused (the refusing node raises
+``tls connection_refused``, or ``tls shutdown_refused``), none changes anything (no failover, the
+servers' states equal the clients' model); then the primary site loses power and the backup takes
+over under TLS with every call answered exactly once.
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_tagged
@@ -46,6 +48,25 @@ for name, kind, request in (('/slave/protocol/set_role', SetRole, dict(role=2, l
         print('CALL %s refused: %s' % (name, str(e)[:160]))
 subscribers = sum(p.get_num_connections() for p in pubs)
 print('SUBSCRIBERS %d' % subscribers)
+# rosnode kill of the backup's Protocol: its XML-RPC API is open to anyone on the network
+import rosgraph, xmlrpc.client
+def answers(uri):
+    try:
+        return xmlrpc.client.ServerProxy(uri).getPid(rospy.get_name())[0] == 1
+    except Exception:
+        return False
+try:
+    uri = rosgraph.Master(rospy.get_name()).lookupNode('/slave/protocol')
+    try:
+        code, said, _ = xmlrpc.client.ServerProxy(uri).shutdown(rospy.get_name(), 'user request')
+    except Exception as e:   # a node obeying at once may close the connection before its answer
+        code, said = None, str(e)
+    gone = time.monotonic() + 3.0
+    while answers(uri) and time.monotonic() < gone:
+        time.sleep(0.05)
+    print('XMLRPC shutdown of /slave/protocol %s (%s)' % ('refused' if answers(uri) else 'obeyed', said[:100]))
+except Exception as e:
+    print('XMLRPC shutdown of /slave/protocol failed: %s' % str(e)[:100])
 if len(sys.argv) > 2:
     # the sweep (aft_ftm.ros.intruder): a default message of the right type on every topic somebody
     # subscribes to, and a call with a default request of every service, read from the master
@@ -89,8 +110,9 @@ try:
             (k, v) for k, v in os.environ.items() if not k.startswith('AFT_TLS_'))
         attacker = subprocess.run([sys.executable, attack, name] + ([policy] if with_tls else []), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                   env=env, timeout=90, universal_newlines=True)
-        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'SWEEP')))))
-        calls(25)
+        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'XMLRPC', 'SWEEP')))))
+        if with_tls:   # (the control's pair may be left with nobody serving)
+            calls(25)
     status = witness_status()
     print('AFTER ATTACKS epoch %d primary %s backup %s' % (status.epoch, status.primary, status.backup))
     if not with_tls:
@@ -103,6 +125,8 @@ try:
         print('STATE %s %s' % (site, 'equal' if got.snapshot() == expected.snapshot() else 'DIFFERS %r %r' % (got.snapshot(), expected.snapshot())))
     refusals = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'connection_refused']
     print('REFUSALS %d by %s' % (len(refusals), sorted(set(a.source for a in refusals))))
+    shutdowns = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'shutdown_refused']
+    print('SHUTDOWN REFUSALS %d by %s' % (len(shutdowns), sorted(set(a.source for a in shutdowns))))
     own = [a.detail for a in refusals if any('party %s may not' % p in a.detail
                                              for p in ('master', 'slave', 'client', 'witness', 'operator'))]
     print('OWN REFUSALS %d %s' % (len(own), own[:3]))   # the deployment's own parties, refused by its policy
@@ -126,6 +150,7 @@ def test_without_tls_the_same_attacker_changes_roles_and_state():
     assert code == 0, output[-5000:]
     attacked = [l for l in output.splitlines() if l.startswith('plain_attacker')]
     assert attacked and 'served' in attacked[0] and 'SUBSCRIBERS 0' not in attacked[0], output[-3000:]
+    assert 'XMLRPC shutdown of /slave/protocol obeyed' in attacked[0], attacked[0]
     after = [l for l in output.splitlines() if l.startswith('AFTER ATTACKS')]
     assert after and after[0] != 'AFTER ATTACKS epoch 2 primary master backup slave', after
 
@@ -152,7 +177,7 @@ def check_under_tls(mechanism):
     for attacker in ('plain_attacker', 'client2_attacker'):
         text = line(attacker)
         assert text.count('CALL ') == 2 and text.count(' refused: ') == 2 and ' served' not in text[:text.index('SWEEP')], text
-        assert 'SUBSCRIBERS 0' in text, text
+        assert 'SUBSCRIBERS 0' in text and 'XMLRPC shutdown of /slave/protocol refused' in text, text
         sweep = text[text.index('SWEEP'):].split()
         topics, services_refused, unknown = int(sweep[2]), int(sweep[7]), int(sweep[9])
         assert topics >= 15 and text.endswith(' connected [] services refused %d unknown %d served []'
@@ -162,5 +187,6 @@ def check_under_tls(mechanism):
     assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
     assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')
     assert line('OWN REFUSALS').startswith('OWN REFUSALS 0 '), line('OWN REFUSALS')
+    assert line('SHUTDOWN REFUSALS').endswith(" by ['/slave/protocol']"), line('SHUTDOWN REFUSALS')
     failover = line('FAILOVER')
     assert 'wrong 0 slave equal' in failover and failover.startswith('FAILOVER calls 150 '), failover

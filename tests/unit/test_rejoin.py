@@ -73,6 +73,9 @@ def test_the_period_comes_from_the_environment_and_a_bad_one_is_named():
     ('', '/slave/proceed', False),                                   # rosnode kill: obeyed
     ('user request', '/slave/proceed', False),
     ('[/slave/crash_detector] Reason: something else', '/slave/proceed', False),
+    # fencing's request to a name registered at another node's address (a forged alias) is not for it
+    ('[/master/forged] Reason: fail-silence of /master', '/slave/protocol', True),
+    ('[/master/after] Reason: fail-silence of /master', '/master/after', False),
 ])
 def test_a_masters_shutdown_naming_another_node_is_misdirected(message, own, expected):
     """A host back with its old address: the master's shutdown of a dead node's old address reaches

@@ -25,12 +25,14 @@ import enum
 import re
 
 # rosmaster's words when a node registers under a name another address held (registrations.py): it
-# then asks the old address to shut down, naming the node it means.
-_BUMPED = re.compile(r'^\[(?P<name>[^\]]*)\] Reason: new node registered with same name$')
+# then asks the old address to shut down, naming the node it means. Fencing's request to a failed
+# site's node (aft_ftm.ros.fencing) names it the same way.
+_BUMPED = re.compile(r'^\[(?P<name>[^\]]*)\] Reason: (new node registered with same name|fail-silence of .*)$')
 
 
 def misdirected_shutdown(message, own_name):
-    """Whether a ROS master's shutdown request (its ``message``) names another node than ``own_name``.
+    """Whether a shutdown request of a ROS master or of fencing (its ``message``) names another node
+    than ``own_name``.
 
     When a host comes back with its address (a power loss, a site relaunched), its new processes may be
     given the very ports its dead ones had. A node of the dead site registering again bumps its old

@@ -162,7 +162,7 @@ class Guard(object):
         self.deadline = None
 
     def disarm(self):
-        """The launch is about to end on purpose (an adaptation retires its nodes with rosnode kill):
+        """The launch is about to end on purpose (an adaptation retires its nodes, by a signal):
         its end no longer fails the site."""
         self.fail_site = False
 

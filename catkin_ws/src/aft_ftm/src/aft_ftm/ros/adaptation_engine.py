@@ -27,23 +27,24 @@ an initialised rospy node (the ``adapt`` command and the monitor are ones).
 import collections
 import itertools
 import os
+import signal
 import threading
 import time
 
 import psutil
 import rosgraph
-import rosnode
 import rospkg
 import rospy
 from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
 from .. import adaptation, site_guard
+from ..process_identity import node_process_problem
 from ..adaptation import ScriptError, StepError
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from ..where import run_where
 from .graph import roslaunch, unwired
-from .fencing import node_api, visible_pid
+from .fencing import NotTheNode, node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
 from .launch_files import launch_nodes, resolve_launch_file, stopped_with
 
@@ -334,7 +335,10 @@ class Engine(object):
             except Exception as e:
                 raise ScriptError('node %s (to retire) cannot be looked up: %s' % (node, e))
             try:
-                here = visible_pid(uri, rospy.get_name())
+                here = visible_pid(uri, rospy.get_name(), node)
+            except NotTheNode as e:
+                raise ScriptError('node %s (to retire) is registered at %s, but %s: nothing is killed on that '
+                                  'word (a forged registration?)' % (node, uri, e))
             except Exception as e:
                 raise ScriptError('node %s (to retire) does not answer at %s: %s' % (node, uri, e))
             if here is None:
@@ -383,7 +387,7 @@ class Engine(object):
     def _owners_of_nodes(self, nodes, tries=3):
         for node in nodes[:tries]:
             try:
-                pid = visible_pid(self.master.lookupNode(node), rospy.get_name())
+                pid = visible_pid(self.master.lookupNode(node), rospy.get_name(), node)
                 if pid is None:
                     continue
             except Exception:   # gone meanwhile, or not answering: try the next one
@@ -658,19 +662,26 @@ class Engine(object):
         return ': ' + why if why else ''
 
     def _kill(self, node):
-        """rosnode kill, after recording how to start the node again (for a rollback)."""
+        """Stop the node's process with SIGINT (as roslaunch stops its nodes; SIGKILL 5 s later), after
+        checking that the pid its API gives is that node's process, and recording how to start it again
+        (for a rollback). Not over XML-RPC (rosnode kill): a node under TLS refuses every shutdown asked
+        that way, since anyone on the network can ask."""
         try:
             uri = self.master.lookupNode(node)
             code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
+            why = node_process_problem(pid, node, uri)
+            if why:
+                raise NotTheNode(why)
             proc = psutil.Process(pid)
             # Started again, it stops with its site too (its owners).
             record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
         disarm_guard_of(pid)   # a node an adaptation started: retired on purpose, its site must not fail
-        _, failed = rosnode.kill_nodes([node])
-        if failed:
-            raise StepError('rosnode kill %s failed' % node)
+        try:
+            proc.send_signal(signal.SIGINT)
+        except psutil.NoSuchProcess:
+            pass   # gone by itself meanwhile: killed all the same
         alive = wait_dead([proc], 5.0)
         if alive:
             proc.kill()

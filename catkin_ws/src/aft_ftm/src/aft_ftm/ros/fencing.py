@@ -15,6 +15,7 @@ import psutil
 import rosgraph
 import rosnode
 
+from ..process_identity import node_process_problem
 from ..sites import this_host
 
 
@@ -39,20 +40,30 @@ def is_local(uri):
     return host in (this_host(), 'localhost') or host.startswith('127.')
 
 
-def visible_pid(uri, caller_id, timeout=1.0):
-    """The pid of the node at ``uri`` if its process runs on this machine, else None: a node of this
-    host, or of an emulated host of this machine (a network namespace: its process is here, with the
-    URI's address as its ROS_IP or ROS_HOSTNAME). A node of another machine has no process here."""
+class NotTheNode(Exception):
+    """The pid a node's XML-RPC API gave is not that node's process (a forged registration)."""
+
+
+def visible_pid(uri, caller_id, node, timeout=1.0):
+    """The pid of node ``node`` at ``uri`` if its process runs on this machine, else None: a node of
+    this host, or of an emulated host of this machine (a network name space: its process is here,
+    with the URI's address as its ROS_IP or ROS_HOSTNAME). A node of another machine has no process
+    here. Raises NotTheNode if a process of this machine is named but is not the node
+    (:func:`aft_ftm.process_identity.node_process_problem`): nobody may signal it on that word."""
     code, _, pid = node_api(uri, timeout).getPid(caller_id)
     if code != 1:
         return None
-    if is_local(uri):
-        return pid
-    try:
-        env = psutil.Process(pid).environ()
-    except (psutil.Error, OSError):
-        return None
-    return pid if urlparse(uri).hostname in (env.get('ROS_IP'), env.get('ROS_HOSTNAME')) else None
+    if not is_local(uri):
+        try:
+            env = psutil.Process(pid).environ()
+        except (psutil.Error, OSError, TypeError, ValueError):
+            return None
+        if urlparse(uri).hostname not in (env.get('ROS_IP'), env.get('ROS_HOSTNAME')):
+            return None
+    why = node_process_problem(pid, node, uri)
+    if why:
+        raise NotTheNode(why)
+    return pid
 
 
 class NamespaceFence(object):
@@ -66,6 +77,8 @@ class NamespaceFence(object):
         self.known = {}        # node name -> (pid, create_time) for nodes on this host
         self.remote = {}       # node name -> API uri, for nodes on other hosts
         self.unlearned = []    # nodes under the name space the last learn() could not learn
+        self.refused = {}      # node name -> why the pid its API gave is not its process (never signalled)
+        self.aliases = []      # names the last shut_down_the_rest did not ask: their URI is another node's
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -90,9 +103,16 @@ class NamespaceFence(object):
                     continue
                 code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
                 if code == 1:
+                    why = node_process_problem(pid, name, uri)
+                    if why:   # a forged registration: that process is never killed for this name space
+                        with self.lock:
+                            self.refused[name] = why
+                        unlearned.pop()
+                        continue
                     created = psutil.Process(pid).create_time()
                     with self.lock:
                         self.known[name] = (pid, created)
+                        self.refused.pop(name, None)
                     unlearned.pop()
             except Exception:   # a node going away while we ask: learned next time, or never needed
                 continue
@@ -134,11 +154,39 @@ class NamespaceFence(object):
         return killed
 
     def shut_down_the_rest(self):
-        """Ask the remaining nodes to shut down and unregister the dead ones from the master."""
+        """Ask the remaining nodes to shut down and unregister the dead ones from the master. A name
+        under the name space whose URI is also that of a node outside it (a forged registration, an
+        alias) is not asked: the request would reach that other node. The request names the node it
+        is meant for (a node started by run_node ignores one naming another). Returns how many were asked."""
         names = self.node_names()
         if not names:
             return 0
-        _, failed = rosnode.kill_nodes(names)
+        uris, failed = {}, []
+        for name in names:
+            try:
+                uris[name] = self.master.lookupNode(name)
+            except Exception:   # unknown meanwhile, or the master does not answer
+                failed.append(name)
+        outside = set()
+        if uris:
+            pubs, subs, srvs = self.master.getSystemState()
+            for other in {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}:
+                if not other.startswith(self.prefix):
+                    try:
+                        outside.add(self.master.lookupNode(other))
+                    except Exception:
+                        continue
+        self.aliases = sorted(name for name, uri in uris.items() if uri in outside)
+        asked = 0
+        for name, uri in sorted(uris.items()):
+            if name in self.aliases:
+                continue
+            try:
+                node_api(uri, self.timeout).shutdown(self.caller_id, '[%s] Reason: fail-silence of %s' % (
+                    name, self.prefix.rstrip('/')))
+            except Exception:   # gone, or tearing down while it answered: asked all the same
+                pass
+            asked += 1
         if failed:
             rosnode.cleanup_master_blacklist(self.master, failed)
-        return len(names)
+        return asked

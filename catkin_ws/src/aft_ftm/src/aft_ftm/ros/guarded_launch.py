@@ -14,7 +14,7 @@ site's own ``/SITE/fail_stop`` topic (:mod:`aft_ftm.ros.fail_site`): the site's 
 its heartbeats and its peer fences it and takes over, as when one of the site's own nodes fail-stops,
 instead of the site heartbeating on without its node. (Killing the site's launcher instead would
 kill every site that launcher runs: one roslaunch may run both replicas.) SIGUSR1 disarms that
-(:func:`disarm_guard_of`: an adaptation retiring the launch's nodes with rosnode kill, on purpose).
+(:func:`disarm_guard_of`: an adaptation retiring the launch's nodes on purpose, by a signal).
 
 The guard is a child subreaper, so that nodes orphaned by a roslaunch that died stay in its tree,
 and COMMAND gets SIGTERM if the guard itself dies (Linux). It is no ROS node (it never talks to

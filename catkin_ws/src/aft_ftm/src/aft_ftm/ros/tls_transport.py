@@ -93,7 +93,41 @@ def install(directory, party, permissions):
             _check_caller(self)
         base.TCPROSTransport.read_header = read_header
     handshake.INBOUND_HOOKS[:] = [_accept]
+    _refuse_xmlrpc_shutdowns()
     return party
+
+
+def _refuse_xmlrpc_shutdowns():
+    """Under TLS a node's XML-RPC ``shutdown`` (``rosnode kill``, or the master's for a name registered
+    again) is refused with the alarm ``tls shutdown_refused``: that API is open to anyone on the network,
+    and whoever can call it would stop any node. A node stops by a signal on its own host (roslaunch,
+    the Adaptation Engine, a power switch). A shutdown the master meant for a dead process that had this
+    address stays ignored without an alarm (aft_ftm.ros.rejoin.ignore_misdirected_shutdowns)."""
+    from rospy.impl import masterslave
+    from ..rejoin import misdirected_shutdown
+    current = masterslave.ROSHandler.shutdown
+    if getattr(current, 'tls_refuses', False):
+        return
+
+    def shutdown(handler, caller_id, msg=''):
+        import rospy
+        if misdirected_shutdown(msg, rospy.get_name()):
+            return current(handler, caller_id, msg)
+        key = ('xmlrpc', str(caller_id)[:80], str(msg)[:120])
+        now = time.monotonic()
+        with _LOCK:
+            told = now - _TOLD.get(key, -1e9) < 10.0
+            if not told:
+                if len(_TOLD) > 1000:   # names an attacker chooses: bounded
+                    _TOLD.clear()
+                _TOLD[key] = now
+        if not told:
+            _alarm('shutdown_refused', 'a shutdown asked over XML-RPC by %r (%r) refused: under TLS a node stops '
+                   'by a signal on its own host (roslaunch, the Adaptation Engine, a power switch), since anyone '
+                   'on the network can call its XML-RPC API' % key[1:])
+        return 0, 'refused: %s runs under TLS and stops only by a signal on its own host' % rospy.get_name(), 0
+    shutdown.tls_refuses = True
+    masterslave.ROSHandler.shutdown = shutdown
 
 
 def active():

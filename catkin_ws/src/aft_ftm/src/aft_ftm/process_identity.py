@@ -1,0 +1,111 @@
+"""Is this pid really that ROS node? Checked before any signal is sent to a pid learned over XML-RPC.
+
+The ROS master's XML-RPC API is open to anyone on the network: a process can register any node name
+with the URI of an XML-RPC server of its own, whose ``getPid`` answers any pid. Fencing and the
+Adaptation Engine learn pids that way (``lookupNode`` then ``getPid``), and they run as root: taken
+on trust, a forged registration under a failed site's name space (``/slave/x``, pid 1) would have
+Recovery SIGKILL pid 1, and a forged node to retire would have the Adaptation Engine kill it.
+
+A pid is taken as node ``name`` at ``uri`` only if what the kernel says of that process agrees:
+- it listens on the URI's TCP port, in its own network name space (``/proc/PID/net/tcp*``, read for
+  that process, so emulated hosts are seen as they are; psutil reads this process's name space only);
+- the name space its command line and environment give it (``__ns:=``, ``ROS_NAMESPACE``, as rospy
+  reads them) is the node's, and a ``__name:=`` remapping in its command line names the node.
+A forged server cannot make another process listen on its port, nor change that process's command line.
+What is left open: a registration pointing at a real node of the same name space under another name
+(its pid passes); a fence of that name space kills that node anyway.
+Plain Python (no rospy): /proc and rosgraph.names only."""
+import os
+from urllib.parse import urlparse
+
+from rosgraph import names
+
+LISTEN = '0A'   # TCP state in /proc/net/tcp
+
+
+def _socket_inodes(pid, proc='/proc'):
+    inodes = set()
+    fd_dir = os.path.join(proc, str(pid), 'fd')
+    for fd in os.listdir(fd_dir):
+        try:
+            target = os.readlink(os.path.join(fd_dir, fd))
+        except OSError:   # closed meanwhile
+            continue
+        if target.startswith('socket:['):
+            inodes.add(target[len('socket:['):-1])
+    return inodes
+
+
+def listening_ports(pid, proc='/proc'):
+    """The TCP ports process ``pid`` listens on (IPv4 and IPv6), in its own network name space.
+    Raises OSError if the process is gone or cannot be read."""
+    inodes = _socket_inodes(pid, proc)
+    ports = set()
+    for table in ('tcp', 'tcp6'):
+        try:
+            with open(os.path.join(proc, str(pid), 'net', table)) as f:
+                lines = f.read().splitlines()[1:]
+        except FileNotFoundError:   # no IPv6 in this kernel
+            continue
+        for line in lines:
+            fields = line.split()
+            if len(fields) > 9 and fields[3] == LISTEN and fields[9] in inodes:
+                ports.add(int(fields[1].rsplit(':', 1)[1], 16))
+    return ports
+
+
+def _argv_and_env(pid, proc='/proc'):
+    with open(os.path.join(proc, str(pid), 'cmdline'), 'rb') as f:
+        argv = [a.decode(errors='replace') for a in f.read().split(b'\0') if a]
+    with open(os.path.join(proc, str(pid), 'environ'), 'rb') as f:
+        env = {}
+        for entry in f.read().split(b'\0'):
+            key, sep, value = entry.decode(errors='replace').partition('=')
+            if sep:
+                env[key] = value
+    return argv, env
+
+
+def node_names_of(argv, env):
+    """(name space, full node name or None) a rospy process started with ``argv`` and ``env`` takes:
+    the name is known only if its command line remaps ``__name``."""
+    namespace = names.get_ros_namespace(env=env, argv=argv)
+    remapped = [a[len('__name:='):] for a in argv if a.startswith('__name:=')]
+    if not remapped:
+        return namespace, None
+    name = remapped[-1]
+    return namespace, name if name.startswith('/') else names.ns_join(namespace, name)
+
+
+def _namespace_of_node(node):
+    return names.make_global_ns(names.namespace(node))
+
+
+def node_process_problem(pid, node, uri, proc='/proc'):
+    """None if process ``pid`` can be node ``node`` registered at ``uri``; else why it cannot (a
+    sentence naming the pid, the node and what disagrees)."""
+    try:
+        port = urlparse(uri).port
+    except ValueError:
+        port = None
+    if port is None:
+        return 'the URI %s of %s names no port' % (uri, node)
+    try:
+        pid = int(pid)
+        if pid <= 0:
+            return 'pid %d is no process (%s at %s said it was)' % (pid, node, uri)
+        if port not in listening_ports(pid, proc):
+            return 'process %d does not listen on port %d of %s\'s URI %s: it is not the node there' % (
+                pid, port, node, uri)
+        argv, env = _argv_and_env(pid, proc)
+    except (OSError, ValueError, TypeError) as e:
+        return 'process %s (said to be %s at %s) cannot be read: %s' % (pid, node, uri, e)
+    namespace, name = node_names_of(argv, env)
+    if name is not None:
+        # an anonymous node's name is its __name with a suffix
+        if name != node and not node.startswith(name + '_'):
+            return 'process %d runs node %s, not %s' % (pid, name, node)
+    elif namespace != _namespace_of_node(node):
+        return 'process %d runs in name space %s, not in %s\'s (%s)' % (pid, namespace, node,
+                                                                       _namespace_of_node(node))
+    return None

@@ -1,0 +1,150 @@
+"""A forged registration at the ROS master never makes fencing or an adaptation kill another process.
+
+The master's XML-RPC API is open: anyone may register a node name with the URI of an XML-RPC server of
+its own, whose getPid answers any pid. Recovery learns the pids of its peer's name space that way and
+SIGKILLs them at a failover, as root; the Adaptation Engine kills the nodes a script retires the same way.
+
+Here, on a running PBR bank, nodes are registered under MASTER's name space (/master/forged_*):
+- one at a forged XML-RPC server answering the pid of a process drawn from a seed (SLAVE's Protocol, its
+  Recovery, its server, SLAVE's roslaunch, the witness, the test's own process, pid 1);
+- one at the real XML-RPC URI of SLAVE's Protocol (its getPid answers that real node's pid).
+Then MASTER is powered off under client load. Checked: SLAVE's Recovery raised ``fence_refused`` for
+both names before the failover; the failover succeeded; every process drawn is still the same process;
+every call answered exactly once and SLAVE's state equals a failure-free run. And the Adaptation
+Engine refuses a script that retires a forged node, naming it, and kills nothing.
+Before: SLAVE's Recovery killed whatever pid the forged server named (its own Protocol: nobody served).
+Runs in a process of its own with a master of its own; every process it starts carries the test's
+AFT_TEST_TAG and is killed at the end, pass or fail."""
+import os
+import random
+
+from leftovers import run_tagged
+
+SCRIPT = r'''
+import json, os, random, subprocess, sys, tempfile, threading
+from xmlrpc.server import SimpleXMLRPCServer
+import psutil, rosgraph, rospy
+from aft_msgs.msg import Alarm
+from aft_msgs.srv import Account, GetState
+from std_msgs.msg import String
+from aft_examples.bank import Account as Model, ReplyChecker, operation
+from aft_examples.ros.bank_nodes import account_caller, drive_with_faults
+from aft_examples.ros.deployment import PbrDeployment, start_retrying
+from aft_ftm.ros.fencing import NotTheNode, node_api, visible_pid
+from aft_ftm.ros.graph import start_master
+from aft_ftm.sites import wait_until
+
+seed = int(sys.argv[1])
+rng = random.Random(seed)
+COUNT, LIMIT = 300, 90.0
+OFF_AT = rng.randrange(50, 250)
+log_dir = tempfile.mkdtemp(prefix='aft_forged_')
+core = start_master(log_dir)
+deployment = PbrDeployment(log_dir, timeout=0.15, mechanism='pbr')
+master = rosgraph.Master('/checker')
+
+def pid_of(node):
+    return node_api(master.lookupNode(node), 2.0).getPid('/checker')[2]
+
+class Forged(object):
+    def __init__(self, pid):
+        self.pid = pid
+    def getPid(self, caller_id):
+        return 1, 'forged', self.pid
+
+try:
+    rospy.init_node('checker', disable_signals=True)
+    start_retrying(deployment)
+    victims = {'slave protocol': pid_of('/slave/protocol'), 'slave recovery': pid_of('/slave/recovery'),
+               'slave server': pid_of('/slave/bank_server'), 'slave roslaunch': deployment.sites['slave'].pid,
+               'witness': pid_of('/aft/witness'), 'the test itself': os.getpid(), 'pid 1': 1}
+    drawn = rng.choice(sorted(victims))
+    victim = victims[drawn]
+    print('seed %d: forged getPid answers %s (pid %d); MASTER off at reply %d' % (seed, drawn, victim, OFF_AT),
+          flush=True)
+    created = {name: psutil.Process(pid).create_time() for name, pid in victims.items()}
+    server = SimpleXMLRPCServer(('127.0.0.1', 0), logRequests=False, allow_none=True)
+    server.register_instance(Forged(victim))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    forged_uri = 'http://127.0.0.1:%d/' % server.server_address[1]
+    pubs, subs, srvs = master.getSystemState()
+    genuine = {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes if n.startswith('/master/')}
+    forged = {'/master/forged_server': forged_uri, '/master/forged_alias': master.lookupNode('/slave/protocol')}
+    for name, uri in forged.items():
+        rosgraph.Master(name).registerPublisher(name + '_topic', 'std_msgs/String', uri)
+    alarms = []
+    rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append((m.source, m.kind, m.detail)))
+    events = []
+    rospy.Subscriber('/slave/recovery/events', String, lambda m: events.append(json.loads(m.data)))
+
+    def refused():
+        return {name for name in forged for source, kind, detail in list(alarms)
+                if source == '/slave/recovery' and kind == 'fence_refused' and detail.startswith(name + ' ')}
+    if not wait_until(lambda: refused() == set(forged), 30.0, 0.05):
+        sys.exit('seed %d: SLAVE\'s Recovery raised fence_refused for %s only; alarms: %s' % (
+            seed, sorted(refused()), alarms[-6:]))
+    # The Adaptation Engine's view: a node to retire whose pid is not its process is never signalled.
+    for name, uri in forged.items():
+        try:
+            visible_pid(uri, '/checker', name)
+            sys.exit('seed %d: %s (at %s) was taken for its process' % (seed, name, uri))
+        except NotTheNode as e:
+            print('  %s: %s' % (name, e), flush=True)
+    script = os.path.join(log_dir, 'retire_forged.yaml')
+    with open(script, 'w') as f:
+        f.write('name: retire_forged\nkind: update\ndescription: retire a forged node\n'
+                'suspend: [/master/protocol]\nretire: [/master/forged_server]\n')
+    adapt = subprocess.run(['rosrun', 'aft_ftm', 'adapt', script, '--check'], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, universal_newlines=True, timeout=60)
+    if adapt.returncode == 0 or 'nothing is killed on that word' not in adapt.stdout:
+        sys.exit('seed %d: the Adaptation Engine did not refuse the forged node to retire (exit %d):\n%s' % (
+            seed, adapt.returncode, adapt.stdout[-2000:]))
+
+    account = rospy.ServiceProxy('/account', Account, persistent=True)
+    account.wait_for_service(30)
+    slave_state = rospy.ServiceProxy('/slave/bank_server/get_state', GetState, persistent=True)
+    checker = ReplyChecker()
+    records, _ = drive_with_faults(account_caller(account), COUNT, checker,
+                                   [(OFF_AT, deployment.sites['master'].power_off)], LIMIT)
+    if records is None:
+        sys.exit('seed %d: not every call answered within %.0f s: %s; events %s' % (
+            seed, LIMIT, checker.summary(), events[-2:]))
+    for name, pid in victims.items():
+        try:
+            same = psutil.Process(pid).create_time() == created[name]
+        except psutil.NoSuchProcess:
+            same = False
+        if not same:
+            sys.exit('seed %d: %s (pid %d) was killed' % (seed, name, pid))
+    summary = checker.summary()
+    if summary != {'correct': COUNT, 'lost': 0, 'duplicated': 0, 'reordered': 0, 'errors': 0}:
+        sys.exit('seed %d: not exactly once: %s' % (seed, summary))
+    model, expected = Model(), Model()
+    model.set_state(slave_state().state)
+    for i in range(COUNT):
+        expected.apply(*operation(i))
+    if model.snapshot() != expected.snapshot():
+        sys.exit('seed %d: SLAVE state %s differs from a failure-free run %s' % (seed, model.snapshot(),
+                                                                               expected.snapshot()))
+    if not wait_until(lambda: any('failed_site' in e for e in events), 10):
+        sys.exit('seed %d: no failover record of /slave/recovery: %s' % (seed, events))
+    failover = [e for e in events if 'failed_site' in e][-1]
+    if not failover['ok']:
+        sys.exit('seed %d: the failover failed: %s' % (seed, failover))
+    silenced = [s['detail'] for s in failover['steps'] if s['step'] == 'FAIL_SILENCE']
+    if not any('(%d nodes learned by pid)' % len(genuine) in d for d in silenced):
+        sys.exit('seed %d: fail-silence did not kill the %d nodes of MASTER by pid: %s' % (seed, len(genuine), silenced))
+    print('FIGURES ' + json.dumps({'victim': drawn, 'recovery_ms': round(failover['seconds'] * 1e3, 1),
+                                   'fail_silence': silenced}), flush=True)
+finally:
+    deployment.teardown()
+    core.stop()
+print('ok')
+'''
+
+
+def test_a_forged_registration_never_makes_fencing_or_an_adaptation_kill_another_process():
+    seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
+    code, output = run_tagged(SCRIPT, args=[str(seed)], timeout=300, home_prefix='aft_forged_home_')
+    print(output[-2000:])
+    assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])

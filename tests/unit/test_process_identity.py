@@ -1,0 +1,101 @@
+"""aft_ftm.process_identity: a pid learned over XML-RPC is signalled only if the kernel says that process
+is the node (it listens on the URI's port, in its own network name space; its command line and
+environment give it the node's name space and name). Real processes, no ROS master."""
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+from aft_ftm.process_identity import listening_ports, node_names_of, node_process_problem
+
+LISTENER = r'''
+import socket, sys, time
+s = socket.socket()
+s.bind(('127.0.0.1', 0))
+s.listen(1)
+print(s.getsockname()[1], flush=True)
+time.sleep(60)
+'''
+
+
+def _start(argv_tail=(), env=None, prefix=()):
+    proc = subprocess.Popen(list(prefix) + [sys.executable, '-c', LISTENER] + list(argv_tail),
+                            stdout=subprocess.PIPE, env=dict(os.environ, **(env or {})))
+    port = int(proc.stdout.readline())
+    return proc, port
+
+
+@pytest.fixture
+def started():
+    procs = []
+
+    def start(*args, **kwargs):
+        proc, port = _start(*args, **kwargs)
+        procs.append(proc)
+        return proc, port
+    yield start
+    for proc in procs:
+        proc.kill()
+        proc.wait()
+
+
+@pytest.mark.parametrize('argv, env, expected', [
+    ([], {}, ('/', None)),
+    ([], {'ROS_NAMESPACE': 'slave'}, ('/slave/', None)),
+    (['__name:=after'], {'ROS_NAMESPACE': '/slave'}, ('/slave/', '/slave/after')),
+    (['__ns:=/master', '__name:=after'], {'ROS_NAMESPACE': '/slave'}, ('/master/', '/master/after')),
+    (['__name:=/elsewhere/x'], {'ROS_NAMESPACE': '/slave'}, ('/slave/', '/elsewhere/x')),
+    (['__name:=a', '__name:=b'], {}, ('/', '/b')),   # the last remapping wins, as in rospy
+])
+def test_the_name_a_process_takes_is_read_as_rospy_reads_it(argv, env, expected):
+    assert node_names_of(['python3', 'node'] + argv, env) == expected
+
+
+def test_a_node_process_passes(started):
+    proc, port = started(['__name:=after', '__log:=/tmp/x.log'], {'ROS_NAMESPACE': '/slave/'})
+    assert port in listening_ports(proc.pid)
+    assert node_process_problem(proc.pid, '/slave/after', 'http://127.0.0.1:%d/' % port) is None
+    # an anonymous node's name: __name with a suffix
+    assert node_process_problem(proc.pid, '/slave/after_1234_5678', 'http://127.0.0.1:%d/' % port) is None
+
+
+def test_a_process_named_by_a_forged_registration_is_refused(started):
+    proc, port = started(['__name:=witness'], {'ROS_NAMESPACE': '/'})
+    uri = 'http://127.0.0.1:%d/' % port
+    # another port: a forged XML-RPC server answering this pid
+    why = node_process_problem(proc.pid, '/witness', 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1))
+    assert 'does not listen on port' in why and str(proc.pid) in why
+    # its own port, but registered under a name of the fenced site: the process runs another node
+    why = node_process_problem(proc.pid, '/slave/evil', uri)
+    assert why == 'process %d runs node /witness, not /slave/evil' % proc.pid
+    # pid 1, gone pids, nonsense
+    assert node_process_problem(1, '/slave/evil', uri).startswith('process 1 ')
+    assert 'cannot be read' in node_process_problem(2 ** 22 + 12345, '/slave/evil', uri)
+    assert 'no process' in node_process_problem(0, '/slave/evil', uri)
+    assert 'cannot be read' in node_process_problem('x', '/slave/evil', uri)
+    assert 'names no port' in node_process_problem(proc.pid, '/slave/evil', 'http://127.0.0.1/')
+
+
+def test_without_a_name_remapping_the_name_space_must_be_the_nodes(started):
+    proc, port = started([], {'ROS_NAMESPACE': '/slave'})
+    uri = 'http://127.0.0.1:%d/' % port
+    assert node_process_problem(proc.pid, '/slave/anything', uri) is None
+    why = node_process_problem(proc.pid, '/master/protocol', uri)
+    assert why == 'process %d runs in name space /slave/, not in /master/protocol\'s (/master/)' % proc.pid
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or not shutil.which('unshare'), reason='a network name space needs root')
+def test_a_process_in_another_network_name_space_is_seen_in_its_own(started):
+    """An emulated host's node listens in its own name space: /proc/PID/net/tcp is read for that process
+    (psutil reads only the caller's name space and would not find the socket)."""
+    proc, port = started(['__name:=after'], {'ROS_NAMESPACE': '/slave'}, prefix=['unshare', '--net', '--'])
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and os.readlink('/proc/%d/ns/net' % proc.pid) == os.readlink('/proc/self/ns/net'):
+        time.sleep(0.01)   # unshare execs python3 once the name space is made
+    assert os.readlink('/proc/%d/ns/net' % proc.pid) != os.readlink('/proc/self/ns/net')
+    assert port in listening_ports(proc.pid)
+    assert node_process_problem(proc.pid, '/slave/after', 'http://10.0.0.1:%d/' % port) is None
+    import psutil
+    assert port not in {c.laddr.port for c in psutil.Process(proc.pid).connections() if c.status == 'LISTEN'}
