@@ -53,6 +53,7 @@ class Recorder(object):
 def main(argv):
     import argparse
     from aft_ftm.ros.params import secure_from_environment
+    from aft_ftm.ros.subscription_keeper import keep_subscriptions
     parser = argparse.ArgumentParser(prog='recorder', description=__doc__)
     parser.add_argument('-O', dest='path', required=True, help='the bag to write')
     parser.add_argument('topics', nargs='+')
@@ -61,6 +62,7 @@ def main(argv):
     for signum in (signal.SIGINT, signal.SIGTERM):   # first: a stop during the set-up still closes the bag
         signal.signal(signum, lambda *_: done.set())
     secure_from_environment()
+    keep_subscriptions()   # publishers rospy gave up on are connected again (aft_ftm.ros.subscription_keeper)
     rospy.init_node('tjp_record', disable_signals=True)
     recorder = Recorder(options.path, options.topics)
     try:

@@ -10,6 +10,7 @@ back, and writes the summary (JSON) and the plot.
 
 A scenario's own master makes every run independent, and lets a scenario kill the master.
 """
+import functools
 import glob
 import json
 import os
@@ -152,6 +153,10 @@ class ScenarioRun(object):
             from aft_ftm.ros.params import secure_from_environment
             os.environ.update(self.tls_env('operator', {}))
             secure_from_environment()
+        # A publisher rospy gave up on (a duplicate connection closed in its TLS handshake: the alarms of
+        # distanceSecurityCalculator once, and the demo's adaptation never came) is connected again.
+        from aft_ftm.ros.subscription_keeper import keep_subscriptions
+        keep_subscriptions()
         rospy.init_node(RUNNER[1:], disable_signals=True)
         with warnings.catch_warnings():   # queue_size=None is chosen: publish synchronously, drop nothing
             warnings.simplefilter('ignore')
@@ -386,7 +391,8 @@ class ScenarioRun(object):
         from aft_ftm.ros.adaptation_engine import Engine
         try:
             script = load_script(item['script'], item['args'])
-            engine = Engine(log=lambda line: None)
+            # Its steps go to logs/adaptation.log (a run whose adaptation did not end says where it was).
+            engine = Engine(log=functools.partial(_append, os.path.join(self.out, 'logs', 'adaptation.log')))
             self.engines.append(engine)
             report = engine.run(script, 'prepared')
             self.event('adaptation', script=item['script'], ok=bool(report['ok']), pause=round(report['pause_s'], 5),
@@ -394,6 +400,9 @@ class ScenarioRun(object):
             self.adaptations.append(report)
         except ScriptError as e:
             self.event('adaptation', script=item['script'], ok=False, pause=0.0, duration=0.0, error=str(e))
+        except Exception as e:   # never a thread that dies unsaid
+            self.event('adaptation', script=item['script'], ok=False, pause=0.0, duration=0.0,
+                       error='%s: %s' % (type(e).__name__, e))
 
     # -- the end ---------------------------------------------------------------------------------
     def stop(self):
@@ -429,6 +438,11 @@ class ScenarioRun(object):
         """Processes of the run still alive (there should be none after stop())."""
         launched = [site for engine in self.engines for site in engine.sites + engine.respawned]
         return [s.name for s in list(self.sites.values()) + launched if s.alive()]
+
+
+def _append(path, line):
+    with open(path, 'a') as f:
+        f.write('%.3f %s\n' % (time.time(), line))
 
 
 def load_script(name, args):
@@ -566,6 +580,20 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
         if through:
             summary['verdict']['ok'] = False
             summary['verdict']['problems'].append('the intruder got through: %s' % '; '.join(through))
+    # An adaptation the scenario asks for whose moment came (its time, or its alarm raised on the
+    # graph, as recorded) but that never reported: said, not left to show as a collision.
+    ran = {a.get('script') for a in summary['adaptations']}
+    raised = {kind.split('/', 1)[-1] for kind in summary['alarms']}
+    for event in scenario['events']:
+        if event['kind'] != 'adapt' or event['script'] in ran:
+            continue
+        due = event['on_alarm'] in raised if event['on_alarm'] else event['at'] is not None and \
+            event['at'] <= summary['duration']
+        if due:
+            summary['verdict']['ok'] = False
+            summary['verdict']['problems'].append('the adaptation %s never reported (%s)' % (
+                event['script'], 'its alarm %s was raised' % event['on_alarm'] if event['on_alarm'] else
+                'due at t=%.1f s' % event['at']))
     if tls_policy:
         # A connection between two of the car's own parties that the policy refuses is one the car
         # needed and lost: the run fails. Refusals of the intruders, and handshakes that rospy
