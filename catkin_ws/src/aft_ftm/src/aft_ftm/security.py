@@ -24,7 +24,8 @@ SIGNATURE_BYTES = 64
 class Rejected(AftError):
     """A message refused by SEC. ``kind``: unsigned, bad_signature, unknown_party, tampered, replay,
     undecryptable, misaddressed (signed for another party), spoofed_origin (a party sending as a
-    Proxy that is not its own), revoked, expired, bad_certificate, stale_status."""
+    Proxy that is not its own), revoked, expired, bad_certificate, stale_status, ca_unreachable (the CA
+    did not answer about a certificate in time)."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))

@@ -13,6 +13,7 @@ from .. import config, health, sec_policy, security
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from .alarms import alarm
+from .deadline import CallTimeout, Deadline
 from .diagnostics import Diagnostics
 from .params import param
 from .persistent_service import open_service
@@ -146,6 +147,8 @@ class SecGateNode(object):
         ~policy (server side, path, default none): the access-control policy file (aft_ftm.sec_policy):
             which party may send as which origin. Without it each origin is bound to the first party
             whose verified request used it (a warning in the log and in the diagnostics).
+        ~ca_timeout (float, 2 s): the longest wait for the CA's answer about a certificate; past it the
+            message that needed it is refused (``ca_unreachable``) and sent again by its Proxy
         ~ca_silent_after (float, 3 s): the CA's status unheard this long raises ``ca_silent`` (revocations
             cannot reach this gate meanwhile)
     Services called: certificate (aft_msgs/Certificate): the CA's.
@@ -165,6 +168,8 @@ class SecGateNode(object):
         self.key_file = self._key_file_id()
         self.refetched = {}       # party -> when its certificate was last fetched again after a bad signature
         self.ca_lock = threading.Lock()
+        self.ca_timeout = param('ca_timeout', config.positive_float, 2.0)
+        self.ca_calls = Deadline('ca')
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
@@ -196,11 +201,15 @@ class SecGateNode(object):
                          rospy.resolve_name('certificate'), e)
             return False
         if self.side == 'client':
-            try:
-                self._peer(self.server_party)
-            except security.Rejected as e:
-                rospy.logerr('%s: %s', rospy.get_name(), e)
-                return False
+            deadline = time.monotonic() + timeout
+            while True:   # a CA slow to answer (a loaded machine) is asked again within the set-up's time
+                try:
+                    self._peer(self.server_party)
+                    break
+                except security.Rejected as e:
+                    if e.kind != 'ca_unreachable' or time.monotonic() > deadline:
+                        rospy.logerr('%s: %s', rospy.get_name(), e)
+                        return False
         self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
         # What goes to another host is queued per connection (a dead host must not block the others:
         # see the Proxy's requests and the Protocol's replies): the client side's requests, the server
@@ -234,12 +243,7 @@ class SecGateNode(object):
             cert = self.book.get(party, now)
         if cert is not None:
             return cert.box_public, cert.verify_public
-        try:
-            with self.ca_lock:   # one CA call at a time on the persistent connection (receive threads, key watch)
-                answer = self.certificate(party=party)
-        except (rospy.ServiceException, rospy.ROSException) as e:
-            self.certificate = self.certificate.fresh()
-            raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
+        answer = self._ask_ca(party)
         if not answer.found:
             kind = 'revoked' if answer.message.startswith('revoked') else 'unknown_party'
             raise security.Rejected(kind, answer.message)
@@ -248,6 +252,26 @@ class SecGateNode(object):
         with self.lock:
             self.book.add(party, cert, time.monotonic())
         return cert.box_public, cert.verify_public
+
+    def _ask_ca(self, party):
+        """The CA's answer about party, within ~ca_timeout: a frozen or hung CA holds no receive thread
+        (and none of the clients behind it) longer; its message is refused (Rejected ``ca_unreachable``,
+        an alarm) and its Proxy sends it again. One CA call at a time on the persistent connection
+        (receive threads, key watch); a call past the deadline leaves that connection to its late answer."""
+        if not self.ca_lock.acquire(timeout=self.ca_timeout):
+            raise security.Rejected('ca_unreachable', 'the CA, asked about another party, has not answered for '
+                                    '%.1f s: %r is not checked' % (self.ca_timeout, party))
+        try:
+            return self.ca_calls.call(self.certificate, self.ca_timeout, party=party)
+        except CallTimeout:
+            self.certificate = self.certificate.fresh()
+            raise security.Rejected('ca_unreachable', 'the CA did not answer within %.1f s about %r' % (
+                self.ca_timeout, party))
+        except (rospy.ServiceException, rospy.ROSException) as e:
+            self.certificate = self.certificate.fresh()
+            raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
+        finally:
+            self.ca_lock.release()
 
     def _open(self, party, blob, header):
         """Verify and decipher a blob from party: with each certificate held for it (a rotated key's
@@ -302,9 +326,8 @@ class SecGateNode(object):
             if candidate is None:
                 continue
             try:
-                with self.ca_lock:
-                    answer = self.certificate(party=self.me.name)
-            except (rospy.ServiceException, rospy.ROSException):
+                answer = self._ask_ca(self.me.name)
+            except security.Rejected:   # asked again at the next look
                 continue
             if answer.found and bytes(answer.verify_public) == candidate.verify_public:
                 self.previous_me, self.me, candidate = self.me, candidate, None
