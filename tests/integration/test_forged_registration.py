@@ -4,14 +4,18 @@ The master's XML-RPC API is open: anyone may register a node name with the URI o
 its own, whose getPid answers any pid. Recovery learns the pids of its peer's name space that way and
 SIGKILLs them at a failover, as root; the Adaptation Engine kills the nodes a script retires the same way.
 
-Here, on a running PBR bank, nodes are registered under MASTER's name space (/master/forged_*):
+Here, on a running PBR bank, names are registered under MASTER's name space (/master/forged_*):
 - one at a forged XML-RPC server answering the pid of a process drawn from a seed (SLAVE's Protocol, its
-  Recovery, its server, SLAVE's roslaunch, the witness, the test's own process, pid 1);
-- one at the real XML-RPC URI of SLAVE's Protocol (its getPid answers that real node's pid).
+  Recovery, its server, SLAVE's roslaunch, the witness, the ROS master, a plain rospy node outside the
+  sites, the test's own process, pid 1);
+- one at the real XML-RPC URI of SLAVE's Protocol (its getPid answers that real node's pid);
+- one at the ROS master's address (spelt another way), and one at the plain rospy node's: after a
+  failover, fencing asks what is left of the failed site to shut down, and both would obey.
 Then MASTER is powered off under client load. Checked: SLAVE's Recovery raised ``fence_refused`` for
-both names before the failover; the failover succeeded; every process drawn is still the same process;
-every call answered exactly once and SLAVE's state equals a failure-free run. And the Adaptation
-Engine refuses a script that retires a forged node, naming it, and kills nothing.
+every name before the failover; the failover succeeded and killed MASTER's real nodes by pid; every
+process drawn from is still the same process, the ROS master still answers and the plain node still
+runs after the clean-up; every call answered exactly once and SLAVE's state equals a failure-free run.
+And the Adaptation Engine refuses a script that retires a forged node, naming it, and kills nothing.
 Before: SLAVE's Recovery killed whatever pid the forged server named (its own Protocol: nobody served).
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail."""
@@ -42,9 +46,28 @@ log_dir = tempfile.mkdtemp(prefix='aft_forged_')
 core = start_master(log_dir)
 deployment = PbrDeployment(log_dir, timeout=0.15, mechanism='pbr')
 master = rosgraph.Master('/checker')
+outsider = None
 
 def pid_of(node):
     return node_api(master.lookupNode(node), 2.0).getPid('/checker')[2]
+
+def pid_of_master():
+    return node_api(rosgraph.get_master_uri(), 2.0).getPid('/checker')[2]
+
+def registered(node):
+    try:
+        master.lookupNode(node)
+        return True
+    except Exception:
+        return False
+
+def connected_to(node, topic):
+    """The callers node's publisher of topic is connected to (its getBusInfo)."""
+    try:
+        _, _, bus = node_api(master.lookupNode(node), 2.0).getBusInfo('/checker')
+    except Exception:
+        return []
+    return [dest for _, dest, direction, _, name, *rest in bus if direction == 'o' and name == topic]
 
 class Forged(object):
     def __init__(self, pid):
@@ -55,9 +78,15 @@ class Forged(object):
 try:
     rospy.init_node('checker', disable_signals=True)
     start_retrying(deployment)
+    # A plain rospy node outside the sites: it obeys any shutdown request, as rospy does.
+    outsider = subprocess.Popen([sys.executable, '-c', 'import rospy; rospy.init_node("outsider"); rospy.spin()'],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    if not wait_until(lambda: registered('/outsider'), 30.0, 0.1):
+        sys.exit('the outsider node did not register within 30 s')
     victims = {'slave protocol': pid_of('/slave/protocol'), 'slave recovery': pid_of('/slave/recovery'),
                'slave server': pid_of('/slave/bank_server'), 'slave roslaunch': deployment.sites['slave'].pid,
-               'witness': pid_of('/aft/witness'), 'the test itself': os.getpid(), 'pid 1': 1}
+               'witness': pid_of('/aft/witness'), 'the ROS master': pid_of_master(), 'outsider': outsider.pid,
+               'the test itself': os.getpid(), 'pid 1': 1}
     drawn = rng.choice(sorted(victims))
     victim = victims[drawn]
     print('seed %d: forged getPid answers %s (pid %d); MASTER off at reply %d' % (seed, drawn, victim, OFF_AT),
@@ -66,23 +95,31 @@ try:
     server = SimpleXMLRPCServer(('127.0.0.1', 0), logRequests=False, allow_none=True)
     server.register_instance(Forged(victim))
     threading.Thread(target=server.serve_forever, daemon=True).start()
-    forged_uri = 'http://127.0.0.1:%d/' % server.server_address[1]
     pubs, subs, srvs = master.getSystemState()
     genuine = {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes if n.startswith('/master/')}
-    forged = {'/master/forged_server': forged_uri, '/master/forged_alias': master.lookupNode('/slave/protocol')}
-    for name, uri in forged.items():
-        rosgraph.Master(name).registerPublisher(name + '_topic', 'std_msgs/String', uri)
+    # Names under MASTER's name space, registered at: the forged server; SLAVE's Protocol; the ROS
+    # master (its shutdown stops it); the plain outsider (its shutdown stops it). The ROS master's
+    # address is written another way than the master's own URI.
+    forged = {'/master/forged_server': 'http://127.0.0.1:%d/' % server.server_address[1],
+              '/master/forged_alias': master.lookupNode('/slave/protocol'),
+              '/master/forged_master': rosgraph.get_master_uri().replace('127.0.0.1', 'localhost').rstrip('/'),
+              '/master/forged_plain': master.lookupNode('/outsider')}
     alarms = []
     rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append((m.source, m.kind, m.detail)))
     events = []
     rospy.Subscriber('/slave/recovery/events', String, lambda m: events.append(json.loads(m.data)))
+    # Heard from SLAVE's Recovery before anything is forged: its alarm comes once.
+    if not wait_until(lambda: '/checker' in connected_to('/slave/recovery', '/aft/alarms'), 10.0, 0.05):
+        sys.exit('seed %d: /slave/recovery\'s alarms never reached the checker' % seed)
+    for name, uri in forged.items():
+        rosgraph.Master(name).registerPublisher(name + '_topic', 'std_msgs/String', uri)
 
     def refused():
         return {name for name in forged for source, kind, detail in list(alarms)
                 if source == '/slave/recovery' and kind == 'fence_refused' and detail.startswith(name + ' ')}
     if not wait_until(lambda: refused() == set(forged), 30.0, 0.05):
-        sys.exit('seed %d: SLAVE\'s Recovery raised fence_refused for %s only; alarms: %s' % (
-            seed, sorted(refused()), alarms[-6:]))
+        sys.exit('seed %d: SLAVE\'s Recovery raised fence_refused for %s only (of %s); alarms: %s' % (
+            seed, sorted(refused()), sorted(forged), alarms[-6:]))
     # The Adaptation Engine's view: a node to retire whose pid is not its process is never signalled.
     for name, uri in forged.items():
         try:
@@ -109,6 +146,9 @@ try:
     if records is None:
         sys.exit('seed %d: not every call answered within %.0f s: %s; events %s' % (
             seed, LIMIT, checker.summary(), events[-2:]))
+    # After the failover and its clean-up of MASTER's names (fencing asks what is left to shut down):
+    # every process drawn from is still the same process, and the ROS master answers.
+    wait_until(lambda: not registered('/master/protocol'), 10.0, 0.1)
     for name, pid in victims.items():
         try:
             same = psutil.Process(pid).create_time() == created[name]
@@ -116,6 +156,8 @@ try:
             same = False
         if not same:
             sys.exit('seed %d: %s (pid %d) was killed' % (seed, name, pid))
+    if not registered('/outsider') or pid_of_master() != victims['the ROS master']:
+        sys.exit('seed %d: the outsider or the ROS master was shut down by the clean-up' % seed)
     summary = checker.summary()
     if summary != {'correct': COUNT, 'lost': 0, 'duplicated': 0, 'reordered': 0, 'errors': 0}:
         sys.exit('seed %d: not exactly once: %s' % (seed, summary))
@@ -137,6 +179,8 @@ try:
     print('FIGURES ' + json.dumps({'victim': drawn, 'recovery_ms': round(failover['seconds'] * 1e3, 1),
                                    'fail_silence': silenced}), flush=True)
 finally:
+    if outsider is not None:
+        outsider.kill()
     deployment.teardown()
     core.stop()
 print('ok')

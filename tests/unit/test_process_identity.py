@@ -11,9 +11,9 @@ import pytest
 from aft_ftm.process_identity import listening_ports, node_names_of, node_process_problem
 
 LISTENER = r'''
-import socket, sys, time
+import os, socket, sys, time
 s = socket.socket()
-s.bind(('127.0.0.1', 0))
+s.bind((os.environ.get('BIND', '127.0.0.1'), 0))
 s.listen(1)
 print(s.getsockname()[1], flush=True)
 time.sleep(60)
@@ -21,8 +21,8 @@ time.sleep(60)
 
 
 def _start(argv_tail=(), env=None, prefix=()):
-    proc = subprocess.Popen(list(prefix) + [sys.executable, '-c', LISTENER] + list(argv_tail),
-                            stdout=subprocess.PIPE, env=dict(os.environ, **(env or {})))
+    command = list(prefix) if prefix and prefix[0] == sys.executable else list(prefix) + [sys.executable, '-c', LISTENER]
+    proc = subprocess.Popen(command + list(argv_tail), stdout=subprocess.PIPE, env=dict(os.environ, **(env or {})))
     port = int(proc.stdout.readline())
     return proc, port
 
@@ -57,8 +57,10 @@ def test_a_node_process_passes(started):
     proc, port = started(['__name:=after', '__log:=/tmp/x.log'], {'ROS_NAMESPACE': '/slave/'})
     assert port in listening_ports(proc.pid)
     assert node_process_problem(proc.pid, '/slave/after', 'http://127.0.0.1:%d/' % port) is None
-    # an anonymous node's name: __name with a suffix
-    assert node_process_problem(proc.pid, '/slave/after_1234_5678', 'http://127.0.0.1:%d/' % port) is None
+    assert node_process_problem(proc.pid, '/slave/after', 'http://localhost:%d' % port) is None
+    # __name remapped: rospy turns anonymity off, so the name is whole (no suffix passes)
+    assert node_process_problem(proc.pid, '/slave/after_v2', 'http://127.0.0.1:%d/' % port) == \
+        'process %d runs node /slave/after, not /slave/after_v2' % proc.pid
 
 
 def test_a_process_named_by_a_forged_registration_is_refused(started):
@@ -66,7 +68,7 @@ def test_a_process_named_by_a_forged_registration_is_refused(started):
     uri = 'http://127.0.0.1:%d/' % port
     # another port: a forged XML-RPC server answering this pid
     why = node_process_problem(proc.pid, '/witness', 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1))
-    assert 'does not listen on port' in why and str(proc.pid) in why
+    assert 'does not listen on 127.0.0.1 port' in why and str(proc.pid) in why
     # its own port, but registered under a name of the fenced site: the process runs another node
     why = node_process_problem(proc.pid, '/slave/evil', uri)
     assert why == 'process %d runs node /witness, not /slave/evil' % proc.pid
@@ -75,7 +77,22 @@ def test_a_process_named_by_a_forged_registration_is_refused(started):
     assert 'cannot be read' in node_process_problem(2 ** 22 + 12345, '/slave/evil', uri)
     assert 'no process' in node_process_problem(0, '/slave/evil', uri)
     assert 'cannot be read' in node_process_problem('x', '/slave/evil', uri)
-    assert 'names no port' in node_process_problem(proc.pid, '/slave/evil', 'http://127.0.0.1/')
+    assert 'names no host and port' in node_process_problem(proc.pid, '/slave/evil', 'http://127.0.0.1/')
+    # the same port on another loopback address: a forged server there is not this process
+    assert 'does not listen on 127.0.0.2 port' in node_process_problem(proc.pid, '/witness',
+                                                                        'http://127.0.0.2:%d/' % port)
+    # the asking process itself
+    assert 'is the process asking' in node_process_problem(os.getpid(), '/witness', uri)
+
+
+def test_a_ros_master_or_roslaunch_is_never_taken_for_a_node(started, tmp_path):
+    """No __name:=, root name space: only the program says it is no node (a registration of a name to
+    retire at the master's address would have the master signalled)."""
+    master = tmp_path / 'rosmaster'
+    master.write_text(LISTENER)
+    proc, port = started(prefix=[sys.executable, str(master)], argv_tail=['--core'])
+    why = node_process_problem(proc.pid, '/proceed', 'http://127.0.0.1:%d/' % port)
+    assert why is not None and 'no node' in why and 'rosmaster' in why
 
 
 def test_without_a_name_remapping_the_name_space_must_be_the_nodes(started):
@@ -90,7 +107,8 @@ def test_without_a_name_remapping_the_name_space_must_be_the_nodes(started):
 def test_a_process_in_another_network_name_space_is_seen_in_its_own(started):
     """An emulated host's node listens in its own name space: /proc/PID/net/tcp is read for that process
     (psutil reads only the caller's name space and would not find the socket)."""
-    proc, port = started(['__name:=after'], {'ROS_NAMESPACE': '/slave'}, prefix=['unshare', '--net', '--'])
+    proc, port = started(['__name:=after'], {'ROS_NAMESPACE': '/slave', 'BIND': '0.0.0.0'},
+                         prefix=['unshare', '--net', '--'])
     deadline = time.monotonic() + 5.0
     while time.monotonic() < deadline and os.readlink('/proc/%d/ns/net' % proc.pid) == os.readlink('/proc/self/ns/net'):
         time.sleep(0.01)   # unshare execs python3 once the name space is made

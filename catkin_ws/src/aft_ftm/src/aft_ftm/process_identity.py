@@ -7,20 +7,25 @@ on trust, a forged registration under a failed site's name space (``/slave/x``, 
 Recovery SIGKILL pid 1, and a forged node to retire would have the Adaptation Engine kill it.
 
 A pid is taken as node ``name`` at ``uri`` only if what the kernel says of that process agrees:
-- it listens on the URI's TCP port, in its own network name space (``/proc/PID/net/tcp*``, read for
-  that process, so emulated hosts are seen as they are; psutil reads this process's name space only);
+- it listens on the URI's TCP port at the URI's address (or on every address), in its own network
+  name space (``/proc/PID/net/tcp*``, read for that process, so emulated hosts are seen as they are;
+  psutil reads this process's name space only);
+- it is not the process asking, nor a ROS master or roslaunch;
 - the name space its command line and environment give it (``__ns:=``, ``ROS_NAMESPACE``, as rospy
   reads them) is the node's, and a ``__name:=`` remapping in its command line names the node.
-A forged server cannot make another process listen on its port, nor change that process's command line.
-What is left open: a registration pointing at a real node of the same name space under another name
-(its pid passes); a fence of that name space kills that node anyway.
+A forged server cannot make another process listen at its address and port, nor change that process's
+command line. What is left open: a registration pointing at a real node of the same name space under
+another name, when that node's command line does not remap ``__name`` (its pid passes); a fence of
+that name space kills that node anyway.
 Plain Python (no rospy): /proc and rosgraph.names only."""
 import os
+import socket
 from urllib.parse import urlparse
 
 from rosgraph import names
 
 LISTEN = '0A'   # TCP state in /proc/net/tcp
+WILDCARDS = {'0.0.0.0', '::'}
 
 
 def _socket_inodes(pid, proc='/proc'):
@@ -36,11 +41,22 @@ def _socket_inodes(pid, proc='/proc'):
     return inodes
 
 
-def listening_ports(pid, proc='/proc'):
-    """The TCP ports process ``pid`` listens on (IPv4 and IPv6), in its own network name space.
-    Raises OSError if the process is gone or cannot be read."""
+def _address(hex_address):
+    """The text address of a /proc/net/tcp{,6} local address field's host part."""
+    raw = bytes.fromhex(hex_address)
+    # the kernel prints each 32-bit word in host order (little-endian here)
+    raw = b''.join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))
+    if len(raw) == 4:
+        return socket.inet_ntop(socket.AF_INET, raw)
+    text = socket.inet_ntop(socket.AF_INET6, raw)
+    return text[len('::ffff:'):] if text.startswith('::ffff:') and '.' in text else text
+
+
+def listening_sockets(pid, proc='/proc'):
+    """{(address, port)} of the TCP sockets process ``pid`` listens on (IPv4 and IPv6), in its own
+    network name space. Raises OSError if the process is gone or cannot be read."""
     inodes = _socket_inodes(pid, proc)
-    ports = set()
+    found = set()
     for table in ('tcp', 'tcp6'):
         try:
             with open(os.path.join(proc, str(pid), 'net', table)) as f:
@@ -50,8 +66,22 @@ def listening_ports(pid, proc='/proc'):
         for line in lines:
             fields = line.split()
             if len(fields) > 9 and fields[3] == LISTEN and fields[9] in inodes:
-                ports.add(int(fields[1].rsplit(':', 1)[1], 16))
-    return ports
+                host, port = fields[1].rsplit(':', 1)
+                found.add((_address(host), int(port, 16)))
+    return found
+
+
+def listening_ports(pid, proc='/proc'):
+    """The TCP ports process ``pid`` listens on, in its own network name space."""
+    return {port for _, port in listening_sockets(pid, proc)}
+
+
+def _addresses_of(host):
+    """The addresses ``host`` resolves to (itself if it is one); empty if it does not resolve."""
+    try:
+        return {info[4][0] for info in socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)}
+    except (socket.gaierror, UnicodeError, ValueError):
+        return set()
 
 
 def _argv_and_env(pid, proc='/proc'):
@@ -81,29 +111,40 @@ def _namespace_of_node(node):
     return names.make_global_ns(names.namespace(node))
 
 
+NOT_NODES = ('rosmaster', 'roslaunch', 'roscore')   # a process running one of these is no node
+
+
 def node_process_problem(pid, node, uri, proc='/proc'):
     """None if process ``pid`` can be node ``node`` registered at ``uri``; else why it cannot (a
     sentence naming the pid, the node and what disagrees)."""
     try:
-        port = urlparse(uri).port
+        parsed = urlparse(uri)
+        port, host = parsed.port, parsed.hostname
     except ValueError:
-        port = None
-    if port is None:
-        return 'the URI %s of %s names no port' % (uri, node)
+        port = host = None
+    if port is None or not host:
+        return 'the URI %s of %s names no host and port' % (uri, node)
     try:
         pid = int(pid)
         if pid <= 0:
             return 'pid %d is no process (%s at %s said it was)' % (pid, node, uri)
-        if port not in listening_ports(pid, proc):
-            return 'process %d does not listen on port %d of %s\'s URI %s: it is not the node there' % (
-                pid, port, node, uri)
+        if pid == os.getpid():
+            return 'pid %d is the process asking (%s at %s said it was)' % (pid, node, uri)
+        # Listening on the URI's port at its address (or on every address): a server that answers on
+        # another address of this host with the same port number is another process.
+        addresses = _addresses_of(host) | WILDCARDS
+        if not any(p == port and a in addresses for a, p in listening_sockets(pid, proc)):
+            return 'process %d does not listen on %s port %d (%s\'s URI %s): it is not the node there' % (
+                pid, host, port, node, uri)
         argv, env = _argv_and_env(pid, proc)
     except (OSError, ValueError, TypeError) as e:
         return 'process %s (said to be %s at %s) cannot be read: %s' % (pid, node, uri, e)
+    programs = {os.path.basename(a) for a in argv[:2]}
+    if programs & set(NOT_NODES):
+        return 'process %d runs %s, no node (%s at %s said it was)' % (pid, ' '.join(argv[:2]), node, uri)
     namespace, name = node_names_of(argv, env)
     if name is not None:
-        # an anonymous node's name is its __name with a suffix
-        if name != node and not node.startswith(name + '_'):
+        if name != node:
             return 'process %d runs node %s, not %s' % (pid, name, node)
     elif namespace != _namespace_of_node(node):
         return 'process %d runs in name space %s, not in %s\'s (%s)' % (pid, namespace, node,

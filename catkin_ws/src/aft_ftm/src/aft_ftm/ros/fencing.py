@@ -2,11 +2,14 @@
 
 A frozen node (a stopped process, a hung machine) answers no XML-RPC call, so its pid must be
 known before it fails: :class:`NamespaceFence` asks every node under a name space for its pid
-periodically, and at failure kills those that run on this host. Nodes on other hosts can only be
-asked to shut down (a real deployment adds a power switch there).
+periodically, and at failure kills those that run on this host. A pid is taken only if that process
+is the node (aft_ftm.process_identity): a forged registration at the master names any pid it likes.
+Nodes on other hosts can only be asked to shut down (a real deployment adds a power switch there;
+under TLS they refuse, and the switch is the only way).
 """
 import os
 import signal
+import socket
 import threading
 import xmlrpc.client
 from urllib.parse import urlparse
@@ -90,7 +93,11 @@ class NamespaceFence(object):
         """Ask every node under the name space for its pid. Returns the number of local nodes known;
         ``unlearned`` names the nodes it could not learn this time."""
         unlearned = []
-        for name in self.node_names():
+        current = self.node_names()
+        with self.lock:   # a refused registration gone from the master is forgotten
+            for name in [n for n in self.refused if n not in current]:
+                del self.refused[name]
+        for name in current:
             if name in self.known and self._still(self.known[name]):
                 continue
             unlearned.append(name)
@@ -154,10 +161,11 @@ class NamespaceFence(object):
         return killed
 
     def shut_down_the_rest(self):
-        """Ask the remaining nodes to shut down and unregister the dead ones from the master. A name
-        under the name space whose URI is also that of a node outside it (a forged registration, an
-        alias) is not asked: the request would reach that other node. The request names the node it
-        is meant for (a node started by run_node ignores one naming another). Returns how many were asked."""
+        """Ask the remaining nodes to shut down, and unregister the dead ones from the master. Not asked:
+        a name whose pid was refused, or whose URI is the ROS master's or that of a node outside the name
+        space (a forged registration, an alias: the request would reach that other process), or a node
+        of this host whose pid is not that node's now. The request names the node it is meant for (a
+        node started by run_node ignores one naming another). Returns how many were asked."""
         names = self.node_names()
         if not names:
             return 0
@@ -167,21 +175,26 @@ class NamespaceFence(object):
                 uris[name] = self.master.lookupNode(name)
             except Exception:   # unknown meanwhile, or the master does not answer
                 failed.append(name)
-        outside = set()
-        if uris:
-            pubs, subs, srvs = self.master.getSystemState()
-            for other in {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}:
-                if not other.startswith(self.prefix):
-                    try:
-                        outside.add(self.master.lookupNode(other))
-                    except Exception:
-                        continue
-        self.aliases = sorted(name for name, uri in uris.items() if uri in outside)
+        others = {endpoint(rosgraph.get_master_uri())}
+        pubs, subs, srvs = self.master.getSystemState()
+        for other in {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}:
+            if not other.startswith(self.prefix):
+                try:
+                    others.add(endpoint(self.master.lookupNode(other)))
+                except Exception:
+                    continue
+        with self.lock:
+            refused = set(self.refused)
+        self.aliases = sorted(n for n, uri in uris.items() if endpoint(uri) in others or n in refused)
         asked = 0
         for name, uri in sorted(uris.items()):
             if name in self.aliases:
                 continue
             try:
+                if is_local(uri):   # a node of this host is asked only if its pid is that node's
+                    code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
+                    if code != 1 or node_process_problem(pid, name, uri):
+                        continue
                 node_api(uri, self.timeout).shutdown(self.caller_id, '[%s] Reason: fail-silence of %s' % (
                     name, self.prefix.rstrip('/')))
             except Exception:   # gone, or tearing down while it answered: asked all the same
@@ -190,3 +203,17 @@ class NamespaceFence(object):
         if failed:
             rosnode.cleanup_master_blacklist(self.master, failed)
         return asked
+
+
+def endpoint(uri):
+    """(address, port) of an XML-RPC URI, the host resolved: two spellings of one server compare equal."""
+    try:
+        parsed = urlparse(uri)
+        host, port = parsed.hostname or '', parsed.port
+    except ValueError:
+        return (uri, None)
+    try:
+        host = socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)[0][4][0]
+    except (socket.gaierror, UnicodeError, ValueError, IndexError):
+        pass
+    return (host, port)

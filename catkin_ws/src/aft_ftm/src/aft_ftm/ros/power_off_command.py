@@ -26,6 +26,8 @@ def main(argv):
         return 2
     if fence.remote:
         print('power_off: left alone, on other hosts: %s' % ', '.join(sorted(fence.remote)), file=sys.stderr)
+    for name, why in sorted(fence.refused.items()):
+        print('power_off: left alone: %s is registered under %s, but %s' % (name, namespace, why), file=sys.stderr)
     if not fence.known:
         print('power_off: no node under %s runs on this host' % namespace, file=sys.stderr)
         return 1

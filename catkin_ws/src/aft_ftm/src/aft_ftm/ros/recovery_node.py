@@ -154,7 +154,7 @@ class RecoveryNode(object):
             self.role = Role.BACKUP   # every node of the site starts as a backup; the witness decides
         self.lock = threading.Lock()
         self.started = time.monotonic()
-        self.fence_refused_told = set()   # (node, why) told by a fence_refused alarm
+        self.fence_refused_told = set()   # names told by a fence_refused alarm
         self.recovered = False
         self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
         self.last_recovery = None   # the last failover record (~events)
@@ -514,7 +514,7 @@ class RecoveryNode(object):
             rospy.sleep(self.learn_period if complete else min(self.learn_period, 0.2))
 
     def _tell_fence_refused(self):
-        """The alarm ``fence_refused``, once per name and reason: a node registered under the peer's name
+        """The alarm ``fence_refused``, once per name while it stays registered: a node registered under the peer's name
         space whose API named a process that is not it (a forged registration, or a node's name taken
         over). That process is never signalled for the peer; if the real node runs elsewhere under that
         name, fail-silence cannot reach it by pid."""
@@ -522,10 +522,13 @@ class RecoveryNode(object):
         publisher = ports.publisher('alarms') if ports is not None else None
         if publisher is None or (publisher.get_num_connections() == 0 and time.monotonic() - self.started < 10.0):
             return   # told once someone hears it (or 10 s after the start in any case)
-        for name, why in sorted(self.fence.refused.items()):
-            if (name, why) in self.fence_refused_told:
+        with self.fence.lock:
+            refused = dict(self.fence.refused)
+        self.fence_refused_told &= set(refused)   # a name gone from the master is told again if it comes back
+        for name, why in sorted(refused.items()):
+            if name in self.fence_refused_told:
                 continue
-            self.fence_refused_told.add((name, why))
+            self.fence_refused_told.add(name)
             alarm(ports, 'pbr', 'fence_refused', '%s is registered under %s, but %s: that process is never '
                   'killed for this site\'s fail-silence' % (name, self.peer_ns, why))
 

@@ -98,11 +98,12 @@ def install(directory, party, permissions):
 
 
 def _refuse_xmlrpc_shutdowns():
-    """Under TLS a node's XML-RPC ``shutdown`` (``rosnode kill``, or the master's for a name registered
-    again) is refused with the alarm ``tls shutdown_refused``: that API is open to anyone on the network,
-    and whoever can call it would stop any node. A node stops by a signal on its own host (roslaunch,
-    the Adaptation Engine, a power switch). A shutdown the master meant for a dead process that had this
-    address stays ignored without an alarm (aft_ftm.ros.rejoin.ignore_misdirected_shutdowns)."""
+    """Under TLS a node's XML-RPC ``shutdown`` (``rosnode kill``) is refused with the alarm
+    ``tls shutdown_refused``: that API is open to anyone on the network, and whoever can call it would
+    stop any node. A node stops by a signal on its own host (roslaunch, the Adaptation Engine, a power
+    switch). Two requests keep their meaning: one naming another node (the master's, meant for a dead
+    process that had this address) is ignored, without an alarm; the master's for this node's name
+    registered again is obeyed if the master does map the name to another address now."""
     from rospy.impl import masterslave
     from ..rejoin import misdirected_shutdown
     current = masterslave.ROSHandler.shutdown
@@ -111,7 +112,12 @@ def _refuse_xmlrpc_shutdowns():
 
     def shutdown(handler, caller_id, msg=''):
         import rospy
-        if misdirected_shutdown(msg, rospy.get_name()):
+        own = rospy.get_name()
+        if misdirected_shutdown(msg, own):
+            rospy.logwarn('%s: a shutdown request from %s ignored: it names another node (%s)', own, caller_id, msg)
+            return 1, 'ignored: %s is not the node named' % own, 0
+        if _replaced_at_master(msg, own):   # the master knows another node by this name: its word
+            rospy.logwarn('%s: the ROS master has registered another node by this name: shutting down', own)
             return current(handler, caller_id, msg)
         key = ('xmlrpc', str(caller_id)[:80], str(msg)[:120])
         now = time.monotonic()
@@ -128,6 +134,21 @@ def _refuse_xmlrpc_shutdowns():
         return 0, 'refused: %s runs under TLS and stops only by a signal on its own host' % rospy.get_name(), 0
     shutdown.tls_refuses = True
     masterslave.ROSHandler.shutdown = shutdown
+
+
+def _replaced_at_master(message, own):
+    """Whether ``message`` is the master's for a name registered again, naming this node, and the master
+    does map this node's name to another address now (asked, within 2 s)."""
+    if message != '[%s] Reason: new node registered with same name' % own:
+        return False
+    import rosgraph
+    from rospy.core import get_node_uri
+    from .fencing import node_api
+    try:
+        code, _, uri = node_api(rosgraph.get_master_uri(), 2.0).lookupNode(own, own)
+    except Exception:   # the master does not answer: nothing says this node was replaced
+        return False
+    return code == 1 and uri != get_node_uri()
 
 
 def active():
