@@ -132,6 +132,8 @@ def test_consistency(running, faults, det, state, cpus, bw, ok, words):
     ('sec', 'unsigned', TAMPERING),
     ('sec', 'forged', TAMPERING),
     ('sec', 'something_new', TAMPERING),
+    ('sec', 'ca_unreachable', None),   # a frozen or dead CA is no attack
+    ('sec', 'ca_silent', None),
     ('pbr', 'checkpoint_late', None),
 ])
 def test_observed_fault(mechanism, kind, fault):

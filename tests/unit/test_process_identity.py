@@ -12,8 +12,9 @@ from aft_ftm.process_identity import listening_ports, node_names_of, node_proces
 
 LISTENER = r'''
 import os, socket, sys, time
-s = socket.socket()
-s.bind((os.environ.get('BIND', '127.0.0.1'), 0))
+bind = os.environ.get('BIND', '127.0.0.1')
+s = socket.socket(socket.AF_INET6 if ':' in bind else socket.AF_INET)
+s.bind((bind, int(os.environ.get('PORT', 0))))
 s.listen(1)
 print(s.getsockname()[1], flush=True)
 time.sleep(60)
@@ -117,3 +118,51 @@ def test_a_process_in_another_network_name_space_is_seen_in_its_own(started):
     assert node_process_problem(proc.pid, '/slave/after', 'http://10.0.0.1:%d/' % port) is None
     import psutil
     assert port not in {c.laddr.port for c in psutil.Process(proc.pid).connections() if c.status == 'LISTEN'}
+    # a loopback URI names a process of this network name space: there, 127.0.0.1 is another host
+    why = node_process_problem(proc.pid, '/slave/after', 'http://127.0.0.1:%d/' % port)
+    assert why is not None and 'another network name space' in why
+
+
+TCP_HEADER = '  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n'
+
+
+def _fake_proc(root, pid, sockets, listening, argv, env, net='net:[1]', own_net='net:[1]'):
+    """A /proc of one process (pid) holding the socket inodes ``sockets``, in a network name space
+    whose listening sockets are ``listening`` [(hex address:port, inode)]; /proc/self in ``own_net``."""
+    base = root / str(pid)
+    (base / 'fd').mkdir(parents=True)
+    for n, inode in enumerate(sockets):
+        os.symlink('socket:[%s]' % inode, str(base / 'fd' / str(n)))
+    (base / 'net').mkdir()
+    rows = ['%4d: %s 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 %s 1 0 100 0 0 10 0'
+            % (n, local, inode) for n, (local, inode) in enumerate(listening)]
+    (base / 'net' / 'tcp').write_text(TCP_HEADER + '\n'.join(rows) + '\n')
+    (base / 'cmdline').write_bytes(b'\0'.join(a.encode() for a in argv) + b'\0')
+    (base / 'environ').write_bytes(b'\0'.join(('%s=%s' % kv).encode() for kv in env.items()) + b'\0')
+    (base / 'ns').mkdir()
+    os.symlink(net, str(base / 'ns' / 'net'))
+    (root / 'self' / 'ns').mkdir(parents=True)
+    os.symlink(own_net, str(root / 'self' / 'ns' / 'net'))
+    return str(root)
+
+
+def test_a_second_listener_on_the_same_port_makes_the_uri_ambiguous(tmp_path):
+    """The node on 0.0.0.0:11411 (inode 1), another process's socket on 127.0.0.1:11411 (inode 2, as
+    SO_REUSEPORT allows): http://127.0.0.1:11411 may reach either, so the pid is not taken."""
+    proc = _fake_proc(tmp_path, 4242, ['1'], [('00000000:2C93', '1'), ('0100007F:2C93', '2')],
+                      ['python3', 'after', '__name:=after'], {'ROS_NAMESPACE': '/slave'})
+    why = node_process_problem(4242, '/slave/after', 'http://127.0.0.1:11411/', proc=proc)
+    assert why == ('another process than 4242 also listens on port 11411 (at 127.0.0.1): /slave/after\'s URI '
+                   'http://127.0.0.1:11411/ does not tell which it reaches')
+
+
+def test_the_fake_proc_passes_the_node_itself(tmp_path):
+    """The control of the test above: alone on its port, the same process is the node."""
+    proc = _fake_proc(tmp_path, 4242, ['1'], [('00000000:2C93', '1'), ('0100007F:2C94', '2')],
+                      ['python3', 'after', '__name:=after'], {'ROS_NAMESPACE': '/slave'})
+    assert node_process_problem(4242, '/slave/after', 'http://127.0.0.1:11411/', proc=proc) is None
+    # but not for a loopback URI if it runs in another network name space than the asker
+    other = _fake_proc(tmp_path / 'b', 4242, ['1'], [('00000000:2C93', '1')], ['python3', 'after', '__name:=after'],
+                       {'ROS_NAMESPACE': '/slave'}, net='net:[2]')
+    assert 'another network name space' in node_process_problem(4242, '/slave/after', 'http://127.0.0.1:11411/',
+                                                                  proc=other)

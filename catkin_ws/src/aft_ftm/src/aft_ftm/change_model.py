@@ -46,11 +46,15 @@ ALARM_FAULTS = {
 }
 
 
+SEC_UNAVAILABLE = ('ca_silent', 'ca_unreachable')
+
+
 def observed_fault(mechanism, kind):
     """The fault kind an alarm (mechanism, kind) shows has happened, or None if it shows none.
-    Every alarm raised by SEC is an attack on the messages: tampering."""
+    Every alarm raised by SEC is an attack on the messages (tampering), but those that say the
+    certification authority is silent or does not answer: an unavailable CA is no attack."""
     if mechanism == 'sec':
-        return TAMPERING
+        return None if kind in SEC_UNAVAILABLE else TAMPERING
     return ALARM_FAULTS.get(kind)
 
 

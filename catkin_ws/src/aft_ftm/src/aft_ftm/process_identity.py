@@ -9,7 +9,8 @@ Recovery SIGKILL pid 1, and a forged node to retire would have the Adaptation En
 A pid is taken as node ``name`` at ``uri`` only if what the kernel says of that process agrees:
 - it listens on the URI's TCP port at the URI's address (or on every address), in its own network
   name space (``/proc/PID/net/tcp*``, read for that process, so emulated hosts are seen as they are;
-  psutil reads this process's name space only);
+  psutil reads this process's name space only), no other socket listens there on that port at the
+  URI's addresses, and a loopback URI names a process of the asker's own network name space;
 - it is not the process asking, nor a ROS master or roslaunch;
 - the name space its command line and environment give it (``__ns:=``, ``ROS_NAMESPACE``, as rospy
   reads them) is the node's, and a ``__name:=`` remapping in its command line names the node.
@@ -18,6 +19,7 @@ command line. What is left open: a registration pointing at a real node of the s
 another name, when that node's command line does not remap ``__name`` (its pid passes); a fence of
 that name space kills that node anyway.
 Plain Python (no rospy): /proc and rosgraph.names only."""
+import ipaddress
 import os
 import socket
 from urllib.parse import urlparse
@@ -52,23 +54,29 @@ def _address(hex_address):
     return text[len('::ffff:'):] if text.startswith('::ffff:') and '.' in text else text
 
 
-def listening_sockets(pid, proc='/proc'):
-    """{(address, port)} of the TCP sockets process ``pid`` listens on (IPv4 and IPv6), in its own
-    network name space. Raises OSError if the process is gone or cannot be read."""
-    inodes = _socket_inodes(pid, proc)
-    found = set()
-    for table in ('tcp', 'tcp6'):
+def _listening_table(pid, proc='/proc'):
+    """[(address, port, inode)] of every TCP socket listening in the network name space of process
+    ``pid`` (of any process there), IPv4 and IPv6. Raises OSError if it cannot be read."""
+    table = []
+    for name in ('tcp', 'tcp6'):
         try:
-            with open(os.path.join(proc, str(pid), 'net', table)) as f:
+            with open(os.path.join(proc, str(pid), 'net', name)) as f:
                 lines = f.read().splitlines()[1:]
         except FileNotFoundError:   # no IPv6 in this kernel
             continue
         for line in lines:
             fields = line.split()
-            if len(fields) > 9 and fields[3] == LISTEN and fields[9] in inodes:
+            if len(fields) > 9 and fields[3] == LISTEN:
                 host, port = fields[1].rsplit(':', 1)
-                found.add((_address(host), int(port, 16)))
-    return found
+                table.append((_address(host), int(port, 16), fields[9]))
+    return table
+
+
+def listening_sockets(pid, proc='/proc'):
+    """{(address, port)} of the TCP sockets process ``pid`` listens on (IPv4 and IPv6), in its own
+    network name space. Raises OSError if the process is gone or cannot be read."""
+    inodes = _socket_inodes(pid, proc)
+    return {(a, p) for a, p, inode in _listening_table(pid, proc) if inode in inodes}
 
 
 def listening_ports(pid, proc='/proc'):
@@ -111,6 +119,17 @@ def _namespace_of_node(node):
     return names.make_global_ns(names.namespace(node))
 
 
+def _loopback(address):
+    try:
+        return ipaddress.ip_address(address.split('%', 1)[0]).is_loopback or address in WILDCARDS
+    except ValueError:
+        return False
+
+
+def _net_namespace(pid, proc='/proc'):
+    return os.readlink(os.path.join(proc, str(pid), 'ns', 'net'))
+
+
 NOT_NODES = ('rosmaster', 'roslaunch', 'roscore')   # a process running one of these is no node
 
 
@@ -130,12 +149,22 @@ def node_process_problem(pid, node, uri, proc='/proc'):
             return 'pid %d is no process (%s at %s said it was)' % (pid, node, uri)
         if pid == os.getpid():
             return 'pid %d is the process asking (%s at %s said it was)' % (pid, node, uri)
-        # Listening on the URI's port at its address (or on every address): a server that answers on
-        # another address of this host with the same port number is another process.
-        addresses = _addresses_of(host) | WILDCARDS
-        if not any(p == port and a in addresses for a, p in listening_sockets(pid, proc)):
+        # Listening on the URI's port at its address (or on every address), and nobody else there: a
+        # server on another address of the host (127.0.0.2, ::1) with the same port is another process.
+        addresses = _addresses_of(host)
+        there = [(a, inode) for a, p, inode in _listening_table(pid, proc)
+                 if p == port and (a in addresses or a in WILDCARDS)]
+        own = _socket_inodes(pid, proc)
+        if not any(inode in own for _, inode in there):
             return 'process %d does not listen on %s port %d (%s\'s URI %s): it is not the node there' % (
                 pid, host, port, node, uri)
+        others = sorted({a for a, inode in there if inode not in own})
+        if others:
+            return 'another process than %d also listens on port %d (at %s): %s\'s URI %s does not tell ' \
+                'which it reaches' % (pid, port, ', '.join(others), node, uri)
+        if any(_loopback(a) for a in addresses) and _net_namespace(pid, proc) != _net_namespace('self', proc):
+            return 'process %d runs in another network name space than this one: %s in %s\'s URI %s is ' \
+                'not its address' % (pid, host, node, uri)
         argv, env = _argv_and_env(pid, proc)
     except (OSError, ValueError, TypeError) as e:
         return 'process %s (said to be %s at %s) cannot be read: %s' % (pid, node, uri, e)

@@ -204,7 +204,8 @@ def summarize(run, expect=None):
         'faults_injected': counts,
         'faults_masked': sum(1 for a in alarms if a[3].endswith('_masked') or a[3] == 'laser_disagrees'),
         'alarms': sorted({'%s/%s' % (a[2], a[3]) for a in alarms}),
-        'alarm_first_at': {kind: min(a[0] for a in alarms if a[3] == kind) for kind in {a[3] for a in alarms}},
+        # road time from the start of the run of each alarm kind's first occurrence
+        'alarm_first_at': {kind: min(a[0] for a in alarms if a[3] == kind) - start for kind in {a[3] for a in alarms}},
         'adaptations': _events(run, 'adaptation'),
     }
     if expect is not None:

@@ -38,7 +38,6 @@ import rospy
 from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
 from .. import adaptation, site_guard
-from ..process_identity import node_process_problem
 from ..adaptation import ScriptError, StepError
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
@@ -667,11 +666,10 @@ class Engine(object):
         (for a rollback). Not over XML-RPC (rosnode kill): a node under TLS refuses every shutdown asked
         that way, since anyone on the network can ask."""
         try:
-            uri = self.master.lookupNode(node)
-            code, _, pid = node_api(uri, 1.0).getPid(rospy.get_name())
-            why = node_process_problem(pid, node, uri)
-            if why:
-                raise NotTheNode(why)
+            uri = self.master.lookupNode(node)   # checked again: it may have been registered anew since
+            pid = visible_pid(uri, rospy.get_name(), node)
+            if pid is None:
+                raise NotTheNode('it is registered at %s, on another machine' % uri)
             proc = psutil.Process(pid)
             # Started again, it stops with its site too (its owners).
             record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))

@@ -7,6 +7,7 @@ is the node (aft_ftm.process_identity): a forged registration at the master name
 Nodes on other hosts can only be asked to shut down (a real deployment adds a power switch there;
 under TLS they refuse, and the switch is the only way).
 """
+import ipaddress
 import os
 import signal
 import socket
@@ -38,9 +39,36 @@ def node_api(uri, timeout):
     return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
 
 
+def _resolved(host):
+    try:
+        return {info[4][0].split('%', 1)[0] for info in socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)}
+    except (socket.gaierror, UnicodeError, ValueError):
+        return set()
+
+
+def _here(address, own=()):
+    """Whether an address is this host's: loopback, a wildcard (0.0.0.0 reaches this host), or one of
+    ``own`` (this host's name resolved); an IPv4-mapped IPv6 address as its IPv4 one."""
+    try:
+        ip = ipaddress.ip_address(address)
+    except ValueError:
+        return False
+    if ip.version == 6 and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return ip.is_loopback or ip.is_unspecified or str(ip) in own
+
+
 def is_local(uri):
-    host = urlparse(uri).hostname or ''
-    return host in (this_host(), 'localhost') or host.startswith('127.')
+    """Whether a URI names this host, however it is spelt (its name, localhost, 127.x, 0.0.0.0,
+    ::ffff:127.0.0.1, a number)."""
+    try:
+        host = urlparse(uri).hostname or ''
+    except ValueError:
+        return False
+    if host in (this_host(), 'localhost') or host.startswith('127.'):
+        return True
+    own = _resolved(this_host())
+    return any(_here(a, own) for a in _resolved(host))
 
 
 class NotTheNode(Exception):
@@ -175,27 +203,30 @@ class NamespaceFence(object):
                 uris[name] = self.master.lookupNode(name)
             except Exception:   # unknown meanwhile, or the master does not answer
                 failed.append(name)
-        others = {endpoint(rosgraph.get_master_uri())}
+        others = set(endpoints(rosgraph.get_master_uri()))
         pubs, subs, srvs = self.master.getSystemState()
         for other in {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}:
             if not other.startswith(self.prefix):
                 try:
-                    others.add(endpoint(self.master.lookupNode(other)))
+                    others |= endpoints(self.master.lookupNode(other))
                 except Exception:
                     continue
         with self.lock:
             refused = set(self.refused)
-        self.aliases = sorted(n for n, uri in uris.items() if endpoint(uri) in others or n in refused)
+        self.aliases = sorted(n for n, uri in uris.items() if endpoints(uri) & others or n in refused)
         asked = 0
         for name, uri in sorted(uris.items()):
             if name in self.aliases:
                 continue
             try:
+                api = node_api(uri, self.timeout)
                 if is_local(uri):   # a node of this host is asked only if its pid is that node's
-                    code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
+                    code, _, pid = api.getPid(self.caller_id)
                     if code != 1 or node_process_problem(pid, name, uri):
                         continue
-                node_api(uri, self.timeout).shutdown(self.caller_id, '[%s] Reason: fail-silence of %s' % (
+                elif _not_a_node(api, self.caller_id):
+                    continue
+                api.shutdown(self.caller_id, '[%s] Reason: fail-silence of %s' % (
                     name, self.prefix.rstrip('/')))
             except Exception:   # gone, or tearing down while it answered: asked all the same
                 pass
@@ -205,15 +236,28 @@ class NamespaceFence(object):
         return asked
 
 
-def endpoint(uri):
-    """(address, port) of an XML-RPC URI, the host resolved: two spellings of one server compare equal."""
+def endpoints(uri):
+    """{(address, port)} of an XML-RPC URI, its host resolved, this host's addresses all as 'here':
+    two spellings of one server share one."""
     try:
         parsed = urlparse(uri)
         host, port = parsed.hostname or '', parsed.port
     except ValueError:
-        return (uri, None)
-    try:
-        host = socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)[0][4][0]
-    except (socket.gaierror, UnicodeError, ValueError, IndexError):
-        pass
-    return (host, port)
+        return {(uri, None)}
+    own = _resolved(this_host())
+    found = {('here' if _here(a, own) else a, port) for a in _resolved(host)}
+    return found or {(host, port)}
+
+
+def _not_a_node(api, caller_id):
+    """Whether an XML-RPC server answers as a ROS master (getSystemState) or a roslaunch (list_processes):
+    both have a shutdown that stops far more than a node."""
+    for probe in (lambda: api.getSystemState(caller_id), lambda: api.list_processes()):
+        try:
+            probe()
+            return True
+        except xmlrpc.client.Fault:   # no such method: not that kind of server
+            continue
+        except Exception:   # no answer: asking it to shut down does no harm then
+            continue
+    return False

@@ -13,7 +13,6 @@ from .. import config, health, sec_policy, security
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from .alarms import alarm
-from .deadline import CallTimeout, Deadline
 from .diagnostics import Diagnostics
 from .params import param
 from .persistent_service import open_service
@@ -169,7 +168,6 @@ class SecGateNode(object):
         self.refetched = {}       # party -> when its certificate was last fetched again after a bad signature
         self.ca_lock = threading.Lock()
         self.ca_timeout = param('ca_timeout', config.positive_float, 2.0)
-        self.ca_calls = Deadline('ca')
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
@@ -254,22 +252,27 @@ class SecGateNode(object):
         return cert.box_public, cert.verify_public
 
     def _ask_ca(self, party):
-        """The CA's answer about party, within ~ca_timeout: a frozen or hung CA holds no receive thread
-        (and none of the clients behind it) longer; its message is refused (Rejected ``ca_unreachable``,
-        an alarm) and its Proxy sends it again. One CA call at a time on the persistent connection
-        (receive threads, key watch); a call past the deadline leaves that connection to its late answer."""
+        """The CA's answer about party, within ~ca_timeout (waiting for another call to the CA included):
+        a frozen or hung CA holds no receive thread (and none of the clients behind it) longer; its
+        message is refused (Rejected ``ca_unreachable``, an alarm) and its Proxy sends it again. One CA
+        call at a time on the persistent connection (receive threads, key watch); a call past the
+        deadline is left to a daemon thread of its own, its connection closed, and the next call
+        opens a new one."""
+        end = time.monotonic() + self.ca_timeout
         if not self.ca_lock.acquire(timeout=self.ca_timeout):
             raise security.Rejected('ca_unreachable', 'the CA, asked about another party, has not answered for '
                                     '%.1f s: %r is not checked' % (self.ca_timeout, party))
         try:
-            return self.ca_calls.call(self.certificate, self.ca_timeout, party=party)
-        except CallTimeout:
-            self.certificate = self.certificate.fresh()
-            raise security.Rejected('ca_unreachable', 'the CA did not answer within %.1f s about %r' % (
-                self.ca_timeout, party))
-        except (rospy.ServiceException, rospy.ROSException) as e:
-            self.certificate = self.certificate.fresh()
-            raise security.Rejected('unknown_party', 'the CA cannot be asked about %r: %s' % (party, e))
+            proxy = self.certificate
+            answer, error = _within(lambda: proxy(party=party), max(0.0, end - time.monotonic()))
+            if error is None:
+                return answer
+            self.certificate = proxy.fresh()
+            _close(proxy)   # a call stuck reading it gets an error and ends
+            if error is TIMED_OUT:
+                raise security.Rejected('ca_unreachable', 'the CA did not answer within %.1f s about %r' % (
+                    self.ca_timeout, party))
+            raise security.Rejected('ca_unreachable', 'the CA cannot be asked about %r: %s' % (party, error))
         finally:
             self.ca_lock.release()
 
@@ -448,3 +451,33 @@ def _split(path):
     if not name.endswith('.pub'):
         raise config.ConfigError('%s is not a public key file (<party>.pub)' % path)
     return directory, name[:-4]
+
+
+TIMED_OUT = object()
+
+
+def _within(call, timeout):
+    """(call()'s result, None), (None, its exception), or (None, TIMED_OUT) after timeout seconds.
+    call() runs in a daemon thread of its own: a peer that never answers holds that thread only,
+    never the caller, nor the process's exit. (Certificate fetches are rare: a thread each is cheap.)"""
+    out = {}
+    done = threading.Event()
+
+    def run():
+        try:
+            out['result'] = call()
+        except Exception as e:   # given to the caller
+            out['error'] = e
+        finally:
+            done.set()
+    threading.Thread(target=run, name='ca-call', daemon=True).start()
+    if not done.wait(timeout):
+        return None, TIMED_OUT
+    return out.get('result'), out.get('error')
+
+
+def _close(proxy):
+    try:
+        proxy.close()
+    except Exception:   # already closed, or never opened
+        pass

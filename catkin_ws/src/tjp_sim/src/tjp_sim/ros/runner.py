@@ -48,7 +48,7 @@ MECHANISM_NODES = {'tr_imu': ['/ftm/imu_tr'], 'triplication_vote': ['/ftm/laser_
 RECORDER = '/tjp_record'
 HAZARD_MARGIN_S = 1.0   # road time a control experiment runs on after its hazard has shown
 RUNNER = '/tjp_scenario_runner'
-ADAPT_GRACE = 5.0   # s of road time an adaptation is given to report before the run ends
+ADAPT_GRACE = 8.0   # s of wall time an adaptation is given to report before the run ends
 
 
 class RunError(Exception):
@@ -582,7 +582,7 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
             summary['verdict']['ok'] = False
             summary['verdict']['problems'].append('the intruder got through: %s' % '; '.join(through))
     # An adaptation the scenario asks for whose moment came (its time, or its alarm raised on the
-    # graph, as recorded) at least ADAPT_GRACE s of road time before the end, but that never reported:
+    # graph, as recorded) at least ADAPT_GRACE s of wall time before the end, but that never reported:
     # said, not left to show as a collision.
     ran = {a.get('script') for a in summary['adaptations']}
     first = summary['alarm_first_at']
@@ -590,7 +590,7 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
         if event['kind'] != 'adapt' or event['script'] in ran:
             continue
         at = first.get(event['on_alarm']) if event['on_alarm'] else event['at']
-        due = at is not None and at <= summary['duration'] - ADAPT_GRACE
+        due = at is not None and at <= summary['duration'] - ADAPT_GRACE * scenario['rate']
         if due:
             summary['verdict']['ok'] = False
             summary['verdict']['problems'].append('the adaptation %s never reported (%s)' % (
