@@ -11,7 +11,11 @@ Here, on a running PBR bank, names are registered under MASTER's name space (/ma
 - one at the real XML-RPC URI of SLAVE's Protocol (its getPid answers that real node's pid);
 - one at the ROS master's address (spelt another way), and one at the plain rospy node's: after a
   failover, fencing asks what is left of the failed site to shut down, and both would obey.
-Then MASTER is powered off under client load. Checked: SLAVE's Recovery raised ``fence_refused`` for
+Then, under client load, MASTER is powered off, or (the other case) its heartbeat is forged: a last
+beat announcing MASTER's fail-stop, naming the drawn process as MASTER's launcher on this host; Recovery
+kills a failed site's launcher's process tree, so it must be sure the pid is that launcher (a process above
+a node of MASTER learned by pid, and not above itself), else it raises ``fence_refused`` and kills the name
+space's nodes only. The false failover itself is what a wrong announcement costs (no more). Checked: SLAVE's Recovery raised ``fence_refused`` for
 every name before the failover; the failover succeeded and killed MASTER's real nodes by pid; every
 process drawn from is still the same process, the ROS master still answers and the plain node still
 runs after the clean-up; every call answered exactly once and SLAVE's state equals a failure-free run.
@@ -22,13 +26,15 @@ AFT_TEST_TAG and is killed at the end, pass or fail."""
 import os
 import random
 
+import pytest
+
 from leftovers import run_tagged
 
 SCRIPT = r'''
 import json, os, random, subprocess, sys, tempfile, threading
 from xmlrpc.server import SimpleXMLRPCServer
 import psutil, rosgraph, rospy
-from aft_msgs.msg import Alarm
+from aft_msgs.msg import Alarm, Heartbeat
 from aft_msgs.srv import Account, GetState
 from std_msgs.msg import String
 from aft_examples.bank import Account as Model, ReplyChecker, operation
@@ -36,9 +42,9 @@ from aft_examples.ros.bank_nodes import account_caller, drive_with_faults
 from aft_examples.ros.deployment import PbrDeployment, start_retrying
 from aft_ftm.ros.fencing import NotTheNode, node_api, visible_pid
 from aft_ftm.ros.graph import start_master
-from aft_ftm.sites import wait_until
+from aft_ftm.sites import this_host, wait_until
 
-seed = int(sys.argv[1])
+seed, FAULT = int(sys.argv[1]), sys.argv[2]
 rng = random.Random(seed)
 COUNT, LIMIT = 300, 90.0
 OFF_AT = rng.randrange(50, 250)
@@ -89,7 +95,7 @@ try:
                'the test itself': os.getpid(), 'pid 1': 1}
     drawn = rng.choice(sorted(victims))
     victim = victims[drawn]
-    print('seed %d: forged getPid answers %s (pid %d); MASTER off at reply %d' % (seed, drawn, victim, OFF_AT),
+    print('seed %d: forged getPid answers %s (pid %d); %s at reply %d' % (seed, drawn, victim, FAULT, OFF_AT),
           flush=True)
     created = {name: psutil.Process(pid).create_time() for name, pid in victims.items()}
     server = SimpleXMLRPCServer(('127.0.0.1', 0), logRequests=False, allow_none=True)
@@ -141,8 +147,22 @@ try:
     account.wait_for_service(30)
     slave_state = rospy.ServiceProxy('/slave/bank_server/get_state', GetState, persistent=True)
     checker = ReplyChecker()
-    records, _ = drive_with_faults(account_caller(account), COUNT, checker,
-                                   [(OFF_AT, deployment.sites['master'].power_off)], LIMIT)
+    fault = deployment.sites['master'].power_off
+    if FAULT == 'forged fail-stop':
+        # MASTER's last heartbeat forged: it announces MASTER's fail-stop, naming the drawn victim as
+        # MASTER's launcher on this host. The failover is real (a false one); the victim's tree is not.
+        beats = rospy.Publisher('/ftm/heartbeat/master', Heartbeat, queue_size=10)
+        if not wait_until(lambda: any(c.endpoint_id == '/slave/crash_detector' for c in beats.impl.connections),
+                          10.0, 0.05):
+            sys.exit('seed %d: the forged heartbeats reach no detector' % seed)
+
+        def fault():
+            for seq in range(200):   # until SLAVE's Recovery took over (bounded: 10 s)
+                beats.publish(Heartbeat(site='master', host=this_host(), pid=victim, seq=10 ** 6 + seq,
+                                        stamp=rospy.Time.now(), stopping='forged'))
+                if wait_until(lambda: any('failed_site' in e for e in events), 0.05, 0.01):
+                    return
+    records, _ = drive_with_faults(account_caller(account), COUNT, checker, [(OFF_AT, fault)], LIMIT)
     if records is None:
         sys.exit('seed %d: not every call answered within %.0f s: %s; events %s' % (
             seed, LIMIT, checker.summary(), events[-2:]))
@@ -176,7 +196,17 @@ try:
     silenced = [s['detail'] for s in failover['steps'] if s['step'] == 'FAIL_SILENCE']
     if not any('(%d nodes learned by pid)' % len(genuine) in d for d in silenced):
         sys.exit('seed %d: fail-silence did not kill the %d nodes of MASTER by pid: %s' % (seed, len(genuine), silenced))
-    print('FIGURES ' + json.dumps({'victim': drawn, 'recovery_ms': round(failover['seconds'] * 1e3, 1),
+    if FAULT == 'forged fail-stop':
+        def why():
+            return [d for source, kind, d in list(alarms) if source == '/slave/recovery' and kind == 'fence_refused'
+                    and d.startswith('pid %d, named as the launcher of master' % victim)]
+        if not any('pid %d, named as the launcher' % victim in d or 'launcher %d also runs this replica' % victim in d
+                   for d in silenced):
+            sys.exit('seed %d: fail-silence did not refuse the tree of pid %d: %s' % (seed, victim, silenced))
+        above = victim in [p.pid for p in psutil.Process(pid_of('/slave/recovery')).parents()]
+        if not above and not wait_until(why, 5.0, 0.05):
+            sys.exit('seed %d: no fence_refused alarm for the forged launcher pid %d: %s' % (seed, victim, alarms[-6:]))
+    print('FIGURES ' + json.dumps({'fault': FAULT, 'victim': drawn, 'recovery_ms': round(failover['seconds'] * 1e3, 1),
                                    'fail_silence': silenced}), flush=True)
 finally:
     if outsider is not None:
@@ -187,8 +217,9 @@ print('ok')
 '''
 
 
-def test_a_forged_registration_never_makes_fencing_or_an_adaptation_kill_another_process():
+@pytest.mark.parametrize('fault', ['power off', 'forged fail-stop'])
+def test_a_forged_registration_or_heartbeat_never_makes_fencing_or_an_adaptation_kill_another_process(fault):
     seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
-    code, output = run_tagged(SCRIPT, args=[str(seed)], timeout=300, home_prefix='aft_forged_home_')
+    code, output = run_tagged(SCRIPT, args=[str(seed), fault], timeout=300, home_prefix='aft_forged_home_')
     print(output[-2000:])
     assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])

@@ -166,3 +166,36 @@ def test_the_fake_proc_passes_the_node_itself(tmp_path):
                        {'ROS_NAMESPACE': '/slave'}, net='net:[2]')
     assert 'another network name space' in node_process_problem(4242, '/slave/after', 'http://127.0.0.1:11411/',
                                                                   proc=other)
+
+
+def test_only_a_process_above_a_learned_node_and_not_above_the_asker_is_its_launcher():
+    """Recovery kills the process tree of the failed site's launcher, named by a heartbeat or a failure
+    report that anyone may forge: the pid must be above a node learned of the name space by pid (when it
+    was learned), and not above Recovery itself (the shell or test both sites come from, init)."""
+    from aft_ftm.ros.fencing import NamespaceFence, _lineage
+    import psutil
+    launcher = subprocess.Popen(['bash', '-c', 'sleep 60 & wait'])
+    try:
+        deadline = time.monotonic() + 10.0
+        while not psutil.Process(launcher.pid).children() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        node = psutil.Process(launcher.pid).children()[0]
+        fence = NamespaceFence('/master', '/test')
+        fence.lineage['/master/node'] = _lineage(node.pid)
+        created = psutil.Process(launcher.pid).create_time()
+        assert fence.started(launcher.pid, created) == '/master/node'
+        assert fence.started(launcher.pid, created + 5.0) is None          # the pid reused by another process
+        assert fence.started(node.pid, node.create_time()) is None         # the node itself launched nothing
+        for above_me in [os.getpid(), os.getppid(), 1]:
+            assert fence.started(above_me, psutil.Process(above_me).create_time()) is None
+        stranger = subprocess.Popen(['sleep', '60'])
+        try:
+            assert fence.started(stranger.pid, psutil.Process(stranger.pid).create_time()) is None
+        finally:
+            stranger.kill()
+            stranger.wait()
+    finally:
+        for child in psutil.Process(launcher.pid).children(recursive=True):
+            child.kill()
+        launcher.kill()
+        launcher.wait()

@@ -110,6 +110,7 @@ class NamespaceFence(object):
         self.unlearned = []    # nodes under the name space the last learn() could not learn
         self.refused = {}      # node name -> why the pid its API gave is not its process (never signalled)
         self.aliases = []      # names the last shut_down_the_rest did not ask: their URI is another node's
+        self.lineage = {}      # node name -> [(pid, create_time)] of the processes above it, not above this one
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -145,14 +146,29 @@ class NamespaceFence(object):
                         unlearned.pop()
                         continue
                     created = psutil.Process(pid).create_time()
+                    lineage = _lineage(pid)
                     with self.lock:
                         self.known[name] = (pid, created)
+                        self.lineage[name] = lineage
                         self.refused.pop(name, None)
                     unlearned.pop()
             except Exception:   # a node going away while we ask: learned next time, or never needed
                 continue
         self.unlearned = unlearned
         return len(self.known)
+
+    def started(self, pid, created):
+        """The name of a learned node of the name space that the process ``pid`` (created at
+        ``created``) started, directly or not, or None. Only such a process is the name space's
+        launcher: a heartbeat or a failure report naming any other pid (forged, or a pid reused since)
+        never has its process tree killed. Processes above this one too (the shell or test both sites
+        were started from, init) are nobody's launcher."""
+        with self.lock:
+            lineage = dict(self.lineage)
+        for name, above in sorted(lineage.items()):
+            if any(p == pid and abs(c - created) < 0.01 for p, c in above):
+                return name
+        return None
 
     @staticmethod
     def _still(entry):
@@ -234,6 +250,12 @@ class NamespaceFence(object):
         if failed:
             rosnode.cleanup_master_blacklist(self.master, failed)
         return asked
+
+
+def _lineage(pid):
+    """[(pid, create_time)] of the processes above ``pid`` that are not above this process."""
+    mine = {p.pid for p in psutil.Process().parents()} | {os.getpid()}
+    return [(p.pid, p.create_time()) for p in psutil.Process(pid).parents() if p.pid not in mine]
 
 
 def endpoints(uri):

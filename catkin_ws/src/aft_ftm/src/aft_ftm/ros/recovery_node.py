@@ -535,8 +535,8 @@ class RecoveryNode(object):
     def _fail_silence(self, failure):
         """Kill what is left of the failed site: its host powered off by the power switch (if one is
         configured: a failure of it fails this step, and no promotion follows), its launcher's whole
-        process tree when the heartbeat names one on this host, and every node of its name space
-        whose pid was learned."""
+        process tree when the heartbeat names one on this host that started a node learned of its name
+        space (a forged heartbeat names any pid), and every node of its name space whose pid was learned."""
         done = []
         if self.fencing.begin(time.monotonic()) is FenceState.FENCING:
             outcome = self._ask_switch()
@@ -620,7 +620,13 @@ class RecoveryNode(object):
             return None, 'pid %d now belongs to another process: not killed' % failure.pid
         if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
             return None, 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        return launcher, 'launcher %d of %s' % (failure.pid, failure.site)
+        node = self.fence.started(failure.pid, created)
+        if node is None:   # a forged heartbeat or failure report names any pid it likes
+            why = ('pid %d, named as the launcher of %s, started no node learned of %s: its process tree is '
+                   'not killed' % (failure.pid, failure.site, self.peer_ns))
+            alarm(self.ports, 'pbr', 'fence_refused', why)
+            return None, why
+        return launcher, 'launcher %d of %s (it started %s)' % (failure.pid, failure.site, node)
 
     def _clean_master(self):
         """Ask the failed site's remaining nodes to shut down, and unregister the dead ones. Best effort,
