@@ -4,12 +4,17 @@ running pair under client load: a forged checkpoint, a forged failure report, a 
 announces the primary's fail-stop, a role change of the backup's Protocol, a state written into the
 primary's server, a shutdown of the backup's Protocol over its XML-RPC API (``rosnode kill``); then
 a sweep of the whole graph as the master lists it: a default message of the right type on every
-topic somebody subscribes to, a call of every service. Each is refused (the refusing node raises
-``tls connection_refused``, or ``tls shutdown_refused``), none changes anything (no failover, the
+topic somebody subscribes to, a call of every service; last, the backup Protocol's name registered at
+the ROS master at the attacker's own address, then at the backup's After's (the master's API is open:
+it drops the real node's registrations and asks it to shut down). Each is refused (the refusing node
+raises ``tls connection_refused``, ``tls shutdown_refused`` or ``tls name_taken``: a node whose name
+was taken goes on and registers again, unless the new one proves the name over TLS), none changes anything (no failover, the
 servers' states equal the clients' model); then the primary site loses power and the backup takes
 over under TLS with every call answered exactly once.
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end."""
+import re
+
 from leftovers import run_tagged
 
 SCRIPT = r'''
@@ -75,6 +80,33 @@ if len(sys.argv) > 2:
     got = sweep(tls.Permissions.load(sys.argv[2]))
     print('SWEEP topics %d connected %s services refused %d unknown %d served %s'
           % (len(got['topics']), got['connected'], got['refused'], len(got['unknown']), got['served']))
+# Name theft (last: the master's eviction of the thief reaches this node): /slave/protocol registered at
+# the master at this node's own URI, then at /slave/after's. The master drops the real node's
+# registrations and asks it to shut down; under TLS it refuses (the thief proves no right to the name)
+# and registers again. Printed: whether the name came back to the same process within 5 s.
+def lookup(name):
+    try:
+        return rosgraph.Master(rospy.get_name()).lookupNode(name)
+    except Exception:
+        return None
+real = lookup('/slave/protocol')
+try:
+    real_pid = xmlrpc.client.ServerProxy(real).getPid(rospy.get_name())[2]
+except Exception:   # (the control: the XML-RPC shutdown above stopped it)
+    real_pid = None
+for where, uri in (('own', rospy.core.get_node_uri()), ('after', lookup('/slave/after'))):
+    rosgraph.Master('/slave/protocol').registerPublisher('/stolen_%s' % where, 'std_msgs/String', uri)
+    started = time.monotonic()
+    while lookup('/slave/protocol') != real and time.monotonic() - started < 5.0:
+        time.sleep(0.02)
+    back = lookup('/slave/protocol') == real
+    try:
+        same = xmlrpc.client.ServerProxy(real).getPid(rospy.get_name())[2] == real_pid
+    except Exception:
+        same = False
+    print('NAME /slave/protocol taken at %s: %s, %s' % (
+        where, 'back in %.2f s' % (time.monotonic() - started) if back else 'not back in 5 s',
+        'same process' if same else 'the node is gone'))
 """
 
 log_dir = tempfile.mkdtemp(prefix='aft_tls_pbr_')
@@ -110,7 +142,7 @@ try:
             (k, v) for k, v in os.environ.items() if not k.startswith('AFT_TLS_'))
         attacker = subprocess.run([sys.executable, attack, name] + ([policy] if with_tls else []), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                   env=env, timeout=90, universal_newlines=True)
-        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'XMLRPC', 'SWEEP')))))
+        print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'XMLRPC', 'SWEEP', 'NAME')))))
         if with_tls:   # (the control's pair may be left with nobody serving)
             calls(25)
     status = witness_status()
@@ -127,6 +159,8 @@ try:
     print('REFUSALS %d by %s' % (len(refusals), sorted(set(a.source for a in refusals))))
     shutdowns = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'shutdown_refused']
     print('SHUTDOWN REFUSALS %d by %s' % (len(shutdowns), sorted(set(a.source for a in shutdowns))))
+    taken = [a for a in alarms if a.mechanism == 'tls' and a.kind == 'name_taken']
+    print('NAMES TAKEN %d by %s' % (len(taken), sorted(set(a.source for a in taken))))
     own = [a.detail for a in refusals if any('party %s may not' % p in a.detail
                                              for p in ('master', 'slave', 'client', 'witness', 'operator'))]
     print('OWN REFUSALS %d %s' % (len(own), own[:3]))   # the deployment's own parties, refused by its policy
@@ -178,15 +212,19 @@ def check_under_tls(mechanism):
         text = line(attacker)
         assert text.count('CALL ') == 2 and text.count(' refused: ') == 2 and ' served' not in text[:text.index('SWEEP')], text
         assert 'SUBSCRIBERS 0' in text and 'XMLRPC shutdown of /slave/protocol refused' in text, text
-        sweep = text[text.index('SWEEP'):].split()
+        swept = text[text.index('SWEEP'):].split(' | ')[0]
+        sweep = swept.split()
         topics, services_refused, unknown = int(sweep[2]), int(sweep[7]), int(sweep[9])
-        assert topics >= 15 and text.endswith(' connected [] services refused %d unknown %d served []'
-                                                % (services_refused, unknown)), text
+        assert topics >= 15 and swept.endswith(' connected [] services refused %d unknown %d served []'
+                                                 % (services_refused, unknown)), text
         assert services_refused >= 30 and unknown <= 2, text
+        for where in ('own', 'after'):   # the name taken at the master comes back to the same process
+            assert re.search(r'NAME /slave/protocol taken at %s: back in [0-9.]+ s, same process' % where, text), text
     assert line('AFTER ATTACKS') == 'AFTER ATTACKS epoch 2 primary master backup slave'
     assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
     assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')
     assert line('OWN REFUSALS').startswith('OWN REFUSALS 0 '), line('OWN REFUSALS')
     assert line('SHUTDOWN REFUSALS').endswith(" by ['/slave/protocol']"), line('SHUTDOWN REFUSALS')
+    assert line('NAMES TAKEN').endswith(" by ['/slave/protocol']"), line('NAMES TAKEN')
     failover = line('FAILOVER')
     assert 'wrong 0 slave equal' in failover and failover.startswith('FAILOVER calls 150 '), failover

@@ -20,7 +20,8 @@ import rospy
 from rospy.impl.registration import get_service_manager, get_topic_manager
 
 from ..errors import ConfigError
-from ..rejoin import Rejoin, judge, master_pid, misdirected_shutdown
+from ..rejoin import Lookup, Rejoin, judge, master_pid, misdirected_shutdown
+from . import tls_transport
 from .fencing import node_api
 from .params import READ
 
@@ -77,7 +78,16 @@ def _loop(period):
                        if own_service and answer is not None and answer[0] == 1 else None)
         except Exception:   # refused, reset, timed out: the master is not there
             pid = answer = service = None
-        again, message = state.step(pid, judge(answer, node_uri, service, own_service))
+        lookup = judge(answer, node_uri, service, own_service)
+        again, message = state.step(pid, lookup)
+        if lookup is Lookup.REPLACED and pid is not None and tls_transport.active():
+            # under TLS, taken by a node that does not prove the name (an impostor: the master's API is
+            # open): contested, and this node registers again (tls_transport.contest_name)
+            try:
+                if tls_transport.contest_name(answer[2]) is not None:
+                    continue
+            except Exception as e:   # never let this thread die: the name is contested at the next probe
+                rospy.logwarn('%s: checking the node that took this name failed: %s', caller_id, e)
         if message:
             rospy.logwarn('%s: %s', caller_id, message)
         if again and not rospy.core.is_shutdown_requested():

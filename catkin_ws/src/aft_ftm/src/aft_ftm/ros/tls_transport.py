@@ -34,6 +34,8 @@ from .. import tls
 from ..errors import ConfigError
 
 HANDSHAKE_TIMEOUT = 5.0
+NAME_PROOF_TIMEOUT = 2.0   # s per step of checking a node that took this node's name at the master
+_CONTEST = threading.Lock()
 CRL_PERIOD = 0.25   # s between two looks at the revocation list and the live connections' expiry
 _STATE = {}
 _PEERS = weakref.WeakKeyDictionary()   # inbound socket -> its peer's party (None: in clear)
@@ -116,9 +118,14 @@ def _refuse_xmlrpc_shutdowns():
         if misdirected_shutdown(msg, own):
             rospy.logwarn('%s: a shutdown request from %s ignored: it names another node (%s)', own, caller_id, msg)
             return 1, 'ignored: %s is not the node named' % own, 0
-        if _replaced_at_master(msg, own):   # the master knows another node by this name: its word
-            rospy.logwarn('%s: the ROS master has registered another node by this name: shutting down', own)
-            return current(handler, caller_id, msg)
+        replaced_by = _replaced_at_master(msg, own)
+        if replaced_by:   # the master knows another node by this name: obeyed if that one proves it
+            why = contest_name(replaced_by)
+            if why is None:
+                rospy.logwarn('%s: a node proving this name over TLS registered at %s: shutting down', own,
+                              replaced_by)
+                return current(handler, caller_id, msg)
+            return 0, 'refused: %s; this node goes on and registers its name again' % why, 0
         key = ('xmlrpc', str(caller_id)[:80], str(msg)[:120])
         now = time.monotonic()
         with _LOCK:
@@ -137,18 +144,118 @@ def _refuse_xmlrpc_shutdowns():
 
 
 def _replaced_at_master(message, own):
-    """Whether ``message`` is the master's for a name registered again, naming this node, and the master
-    does map this node's name to another address now (asked, within 2 s)."""
+    """The URI the master maps this node's name to now, if ``message`` is the master's for a name
+    registered again, naming this node, and that URI is another (asked, within 2 s); else None."""
     if message != '[%s] Reason: new node registered with same name' % own:
-        return False
+        return None
     import rosgraph
     from rospy.core import get_node_uri
     from .fencing import node_api
     try:
         code, _, uri = node_api(rosgraph.get_master_uri(), 2.0).lookupNode(own, own)
     except Exception:   # the master does not answer: nothing says this node was replaced
-        return False
-    return code == 1 and uri != get_node_uri()
+        return None
+    return uri if code == 1 and uri.rstrip('/') != get_node_uri().rstrip('/') else None
+
+
+def name_proof(uri, own, timeout=NAME_PROOF_TIMEOUT):
+    """None if the node registered at ``uri`` proves it may run the name ``own``; else why not. The
+    master's XML-RPC API is open: anyone can register any name, and the master then asks the node that
+    had it to shut down. The proof: the TCPROS server that ``uri`` gives for ``/rosout`` (every rospy
+    node publishes it) is another process than this one, completes a TLS handshake with a certificate
+    of the CA, not revoked, whose party the policy binds to node names that include ``own``, and
+    answers a subscription to ``/rosout`` as node ``own``. Each step within ``timeout`` s."""
+    from rosgraph.network import encode_ros_handshake_header, read_ros_handshake_header
+    from .fencing import is_local, node_api
+    try:
+        code, said, protocol = node_api(uri, timeout).requestTopic(own, '/rosout', [['TCPROS']])
+    except Exception as e:
+        return 'its XML-RPC API at %s does not answer (%s)' % (uri, str(e)[:80])
+    if code != 1 or not isinstance(protocol, list) or len(protocol) != 3 or protocol[0] != 'TCPROS':
+        return 'it offers no TCPROS connection at %s (%s)' % (uri, str(said)[:80])
+    host, port = protocol[1], protocol[2]
+    own_host, own_port = _own_tcpros_address()
+    if port == own_port and (host == own_host or is_local('http://%s:1/' % host)):
+        return 'it gives this node\'s own TCPROS address'
+    try:
+        plain = socket.create_connection((host, port), timeout)
+    except (OSError, TypeError, ValueError) as e:
+        return 'its TCPROS address %s:%s cannot be reached (%s)' % (host, port, e)
+    try:
+        secured = _STATE['client'].wrap_socket(plain)
+    except (ssl.SSLError, OSError) as e:
+        plain.close()
+        return 'no TLS handshake with a certificate of the CA at %s:%s (%s)' % (host, port, str(e)[:80])
+    try:
+        certificate = secured.getpeercert()
+        party = tls.party_of(certificate)
+        why = _revoked(certificate)
+        if why:
+            return why
+        if party is None or _STATE['permissions'].nodes.get(party) is None \
+                or _STATE['permissions'].names_node(party, own):
+            return 'its certificate (party %s) may not run a node named %s' % (party, own)
+        secured.sendall(encode_ros_handshake_header({'topic': '/rosout', 'md5sum': '*', 'type': '*',
+                                                     'callerid': own}))
+        import io
+        header = read_ros_handshake_header(secured, io.BytesIO(), 65536)
+        if header.get('callerid') != own:
+            return 'its TCPROS server answers as %r, not %s' % (header.get('callerid'), own)
+        return None
+    except Exception as e:
+        return 'its TCPROS server at %s:%s did not answer as %s (%s)' % (host, port, own, str(e)[:80])
+    finally:
+        secured.close()
+
+
+def _own_tcpros_address():
+    """(host, port) of this node's TCPROS server, or (None, None) before it runs."""
+    from rospy.impl.tcpros_base import get_tcpros_server_address
+    try:
+        return get_tcpros_server_address()
+    except AttributeError:
+        return None, None
+
+
+def contest_name(uri):
+    """Under TLS, the master maps this node's name to ``uri``: None if that node proves the name
+    (name_proof: this node must give way), else why not, after raising the alarm ``tls name_taken``
+    (at most once per URI every 10 s) and registering this node again in a thread of its own, which
+    maps the name back (the master then sends the impostor's address the shutdown). One proof at a
+    time: a contest waits for the one running (a flood of them is not proven)."""
+    import rospy
+    own = rospy.get_name()
+    if not _CONTEST.acquire(timeout=3 * NAME_PROOF_TIMEOUT + 1.0):   # one proof at a time (a flood: refused)
+        why = 'other registrations of this name are still being checked'
+    else:
+        try:
+            why = name_proof(uri, own)
+        finally:
+            _CONTEST.release()
+    if why is None:
+        return None
+    key = ('name_taken', uri[:120])
+    now = time.monotonic()
+    with _LOCK:
+        told = now - _TOLD.get(key, -1e9) < 10.0
+        if not told:
+            _TOLD[key] = now
+    if not told:
+        _alarm('name_taken', 'the ROS master maps %s to %s now, which does not prove the name (%s): this node '
+               'goes on and registers its name again' % (own, uri, why))
+    threading.Thread(target=_register_again, name='tls_name_back', daemon=True).start()
+    return why
+
+
+def _register_again():
+    import rosgraph
+    import rospy
+    from .fencing import node_api
+    from .rejoin import register_again
+    try:
+        register_again(node_api(rosgraph.get_master_uri(), 5.0), rospy.get_name(), rospy.core.get_node_uri())
+    except Exception as e:   # the master does not answer: the rejoin loop contests again
+        rospy.logwarn('%s: registering again after the name was taken failed: %s', rospy.get_name(), e)
 
 
 def active():
