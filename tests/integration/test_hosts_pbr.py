@@ -124,6 +124,8 @@ def test_power_loss_of_the_master_host(deployment, seed):
     # retried, under load, raises an alarm too: that is not the policy's doing)
     refused = [a for a in d.alarms() if a.get('mechanism') == 'tls' and 'may not' in a['detail']]
     assert refused == [], refused
+    # each host has its power switch: nobody says a peer cannot be made silent
+    assert [a for a in d.alarms() if a['kind'] == 'fence_incomplete'] == []
     waits = [r[2] - max(r[1], crash['wall']) for r in records if r[2] > crash['wall']]
     report('hosts PBR (mutual TLS): master host power loss (link down first): detected %.1f ms after it, failover %.1f ms, '
            'fencing call %.1f ms' % ((record['detected_wall'] - crash['wall']) * 1e3, max(waits) * 1e3,
@@ -149,6 +151,22 @@ def test_partition_of_the_master_host_is_fenced_before_promotion(deployment, see
     assert_fenced_before_promotion(d.last_failover('slave'), 'master')
     assert ('off', 'master', True) in d.switch.requests
     assert d.hosts.state('master') == 'off' and d.node_pids('master') == []
+
+
+def test_replica_hosts_without_a_power_switch_are_said_impossible_to_silence(deployment):
+    """Sites on other machines and no power switch: fencing can only ask the peer's nodes over XML-RPC
+    to shut down, which a frozen or cut-off node never answers (and a node under TLS refuses). Not
+    silent: each Recovery raises fence_incomplete once, naming the peer's nodes."""
+    d = deployment(power_switch=False)
+
+    def told():
+        return {a['source']: a['detail'] for a in d.alarms() if a['kind'] == 'fence_incomplete'}
+    assert wait_until(lambda: set(told()) == {'/master/recovery', '/slave/recovery'}, 20.0, 0.2), told()
+    for site, peer in (('master', 'slave'), ('slave', 'master')):
+        detail = told()['/%s/recovery' % site]
+        assert 'cannot make /%s silent' % peer in detail and '/%s/after at http://' % peer in detail, detail
+        assert 'no power switch is configured' in detail and 'never answers' in detail, detail
+    assert len([a for a in d.alarms() if a['kind'] == 'fence_incomplete']) == 2   # once each
 
 
 def test_a_switch_that_does_not_confirm_prevents_the_promotion_until_it_does(deployment):

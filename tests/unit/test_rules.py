@@ -5,7 +5,7 @@ from aft_ftm import config
 from aft_ftm.errors import ConfigError, RebindError
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
 from aft_ftm.protocol import Role
-from aft_ftm.recovery import Step, failed_steps, plan, role_after, same_process, start_plan
+from aft_ftm.recovery import Step, failed_steps, plan, role_after, same_process, start_plan, unfenceable
 
 SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
          'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
@@ -99,3 +99,23 @@ def test_a_failed_promotion_is_named_for_its_alarm_and_a_refused_witness_is_left
                                  'PROMOTE_PROTOCOL: not promoted: the After was not promoted')
     refused = {'steps': [step('WITNESS_PROMOTE', False, 'the witness refused PROMOTE: excluded')]}
     assert failed_steps(refused) == ''   # promotion_refused is raised for it already
+
+
+REMOTE = {'/master/protocol': 'http://10.77.0.2:40001/', '/master/after': 'http://10.77.0.2:40002/',
+          '/master/before': 'http://10.77.0.2:40003/', '/master/proceed': 'http://10.77.0.2:40004/'}
+
+
+@pytest.mark.parametrize('remote,switch,tls,words', [
+    ({}, False, False, None),                        # every node of the peer on this machine: killed by pid
+    (REMOTE, True, False, None),                     # the power switch silences their host
+    (REMOTE, True, True, None),
+    (REMOTE, False, False, 'a frozen, hung or cut-off node never answers'),
+    (REMOTE, False, True, 'under TLS they refuse'),
+])
+def test_a_peer_on_another_machine_without_a_power_switch_cannot_be_made_silent(remote, switch, tls, words):
+    why = unfenceable(remote, switch, tls)
+    if words is None:
+        assert why is None
+    else:
+        assert words in why and why.startswith('4 node(s) of the peer run on another machine')
+        assert '/master/after at http://10.77.0.2:40002/' in why and 'and 1 more' in why   # named, bounded

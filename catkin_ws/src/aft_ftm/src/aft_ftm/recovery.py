@@ -99,6 +99,23 @@ def same_process(create_time, last_heard_wall, tolerance=0.05):
     return create_time <= last_heard_wall + tolerance
 
 
+def unfenceable(remote, switch, tls):
+    """Why this Recovery cannot make the failed peer silent, or None. ``remote``: {node name: URI} of the
+    peer's nodes on another machine (no pid here to signal); ``switch``: whether a power switch of the
+    peer's host is configured; ``tls``: whether this graph runs under TLS. Without a switch such a node
+    is only asked to shut down over XML-RPC, which a frozen, hung or cut-off node never answers, and
+    which a node under TLS refuses (tls shutdown_refused): the failover still goes on (the witness's
+    epochs refuse the old primary's checkpoints and replies), but fail-silence is not enforced."""
+    if switch or not remote:
+        return None
+    names = sorted(remote)
+    shown = ', '.join('%s at %s' % (n, remote[n]) for n in names[:3]) + (' and %d more' % (len(names) - 3)
+                                                                         if len(names) > 3 else '')
+    return ('%d node(s) of the peer run on another machine (%s) and no power switch is configured '
+            '(~power_switch): a failover can only ask them to shut down, which %s' % (
+                len(names), shown, 'under TLS they refuse' if tls else 'a frozen, hung or cut-off node never answers'))
+
+
 class OnHang(enum.Enum):
     """What a node does when its server (or state manager) hangs past its timeout."""
     FAIL_STOP = 'fail-stop the replica: its peer fences it and executes the request, once'

@@ -16,7 +16,7 @@ from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..realtime import RealtimeBurst
 from ..detector import DEFAULT_REALTIME_PRIORITY
-from ..recovery import GATES, Step, failed_steps, plan, role_after, role_in, same_process, start_plan
+from ..recovery import GATES, Step, failed_steps, plan, role_after, role_in, same_process, start_plan, unfenceable
 from ..sites import silence_trees, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
@@ -25,6 +25,7 @@ from .diagnostics import Diagnostics
 from .fencing import NamespaceFence
 from .graph import master_answers
 from .params import param
+from . import tls_transport
 from .persistent_service import PersistentService, open_service
 from .ports import Ports
 from .protocol_node import ROLES
@@ -155,6 +156,7 @@ class RecoveryNode(object):
         self.lock = threading.Lock()
         self.started = time.monotonic()
         self.fence_refused_told = set()   # names told by a fence_refused alarm
+        self.unfenceable_told = False     # fence_incomplete raised (while it holds)
         self.recovered = False
         self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
         self.last_recovery = None   # the last failover record (~events)
@@ -507,6 +509,7 @@ class RecoveryNode(object):
                     self.fence.learn()
                     complete = not self.fence.unlearned
                     self._tell_fence_refused()
+                    self._tell_unfenceable()
             except Exception as e:   # the master is unreachable for a while: try again later
                 rospy.logwarn_throttle(30, '%s: cannot learn the nodes of %s: %s' % (rospy.get_name(), self.peer_ns, e))
             # A node of the peer not learned yet (its site is starting) cannot be killed by pid if it
@@ -518,9 +521,7 @@ class RecoveryNode(object):
         space whose API named a process that is not it (a forged registration, or a node's name taken
         over). That process is never signalled for the peer; if the real node runs elsewhere under that
         name, fail-silence cannot reach it by pid."""
-        ports = getattr(self, 'ports', None)
-        publisher = ports.publisher('alarms') if ports is not None else None
-        if publisher is None or (publisher.get_num_connections() == 0 and time.monotonic() - self.started < 10.0):
+        if not self._alarms_heard():
             return   # told once someone hears it (or 10 s after the start in any case)
         with self.fence.lock:
             refused = dict(self.fence.refused)
@@ -529,8 +530,29 @@ class RecoveryNode(object):
             if name in self.fence_refused_told:
                 continue
             self.fence_refused_told.add(name)
-            alarm(ports, 'pbr', 'fence_refused', '%s is registered under %s, but %s: that process is never '
+            alarm(self.ports, 'pbr', 'fence_refused', '%s is registered under %s, but %s: that process is never '
                   'killed for this site\'s fail-silence' % (name, self.peer_ns, why))
+
+    def _tell_unfenceable(self):
+        """The alarm ``fence_incomplete``, once while it holds (again if it holds again later): nodes of
+        the peer on another machine, and no power switch to silence them (recovery.unfenceable)."""
+        with self.fence.lock:
+            remote = dict(self.fence.remote)
+        why = unfenceable(remote, self.fencing.switch is not None, tls_transport.active())
+        if why is None:
+            self.unfenceable_told = False
+            return
+        if self.unfenceable_told or not self._alarms_heard():
+            return
+        self.unfenceable_told = True
+        alarm(self.ports, 'pbr', 'fence_incomplete', '%s cannot make %s silent at a failover: %s' % (
+            rospy.get_name(), self.peer_ns, why))
+
+    def _alarms_heard(self):
+        """Whether an alarm published now is heard: a subscriber is connected, or 10 s have passed."""
+        publisher = self.ports.publisher('alarms') if getattr(self, 'ports', None) is not None else None
+        return publisher is not None and (publisher.get_num_connections() > 0 or
+                                          time.monotonic() - self.started >= 10.0)
 
     def _fail_silence(self, failure):
         """Kill what is left of the failed site: its host powered off by the power switch (if one is
