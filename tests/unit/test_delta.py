@@ -1,10 +1,11 @@
 """Incremental checkpoints (aft_ftm.delta): random states and changes, drawn from a printed seed."""
 import random
 import time
+import zlib
 
 import pytest
 
-from aft_ftm.delta import DeltaDecoder, DeltaEncoder, DeltaError, ServerChanges, apply, crc, encode
+from aft_ftm.delta import CRC_BLOCK, DeltaDecoder, DeltaEncoder, DeltaError, ServerChanges, StateBuffer, apply, crc, encode
 
 
 def mutate(rng, state):
@@ -190,10 +191,10 @@ def test_wrong_changes_from_the_server_are_refused_before_anything_is_sent_and_c
             if told.state is None:
                 break
         assert told.state is None, 'seed %d, case %d: the fake server never told changes' % (seed, case)
-        before = (encoder.base, encoder.base_crc, encoder.version, encoder.sent_bytes)
+        before = (encoder.base.bytes(), encoder.base_crc, encoder.version, encoder.sent_bytes)
         with pytest.raises(DeltaError):
             encoder.next_changes(wrongs[what](told))
-        assert (encoder.base, encoder.base_crc, encoder.version, encoder.sent_bytes) == before, \
+        assert (encoder.base.bytes(), encoder.base_crc, encoder.version, encoder.sent_bytes) == before, \
             'seed %d, case %d (%s)' % (seed, case, what)
         # What the After then does: the whole state, whose delta the backup applies to what it holds.
         assert decoder.state(*encoder.next(server.state)) == server.state, 'seed %d, case %d' % (seed, case)
@@ -229,3 +230,42 @@ def test_a_malformed_answer_of_the_server_is_named(fields, error):
         ServerChanges.from_message(Message(**fields))
     runs = ServerChanges.from_message(Message(starts=[0, 4], ends=[1, 4], lengths=[2, 1], data=b'abc')).runs
     assert runs == [(0, 1, b'ab'), (4, 4, b'c')]
+
+
+@pytest.mark.parametrize('size', [0, 1, 100, CRC_BLOCK - 1, CRC_BLOCK, CRC_BLOCK + 1, 3 * CRC_BLOCK, 10 * CRC_BLOCK + 17])
+def test_a_state_buffer_keeps_zlibs_crc_through_changes_in_place_and_undoes_a_wrong_one(size):
+    """The CRC-32 of a StateBuffer, folded from its blocks' CRCs, is zlib's of the whole state after any
+    runs applied in place (within a block, across blocks, at the ends); a run whose result is not the CRC
+    expected leaves data, blocks and CRC as they were."""
+    seed = int(time.time() * 1000) % 100000
+    rng = random.Random(seed)
+    data = bytes(rng.getrandbits(8) for _ in range(size))
+    buffer = StateBuffer(data)
+    assert buffer.crc == zlib.crc32(data) and buffer == data
+    for step in range(40 if size else 0):
+        runs, at = [], 0
+        for _ in range(rng.randint(1, 4)):
+            if at >= size:
+                break
+            start = rng.randint(at, size - 1)
+            end = rng.randint(start, min(size, start + rng.choice([0, 1, 64, CRC_BLOCK, 2 * CRC_BLOCK])))
+            runs.append((start, end, bytes(rng.getrandbits(8) for _ in range(end - start))))
+            at = end
+        expected = bytearray(buffer.data)
+        for start, end, new in runs:
+            expected[start:end] = new
+        if rng.random() < 0.3:
+            before, crc_before = buffer.bytes(), buffer.crc
+            with pytest.raises(DeltaError, match='expected'):
+                buffer.replace(runs, zlib.crc32(bytes(expected)) ^ 1)
+            assert (buffer.bytes(), buffer.crc) == (before, crc_before), "seed %d" % seed
+        assert buffer.replace(runs, zlib.crc32(bytes(expected))) == zlib.crc32(bytes(expected)), 'seed %d' % seed
+        assert buffer == bytes(expected), 'seed %d, step %d' % (seed, step)
+
+
+def test_runs_that_do_not_fit_in_place_are_refused_before_anything_changes():
+    buffer = StateBuffer(bytes(1000))
+    for runs in ([(10, 20, b'short')], [(990, 1010, bytes(20))], [(50, 60, bytes(10)), (40, 45, bytes(5))]):
+        with pytest.raises(DeltaError, match='does not fit'):
+            buffer.replace(runs)
+        assert buffer == bytes(1000) and buffer.crc == zlib.crc32(bytes(1000))

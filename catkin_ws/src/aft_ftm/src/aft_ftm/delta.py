@@ -20,6 +20,13 @@ length and CRC. The encoder applies them to the state it sent last and checks th
 that CRC before anything leaves (:meth:`DeltaEncoder.next_changes`): changes that do not rebuild the
 server's state are refused here, by name, and the backup never sees them.
 
+Both sides hold the last state as a :class:`StateBuffer`: runs that keep the state's length (a
+server's usual changes) are applied to it in place, and its CRC-32 is had from the CRCs of the
+64 KB blocks changed and a fold over the blocks' CRCs (zlib's CRC-32 of a concatenation, from a
+linear map made once from zlib itself), so a checkpoint of a few changed bytes in a 10 MB state
+costs about 0.1 ms on each side instead of a 10 MB splice and CRC (5 ms). A run that changes the
+length rebuilds the state whole, as before.
+
 The encoder finds changes by comparing blocks (C-speed slices of ``BLOCK`` bytes, then of ``FINE``
 bytes inside a changed block), so a 1 MB state costs well under a millisecond when little changed.
 """
@@ -154,19 +161,19 @@ def apply(base, delta, base_crc=None):
     return _apply(base, delta, base_crc)[0]
 
 
-def _apply(base, delta, base_crc):
-    """(the state rebuilt, its CRC)."""
-    delta, base = bytes(delta), bytes(base)
-    base_crc = crc(base) if base_crc is None else base_crc
+def _parse(delta, base_len, base_crc):
+    """(the new state's length, its CRC, runs [(start, end, data)]) of a delta against a state of
+    ``base_len`` bytes with CRC ``base_crc``; DeltaError if it is not such a delta."""
+    delta = bytes(delta)
     if len(delta) < _HEADER.size or delta[:4] != MAGIC:
         raise DeltaError('not a state delta (%d bytes, no %r header)' % (len(delta), MAGIC))
-    magic, version, base_len, header_crc, new_len, new_crc, count = _HEADER.unpack_from(delta)
+    magic, version, header_len, header_crc, new_len, new_crc, count = _HEADER.unpack_from(delta)
     if version != VERSION:
         raise DeltaError('state delta version %d, this node reads version %d' % (version, VERSION))
-    if base_len != len(base) or header_crc != base_crc:
+    if header_len != base_len or header_crc != base_crc:
         raise DeltaError('the delta is against a state of %d bytes (CRC %08x), the state held has %d bytes '
-                         '(CRC %08x)' % (base_len, header_crc, len(base), base_crc))
-    parts, offset, previous = [], _HEADER.size, 0
+                         '(CRC %08x)' % (header_len, header_crc, base_len, base_crc))
+    runs, offset, previous = [], _HEADER.size, 0
     for index in range(count):
         if offset + _RUN.size > len(delta):
             raise DeltaError('state delta truncated in run %d of %d' % (index + 1, count))
@@ -175,14 +182,20 @@ def _apply(base, delta, base_crc):
         if not previous <= start <= end <= base_len or offset + length > len(delta):
             raise DeltaError('state delta run %d of %d is out of bounds (%d-%d, %d bytes of data)'
                              % (index + 1, count, start, end, length))
-        parts.append(base[previous:start])
-        parts.append(delta[offset:offset + length])
+        runs.append((start, end, delta[offset:offset + length]))
         offset += length
         previous = end
     if offset != len(delta):
         raise DeltaError('state delta has %d bytes after its last run' % (len(delta) - offset))
-    parts.append(base[previous:])
-    result = b''.join(parts)
+    return new_len, new_crc, runs
+
+
+def _apply(base, delta, base_crc):
+    """(the state rebuilt, its CRC)."""
+    base = bytes(base)
+    base_crc = crc(base) if base_crc is None else base_crc
+    new_len, new_crc, runs = _parse(delta, len(base), base_crc)
+    result = rebuild(base, runs)
     result_crc = crc(result)
     if len(result) != new_len or result_crc != new_crc:
         raise DeltaError('the state rebuilt from the delta does not match it (%d bytes, CRC %08x; the delta says '
@@ -190,22 +203,129 @@ def _apply(base, delta, base_crc):
     return result, result_crc
 
 
+# -- A state held for deltas: changes applied in place, its CRC-32 from the blocks changed ---------------
+CRC_BLOCK = 64 * 1024   # bytes per block of a StateBuffer's CRCs
+_SHIFT = []             # the four byte tables of "CRC_BLOCK zero bytes through CRC-32's register" (made once)
+
+
+def _shift_tables():
+    """Tables T[k][b] of the linear map Z (CRC_BLOCK zero bytes fed to CRC-32's register, no pre- or
+    post-conditioning), on the byte b in position k of the register. For zlib's CRC-32,
+    crc(A + B) = Z(crc(A)) ^ crc(B) when B has CRC_BLOCK bytes, and Z(v) = crc32(zeros, v) ^ crc32(zeros, 0),
+    so the 32 basis vectors come from zlib itself."""
+    if not _SHIFT:
+        zeros = bytes(CRC_BLOCK)
+        offset = zlib.crc32(zeros, 0)
+        basis = [zlib.crc32(zeros, 1 << bit) ^ offset for bit in range(32)]
+        tables = []
+        for k in range(4):
+            table = [0] * 256
+            for value in range(1, 256):
+                low = value & -value                      # the lowest bit set, and the rest already made
+                table[value] = table[value ^ low] ^ basis[8 * k + low.bit_length() - 1]
+            tables.append(table)
+        _SHIFT[:] = tables
+    return _SHIFT
+
+
+class StateBuffer(object):
+    """A state with its CRC-32 (``crc``), whose runs that keep the length are applied in place
+    (:meth:`replace`): the state is then a bytearray with the CRC-32 of each CRC_BLOCK block, and the
+    whole CRC is had from the changed blocks and a fold over the blocks' CRCs, O(changes + blocks)
+    instead of O(size) (a 10 MB state: a splice and a CRC of 10 MB cost about 5 ms per checkpoint on
+    each side). Until its first change in place it is the bytes it was made from, with their CRC
+    (``known_crc`` if the caller has it): a state captured whole costs no more than its CRC."""
+
+    def __init__(self, data, known_crc=None):
+        self.data = data if isinstance(data, bytes) else bytes(data)
+        self.blocks = None        # made at the first change in place
+        self.crc = zlib.crc32(self.data) if known_crc is None else known_crc
+
+    def __len__(self):
+        return len(self.data)
+
+    def __eq__(self, other):
+        return self.data == (other.data if isinstance(other, StateBuffer) else other)
+
+    __hash__ = None   # mutable
+
+    def bytes(self):
+        return bytes(self.data)
+
+    def _in_place(self):
+        if self.blocks is None:
+            self.data = bytearray(self.data)
+            with memoryview(self.data) as view:   # (no copy of each block; released before any resize)
+                self.blocks = [zlib.crc32(view[at:at + CRC_BLOCK]) for at in range(0, len(self.data), CRC_BLOCK)]
+
+    def _fold(self):
+        shift = _shift_tables()
+        t0, t1, t2, t3 = shift
+        full = len(self.data) // CRC_BLOCK
+        value = 0                                 # the CRC-32 of nothing
+        for block in self.blocks[:full]:
+            value = (t0[value & 255] ^ t1[(value >> 8) & 255] ^ t2[(value >> 16) & 255] ^ t3[value >> 24]) ^ block
+        if full < len(self.blocks):               # the last, shorter block: zlib goes on from the value
+            with memoryview(self.data) as view:
+                value = zlib.crc32(view[full * CRC_BLOCK:], value)
+        return value
+
+    def replace(self, runs, expect_crc=None):
+        """Apply runs [(start, end, data)] that keep their length (data as long as end - start), in order
+        and not overlapping, in place; returns the new CRC. DeltaError, changing nothing, if a run is out
+        of bounds or out of order, or if the result's CRC is not ``expect_crc`` (when given)."""
+        previous, size = 0, len(self.data)
+        for index, (start, end, data) in enumerate(runs):
+            if not previous <= start <= end <= size or len(data) != end - start:
+                raise DeltaError('run %d of %d (%d-%d, %d bytes) does not fit the %d-byte state in place'
+                                 % (index + 1, len(runs), start, end, len(data), size))
+            previous = end
+        self._in_place()
+        undo = [(start, bytes(self.data[start:end])) for start, end, _ in runs]
+        blocks, old_crc = list(self.blocks), self.crc
+        touched = set()
+        for start, end, data in runs:
+            self.data[start:end] = data
+            touched.update(range(start // CRC_BLOCK, (end - 1) // CRC_BLOCK + 1) if end > start else ())
+        with memoryview(self.data) as view:
+            for block in touched:
+                self.blocks[block] = zlib.crc32(view[block * CRC_BLOCK:(block + 1) * CRC_BLOCK])
+        self.crc = self._fold()
+        if expect_crc is not None and self.crc != expect_crc:
+            got = self.crc
+            for start, old in undo:
+                self.data[start:start + len(old)] = old
+            self.blocks, self.crc = blocks, old_crc
+            error = DeltaError('the state rebuilt has CRC %08x, expected %08x' % (got, expect_crc))
+            error.got = got
+            raise error
+        return self.crc
+
+
+def fits_in_place(runs):
+    """Whether every run keeps its length (StateBuffer.replace can take them)."""
+    return all(len(data) == end - start for start, end, data in runs)
+
+
 class DeltaEncoder(object):
     """Primary side: what to send for each new state. ``min_size``: states smaller than this are sent
-    whole (a delta's header would cost more than it saves)."""
+    whole (a delta's header would cost more than it saves). The state sent last is held as a
+    :class:`StateBuffer`: the server's own changes that keep the length are applied to it in place."""
 
     def __init__(self, min_size=1024):
         self.min_size = min_size
-        self.base = None          # the state of the previous checkpoint sent with a state
-        self.base_crc = None
+        self.base = None          # StateBuffer: the state of the previous checkpoint sent with a state
         self.version = None       # the server's version of base, when the server's own changes gave it
         self.sent_bytes = 0       # state bytes sent (deltas or whole)
         self.state_bytes = 0      # what whole states would have cost
 
+    @property
+    def base_crc(self):
+        return self.base.crc if self.base is not None else None
+
     def reset(self, state=None):
         """A full state was sent (a state transfer), or nothing is known of the backup's (None)."""
-        self.base = bytes(state) if state is not None else None
-        self.base_crc = crc(self.base) if state is not None else None
+        self.base = StateBuffer(state) if state is not None else None
         self.version = None       # the server's version of base, when the server's own changes gave it
 
     def wants_changes(self):
@@ -217,14 +337,14 @@ class DeltaEncoder(object):
     def next(self, state, version=None):
         """(payload, is_delta) for a checkpoint carrying ``state`` (of the server's ``version``, if it
         told); it becomes the next base."""
-        state = bytes(state)
-        payload, is_delta, state_crc = state, False, None
+        buffer = StateBuffer(state)
+        state = buffer.data
+        payload, is_delta = state, False
         if self.base is not None and len(state) >= self.min_size:
-            state_crc = crc(state)
-            delta = encode(self.base, state, self.base_crc, state_crc)
+            delta = encode(self.base.data, state, self.base.crc, buffer.crc)
             if len(delta) < len(state) // 2:
                 payload, is_delta = delta, True
-        return self._sent(state, state_crc if state_crc is not None else crc(state), payload, is_delta, version)
+        return self._sent(buffer, payload, is_delta, version)
 
     def next_changes(self, changes):
         """(payload, is_delta) for a checkpoint from the server's own changes (:class:`ServerChanges`)
@@ -235,44 +355,70 @@ class DeltaEncoder(object):
             return self.next(changes.state, changes.version)
         if self.base is None or self.version is None:
             raise DeltaError('the server sent changes, and this After holds no state of a version it named')
-        state = rebuild(self.base, changes.runs)
-        state_crc = crc(state)
-        if len(state) != changes.size or state_crc != changes.crc:
-            raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server says '
-                             '%d bytes (CRC %08x)' % (self.version, len(state), state_crc, changes.size, changes.crc))
-        payload, is_delta = state, False
-        if len(state) >= self.min_size:
-            delta = _pack(len(self.base), self.base_crc, len(state), state_crc, changes.runs)
-            if len(delta) < len(state) // 2:
+        base_len, base_crc = len(self.base), self.base.crc
+        if fits_in_place(changes.runs) and changes.size == base_len:
+            try:
+                self.base.replace(changes.runs, changes.crc)
+            except DeltaError as e:
+                raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
+                                 'says %d bytes (CRC %08x)' % (self.version, base_len, getattr(e, 'got', 0),
+                                                               changes.size, changes.crc))
+            buffer = self.base
+        else:
+            state = rebuild(self.base.data, changes.runs)
+            state_crc = crc(state)
+            if len(state) != changes.size or state_crc != changes.crc:
+                raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
+                                 'says %d bytes (CRC %08x)' % (self.version, len(state), state_crc, changes.size,
+                                                               changes.crc))
+            buffer = StateBuffer(state, state_crc)
+        payload, is_delta = None, False
+        if len(buffer) >= self.min_size:
+            delta = _pack(base_len, base_crc, len(buffer), buffer.crc, changes.runs)
+            if len(delta) < len(buffer) // 2:
                 payload, is_delta = delta, True
-        return self._sent(state, state_crc, payload, is_delta, changes.version)
+        if payload is None:
+            payload = buffer.bytes()
+        return self._sent(buffer, payload, is_delta, changes.version)
 
-    def _sent(self, state, state_crc, payload, is_delta, version):
-        self.base, self.base_crc, self.version = state, state_crc, version
+    def _sent(self, buffer, payload, is_delta, version):
+        self.base, self.version = buffer, version
         self.sent_bytes += len(payload)
-        self.state_bytes += len(state)
+        self.state_bytes += len(buffer)
         return payload, is_delta
 
 
 class DeltaDecoder(object):
-    """Backup side: the whole state of each checkpoint, from a whole state or a delta on the last one."""
+    """Backup side: the whole state of each checkpoint, from a whole state or a delta on the last one.
+    The state held is a :class:`StateBuffer`: a delta whose runs keep the length is applied to it in
+    place, and :meth:`state` then returns that buffer (its ``bytes()`` is the state)."""
 
     def __init__(self):
-        self.base = None
-        self.base_crc = None
-        self._rebuilt = (None, None)   # the last state rebuilt here, with its CRC (checked already)
+        self.base = None          # StateBuffer
+
+    @property
+    def base_crc(self):
+        return self.base.crc if self.base is not None else None
 
     def state(self, payload, is_delta):
-        """The whole state a checkpoint carries; DeltaError (base kept) if its delta cannot be applied."""
+        """The whole state a checkpoint carries (bytes, or this decoder's StateBuffer once a delta was
+        applied to it in place); DeltaError (base kept) if its delta cannot be applied."""
         if not is_delta:
             return bytes(payload)
         if self.base is None:
             raise DeltaError('a state delta arrived, and this backup holds no state to apply it to')
-        self._rebuilt = _apply(self.base, payload, self.base_crc)
-        return self._rebuilt[0]
+        new_len, new_crc, runs = _parse(payload, len(self.base), self.base.crc)
+        if new_len == len(self.base) and fits_in_place(runs):
+            try:
+                self.base.replace(runs, new_crc)
+            except DeltaError as e:
+                raise DeltaError('the state rebuilt from the delta does not match it (the delta says %d bytes, '
+                                 'CRC %08x): %s' % (new_len, new_crc, e))
+            return self.base
+        return _apply(self.base.data, payload, self.base.crc)[0]
 
     def accept(self, state):
-        """The checkpoint carrying ``state`` (whole) was accepted: the next delta applies to it."""
-        rebuilt, rebuilt_crc = self._rebuilt
-        self.base, self.base_crc = state, rebuilt_crc if state is rebuilt else crc(state)
-        self._rebuilt = (None, None)
+        """The checkpoint carrying ``state`` (whole, or this decoder's buffer) was accepted: the next delta
+        applies to it."""
+        if state is not self.base:
+            self.base = state if isinstance(state, StateBuffer) else StateBuffer(state)
