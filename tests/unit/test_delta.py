@@ -269,3 +269,36 @@ def test_runs_that_do_not_fit_in_place_are_refused_before_anything_changes():
         with pytest.raises(DeltaError, match='does not fit'):
             buffer.replace(runs)
         assert buffer == bytes(1000) and buffer.crc == zlib.crc32(bytes(1000))
+
+
+def test_a_state_transfer_brought_up_to_date_by_the_servers_changes_is_the_servers_state():
+    """A primary that ran alone since its last checkpoint holds that state and its version: at a join,
+    the server's changes since then (DeltaEncoder.follow) make the state transferred, and the
+    checkpoints after it are deltas the joiner applies to exactly the server's state. Changes that do
+    not rebuild the server's state are refused and change nothing."""
+    seed = int(time.time())
+    rng = random.Random(seed)
+    for case in range(40):
+        server = FakeServer(rng, bytes(rng.getrandbits(8) for _ in range(rng.choice([5000, 3 * CRC_BLOCK + 11]))))
+        encoder, decoder = DeltaEncoder(), DeltaDecoder()
+        first = encoder.next_changes(server.since(''))          # whole, with its version
+        decoder.accept(decoder.state(*first))
+        for _ in range(rng.randint(1, 6)):                     # alone: no checkpoint
+            server.change()
+        told = server.since(encoder.version)
+        if told.state is None and rng.random() < 0.3:
+            wrong = ServerChanges(told.version, runs=told.runs, size=told.size, crc=told.crc ^ 1)
+            before = (encoder.base.bytes(), encoder.base_crc, encoder.version)
+            with pytest.raises(DeltaError, match='the server says'):
+                encoder.follow(wrong)
+            assert (encoder.base.bytes(), encoder.base_crc, encoder.version) == before, 'seed %d' % seed
+        encoder.follow(told)
+        assert encoder.base == server.state and encoder.version == told.version, 'seed %d, case %d' % (seed, case)
+        joiner = DeltaDecoder()
+        joiner.accept(encoder.base.bytes())                    # the state transfer
+        for step in range(5):
+            server.change()
+            payload, is_delta = encoder.next_changes(server.since(encoder.version))
+            held = joiner.state(payload, is_delta)
+            joiner.accept(held)
+            assert held == server.state, 'seed %d, case %d, step %d' % (seed, case, step)

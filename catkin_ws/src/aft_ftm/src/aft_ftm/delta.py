@@ -234,12 +234,19 @@ class StateBuffer(object):
     whole CRC is had from the changed blocks and a fold over the blocks' CRCs, O(changes + blocks)
     instead of O(size) (a 10 MB state: a splice and a CRC of 10 MB cost about 5 ms per checkpoint on
     each side). Until its first change in place it is the bytes it was made from, with their CRC
-    (``known_crc`` if the caller has it): a state captured whole costs no more than its CRC."""
+    (``known_crc`` if the caller has it), if made ``lazy`` or with its CRC known: a state captured
+    whole for each checkpoint costs no more than its CRC. Otherwise it is made ready for changes in
+    place at once (a copy and the blocks' CRCs: 5 ms for 10 MB), so that the first change after a state
+    transfer does not pay it on the clients' path."""
 
-    def __init__(self, data, known_crc=None):
+    def __init__(self, data, known_crc=None, lazy=False):
         self.data = data if isinstance(data, bytes) else bytes(data)
-        self.blocks = None        # made at the first change in place
-        self.crc = zlib.crc32(self.data) if known_crc is None else known_crc
+        self.blocks = None        # made at the first change in place (at once unless lazy)
+        if lazy or known_crc is not None:
+            self.crc = zlib.crc32(self.data) if known_crc is None else known_crc
+        else:
+            self._in_place()
+            self.crc = self._fold()
 
     def __len__(self):
         return len(self.data)
@@ -323,10 +330,11 @@ class DeltaEncoder(object):
     def base_crc(self):
         return self.base.crc if self.base is not None else None
 
-    def reset(self, state=None):
-        """A full state was sent (a state transfer), or nothing is known of the backup's (None)."""
+    def reset(self, state=None, version=None):
+        """A full state was sent (a state transfer), of the server's ``version`` if known, or nothing is
+        known of the backup's (None)."""
         self.base = StateBuffer(state) if state is not None else None
-        self.version = None       # the server's version of base, when the server's own changes gave it
+        self.version = version if state is not None else None
 
     def wants_changes(self):
         """Whether to ask the server's own changes for the next checkpoint rather than its whole state: only
@@ -337,7 +345,7 @@ class DeltaEncoder(object):
     def next(self, state, version=None):
         """(payload, is_delta) for a checkpoint carrying ``state`` (of the server's ``version``, if it
         told); it becomes the next base."""
-        buffer = StateBuffer(state)
+        buffer = StateBuffer(state, lazy=True)
         state = buffer.data
         payload, is_delta = state, False
         if self.base is not None and len(state) >= self.min_size:
@@ -353,25 +361,8 @@ class DeltaEncoder(object):
         captures the whole state (``next``)."""
         if changes.state is not None:
             return self.next(changes.state, changes.version)
-        if self.base is None or self.version is None:
-            raise DeltaError('the server sent changes, and this After holds no state of a version it named')
-        base_len, base_crc = len(self.base), self.base.crc
-        if fits_in_place(changes.runs) and changes.size == base_len:
-            try:
-                self.base.replace(changes.runs, changes.crc)
-            except DeltaError as e:
-                raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
-                                 'says %d bytes (CRC %08x)' % (self.version, base_len, getattr(e, 'got', 0),
-                                                               changes.size, changes.crc))
-            buffer = self.base
-        else:
-            state = rebuild(self.base.data, changes.runs)
-            state_crc = crc(state)
-            if len(state) != changes.size or state_crc != changes.crc:
-                raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
-                                 'says %d bytes (CRC %08x)' % (self.version, len(state), state_crc, changes.size,
-                                                               changes.crc))
-            buffer = StateBuffer(state, state_crc)
+        base_len, base_crc = (len(self.base), self.base.crc) if self.base is not None else (0, None)
+        buffer = self._rebuilt(changes)
         payload, is_delta = None, False
         if len(buffer) >= self.min_size:
             delta = _pack(base_len, base_crc, len(buffer), buffer.crc, changes.runs)
@@ -380,6 +371,38 @@ class DeltaEncoder(object):
         if payload is None:
             payload = buffer.bytes()
         return self._sent(buffer, payload, is_delta, changes.version)
+
+    def follow(self, changes):
+        """Bring the base up to the server's state from its changes (:class:`ServerChanges`) since
+        ``self.version``, no checkpoint made of it: a state transfer then sends the base instead of a
+        whole getState (a primary that ran alone since its last checkpoint holds that state and version).
+        DeltaError (nothing changed) if they do not rebuild the server's state."""
+        if changes.state is not None:
+            self.reset(changes.state, changes.version)
+            return
+        self.base, self.version = self._rebuilt(changes), changes.version
+
+    def _rebuilt(self, changes):
+        """The base with the server's runs applied (in place where they keep the length), checked
+        against the server's size and CRC; DeltaError, the base unchanged, if it does not match."""
+        if self.base is None or self.version is None:
+            raise DeltaError('the server sent changes, and this After holds no state of a version it named')
+        base_len = len(self.base)
+        if fits_in_place(changes.runs) and changes.size == base_len:
+            try:
+                self.base.replace(changes.runs, changes.crc)
+            except DeltaError as e:
+                raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
+                                 'says %d bytes (CRC %08x)' % (self.version, base_len, getattr(e, 'got', 0),
+                                                               changes.size, changes.crc))
+            return self.base
+        state = rebuild(self.base.data, changes.runs)
+        state_crc = crc(state)
+        if len(state) != changes.size or state_crc != changes.crc:
+            raise DeltaError('the server\'s changes since version %s rebuild %d bytes (CRC %08x); the server '
+                             'says %d bytes (CRC %08x)' % (self.version, len(state), state_crc, changes.size,
+                                                           changes.crc))
+        return StateBuffer(state, state_crc)
 
     def _sent(self, buffer, payload, is_delta, version):
         self.base, self.version = buffer, version
