@@ -34,7 +34,8 @@ class Impostor(object):
     """A TCPROS endpoint (TLS with ``party``'s certificate, or in clear) answering a subscription as
     ``callerid``, behind an XML-RPC server whose requestTopic names it (or ``protocol``)."""
 
-    def __init__(self, directory, party, callerid, protocol=None):
+    def __init__(self, directory, party, callerid, protocol=None, answer=None):
+        self.answer = answer or (lambda sock, header: {'callerid': self.callerid, 'type': '*', 'md5sum': '*'})
         self.listener = socket.socket()
         self.listener.bind(('127.0.0.1', 0))
         self.listener.listen(4)
@@ -58,8 +59,8 @@ class Impostor(object):
                 sock.settimeout(5.0)
                 if self.context is not None:
                     sock = self.context.wrap_socket(sock, server_side=True)
-                read_ros_handshake_header(sock, io.BytesIO(), 65536)
-                sock.sendall(encode_ros_handshake_header({'callerid': self.callerid, 'type': '*', 'md5sum': '*'}))
+                header = read_ros_handshake_header(sock, io.BytesIO(), 65536)
+                sock.sendall(encode_ros_handshake_header(self.answer(sock, header)))
             except (OSError, ssl.SSLError, Exception):
                 pass
             finally:
@@ -142,3 +143,51 @@ def test_a_registration_naming_this_nodes_own_tcpros_server_proves_nothing(node,
     finally:
         impostor.close()
     assert why is not None and "this node's own TCPROS address" in why, why
+
+
+def test_a_proof_that_comes_back_to_the_node_that_made_it_proves_nothing(node):
+    """A relay (or another address of this host) can lead the proof back to this very node, which would
+    answer as itself with its own certificate: the proof's subscription carries a nonce, and a node
+    refuses a subscription carrying one of its own proofs under way."""
+    handle = tls_transport._guard(lambda sock, addr, header: None, 'subscribe', 'topic')
+    tls_transport._PROOFS.add('n0nce')
+    try:
+        refused = handle(None, ('127.0.0.1', 1), {'topic': '/rosout', 'callerid': '/slave/protocol',
+                                                  tls_transport.PROOF_FIELD: 'n0nce'})
+    finally:
+        tls_transport._PROOFS.discard('n0nce')
+    assert refused and 'reached the node that made it' in refused
+
+    def own_guard(sock, header):   # this node's own server behind the impostor's address: its _guard answers
+        why = handle(sock, ('127.0.0.1', 1), header)
+        return {'error': why} if why else {'callerid': '/slave/protocol', 'type': '*', 'md5sum': '*'}
+    back = Impostor(node, 'slave', '/slave/protocol', answer=own_guard)
+    try:
+        why = tls_transport.name_proof(back.uri, '/slave/protocol', timeout=2.0)
+    finally:
+        back.close()
+    assert why is not None and 'reached the node that made it' in why, why
+    assert not tls_transport._PROOFS   # the nonce is dropped once the proof ends
+
+
+def test_a_proof_is_bounded_in_all_and_a_node_that_no_name_binds_gives_way(node, monkeypatch):
+    """A registration whose API answers a byte at a time must not hold the node: the whole proof is
+    awaited NAME_PROOF_TIMEOUT at most. And where the policy binds this node's party to no names,
+    nobody can prove one: the node gives way, as plain rospy does (two such nodes would otherwise take
+    the name from each other for ever)."""
+    import time
+    slow = SimpleXMLRPCServer(('127.0.0.1', 0), logRequests=False, allow_none=True)
+    slow.register_function(lambda caller, topic, protocols: time.sleep(1.2) or [1, "late", []], 'requestTopic')
+    threading.Thread(target=slow.serve_forever, daemon=True).start()
+    monkeypatch.setattr(tls_transport, 'NAME_PROOF_TIMEOUT', 0.5)
+    try:
+        started = time.monotonic()
+        why = tls_transport._proof_within('http://127.0.0.1:%d/' % slow.server_address[1], '/slave/protocol')
+        assert why is not None and time.monotonic() - started < 1.5, why
+    finally:
+        slow.shutdown()
+        slow.server_close()
+    monkeypatch.setitem(tls_transport._STATE, 'party', 'anyname')   # bound to no names
+    import rospy
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/protocol')
+    assert tls_transport.contest_name('http://127.0.0.1:1/') is None

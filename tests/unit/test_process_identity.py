@@ -168,13 +168,15 @@ def test_the_fake_proc_passes_the_node_itself(tmp_path):
                                                                   proc=other)
 
 
-def test_only_a_process_above_a_learned_node_and_not_above_the_asker_is_its_launcher():
+def test_only_the_parent_of_a_learned_node_and_not_above_the_asker_is_its_launcher():
     """Recovery kills the process tree of the failed site's launcher, named by a heartbeat or a failure
-    report that anyone may forge: the pid must be above a node learned of the name space by pid (when it
-    was learned), and not above Recovery itself (the shell or test both sites come from, init)."""
+    report that anyone may forge: the pid must be the parent of a node learned of the name space by pid
+    (when it was learned; roslaunch starts its nodes itself), not a process further up (a daemon such as
+    sshd), and not above Recovery itself (the shell or test both sites come from, init)."""
     from aft_ftm.ros.fencing import NamespaceFence, _lineage
     import psutil
     launcher = subprocess.Popen(['bash', '-c', 'sleep 60 & wait'])
+    daemon = subprocess.Popen(['bash', '-c', 'bash -c "sleep 60 & wait" & wait'])   # a daemon above a launcher
     try:
         deadline = time.monotonic() + 10.0
         while not psutil.Process(launcher.pid).children() and time.monotonic() < deadline:
@@ -186,8 +188,17 @@ def test_only_a_process_above_a_learned_node_and_not_above_the_asker_is_its_laun
         assert fence.started(launcher.pid, created) == '/master/node'
         assert fence.started(launcher.pid, created + 5.0) is None          # the pid reused by another process
         assert fence.started(node.pid, node.create_time()) is None         # the node itself launched nothing
+        while len(psutil.Process(daemon.pid).children(recursive=True)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        inner = psutil.Process(daemon.pid).children()[0]
+        fence.lineage['/master/deep'] = _lineage(inner.children()[0].pid)
+        assert fence.started(inner.pid, inner.create_time()) == '/master/deep'
+        assert fence.started(daemon.pid, psutil.Process(daemon.pid).create_time()) is None   # further up
         for above_me in [os.getpid(), os.getppid(), 1]:
             assert fence.started(above_me, psutil.Process(above_me).create_time()) is None
+        fence.lineage['/master/node'] = _lineage(launcher.pid)              # a node whose parent is above me
+        assert fence.started(os.getpid(), psutil.Process().create_time()) is None
+        fence.lineage['/master/node'] = _lineage(node.pid)
         stranger = subprocess.Popen(['sleep', '60'])
         try:
             assert fence.started(stranger.pid, psutil.Process(stranger.pid).create_time()) is None
@@ -195,7 +206,8 @@ def test_only_a_process_above_a_learned_node_and_not_above_the_asker_is_its_laun
             stranger.kill()
             stranger.wait()
     finally:
-        for child in psutil.Process(launcher.pid).children(recursive=True):
-            child.kill()
-        launcher.kill()
-        launcher.wait()
+        for root in (launcher, daemon):
+            for child in psutil.Process(root.pid).children(recursive=True):
+                child.kill()
+            root.kill()
+            root.wait()

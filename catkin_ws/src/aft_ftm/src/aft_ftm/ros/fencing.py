@@ -110,7 +110,7 @@ class NamespaceFence(object):
         self.unlearned = []    # nodes under the name space the last learn() could not learn
         self.refused = {}      # node name -> why the pid its API gave is not its process (never signalled)
         self.aliases = []      # names the last shut_down_the_rest did not ask: their URI is another node's
-        self.lineage = {}      # node name -> [(pid, create_time)] of the processes above it, not above this one
+        self.lineage = {}      # node name -> [(pid, create_time)] of its parent, if that is not above this process
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -123,9 +123,10 @@ class NamespaceFence(object):
         ``unlearned`` names the nodes it could not learn this time."""
         unlearned = []
         current = self.node_names()
-        with self.lock:   # a refused registration gone from the master is forgotten
-            for name in [n for n in self.refused if n not in current]:
-                del self.refused[name]
+        with self.lock:   # a refused, remote or learned registration gone from the master is forgotten
+            for table in (self.refused, self.remote, self.lineage):
+                for name in [n for n in table if n not in current]:
+                    del table[name]
         for name in current:
             if name in self.known and self._still(self.known[name]):
                 continue
@@ -135,6 +136,7 @@ class NamespaceFence(object):
                 if not is_local(uri):
                     with self.lock:
                         self.remote[name] = uri
+                        self.lineage.pop(name, None)
                     unlearned.pop()
                     continue
                 code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
@@ -150,6 +152,7 @@ class NamespaceFence(object):
                     with self.lock:
                         self.known[name] = (pid, created)
                         self.lineage[name] = lineage
+                        self.remote.pop(name, None)
                         self.refused.pop(name, None)
                     unlearned.pop()
             except Exception:   # a node going away while we ask: learned next time, or never needed
@@ -158,11 +161,11 @@ class NamespaceFence(object):
         return len(self.known)
 
     def started(self, pid, created):
-        """The name of a learned node of the name space that the process ``pid`` (created at
-        ``created``) started, directly or not, or None. Only such a process is the name space's
-        launcher: a heartbeat or a failure report naming any other pid (forged, or a pid reused since)
-        never has its process tree killed. Processes above this one too (the shell or test both sites
-        were started from, init) are nobody's launcher."""
+        """The name of a node of the name space, learned and still registered, whose parent is the
+        process ``pid`` (created at ``created``), or None. Only such a process is the name space's
+        launcher (roslaunch starts its nodes itself): a heartbeat or a failure report naming any other
+        pid (forged, or a pid reused since; a daemon further up, as sshd or a tmux server) never has its
+        process tree killed. A parent above this process too is nobody's launcher."""
         with self.lock:
             lineage = dict(self.lineage)
         for name, above in sorted(lineage.items()):
@@ -253,9 +256,10 @@ class NamespaceFence(object):
 
 
 def _lineage(pid):
-    """[(pid, create_time)] of the processes above ``pid`` that are not above this process."""
+    """[(pid, create_time)] of the parent of ``pid``, if it is not this process or above it; else []."""
     mine = {p.pid for p in psutil.Process().parents()} | {os.getpid()}
-    return [(p.pid, p.create_time()) for p in psutil.Process(pid).parents() if p.pid not in mine]
+    parent = psutil.Process(pid).parent()
+    return [(parent.pid, parent.create_time())] if parent is not None and parent.pid not in mine else []
 
 
 def endpoints(uri):

@@ -319,6 +319,7 @@ class PbrAfterNode(AfterNode):
         """Backup: apply the newest checkpointed state now, so a replacement After (or another
         mechanism) finds the server up to date."""
         with self.lock:
+            self._wait_applier()
             self._apply_locked()
 
     # -- helpers ------------------------------------------------------------------------
@@ -801,6 +802,8 @@ class PbrAfterNode(AfterNode):
         started = time.monotonic()
         try:
             error = self._set_server_state(taken[1])
+        except Exception as e:   # never a state lost without a word (the Timer thread goes on)
+            error = 'cannot set the server state: %s' % e
         finally:
             with self.lock:
                 ended = time.monotonic()
@@ -829,11 +832,17 @@ class PbrAfterNode(AfterNode):
             self.set_state = self.set_state.fresh()
             return 'cannot set the server state: %s' % e
 
-    def _apply_locked(self):
-        """Apply the newest checkpointed state to the server now (self.lock held: a promotion, a
-        suspension), after the applier's call under way if there is one; on failure the backup is invalid."""
+    def _wait_applier(self):
+        """(self.lock held) Wait for the applier's set_state under way, if any. The lock is released
+        meanwhile: a caller waits first, before it looks at the role or the state, so that nothing it
+        checked changes under it (two promotions once both went through)."""
         while self.applying:
-            self.applied.wait()   # (self.lock released meanwhile: a newer checkpoint may come; it is applied below)
+            self.applied.wait()
+
+    def _apply_locked(self):
+        """Apply the newest checkpointed state to the server now (self.lock held, the applier waited
+        for: a promotion, a suspension); on failure the backup is invalid."""
+        self._wait_applier()   # (a no-op when the caller waited first, as it must)
         taken = self._take_pending()
         if taken is None:
             return
@@ -883,6 +892,7 @@ class PbrAfterNode(AfterNode):
         role = Role(req.role)
         told_alone = False
         with self.lock:
+            self._wait_applier()   # first: the role checked below stays what it is
             try:
                 if self.role == Role.BACKUP and role == Role.ALONE:
                     self._apply_locked()

@@ -34,8 +34,12 @@ from .. import tls
 from ..errors import ConfigError
 
 HANDSHAKE_TIMEOUT = 5.0
-NAME_PROOF_TIMEOUT = 2.0   # s per step of checking a node that took this node's name at the master
-_CONTEST = threading.Lock()
+NAME_PROOF_TIMEOUT = 2.0   # s in all to check a node that took this node's name at the master
+PROOF_SLOTS = 4            # such checks at once, at most
+PROOF_FIELD = 'aft_name_proof'   # the nonce of a name proof, in its subscription header
+_PROOF_SLOTS = threading.BoundedSemaphore(PROOF_SLOTS)
+_PROOFS = set()            # the nonces of this process's proofs under way
+_REGISTERING = {'running': False, 'again': False}
 CRL_PERIOD = 0.25   # s between two looks at the revocation list and the live connections' expiry
 _STATE = {}
 _PEERS = weakref.WeakKeyDictionary()   # inbound socket -> its peer's party (None: in clear)
@@ -162,13 +166,20 @@ def name_proof(uri, own, timeout=NAME_PROOF_TIMEOUT):
     """None if the node registered at ``uri`` proves it may run the name ``own``; else why not. The
     master's XML-RPC API is open: anyone can register any name, and the master then asks the node that
     had it to shut down. The proof: the TCPROS server that ``uri`` gives for ``/rosout`` (every rospy
-    node publishes it) is another process than this one, completes a TLS handshake with a certificate
-    of the CA, not revoked, whose party the policy binds to node names that include ``own``, and
-    answers a subscription to ``/rosout`` as node ``own``. Each step within ``timeout`` s."""
+    node publishes it) completes a TLS handshake with a certificate of the CA, not revoked, whose party
+    the policy binds to node names that include ``own``, and answers a subscription to ``/rosout`` as
+    node ``own``; and it is not this very node (its own address, or any way back to it: a relay,
+    another address of this host): the subscription carries a nonce, and this node refuses a
+    subscription carrying one of its own proofs under way (_guard). Each step within what is left of
+    ``timeout`` s (the caller bounds the whole: contest_name)."""
     from rosgraph.network import encode_ros_handshake_header, read_ros_handshake_header
     from .fencing import is_local, node_api
+    deadline = time.monotonic() + timeout
+
+    def left():
+        return max(0.05, deadline - time.monotonic())
     try:
-        code, said, protocol = node_api(uri, timeout).requestTopic(own, '/rosout', [['TCPROS']])
+        code, said, protocol = node_api(uri, left()).requestTopic(own, '/rosout', [['TCPROS']])
     except Exception as e:
         return 'its XML-RPC API at %s does not answer (%s)' % (uri, str(e)[:80])
     if code != 1 or not isinstance(protocol, list) or len(protocol) != 3 or protocol[0] != 'TCPROS':
@@ -178,14 +189,18 @@ def name_proof(uri, own, timeout=NAME_PROOF_TIMEOUT):
     if port == own_port and (host == own_host or is_local('http://%s:1/' % host)):
         return 'it gives this node\'s own TCPROS address'
     try:
-        plain = socket.create_connection((host, port), timeout)
+        plain = socket.create_connection((host, port), left())
     except (OSError, TypeError, ValueError) as e:
         return 'its TCPROS address %s:%s cannot be reached (%s)' % (host, port, e)
     try:
+        plain.settimeout(left())
         secured = _STATE['client'].wrap_socket(plain)
     except (ssl.SSLError, OSError) as e:
         plain.close()
         return 'no TLS handshake with a certificate of the CA at %s:%s (%s)' % (host, port, str(e)[:80])
+    nonce = os.urandom(16).hex()
+    with _LOCK:
+        _PROOFS.add(nonce)
     try:
         certificate = secured.getpeercert()
         party = tls.party_of(certificate)
@@ -195,16 +210,21 @@ def name_proof(uri, own, timeout=NAME_PROOF_TIMEOUT):
         if party is None or _STATE['permissions'].nodes.get(party) is None \
                 or _STATE['permissions'].names_node(party, own):
             return 'its certificate (party %s) may not run a node named %s' % (party, own)
+        secured.settimeout(left())
         secured.sendall(encode_ros_handshake_header({'topic': '/rosout', 'md5sum': '*', 'type': '*',
-                                                     'callerid': own}))
+                                                     'callerid': own, PROOF_FIELD: nonce}))
+        secured.settimeout(left())
         import io
         header = read_ros_handshake_header(secured, io.BytesIO(), 65536)
         if header.get('callerid') != own:
-            return 'its TCPROS server answers as %r, not %s' % (header.get('callerid'), own)
+            return 'its TCPROS server answers as %r, not %s%s' % (
+                header.get('callerid'), own, ' (%s)' % header['error'][:80] if header.get('error') else '')
         return None
     except Exception as e:
         return 'its TCPROS server at %s:%s did not answer as %s (%s)' % (host, port, own, str(e)[:80])
     finally:
+        with _LOCK:
+            _PROOFS.discard(nonce)
         secured.close()
 
 
@@ -220,18 +240,17 @@ def _own_tcpros_address():
 def contest_name(uri):
     """Under TLS, the master maps this node's name to ``uri``: None if that node proves the name
     (name_proof: this node must give way), else why not, after raising the alarm ``tls name_taken``
-    (at most once per URI every 10 s) and registering this node again in a thread of its own, which
-    maps the name back (the master then sends the impostor's address the shutdown). One proof at a
-    time: a contest waits for the one running (a flood of them is not proven)."""
+    (at most once per URI every 10 s) and registering this node again (one thread at a time), which
+    maps the name back (the master then sends the impostor's address the shutdown). A proof takes at
+    most NAME_PROOF_TIMEOUT in all (a peer answering a byte at a time holds a thread of its own, not
+    the caller), and at most PROOF_SLOTS run at once (more are not proven). A node whose own party
+    the policy binds to no names can prove nothing, nor can its successor: it gives way, as plain
+    rospy does."""
     import rospy
     own = rospy.get_name()
-    if not _CONTEST.acquire(timeout=3 * NAME_PROOF_TIMEOUT + 1.0):   # one proof at a time (a flood: refused)
-        why = 'other registrations of this name are still being checked'
-    else:
-        try:
-            why = name_proof(uri, own)
-        finally:
-            _CONTEST.release()
+    if _STATE['permissions'].nodes.get(_STATE['party']) is None:
+        return None
+    why = _proof_within(uri, own)
     if why is None:
         return None
     key = ('name_taken', uri[:120])
@@ -239,12 +258,48 @@ def contest_name(uri):
     with _LOCK:
         told = now - _TOLD.get(key, -1e9) < 10.0
         if not told:
+            if len(_TOLD) > 1000:   # URIs an attacker chooses: bounded
+                _TOLD.clear()
             _TOLD[key] = now
+        start = not _REGISTERING['running']
+        _REGISTERING['running'] = True
+        _REGISTERING['again'] = not start
     if not told:
         _alarm('name_taken', 'the ROS master maps %s to %s now, which does not prove the name (%s): this node '
                'goes on and registers its name again' % (own, uri, why))
-    threading.Thread(target=_register_again, name='tls_name_back', daemon=True).start()
+    if start:
+        threading.Thread(target=_register_until_done, name='tls_name_back', daemon=True).start()
     return why
+
+
+def _proof_within(uri, own):
+    """name_proof in a daemon thread of its own, awaited NAME_PROOF_TIMEOUT (+0.5 s) at most."""
+    if not _PROOF_SLOTS.acquire(blocking=False):
+        return '%d registrations of this name are being checked already' % PROOF_SLOTS
+    result = {}
+
+    def run():
+        try:
+            result['why'] = name_proof(uri, own)
+        except Exception as e:   # (never a proof by accident)
+            result['why'] = 'the check failed: %s' % e
+        finally:
+            _PROOF_SLOTS.release()
+    worker = threading.Thread(target=run, name='tls_name_proof', daemon=True)
+    worker.start()
+    worker.join(NAME_PROOF_TIMEOUT + 0.5)
+    return result.get('why', 'no proof within %.1f s' % NAME_PROOF_TIMEOUT)
+
+
+def _register_until_done():
+    """Register this node again, and once more if the name was taken again meanwhile."""
+    while True:
+        _register_again()
+        with _LOCK:
+            if not _REGISTERING['again']:
+                _REGISTERING['running'] = False
+                return
+            _REGISTERING['again'] = False
 
 
 def _register_again():
@@ -359,6 +414,11 @@ def _guard_handlers(server):
 def _guard(handler, action, key):
     def handle(sock, client_addr, header):
         name = header.get(key, '?')
+        if header.get(PROOF_FIELD):
+            with _LOCK:
+                own_proof = header[PROOF_FIELD] in _PROOFS
+            if own_proof:   # a name proof of this node that came back to it: it proves nothing
+                return 'refused: this name proof reached the node that made it'
         if header.get('probe') == '1' and action == 'call':
             # rospy.wait_for_service's probe: a bare header, in clear, closed unanswered; it learns only
             # that the service is there, which the master tells anyone
