@@ -131,14 +131,7 @@ def _refuse_xmlrpc_shutdowns():
                 return current(handler, caller_id, msg)
             return 0, 'refused: %s; this node goes on and registers its name again' % why, 0
         key = ('xmlrpc', str(caller_id)[:80], str(msg)[:120])
-        now = time.monotonic()
-        with _LOCK:
-            told = now - _TOLD.get(key, -1e9) < 10.0
-            if not told:
-                if len(_TOLD) > 1000:   # names an attacker chooses: bounded
-                    _TOLD.clear()
-                _TOLD[key] = now
-        if not told:
+        if _first_in_a_while(key):
             _alarm('shutdown_refused', 'a shutdown asked over XML-RPC by %r (%r) refused: under TLS a node stops '
                    'by a signal on its own host (roslaunch, the Adaptation Engine, a power switch), since anyone '
                    'on the network can call its XML-RPC API' % key[1:])
@@ -253,14 +246,8 @@ def contest_name(uri):
     why = _proof_within(uri, own)
     if why is None:
         return None
-    key = ('name_taken', uri[:120])
-    now = time.monotonic()
+    told = not _first_in_a_while(('name_taken', uri[:120]))
     with _LOCK:
-        told = now - _TOLD.get(key, -1e9) < 10.0
-        if not told:
-            if len(_TOLD) > 1000:   # URIs an attacker chooses: bounded
-                _TOLD.clear()
-            _TOLD[key] = now
         start = not _REGISTERING['running']
         _REGISTERING['running'] = True
         _REGISTERING['again'] = not start
@@ -551,16 +538,23 @@ def _look_once(now):
         _alarm(judged[0], 'cut the connection: %s' % judged[1])
 
 
-def _refused(peer, name, why):
-    key = (str(peer[0]) if peer else '?', name, why[:120])   # each peer's reason apart (one host, NAT)
+def _first_in_a_while(key, period=10.0):
+    """Whether ``key`` was not told in the last ``period`` s (and it is now): one alarm per key and
+    period. The keys are what an attacker chooses (names, URIs): at most 1000 are kept."""
     now = time.monotonic()
     with _LOCK:
-        if now - _TOLD.get(key, -1e9) < 10.0:
-            return
-        if len(_TOLD) > 1000:   # names an attacker chooses: bounded
+        if now - _TOLD.get(key, -1e9) < period:
+            return False
+        if len(_TOLD) > 1000:
             _TOLD.clear()
         _TOLD[key] = now
-    _alarm('connection_refused', '%s from %s: %s' % (name, key[0], why))
+        return True
+
+
+def _refused(peer, name, why):
+    key = (str(peer[0]) if peer else '?', name, why[:120])   # each peer's reason apart (one host, NAT)
+    if _first_in_a_while(key):
+        _alarm('connection_refused', '%s from %s: %s' % (name, key[0], why))
 
 
 def _alarm(kind, detail):
