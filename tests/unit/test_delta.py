@@ -302,3 +302,77 @@ def test_a_state_transfer_brought_up_to_date_by_the_servers_changes_is_the_serve
             held = joiner.state(payload, is_delta)
             joiner.accept(held)
             assert held == server.state, 'seed %d, case %d, step %d' % (seed, case, step)
+
+
+def in_place_change(rng, state):
+    """A change that keeps the length (the bank's balance, a map's cells): applied in place by the decoder."""
+    state = bytearray(state)
+    for _ in range(rng.randint(1, 4)):
+        at = rng.randrange(len(state))
+        piece = rng.randbytes(rng.choice([1, 8, 100, CRC_BLOCK + 3]))
+        state[at:at + len(piece)] = piece[:len(state) - at]
+    return bytes(state)
+
+
+def hostile(rng, payload, history, other):
+    """A delta as an attacker or a faulty link would hand it on: an old one replayed, one byte flipped,
+    cut short, grown, or one of another stream."""
+    kind = rng.choice(['replay', 'flip', 'cut', 'grow', 'other'])
+    if kind == 'replay' and history:
+        return kind, rng.choice(history)
+    if kind == 'flip':
+        at = rng.randrange(len(payload))
+        return kind, payload[:at] + bytes([payload[at] ^ (1 << rng.randrange(8))]) + payload[at + 1:]
+    if kind == 'cut':
+        return kind, payload[:rng.randrange(len(payload))]
+    if kind == 'grow':
+        return kind, payload + rng.randbytes(rng.randint(1, 20))
+    return 'other', other
+
+
+def test_a_backup_handed_replayed_altered_or_foreign_deltas_keeps_its_state_or_takes_exactly_what_they_say():
+    """The backup's decoder, fed the primary's stream of deltas (changes in place, and some that change
+    the length) with hostile ones between them (replayed, one bit flipped, cut, grown, of another
+    stream): each one is refused by name (DeltaError) and leaves the state held as it was, or, where it
+    happens to fit the state held (a replay onto an equal state), gives what the plain rebuild of the
+    state held gives; the next genuine delta then rebuilds the primary's state exactly."""
+    seed = int(time.time() * 1000) % 100000
+    rng = random.Random(seed)
+    for case in range(12):
+        size = rng.choice([1500, CRC_BLOCK - 5, 2 * CRC_BLOCK + 7])
+        state, stranger_state = rng.randbytes(size), rng.randbytes(size)
+        encoder, stranger, decoder = DeltaEncoder(), DeltaEncoder(), DeltaDecoder()
+        decoder.accept(decoder.state(*encoder.next(state)))
+        stranger.next(stranger_state)
+        history, refused = [], 0
+        for step in range(60):
+            state = in_place_change(rng, state) if rng.random() < 0.8 else mutate(rng, state)
+            payload, is_delta = encoder.next(state)
+            stranger_state = in_place_change(rng, stranger_state)
+            other, _ = stranger.next(stranger_state)
+            if is_delta and rng.random() < 0.4:
+                kind, bad = hostile(rng, payload, history, other)
+                held = decoder.base.bytes()
+                try:
+                    expected = apply(held, bad)
+                except DeltaError:
+                    expected = None
+                try:
+                    got = decoder.state(bad, True)
+                except DeltaError:
+                    refused += 1
+                    assert expected is None, 'seed %d, case %d, step %d: %s refused, yet it fits' % (
+                        seed, case, step, kind)
+                    assert decoder.base == held and decoder.base_crc == zlib.crc32(held), \
+                        'seed %d, case %d, step %d: a refused %s delta changed the state held' % (seed, case, step, kind)
+                else:
+                    assert expected is not None and got == expected, 'seed %d, case %d, step %d: %s' % (
+                        seed, case, step, kind)
+                    decoder.accept(got)   # (it fitted: the primary's next delta will not, and is refused)
+                    break
+            rebuilt = decoder.state(payload, is_delta)
+            assert rebuilt == state, 'seed %d, case %d, step %d' % (seed, case, step)
+            decoder.accept(rebuilt)
+            if is_delta:
+                history.append(payload)
+        assert refused or not history, 'seed %d, case %d: no hostile delta was tried' % (seed, case)

@@ -211,3 +211,60 @@ def test_only_the_parent_of_a_learned_node_and_not_above_the_asker_is_its_launch
                 child.kill()
             root.kill()
             root.wait()
+
+
+class FakeMaster(object):
+    """What NamespaceFence asks the ROS master: the names registered and each one's API uri."""
+
+    def __init__(self):
+        self.uris = {}
+
+    def getSystemState(self):
+        return [['/topic', sorted(self.uris)]], [], []
+
+    def lookupNode(self, name):
+        return self.uris[name]
+
+
+def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_not_forged(started, monkeypatch):
+    """A power loss kills a site's nodes and nobody unregisters them: on a busy host another process
+    may then listen on a dead node's port and answer its API. Fencing must not signal that process,
+    and must not raise fence_refused (no forgery: the uri is the one the node was learned at).
+    A registration at another uri naming a process that is not the node stays refused."""
+    from aft_ftm.ros import fencing
+    pids = {}   # port -> the pid the API there answers
+
+    class Api(object):
+        def __init__(self, uri, _timeout):
+            self.port = int(uri.rsplit(':', 1)[1].strip('/'))
+
+        def getPid(self, _caller):
+            return 1, '', pids[self.port]
+    monkeypatch.setattr(fencing, 'node_api', Api)
+    fence = fencing.NamespaceFence('/master', '/test')
+    fence.master = FakeMaster()
+    node, port = started(['__name:=after'], {'ROS_NAMESPACE': '/master'})
+    pids[port] = node.pid
+    fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % port
+    fence.learn()
+    assert fence.known['/master/after'][0] == node.pid and not fence.unlearned
+    node.kill()
+    node.wait()
+    stranger, same_port = started([], {'PORT': str(port)})   # another process binds the dead node's port
+    assert same_port == port
+    pids[port] = stranger.pid
+    fence.learn()
+    assert fence.refused == {} and '/master/after' in fence.stale and fence.unlearned == ['/master/after']
+    assert fence.processes() == {}   # nothing to signal
+    # the name registered again at another uri whose process is not the node: a forgery, refused
+    other, other_port = started([], {})
+    pids[other_port] = other.pid
+    fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % other_port
+    fence.learn()
+    assert 'runs in name space /, not in' in fence.refused['/master/after'], fence.refused
+    # the node started again under its name, at a port of its own: learned
+    again, again_port = started(['__name:=after'], {'ROS_NAMESPACE': '/master'})
+    pids[again_port] = again.pid
+    fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % again_port
+    fence.learn()
+    assert fence.known['/master/after'][0] == again.pid and not fence.refused and not fence.stale

@@ -111,6 +111,8 @@ class NamespaceFence(object):
         self.refused = {}      # node name -> why the pid its API gave is not its process (never signalled)
         self.aliases = []      # names the last shut_down_the_rest did not ask: their URI is another node's
         self.lineage = {}      # node name -> [(pid, create_time)] of its parent, if that is not above this process
+        self.uris = {}         # node name -> the API uri its known process was learned at
+        self.stale = {}        # node name -> why: its known process died, its registration (same uri) stayed
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -124,7 +126,7 @@ class NamespaceFence(object):
         unlearned = []
         current = self.node_names()
         with self.lock:   # a refused, remote or learned registration gone from the master is forgotten
-            for table in (self.refused, self.remote, self.lineage):
+            for table in (self.refused, self.remote, self.lineage, self.stale):
                 for name in [n for n in table if n not in current]:
                     del table[name]
         for name in current:
@@ -142,6 +144,12 @@ class NamespaceFence(object):
                 code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
                 if code == 1:
                     why = node_process_problem(pid, name, uri)
+                    if why and name in self.known and self.uris.get(name) == uri:
+                        # The node learned there died (a power loss: nobody unregistered it) and its port now
+                        # reaches another process of this busy host: no forgery, nothing to signal or to say.
+                        with self.lock:
+                            self.stale[name] = why
+                        continue
                     if why:   # a forged registration: that process is never killed for this name space
                         with self.lock:
                             self.refused[name] = why
@@ -151,9 +159,11 @@ class NamespaceFence(object):
                     lineage = _lineage(pid)
                     with self.lock:
                         self.known[name] = (pid, created)
+                        self.uris[name] = uri
                         self.lineage[name] = lineage
                         self.remote.pop(name, None)
                         self.refused.pop(name, None)
+                        self.stale.pop(name, None)
                     unlearned.pop()
             except Exception:   # a node going away while we ask: learned next time, or never needed
                 continue
