@@ -84,10 +84,11 @@ def listening_ports(pid, proc='/proc'):
     return {port for _, port in listening_sockets(pid, proc)}
 
 
-def _addresses_of(host):
-    """The addresses ``host`` resolves to (itself if it is one); empty if it does not resolve."""
+def addresses_of(host):
+    """The addresses ``host`` resolves to (itself if it is one), without an IPv6 scope (as the kernel's
+    socket tables show them); empty if it does not resolve."""
     try:
-        return {info[4][0] for info in socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)}
+        return {info[4][0].split('%', 1)[0] for info in socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)}
     except (socket.gaierror, UnicodeError, ValueError):
         return set()
 
@@ -151,7 +152,7 @@ def node_process_problem(pid, node, uri, proc='/proc'):
             return 'pid %d is the process asking (%s at %s said it was)' % (pid, node, uri)
         # Listening on the URI's port at its address (or on every address), and nobody else there: a
         # server on another address of the host (127.0.0.2, ::1) with the same port is another process.
-        addresses = _addresses_of(host)
+        addresses = addresses_of(host)
         there = [(a, inode) for a, p, inode in _listening_table(pid, proc)
                  if p == port and (a in addresses or a in WILDCARDS)]
         own = _socket_inodes(pid, proc)

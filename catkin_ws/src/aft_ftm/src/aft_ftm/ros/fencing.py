@@ -10,7 +10,6 @@ under TLS they refuse, and the switch is the only way).
 import ipaddress
 import os
 import signal
-import socket
 import threading
 import xmlrpc.client
 from urllib.parse import urlparse
@@ -19,7 +18,7 @@ import psutil
 import rosgraph
 import rosnode
 
-from ..process_identity import node_process_problem
+from ..process_identity import addresses_of, node_process_problem
 from ..sites import this_host
 
 
@@ -37,13 +36,6 @@ class _TimeoutTransport(xmlrpc.client.Transport):
 def node_api(uri, timeout):
     """An XML-RPC proxy to a node's API that gives up after timeout seconds."""
     return xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport(timeout))
-
-
-def _resolved(host):
-    try:
-        return {info[4][0].split('%', 1)[0] for info in socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)}
-    except (socket.gaierror, UnicodeError, ValueError):
-        return set()
 
 
 def _here(address, own=()):
@@ -67,8 +59,8 @@ def is_local(uri):
         return False
     if host in (this_host(), 'localhost') or host.startswith('127.'):
         return True
-    own = _resolved(this_host())
-    return any(_here(a, own) for a in _resolved(host))
+    own = addresses_of(this_host())
+    return any(_here(a, own) for a in addresses_of(host))
 
 
 class NotTheNode(Exception):
@@ -280,8 +272,8 @@ def endpoints(uri):
         host, port = parsed.hostname or '', parsed.port
     except ValueError:
         return {(uri, None)}
-    own = _resolved(this_host())
-    found = {('here' if _here(a, own) else a, port) for a in _resolved(host)}
+    own = addresses_of(this_host())
+    found = {('here' if _here(a, own) else a, port) for a in addresses_of(host)}
     return found or {(host, port)}
 
 
