@@ -37,8 +37,10 @@ def test_an_exclusive_deadline_makes_no_call_while_an_abandoned_one_may_still_la
     with pytest.raises(CallPending, match='may still take effect'):
         deadline.call(server.set, 5.0, 'S2')
     assert server.applied == []
+    assert deadline.abandoned() is abandoned.value.future   # what a promotion waits for (PBR's After)
     server.held.set()
     abandoned.value.future.result(5.0)
+    assert deadline.abandoned() is None
     assert deadline.call(server.set, 5.0, 'S2') == 'S2'
     assert server.applied == ['S1', 'S2'] and server.state == 'S2'
 

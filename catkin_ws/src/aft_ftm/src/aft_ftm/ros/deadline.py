@@ -102,6 +102,12 @@ class Deadline(object):
                 self._abandoned = future
             raise CallTimeout('no answer within %.3f s' % timeout, future)
 
+    def abandoned(self):
+        """exclusive: the future of a call abandoned past its deadline that has not returned yet (it may
+        still take effect), or None."""
+        abandoned = self._abandoned
+        return abandoned if abandoned is not None and not abandoned.done() else None
+
     def _check_abandoned(self):
         """CallPending if exclusive and a call abandoned past its deadline has not returned yet."""
         abandoned = self._abandoned

@@ -1,4 +1,5 @@
 """Primary-Backup Replication (paper section 5.2.2): the After of each replica."""
+import concurrent.futures
 import json
 import queue
 import threading
@@ -95,7 +96,9 @@ class PbrAfterNode(AfterNode):
         ~site, ~peer (str, required with a witness): this replica's site and the other one.
         ~site_pid (int, default: the parent process, the site's roslaunch): the site's incarnation.
         ~join_period (float, 0.5 s): a joining backup asks for a state transfer this often.
-        ~state_timeout (float, 5 s): the longest a get_state or set_state call may take.
+        ~state_timeout (float, 5 s): the longest a get_state or set_state call may take. A promotion
+            waits for a set_state past it up to this long more (the server is slow: the After still
+            holds the state), then sets the newest state.
         ~protocol (str, default protocol): this replica's Protocol, suspended (quiescent) while a state
             transfer is captured, so that the state holds exactly the requests whose replies it carries.
         ~cache_bytes (int, 64 MiB): bound of the replies kept for a state transfer (those clients
@@ -214,6 +217,8 @@ class PbrAfterNode(AfterNode):
         self.applying = False
         self.applied = threading.Condition(self.lock)
         self.next_apply = 0.0   # monotonic: the applier's next call not before (see APPLY_SHARE)
+        self.promoting = False  # a promotion waits for the applier: a set_state past its deadline is not fatal
+        self.apply_late = False  # the last set_state was abandoned past ~state_timeout (or held back by one)
         protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
         self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
                                 self.state_timeout)
@@ -809,9 +814,16 @@ class PbrAfterNode(AfterNode):
                 ended = time.monotonic()
                 self.next_apply = ended + (ended - started) * (1.0 - APPLY_SHARE) / APPLY_SHARE
                 self.applying = False
-                self.applied.notify_all()
-                if error:
+                if error and self.apply_late and self.promoting:
+                    # The server is slow, not wrong, and this After still holds the state: the promotion
+                    # waiting for this call waits for the late one too, then sets the newest state.
+                    rospy.logwarn('%s: %s (checkpoint %d): the promotion sets it once the server answers',
+                                  self.name, error, taken[0])
+                    if self.pending_state is None:
+                        self.pending_state = (taken[0], taken[1])
+                elif error:
                     self._apply_failed(taken[0], error, taken[2])
+                self.applied.notify_all()
 
     def _take_pending(self):
         """(seq, state, sender) of the newest checkpointed state to apply, taken (self.lock held); None."""
@@ -825,10 +837,12 @@ class PbrAfterNode(AfterNode):
 
     def _set_server_state(self, state):
         """One set_state of the server (at most one at a time: see self.applying): '' or why it failed."""
+        self.apply_late = False
         try:
             result = self.state_calls.call(self.set_state, self.state_timeout, state)
             return '' if result.success else 'the server refused the state: %s' % result.message
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
+            self.apply_late = isinstance(e, CallTimeout)
             self.set_state = self.set_state.fresh()
             return 'cannot set the server state: %s' % e
 
@@ -839,16 +853,37 @@ class PbrAfterNode(AfterNode):
         while self.applying:
             self.applied.wait()
 
-    def _apply_locked(self):
+    def _apply_locked(self, patient=False):
         """Apply the newest checkpointed state to the server now (self.lock held, the applier waited
-        for: a promotion, a suspension); on failure the backup is invalid."""
+        for: a promotion, a suspension); on failure the backup is invalid. ``patient`` (a promotion):
+        a set_state abandoned past ~state_timeout that may still land is waited for first, up to
+        ~state_timeout more (an older state landing after the newest would undo it)."""
         self._wait_applier()   # (a no-op when the caller waited first, as it must)
+        if patient:
+            self._wait_abandoned()
         taken = self._take_pending()
         if taken is None:
             return
         error = self._set_server_state(taken[1])
         if error:
             self._apply_failed(taken[0], error, taken[2])
+
+    def _wait_abandoned(self):
+        """(self.lock held) Wait for a set_state abandoned past its deadline, ~state_timeout at most, the
+        lock released meanwhile as for the applier's call (anyone else waits for it as for the applier)."""
+        late = self.state_calls.abandoned()
+        if late is None:
+            return
+        rospy.logwarn('%s: a set_state abandoned past %.1f s has not returned: waiting for it (%.1f s at most) '
+                      'before setting the newest state', self.name, self.state_timeout, self.state_timeout)
+        self.applying = True
+        self.lock.release()
+        try:
+            concurrent.futures.wait([late], self.state_timeout)
+        finally:
+            self.lock.acquire()
+            self.applying = False
+            self.applied.notify_all()
 
     def _apply_failed(self, seq, error, sender):
         """The server refused (or never took) the state of checkpoint seq: this backup can no longer take
@@ -892,10 +927,11 @@ class PbrAfterNode(AfterNode):
         role = Role(req.role)
         told_alone = False
         with self.lock:
-            self._wait_applier()   # first: the role checked below stays what it is
+            self.promoting = self.role == Role.BACKUP and role == Role.ALONE
             try:
+                self._wait_applier()   # first: the role checked below stays what it is
                 if self.role == Role.BACKUP and role == Role.ALONE:
-                    self._apply_locked()
+                    self._apply_locked(patient=True)
                     last_seq = self.receiver.promote(initial=req.initial)
                     self.sender = CheckpointSender(Role.ALONE, self.first_seq, max(req.epoch, self.receiver.epoch))
                 elif self.role == Role.PRIMARY and role == Role.ALONE:
@@ -916,6 +952,8 @@ class PbrAfterNode(AfterNode):
                     raise RoleError('role change %s -> %s is not allowed' % (self.role.name, role.name))
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
+            finally:
+                self.promoting = False
         if told_alone:
             self.side.tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
                        % (self.site or self.name, req.epoch))
