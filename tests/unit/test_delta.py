@@ -1,4 +1,5 @@
 """Incremental checkpoints (aft_ftm.delta): random states and changes, drawn from a printed seed."""
+import os
 import random
 import time
 import zlib
@@ -335,8 +336,9 @@ def test_a_backup_handed_replayed_altered_or_foreign_deltas_keeps_its_state_or_t
     the length) with hostile ones between them (replayed, one bit flipped, cut, grown, of another
     stream): each one is refused by name (DeltaError) and leaves the state held as it was, or, where it
     happens to fit the state held (a replay onto an equal state), gives what the plain rebuild of the
-    state held gives; the next genuine delta then rebuilds the primary's state exactly."""
-    seed = int(time.time() * 1000) % 100000
+    state held gives; the next genuine delta then rebuilds the primary's state exactly. AFT_SEED replays."""
+    seed = int(os.environ.get('AFT_SEED', int(time.time() * 1000) % 100000))
+    print('AFT_SEED=%d' % seed)
     rng = random.Random(seed)
     for case in range(12):
         size = rng.choice([1500, CRC_BLOCK - 5, 2 * CRC_BLOCK + 7])

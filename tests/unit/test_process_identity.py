@@ -230,7 +230,8 @@ def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_n
     """A power loss kills a site's nodes and nobody unregisters them: on a busy host another process
     may then listen on a dead node's port and answer its API. Fencing must not signal that process,
     and must not raise fence_refused (no forgery: the uri is the one the node was learned at).
-    A registration at another uri naming a process that is not the node stays refused."""
+    A registration at another uri naming a process that is not the node, or one made again at that uri
+    after the stale one was cleaned up at the master, stays refused."""
     from aft_ftm.ros import fencing
     pids = {}   # port -> the pid the API there answers
 
@@ -254,14 +255,25 @@ def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_n
     assert same_port == port
     pids[port] = stranger.pid
     fence.learn()
-    assert fence.refused == {} and '/master/after' in fence.stale and fence.unlearned == ['/master/after']
+    assert fence.refused == {} and '/master/after' in fence.stale and fence.unlearned == []
     assert fence.processes() == {}   # nothing to signal
+    # the stale registration cleaned up at the master, then the name registered again at that very uri
+    # (whoever holds the port now): not the registration the node left, so a forgery, refused
+    del fence.master.uris['/master/after']
+    fence.learn()
+    assert fence.stale == {} and fence.refused == {}
+    fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % port
+    fence.learn()
+    assert 'runs in name space /, not in' in fence.refused['/master/after'] and fence.stale == {}, fence.refused
+    del fence.master.uris['/master/after']
+    fence.learn()
     # the name registered again at another uri whose process is not the node: a forgery, refused
     other, other_port = started([], {})
     pids[other_port] = other.pid
     fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % other_port
     fence.learn()
     assert 'runs in name space /, not in' in fence.refused['/master/after'], fence.refused
+    assert other_port != port
     # the node started again under its name, at a port of its own: learned
     again, again_port = started(['__name:=after'], {'ROS_NAMESPACE': '/master'})
     pids[again_port] = again.pid

@@ -118,7 +118,7 @@ class NamespaceFence(object):
         unlearned = []
         current = self.node_names()
         with self.lock:   # a refused, remote or learned registration gone from the master is forgotten
-            for table in (self.refused, self.remote, self.lineage, self.stale):
+            for table in (self.refused, self.remote, self.lineage, self.stale, self.uris):
                 for name in [n for n in table if n not in current]:
                     del table[name]
         for name in current:
@@ -137,10 +137,12 @@ class NamespaceFence(object):
                 if code == 1:
                     why = node_process_problem(pid, name, uri)
                     if why and name in self.known and self.uris.get(name) == uri:
-                        # The node learned there died (a power loss: nobody unregistered it) and its port now
-                        # reaches another process of this busy host: no forgery, nothing to signal or to say.
+                        # The node learned there died (a power loss: nobody unregistered it), its registration
+                        # stayed all along, and its port now reaches another process of this busy host: no
+                        # forgery, nothing to signal (``stale``: logged by the caller, no alarm).
                         with self.lock:
                             self.stale[name] = why
+                        unlearned.pop()
                         continue
                     if why:   # a forged registration: that process is never killed for this name space
                         with self.lock:

@@ -217,7 +217,7 @@ class PbrAfterNode(AfterNode):
         self.applying = False
         self.applied = threading.Condition(self.lock)
         self.next_apply = 0.0   # monotonic: the applier's next call not before (see APPLY_SHARE)
-        self.promoting = False  # a promotion waits for the applier: a set_state past its deadline is not fatal
+        self.promoting = 0      # promotions waiting for the applier: a set_state past its deadline is not fatal
         self.apply_late = False  # the last set_state was abandoned past ~state_timeout (or held back by one)
         protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
         self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
@@ -927,7 +927,8 @@ class PbrAfterNode(AfterNode):
         role = Role(req.role)
         told_alone = False
         with self.lock:
-            self.promoting = self.role == Role.BACKUP and role == Role.ALONE
+            promotion = self.role == Role.BACKUP and role == Role.ALONE
+            self.promoting += promotion   # (a count: another set_role meanwhile leaves it as it is)
             try:
                 self._wait_applier()   # first: the role checked below stays what it is
                 if self.role == Role.BACKUP and role == Role.ALONE:
@@ -953,7 +954,7 @@ class PbrAfterNode(AfterNode):
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
             finally:
-                self.promoting = False
+                self.promoting -= promotion
         if told_alone:
             self.side.tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
                        % (self.site or self.name, req.epoch))

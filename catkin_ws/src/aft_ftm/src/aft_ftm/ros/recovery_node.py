@@ -156,6 +156,7 @@ class RecoveryNode(object):
         self.lock = threading.Lock()
         self.started = time.monotonic()
         self.fence_refused_told = set()   # names told by a fence_refused alarm
+        self.stale_told = set()           # stale registrations of the peer logged
         self.unfenceable_told = False     # fence_incomplete raised (while it holds)
         self.recovered = False
         self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
@@ -510,11 +511,23 @@ class RecoveryNode(object):
                     complete = not self.fence.unlearned
                     self._tell_fence_refused()
                     self._tell_unfenceable()
+                    self._log_stale()
             except Exception as e:   # the master is unreachable for a while: try again later
                 rospy.logwarn_throttle(30, '%s: cannot learn the nodes of %s: %s' % (rospy.get_name(), self.peer_ns, e))
             # A node of the peer not learned yet (its site is starting) cannot be killed by pid if it
             # freezes: ask again soon, not a whole period later.
             rospy.sleep(self.learn_period if complete else min(self.learn_period, 0.2))
+
+    def _log_stale(self):
+        """Log once each registration of the peer left by a dead node whose port another process holds now."""
+        with self.fence.lock:
+            stale = dict(self.fence.stale)
+        self.stale_told &= set(stale)
+        for name, why in sorted(stale.items()):
+            if name not in self.stale_told:
+                self.stale_told.add(name)
+                rospy.loginfo('%s: %s is registered still, but its process died and %s: left alone', rospy.get_name(),
+                              name, why)
 
     def _tell_fence_refused(self):
         """The alarm ``fence_refused``, once per name while it stays registered: a node registered under the peer's name
