@@ -136,7 +136,7 @@ class NamespaceFence(object):
                 code, _, pid = node_api(uri, self.timeout).getPid(self.caller_id)
                 if code == 1:
                     why = node_process_problem(pid, name, uri)
-                    if why and name in self.known and self.uris.get(name) == uri:
+                    if why and self.uris.get(name) == uri:
                         # The node learned there died (a power loss: nobody unregistered it), its registration
                         # stayed all along, and its port now reaches another process of this busy host: no
                         # forgery, nothing to signal (``stale``: logged by the caller, no alarm).

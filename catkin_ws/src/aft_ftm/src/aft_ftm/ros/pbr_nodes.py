@@ -218,7 +218,6 @@ class PbrAfterNode(AfterNode):
         self.applied = threading.Condition(self.lock)
         self.next_apply = 0.0   # monotonic: the applier's next call not before (see APPLY_SHARE)
         self.promoting = 0      # promotions waiting for the applier: a set_state past its deadline is not fatal
-        self.apply_late = False  # the last set_state was abandoned past ~state_timeout (or held back by one)
         protocol = param('protocol', config.non_empty_str, 'protocol') if with_witness else ''
         self.side = ReplicaSide(self.ports, 'pbr', self.site, self.site_pid, self.witness_service, protocol,
                                 self.state_timeout)
@@ -803,10 +802,10 @@ class PbrAfterNode(AfterNode):
             if taken is None:
                 return
             self.applying = True
-        error = ''
+        error, late = '', False
         started = time.monotonic()
         try:
-            error = self._set_server_state(taken[1])
+            error, late = self._set_server_state(taken[1])
         except Exception as e:   # never a state lost without a word (the Timer thread goes on)
             error = 'cannot set the server state: %s' % e
         finally:
@@ -814,7 +813,7 @@ class PbrAfterNode(AfterNode):
                 ended = time.monotonic()
                 self.next_apply = ended + (ended - started) * (1.0 - APPLY_SHARE) / APPLY_SHARE
                 self.applying = False
-                if error and self.apply_late and self.promoting:
+                if error and late and self.promoting:
                     # The server is slow, not wrong, and this After still holds the state: the promotion
                     # waiting for this call waits for the late one too, then sets the newest state.
                     rospy.logwarn('%s: %s (checkpoint %d): the promotion sets it once the server answers',
@@ -836,15 +835,14 @@ class PbrAfterNode(AfterNode):
         return seq, state, self.receiver.sender
 
     def _set_server_state(self, state):
-        """One set_state of the server (at most one at a time: see self.applying): '' or why it failed."""
-        self.apply_late = False
+        """One set_state of the server (at most one at a time: see self.applying): ('' or why it failed,
+        whether the call was abandoned past ~state_timeout or held back by one that was: it may land)."""
         try:
             result = self.state_calls.call(self.set_state, self.state_timeout, state)
-            return '' if result.success else 'the server refused the state: %s' % result.message
+            return ('' if result.success else 'the server refused the state: %s' % result.message), False
         except (CallTimeout, rospy.ServiceException, rospy.ROSException) as e:
-            self.apply_late = isinstance(e, CallTimeout)
             self.set_state = self.set_state.fresh()
-            return 'cannot set the server state: %s' % e
+            return 'cannot set the server state: %s' % e, isinstance(e, CallTimeout)
 
     def _wait_applier(self):
         """(self.lock held) Wait for the applier's set_state under way, if any. The lock is released
@@ -864,7 +862,7 @@ class PbrAfterNode(AfterNode):
         taken = self._take_pending()
         if taken is None:
             return
-        error = self._set_server_state(taken[1])
+        error, _ = self._set_server_state(taken[1])
         if error:
             self._apply_failed(taken[0], error, taken[2])
 

@@ -518,16 +518,21 @@ class RecoveryNode(object):
             # freezes: ask again soon, not a whole period later.
             rospy.sleep(self.learn_period if complete else min(self.learn_period, 0.2))
 
+    def _not_told(self, table, told):
+        """[(name, why)] of a fence table (name -> why) not in ``told`` yet, now added to it; a name gone from
+        the table is forgotten from ``told``, so that it is told again if it comes back."""
+        with self.fence.lock:
+            current = dict(table)
+        told &= set(current)
+        fresh = [(name, why) for name, why in sorted(current.items()) if name not in told]
+        told.update(name for name, _ in fresh)
+        return fresh
+
     def _log_stale(self):
         """Log once each registration of the peer left by a dead node whose port another process holds now."""
-        with self.fence.lock:
-            stale = dict(self.fence.stale)
-        self.stale_told &= set(stale)
-        for name, why in sorted(stale.items()):
-            if name not in self.stale_told:
-                self.stale_told.add(name)
-                rospy.loginfo('%s: %s is registered still, but its process died and %s: left alone', rospy.get_name(),
-                              name, why)
+        for name, why in self._not_told(self.fence.stale, self.stale_told):
+            rospy.loginfo('%s: %s is registered still, but its process died and %s: left alone', rospy.get_name(),
+                          name, why)
 
     def _tell_fence_refused(self):
         """The alarm ``fence_refused``, once per name while it stays registered: a node registered under the peer's name
@@ -536,13 +541,7 @@ class RecoveryNode(object):
         name, fail-silence cannot reach it by pid."""
         if not self._alarms_heard():
             return   # told once someone hears it (or 10 s after the start in any case)
-        with self.fence.lock:
-            refused = dict(self.fence.refused)
-        self.fence_refused_told &= set(refused)   # a name gone from the master is told again if it comes back
-        for name, why in sorted(refused.items()):
-            if name in self.fence_refused_told:
-                continue
-            self.fence_refused_told.add(name)
+        for name, why in self._not_told(self.fence.refused, self.fence_refused_told):
             alarm(self.ports, 'pbr', 'fence_refused', '%s is registered under %s, but %s: that process is never '
                   'killed for this site\'s fail-silence' % (name, self.peer_ns, why))
 
