@@ -176,4 +176,10 @@ def run(package, name):
     signal.signal(signal.SIGINT, on_signal)
     print('AFT_TEST_SEED=%d' % SEED)
     import rostest
+    only = os.environ.get('AFT_TEST_ONLY', '')
+    if only:
+        # A development aid: only the test methods whose name holds AFT_TEST_ONLY (said, never silent;
+        # rostest builds its own loader, so the pattern is set on the class).
+        unittest.TestLoader.testNamePatterns = ['*%s*' % only]
+        print('AFT_TEST_ONLY=%s: only the test methods whose name holds it' % only)
     rostest.rosrun(package, name, '__main__')

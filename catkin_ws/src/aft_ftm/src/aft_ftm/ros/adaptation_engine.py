@@ -106,14 +106,19 @@ def wait_for_service(name, timeout):
 
 
 class LeaseKeeper(object):
-    """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds,
-    from a thread of its own (with service connections of its own: rospy's are not shared
-    across threads), so that no step, however long, loses the engine its pause.
+    """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds, so
+    that no step, however long, loses the engine its pause.
+
+    Each held node has a thread of its own (a node that hangs in its answer delays no other
+    node's renewal) and a service connection of its own (rospy's are not shared across threads),
+    opened before the pause (:meth:`connect`): a renewal then needs neither the ROS master nor a
+    new connection, which on a loaded machine may take longer than the lease (the master, busy
+    with the paper order's new nodes, was seen not to answer for seconds).
 
     A node that refuses a renewal is no longer suspended (its lease ran out: the engine was
     stopped, or starved, for longer than the lease; or its buffer filled): it is reported by
     :meth:`lost` and no longer renewed. A renewal that cannot be sent (connection lost) is tried
-    again at the next period."""
+    again at the next period, on a new connection."""
 
     def __init__(self, lease, log):
         self.lease = lease
@@ -123,15 +128,34 @@ class LeaseKeeper(object):
         self._held = set()
         self._lost = {}              # node -> why it is no longer suspended
         self._stop = threading.Event()
-        self._proxies = {}           # used by the keeper's thread only
-        self._thread = threading.Thread(target=self._run, name='lease_keeper', daemon=True)
+        self._ready = {}             # node -> a connection opened before the pause, not yet used
+        self._threads = {}           # node -> its renewing thread
+
+    def connect(self, node):
+        """Open the connection node's renewals will use (a probe: it changes nothing). Called
+        before the pause; a node not reachable now is connected at its first renewal."""
+        proxy = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
+        try:
+            proxy(probe=True)
+        except Exception:   # rospy raises several kinds: connect later
+            proxy.close()
+            return
+        with self._lock:
+            stale = self._ready.pop(node, None)
+            self._ready[node] = proxy
+        if stale is not None:
+            stale.close()
 
     def hold(self, node):
         """node is suspended by the engine (with this lease): keep it so."""
         with self._lock:
             self._held.add(node)
-            if not self._thread.is_alive() and not self._stop.is_set():
-                self._thread.start()
+            thread = self._threads.get(node)
+            if self._stop.is_set() or (thread is not None and thread.is_alive()):
+                return
+            thread = self._threads[node] = threading.Thread(target=self._run, args=(node,),
+                                                            name='lease_keeper %s' % node, daemon=True)
+        thread.start()
 
     def release(self, node):
         """node is about to be resumed by the engine: renew it no more."""
@@ -145,42 +169,49 @@ class LeaseKeeper(object):
     def stop(self):
         """Renew nothing more (the nodes still held then resume by themselves). Never raises."""
         self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5.0)
-        if not self._thread.is_alive():
-            for proxy in self._proxies.values():
-                proxy.close()
-            self._proxies.clear()
+        with self._lock:
+            threads = list(self._threads.values())
+            ready, self._ready = list(self._ready.values()), {}
+        deadline = time.monotonic() + 5.0   # a thread hung in a node's answer is left behind (a daemon)
+        for thread in threads:
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        for proxy in ready:
+            proxy.close()
 
-    def _run(self):
-        while not self._stop.wait(self.period):
-            with self._lock:
-                nodes = sorted(self._held)
-            for node in nodes:
-                why = self._renew(node)
+    def _run(self, node):
+        with self._lock:
+            proxy = self._ready.pop(node, None)
+        try:
+            while not self._stop.wait(self.period):
+                with self._lock:
+                    if node not in self._held:
+                        return
+                why, proxy = self._renew(node, proxy)
                 if why is None:
                     continue
                 with self._lock:
                     if node not in self._held:   # resumed by the engine meanwhile: nothing lost
-                        continue
+                        return
                     self._held.discard(node)
                     self._lost[node] = why
                 self._log('%s is no longer suspended: %s' % (node, why))
+                return
+        finally:
+            if proxy is not None:
+                proxy.close()
 
-    def _renew(self, node):
-        """None if renewed (or not reachable now); why not, if the node refused."""
+    def _renew(self, node, proxy):
+        """(None if renewed or not reachable now, else why the node refused; the connection to use next)."""
         try:
-            proxy = self._proxies.get(node)
             if proxy is None:
-                proxy = self._proxies[node] = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
+                proxy = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
             answer = proxy(renew=True, lease=self.lease)
         except Exception as e:   # rospy raises several kinds for a lost connection: try again later
-            stale = self._proxies.pop(node, None)
-            if stale is not None:
-                stale.close()
+            if proxy is not None:
+                proxy.close()
             self._log('warning: lease renewal of %s not sent (%s): trying again in %.2f s' % (node, e, self.period))
-            return None
-        return None if answer.success else answer.message
+            return None, None
+        return (None if answer.success else answer.message), proxy
 
 
 LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners')
@@ -501,6 +532,8 @@ class Engine(object):
                     # Probes: they answer and change nothing, whoever has the node suspended.
                     self._proxy(step.target + '/suspend', Suspend)(probe=True)
                     self._proxy(step.target + '/resume', Suspend)(probe=True)
+                    if step.action == 'suspend':
+                        self._keeper.connect(step.target)
                 elif step.action == 'rebind' and step.target in self._graph_nodes():
                     self._rebind(step.detail, dry_run=True)
                 elif step.action == 'promote':
