@@ -117,7 +117,12 @@ with_tls = sys.argv[1] == 'tls'
 mechanism = sys.argv[2] if len(sys.argv) > 2 else 'pbr'
 policy = os.path.join(rospkg.RosPack().get_path('aft_examples'), 'config', 'tls_policy.yaml')
 core = start_master(log_dir)
-deployment = PbrDeployment(log_dir, mechanism=mechanism, tls_policy=policy if with_tls else None)
+# Detection at 500 ms, not the default 30 ms: this test is about what the control plane refuses. Once in
+# CI (LFR, not reproduced since) the pair failed over during the attacks; every attack that reached a
+# node was refused, and the one way found there that needs no refused connection to get through is a
+# false suspicion under the sweep's burst of TLS handshakes on 2 cores (detection under load is
+# measured by the detection benchmark and the hosts tests, at 30 ms).
+deployment = PbrDeployment(log_dir, mechanism=mechanism, tls_policy=policy if with_tls else None, timeout=0.5)
 try:
     if with_tls:
         os.environ.update(deployment.tls_env('operator'))
@@ -147,6 +152,19 @@ try:
             calls(25)
     status = witness_status()
     print('AFTER ATTACKS epoch %d primary %s backup %s' % (status.epoch, status.primary, status.backup))
+    if with_tls and (status.epoch, status.primary, status.backup) != (2, 'master', 'slave'):
+        # What made the pair change (once seen in CI, not reproduced since): every alarm but TLS refusals,
+        # and what the sites' logs say of failures, so that the failure names its cause.
+        for a in alarms:
+            if a.mechanism != 'tls':
+                print('UNEXPECTED alarm %s %s %s: %s' % (a.source, a.mechanism, a.kind, a.detail[:300]))
+        for site in ('master', 'slave'):
+            with open(os.path.join(log_dir, site + '.log'), errors='replace') as f:
+                for text in f:
+                    if any(w in text for w in ('FAIL-STOP', 'declared', 'promot', 'deposed', 'suspect', 'alone')):
+                        print('UNEXPECTED %s.log: %s' % (site, text.rstrip()[:300]))
+        sys.exit('the attacks changed the pair: epoch %d primary %s backup %s (see UNEXPECTED above)' % (
+            status.epoch, status.primary, status.backup))
     if not with_tls:
         sys.exit(0)   # the control: what the same attacks do to a pair without TLS (printed above)
     states = [rospy.ServiceProxy('/%s/bank_server/get_state' % s, GetState)().state for s in ('master', 'slave')]

@@ -67,9 +67,12 @@ def test_a_node_process_passes(started):
 def test_a_process_named_by_a_forged_registration_is_refused(started):
     proc, port = started(['__name:=witness'], {'ROS_NAMESPACE': '/'})
     uri = 'http://127.0.0.1:%d/' % port
-    # another port: a forged XML-RPC server answering this pid
-    why = node_process_problem(proc.pid, '/witness', 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1))
-    assert 'does not listen on 127.0.0.1 port' in why and str(proc.pid) in why
+    elsewhere = 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1)
+    # another port: a forged XML-RPC server answering the pid of a process of the name space that its
+    # command line does not make that node
+    member, _ = started([], {'ROS_NAMESPACE': '/slave'})
+    why = node_process_problem(member.pid, '/slave/evil', elsewhere)
+    assert 'does not listen on 127.0.0.1 port' in why and str(member.pid) in why
     # its own port, but registered under a name of the fenced site: the process runs another node
     why = node_process_problem(proc.pid, '/slave/evil', uri)
     assert why == 'process %d runs node /witness, not /slave/evil' % proc.pid
@@ -80,10 +83,21 @@ def test_a_process_named_by_a_forged_registration_is_refused(started):
     assert 'cannot be read' in node_process_problem('x', '/slave/evil', uri)
     assert 'names no host and port' in node_process_problem(proc.pid, '/slave/evil', 'http://127.0.0.1/')
     # the same port on another loopback address: a forged server there is not this process
-    assert 'does not listen on 127.0.0.2 port' in node_process_problem(proc.pid, '/witness',
+    assert 'does not listen on 127.0.0.2 port' in node_process_problem(member.pid, '/slave/evil',
                                                                         'http://127.0.0.2:%d/' % port)
     # the asking process itself
     assert 'is the process asking' in node_process_problem(os.getpid(), '/witness', uri)
+
+
+def test_a_node_shutting_down_its_api_closed_is_still_the_node_its_command_line_names(started):
+    """A node shutting down closes its API server before its process ends (a rollback stopping the nodes
+    it launched while a fence learned them): its command line still makes it that node, and signalling
+    it reaches nobody else. Any other name at that URI stays refused."""
+    proc, port = started(['__name:=proceed'], {'ROS_NAMESPACE': '/slave/tr'})
+    closed = 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1)
+    assert node_process_problem(proc.pid, '/slave/tr/proceed', closed) is None
+    why = node_process_problem(proc.pid, '/slave/tr/after', closed)
+    assert 'does not listen on 127.0.0.1 port' in why, why
 
 
 def test_a_ros_master_or_roslaunch_is_never_taken_for_a_node(started, tmp_path):

@@ -1,6 +1,7 @@
 """Shared by the rostest scripts of aft_ftm: deployments started and always stopped, the
 client-side checks, and the figures the tests report."""
 import atexit
+import contextlib
 import json
 import os
 import random
@@ -26,6 +27,34 @@ RNG = random.Random(SEED)
 def stop_all(*_):
     while LIVE:
         LIVE.pop().teardown()
+
+
+class _Stopped(object):
+    """A process the test stopped (SIGSTOP): in LIVE while stopped, so that a signal to the test
+    (stop_all, last in first out) resumes it before anything that may need it is torn down."""
+
+    def __init__(self, proc):
+        self.proc = proc
+
+    def teardown(self):
+        try:
+            self.proc.resume()
+        except Exception:   # psutil.NoSuchProcess: gone meanwhile
+            pass
+
+
+@contextlib.contextmanager
+def stopped(proc):
+    """proc (a psutil.Process) stopped for the block, resumed after it, pass or fail, or on a signal."""
+    entry = _Stopped(proc)
+    LIVE.append(entry)
+    proc.suspend()
+    try:
+        yield
+    finally:
+        entry.teardown()
+        if entry in LIVE:
+            LIVE.remove(entry)
 
 
 def on_signal(signum, _frame):
@@ -181,5 +210,8 @@ def run(package, name):
         # A development aid: only the test methods whose name holds AFT_TEST_ONLY (said, never silent;
         # rostest builds its own loader, so the pattern is set on the class).
         unittest.TestLoader.testNamePatterns = ['*%s*' % only]
-        print('AFT_TEST_ONLY=%s: only the test methods whose name holds it' % only)
+        count = unittest.TestLoader().loadTestsFromName('__main__').countTestCases()
+        print('AFT_TEST_ONLY=%s: only the %d test method(s) whose name holds it' % (only, count))
+        if not count:
+            sys.exit('AFT_TEST_ONLY=%s: no test method of %s holds it' % (only, name))
     rostest.rosrun(package, name, '__main__')

@@ -70,6 +70,9 @@ def main(argv):
     parser.add_argument('--lease', type=float, default=5.0,
                         help='lease of each suspension (s, default 5): renewed while the command runs; a node '
                              'resumes by itself if the command dies or stops for longer')
+    parser.add_argument('--quiesce-timeout', type=float, default=5.0,
+                        help='how long a suspension waits for the node to be quiescent (s, default 5; the '
+                             'node holds its inputs meanwhile): past it, the adaptation is rolled back')
     options, rest = parser.parse_known_args(argv)
     overrides = [a for a in rest if ':=' in a and not a.startswith('__')]
     unknown = [a for a in rest if ':=' not in a]
@@ -82,11 +85,14 @@ def main(argv):
         return 2
     if not options.lease > 0:
         parser.error('--lease must be > 0 s, got %r' % options.lease)
+    if not options.quiesce_timeout > 0:
+        parser.error('--quiesce-timeout must be > 0 s, got %r' % options.quiesce_timeout)
     from aft_ftm.ros.params import secure_from_environment
     secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
     rospy.init_node('aft_adapt', anonymous=True, disable_signals=True)
     from .adaptation_engine import Engine
-    engine = Engine(log=functools.partial(print, flush=True), lease=options.lease)
+    engine = Engine(log=functools.partial(print, flush=True), lease=options.lease,
+                    quiesce_timeout=options.quiesce_timeout)
     try:
         if options.check:
             steps = engine.validate(script, options.mode)

@@ -28,6 +28,7 @@ import collections
 import itertools
 import os
 import signal
+import socket
 import threading
 import time
 
@@ -113,12 +114,14 @@ class LeaseKeeper(object):
     node's renewal) and a service connection of its own (rospy's are not shared across threads),
     opened before the pause (:meth:`connect`): a renewal then needs neither the ROS master nor a
     new connection, which on a loaded machine may take longer than the lease (the master, busy
-    with the paper order's new nodes, was seen not to answer for seconds).
+    with the paper order's new nodes, was seen not to answer for seconds). Only a connection lost
+    in the pause is opened again, through the master.
 
     A node that refuses a renewal is no longer suspended (its lease ran out: the engine was
     stopped, or starved, for longer than the lease; or its buffer filled): it is reported by
     :meth:`lost` and no longer renewed. A renewal that cannot be sent (connection lost) is tried
-    again at the next period, on a new connection."""
+    again at the next period, on a new connection. A node that hangs in its answer holds its own
+    thread only (rospy waits for an answer for ever: :meth:`stop` cuts the connection)."""
 
     def __init__(self, lease, log):
         self.lease = lease
@@ -130,6 +133,7 @@ class LeaseKeeper(object):
         self._stop = threading.Event()
         self._ready = {}             # node -> a connection opened before the pause, not yet used
         self._threads = {}           # node -> its renewing thread
+        self._active = {}            # renewing thread -> the connection it uses
 
     def connect(self, node):
         """Open the connection node's renewals will use (a probe: it changes nothing). Called
@@ -150,8 +154,7 @@ class LeaseKeeper(object):
         """node is suspended by the engine (with this lease): keep it so."""
         with self._lock:
             self._held.add(node)
-            thread = self._threads.get(node)
-            if self._stop.is_set() or (thread is not None and thread.is_alive()):
+            if self._stop.is_set() or node in self._threads:   # a thread leaves the table as it decides to end
                 return
             thread = self._threads[node] = threading.Thread(target=self._run, args=(node,),
                                                             name='lease_keeper %s' % node, daemon=True)
@@ -172,7 +175,15 @@ class LeaseKeeper(object):
         with self._lock:
             threads = list(self._threads.values())
             ready, self._ready = list(self._ready.values()), {}
-        deadline = time.monotonic() + 5.0   # a thread hung in a node's answer is left behind (a daemon)
+            active = list(self._active.values())
+        for proxy in active:   # a thread waiting for a hung node's answer: its connection cut, it ends
+            sock = getattr(getattr(proxy, 'transport', None), 'socket', None)
+            try:
+                if sock is not None:
+                    sock.shutdown(socket.SHUT_RDWR)
+            except OSError:   # closed meanwhile
+                pass
+        deadline = time.monotonic() + 5.0   # one still running is left behind (a daemon)
         for thread in threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
         for proxy in ready:
@@ -181,15 +192,20 @@ class LeaseKeeper(object):
     def _run(self, node):
         with self._lock:
             proxy = self._ready.pop(node, None)
+            self._active[threading.current_thread()] = proxy
         try:
             while not self._stop.wait(self.period):
                 with self._lock:
                     if node not in self._held:
+                        self._threads.pop(node, None)
                         return
                 why, proxy = self._renew(node, proxy)
+                with self._lock:
+                    self._active[threading.current_thread()] = proxy
                 if why is None:
                     continue
                 with self._lock:
+                    self._threads.pop(node, None)
                     if node not in self._held:   # resumed by the engine meanwhile: nothing lost
                         return
                     self._held.discard(node)
@@ -197,6 +213,10 @@ class LeaseKeeper(object):
                 self._log('%s is no longer suspended: %s' % (node, why))
                 return
         finally:
+            with self._lock:
+                if self._threads.get(node) is threading.current_thread():
+                    del self._threads[node]
+                self._active.pop(threading.current_thread(), None)
             if proxy is not None:
                 proxy.close()
 
@@ -205,6 +225,8 @@ class LeaseKeeper(object):
         try:
             if proxy is None:
                 proxy = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
+                with self._lock:
+                    self._active[threading.current_thread()] = proxy
             answer = proxy(renew=True, lease=self.lease)
         except Exception as e:   # rospy raises several kinds for a lost connection: try again later
             if proxy is not None:
