@@ -67,12 +67,9 @@ def test_a_node_process_passes(started):
 def test_a_process_named_by_a_forged_registration_is_refused(started):
     proc, port = started(['__name:=witness'], {'ROS_NAMESPACE': '/'})
     uri = 'http://127.0.0.1:%d/' % port
-    elsewhere = 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1)
-    # another port: a forged XML-RPC server answering the pid of a process of the name space that its
-    # command line does not make that node
-    member, _ = started([], {'ROS_NAMESPACE': '/slave'})
-    why = node_process_problem(member.pid, '/slave/evil', elsewhere)
-    assert 'does not listen on 127.0.0.1 port' in why and str(member.pid) in why
+    # another port: a forged XML-RPC server answering this pid
+    why = node_process_problem(proc.pid, '/witness', 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1))
+    assert 'does not listen on 127.0.0.1 port' in why and str(proc.pid) in why
     # its own port, but registered under a name of the fenced site: the process runs another node
     why = node_process_problem(proc.pid, '/slave/evil', uri)
     assert why == 'process %d runs node /witness, not /slave/evil' % proc.pid
@@ -83,21 +80,10 @@ def test_a_process_named_by_a_forged_registration_is_refused(started):
     assert 'cannot be read' in node_process_problem('x', '/slave/evil', uri)
     assert 'names no host and port' in node_process_problem(proc.pid, '/slave/evil', 'http://127.0.0.1/')
     # the same port on another loopback address: a forged server there is not this process
-    assert 'does not listen on 127.0.0.2 port' in node_process_problem(member.pid, '/slave/evil',
+    assert 'does not listen on 127.0.0.2 port' in node_process_problem(proc.pid, '/witness',
                                                                         'http://127.0.0.2:%d/' % port)
     # the asking process itself
     assert 'is the process asking' in node_process_problem(os.getpid(), '/witness', uri)
-
-
-def test_a_node_shutting_down_its_api_closed_is_still_the_node_its_command_line_names(started):
-    """A node shutting down closes its API server before its process ends (a rollback stopping the nodes
-    it launched while a fence learned them): its command line still makes it that node, and signalling
-    it reaches nobody else. Any other name at that URI stays refused."""
-    proc, port = started(['__name:=proceed'], {'ROS_NAMESPACE': '/slave/tr'})
-    closed = 'http://127.0.0.1:%d/' % (port + 1 if port < 65535 else 1)
-    assert node_process_problem(proc.pid, '/slave/tr/proceed', closed) is None
-    why = node_process_problem(proc.pid, '/slave/tr/after', closed)
-    assert 'does not listen on 127.0.0.1 port' in why, why
 
 
 def test_a_ros_master_or_roslaunch_is_never_taken_for_a_node(started, tmp_path):
@@ -294,3 +280,61 @@ def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_n
     fence.master.uris['/master/after'] = 'http://127.0.0.1:%d/' % again_port
     fence.learn()
     assert fence.known['/master/after'][0] == again.pid and not fence.refused and not fence.stale
+
+
+def test_a_node_shutting_down_is_refused_only_if_it_is_still_there_after_a_grace(started, monkeypatch):
+    """A node shutting down closes its API before its process ends: asked in between, the pid it gave
+    listens nowhere. A process whose command line names the node is neither learned nor refused for
+    CLOSING_GRACE (asked again meanwhile); gone by then, nothing is refused; still there, it is refused
+    as any other (a launch guard carries its node's command line too: never taken for the node)."""
+    from aft_ftm.ros import fencing
+    pids, now = {}, [100.0]
+
+    class Api(object):
+        def __init__(self, uri, _timeout):
+            self.port = int(uri.rsplit(':', 1)[1].strip('/'))
+
+        def getPid(self, _caller):
+            if self.port not in pids:
+                raise ConnectionRefusedError('nobody answers')
+            return 1, '', pids[self.port]
+    monkeypatch.setattr(fencing, 'node_api', Api)
+    fence = fencing.NamespaceFence('/slave/tr', '/test')
+    fence.master = FakeMaster()
+    fence.clock = lambda: now[0]
+    node, port = started(['__name:=proceed'], {'ROS_NAMESPACE': '/slave/tr'})
+    closed = port + 1 if port < 65535 else port - 1   # its API closed: the port it was registered at
+    pids[closed] = node.pid
+    fence.master.uris['/slave/tr/proceed'] = 'http://127.0.0.1:%d/' % closed
+    fence.learn()
+    assert fence.unlearned == ['/slave/tr/proceed'] and fence.refused == {} and fence.known == {}
+    now[0] += fencing.NamespaceFence.CLOSING_GRACE / 2
+    fence.learn()
+    assert fence.unlearned == ['/slave/tr/proceed'] and fence.refused == {}
+    # still there after the grace: refused (not the node at that uri), never learned
+    now[0] += fencing.NamespaceFence.CLOSING_GRACE
+    fence.learn()
+    assert 'does not listen' in fence.refused['/slave/tr/proceed'] and fence.known == {}
+    assert fence.processes() == {}
+    # the usual end: the process gone within the grace, then its name gone from the master
+    del fence.master.uris['/slave/tr/proceed']
+    fence.learn()
+    assert fence.refused == {} and fence.closing == {}
+    fence.master.uris['/slave/tr/proceed'] = 'http://127.0.0.1:%d/' % closed
+    fence.learn()
+    assert fence.unlearned == ['/slave/tr/proceed'] and fence.refused == {}
+    node.kill()
+    node.wait()
+    del pids[closed]   # its API gone with it
+    now[0] += 2 * fencing.NamespaceFence.CLOSING_GRACE
+    fence.learn()
+    assert fence.refused == {} and fence.known == {}
+    del fence.master.uris['/slave/tr/proceed']
+    fence.learn()
+    assert fence.unlearned == [] and fence.refused == {} and fence.closing == {}
+    # a process whose command line names another node gets no grace
+    other, other_port = started(['__name:=after'], {'ROS_NAMESPACE': '/slave/tr'})
+    pids[other_port + 1] = other.pid
+    fence.master.uris['/slave/tr/proceed'] = 'http://127.0.0.1:%d/' % (other_port + 1)
+    fence.learn()
+    assert '/slave/tr/proceed' in fence.refused and fence.unlearned == []

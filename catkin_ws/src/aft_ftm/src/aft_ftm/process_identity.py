@@ -134,6 +134,16 @@ def _net_namespace(pid, proc='/proc'):
 NOT_NODES = ('rosmaster', 'roslaunch', 'roscore')   # a process running one of these is no node
 
 
+def names_itself(pid, node, proc='/proc'):
+    """Whether process ``pid``'s command line remaps ``__name`` to ``node`` (False if it cannot be read).
+    Never a reason to signal it (a wrapper such as a launch guard carries its node's command line too):
+    only to wait a moment before calling a registration naming it forged (see fencing's learn)."""
+    try:
+        return node_names_of(*_argv_and_env(pid, proc))[1] == node
+    except (OSError, ValueError, TypeError):
+        return False
+
+
 def node_process_problem(pid, node, uri, proc='/proc'):
     """None if process ``pid`` can be node ``node`` registered at ``uri``; else why it cannot (a
     sentence naming the pid, the node and what disagrees)."""
@@ -156,11 +166,7 @@ def node_process_problem(pid, node, uri, proc='/proc'):
         there = [(a, inode) for a, p, inode in _listening_table(pid, proc)
                  if p == port and (a in addresses or a in WILDCARDS)]
         own = _socket_inodes(pid, proc)
-        if not any(inode in own for _, inode in there) and node_names_of(*_argv_and_env(pid, proc))[1] != node:
-            # Unless its command line makes it that very node (``__name:=`` remapped to it): a node shutting
-            # down closes its API before it exits (a rollback stopping launched nodes while a fence learned
-            # them raised a false fence_refused). Signalled, it is only the node the fence is after; a
-            # forged registration can name such a process only under that process's own name.
+        if not any(inode in own for _, inode in there):
             return 'process %d does not listen on %s port %d (%s\'s URI %s): it is not the node there' % (
                 pid, host, port, node, uri)
         others = sorted({a for a, inode in there if inode not in own})

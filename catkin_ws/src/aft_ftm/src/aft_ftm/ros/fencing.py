@@ -11,6 +11,7 @@ import ipaddress
 import os
 import signal
 import threading
+import time
 import xmlrpc.client
 from urllib.parse import urlparse
 
@@ -18,7 +19,7 @@ import psutil
 import rosgraph
 import rosnode
 
-from ..process_identity import addresses_of, node_process_problem
+from ..process_identity import addresses_of, names_itself, node_process_problem
 from ..sites import this_host
 
 
@@ -105,6 +106,8 @@ class NamespaceFence(object):
         self.lineage = {}      # node name -> [(pid, create_time)] of its parent, if that is not above this process
         self.uris = {}         # node name -> the API uri its known process was learned at
         self.stale = {}        # node name -> why: its known process died, its registration (same uri) stayed
+        self.closing = {}      # node name -> (uri, pid, first seen): a refusal that waits CLOSING_GRACE
+        self.clock = time.monotonic
         self.lock = threading.Lock()
 
     def node_names(self):
@@ -112,13 +115,19 @@ class NamespaceFence(object):
         names = {n for _, nodes in list(pubs) + list(subs) + list(srvs) for n in nodes}
         return sorted(n for n in names if n.startswith(self.prefix))
 
+    # A node shutting down closes its API before its process ends: asked in between, the pid it gave
+    # listens nowhere (a rollback stopping the nodes it launched while a fence learned them raised a false
+    # fence_refused). A process whose command line names the node gets this long to be gone before the
+    # registration is refused; it is never learned (a launch guard carries its node's command line too).
+    CLOSING_GRACE = 2.0
+
     def learn(self):
         """Ask every node under the name space for its pid. Returns the number of local nodes known;
         ``unlearned`` names the nodes it could not learn this time."""
         unlearned = []
         current = self.node_names()
         with self.lock:   # a refused, remote or learned registration gone from the master is forgotten
-            for table in (self.refused, self.remote, self.lineage, self.stale, self.uris):
+            for table in (self.refused, self.remote, self.lineage, self.stale, self.uris, self.closing):
                 for name in [n for n in table if n not in current]:
                     del table[name]
         for name in current:
@@ -144,6 +153,8 @@ class NamespaceFence(object):
                             self.stale[name] = why
                         unlearned.pop()
                         continue
+                    if why and self._closing(name, uri, pid):
+                        continue   # stays unlearned, asked again soon; nothing refused, nothing learned
                     if why:   # a forged registration: that process is never killed for this name space
                         with self.lock:
                             self.refused[name] = why
@@ -163,6 +174,18 @@ class NamespaceFence(object):
                 continue
         self.unlearned = unlearned
         return len(self.known)
+
+    def _closing(self, name, uri, pid):
+        """Whether the refusal of name (its pid ``pid`` not the node at ``uri``) waits: the process's command
+        line names the node, and it was first seen so less than CLOSING_GRACE ago."""
+        if not names_itself(pid, name):
+            return False
+        now = self.clock()
+        with self.lock:
+            seen = self.closing.get(name)
+            if seen is None or seen[:2] != (uri, pid):
+                seen = self.closing[name] = (uri, pid, now)
+        return now - seen[2] < self.CLOSING_GRACE
 
     def started(self, pid, created):
         """The name of a node of the name space, learned and still registered, whose parent is the
