@@ -163,7 +163,7 @@ def test_an_update_switch_and_composition_are_described_by_what_they_change():
 class UpSite(object):
     proc = object()
 
-    def failure(self):
+    def failure(self, ignore=()):
         return None
 
 
@@ -186,6 +186,7 @@ def test_a_relaunched_proxy_counts_once_its_service_is_offered_not_once_its_rosl
 
     class Deployment(object):
         sites = {'master': UpSite(), 'slave': UpSite(), 'proxy1': UpSite(), 'proxy2': UpSite(), 'client1': UpSite()}
+        retired = {}
 
         def shape_problem(self, site, master):
             return None
@@ -287,9 +288,38 @@ def test_heal_powers_off_no_site_while_the_witness_cannot_be_asked(monkeypatch):
 
     class Deployment(object):
         sites = {'master': Site('master'), 'slave': Site('slave')}
-    monkeypatch.setattr(campaign, '_down', lambda site: False)
+    monkeypatch.setattr(campaign, '_down', lambda deployment, name: False)
     fail_stopped = {'master': 10.0, 'slave': 10.0}   # both said they fail-stopped
     campaign.heal(Deployment(), log=lambda *a: None, fail_stopped=fail_stopped)
     # Nothing while the witness was unknown; then master only (slave is the witness's primary).
     assert powered_off and all(name == 'master' for name, _ in powered_off), powered_off
     assert all(left <= 3 for _, left in powered_off), powered_off
+
+
+class ProceedDiedSite(UpSite):
+    """A replica site whose roslaunch printed that /master/proceed died (exit code -9)."""
+
+    def failure(self, ignore=()):
+        return None if '/master/proceed' in ignore else 'site master: /master/proceed died (exit code -9)'
+
+
+def test_a_node_an_adaptation_killed_is_no_failure_of_its_site_but_any_other_death_is(monkeypatch, tmp_path):
+    """Seed 36054: a compose's kill step had to SIGKILL the old Proceeds (the ROS master did not
+    answer their unregistration); the heal took both replica sites for down and relaunched them,
+    the new primary among them, and its state was lost."""
+    import aft_examples.ros.campaign as campaign
+    deployment = campaign.CampaignDeployment(str(tmp_path), adaptable=True)
+    deployment.sites = {'master': ProceedDiedSite(), 'slave': UpSite(), 'proxy1': UpSite(), 'proxy2': UpSite()}
+    monkeypatch.setattr(deployment, 'shape_problem', lambda site, master: None)
+
+    class Status(object):
+        epoch, primary, backup = 5, 'slave', 'master'
+    monkeypatch.setattr(campaign, 'witness_status', lambda: Status)
+    monkeypatch.setattr(campaign.rosgraph, 'Master', FakeMaster)
+    FakeMaster.offered = {'/account1', '/account2'}
+    assert campaign.whole(deployment) == 'site master: /master/proceed died (exit code -9)'
+    deployment.retire('/slave/proceed')   # another site's node: master's death still counts
+    assert campaign.whole(deployment) == 'site master: /master/proceed died (exit code -9)'
+    deployment.retire('/master/proceed')
+    assert campaign.whole(deployment) is None
+    assert deployment.retired == {'master': {'/master/proceed'}, 'slave': {'/slave/proceed'}}

@@ -165,6 +165,10 @@ def test_a_site_whose_node_died_while_its_launch_runs_on_is_a_failure_named_with
         assert site.alive()
         assert why.startswith('site site: /site/tr/after died (exit code 1)'), why
         assert 'not connected within 30.0 s' in why and '/old/node' not in why
+        # A node retired on purpose (an adaptation killed it, by SIGKILL when SIGINT was not enough)
+        # is no failure of its site; any other node's death still is.
+        assert site.failure(ignore={'/site/tr/after'}) is None
+        assert site.failure(ignore={'/site/tr/before'}) == why
     finally:
         site.stop(grace=1)
     assert site.failure() == 'site site exited (code %s)' % site.proc.returncode

@@ -220,10 +220,11 @@ class Site(object):
     def alive(self):
         return self.proc is not None and self.proc.poll() is None
 
-    def failure(self):
+    def failure(self, ignore=()):
         """Why the started site is no longer whole, or None: its command exited, or a node of it
-        died (read from this start's roslaunch output in the log). A site waited for while it
-        starts can be given up at once then, rather than at the end of the wait."""
+        died (read from this start's roslaunch output in the log), other than the nodes in ignore
+        (graph names: nodes retired on purpose, such as those an adaptation killed). A site waited
+        for while it starts can be given up at once then, rather than at the end of the wait."""
         if self.proc is None:
             return None
         if self.proc.poll() is not None:
@@ -236,7 +237,7 @@ class Site(object):
                 text = f.read().decode(errors='replace')
         except OSError:   # not written yet
             return None
-        if not nodes_died(text):
+        if not [node for node in nodes_died(text) if node not in ignore]:
             return None
         return 'site %s: %s' % (self.name, launch_failure(text))
 

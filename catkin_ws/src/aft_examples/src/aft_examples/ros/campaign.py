@@ -81,6 +81,10 @@ class CampaignDeployment(object):
         self.mechanism = mechanism   # pbr or lfr (a switch toggles it)
         self.inner = ''              # the mechanism standing in for Proceed ('' or tr: compose, decompose)
         self.suffix = {}      # (replica site, 'before' or 'after') -> suffix of that node, once replaced
+        # Site name -> the nodes of its roslaunch an adaptation killed: their deaths (SIGKILL, when a
+        # SIGINT was not enough) are no failure of the site (seed 36054: two sites taken for down
+        # and relaunched, the new primary among them, and its state lost with it).
+        self.retired = {}
         self.server_timeout = 1.0
         self.clients = clients
         self.env = env
@@ -203,8 +207,13 @@ class CampaignDeployment(object):
         clean_dead_nodes('/campaign')
         if name in REPLICAS:
             self.comes_back(name)
+        self.retired.pop(name, None)
         self.sites[name] = self._site(name).start()
         return self.sites[name]
+
+    def retire(self, node):
+        """node (a graph name: /site/name) was killed on purpose by an adaptation."""
+        self.retired.setdefault(node.split('/')[1], set()).add(node)
 
     def comes_back(self, name):
         """Replica name is launched again: as a backup, with the launch file's node names, running
@@ -374,6 +383,9 @@ class AdaptingBackend(ProcessBackend):
             report = deployment.engine.run(load_script(plan.script, plan.overrides), 'prepared')
         except AftError as e:   # refused before anything changed (a script the graph does not allow now)
             raise CampaignError('fault %d: %s refused: %s' % (fault.index, plan.what, e))
+        for step in report['steps']:
+            if step['action'] == 'kill' and step['ok']:   # killed even if rolled back (respawned elsewhere)
+                deployment.retire(step['target'])
         if report['ok']:
             plan.apply(deployment)
         return dict(start=start, end=time.time(), proxy_killed=None, adapted=bool(report['ok']),
@@ -505,18 +517,20 @@ class HostsBackend(ProcessBackend):
         return ''
 
 
-def _down(site):
-    """Why a site is down (its roslaunch exited, or a node of it died: a Proxy is not required by its
-    roslaunch, which then lives on without it), or None."""
-    return site.failure() if site.proc is not None else 'never started'
+def _down(deployment, name):
+    """Why a site is down (its roslaunch exited, or a node of it died, other than one an adaptation
+    retired: a Proxy is not required by its roslaunch, which then lives on without it), or None."""
+    site = deployment.sites[name]
+    return site.failure(deployment.retired.get(name, ())) if site.proc is not None else 'never started'
 
 
 def whole(deployment):
     """Why the deployment is not whole yet (a site down, the pair not formed, a replica that runs
     another mechanism than the pair), or None."""
     for name, site in sorted(deployment.sites.items()):
-        if not name.startswith('client') and _down(site):
-            return _down(site)
+        why = None if name.startswith('client') else _down(deployment, name)
+        if why:
+            return why
     status = witness_status()
     if status is None:
         return 'the witness does not answer'
@@ -565,7 +579,7 @@ def heal(deployment, log=print, fail_stopped=None, acted=None):
         for name, site in sorted(deployment.sites.items()):
             if name.startswith('client'):
                 continue
-            if _down(site):
+            if _down(deployment, name):
                 started_at[name] = time.monotonic()
                 acted.append(time.time())
                 deployment.relaunch(name)
