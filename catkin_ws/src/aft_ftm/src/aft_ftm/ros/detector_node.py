@@ -90,6 +90,7 @@ class CrashDetectorNode(object):
             raise config.ConfigError('parameter %s must be from 0 (off) to 99, got %r'
                                      % (rospy.resolve_name('~realtime_priority'), self.realtime_priority))
         self.realtime_threads = set()   # thread ids already under SCHED_FIFO
+        self.realtime_lock = threading.Lock()   # _realtime and _leave_realtime, one at a time
         self.realtime_error = None
         self.realtime_told = False
         self.started = time.monotonic()
@@ -144,6 +145,7 @@ class CrashDetectorNode(object):
         self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
         rospy.Service('~peer_status', PeerStatus, self._on_peer_status)
+        rospy.on_shutdown(self._leave_realtime)   # the first thing done when the node stops
         self._realtime()
         if self.follow_witness:
             self.configuration = rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration,
@@ -198,6 +200,10 @@ class CrashDetectorNode(object):
     def _realtime(self):
         """Put every thread of this process not yet under SCHED_FIFO there (threads started by those
         already there inherit it; others, started by rospy's own threads, are caught at the next call)."""
+        with self.realtime_lock:
+            self._realtime_locked()
+
+    def _realtime_locked(self):
         if not self.realtime_priority or self.realtime_error:
             return
         try:
@@ -215,6 +221,22 @@ class CrashDetectorNode(object):
                 rospy.logwarn('%s: %s', rospy.get_name(), self.realtime_error)
                 return
         self.realtime_threads = tids
+
+    def _leave_realtime(self):
+        """Every thread back to the usual policy, for good: a node shutting down has no deadline to
+        meet, and whatever it does then (rospy joins threads for seconds; see also
+        aft_ftm.ros.xmlrpc_shutdown) must not take a core from the machine's other processes."""
+        with self.realtime_lock:
+            self.realtime_priority = 0   # _realtime() does nothing from now on
+            try:
+                tids = [int(t) for t in os.listdir('/proc/self/task')]
+            except OSError:
+                return
+        for tid in tids:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:   # ended meanwhile
+                pass
 
     def _tell_realtime_error(self, now):
         """The alarm that this detector runs without real-time priority: once, when a subscriber of the

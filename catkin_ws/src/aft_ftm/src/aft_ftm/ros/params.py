@@ -69,6 +69,8 @@ def run_node(name, factory, setup_timeout=30.0, variants=None):
     from .handshake import USER_TIMEOUT, bound_handshakes, unacknowledged_limit
     from .rejoin import ignore_misdirected_shutdowns, keep_registered, period_from_env
     from .subscription_keeper import keep_subscriptions
+    from .xmlrpc_shutdown import end_serving_on_shutdown
+    end_serving_on_shutdown()   # no XML-RPC thread spinning on its closed socket while the node stops
     bound_handshakes()   # no half-made connection wedges this node's TCPROS server
     ignore_misdirected_shutdowns()   # a master's shutdown meant for the dead process this port was
     try:
