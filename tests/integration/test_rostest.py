@@ -129,3 +129,6 @@ def test_an_adaptable_site_lets_its_stages_be_replaced_without_stopping_the_site
         assert required[name] == replaceable_required, name
     for name in ('/master/protocol', '/master/crash_detector', '/master/recovery'):
         assert required[name], name
+    # ... and its crash detector watches them all the same: a stage's crash that no adaptation retired
+    # fails the site over at once, where it used to wait for the Protocol's timeouts.
+    assert config.params['/master/crash_detector/watch_replaceable'].value is (not replaceable_required)

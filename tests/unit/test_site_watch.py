@@ -8,8 +8,9 @@ import time
 
 import pytest
 
-from aft_ftm.ros.launch_files import required_by_launch
-from aft_ftm.site_watch import SiteWatch, children_nodes, node_name
+from aft_ftm import site_watch
+from aft_ftm.ros.launch_files import replaceable_by_launch, required_by_launch
+from aft_ftm.site_watch import SiteWatch, children_nodes, mark_retired, node_name
 
 SRC = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src')
 SITE_LAUNCH = os.path.abspath(os.path.join(SRC, 'aft_examples', 'launch', 'demo_replica_site.launch'))
@@ -45,6 +46,17 @@ ALWAYS = {'/master/bank_server', '/master/protocol', '/master/crash_detector', '
 ])
 def test_the_required_nodes_are_those_of_the_launch_file(args, required):
     assert required_by_launch(site_argv(*args)) == required
+
+
+@pytest.mark.parametrize('args,replaceable', [
+    ([], set()),                         # every stage required already
+    (['adaptable:=true'], STAGES),       # an adaptation may retire them: watched, unless retired
+    (['adaptable:=true', 'inner:=tr'], {'/master/before', '/master/after', '/master/tr/protocol',
+                                        '/master/tr/before', '/master/tr/proceed', '/master/tr/after'}),
+    (['adaptable:=true', 'link_monitor:=true'], STAGES),   # the link monitor is no stage
+])
+def test_the_replaceable_nodes_are_the_stages_an_adaptable_launch_does_not_require(args, replaceable):
+    assert replaceable_by_launch(site_argv(*args)) == replaceable
 
 
 def test_a_launcher_that_is_not_a_loadable_roslaunch_requires_nothing_known():
@@ -106,3 +118,58 @@ def test_a_node_dead_before_it_is_adopted_is_left_to_roslaunch(nodes):
         assert watch.missing() == {'/m/a'}
     finally:
         watch.close()
+
+
+def test_a_node_marked_retired_dies_without_failure_once_and_any_other_death_is_one(nodes, tmp_path, monkeypatch):
+    """An adaptation marks the node it retires before stopping it (mark_retired, by pid and create time):
+    the watch of an adaptable site lets that death go, once; an unmarked death is a failure."""
+    monkeypatch.setattr(site_watch, 'RETIRED_DIR', str(tmp_path / 'retired'))
+    retired, crashed = nodes('proceed'), nodes('before')
+    watch = SiteWatch({'/m/proceed', '/m/before'})
+    try:
+        assert sorted(watch.adopt(children_nodes(os.getpid()))) == ['/m/before', '/m/proceed']
+        assert mark_retired(retired.pid)
+        retired.terminate()
+        assert watch.wait(5.0) == [(retired.pid, '/m/proceed')]
+        assert watch.retired(retired.pid)
+        assert not watch.retired(retired.pid)        # the mark is taken once
+        assert os.listdir(str(tmp_path / 'retired')) == []
+        crashed.kill()
+        assert watch.wait(5.0) == [(crashed.pid, '/m/before')]
+        assert not watch.retired(crashed.pid)
+    finally:
+        watch.close()
+    gone = nodes('x')
+    gone.kill()
+    gone.wait()
+    assert mark_retired(gone.pid) is None             # nothing to mark: the process is gone
+
+
+def test_a_mark_nobody_took_is_removed_once_stale(nodes, tmp_path, monkeypatch):
+    """A node retired whose site died first leaves its mark: the next mark written removes the stale ones."""
+    monkeypatch.setattr(site_watch, 'RETIRED_DIR', str(tmp_path))
+    stale, fresh = tmp_path / '1-100.00', tmp_path / '2-200.00'
+    stale.touch()
+    fresh.touch()
+    old = time.time() - site_watch.STALE_MARK_S - 5
+    os.utime(str(stale), (old, old))
+    node = nodes('proceed')
+    path = mark_retired(node.pid)
+    assert sorted(os.listdir(str(tmp_path))) == sorted(['2-200.00', os.path.basename(path)])
+
+
+def test_marks_count_only_in_a_directory_of_this_user_alone(nodes, tmp_path, monkeypatch):
+    """A directory others may write into could hold planted marks that hide a crash: no mark is written
+    there, and none found there counts."""
+    shared = tmp_path / 'shared'
+    shared.mkdir()
+    monkeypatch.setattr(site_watch, 'RETIRED_DIR', str(shared))
+    node = nodes('proceed')
+    path = mark_retired(node.pid)
+    ticks = site_watch.start_ticks(node.pid)
+    os.chmod(str(shared), 0o777)
+    with pytest.raises(PermissionError):
+        mark_retired(node.pid)
+    assert not site_watch.take_retired(node.pid, ticks)   # planted or not: not trusted
+    os.chmod(str(shared), 0o700)
+    assert site_watch.take_retired(node.pid, ticks) and not os.path.exists(path)

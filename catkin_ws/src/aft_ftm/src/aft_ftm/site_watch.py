@@ -16,10 +16,91 @@ launch file (aft_ftm.ros.launch_files).
 """
 import os
 import select
+import stat
+import time
 
 import psutil
 
 from .errors import AftError
+
+# Where an adaptation marks the processes it is about to stop on purpose (one empty file per process,
+# named by its pid and start time): the watch of an adaptable site lets those die. A tmpfs shared by
+# every network namespace of the host (emulated hosts included), one directory per user, which must be
+# that user's alone (a mark planted by another user would hide a crash). AFT_RETIRED_DIR overrides it.
+RETIRED_DIR = os.environ.get('AFT_RETIRED_DIR') or os.path.join(
+    '/dev/shm' if os.path.isdir('/dev/shm') else '/tmp', 'aft_retired-%d' % os.geteuid())
+STALE_MARK_S = 600.0   # a mark older than this is removed by the next one written
+
+
+def start_ticks(pid):
+    """The start time of process pid in clock ticks since boot (/proc/PID/stat, field 22): with the
+    pid, it names one process for good. (psutil's create time adds the boot time, which each process
+    reads once and which moves with the wall clock: two processes could name the same one apart.)
+    Raises OSError (ProcessLookupError included) if there is no such process."""
+    with open('/proc/%d/stat' % pid) as f:
+        return int(f.read().rsplit(')', 1)[1].split()[19])
+
+
+def _marker(pid, ticks):
+    return os.path.join(RETIRED_DIR, '%d-%d' % (pid, ticks))
+
+
+def _own_directory():
+    """Whether RETIRED_DIR is a directory of this user that nobody else may write into."""
+    try:
+        info = os.stat(RETIRED_DIR)
+    except OSError:
+        return False
+    return stat.S_ISDIR(info.st_mode) and info.st_uid == os.geteuid() and not info.st_mode & 0o022
+
+
+def mark_retired(pid):
+    """Say that process pid is about to be stopped on purpose (an adaptation retires its node), so that
+    its site's watch does not take its death for a failure. Returns the mark's path, or None if the
+    process is gone already. Raises OSError if the mark cannot be written (or the directory is not
+    this user's alone)."""
+    try:
+        ticks = start_ticks(pid)
+    except ProcessLookupError:
+        return None
+    except FileNotFoundError:
+        return None
+    os.makedirs(RETIRED_DIR, mode=0o700, exist_ok=True)
+    if not _own_directory():
+        raise PermissionError('%s is not a directory of this user alone' % RETIRED_DIR)
+    _prune(time.time() - STALE_MARK_S)
+    path = _marker(pid, ticks)
+    with open(path, 'w'):
+        pass
+    return path
+
+
+def _prune(before):
+    """Remove the marks written before that time (their process's watch, if any, took them long ago, or
+    it died with its site first)."""
+    try:
+        names = os.listdir(RETIRED_DIR)
+    except OSError:
+        return
+    for name in names:
+        path = os.path.join(RETIRED_DIR, name)
+        try:
+            if os.stat(path).st_mtime < before:
+                os.unlink(path)
+        except OSError:   # taken meanwhile
+            pass
+
+
+def take_retired(pid, ticks):
+    """Whether process pid, started at ticks, was marked retired; the mark is removed. A directory that
+    is not this user's alone, or any error, counts as no mark: the death is then a failure."""
+    if not _own_directory():
+        return False
+    try:
+        os.unlink(_marker(pid, ticks))
+        return True
+    except OSError:
+        return False
 
 
 class WatchError(AftError):
@@ -73,6 +154,7 @@ class SiteWatch(object):
             raise WatchError('this Python has no os.pidfd_open (Linux 5.3 and Python 3.9 are needed)')
         self.required = frozenset(required)
         self.watched = {}        # fd -> (pid, name)
+        self.created = {}        # pid -> start time (ticks), of the processes adopted
         self.names = set()
         self.poller = select.poll()
         self.dead = []           # (pid, name) of the watched nodes that died, in the order seen
@@ -92,6 +174,10 @@ class SiteWatch(object):
                 continue   # died before it could be watched: roslaunch answers it
             except OSError as e:
                 raise WatchError('pidfd_open(%d) for %s: %s' % (pid, name, e))
+            try:
+                self.created[pid] = start_ticks(pid)
+            except OSError:   # died meanwhile (the pidfd tells it at the next wait): not marked, a failure
+                self.created[pid] = None
             self.watched[fd] = (pid, name)
             self.names.add(name)
             self.poller.register(fd, select.POLLIN)
@@ -108,6 +194,11 @@ class SiteWatch(object):
             died.append((pid, name))
         self.dead += died
         return died
+
+    def retired(self, pid):
+        """Whether the adopted process pid, now dead, was marked retired (mark_retired); the mark is removed."""
+        ticks = self.created.get(pid)
+        return ticks is not None and take_retired(pid, ticks)
 
     def close(self):
         for fd in list(self.watched):

@@ -41,6 +41,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
+from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
 from ..where import run_where
 from .graph import roslaunch, unwired
@@ -730,7 +731,14 @@ class Engine(object):
             record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
-        disarm_guard_of(pid)   # a node an adaptation started: retired on purpose, its site must not fail
+        # A node an adaptation started: its guard, disarmed, lets it go. A node of the site's own launch:
+        # marked, its crash detector lets it die (aft_ftm.site_watch).
+        if disarm_guard_of(pid) is None:
+            try:
+                mark_retired(pid)
+            except OSError as e:
+                raise StepError('cannot mark %s (pid %d) retired (%s): not killed, its site would fail over'
+                                % (node, pid, e))
         try:
             proc.send_signal(signal.SIGINT)
         except psutil.NoSuchProcess:
@@ -757,7 +765,9 @@ class Engine(object):
             return 'stopped %s' % ', '.join(site.nodes)
         if step.action == 'respawn':
             record = step.detail
-            argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace)
+            # A stage of a replica site, started again: its death is the site's failure, as it was.
+            argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace,
+                           fail_site=step.target.strip('/').split('/')[0] if record.owners else '')
             env = record.env
             if record.owners:
                 argv, env = run_where(record.owners[0].pid, argv, env)   # on its site's host, as it was

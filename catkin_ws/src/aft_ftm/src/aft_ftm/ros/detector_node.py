@@ -15,7 +15,7 @@ from ..site_watch import SiteWatch, WatchError, children_nodes
 from ..sites import this_host
 from .alarms import alarm
 from .diagnostics import Diagnostics
-from .launch_files import required_by_launch
+from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
 from .witness_client import CONFIGURATION_TOPIC
@@ -53,6 +53,12 @@ class CrashDetectorNode(object):
             dies, rather than heartbeat until roslaunch's shutdown reaches this node (about 200 ms:
             aft_ftm.site_watch). Nothing is watched with ~site_pid 0, or when the launcher is not a
             roslaunch whose file loads (said in the log).
+        ~watch_replaceable (bool, default false; replica.launch sets it for an adaptable site): watch
+            too the stage nodes the launch starts without required="true" (aft_ftm's protocol, before,
+            proceed, after: an adaptation may replace them), and fail-stop the moment one dies, unless
+            an adaptation marked it retired first (aft_ftm.site_watch.mark_retired); only those of this
+            node's name space, and only with ~watch_required. Without it, a crashed stage of an
+            adaptable site left requests waiting for the Protocol's timeouts.
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``; when this site fail-stops, one last one
             whose ``stopping`` says why, so that the peer declares it failed at once
@@ -85,6 +91,7 @@ class CrashDetectorNode(object):
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
         self.watch_required = param('watch_required', config.flag, True)
+        self.watch_replaceable = param('watch_replaceable', config.flag, False)
         self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
         if self.realtime_priority > 99:
             raise config.ConfigError('parameter %s must be from 0 (off) to 99, got %r'
@@ -158,7 +165,8 @@ class CrashDetectorNode(object):
         return True
 
     def _watch_site(self, scan_period=0.2, patient_for=120.0, slow_scan=2.0):
-        """Fail-stop this site the moment a required node of its roslaunch dies (aft_ftm.site_watch)."""
+        """Fail-stop this site the moment a required node of its roslaunch dies, or (~watch_replaceable)
+        a stage node that no adaptation retired (aft_ftm.site_watch)."""
         try:
             launcher = psutil.Process(self.site_pid)
             argv, namespace = launcher.cmdline(), launcher.environ().get('ROS_NAMESPACE', '/')
@@ -167,6 +175,14 @@ class CrashDetectorNode(object):
                           rospy.get_name(), self.site_pid, e)
             return
         required = required_by_launch(argv, namespace) - {rospy.get_name()}
+        # Only this site's (this node's name space): roslaunch does not stop a launch running both
+        # replicas when the other's dies.
+        replaceable = {n for n in replaceable_by_launch(argv, namespace) - required
+                       if n.startswith(rospy.get_namespace())} if self.watch_replaceable else set()
+        if replaceable:
+            rospy.loginfo('%s: the stage nodes %s are watched too (adaptable site): their death fails the site '
+                          'unless an adaptation retires them', rospy.get_name(), ', '.join(sorted(replaceable)))
+        required = required | replaceable
         if not required:
             rospy.loginfo('%s: no required node known for the launcher %s: none watched', rospy.get_name(),
                           ' '.join(argv[:6]))
@@ -189,11 +205,16 @@ class CrashDetectorNode(object):
                                   ', '.join(sorted(adopted)), ', '.join(sorted(watch.missing())) or 'none')
             waiting = watch.missing()
             patience = scan_period if time.monotonic() - started < patient_for else slow_scan
-            died = watch.wait(patience if waiting else 1.0)
-            if died:
-                pid, name = died[0]
-                self._on_fail_stop(Failure(site=self.site, reason='the required node %s (pid %d) died: its '
-                                           'roslaunch stops the site' % (name, pid), detected=rospy.Time.now()))
+            failed = None
+            for pid, name in watch.wait(patience if waiting else 1.0):
+                if name in replaceable and watch.retired(pid):
+                    rospy.loginfo('%s: %s (pid %d) retired by an adaptation: no failure', rospy.get_name(), name, pid)
+                elif failed is None:
+                    failed = 'the required node %s (pid %d) died: its roslaunch stops the site' % (name, pid) \
+                        if name not in replaceable else 'the stage node %s (pid %d) died, and no adaptation retired ' \
+                        'it: the site cannot serve without it' % (name, pid)
+            if failed:
+                self._on_fail_stop(Failure(site=self.site, reason=failed, detected=rospy.Time.now()))
                 break
         watch.close()
 

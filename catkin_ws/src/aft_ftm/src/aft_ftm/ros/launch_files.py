@@ -81,6 +81,20 @@ def required_by_launch(argv, namespace='/'):
     return {rosgraph.names.ns_join(n.namespace, n.name) for n in loaded[1].nodes if n.required}
 
 
+STAGE_TYPES = ('protocol', 'before', 'proceed', 'after')   # aft_ftm executables an adaptation may replace
+
+
+def replaceable_by_launch(argv, namespace='/'):
+    """The FTM stage nodes (aft_ftm's protocol, before, proceed, after) a roslaunch run as argv starts
+    without required="true": in an adaptable site, those an adaptation may retire and replace (a
+    nested mechanism's included). Empty if argv is not a roslaunch whose file loads."""
+    loaded = launch_of(argv, namespace)
+    if loaded is None:
+        return set()
+    return {rosgraph.names.ns_join(n.namespace, n.name) for n in loaded[1].nodes
+            if not n.required and n.package == 'aft_ftm' and n.type in STAGE_TYPES}
+
+
 def stopped_by_launch(argv, node):
     """The nodes other than node that a roslaunch run as argv stops when node dies (node required
     there), read from its launch file and arguments; [] if argv is not a roslaunch whose file loads."""
