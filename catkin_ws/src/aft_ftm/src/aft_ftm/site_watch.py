@@ -61,9 +61,7 @@ def mark_retired(pid):
     this user's alone)."""
     try:
         ticks = start_ticks(pid)
-    except ProcessLookupError:
-        return None
-    except FileNotFoundError:
+    except (FileNotFoundError, ProcessLookupError):
         return None
     os.makedirs(RETIRED_DIR, mode=0o700, exist_ok=True)
     if not _own_directory():

@@ -182,13 +182,13 @@ class CrashDetectorNode(object):
         if replaceable:
             rospy.loginfo('%s: the stage nodes %s are watched too (adaptable site): their death fails the site '
                           'unless an adaptation retires them', rospy.get_name(), ', '.join(sorted(replaceable)))
-        required = required | replaceable
-        if not required:
+        watched = required | replaceable
+        if not watched:
             rospy.loginfo('%s: no required node known for the launcher %s: none watched', rospy.get_name(),
                           ' '.join(argv[:6]))
             return
         try:
-            watch = SiteWatch(required)
+            watch = SiteWatch(watched)
         except WatchError as e:
             rospy.logwarn('%s: %s: the required nodes of the site are not watched', rospy.get_name(), e)
             return
@@ -209,10 +209,13 @@ class CrashDetectorNode(object):
             for pid, name in watch.wait(patience if waiting else 1.0):
                 if name in replaceable and watch.retired(pid):
                     rospy.loginfo('%s: %s (pid %d) retired by an adaptation: no failure', rospy.get_name(), name, pid)
-                elif failed is None:
-                    failed = 'the required node %s (pid %d) died: its roslaunch stops the site' % (name, pid) \
-                        if name not in replaceable else 'the stage node %s (pid %d) died, and no adaptation retired ' \
-                        'it: the site cannot serve without it' % (name, pid)
+                elif failed is not None:
+                    continue   # the first death names the failure
+                elif name in replaceable:
+                    failed = ('the stage node %s (pid %d) died, and no adaptation retired it: the site cannot '
+                              'serve without it' % (name, pid))
+                else:
+                    failed = 'the required node %s (pid %d) died: its roslaunch stops the site' % (name, pid)
             if failed:
                 self._on_fail_stop(Failure(site=self.site, reason=failed, detected=rospy.Time.now()))
                 break
