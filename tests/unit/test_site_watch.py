@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 
+import psutil
 import pytest
 
 from aft_ftm import site_watch
@@ -74,6 +75,9 @@ def nodes():
         proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)', '__name:=' + name],
                                 env=dict(os.environ, ROS_NAMESPACE=ns))
         started.append(proc)
+        deadline = time.monotonic() + 5.0    # named once the child has run python (not yet at fork)
+        while time.monotonic() < deadline and ('__name:=' + name) not in psutil.Process(proc.pid).cmdline():
+            time.sleep(0.005)
         return proc
     yield start
     for proc in started:
@@ -156,6 +160,31 @@ def test_a_mark_nobody_took_is_removed_once_stale(nodes, tmp_path, monkeypatch):
     node = nodes('proceed')
     path = mark_retired(node.pid)
     assert sorted(os.listdir(str(tmp_path))) == sorted(['2-200.00', os.path.basename(path)])
+
+
+def test_a_mark_left_by_an_engine_stopped_before_its_signal_hides_no_later_crash(nodes, tmp_path, monkeypatch):
+    """An engine stopped between its mark and its SIGINT leaves the mark behind. The node's real crash
+    later is a failure all the same: a mark counts only for a death soon after it was written."""
+    monkeypatch.setattr(site_watch, 'RETIRED_DIR', str(tmp_path))
+    node = nodes('proceed')
+    ticks = site_watch.start_ticks(node.pid)
+    path = mark_retired(node.pid)
+    written = os.stat(path).st_mtime
+    late = written + site_watch.MARK_VALID_S + 1
+    assert not site_watch.take_retired(node.pid, ticks, now=late)
+    assert not os.path.exists(path)                       # taken all the same: it can hide nothing more
+    watch = SiteWatch({'/m/proceed'})
+    try:
+        assert watch.adopt(children_nodes(os.getpid())) == ['/m/proceed']
+        mark_retired(node.pid)
+        old = time.time() - site_watch.MARK_VALID_S - 1
+        os.utime(path, (old, old))
+        node.kill()
+        assert watch.wait(5.0) == [(node.pid, '/m/proceed')]
+        assert not watch.retired(node.pid)
+    finally:
+        watch.close()
+    assert os.listdir(str(tmp_path)) == []
 
 
 def test_marks_count_only_in_a_directory_of_this_user_alone(nodes, tmp_path, monkeypatch):

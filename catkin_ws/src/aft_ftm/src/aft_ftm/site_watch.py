@@ -30,6 +30,11 @@ from .errors import AftError
 RETIRED_DIR = os.environ.get('AFT_RETIRED_DIR') or os.path.join(
     '/dev/shm' if os.path.isdir('/dev/shm') else '/tmp', 'aft_retired-%d' % os.geteuid())
 STALE_MARK_S = 600.0   # a mark older than this is removed by the next one written
+# A mark counts only for a death this soon after it was written. The engine writes it just before it
+# stops the node (SIGINT, SIGKILL 5 s later, then 2 s more), and the watch hears the death at once. An
+# engine stopped between the mark and the signal leaves a mark behind: without this limit, that node's
+# real crash minutes later would be let go as a retirement and its site would not fail over.
+MARK_VALID_S = 20.0
 
 
 def start_ticks(pid):
@@ -89,16 +94,20 @@ def _prune(before):
             pass
 
 
-def take_retired(pid, ticks):
-    """Whether process pid, started at ticks, was marked retired; the mark is removed. A directory that
-    is not this user's alone, or any error, counts as no mark: the death is then a failure."""
+def take_retired(pid, ticks, now=None):
+    """Whether process pid, started at ticks, was marked retired at most MARK_VALID_S ago; the mark is
+    removed, fresh or not. A directory that is not this user's alone, or any error, counts as no mark:
+    the death is then a failure."""
     if not _own_directory():
         return False
+    path = _marker(pid, ticks)
     try:
-        os.unlink(_marker(pid, ticks))
-        return True
+        written = os.stat(path).st_mtime
+        os.unlink(path)
     except OSError:
         return False
+    age = (time.time() if now is None else now) - written
+    return -1.0 <= age <= MARK_VALID_S
 
 
 class WatchError(AftError):
