@@ -8,6 +8,8 @@ unless the peer was heard again meanwhile (then the report is moot: the peer cam
 re-join; the detector says so with peer_back and sends no failure).
 The script runs in a process of its own, with a master of its own; every process it starts carries
 the test's AFT_TEST_TAG and is killed at the end."""
+import re
+
 from leftovers import run_tagged
 
 SCRIPT = r'''
@@ -24,6 +26,16 @@ try:
     rospy.init_node('checker')
     alarms, failures = [], []
     rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
+    if sys.argv[1] == 'stall':   # heard, then its next beat sent 0.3 s late: the peer_back alarm says so
+        peer = rospy.Publisher('/t/peer', Heartbeat, queue_size=10)
+        seq = 0
+        while not any(a.kind == 'peer_back' for a in alarms) and seq < 3000:
+            seq += 1
+            peer.publish(Heartbeat(site='b', host='h', pid=4242, seq=seq, stamp=rospy.Time.now()))
+            time.sleep(0.3 if seq == 300 else 0.01)
+        back = [a.detail for a in alarms if a.kind == 'peer_back']
+        print('heard again: %s' % back)
+        sys.exit(0 if back and 'the sender stalled' in back[0] else 'no stall told: %s' % back)
     if not wait_until(lambda: any(a.kind == 'failure_undelivered' for a in alarms), 30, 0.05):
         sys.exit('no failure_undelivered alarm: %s' % [(a.kind, a.detail) for a in alarms])
     if sys.argv[1] == 'back':   # the peer is heard again before any Recovery connects
@@ -54,7 +66,7 @@ finally:
 
 
 def run_script(case):
-    """SCRIPT for case ('late' or 'back'): its exit status and output; every process it started is gone."""
+    """SCRIPT for case ('late', 'back' or 'stall'): its exit status and output; every process it started is gone."""
     return run_tagged(SCRIPT, [case], timeout=120, home_prefix='aft_detector_home_')
 
 
@@ -67,3 +79,12 @@ def test_a_failure_declared_before_recovery_connects_is_sent_once_it_does():
 def test_a_kept_failure_report_is_dropped_once_the_peer_is_heard_again():
     code, output = run_script('back')
     assert code == 0, output[-3000:]
+
+
+def test_a_peer_heard_again_after_its_sender_stalled_is_told_as_a_stall():
+    """A false suspicion explained: the peer's beat after the verdict was sent late (its sender
+    stalled), not delayed on the way; the peer_back alarm says which, from the beats' numbers and stamps."""
+    code, output = run_script('stall')
+    assert code == 0, output[-3000:]
+    sent = re.search(r'was sent ([0-9.]+) ms after the last one heard', output)
+    assert sent and float(sent.group(1)) >= 290.0, output[-3000:]   # the 0.3 s the sender slept

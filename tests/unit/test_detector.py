@@ -3,7 +3,7 @@ import random
 
 import pytest
 
-from aft_ftm.detector import HeartbeatMonitor, PeerState, PhiAccrualMonitor, phi, phi_z
+from aft_ftm.detector import HeartbeatMonitor, PeerState, PhiAccrualMonitor, phi, phi_z, why_heard_again
 from fakes import FakeClock
 
 
@@ -149,6 +149,37 @@ def test_a_stall_delays_the_verdict_on_a_crashed_peer_by_the_stall_only():
     assert verdict is not None
     assert verdict.silence == pytest.approx(0.030 + 0.040 + 0.001, abs=0.0015)
     assert 'of which 40.0 ms this detector was stalled' in verdict.reason
+
+
+def test_the_check_that_ends_a_stall_waits_a_tick_for_the_beats_unread_meanwhile():
+    """A campaign's false suspicion: the peer's beats were already 24 ms late, then this detector stalled
+    81 ms; its first check after the stall found 34.2 ms not excused and declared the peer failed, while
+    the peer's beats of that time still waited unread. That check now leaves the judgement to the next."""
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(timeout=0.03, stall_after=0.01)
+    monitor.beat(clock.now)
+    assert checked_every(monitor, clock, 0.002, 0.024) is None
+    assert monitor.check(clock.advance(0.081)) is None          # 34.2 ms not excused: it would have declared
+    assert monitor.stalls == 1 and monitor.deferred
+    monitor.beat(clock.advance(0.001))                           # the beats unread meanwhile, read at last
+    assert checked_every(monitor, clock, 0.002, 0.028) is None
+    assert monitor.state == PeerState.ALIVE
+
+
+def test_a_dead_peer_is_declared_one_check_after_the_stall_and_at_every_other_late_check():
+    """The deferral holds one check: a peer that stays silent is declared at the next, and a detector
+    late at every check (starved, without real-time priority) still declares a dead peer."""
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(timeout=0.03, stall_after=0.01)
+    monitor.beat(clock.now)
+    checked_every(monitor, clock, 0.002, 0.024)
+    assert monitor.check(clock.advance(0.081)) is None
+    verdict = monitor.check(clock.advance(0.002))
+    assert verdict is not None and 'this detector was stalled' in verdict.reason
+    starved = HeartbeatMonitor(timeout=0.03, stall_after=0.01)
+    starved.beat(clock.now)
+    verdicts = [starved.check(clock.advance(0.015)) for _ in range(40)]
+    assert any(v is not None for v in verdicts), 'a detector late at every check never declared the dead peer'
 
 
 def test_a_stall_before_the_last_beat_is_no_excuse_for_the_silence_after_it():
@@ -317,3 +348,18 @@ def test_phi_shares_the_life_cycle_a_failed_peer_stays_failed():
 def test_invalid_phi_settings_are_refused_by_name(kw, message):
     with pytest.raises(ValueError, match=message):
         phi_monitor(**kw)
+
+
+def test_a_peer_heard_again_says_whether_it_stalled_lost_beats_arrived_late_or_started_again():
+    """The peer_back alarm tells the cause of a false suspicion apart, from the beats' own numbers and
+    send stamps: the next beat sent late (the sender stalled), sent on time but heard late (the way or
+    this receiver), beats missing in between, or counting from the start again (a new process)."""
+    period, timeout = 0.01, 0.03
+    stalled = why_heard_again((41, 100.000), (42, 100.045), period, timeout)
+    assert stalled.startswith('the sender stalled') and '45.0 ms' in stalled
+    late = why_heard_again((41, 100.000), (42, 100.010), period, timeout)
+    assert 'sent on time' in late and 'arrived late' in late
+    lost = why_heard_again((41, 100.000), (45, 100.040), period, timeout)
+    assert lost.startswith('3 beat(s) between seq 41 and 45 never arrived')
+    assert 'started again' in why_heard_again((41, 100.000), (1, 130.0), period, timeout)
+    assert why_heard_again(None, (42, 100.01), period, timeout) is None     # a peer watched afresh: nothing known

@@ -2,7 +2,8 @@
 name, or false suspicions. No ROS."""
 import random
 
-from aft_examples.suspicions import Verdict, format_summary, judge, logged_verdicts, merge, rejoin_of, sites_touched, summary
+from aft_examples.suspicions import (Verdict, format_summary, heard_again_of, judge, logged_verdicts, merge, rejoin_of,
+                                    sites_touched, summary)
 
 
 def record(index, start, healed_at, sites, kind='kill', outcome='failover', unavailable=0.04):
@@ -105,6 +106,20 @@ def test_the_rejoin_alarm_is_read_by_its_words():
     assert rejoin_of('peer_watched', 'garbage') is None
 
 
+def test_a_false_suspicion_carries_what_its_detector_said_when_it_heard_that_site_again():
+    detail = ('site master, declared failed, is heard again (pid 7 on vm): it must re-join before it may serve '
+              'or be promoted; the sender stalled: its next beat (seq 42) was sent 45.0 ms after the last one heard')
+    assert heard_again_of('peer_back', detail) == 'master'
+    assert heard_again_of('peer_watched', 'site master re-joined (epoch 4): watched again') is None
+    heard = [(200.0, 'master', 'long after'), (99.0, 'master', 'before it'), (100.08, 'slave', 'the other site'),
+             (100.05, 'master', detail)]
+    s = summary([Verdict(100.03, 'slave', 'master', 'no heartbeat for 31.2 ms')], [], (), heard)
+    [false] = s['false']
+    assert false['then'] == detail
+    assert format_summary(s, 0.03)[1].endswith('heard again: ' + detail)
+    assert summary([Verdict(100.03, 'slave', 'master', 'x')], [])['false'][0]['then'] is None
+
+
 def test_a_site_a_fault_blinded_may_declare_its_peer_and_that_is_no_false_suspicion():
     # Partitioned, the backup declares the primary failed (its own side of the cut); a kill of the backup's
     # Before does not blind its crash detector: a verdict by it about the primary then is a false suspicion.
@@ -128,6 +143,17 @@ def test_verdicts_the_runner_could_not_hear_are_read_from_the_sites_logs():
     heard = [Verdict(1795676799.01, 'master', 'slave', 'it announced its fail-stop: x')]
     merged = merge(heard, logged)
     assert len(merged) == 2 and merged[0].reporter == 'slave' and heard[0] in merged
+
+
+def test_one_verdict_logged_and_heard_apart_under_load_is_counted_once():
+    """The detector logs its verdict, then stamps its report: stalled in between (a loaded machine), the
+    two stamps were 131 ms apart in a campaign, and the one verdict was counted as two false suspicions."""
+    reason = 'no heartbeat for 105.0 ms, of which 70.8 ms this detector was stalled (timeout 30.0 ms)'
+    heard = [Verdict(1795951597.677, 'master', 'slave', reason)]
+    logged = [Verdict(1795951597.546, 'master', 'slave', reason),
+              Verdict(1795951597.600, 'master', 'slave', 'no heartbeat for 31.0 ms (timeout 30.0 ms)'),
+              Verdict(1795951603.0, 'master', 'slave', reason)]
+    assert merge(heard, logged) == sorted(heard + logged[1:])   # another verdict, or the same words much later
 
 
 def test_a_readmission_before_the_repair_does_not_end_the_faults_window():

@@ -81,8 +81,27 @@ def judge(verdicts, records, rejoins=()):
     return explained, false, detections
 
 
-def summary(verdicts, records, rejoins=()):
-    """The campaign's detection figures, for its report and campaign.json."""
+def heard_again_of(kind, detail):
+    """The site a crash detector's 'peer_back' alarm says is heard again ('site NAME, declared failed, is
+    heard again ...'), or None."""
+    words = detail.split()
+    if kind == 'peer_back' and len(words) > 1 and words[0] == 'site':
+        return words[1].rstrip(',')
+    return None
+
+
+def then_heard(verdict, heard_again, within=60.0):
+    """What the detector said when the site it declared failed was first heard again after the verdict
+    (its peer_back alarm: whether the site's beats were sent late, arrived late, were lost, or it started
+    again), or None. heard_again: (time, site, detail) of each peer_back alarm."""
+    after = sorted((t, detail) for t, site, detail in heard_again
+                   if site == verdict.failed and verdict.time <= t <= verdict.time + within)
+    return after[0][1] if after else None
+
+
+def summary(verdicts, records, rejoins=(), heard_again=()):
+    """The campaign's detection figures, for its report and campaign.json. A false suspicion carries
+    ('then') what its detector said when it heard that site again."""
     explained, false, detections = judge(verdicts, records, rejoins)
     # A failover as the clients see it: the longest wait from the fault to the runner's first repair
     # action (the failed site's relaunch); the re-join that follows holds requests too, reported apart.
@@ -95,7 +114,7 @@ def summary(verdicts, records, rejoins=()):
             by_kind.setdefault(record['kind'], []).append(detections[record['index']] * 1e3)
     return {
         'verdicts': len(verdicts), 'explained': len(explained), 'false_suspicions': len(false),
-        'false': [dict(v._asdict()) for v in false],
+        'false': [dict(v._asdict(), then=then_heard(v, heard_again)) for v in false],
         'detection_ms_median': percentile([d * 1e3 for d in detections.values()], 50),
         'detection_ms_by_kind': {k: percentile(v, 50) for k, v in by_kind.items()},
         'failover_unavailable_ms_median': percentile(failovers, 50), 'failovers': len(failovers),
@@ -118,13 +137,19 @@ def logged_verdicts(lines):
     return found
 
 
-def merge(heard, logged, tolerance=0.05):
-    """The verdicts heard, and those logged that no heard one matches (same reporter and site, within
-    tolerance seconds)."""
+def merge(heard, logged, tolerance=0.05, same_words_within=2.0):
+    """The verdicts heard, and those logged that no heard one matches: same reporter and site, within
+    tolerance seconds, or in the very same words within same_words_within seconds (the log line is
+    stamped before the report is: a detector stalled in between, on a loaded machine, stamped one
+    verdict 131 ms apart, and it was counted twice)."""
+    def same(v, verdict):
+        if v.reporter != verdict.reporter or v.failed != verdict.failed:
+            return False
+        apart = abs(v.time - verdict.time)
+        return apart <= tolerance or (v.reason == verdict.reason and apart <= same_words_within)
     merged = list(heard)
     for verdict in logged:
-        if not any(v.reporter == verdict.reporter and v.failed == verdict.failed and abs(v.time - verdict.time) <= tolerance
-                   for v in heard):
+        if not any(same(v, verdict) for v in heard):
             merged.append(verdict)
     return sorted(merged)
 
@@ -150,6 +175,7 @@ def format_summary(s, timeout):
                 s['failovers'], ms(s['failover_unavailable_ms_median']), ms(s.get('failover_unavailable_ms_p99')),
                 ms(s.get('failover_rejoin_ms_median')))]
     for v in s['false']:
-        lines.append('  false suspicion at %.3f: %s declared %s failed (%s)' % (v['time'], v['reporter'], v['failed'],
-                                                                         v['reason']))
+        lines.append('  false suspicion at %.3f: %s declared %s failed (%s)%s' % (
+            v['time'], v['reporter'], v['failed'], v['reason'],
+            '; heard again: %s' % v['then'] if v.get('then') else ''))
     return lines

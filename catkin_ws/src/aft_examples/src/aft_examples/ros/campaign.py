@@ -655,6 +655,7 @@ class Segment(object):
         self.kills = {}
         self.alarms = []   # (kind, detail) of every aft_msgs/Alarm heard on /aft/alarms
         self.rejoins = []   # (wall clock, site) of every re-join a crash detector announced
+        self.heard_again = []   # (wall clock, site, detail) of every peer_back alarm: a failed site heard again
         self.fail_stopped = {}   # replica site -> when a fail_stop alarm last named it (monotonic)
         self.verdicts = []   # suspicions.Verdict: every crash detector's verdict heard
         self.timeout = timeout
@@ -678,6 +679,9 @@ class Segment(object):
         joined = suspicions.rejoin_of(alarm.kind, alarm.detail)
         if joined:
             self.rejoins.append((alarm.stamp.to_sec() or time.time(), joined))   # the detector's clock, as verdicts
+        back = suspicions.heard_again_of(alarm.kind, alarm.detail)
+        if back:
+            self.heard_again.append((alarm.stamp.to_sec() or time.time(), back, alarm.detail))
         if alarm.kind == 'fail_stop':   # the crash detector's 'site NAME stops heartbeating: why'
             words = alarm.detail.split()
             if len(words) > 1 and words[0] == 'site' and words[1] in REPLICAS:

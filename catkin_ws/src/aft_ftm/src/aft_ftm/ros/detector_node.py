@@ -9,7 +9,8 @@ from aft_msgs.msg import Configuration, Failure, Heartbeat
 from aft_msgs.srv import PeerStatus, PeerStatusResponse
 
 from .. import config, health
-from ..detector import DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor, PeerState, PhiAccrualMonitor
+from ..detector import (DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor,
+                        PeerState, PhiAccrualMonitor, why_heard_again)
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..site_watch import SiteWatch, WatchError, children_nodes
 from ..sites import this_host
@@ -19,6 +20,11 @@ from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
 from .witness_client import CONFIGURATION_TOPIC
+
+
+def _sent(beat):
+    """(seq, sent time) of a heartbeat message, or None."""
+    return None if beat is None else (beat.seq, beat.stamp.to_sec())
 
 
 class CrashDetectorNode(object):
@@ -292,11 +298,14 @@ class CrashDetectorNode(object):
                 self.monitor.announced(time.monotonic(), beat.stopping, beat)   # the loop reports it
             return
         with self.lock:
+            before = self.monitor.last_info
             back = self.monitor.beat(time.monotonic(), beat) and not self.peer_back_told
             self.peer_back_told = self.peer_back_told or back
         if back:
+            why = why_heard_again(_sent(before), _sent(beat), self.period, self.timeout)
             alarm(self.ports, 'pbr', 'peer_back', 'site %s, declared failed, is heard again (pid %d on %s): it must '
-                  're-join before it may serve or be promoted' % (beat.site, beat.pid, beat.host))
+                  're-join before it may serve or be promoted%s' % (beat.site, beat.pid, beat.host,
+                                                                     '; ' + why if why else ''))
 
     def _on_fail_stop(self, failure):
         with self.beat_lock:
