@@ -26,6 +26,37 @@ try:
     rospy.init_node('checker')
     alarms, failures = [], []
     rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
+    if sys.argv[1] == 'heard':   # ~peer_status: does the peer's site run? (asked before a joiner is admitted)
+        from aft_msgs.srv import PeerStatus
+        rospy.wait_for_service('/detector/peer_status', 30)
+        status = rospy.ServiceProxy('/detector/peer_status', PeerStatus)
+        peer = rospy.Publisher('/t/peer', Heartbeat, queue_size=10)
+        seq, seen = [0], []
+
+        def beat(stopping=''):
+            seq[0] += 1
+            peer.publish(Heartbeat(site='b', host='h', pid=4242, seq=seq[0], stamp=rospy.Time.now(), stopping=stopping))
+            time.sleep(0.01)
+
+        def look(what):
+            answer = status()
+            seen.append((what, answer.heard, answer.state, answer.peer))
+        for _ in range(3000):
+            beat()
+            if seq[0] % 20 == 0 and status().state == 'ALIVE':
+                break
+        look('beating')
+        time.sleep(0.3)
+        look('silent')
+        for _ in range(30):
+            beat()
+        look('beating again')
+        beat('its server died')
+        time.sleep(0.1)
+        look('stopped')
+        print('peer_status: %s' % seen)
+        sys.exit(0 if seen == [('beating', True, 'ALIVE', 'b'), ('silent', False, 'FAILED', 'b'),
+                               ('beating again', True, 'FAILED', 'b'), ('stopped', False, 'FAILED', 'b')] else 1)
     if sys.argv[1] == 'stall':   # heard, then its next beat sent 0.3 s late: the peer_back alarm says so
         peer = rospy.Publisher('/t/peer', Heartbeat, queue_size=10)
         seq = 0
@@ -66,7 +97,7 @@ finally:
 
 
 def run_script(case):
-    """SCRIPT for case ('late', 'back' or 'stall'): its exit status and output; every process it started is gone."""
+    """SCRIPT for case ('late', 'back', 'stall' or 'heard'): its exit status and output; every process it started is gone."""
     return run_tagged(SCRIPT, [case], timeout=120, home_prefix='aft_detector_home_')
 
 
@@ -88,3 +119,11 @@ def test_a_peer_heard_again_after_its_sender_stalled_is_told_as_a_stall():
     assert code == 0, output[-3000:]
     sent = re.search(r'was sent ([0-9.]+) ms after the last one heard', output)
     assert sent and float(sent.group(1)) >= 290.0, output[-3000:]   # the 0.3 s the sender slept
+
+
+def test_a_detector_says_whether_its_peer_site_runs_even_after_declaring_it_failed():
+    """What a primary's After asks before it admits a joiner: its beats heard within the timeout (also
+    after the verdict: a site back), and not once it announced its fail-stop (a site stopping, whose
+    After may still join)."""
+    code, output = run_script('heard')
+    assert code == 0, output[-3000:]

@@ -1,7 +1,7 @@
 """PBR checkpoint logic: replies held until acknowledged, ordering, gaps and fencing. No ROS."""
 import pytest
 
-from aft_ftm.checkpoint import (BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow, GroupCommit, Need,
+from aft_ftm.checkpoint import (AdmissionGate, BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow, GroupCommit, Need,
                                  is_refusal)
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Role
@@ -304,3 +304,20 @@ def test_a_batch_flushed_when_its_site_goes_on_alone_leaves_nothing_gathered():
     group = GroupCommit()
     group.add(batched(1, 2))
     assert [r.id for r in group.flush()] == [1] and group.flush() == []
+
+
+def test_a_joiner_is_admitted_only_while_its_site_is_heard_and_given_up_after_the_patience():
+    """A site stopping (its detector announced its fail-stop) whose After still joins is never admitted;
+    a site just started, not heard yet, is waited for; another joiner starts its own wait."""
+    gate = AdmissionGate(patience=1.0)
+    assert gate.decide(('slave', 'i1'), None, 10.0) == (True, None)           # heard (or not known)
+    unheard = '/master/crash_detector/peer_status hears no beat of site slave'
+    assert gate.decide(('slave', 'i1'), unheard, 20.0) == (False, None)      # not yet: it waits
+    assert gate.decide(('slave', 'i1'), unheard, 20.9) == (False, None)
+    assert gate.decide(('slave', 'i2'), unheard, 20.95) == (False, None)     # another joiner: its own wait
+    assert gate.decide(('slave', 'i2'), unheard, 21.5) == (False, None)
+    admit, give_up = gate.decide(('slave', 'i2'), unheard, 21.96)
+    assert not admit and give_up == unheard + ' (for 1.0 s)'
+    assert gate.decide(('slave', 'i2'), unheard, 22.0) == (False, None)       # a fresh wait after giving up
+    assert gate.decide(('slave', 'i2'), None, 22.1) == (True, None)           # heard at last
+    assert gate.decide(('slave', 'i2'), unheard, 30.0) == (False, None)       # and a later wait starts afresh

@@ -363,3 +363,22 @@ def test_a_peer_heard_again_says_whether_it_stalled_lost_beats_arrived_late_or_s
     assert lost.startswith('3 beat(s) between seq 41 and 45 never arrived')
     assert 'started again' in why_heard_again((41, 100.000), (1, 130.0), period, timeout)
     assert why_heard_again(None, (42, 100.01), period, timeout) is None     # a peer watched afresh: nothing known
+
+
+def test_a_site_runs_while_its_beats_are_heard_even_declared_failed_and_not_once_it_announced_its_stop():
+    """What a primary asks before it admits a joiner: does the joiner's site run? Its beats within the
+    timeout, in any state (a site relaunched beats again while its old verdict stands), and not since
+    it announced its fail-stop (a site stopping whose After still joins)."""
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(timeout=0.03, stall_after=0.01)
+    assert not monitor.heard_within(clock.now, 0.03)                  # never heard
+    monitor.beat(clock.now)
+    assert monitor.heard_within(clock.advance(0.02), 0.03)
+    assert checked_every(monitor, clock, 0.002, 0.1) is not None       # silent: declared failed
+    assert not monitor.heard_within(clock.now, 0.03)
+    monitor.beat(clock.advance(0.5))                                    # it beats again: it runs
+    assert monitor.state == PeerState.FAILED and monitor.heard_within(clock.advance(0.01), 0.03)
+    monitor.announced(clock.advance(0.001), 'the required node /b/server died')
+    assert not monitor.heard_within(clock.now, 0.03)                    # it said it stops
+    monitor.beat(clock.advance(2.0))                                    # a new site process beats
+    assert monitor.heard_within(clock.now, 0.03)

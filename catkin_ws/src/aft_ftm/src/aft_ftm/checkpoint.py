@@ -207,6 +207,34 @@ class CheckpointSender(object):
             any(now - since > timeout for since in self.catchup.values())
 
 
+class AdmissionGate(object):
+    """A joiner that holds the state transfer is admitted only while its site runs, as this site's
+    crash detector hears it (its beats within its timeout). A site stopping (its server died, its
+    detector announced its fail-stop) may still have an After that joins: admitted, it was watched
+    afresh and declared failed a timeout later, again and again (a campaign: 3 times in 1 s, each an
+    exclusion, an admission and a false suspicion). A site just started may not be heard yet, so
+    the gate waits up to ``patience`` seconds before it gives the join up."""
+
+    def __init__(self, patience):
+        self.patience = patience
+        self.waiting = None   # (joiner, since): the joiner unheard, and since when
+
+    def decide(self, joiner, unheard, now):
+        """(admit, give_up): ``unheard`` is why the joiner's site is not heard now (None: heard, or not
+        known). Admit if heard; wait (False, None) while unheard for less than ``patience``; then
+        give the join up (False, why)."""
+        if not unheard:
+            self.waiting = None
+            return True, None
+        if self.waiting is None or self.waiting[0] != joiner:
+            self.waiting = (joiner, now)
+        waited = now - self.waiting[1]
+        if waited < self.patience:
+            return False, None
+        self.waiting = None
+        return False, '%s (for %.1f s)' % (unheard, waited)
+
+
 class BatchError(Exception):
     """The replies of a batch did not come as the Protocol numbered them (one lost or out of order)."""
 

@@ -105,6 +105,7 @@ class HeartbeatMonitor(object):
         self.started_at = started_at
         self.state = PeerState.UNKNOWN
         self.last_heard = None
+        self.last_beat = None          # the last beat of any state (also after FAILED); None since a fail-stop announced
         self.last_info = None
         self.beats = 0
         self.beats_after_failure = 0   # a peer heard after being declared failed: fail-silence broken
@@ -113,6 +114,7 @@ class HeartbeatMonitor(object):
     def announced(self, now, reason, info=None):
         """The peer says it fail-stopped (its last heartbeat): it is declared failed, and the next
         check() returns the verdict. Returns True if this declares it (False: already failed)."""
+        self.last_beat = None   # it said it stops: not heard since
         if self.state == PeerState.FAILED:
             return False
         silence = now - self.last_heard if self.last_heard is not None else 0.0
@@ -123,6 +125,7 @@ class HeartbeatMonitor(object):
 
     def beat(self, now, info=None):
         """A heartbeat arrived. Returns True if it comes from a peer already declared failed."""
+        self.last_beat = now
         if self.state == PeerState.FAILED:
             self.beats_after_failure += 1
             self.last_info = info
@@ -165,6 +168,11 @@ class HeartbeatMonitor(object):
                 return Verdict('never heard within the start-up grace of %.1f s'
                                % self.startup_grace, silence, None)
         return None
+
+    def heard_within(self, now, within):
+        """Whether the peer's beats were heard in the last ``within`` seconds, in any state (a peer
+        declared failed that beats again runs), with no fail-stop announced since: its site runs."""
+        return self.last_beat is not None and now - self.last_beat <= within
 
     def can_take_over(self, now, within):
         """(alive, why): may the peer take over now? Only if it was heard within ``within`` seconds of real

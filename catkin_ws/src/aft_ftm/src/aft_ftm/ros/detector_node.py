@@ -81,7 +81,9 @@ class CrashDetectorNode(object):
         ~rebind (aft_msgs/Rebind)
         ~peer_status (aft_msgs/PeerStatus): may the peer take over now (heard within ~timeout, not
             declared failed)? Asked by a node of this site whose server hangs, before it fail-stops the
-            site (aft_ftm.recovery.SiteRole).
+            site (aft_ftm.recovery.SiteRole). And does the peer's site run (``heard``: its beats heard
+            within ~timeout, even after it was declared failed)? Asked by this site's After before it
+            admits a joiner of the peer's site.
     """
 
     def __init__(self):
@@ -289,8 +291,9 @@ class CrashDetectorNode(object):
             now = time.monotonic()
             alive, why = self.monitor.can_take_over(now, self.timeout)
             heard, state = self.monitor.last_heard, self.monitor.state.name
+            runs = self.monitor.heard_within(now, self.timeout)
         return PeerStatusResponse(alive=alive, state=state, silence=-1.0 if heard is None else now - heard,
-                                  why='site %s: %s' % (self.peer, why))
+                                  why='site %s: %s' % (self.peer, why), heard=runs, peer=self.peer)
 
     def _on_heartbeat(self, beat):
         if beat.stopping:

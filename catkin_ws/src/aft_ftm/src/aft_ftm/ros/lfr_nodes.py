@@ -15,6 +15,7 @@ from aft_msgs.srv import GetState, SetRole, SetRoleResponse, SetState
 from std_msgs.msg import String
 
 from .. import config, health, mechanisms
+from ..checkpoint import AdmissionGate
 from ..errors import RoleError
 from ..lfr import Ack, ConfChange, Forwarded, JoinDecision, JoinStep, LfrAfter, LfrForwarder, Out, State
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
@@ -486,6 +487,11 @@ class LfrAfterNode(AfterNode):
             self.side.tell('join_failed', 'state transfer %d to %s not admitted: the Protocol ran requests '
                            'during it (%s); it asks again' % (transfer.seq, join.site, why))
             return
+        unheard = self._unheard_for(join.site, self.ack_timeout)
+        if unheard:
+            self.side.tell('join_failed', 'state transfer %d to %s not admitted: %s; it asks again'
+                           % (transfer.seq, join.site, unheard))
+            return
         grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation)
         if grant is None:
             return
@@ -508,6 +514,19 @@ class LfrAfterNode(AfterNode):
         self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
+
+    def _unheard_for(self, site, patience, step=0.05):
+        """Why the joiner's site must not be admitted: unheard by this site's crash detector for
+        ``patience`` seconds (a site just started may not be heard yet; aft_ftm.checkpoint.AdmissionGate).
+        None as soon as it is heard (or that cannot be known)."""
+        gate = AdmissionGate(patience)
+        while True:
+            admit, give_up = gate.decide(site, self.side.joiner_unheard(site), time.monotonic())
+            if admit:
+                return None
+            if give_up or rospy.is_shutdown():
+                return give_up or 'this node is shutting down'
+            time.sleep(step)
 
     def _send_transfer(self, out, transfer):
         """Queue the transfer's parts for the writer as the window allows, each acknowledgment opening it

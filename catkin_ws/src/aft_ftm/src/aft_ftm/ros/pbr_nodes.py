@@ -12,8 +12,8 @@ from aft_msgs.srv import GetState, GetStateDelta, SetRole, SetRoleResponse, SetS
 from std_msgs.msg import String
 
 from .. import config, health
-from ..checkpoint import (HARMLESS, BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow,
-                          GroupCommit, Need, is_refusal)
+from ..checkpoint import (HARMLESS, AdmissionGate, BatchError, CheckpointReceiver, CheckpointSender, Decision,
+                          Follow, GroupCommit, Need, is_refusal)
 from ..delta import DeltaDecoder, DeltaEncoder, DeltaError, ServerChanges, StateBuffer
 from ..errors import RoleError
 from ..transfer import Incoming, Outgoing, TransferError
@@ -157,6 +157,7 @@ class PbrAfterNode(AfterNode):
     def __init__(self):
         role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
+        self.admission = AdmissionGate(self.ack_timeout)   # a joiner admitted only while its site is heard
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
         self.apply_period = param('apply_period', config.non_negative_float,
                                   0.01)
@@ -588,6 +589,11 @@ class PbrAfterNode(AfterNode):
             joiner = self.joiner
         if joiner is None:
             return
+        admit, give_up = self.admission.decide(joiner, self.side.joiner_unheard(joiner[0]), time.monotonic())
+        if give_up:
+            self._exclude('%s holds the state transfer, but is not admitted: %s' % (joiner[0], give_up))
+        if not admit:
+            return   # meanwhile the timer (_check_acks) asks again
         grant = self.side.ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
         if grant is None:
             return

@@ -68,24 +68,52 @@ class PeerCheck(object):
         return False
 
     def alive(self):
+        return self._question(self._ask)
+
+    def heard(self, site):
+        """Whether the detector hears the site ``site`` (its beats within its timeout, even after it was
+        declared failed: the site runs): True, False, or None when unknown (no answer in time, or the
+        detector watches another site). ``why`` says why."""
+        return self._question(lambda: self._ask_heard(site))
+
+    def _question(self, ask):
         with self.lock:
             try:
-                alive, self.why = self.deadline.call(self._ask, self.timeout)
+                answer, self.why = self.deadline.call(ask, self.timeout)
             except CallTimeout:   # CallPending too: the last question has not returned yet
                 self.proxy = self.proxy.fresh()
                 self.why = 'the crash detector (%s) did not answer within %.1f s' % (self.service, self.timeout)
                 return None
-            return alive
+            return answer
 
-    def _ask(self):
+    def _call(self):
+        """The detector's answer, or (None, why) if there is none: (answer, '')."""
         try:
-            answer = self.proxy()
+            return self.proxy(), ''
         except (rospy.ServiceException, rospy.ROSException, OSError) as e:
             self.proxy = self.proxy.fresh()
             if not self._registered():
-                return True, 'no crash detector offers %s: the peer is assumed able to take over' % self.service
+                return None, 'no crash detector offers %s' % self.service
             return None, 'the crash detector (%s) cannot be asked: %s' % (self.service, e)
+
+    def _ask(self):
+        answer, why = self._call()
+        if answer is None:
+            if why.startswith('no crash detector'):
+                return True, why + ': the peer is assumed able to take over'
+            return None, why
         return answer.alive, answer.why
+
+    def _ask_heard(self, site):
+        answer, why = self._call()
+        if answer is None:
+            return None, why
+        if answer.peer != site:
+            return None, 'the crash detector (%s) watches %r, not %s' % (self.service, answer.peer, site)
+        if answer.heard:
+            return True, 'site %s heard by %s' % (site, self.service)
+        return False, ('%s hears no beat of site %s within its timeout, or that site announced its fail-stop (%s)'
+                       % (self.service, site, answer.why))
 
     def _registered(self):
         try:

@@ -10,6 +10,7 @@ from ..witness import Grant, Op
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
 from .fail_stop import fail_stop
+from .peer_check import PeerCheck
 from .witness_client import WitnessClient, WitnessUnreachable
 
 
@@ -34,6 +35,8 @@ class ReplicaSide(object):
         self.protocol_calls = Deadline('protocol')
         self._protocol_proxies()
         self.told = set()           # alarms raised once per kind and key
+        # This site's crash detector, asked before a joiner of the peer site is admitted.
+        self.detector = PeerCheck(site) if site else None
         self.deciding = threading.Lock()   # one witness decision (or state transfer) at a time
 
     def _protocol_proxies(self):
@@ -65,6 +68,15 @@ class ReplicaSide(object):
             alarm(self.ports, self.mechanism, 'witness_unreachable', '%s cannot reach the witness (%s): %s not '
                   'done, replies stay held and it is asked again' % (self.site or self.name, e, op.name))
             return None
+
+    def joiner_unheard(self, joiner):
+        """Why the site ``joiner`` must not be admitted yet: this site's crash detector does not hear it
+        (its beats stopped, or it announced its fail-stop: a site stopping, whose After still joins).
+        Admitted, it would be watched afresh and declared failed a timeout later, over and over. None
+        if it is heard, or if that cannot be known (no detector here, no answer): then as before."""
+        if self.detector is None or self.detector.heard(joiner) is not False:
+            return None
+        return self.detector.why
 
     def alone(self, decision, *args):
         """Run decision(*args) unless another one is under way (then do nothing: the caller's timer or
