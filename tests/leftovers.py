@@ -43,3 +43,15 @@ def run_tagged(script, args=(), timeout=180, home_prefix='aft_test_home_'):
         leftovers = kill_tagged(tag)
     assert not leftovers, 'processes left running: %s' % [p.pid for p in leftovers]
     return run.returncode, run.stdout.decode(errors='replace')
+
+
+def run_seeded(script, args=(), timeout=300, home_prefix='aft_test_home_'):
+    """run_tagged() a seeded script: the seed (AFT_SEED, else drawn) comes first in its arguments; it must
+    exit 0 and end with 'ok'. The output's tail is printed, and a failure names the seed that replays it."""
+    import os
+    import random
+    seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
+    code, output = run_tagged(script, args=[str(seed)] + list(args), timeout=timeout, home_prefix=home_prefix)
+    print(output[-2000:])
+    assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])
+    return output

@@ -23,12 +23,9 @@ And the Adaptation Engine refuses a script that retires a forged node, naming it
 Before: SLAVE's Recovery killed whatever pid the forged server named (its own Protocol: nobody served).
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail."""
-import os
-import random
-
 import pytest
 
-from leftovers import run_tagged
+from leftovers import run_seeded
 
 SCRIPT = r'''
 import json, os, random, subprocess, sys, tempfile, threading
@@ -219,7 +216,4 @@ print('ok')
 
 @pytest.mark.parametrize('fault', ['power off', 'forged fail-stop'])
 def test_a_forged_registration_or_heartbeat_never_makes_fencing_or_an_adaptation_kill_another_process(fault):
-    seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
-    code, output = run_tagged(SCRIPT, args=[str(seed), fault], timeout=300, home_prefix='aft_forged_home_')
-    print(output[-2000:])
-    assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])
+    run_seeded(SCRIPT, [fault], home_prefix='aft_forged_home_')

@@ -73,7 +73,7 @@ class PbrDeployment(object):
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
                  cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None, incremental=True,
                  max_batch=None, ca_validity=None, chunk_bytes=None, catch_up=True,
-                 state_changes=True):
+                 state_changes=True, power_switch=None):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -122,6 +122,8 @@ class PbrDeployment(object):
         self.replica_args = dict(replica)
         if adaptable:
             replica['adaptable'] = 'true'   # Before, Proceed and After replaceable without stopping a site
+        if power_switch and one_host:
+            raise ValueError('the one-host demo fences by pid: no power switch')
         if inner or faulty:
             if one_host:
                 raise ValueError('the one-host demo has no nested mechanism nor fault injector')
@@ -148,11 +150,14 @@ class PbrDeployment(object):
         if one_host:
             self.sites = {'all': site('all', 'demo_one_host.launch', **replica)}
         else:
+            # Each site's Recovery fences its peer by this switch (its host named as the peer site).
+            fence = {peer: dict(power_switch=power_switch, peer_host=peer) if power_switch else {}
+                     for peer in ('master', 'slave')}
             self.sites = {
                 'master': site('master', 'demo_replica_site.launch', site='master', peer='slave', role='primary',
-                               **replica),
+                               **dict(replica, **fence['slave'])),
                 'slave': site('slave', 'demo_replica_site.launch', site='slave', peer='master', role='backup',
-                              **replica),
+                              **dict(replica, **fence['master'])),
                 'client': site('client', 'demo_client_site.launch', **client),
             }
 
