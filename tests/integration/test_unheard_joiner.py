@@ -10,7 +10,8 @@ fail-silence SLAVE, and SLAVE's After re-joins MASTER while its detector is sile
 - no configuration of the witness names SLAVE as the backup while its detector is frozen, and the
   refusal is said (``not admitted``);
 - SLAVE is the backup again within 30 s of the thaw;
-- every call answered exactly once, in order.
+- every call answered exactly once, in order;
+- MASTER's Recovery says it could not fence SLAVE (recovery_incomplete), not that nobody may serve.
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail. AFT_SEED replays a run."""
 import pytest
@@ -86,6 +87,11 @@ try:
         fail('SLAVE admitted as the backup while its crash detector was frozen: %s' % admitted)
     if not any(' not admitted' in a for a in alarms):
         fail('SLAVE\'s After never tried to join while its detector was frozen, or the refusal was silent')
+    # SLAVE could not be fenced, and MASTER serves on alone: said so, and never as "nobody may serve".
+    if not any(a.startswith('/master/recovery recovery_incomplete') for a in alarms):
+        fail('MASTER could not fence SLAVE, and its Recovery did not say so')
+    if any(a.startswith('/master/recovery promotion_failed') for a in alarms):
+        fail('MASTER serves alone, yet its Recovery said nobody may serve')
     if not wait_until(lambda: any(c[0] > marks['thawed'] and c[3] == 'slave' for c in configurations), 30, 0.05):
         fail('SLAVE not admitted again within 30 s of the thaw')
     back = min(c[0] for c in configurations if c[0] > marks['thawed'] and c[3] == 'slave') - marks['thawed']

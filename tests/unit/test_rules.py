@@ -5,7 +5,7 @@ from aft_ftm import config
 from aft_ftm.errors import ConfigError, RebindError
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
 from aft_ftm.protocol import Role
-from aft_ftm.recovery import Step, failed_steps, plan, role_after, same_process, start_plan, unfenceable
+from aft_ftm.recovery import Step, failed_steps, incomplete, plan, role_after, same_process, start_plan, unfenceable
 
 SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
          'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
@@ -119,3 +119,14 @@ def test_a_peer_on_another_machine_without_a_power_switch_cannot_be_made_silent(
     else:
         assert words in why and why.startswith('4 node(s) of the peer run on another machine')
         assert '/master/after at http://10.77.0.2:40002/' in why and 'and 1 more' in why   # named, bounded
+
+
+def test_an_incomplete_recovery_says_who_still_serves_by_the_role_it_had():
+    """A backup whose promotion failed leaves nobody to serve; a primary whose failed backup could not be
+    fenced (a power switch that never confirms) serves on, alone: its alarm must not say nobody may serve."""
+    kind, consequence = incomplete(Role.BACKUP)
+    assert kind == 'promotion_failed' and 'nobody may serve' in consequence
+    kind, consequence = incomplete(Role.PRIMARY)
+    assert kind == 'recovery_incomplete' and 'goes on serving alone' in consequence and 'nobody' not in consequence
+    assert Step.AFTER_ALONE in plan(Role.PRIMARY, witness=True)[-1]   # alone without waiting for FAIL_SILENCE
+    assert Step.FAIL_SILENCE in plan(Role.PRIMARY, witness=True)[-1]

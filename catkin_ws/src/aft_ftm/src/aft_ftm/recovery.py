@@ -58,6 +58,17 @@ def failed_steps(record):
                      if not st['ok'] and st['step'] not in gates)
 
 
+def incomplete(role):
+    """(alarm kind, consequence) of a recovery whose steps failed (failed_steps), by the role this site had
+    when its peer failed. A backup's failed promotion leaves nobody to serve. A primary whose failed backup
+    could not be made silent still serves, alone (AFTER_ALONE does not wait for FAIL_SILENCE): saying
+    "nobody may serve" there sent operators after the wrong site."""
+    if role == Role.PRIMARY:
+        return ('recovery_incomplete', 'this site goes on serving alone; the failed site was not made silent '
+                'and may still run until an operator powers it off or it re-joins')
+    return 'promotion_failed', 'nobody may serve until an operator or a re-join repairs it'
+
+
 def start_plan():
     """The steps when the witness names this site the first primary at start: it serves from its own
     server's state (nothing to fence, nobody to wait for)."""

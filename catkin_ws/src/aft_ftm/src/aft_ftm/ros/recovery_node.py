@@ -16,7 +16,8 @@ from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..realtime import RealtimeBurst
 from ..detector import DEFAULT_REALTIME_PRIORITY
-from ..recovery import GATES, Step, failed_steps, plan, role_after, role_in, same_process, start_plan, unfenceable
+from ..recovery import (GATES, Step, failed_steps, incomplete, plan, role_after, role_in, same_process, start_plan,
+                        unfenceable)
 from ..sites import silence_trees, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
@@ -397,9 +398,9 @@ class RecoveryNode(object):
                   % (failure.site, self.site, self.epoch))
         failed = failed_steps(record)
         if failed and not retry and not self.promotion_waits:   # a fence retry completes it otherwise
-            alarm(self.ports, 'pbr', 'promotion_failed', '%s failed and %s did not complete its recovery: %s; '
-                  'nobody may serve until an operator or a re-join repairs it' % (failure.site, self.site or
-                                                                                 rospy.get_name(), failed))
+            kind, consequence = incomplete(role)
+            alarm(self.ports, 'pbr', kind, '%s failed and %s did not complete its recovery: %s; %s'
+                  % (failure.site, self.site or rospy.get_name(), failed, consequence))
         if retry:
             threading.Timer(self.retry, self._on_failure, [failure, role]).start()
         elif record['ok'] and record['steps']:
