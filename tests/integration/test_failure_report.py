@@ -20,7 +20,9 @@ from aft_ftm.ros.graph import start_master
 from aft_ftm.sites import wait_until
 core = start_master(tempfile.mkdtemp(prefix='aft_detector_'))
 detector = subprocess.Popen(['rosrun', 'aft_ftm', 'crash_detector', '__name:=detector', '_site:=a', '_peer:=b',
-                             '_period:=0.01', '_timeout:=0.05', '_startup_grace:=0.5',
+                             '_period:=0.01', '_timeout:=0.05',
+                             # a grace verdict before the first beat would make 'heard' and 'stall' moot
+                             '_startup_grace:=%s' % ('0' if sys.argv[1] in ('heard', 'stall') else '0.5'),
                              'failures:=/t/failures', 'peer_heartbeat:=/t/peer', 'heartbeat:=/t/mine'])
 try:
     rospy.init_node('checker')

@@ -306,7 +306,7 @@ def test_a_batch_flushed_when_its_site_goes_on_alone_leaves_nothing_gathered():
     assert [r.id for r in group.flush()] == [1] and group.flush() == []
 
 
-def test_a_joiner_is_admitted_only_while_its_site_is_heard_and_given_up_after_the_patience():
+def test_a_joiner_is_given_the_state_only_while_its_site_is_heard_and_given_up_after_the_patience():
     """A site stopping (its detector announced its fail-stop) whose After still joins is never admitted;
     a site just started, not heard yet, is waited for; another joiner starts its own wait."""
     gate = AdmissionGate(patience=1.0)
@@ -321,3 +321,5 @@ def test_a_joiner_is_admitted_only_while_its_site_is_heard_and_given_up_after_th
     assert gate.decide(('slave', 'i2'), unheard, 22.0) == (False, None)       # a fresh wait after giving up
     assert gate.decide(('slave', 'i2'), None, 22.1) == (True, None)           # heard at last
     assert gate.decide(('slave', 'i2'), unheard, 30.0) == (False, None)       # and a later wait starts afresh
+    # A joiner that stopped asking (its join ended some other way) and asks again much later waits afresh.
+    assert gate.decide(('slave', 'i2'), unheard, 31.5) == (False, None)

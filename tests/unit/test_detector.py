@@ -359,8 +359,10 @@ def test_a_peer_heard_again_says_whether_it_stalled_lost_beats_arrived_late_or_s
     assert stalled.startswith('the sender stalled') and '45.0 ms' in stalled
     late = why_heard_again((41, 100.000), (42, 100.010), period, timeout)
     assert 'sent on time' in late and 'arrived late' in late
+    slow = why_heard_again((41, 100.000), (42, 100.025), period, timeout)
+    assert slow.startswith('the sender was slow') and '25.0 ms' in slow
     lost = why_heard_again((41, 100.000), (45, 100.040), period, timeout)
-    assert lost.startswith('3 beat(s) between seq 41 and 45 never arrived')
+    assert lost.startswith('3 beat(s) between seq 41 and 45 were not heard')
     assert 'started again' in why_heard_again((41, 100.000), (1, 130.0), period, timeout)
     assert why_heard_again(None, (42, 100.01), period, timeout) is None     # a peer watched afresh: nothing known
 

@@ -123,10 +123,16 @@ def test_a_peer_on_another_machine_without_a_power_switch_cannot_be_made_silent(
 
 def test_an_incomplete_recovery_says_who_still_serves_by_the_role_it_had():
     """A backup whose promotion failed leaves nobody to serve; a primary whose failed backup could not be
-    fenced (a power switch that never confirms) serves on, alone: its alarm must not say nobody may serve."""
-    kind, consequence = incomplete(Role.BACKUP)
+    fenced (a power switch that never confirms) serves on, alone: its alarm must not say nobody may serve.
+    A primary whose After could not go alone does not serve: that is said as before."""
+    def record(*failed):
+        return {'steps': [{'step': s.name, 'ok': s not in failed, 'detail': ''} for s in
+                          (Step.WITNESS_EXCLUDE, Step.FAIL_SILENCE, Step.AFTER_ALONE)]}
+    kind, consequence = incomplete(Role.BACKUP, record(Step.FAIL_SILENCE))
     assert kind == 'promotion_failed' and 'nobody may serve' in consequence
-    kind, consequence = incomplete(Role.PRIMARY)
+    kind, consequence = incomplete(Role.PRIMARY, record(Step.FAIL_SILENCE))
     assert kind == 'recovery_incomplete' and 'goes on serving alone' in consequence and 'nobody' not in consequence
+    for failed in ((Step.AFTER_ALONE,), (Step.FAIL_SILENCE, Step.AFTER_ALONE)):
+        assert incomplete(Role.PRIMARY, record(*failed))[0] == 'promotion_failed'
     assert Step.AFTER_ALONE in plan(Role.PRIMARY, witness=True)[-1]   # alone without waiting for FAIL_SILENCE
     assert Step.FAIL_SILENCE in plan(Role.PRIMARY, witness=True)[-1]

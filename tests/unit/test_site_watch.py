@@ -164,21 +164,27 @@ def test_a_mark_nobody_took_is_removed_once_stale(nodes, tmp_path, monkeypatch):
 
 def test_a_mark_left_by_an_engine_stopped_before_its_signal_hides_no_later_crash(nodes, tmp_path, monkeypatch):
     """An engine stopped between its mark and its SIGINT leaves the mark behind. The node's real crash
-    later is a failure all the same: a mark counts only for a death soon after it was written."""
+    later is a failure all the same: a mark counts only for a death soon after it was written (on the
+    boot clock, which no wall-clock step moves). A mark that does not hold its time counts for nothing."""
     monkeypatch.setattr(site_watch, 'RETIRED_DIR', str(tmp_path))
     node = nodes('proceed')
     ticks = site_watch.start_ticks(node.pid)
     path = mark_retired(node.pid)
-    written = os.stat(path).st_mtime
-    late = written + site_watch.MARK_VALID_S + 1
-    assert not site_watch.take_retired(node.pid, ticks, now=late)
+    with open(path) as f:
+        written = float(f.read())
+    assert not site_watch.take_retired(node.pid, ticks, now=written + site_watch.MARK_VALID_S + 1)
     assert not os.path.exists(path)                       # taken all the same: it can hide nothing more
+    mark_retired(node.pid)
+    assert site_watch.take_retired(node.pid, ticks, now=written + site_watch.MARK_VALID_S - 1)
+    with open(path, 'w') as f:
+        f.write('garbage')
+    assert not site_watch.take_retired(node.pid, ticks) and not os.path.exists(path)
     watch = SiteWatch({'/m/proceed'})
     try:
         assert watch.adopt(children_nodes(os.getpid())) == ['/m/proceed']
         mark_retired(node.pid)
-        old = time.time() - site_watch.MARK_VALID_S - 1
-        os.utime(path, (old, old))
+        with open(path, 'w') as f:                        # written long ago by an engine that stopped
+            f.write('%.6f\n' % (time.clock_gettime(time.CLOCK_BOOTTIME) - site_watch.MARK_VALID_S - 1))
         node.kill()
         assert watch.wait(5.0) == [(node.pid, '/m/proceed')]
         assert not watch.retired(node.pid)

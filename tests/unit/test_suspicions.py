@@ -154,6 +154,11 @@ def test_one_verdict_logged_and_heard_apart_under_load_is_counted_once():
               Verdict(1795951597.600, 'master', 'slave', 'no heartbeat for 31.0 ms (timeout 30.0 ms)'),
               Verdict(1795951603.0, 'master', 'slave', reason)]
     assert merge(heard, logged) == sorted(heard + logged[1:])   # another verdict, or the same words much later
+    # Two verdicts in the same words 1 s apart, one heard, both logged: two verdicts, not one.
+    announced = 'it announced its fail-stop: the required node /slave/bank_server died'
+    heard = [Verdict(10.0, 'master', 'slave', announced)]
+    logged = [Verdict(10.0, 'master', 'slave', announced), Verdict(11.0, 'master', 'slave', announced)]
+    assert merge(heard, logged) == [heard[0], logged[1]]
 
 
 def test_a_readmission_before_the_repair_does_not_end_the_faults_window():

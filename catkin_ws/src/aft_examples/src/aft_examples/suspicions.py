@@ -147,10 +147,13 @@ def merge(heard, logged, tolerance=0.05, same_words_within=2.0):
             return False
         apart = abs(v.time - verdict.time)
         return apart <= tolerance or (v.reason == verdict.reason and apart <= same_words_within)
-    merged = list(heard)
-    for verdict in logged:
-        if not any(same(v, verdict) for v in heard):
+    merged, matched = list(heard), set()
+    for verdict in sorted(logged):   # one logged verdict per heard one: a second verdict in the same words stays
+        match = next((i for i, v in enumerate(heard) if i not in matched and same(v, verdict)), None)
+        if match is None:
             merged.append(verdict)
+        else:
+            matched.add(match)
     return sorted(merged)
 
 

@@ -208,31 +208,32 @@ class CheckpointSender(object):
 
 
 class AdmissionGate(object):
-    """A joiner that holds the state transfer is admitted only while its site runs, as this site's
-    crash detector hears it (its beats within its timeout). A site stopping (its server died, its
-    detector announced its fail-stop) may still have an After that joins: admitted, it was watched
-    afresh and declared failed a timeout later, again and again (a campaign: 3 times in 1 s, each an
-    exclusion, an admission and a false suspicion). A site just started may not be heard yet, so
-    the gate waits up to ``patience`` seconds before it gives the join up."""
+    """A joiner is given the state, and admitted, only while its site runs, as this site's crash
+    detector hears it (its beats within its timeout). A site stopping (its server died, its detector
+    announced its fail-stop) may still have an After that joins: admitted, it was watched afresh and
+    declared failed a timeout later, again and again (a campaign: 3 times in 1 s, each an exclusion, an
+    admission and a false suspicion). A site just started may not be heard yet, so the gate waits up to
+    ``patience`` seconds of that joiner's asking before it gives the join up (the joiner asks again)."""
 
     def __init__(self, patience):
         self.patience = patience
-        self.waiting = None   # (joiner, since): the joiner unheard, and since when
+        self.waiting = None   # (joiner, since, last asked): the joiner unheard
 
     def decide(self, joiner, unheard, now):
         """(admit, give_up): ``unheard`` is why the joiner's site is not heard now (None: heard, or not
-        known). Admit if heard; wait (False, None) while unheard for less than ``patience``; then
-        give the join up (False, why)."""
+        known). Go on if heard; wait (False, None) while unheard for less than ``patience``; then
+        give the join up (False, why). A wait not asked about for ``patience`` starts afresh."""
         if not unheard:
             self.waiting = None
             return True, None
-        if self.waiting is None or self.waiting[0] != joiner:
-            self.waiting = (joiner, now)
-        waited = now - self.waiting[1]
-        if waited < self.patience:
+        if self.waiting is None or self.waiting[0] != joiner or now - self.waiting[2] > self.patience:
+            self.waiting = (joiner, now, now)
+        since = self.waiting[1]
+        self.waiting = (joiner, since, now)
+        if now - since < self.patience:
             return False, None
         self.waiting = None
-        return False, '%s (for %.1f s)' % (unheard, waited)
+        return False, '%s (for %.1f s)' % (unheard, now - since)
 
 
 class BatchError(Exception):

@@ -105,7 +105,7 @@ class HeartbeatMonitor(object):
         self.started_at = started_at
         self.state = PeerState.UNKNOWN
         self.last_heard = None
-        self.last_beat = None          # the last beat of any state (also after FAILED); None since a fail-stop announced
+        self.last_beat = None          # the last beat in any state (also FAILED); None once a fail-stop is announced
         self.last_info = None
         self.beats = 0
         self.beats_after_failure = 0   # a peer heard after being declared failed: fail-silence broken
@@ -222,25 +222,31 @@ class HeartbeatMonitor(object):
 
 def why_heard_again(last, first, period, timeout):
     """Why a peer declared failed is heard again, from its last beat before the verdict and its first
-    after: (seq, sent) pairs, sent by the peer's own clock (s), or None if unknown. Tells a sender
-    that stalled (its next beat was sent late) from beats sent on time that arrived late (delayed on
-    the way or unread at this receiver), beats lost, and a peer that started again. None if either
-    beat is unknown."""
+    after: (seq, sent) pairs, sent by the peer's own clock (s). Tells a sender that stalled (its next
+    beat sent past the timeout), one that was slow and whose beat arrived late too, beats sent on time
+    that arrived late (delayed on the way, or unread at this receiver), beats not heard at all, and a
+    peer that started again. ``period``: the beats' period as configured here. None if either beat is
+    unknown."""
     if last is None or first is None:
         return None
     (seq0, sent0), (seq1, sent1) = last, first
     if seq1 <= seq0:
         return 'its beats count from %d again (last %d before the verdict): it started again' % (seq1, seq0)
-    gap = (sent1 - sent0) * 1e3
+    gap = sent1 - sent0
     missing = seq1 - seq0 - 1
-    if missing == 0 and sent1 - sent0 > timeout:
-        return ('the sender stalled: its next beat (seq %d) was sent %.1f ms after the last one heard (period %.0f ms)'
-                % (seq1, gap, period * 1e3))
-    if missing == 0:
-        return ('the beats were sent on time (seq %d then %d, %.1f ms apart) but arrived late: delayed on the way or '
-                'unread by this detector' % (seq0, seq1, gap))
-    return ('%d beat(s) between seq %d and %d never arrived (the two sent %.1f ms apart, period %.0f ms)'
-            % (missing, seq0, seq1, gap, period * 1e3))
+    if missing:
+        # rospy keeps the newest 10 of a backlog: after a stall of this detector, beats it dropped unread
+        # count here too.
+        return ('%d beat(s) between seq %d and %d were not heard (lost on the way, or dropped unread by this '
+                'detector after a stall of its own); the two were sent %.1f ms apart'
+                % (missing, seq0, seq1, gap * 1e3))
+    if gap > timeout:
+        return 'the sender stalled: its next beat (seq %d) was sent %.1f ms after the last one heard' % (seq1, gap * 1e3)
+    if gap > 2 * period:
+        return ('the sender was slow and its beat late on arrival too: its next beat (seq %d) was sent %.1f ms '
+                'after the last one heard (period %.0f ms)' % (seq1, gap * 1e3, period * 1e3))
+    return ('the beats were sent on time (seq %d then %d, %.1f ms apart) but arrived late: delayed on the way or '
+            'unread by this detector' % (seq0, seq1, gap * 1e3))
 
 
 # Akka's logistic approximation of the standard normal tail: P(Z > y) ~ 1 / (1 + exp(a(y))).

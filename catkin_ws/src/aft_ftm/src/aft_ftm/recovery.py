@@ -58,12 +58,15 @@ def failed_steps(record):
                      if not st['ok'] and st['step'] not in gates)
 
 
-def incomplete(role):
+def incomplete(role, record):
     """(alarm kind, consequence) of a recovery whose steps failed (failed_steps), by the role this site had
-    when its peer failed. A backup's failed promotion leaves nobody to serve. A primary whose failed backup
-    could not be made silent still serves, alone (AFTER_ALONE does not wait for FAIL_SILENCE): saying
+    when its peer failed and the steps that failed. A backup's failed promotion leaves nobody to serve. A
+    primary whose only failed step is FAIL_SILENCE (its failed backup could not be made silent: a power
+    switch that never confirms) still serves, alone: AFTER_ALONE does not wait for FAIL_SILENCE. Saying
     "nobody may serve" there sent operators after the wrong site."""
-    if role == Role.PRIMARY:
+    gates = {g.name for g in GATES}
+    failed = {st['step'] for st in record.get('steps', ()) if not st['ok'] and st['step'] not in gates}
+    if role == Role.PRIMARY and failed == {Step.FAIL_SILENCE.name}:
         return ('recovery_incomplete', 'this site goes on serving alone; the failed site was not made silent '
                 'and may still run until an operator powers it off or it re-joins')
     return 'promotion_failed', 'nobody may serve until an operator or a re-join repairs it'

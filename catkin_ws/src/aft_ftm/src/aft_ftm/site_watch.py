@@ -30,11 +30,17 @@ from .errors import AftError
 RETIRED_DIR = os.environ.get('AFT_RETIRED_DIR') or os.path.join(
     '/dev/shm' if os.path.isdir('/dev/shm') else '/tmp', 'aft_retired-%d' % os.geteuid())
 STALE_MARK_S = 600.0   # a mark older than this is removed by the next one written
-# A mark counts only for a death this soon after it was written. The engine writes it just before it
-# stops the node (SIGINT, SIGKILL 5 s later, then 2 s more), and the watch hears the death at once. An
-# engine stopped between the mark and the signal leaves a mark behind: without this limit, that node's
-# real crash minutes later would be let go as a retirement and its site would not fail over.
+# A mark counts only if the watch takes it this soon after it was written. The engine writes it just
+# before it stops the node (SIGINT, SIGKILL 5 s later, then 2 s more), and the watch takes it when it
+# hears the death, at once. An engine stopped between the mark and the signal leaves a mark behind:
+# without this limit, that node's real crash minutes later would be let go as a retirement and its site
+# would not fail over. The mark holds the time it was written on CLOCK_BOOTTIME (one clock for every
+# process of the host, never stepped: a wall-clock step cannot age or rejuvenate a mark).
 MARK_VALID_S = 20.0
+
+
+def _boot_clock():
+    return time.clock_gettime(time.CLOCK_BOOTTIME)
 
 
 def start_ticks(pid):
@@ -73,8 +79,8 @@ def mark_retired(pid):
         raise PermissionError('%s is not a directory of this user alone' % RETIRED_DIR)
     _prune(time.time() - STALE_MARK_S)
     path = _marker(pid, ticks)
-    with open(path, 'w'):
-        pass
+    with open(path, 'w') as f:
+        f.write('%.6f\n' % _boot_clock())
     return path
 
 
@@ -95,19 +101,22 @@ def _prune(before):
 
 
 def take_retired(pid, ticks, now=None):
-    """Whether process pid, started at ticks, was marked retired at most MARK_VALID_S ago; the mark is
-    removed, fresh or not. A directory that is not this user's alone, or any error, counts as no mark:
-    the death is then a failure."""
+    """Whether process pid, started at ticks, was marked retired at most MARK_VALID_S ago (``now`` on
+    CLOCK_BOOTTIME, default the clock's); the mark is removed, fresh or not. A directory that is not this
+    user's alone, a mark that does not hold its time, or any error, counts as no mark: the death is then
+    a failure."""
     if not _own_directory():
         return False
     path = _marker(pid, ticks)
     try:
-        written = os.stat(path).st_mtime
+        with open(path) as f:
+            text = f.read(64)
         os.unlink(path)
-    except OSError:
+        written = float(text)
+    except (OSError, ValueError):
         return False
-    age = (time.time() if now is None else now) - written
-    return -1.0 <= age <= MARK_VALID_S
+    age = (_boot_clock() if now is None else now) - written
+    return 0.0 <= age <= MARK_VALID_S
 
 
 class WatchError(AftError):

@@ -173,6 +173,7 @@ class LfrAfterNode(AfterNode):
                                      state_access=False)
         role = _role()
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
+        self.admission = AdmissionGate(self.ack_timeout)   # a joiner given the state only while its site is heard
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
         witness = param('witness', config.optional_name, '')
         self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
@@ -408,7 +409,15 @@ class LfrAfterNode(AfterNode):
         if decision == JoinDecision.EXCLUDE:
             self.side.alone(self._exclude, '%s asks to join again: it restarted' % join.site)
         elif decision == JoinDecision.TRANSFER:
-            self.side.alone(self._transfer, join)
+            # Only a site that runs gets the state (AdmissionGate): not yet heard, it asks again.
+            unheard = self.side.joiner_unheard(join.site)
+            with self.lock:
+                admit, give_up = self.admission.decide((join.site, join.incarnation), unheard, time.monotonic())
+            if give_up:
+                self.side.tell('join_failed', '%s asks to join, but is not admitted: %s; it asks again'
+                               % (join.site, give_up))
+            if admit:
+                self.side.alone(self._transfer, join)
 
     def _write_parts(self):
         """The writer: each queued part in order, unless its transfer was given up meanwhile."""
@@ -487,7 +496,7 @@ class LfrAfterNode(AfterNode):
             self.side.tell('join_failed', 'state transfer %d to %s not admitted: the Protocol ran requests '
                            'during it (%s); it asks again' % (transfer.seq, join.site, why))
             return
-        unheard = self._unheard_for(join.site, self.ack_timeout)
+        unheard = self.side.joiner_unheard(join.site)   # heard when its join came (_on_join): still?
         if unheard:
             self.side.tell('join_failed', 'state transfer %d to %s not admitted: %s; it asks again'
                            % (transfer.seq, join.site, unheard))
@@ -514,19 +523,6 @@ class LfrAfterNode(AfterNode):
         self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
-
-    def _unheard_for(self, site, patience, step=0.05):
-        """Why the joiner's site must not be admitted: unheard by this site's crash detector for
-        ``patience`` seconds (a site just started may not be heard yet; aft_ftm.checkpoint.AdmissionGate).
-        None as soon as it is heard (or that cannot be known)."""
-        gate = AdmissionGate(patience)
-        while True:
-            admit, give_up = gate.decide(site, self.side.joiner_unheard(site), time.monotonic())
-            if admit:
-                return None
-            if give_up or rospy.is_shutdown():
-                return give_up or 'this node is shutting down'
-            time.sleep(step)
 
     def _send_transfer(self, out, transfer):
         """Queue the transfer's parts for the writer as the window allows, each acknowledgment opening it

@@ -589,11 +589,10 @@ class PbrAfterNode(AfterNode):
             joiner = self.joiner
         if joiner is None:
             return
-        admit, give_up = self.admission.decide(joiner, self.side.joiner_unheard(joiner[0]), time.monotonic())
-        if give_up:
-            self._exclude('%s holds the state transfer, but is not admitted: %s' % (joiner[0], give_up))
-        if not admit:
-            return   # meanwhile the timer (_check_acks) asks again
+        unheard = self.side.joiner_unheard(joiner[0])   # heard when its join came (_on_join): still?
+        if unheard:
+            self._exclude('%s holds the state transfer, but is not admitted: %s' % (joiner[0], unheard))
+            return
         grant = self.side.ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
         if grant is None:
             return
@@ -634,6 +633,15 @@ class PbrAfterNode(AfterNode):
                     return                # joining it already: its acknowledgment (or the ack timeout) decides
         if need:
             self._resolve(need, '%s asks to join again: it restarted' % join.site)
+            return
+        # Only a site that runs gets the state (AdmissionGate): not yet heard, it asks again.
+        unheard = self.side.joiner_unheard(join.site)
+        with self.lock:
+            admit, give_up = self.admission.decide((join.site, join.incarnation), unheard, time.monotonic())
+        if give_up:
+            self.side.tell('join_failed', '%s asks to join, but is not admitted: %s; it asks again'
+                           % (join.site, give_up))
+        if not admit:
             return
         # The state must include exactly the requests whose replies it carries: capture it while the
         # Protocol is quiescent (suspended: no request executing, new ones held), then let it go on.

@@ -398,7 +398,7 @@ class RecoveryNode(object):
                   % (failure.site, self.site, self.epoch))
         failed = failed_steps(record)
         if failed and not retry and not self.promotion_waits:   # a fence retry completes it otherwise
-            kind, consequence = incomplete(role)
+            kind, consequence = incomplete(role, record)
             alarm(self.ports, 'pbr', kind, '%s failed and %s did not complete its recovery: %s; %s'
                   % (failure.site, self.site or rospy.get_name(), failed, consequence))
         if retry:
