@@ -409,14 +409,8 @@ class LfrAfterNode(AfterNode):
         if decision == JoinDecision.EXCLUDE:
             self.side.alone(self._exclude, '%s asks to join again: it restarted' % join.site)
         elif decision == JoinDecision.TRANSFER:
-            # Only a site that runs gets the state (AdmissionGate): not yet heard, it asks again.
-            unheard = self.side.joiner_unheard(join.site)
-            with self.lock:
-                admit, give_up = self.admission.decide((join.site, join.incarnation), unheard, time.monotonic())
-            if give_up:
-                self.side.tell('join_failed', '%s asks to join, but is not admitted: %s; it asks again'
-                               % (join.site, give_up))
-            if admit:
+            # Only a site that runs gets the state: not heard yet, it asks again.
+            if not self.side.join_waits(self.admission, self.lock, join):
                 self.side.alone(self._transfer, join)
 
     def _write_parts(self):

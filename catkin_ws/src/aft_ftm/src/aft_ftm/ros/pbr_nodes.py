@@ -634,15 +634,8 @@ class PbrAfterNode(AfterNode):
         if need:
             self._resolve(need, '%s asks to join again: it restarted' % join.site)
             return
-        # Only a site that runs gets the state (AdmissionGate): not yet heard, it asks again.
-        unheard = self.side.joiner_unheard(join.site)
-        with self.lock:
-            admit, give_up = self.admission.decide((join.site, join.incarnation), unheard, time.monotonic())
-        if give_up:
-            self.side.tell('join_failed', '%s asks to join, but is not admitted: %s; it asks again'
-                           % (join.site, give_up))
-        if not admit:
-            return
+        if self.side.join_waits(self.admission, self.lock, join):
+            return   # only a site that runs gets the state: not heard yet, it asks again
         # The state must include exactly the requests whose replies it carries: capture it while the
         # Protocol is quiescent (suspended: no request executing, new ones held), then let it go on.
         if not self.side.quiesce_protocol(True):

@@ -1,6 +1,7 @@
 """What the After of a duplex replica (PBR or LFR) does with the outside world beside its mechanism:
 asking the witness, raising alarms once, quiescing its Protocol for a state transfer, fail-stop."""
 import threading
+import time
 
 import rospy
 from aft_msgs.srv import Suspend
@@ -77,6 +78,17 @@ class ReplicaSide(object):
         if self.detector is None or self.detector.heard(joiner) is not False:
             return None
         return self.detector.why
+
+    def join_waits(self, gate, lock, join):
+        """Whether a join request (aft_msgs/Join) is left unanswered for now: its site is not heard by this
+        site's crash detector (gate: an aft_ftm.checkpoint.AdmissionGate, kept under lock). The joiner asks
+        again; once the gate gives the join up, that is said (join_failed)."""
+        unheard = self.joiner_unheard(join.site)
+        with lock:
+            admit, give_up = gate.decide((join.site, join.incarnation), unheard, time.monotonic())
+        if give_up:
+            self.tell('join_failed', '%s asks to join, but is not admitted: %s; it asks again' % (join.site, give_up))
+        return not admit
 
     def alone(self, decision, *args):
         """Run decision(*args) unless another one is under way (then do nothing: the caller's timer or
