@@ -23,8 +23,8 @@ import psutil
 
 from .errors import AftError
 
-# Where an adaptation marks the processes it is about to stop on purpose (one empty file per process,
-# named by its pid and start time): the watch of an adaptable site lets those die. A tmpfs shared by
+# Where an adaptation marks the processes it is about to stop on purpose (one file per process, named by
+# its pid and start time, holding when it was written): the watch of an adaptable site lets those die. A tmpfs shared by
 # every network namespace of the host (emulated hosts included), one directory per user, which must be
 # that user's alone (a mark planted by another user would hide a crash). AFT_RETIRED_DIR overrides it.
 RETIRED_DIR = os.environ.get('AFT_RETIRED_DIR') or os.path.join(

@@ -68,44 +68,45 @@ class PeerCheck(object):
         return False
 
     def alive(self):
-        return self._question(self._ask)
+        return self._question(self._ask)[0]
 
     def heard(self, site):
-        """Whether the detector hears the site ``site`` (its beats within its timeout, even after it was
-        declared failed: the site runs): True, False, or None when unknown (no answer in time, or the
-        detector watches another site). ``why`` says why."""
+        """(heard, why): does the detector hear the site ``site`` (its beats within its timeout, even after
+        it was declared failed: the site runs)? True, False, or None when unknown (no answer in time, or
+        the detector watches another site)."""
         return self._question(lambda: self._ask_heard(site))
 
     def _question(self, ask):
+        """(answer, why) of ask() within ``timeout``; ``why`` is kept as the last answer in words."""
         with self.lock:
             try:
                 answer, self.why = self.deadline.call(ask, self.timeout)
             except CallTimeout:   # CallPending too: the last question has not returned yet
                 self.proxy = self.proxy.fresh()
                 self.why = 'the crash detector (%s) did not answer within %.1f s' % (self.service, self.timeout)
-                return None
-            return answer
+                return None, self.why
+            return answer, self.why
 
     def _call(self):
-        """The detector's answer, or (None, why) if there is none: (answer, '')."""
+        """(the detector's answer, ''), or (None, why) and whether a detector is registered at all."""
         try:
-            return self.proxy(), ''
+            return self.proxy(), '', True
         except (rospy.ServiceException, rospy.ROSException, OSError) as e:
             self.proxy = self.proxy.fresh()
             if not self._registered():
-                return None, 'no crash detector offers %s' % self.service
-            return None, 'the crash detector (%s) cannot be asked: %s' % (self.service, e)
+                return None, 'no crash detector offers %s' % self.service, False
+            return None, 'the crash detector (%s) cannot be asked: %s' % (self.service, e), True
 
     def _ask(self):
-        answer, why = self._call()
+        answer, why, registered = self._call()
+        if not registered:
+            return True, why + ': the peer is assumed able to take over'
         if answer is None:
-            if why.startswith('no crash detector'):
-                return True, why + ': the peer is assumed able to take over'
             return None, why
         return answer.alive, answer.why
 
     def _ask_heard(self, site):
-        answer, why = self._call()
+        answer, why, _ = self._call()
         if answer is None:
             return None, why
         if answer.peer != site:

@@ -75,9 +75,10 @@ class ReplicaSide(object):
         (its beats stopped, or it announced its fail-stop: a site stopping, whose After still joins).
         Admitted, it would be watched afresh and declared failed a timeout later, over and over. None
         if it is heard, or if that cannot be known (no detector here, no answer): then as before."""
-        if self.detector is None or self.detector.heard(joiner) is not False:
+        if self.detector is None:
             return None
-        return self.detector.why
+        heard, why = self.detector.heard(joiner)
+        return why if heard is False else None
 
     def join_waits(self, gate, lock, join):
         """Whether a join request (aft_msgs/Join) is left unanswered for now: its site is not heard by this
