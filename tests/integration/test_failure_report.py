@@ -53,6 +53,30 @@ try:
         for _ in range(30):
             beat()
         look('beating again')
+        # As the After asks it (PeerCheck): beating, it is heard; another site is not known; a frozen
+        # detector's answer is not known within the 0.5 s (the After then admits, and says so).
+        import threading, psutil
+        from aft_ftm.ros.peer_check import PeerCheck
+        check, asking = PeerCheck('a', '/detector'), threading.Event()
+        beating = threading.Thread(target=lambda: [beat() for _ in range(500) if not asking.is_set()], daemon=True)
+        beating.start()
+        try:
+            asked = [check.heard('b')[0], check.heard('c')]
+            psutil.Process(detector.pid).suspend()
+            try:
+                started = time.monotonic()
+                asked += [check.heard('b'), round(time.monotonic() - started, 1)]
+            finally:
+                psutil.Process(detector.pid).resume()
+        finally:
+            asking.set()
+            beating.join()
+        print('PeerCheck.heard: %s' % asked)
+        if asked[0] is not True or asked[1][0] is not None or 'watches' not in asked[1][1] \
+                or asked[2][0] is not None or 'did not answer within 0.5 s' not in asked[2][1] or asked[3] > 1.5:
+            sys.exit('PeerCheck.heard: %s' % asked)
+        for _ in range(30):   # heard again before the fail-stop announcement below
+            beat()
         beat('its server died')
         time.sleep(0.1)
         look('stopped')

@@ -2,7 +2,7 @@
 import pytest
 
 from aft_ftm.checkpoint import (AdmissionGate, BatchError, CheckpointReceiver, CheckpointSender, Decision, Follow, GroupCommit, Need,
-                                 is_refusal)
+                                 UncheckedAdmission, is_refusal)
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Role
 from fakes import reply
@@ -323,3 +323,17 @@ def test_a_joiner_is_given_the_state_only_while_its_site_is_heard_and_given_up_a
     assert gate.decide(('slave', 'i2'), unheard, 30.0) == (False, None)       # and a later wait starts afresh
     # A joiner that stopped asking (its join ended some other way) and asks again much later waits afresh.
     assert gate.decide(('slave', 'i2'), unheard, 31.5) == (False, None)
+
+
+def test_a_joiner_let_in_unchecked_is_said_once_per_joiner_while_it_re_asks_and_again_later():
+    """The gate fails open when this site's detector cannot answer (frozen, hung): never silently."""
+    said = []
+    unchecked = UncheckedAdmission(said.append, every=10.0)
+    why = 'the crash detector (/master/crash_detector/peer_status) did not answer within 0.5 s'
+    assert unchecked.say('slave', why, 100.0)
+    assert not unchecked.say('slave', why, 100.5)            # the same joiner asking again: said already
+    assert unchecked.say('witness', why, 100.6)              # another joiner: its own alarm
+    assert not unchecked.say('slave', why, 109.9)
+    assert unchecked.say('slave', why, 110.0)                # still unchecked 10 s on: said again
+    assert len(said) == 3 and all(why in s and 'without its site being checked as heard' in s for s in said)
+    assert said[0].startswith('slave ') and said[1].startswith('witness ')

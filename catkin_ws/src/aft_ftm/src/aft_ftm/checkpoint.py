@@ -236,6 +236,25 @@ class AdmissionGate(object):
         return False, '%s (for %.1f s)' % (unheard, now - since)
 
 
+class UncheckedAdmission(object):
+    """A joiner admitted although this site's crash detector could not say whether it hears the joiner's
+    site (the detector frozen, hung or watching another site): the gate fails open, as before it
+    existed, and that is said once per joiner within ``every`` seconds (a joiner re-asks every 0.5 s)."""
+
+    def __init__(self, tell, every=10.0):
+        self.tell = tell
+        self.every = every
+        self.last = {}   # joiner -> when it was last said
+
+    def say(self, joiner, why, now):
+        if now - self.last.get(joiner, float('-inf')) < self.every:
+            return False
+        self.last[joiner] = now
+        self.tell('%s is let join without its site being checked as heard: %s; a site that no longer runs may '
+                  'be admitted and then declared failed' % (joiner, why))
+        return True
+
+
 class BatchError(Exception):
     """The replies of a batch did not come as the Protocol numbered them (one lost or out of order)."""
 

@@ -73,7 +73,8 @@ class PeerCheck(object):
     def heard(self, site):
         """(heard, why): does the detector hear the site ``site`` (its beats within its timeout, even after
         it was declared failed: the site runs)? True, False, or None when unknown (no answer in time, or
-        the detector watches another site)."""
+        the detector watches another site). A site that runs no crash detector keeps the rule from
+        before the gate: True, as ``alive`` assumes the peer there."""
         return self._question(lambda: self._ask_heard(site))
 
     def _question(self, ask):
@@ -106,7 +107,9 @@ class PeerCheck(object):
         return answer.alive, answer.why
 
     def _ask_heard(self, site):
-        answer, why, _ = self._call()
+        answer, why, registered = self._call()
+        if not registered:
+            return True, why + ': the joiner is assumed heard'
         if answer is None:
             return None, why
         if answer.peer != site:

@@ -6,6 +6,7 @@ import time
 import rospy
 from aft_msgs.srv import Suspend
 
+from ..checkpoint import UncheckedAdmission
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Grant, Op
 from .alarms import alarm
@@ -38,6 +39,8 @@ class ReplicaSide(object):
         self.told = set()           # alarms raised once per kind and key
         # This site's crash detector, asked before a joiner of the peer site is admitted.
         self.detector = PeerCheck(site) if site else None
+        # The admission of a joiner this detector could not vouch for, said (and not once per re-ask).
+        self.unchecked = UncheckedAdmission(lambda detail: self.tell('admission_unchecked', detail))
         self.deciding = threading.Lock()   # one witness decision (or state transfer) at a time
 
     def _protocol_proxies(self):
@@ -78,6 +81,8 @@ class ReplicaSide(object):
         if self.detector is None:
             return None
         heard, why = self.detector.heard(joiner)
+        if heard is None:
+            self.unchecked.say(joiner, why, time.monotonic())
         return why if heard is False else None
 
     def join_waits(self, gate, lock, join):
