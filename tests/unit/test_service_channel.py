@@ -151,6 +151,23 @@ def test_the_watchdog_fires_only_when_the_beats_stop(tmp_path):
         watchdog.close()
 
 
+def test_the_manager_sees_whether_a_service_armed_its_watchdog(tmp_path):
+    """A service that did not inherit the watchdog (roslaunch closes descriptors) beats into its slot
+    but never arms it: the manager, seeing it unarmed, keeps the heartbeat deadline itself."""
+    watchdog = channel.Watchdog()
+    try:
+        assert not watchdog.armed()                            # never armed: nothing would wake the manager
+        slot = channel.BeatSlot(channel.slot_path(str(tmp_path), 'a'), create=True)
+        channel.ServiceEnd('a', slot.path, '/nonexistent.sock').beat()   # beats without the watchdog
+        assert slot.read() is not None and not watchdog.armed()
+        channel.ServiceEnd('a', slot.path, '/nonexistent.sock', watchdog=(channel.Watchdog(watchdog.fd), 0.05)).beat()
+        assert watchdog.armed()                                # armed by the service's beat, through its descriptor
+        time.sleep(0.1)
+        assert not watchdog.armed() and watchdog.fired()       # fired: the kernel woke (would wake) the manager
+    finally:
+        watchdog.close()
+
+
 def test_a_spare_is_promoted_by_the_managers_byte_and_never_by_the_managers_death(tmp_path):
     """The promotion pipe: a byte promotes the spare at once. Its end closing (the manager died,
     nothing was written) is no promotion: the spare stays idle, for the next manager to adopt it and

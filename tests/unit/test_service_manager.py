@@ -47,7 +47,7 @@ def test_memory_limits_are_bytes_or_a_percentage(limit, expected):
 @pytest.mark.parametrize('services,message', [
     ('  a: {command: x, colour: red}\n', 'services.a: unknown key colour'),
     ('  a: {period: 1}\n', 'services.a: missing key command'),
-    ('  a: {command: x, heartbeat_timeout: -1}\n', 'services.a.heartbeat_timeout must be a number > 0'),
+    ('  a: {command: x, heartbeat_timeout: -1}\n', 'services.a.heartbeat_timeout must be a finite number > 0'),
     ('  a: {command: x, restart_limit: -2}\n', 'services.a.restart_limit must be an integer >= 0'),
     ('  a: {command: x, cpu_limit: lots}\n', 'services.a.cpu_limit must be a percentage'),
     ('  a: {command: x, memory_limit: -5MB}\n', 'services.a.memory_limit must be bytes'),
@@ -63,6 +63,22 @@ def test_memory_limits_are_bytes_or_a_percentage(limit, expected):
     ('  1a: {command: x}\n', "service name '1a'"),
     ('  a: {command: []}\n', 'must be a command'),
     ('  a: {command: x, critical: yes please}\n', 'critical must be true or false'),
+    # a restart that would start a service and stop it at once (it stayed STARTING with no process)
+    ('  tg: {command: x, restart_with: [c4g]}\n  c4g: {command: y, terminate_with: [tg]}\n',
+     r'a restart of tg would start and stop tg at once: it restarts tg \(itself\) and c4g \(restart_with: tg -> c4g\), '
+     r'whose terminate_with names tg'),
+    ('  a: {command: x, restart_with: [b, c]}\n  b: {command: y}\n  c: {command: z, terminate_with: [b]}\n',
+     r'a restart of a would start and stop b at once: it restarts b \(restart_with: a -> b\) and c '
+     r'\(restart_with: a -> c\), whose terminate_with names b'),
+    ('  a: {command: x, restart_with: [b]}\n  b: {command: y, restart_with: [c]}\n  c: {command: z, terminate_with: [a]}\n',
+     r'a restart of a would start and stop a at once: .* c \(restart_with: a -> b -> c\), whose terminate_with names a'),
+    ('  a: {command: x, memory_limit: 1.2.3MB}\n', 'services.a.memory_limit must be bytes'),
+    ('  a: {command: x, memory_limit: .inf}\n', 'services.a.memory_limit must be a finite number'),
+    ('  a: {command: x, cpu_limit: .inf}\n', 'services.a.cpu_limit must be a finite number'),
+    ('  a: {command: x, heartbeat_timeout: .nan}\n', 'services.a.heartbeat_timeout must be a finite number > 0'),
+    ('  a: {command: x, restart_delay_factor: .inf}\n', 'restart_delay_factor must be a finite number >= 1'),
+    ('  a: {command: x, critical: true, critical: false}\n', "key 'critical' given twice"),
+    ('  a: {command: x}\n  a: {command: y}\n', "key 'a' given twice"),
 ])
 def test_a_bad_configuration_is_refused_naming_the_problem(services, message):
     with pytest.raises(ServiceConfigError, match=message):
@@ -73,8 +89,12 @@ def test_a_bad_configuration_is_refused_naming_the_problem(services, message):
     ('services: {}\n', 'non-empty mapping'),
     ('servics:\n  a: {command: x}\n', 'must be a mapping with a services key'),
     ('services:\n  a: {command: x}\nextra: 1\n', 'unknown key extra'),
-    ('manager: {period: 0}\nservices:\n  a: {command: x}\n', 'manager.period must be a number > 0'),
+    ('manager: {period: 0}\nservices:\n  a: {command: x}\n', 'manager.period must be a finite number > 0'),
     ('services: [\n', 'not valid YAML'),
+    ('manager: {kill_timeout: .inf}\nservices:\n  a: {command: x}\n', 'manager.kill_timeout must be a finite number'),
+    ('manager: {period: .inf}\nservices:\n  a: {command: x}\n', 'manager.period must be a finite number'),
+    ('manager: []\nservices:\n  a: {command: x}\n', 'manager must be a mapping'),
+    ('manager: {}\nmanager: {period: 1}\nservices:\n  a: {command: x}\n', "key 'manager' given twice"),
 ])
 def test_a_bad_file_is_refused(text, message):
     with pytest.raises(ServiceConfigError, match=message):
@@ -278,6 +298,9 @@ def test_an_alert_is_raised_once_per_fault_until_it_clears():
     assert sup.check('a', ALIVE, 3.0, GB) is None                  # it cleared...
     assert sup.check('a', hot, 4.0, GB).actions == [('alert', 'a')]  # ...so it is alerted again
     assert sup['a'].errors['cpu_limit'] == 2 and sup['a'].state == State.RUNNING
+    assert sup['a'].alerted == {'cpu_limit'} and sup['a'].reason.startswith('alerted (cpu_limit: CPU 90%')
+    assert sup.check('a', ALIVE, 5.0, GB) is None and not sup['a'].alerted   # what diagnostics show as WARN, gone
+    assert sup['a'].reason == 'running; the fault alerted (cpu_limit) has cleared'
 
 
 def test_an_ok_heartbeat_withdraws_a_reported_error():
@@ -297,6 +320,25 @@ def test_a_service_terminated_or_out_of_restarts_terminates_what_must_not_run_wi
         running(sup, 'c4g')
         decision = sup.fault('c4g', 'exit', '', 1.0)
         assert decision.actions[:2] == [('kill', 'tg'), ('kill', 'c4g')] and sup['tg'].state == State.STOPPED
+
+
+def test_a_critical_service_terminated_with_a_failed_one_puts_the_system_in_the_safe_state():
+    """The trajectory generator, critical, must not run without the trajectory sender: the sender's
+    failure stops it, and a critical service stopped is the safe state (it was left stopped, shown
+    STALE like an operator's stop, with no escalation)."""
+    for action in ('restart', 'terminate'):
+        sup = Supervisor(config('  tg: {command: x, critical: true}\n  c4g: {command: y, on_failure: %s, '
+                                'terminate_with: [tg]}\n' % action))
+        running(sup, 'tg')
+        running(sup, 'c4g')
+        decision = sup.fault('c4g', 'exit', 'status 1', 1.0)
+        assert sup['tg'].state == State.STOPPED
+        assert decision.escalate == sup.safe_state == 'tg (critical) terminated with c4g after its exit', action
+    # Not critical: stopped with it, and no safe state.
+    sup = Supervisor(config('  tg: {command: x}\n  c4g: {command: y, terminate_with: [tg]}\n'))
+    running(sup, 'tg')
+    running(sup, 'c4g')
+    assert sup.fault('c4g', 'exit', '', 1.0).escalate is None and sup.safe_state is None
 
 
 def test_dependants_are_restarted_transitively_but_stopped_ones_stay_stopped():
@@ -328,6 +370,7 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
             name = rng.choice(list(sup.services))
             s = sup[name]
             move = rng.choice(('heard', 'error', 'exit', 'check', 'start', 'stop', 'restart', 'spawn_failed', 'clear'))
+            before = {n: other.state for n, other in sup.services.items()}
             actions = []
             if move == 'heard':
                 s.heard(now, 'ok')
@@ -344,9 +387,19 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
             elif move == 'clear':
                 sup.clear_safe_state(now)
             actions += sup.due(now)          # held restarts, as the manager's loop spawns them
+            spawned = set()
             for verb, target in actions:     # as the manager carries them out
                 if verb == 'spawn':
                     sup[target].spawned(now)
+                    spawned.add(target)
+                else:   # never a spawn, then a kill of the same service in one plan (left with no process)
+                    assert target not in spawned, (move, name, actions)
+            # a critical service a fault stopped is the safe state (never silent)
+            if move in ('exit', 'check'):
+                for other in sup.services.values():
+                    if other.config['critical'] and other.state in (State.STOPPED, State.FAILED) \
+                            and before[other.name] not in (State.STOPPED, State.FAILED):
+                        assert sup.safe_state is not None, (move, name, actions)
         for s in sup.services.values():
             assert all((old, new) in EDGES for _, old, new, _ in s.history)
 

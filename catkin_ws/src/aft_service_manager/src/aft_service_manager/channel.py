@@ -93,6 +93,15 @@ class Watchdog(object):
         if _libc().timerfd_settime(self.fd, 0, ctypes.byref(self._spec), None) != 0:
             raise OSError(ctypes.get_errno(), 'timerfd_settime: %s' % os.strerror(ctypes.get_errno()))
 
+    def armed(self):
+        """Whether it is set to fire (someone armed it and it has not fired yet). The manager relies on a
+        service's watchdog only once it sees it armed: a service that did not inherit the descriptor
+        (roslaunch closes them) beats into its slot but never arms it."""
+        current = _Itimerspec()
+        if _libc().timerfd_gettime(self.fd, ctypes.byref(current)) != 0:
+            return False
+        return bool(current.it_value.tv_sec or current.it_value.tv_nsec)
+
     def fired(self):
         """Whether it fired since the last call (its count read and cleared)."""
         try:

@@ -17,6 +17,7 @@ processes and reports what it observed. ``now`` is always passed in.
 """
 import collections
 import enum
+import math
 import re
 
 import yaml
@@ -67,13 +68,16 @@ def _size(where, value):
     if isinstance(value, bool):
         raise ServiceConfigError('%s must be bytes or a percentage, got %r' % (where, value))
     if isinstance(value, (int, float)):
-        if value <= 0:
-            raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+        if not _number(value) or value <= 0:
+            raise ServiceConfigError('%s must be a finite number of bytes > 0, got %r' % (where, value))
         return ('bytes', float(value))
     match = re.match(r'^\s*([0-9.]+)\s*(%|[kKmMgG]i?[bB]?|[bB])?\s*$', str(value))
     if not match:
         raise ServiceConfigError('%s must be bytes (e.g. 200MB) or a percentage (e.g. 10%%), got %r' % (where, value))
-    number, unit = float(match.group(1)), (match.group(2) or 'b').lower()
+    try:
+        number, unit = float(match.group(1)), (match.group(2) or 'b').lower()
+    except ValueError:   # digits and dots, but not a number: 1.2.3MB
+        raise ServiceConfigError('%s must be bytes (e.g. 200MB) or a percentage (e.g. 10%%), got %r' % (where, value))
     if number <= 0:
         raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
     if unit == '%':
@@ -93,20 +97,26 @@ def _cpu(where, value):
         number = float(text[:-1] if text.endswith('%') else text)
     except ValueError:
         raise ServiceConfigError('%s must be a percentage of one core (e.g. 80%%), got %r' % (where, value))
-    if not number > 0:
-        raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+    if not number > 0 or not math.isfinite(number):
+        raise ServiceConfigError('%s must be a finite number > 0, got %r' % (where, value))
     return number
 
 
+def _number(value):
+    """Whether value is a finite number (not a flag: YAML's true is an int to Python; .inf, .nan refused:
+    a kill timeout of .inf waited for ever, a period of .inf made the manager's wake time NaN)."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
 def _positive(where, value):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise ServiceConfigError('%s must be a number > 0, got %r' % (where, value))
+    if not _number(value) or not value > 0:
+        raise ServiceConfigError('%s must be a finite number > 0, got %r' % (where, value))
     return float(value)
 
 
 def _non_negative(where, value):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-        raise ServiceConfigError('%s must be a number >= 0, got %r' % (where, value))
+    if not _number(value) or value < 0:
+        raise ServiceConfigError('%s must be a finite number >= 0, got %r' % (where, value))
     return float(value)
 
 
@@ -160,8 +170,8 @@ def _arguments(where, value):
 
 
 def _at_least_one(where, value):
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 1:
-        raise ServiceConfigError('%s must be a number >= 1, got %r' % (where, value))
+    if not _number(value) or value < 1:
+        raise ServiceConfigError('%s must be a finite number >= 1, got %r' % (where, value))
     return float(value)
 
 
@@ -244,10 +254,29 @@ def _fill(where, item, keys):
     return out
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (by default the last one wins,
+    silently: two services of one name, or critical: true then critical: false)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                repeated = key in seen
+                seen.add(key)
+            except TypeError:   # an unhashable key: the base class says so
+                continue
+            if repeated:
+                raise yaml.constructor.ConstructorError(
+                    'while reading a mapping', node.start_mark, 'key %r given twice' % (key,), key_node.start_mark)
+        return super(_UniqueKeyLoader, self).construct_mapping(node, deep=deep)
+
+
 def parse_config(text, source='config'):
     """The configuration of a YAML text: {'manager': {...}, 'services': OrderedDict(name -> {...})}."""
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as e:
         raise ServiceConfigError('%s: not valid YAML: %s' % (source, e))
     if not isinstance(data, dict) or 'services' not in data:
@@ -255,7 +284,7 @@ def parse_config(text, source='config'):
     unknown = sorted(str(k) for k in set(data) - {'manager', 'services'})
     if unknown:
         raise ServiceConfigError('%s: unknown key %s (known: manager, services)' % (source, ', '.join(unknown)))
-    manager = _fill('%s: manager' % source, data.get('manager') or {}, MANAGER_KEYS)
+    manager = _fill('%s: manager' % source, {} if data.get('manager') is None else data['manager'], MANAGER_KEYS)
     raw = data['services']
     if not isinstance(raw, dict) or not raw:
         raise ServiceConfigError('%s: services must be a non-empty mapping of names to services' % source)
@@ -281,7 +310,32 @@ def parse_config(text, source='config'):
     cycle = _cycle(services)
     if cycle:
         raise ServiceConfigError('%s: restart_with makes a cycle: %s' % (source, ' -> '.join(cycle)))
+    conflict = _restarted_then_terminated(services)
+    if conflict:
+        raise ServiceConfigError('%s: %s' % (source, conflict))
     return {'manager': manager, 'services': services}
+
+
+def _restarted_then_terminated(services):
+    """Why a restart of some service would restart a service and terminate it too, or None. A restart of
+    X restarts X and its restart_with, followed transitively, and terminates the terminate_with of each
+    of them: a service in both was spawned and then killed in the same plan, and stayed STARTING with
+    no process, unwatched (tg restart_with [c4g], c4g terminate_with [tg])."""
+    for name in services:
+        restarted, path = [name], {name: name}
+        for current in restarted:   # breadth first; restart_with has no cycle (checked before)
+            for other in services[current]['restart_with']:
+                if other not in path:
+                    path[other] = '%s -> %s' % (path[current], other)
+                    restarted.append(other)
+        for current in restarted:
+            for other in services[current]['terminate_with']:
+                if other in path:
+                    return ('a restart of %s would start and stop %s at once: it restarts %s (%s) and %s '
+                            '(restart_with: %s), whose terminate_with names %s'
+                            % (name, other, other, 'itself' if other == name else 'restart_with: ' + path[other],
+                               current, path[current], other))
+    return None
 
 
 def _cycle(services):
@@ -454,7 +508,9 @@ class Supervisor(object):
             s.consecutive = 0   # a stable run: the back-off starts again from restart_delay
         found = detect(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
         if found is None:
-            s.alerted.clear()
+            if s.alerted:
+                s.reason = 'running; the fault alerted (%s) has cleared' % ', '.join(sorted(s.alerted))
+                s.alerted.clear()
             return None
         if found[0] in s.alerted:
             return None        # alerted already; alerted again only once the condition has cleared
@@ -484,7 +540,7 @@ class Supervisor(object):
                 actions += self._terminate_with(name, now) + [('kill', name)]
             else:
                 s.alerted.add(kind)
-                s._change(State.RUNNING, now, 'alerted; left running')
+                s._change(State.RUNNING, now, 'alerted (%s: %s); left running' % (kind, detail))
             actions.append(('alert', name))
         else:   # terminate, or run: terminate then run the program
             s._change(State.STOPPED, now, 'failure action %s after %s' % (action, kind))
@@ -495,6 +551,11 @@ class Supervisor(object):
             escalate = '%s (critical) cannot be recovered: %s' % (name, kind)
         if escalate is None and s.config['safe_state_on_failure']:
             escalate = '%s failed (%s): movement stopped while it recovers' % (name, kind)
+        if escalate is None:
+            stopped = [other for verb, other in actions if verb == 'kill' and other != name and
+                       self.services[other].config['critical'] and self.services[other].state == State.STOPPED]
+            if stopped:
+                escalate = '%s (critical) terminated with %s after its %s' % (', '.join(stopped), name, kind)
         if escalate:
             self._escalate(escalate, now)
         return Decision(name, kind, detail, actions, escalate)

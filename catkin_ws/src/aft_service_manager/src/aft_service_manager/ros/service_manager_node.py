@@ -153,16 +153,26 @@ class Child(object):
             cpu = 100.0 * (self.cpu_marks[-1][1] - first[1]) / (now - first[0])
         return Sample(True, None, stopped, cpu, rss)
 
+    def signal_session(self, sig):
+        """Signal the service's process group, only while its leader is not reaped: a reaped leader's pid,
+        and so its group id, may be another process's by then (a service stopped by an operator hours
+        before the manager's shutdown). What is left of the group is its tree's to kill. Returns whether
+        it was sent."""
+        if self.popen.poll() is not None:   # reaped now if it had ended (an adopted one: seen by its pidfd)
+            return False
+        try:
+            os.killpg(self.popen.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            return False
+        return True
+
     def kill(self, timeout, wait=True):
         """SIGKILL the whole session at once (a faulty service is not asked), and every other process
         of it (its tree: those in sessions of their own too). With ``wait``, it is reaped here if it
         dies within 0.2 s (it almost always does), else by a thread, so the manager's loop never
         waits long; without, the caller ends it (:meth:`end`) off the loop: once SIGKILL is sent,
         nothing of it runs again, and its replacement need not wait for the kernel's clean-up."""
-        try:
-            os.killpg(self.popen.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        self.signal_session(signal.SIGKILL)
         if self.tree is not None and self.handle is not None:
             self.tree.signal(self.handle)
         if not wait:
@@ -205,10 +215,8 @@ class Child(object):
     def terminate(self, timeout):
         """SIGTERM the session, SIGKILL it after timeout (an operator's stop)."""
         try:
-            os.killpg(self.popen.pid, signal.SIGTERM)
-            self.popen.wait(timeout)
-        except ProcessLookupError:
-            pass
+            if self.signal_session(signal.SIGTERM):
+                self.popen.wait(timeout)
         except subprocess.TimeoutExpired:
             self.kill(timeout)
         self._kill_tree(timeout)   # what it left in sessions of its own goes too
@@ -702,9 +710,15 @@ class ServiceManagerNode(object):
                 if self.children[name].slot is not None and self.children[name].beats:
                     yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
             elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None \
-                    and not (self.children[name].watchdog is not None and self.children[name].beats):
-                # (a service beating in its slot re-arms its watchdog: the kernel wakes the loop)
+                    and not self._watched_by_kernel(self.children[name]):
                 yield s.last_heard + c['heartbeat_timeout']
+
+    @staticmethod
+    def _watched_by_kernel(child):
+        """A service beating in its slot re-arms its watchdog, and the kernel wakes the loop when it
+        fires; unless it never armed it (it did not inherit the descriptor): then the manager keeps
+        the heartbeat deadline itself, or a hang waited for the next diagnostics tick (1 s)."""
+        return child.watchdog is not None and child.beats and child.watchdog.armed()
 
     def _check(self, name, now, resources):
         child = self.children.get(name)
@@ -843,6 +857,7 @@ class ServiceManagerNode(object):
                           'restart_held_s': None if s.spawn_at is None else round(s.spawn_at - time.monotonic(), 3),
                           'starts': s.starts, 'restarts_in_window': s.restarts_in_window(time.monotonic()),
                           'errors': dict(s.errors), 'critical': s.config['critical'],
+                          'alerted': sorted(s.alerted),
                           'period': s.config['period'], 'spare': s.config['spare']}
             return {'services': out, 'safe_state': self.supervisor.safe_state,
                     'refused_heartbeats': self.refused_heartbeats, 'wakes': self.wakes, 'tree': self.tree.describe(),
@@ -855,7 +870,9 @@ class ServiceManagerNode(object):
         for name, s in status['services'].items():
             state = State[s['state'].upper()]
             array.status.append(DiagnosticStatus(
-                level=LEVELS[state], name='service_manager: %s' % name, message='%s: %s' % (s['state'], s['reason']),
+                # a fault alerted and still there (on_failure: alert) is no normal run
+                level=DiagnosticStatus.WARN if state == State.RUNNING and s['alerted'] else LEVELS[state],
+                name='service_manager: %s' % name, message='%s: %s' % (s['state'], s['reason']),
                 hardware_id=str(s['pid'] or ''),
                 values=[KeyValue(key='starts', value=str(s['starts'])),
                         KeyValue(key='restarts_in_window', value=str(s['restarts_in_window'])),
@@ -933,10 +950,7 @@ class ServiceManagerNode(object):
                 rospy.logerr('%s: stopping spare %d: %s: %s', rospy.get_name(), spare.pid, type(e).__name__, e)
         try:
             for child in children:
-                try:
-                    os.killpg(child.pid, signal.SIGTERM)
-                except (ProcessLookupError, PermissionError):
-                    pass
+                child.signal_session(signal.SIGTERM)
             deadline = time.monotonic() + self.config['manager']['kill_timeout']
             for child in children:
                 try:   # each on its own: one child's trouble leaves none of the others running
