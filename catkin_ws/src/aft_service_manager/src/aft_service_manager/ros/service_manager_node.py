@@ -941,6 +941,11 @@ class ServiceManagerNode(object):
             spares = list(self.spares.values())
             children = list(self.children.values()) + list(self.stopping.values())
             self.children, self.stopping, self.spares = {}, {}, {}
+        try:   # every service stops, the critical ones too: never silently (a client hook may still publish)
+            self.safe_pub.publish(SafeState(active=True, reason='the service manager %s stops: every service it '
+                                            'ran is stopped' % rospy.get_name(), stamp=rospy.Time.now()))
+        except Exception as e:
+            rospy.logerr('%s: the safe state could not be commanded at shutdown: %s', rospy.get_name(), e)
         self._wake()
         for spare in spares:   # idle, nothing to save: killed at once
             try:
