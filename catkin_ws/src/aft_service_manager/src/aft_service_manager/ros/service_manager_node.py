@@ -91,6 +91,7 @@ class Child(object):
         self.spare = spare    # a warm spare, not yet promoted
         self.ready = False    # a spare that said it is set up
         self.instance = instance
+        self.born = time.monotonic()   # a spare not ready start_timeout after this is replaced
 
     def close(self):
         """Release what the manager holds of it (once it is killed or gone). Once, whoever calls."""
@@ -469,6 +470,21 @@ class ServiceManagerNode(object):
         self._event('spare_started', name, 'pid %d' % self.spares[name].pid, time.monotonic(),
                     pid=self.spares[name].pid)
 
+    def _replace_unready_spares(self, now):
+        """A warm spare that has not said it is ready within its service's start_timeout (hung in its
+        set-up) is killed and another started a second later: kept, it was never promoted, and every
+        restart silently fell back to a cold start."""
+        for name, spare in list(self.spares.items()):
+            timeout = self.supervisor[name].config['start_timeout']
+            if spare.ready or spare.spare is False or now - spare.born <= timeout:
+                continue
+            self._kill_from(self.spares, name)
+            self.supervisor[name].errors['spare_start_timeout'] += 1
+            self.spare_retry[name] = now + 1.0
+            rospy.logwarn('%s: the warm spare of %s (pid %d) was not ready within %.1f s: replaced (restarts '
+                          'meanwhile are cold)', rospy.get_name(), name, spare.pid, timeout)
+            self._event('spare_start_timeout', name, 'pid %d not ready within %.1f s' % (spare.pid, timeout), now)
+
     def _record_pids(self):
         """The process groups of the running services (pid, start time, command line), so that a
         manager started after this one was killed can stop what it left behind; written atomically,
@@ -675,6 +691,7 @@ class ServiceManagerNode(object):
             self._act_one(verb, name, None, now)
         for name in list(self.supervisor.services):
             self._check(name, now, resources and self._sampled(name))
+        self._replace_unready_spares(now)
         for name in list(self.spare_retry):
             if now >= self.spare_retry[name]:
                 del self.spare_retry[name]
@@ -702,6 +719,9 @@ class ServiceManagerNode(object):
             yield due
         for t in self.spare_retry.values():
             yield t
+        for name, spare in self.spares.items():
+            if not spare.ready:
+                yield spare.born + self.supervisor[name].config['start_timeout']
         for name in self.children:
             s = self.supervisor[name]
             c = s.config
@@ -799,6 +819,9 @@ class ServiceManagerNode(object):
         self.spare_retry[name] = time.monotonic() + 1.0
         self._event('spare_exit', name, 'the warm spare (pid %d) exited with status %s; another in 1 s'
                     % (spare.pid, code), time.monotonic())
+        rospy.logwarn_throttle(10.0, '%s: the warm spare of %s exited with status %s (%d so far): another in 1 s; '
+                               'restarts meanwhile are cold' % (rospy.get_name(), name, code,
+                                                                self.supervisor[name].errors['spare_exit']))
         self._record_pids()
 
     def _wake(self):

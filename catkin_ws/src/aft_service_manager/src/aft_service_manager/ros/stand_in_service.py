@@ -25,6 +25,7 @@ class StandInServiceNode(object):
         ~period (float, 0.01 s): the service's cycle (wall clock)
         ~save_every (float, 0.5 s): how often its state (the counter) is saved
         ~counter_limit (int, 10**9): the range check of a restored state
+        ~spare_setup (float, 0 s): a warm spare's set-up before it says it is ready (long: hung in it)
     Publishes:
         ~output (std_msgs/UInt64): the counter, each cycle
         ~restored (std_msgs/String, latched): JSON {restored, reason, counter} at start
@@ -40,6 +41,8 @@ class StandInServiceNode(object):
     def __init__(self):
         self.period = param('period', config.positive_float, 0.01)
         self.save_every = param('save_every', config.positive_float, 0.5)
+        # a warm spare's set-up time before it says it is ready (long: a spare hung in its set-up)
+        self.spare_setup = param('spare_setup', config.non_negative_float, 0.0)
         limit = param('counter_limit', config.non_negative_int, 10 ** 9)
         self.store, self.restore = from_environment(
             os.path.join(default_state_dir(), '%s.json' % rospy.get_name().strip('/').replace('/', '_')),
@@ -63,6 +66,8 @@ class StandInServiceNode(object):
         return True
 
     def _promoted(self):
+        if self.spare_setup:
+            rospy.sleep(self.spare_setup)
         while not rospy.is_shutdown() and not self.heartbeat.wait_promoted(0.5):
             pass
         if not rospy.is_shutdown():
