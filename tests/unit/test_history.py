@@ -160,8 +160,46 @@ def test_indeterminate_and_unfinished_operations_fill_gaps_in_either_fate():
     alone = chain(('deposit', 3))[0]
     assert check([lost_call, op('b', 0, 0.5, 2.0, 'deposit', 3, reply=alone)], [alone], {'a': [0.5]}).ok
     unfinished = op('a', 1, 3.0, None, 'deposit', 5, 'unfinished')
-    assert check([op('b', 0, 0.5, 2.0, 'deposit', 3, reply=alone), unfinished], [chain(('deposit', 3),
-                                                                                      ('deposit', 5))[1]]).ok
+    both = chain(('deposit', 3), ('deposit', 5))[1]
+    assert check([op('b', 0, 0.5, 2.0, 'deposit', 3, reply=alone), unfinished], [both], killed_clients={'a'}).ok
+
+
+def test_a_call_never_ended_needs_its_client_killed_in_it_at_the_end():
+    """An unfinished call is an unknown outcome: acceptable only as the last call of a client the run
+    killed at its end (a call hung past the stop), never for a client that was not killed, nor for an
+    earlier call of a killed one."""
+    r1, r2 = chain(('deposit', 5), ('deposit', 2))
+    ok_a = op('a', 0, 0.0, 1.0, 'deposit', 5, reply=r1)
+    hung = op('a', 1, 1.5, None, 'deposit', 2, 'unfinished')
+    assert check([ok_a, hung], [r2], killed_clients={'a'}).ok
+    result = check([ok_a, hung], [r2], end=100.0)
+    assert [v.kind for v in result.violations] == ['unfinished_without_cause'], result.violations
+    earlier = op('a', 0, 0.0, None, 'deposit', 5, 'unfinished')
+    later = op('a', 1, 1.5, 2.0, 'deposit', 2, reply=chain(('deposit', 5), ('deposit', 2))[1])
+    assert [v.kind for v in check([earlier, later], [r2], killed_clients={'a'}).violations] == \
+        ['unfinished_without_cause']
+
+
+def test_no_final_state_or_an_unreadable_one_is_a_violation_not_a_pass():
+    """Only the final state shows an answered operation the servers lost after their answer: without
+    it (the witness silent at the end, a server that cannot be read) the run is not a pass."""
+    r1, r2 = chain(('deposit', 5), ('deposit', 3))
+    a, b = op('a', 0, 0.0, 1.0, 'deposit', 5, reply=r1), op('b', 0, 1.5, 2.0, 'deposit', 3, reply=r2)
+    assert [v.kind for v in check([a, b], [r1]).violations] == ['lost']     # the servers ended at r1: b lost
+    assert [v.kind for v in check([a, b], []).violations] == ['final_state_unreadable']
+    unreadable = ('unreadable: timed out', -1, '')
+    assert [v.kind for v in check([a, b], [unreadable, r2]).violations] == ['final_state_unreadable']
+    assert [v.kind for v in check([a, b], [unreadable, r1]).violations] == ['final_state_unreadable', 'lost']
+
+
+def test_an_operation_tag_given_twice_is_refused():
+    """Tags tell executions apart: a tag repeated (a client relaunched with its index from 0) would let
+    an execution twice of one pass for an indeterminate other."""
+    r1, r2 = chain(('deposit', 5, 'a:0'), ('deposit', 5, 'a:0'))
+    x = Op('a', 0, 0.0, 1.0, 'deposit', 5, 'ok', r1, '', 'a:0')
+    y = Op('a', 0, 2.0, 3.0, 'deposit', 5, 'indeterminate', None, 'transport error', 'a:0')
+    with pytest.raises(HistoryError, match='tags given to more than one operation: a:0'):
+        check([x, y], [r2], {'a': [2.5]})
 
 
 def test_percentile_and_unavailability():

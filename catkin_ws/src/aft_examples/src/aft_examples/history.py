@@ -92,7 +92,8 @@ class Op(object):
 
 Violation = collections.namedtuple('Violation', 'kind detail')
 KINDS = ('lost', 'duplicated', 'wrong_value', 'real_time', 'unexplained_execution', 'indeterminate_without_cause',
-         'wrong_refusal', 'final_states_differ', 'undecided')
+         'unfinished_without_cause', 'wrong_refusal', 'final_states_differ', 'final_state_unreadable',
+         'history_missing', 'undecided')
 
 
 class Result(object):
@@ -151,32 +152,55 @@ class _Exhausted(Exception):
     pass
 
 
-def check(ops, final_states=(), proxy_kills=None, end=None):
+def check(ops, final_states=(), proxy_kills=None, end=None, killed_clients=()):
     """Check a campaign's history.
 
     Parameters:
         ops: every client operation (Op), all clients together.
         final_states: the (balance, count, digest) of every server serving at the end (primary and
-            backup once joined); they must agree.
+            backup once joined); they must agree. None read (or one unreadable: a balance or count that
+            is no integer, or a count below 0) is a violation: what only they show (an answered operation lost, an execution
+            nothing explains after the last answer) would otherwise pass unchecked.
         proxy_kills: {client: [wall times its Proxy was killed]}: an indeterminate outcome is
             acceptable only for a call in flight at one of them.
         end: the run's end (wall clock); unfinished operations must have been invoked before it.
-    Returns a Result.
+        killed_clients: the clients killed at the end, their call in flight: only such a client's last
+            operation may be unfinished.
+    Returns a Result. Raises HistoryError if two operations carry the same tag (they could not be
+    told apart: one executed twice would pass for the other).
     """
     result = Result()
     proxy_kills = proxy_kills or {}
+    tags = collections.Counter(op.tag for op in ops if op.tag)
+    repeated = sorted(tag for tag, n in tags.items() if n > 1)
+    if repeated:
+        raise HistoryError('tags given to more than one operation: %s' % ', '.join(repeated[:5]))
     for op in ops:
         result.counts[op.outcome] += 1
     answered = [op for op in ops if op.outcome == 'ok']
     unknown = [op for op in ops if op.outcome in ('indeterminate', 'unfinished')]
     definite_failed = [op for op in ops if op.outcome in ('not_executed', 'error')]
 
+    last = {}
+    for op in ops:
+        last[op.client] = max(last.get(op.client, op.index), op.index)
     for op in unknown:
         if op.outcome == 'indeterminate' and not any(op.invoke <= t <= op.complete for t in proxy_kills.get(op.client, ())):
             result.add('indeterminate_without_cause', '%r: outcome unknown to the client, but its Proxy was not '
                        'killed during the call (error: %s)' % (op, op.error))
+        if op.outcome == 'unfinished' and (op.client not in killed_clients or op.index != last[op.client]
+                                           or (end is not None and op.invoke > end)):
+            result.add('unfinished_without_cause', '%r: never ended, but its client was not killed in that call '
+                       'at the end of the run' % (op,))
 
-    finals = sorted(set(tuple(s) for s in final_states))
+    readable = [tuple(s) for s in final_states   # unreadable: ('unreadable: why', -1, '')
+                if all(isinstance(x, int) and not isinstance(x, bool) for x in s[:2]) and s[1] >= 0]
+    for s in final_states:
+        if tuple(s) not in readable:
+            result.add('final_state_unreadable', 'a serving server\'s final state could not be read: %s' % (s[0],))
+    if not final_states:
+        result.add('final_state_unreadable', 'no final state of any server: the final count and state are unchecked')
+    finals = sorted(set(readable))
     if len(finals) > 1:
         result.add('final_states_differ', 'the serving servers end in different states: %s' % finals)
     final_count = max((s[1] for s in finals), default=None)

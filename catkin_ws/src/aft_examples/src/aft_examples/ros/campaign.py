@@ -618,7 +618,9 @@ def final_states(deployment, settle=5.0):
     from aft_examples.bank import Account
 
     def states():
-        status = witness_status() or _Status
+        status = witness_status()
+        if status is None:   # no pair known: unreadable, never "no servers" (an empty list checks nothing)
+            return [('unreadable: the witness did not answer', -1, '')]
         found = []
         for name in (status.primary, status.backup):
             if not name:
@@ -632,7 +634,7 @@ def final_states(deployment, settle=5.0):
                 found.append(('unreadable: %s' % e, -1, ''))
         return found
     got = []
-    wait_until(lambda: got.append(states()) or len(set(got[-1])) == 1, settle, 0.1)
+    wait_until(lambda: got.append(states()) or (len(set(got[-1])) == 1 and got[-1][0][1] != -1), settle, 0.1)
     return got[-1]
 
 
@@ -724,17 +726,21 @@ class Segment(object):
             unfinished = deployment.stop_clients()
             self.finals = final_states(deployment)
             self.ended = time.time()
-            self.ops = []
+            self.ops, self.missing = [], []
             for k in range(1, self.clients + 1):
                 path = deployment.history_path(k)
                 if os.path.exists(path):
                     self.ops += history.read_history(path, 'client%d' % k)
+                else:   # its operations, lost ones too, would go unchecked
+                    self.missing.append('client%d wrote no history (%s)' % (k, path))
             self.unfinished_clients = unfinished
         finally:
             deployment.teardown()
         # A verdict the runner could not hear (a partitioned site's) is in that site's own log.
         self.verdicts = suspicions.merge(self.verdicts, suspicions.logged_verdicts(_log_lines(self.log_dir)))
-        self.result = history.check(self.ops, self.finals, self.kills, self.ended)
+        self.result = history.check(self.ops, self.finals, self.kills, self.ended, self.unfinished_clients)
+        for missing in self.missing:
+            self.result.add('history_missing', missing)
         windows = [r['start'] for r in self.records[1:]] + [self.ended]
         for record, stop in zip(self.records, windows):
             record.update(history.unavailability_split(self.ops, record['start'], record.get('repaired_from'), stop))
