@@ -111,3 +111,46 @@ def test_a_promotion_whose_answer_was_lost_is_granted_again_and_changes_nothing(
     assert not w.request(Op.PROMOTE, 'slave', 's2').granted         # another start of it holds nothing
     assert w.request(Op.ADMIT, 'slave', 's1', peer='master', peer_incarnation='m2').granted
     assert not w.request(Op.PROMOTE, 'slave', 's1').granted         # it has a backup: no promotion to repeat
+
+
+class FailingStore(StateStore):
+    """A store whose saves fail while ``failing`` (a full disk, an I/O error)."""
+    failing = False
+
+    def save(self, state):
+        if self.failing:
+            raise OSError(28, 'No space left on device')
+        return super(FailingStore, self).save(state)
+
+
+@pytest.mark.parametrize('op,site,kwargs', [(Op.PROMOTE, 'slave', {}), (Op.EXCLUDE, 'master', {}),
+                                            (Op.ADMIT, 'master', {'peer': 'witness_site', 'peer_incarnation': 'w1'})])
+def test_a_grant_whose_record_cannot_be_saved_changes_nothing_and_is_never_granted_later(tmp_path, op, site, kwargs):
+    """Saved after the change, a failed save left the new epoch in memory: the caller's retry was
+    granted "already", and the witness restarted from its file at the old epoch granted that epoch
+    again to the other site (slave and master both primaries of epoch 3)."""
+    store = FailingStore(str(tmp_path / 'witness.json'))
+    w = pair(store)
+    incarnation = {'slave': 's1', 'master': 'm1'}[site]
+    store.failing = True
+    with pytest.raises(OSError):
+        w.request(op, site, incarnation, **kwargs)
+    assert (w.epoch, w.primary, w.backup, len(w.history)) == (2, 'master', 'slave', 2)   # nothing changed
+    with pytest.raises(OSError):   # the retry is not "granted already": it fails the same way
+        w.request(op, site, incarnation, **kwargs)
+    # Restarted from its file, the witness grants epoch 3 once, to whoever asks first, as it would have.
+    store.failing = False
+    again = Witness(store=store)
+    assert again.epoch == 2
+    first = again.request(Op.PROMOTE, 'slave', 's1')
+    assert first.granted and first.epoch == 3
+    assert not again.request(Op.EXCLUDE, 'master', 'm1').granted
+
+
+def test_the_initial_primary_whose_registration_cannot_be_saved_is_not_told_to_serve(tmp_path):
+    store = FailingStore(str(tmp_path / 'witness.json'))
+    store.failing = True
+    w = Witness(store=store)
+    with pytest.raises(OSError):
+        w.request(Op.REGISTER, 'master', 'm1', claim=True)
+    assert w.epoch == 0 and not w.incarnations

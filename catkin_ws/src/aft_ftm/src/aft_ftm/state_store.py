@@ -40,6 +40,13 @@ class StateStore(object):
             if os.path.exists(tmp):
                 os.unlink(tmp)
             raise
+        # The rename itself made durable: without it a power loss just after could bring the old file
+        # back (a witness would then grant an epoch again).
+        directory = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
 
     def load(self):
         """(state, None) when the saved state passes every check; (None, why) for a clean start."""

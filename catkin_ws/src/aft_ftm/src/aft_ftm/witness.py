@@ -109,8 +109,9 @@ class Witness(object):
         if site == self.primary:
             known = self.incarnations.get(site)
             if known is None and self.epoch == 1 and not self.backup:
-                self.incarnations[site] = incarnation
-                self._save()
+                incarnations = dict(self.incarnations, **{site: incarnation})
+                self._save(self._record(incarnations=incarnations))   # raises: nothing changed
+                self.incarnations = incarnations
                 return self._grant(True, '%s is the initial primary of epoch 1: serve' % site)
             if known == incarnation:
                 return self._grant(True, '%s is the primary of epoch %d: serve' % (site, self.epoch))
@@ -173,18 +174,29 @@ class Witness(object):
         return None
 
     def _change(self, primary, backup, reason, incarnations):
-        """The one place where the configuration changes: a new epoch, saved before it is told."""
+        """The one place where the configuration changes: a new epoch, saved before it is made, so a
+        save that fails (disk full, an I/O error) raises with nothing changed. Changed first, a failed
+        save left the new epoch in memory: the caller's retry was granted "already", and a restarted
+        witness, back at the old epoch, granted that epoch again to the other site."""
+        incarnations = {k: v for k, v in incarnations.items() if k and v is not None}
+        self._save(self._record(self.epoch + 1, primary, backup, reason, incarnations))
         self.epoch += 1
         self.primary, self.backup, self.reason = primary, backup, reason
-        self.incarnations = {k: v for k, v in incarnations.items() if k and v is not None}
+        self.incarnations = incarnations
         self.history.append((self.epoch, primary, backup, reason))
-        self._save()
 
-    def _save(self):
+    def _record(self, epoch=None, primary=None, backup=None, reason=None, incarnations=None):
+        """The record as saved: the current one, with what is given changed."""
+        return {'epoch': self.epoch if epoch is None else epoch,
+                'primary': self.primary if primary is None else primary,
+                'backup': self.backup if backup is None else backup,
+                'reason': self.reason if reason is None else reason,
+                'incarnations': self.incarnations if incarnations is None else incarnations,
+                'initial_primary': self.initial_primary}
+
+    def _save(self, record):
         if self.store is not None:
-            self.store.save({'epoch': self.epoch, 'primary': self.primary, 'backup': self.backup,
-                             'reason': self.reason, 'incarnations': self.incarnations,
-                             'initial_primary': self.initial_primary})
+            self.store.save(record)
 
     def _load(self, loaded):
         state, why = loaded

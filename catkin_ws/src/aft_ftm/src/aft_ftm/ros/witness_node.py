@@ -79,7 +79,14 @@ class WitnessNode(object):
                                    epoch=self.witness.epoch, primary=self.witness.primary, backup=self.witness.backup)
         with self.lock:
             before = self.witness.epoch
-            grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation, req.claim)
+            try:
+                grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation,
+                                             req.claim)
+            except OSError as e:   # the record could not be saved: nothing was granted or changed
+                why = '%s could not save its record (%s): %s of %s not granted, nothing changed; ask again' % (
+                    rospy.get_name(), e, op.name, req.site)
+                rospy.logerr(why)
+                raise rospy.ServiceException(why)
             if self.witness.epoch != before:
                 self._publish()
         log = rospy.loginfo if grant.granted else rospy.logwarn
