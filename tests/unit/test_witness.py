@@ -154,3 +154,21 @@ def test_the_initial_primary_whose_registration_cannot_be_saved_is_not_told_to_s
     with pytest.raises(OSError):
         w.request(Op.REGISTER, 'master', 'm1', claim=True)
     assert w.epoch == 0 and not w.incarnations
+
+
+def test_an_admission_delivered_late_is_refused_once_the_configuration_changed():
+    """The primary's ADMIT timed out and was left on its old connection; TCP delivered it after a
+    partition healed. Meanwhile the backup was excluded (or another start of it admitted): granted
+    then, it named as the backup a site whose state is older than the configuration, to be promoted
+    later. An ADMIT says the epoch of its state transfer, and is refused once that epoch is past."""
+    w = pair()                                                             # epoch 2: master, slave s1
+    assert w.request(Op.EXCLUDE, 'master', 'm1').epoch == 3                 # slave failed: excluded
+    late = w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s1', epoch=2)
+    assert not late.granted and 'made in epoch 2' in late.message and (w.epoch, w.backup) == (3, '')
+    # Its join in this epoch is admitted; a late admission of its earlier start then changes nothing.
+    assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s2', epoch=3).granted
+    assert not w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s1', epoch=3).granted
+    assert (w.epoch, w.backup, w.incarnations['slave']) == (4, 'slave', 's2')
+    # The same ADMIT asked again (its answer lost) is granted, whatever epoch it was made in.
+    assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s2', epoch=3).granted
+    assert w.epoch == 4

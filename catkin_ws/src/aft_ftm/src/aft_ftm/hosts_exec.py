@@ -28,6 +28,7 @@ import psutil
 
 from .hosts import (HostState, HostsError, Network, Signal, Topology, TopologyError, check_seconds,
                     plan_down, plan_up, run_prefix_pattern, PROJECT_PREFIX)
+from .process_start import started
 from .sites import wait_stopped
 
 STATE_DIRS = ('/run/aft_hosts', '/tmp/aft_hosts')
@@ -98,16 +99,15 @@ def state_dir():
 
 
 def _owner_record():
-    me = psutil.Process()
-    return {'pid': me.pid, 'create_time': me.create_time()}
+    return {'pid': os.getpid(), 'create_time': started(os.getpid())}   # on the boot clock (process_start)
 
 
 def _owner_alive(owner):
     if owner is None:
         return True          # scripts/hosts up: the hosts stay until scripts/hosts down
     try:
-        return psutil.Process(owner['pid']).create_time() == owner['create_time']
-    except (psutil.NoSuchProcess, KeyError, TypeError):
+        return started(owner['pid']) == owner['create_time']
+    except (KeyError, TypeError):
         return False
 
 
@@ -600,8 +600,8 @@ class Hosts(object):
                     pids = self.processes(name)
                     if pids:
                         kill_and_wait(pids)
-                for started in self._started.values():
-                    for popen, _ in started:
+                for launched in self._started.values():
+                    for popen, _ in launched:
                         try:
                             popen.wait(timeout=KILL_WAIT)
                         except subprocess.TimeoutExpired:

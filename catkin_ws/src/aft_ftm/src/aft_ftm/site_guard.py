@@ -34,7 +34,8 @@ class GuardError(AftError):
 
 
 class Owner(collections.namedtuple('Owner', 'pid create_time')):
-    """A site's launcher: its pid and its create time (s since the epoch, as psutil gives it)."""
+    """A site's launcher: its pid and its start (s since boot: aft_ftm.process_start, the same in every
+    process whatever the wall clock does)."""
     __slots__ = ()
 
     def encode(self):

@@ -13,7 +13,8 @@ current record, so at most one site holds the right to serve in any epoch:
 - EXCLUDE (the primary goes on alone): granted only to the primary. The backup is excluded and
   can never be promoted until it re-joins (a join transfers the state again).
 - ADMIT (a joined site becomes the backup): granted only to the primary, naming the joined site
-  and its incarnation.
+  and its incarnation, and only in the epoch its state transfer was made in (when the request says
+  it): a late ADMIT never names a site whose state is older than the configuration.
 - REGISTER (a site starts): tells whether it may serve. Only the initial primary (configured, or
   the first site that registers claiming it), in the first epoch and first incarnation, serves
   from its own state; every other start must join. A backup
@@ -84,8 +85,9 @@ class Witness(object):
         return 'primary' if site == self.primary else 'backup' if site == self.backup and site else ''
 
     # -- requests ---------------------------------------------------------------------------
-    def request(self, op, site, incarnation='', peer='', peer_incarnation='', claim=False):
-        """Carry out one request; returns a Grant. Refusals change nothing."""
+    def request(self, op, site, incarnation='', peer='', peer_incarnation='', claim=False, epoch=0):
+        """Carry out one request; returns a Grant. Refusals change nothing. ``epoch`` (ADMIT): the epoch
+        the joined site's state transfer was made in; 0: not said."""
         if not site:
             return self._grant(False, 'a request must name its site')
         if op == Op.STATUS:
@@ -97,7 +99,7 @@ class Witness(object):
         if op == Op.EXCLUDE:
             return self._exclude(site, incarnation)
         if op == Op.ADMIT:
-            return self._admit(site, incarnation, peer, peer_incarnation)
+            return self._admit(site, incarnation, peer, peer_incarnation, epoch)
         return self._grant(False, 'unknown operation %r' % (op,))
 
     def _register(self, site, incarnation, claim):
@@ -152,7 +154,7 @@ class Witness(object):
         return self._grant(True, '%s is alone in epoch %d; %s is excluded until it re-joins'
                            % (site, self.epoch, excluded))
 
-    def _admit(self, site, incarnation, peer, peer_incarnation):
+    def _admit(self, site, incarnation, peer, peer_incarnation, epoch=0):
         refused = self._not_primary(site, incarnation)
         if refused:
             return refused
@@ -160,6 +162,13 @@ class Witness(object):
             return self._grant(False, 'ADMIT must name another site, got %r' % (peer,))
         if self.backup == peer and self.incarnations.get(peer) == peer_incarnation:
             return self._grant(True, '%s is already the backup of epoch %d' % (peer, self.epoch))
+        if epoch and epoch != self.epoch:
+            # Delivered late (its caller timed out, and TCP delivered it after a partition healed): the
+            # configuration changed since the transfer, which may lack what changed (an exclusion of
+            # that very joiner, another incarnation admitted). Granted, it named a site without the
+            # state as the backup, to be promoted later.
+            return self._grant(False, '%s\'s state transfer was made in epoch %d, and the configuration is '
+                                      'epoch %d now: not admitted; it joins again' % (peer, epoch, self.epoch))
         self._change(site, peer, '%s admitted %s' % (site, peer), {site: incarnation, peer: peer_incarnation})
         return self._grant(True, '%s is the backup of epoch %d' % (peer, self.epoch))
 

@@ -20,9 +20,11 @@ import os
 import stat
 import tempfile
 
+from aft_ftm.process_start import started as process_started
+
 from .services import ServiceConfigError
 
-START_TIME_SLACK = 0.01   # s: psutil's create_time is derived from boot time and clock ticks
+START_TIME_SLACK = 0.005  # s: starts are in clock ticks since boot (aft_ftm.process_start), exact
 
 
 def default_state_dir(environ=None):
@@ -89,8 +91,10 @@ def read_private_json(path):
 
 
 def describe(proc):
-    """What names a process across a pid's reuse: {'pid', 'create_time', 'cmdline'} (proc: psutil)."""
-    return {'pid': proc.pid, 'create_time': proc.create_time(), 'cmdline': proc.cmdline()}
+    """What names a process across a pid's reuse: {'pid', 'create_time', 'cmdline'} (proc: psutil); the
+    start on the boot clock (aft_ftm.process_start), so that a manager started after a wall-clock step
+    still knows the services its predecessor left (psutil's create_time moves with the clock)."""
+    return {'pid': proc.pid, 'create_time': process_started(proc.pid, zombie=True), 'cmdline': proc.cmdline()}
 
 
 def same_process(entry, proc, command_line=True):
@@ -103,8 +107,10 @@ def same_process(entry, proc, command_line=True):
         return 'the record %r is malformed' % (entry,)
     if proc.pid != pid:
         return 'pid %d is not %d' % (proc.pid, pid)
-    if abs(proc.create_time() - started) > START_TIME_SLACK:
-        return 'pid %d was started at %.2f, not %.2f: the pid was reused' % (pid, proc.create_time(), started)
+    now = process_started(proc.pid, zombie=True)
+    if now is None or abs(now - started) > START_TIME_SLACK:
+        return 'pid %d was started at %s, not %.2f s after boot: the pid was reused' % (
+            pid, 'an unknown time' if now is None else '%.2f s after boot' % now, started)
     if command_line and proc.cmdline() != cmdline:
         return 'pid %d runs %r, not %r' % (pid, proc.cmdline()[:4], cmdline[:4])
     return None

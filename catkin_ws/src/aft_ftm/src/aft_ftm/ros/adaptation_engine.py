@@ -40,6 +40,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
+from ..process_start import started
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
@@ -79,7 +80,7 @@ def owners_of_process(pid):
             text = None
         if text:
             return site_guard.parse_owners(text)
-        chain = [(p.pid, p.create_time(), p.cmdline()) for p in [proc] + proc.parents()]
+        chain = [(p.pid, started(p.pid, zombie=True), p.cmdline()) for p in [proc] + proc.parents()]
     except (psutil.Error, site_guard.GuardError):
         return []
     owner = site_guard.launcher_among(chain)

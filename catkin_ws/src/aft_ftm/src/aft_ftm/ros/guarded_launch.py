@@ -31,6 +31,7 @@ import time
 
 import psutil
 
+from ..process_start import started
 from ..site_guard import OWNERS_ENV, Action, Guard, GuardError, encode_owners, parse_owners, same_process
 from ..sites import process_tree, wait_dead
 
@@ -72,14 +73,9 @@ def fail_site_command(site, reason):
 
 
 def create_time_of(pid):
-    """The create time of process pid; None if there is none, or it is a zombie (it ran its course)."""
-    try:
-        proc = psutil.Process(pid)
-        if proc.status() == psutil.STATUS_ZOMBIE:
-            return None
-        return proc.create_time()
-    except psutil.NoSuchProcess:
-        return None
+    """The start of process pid on the boot clock (aft_ftm.process_start: the same in every process,
+    whatever the wall clock does); None if there is none, or it is a zombie (it ran its course)."""
+    return started(pid)
 
 
 def _prctl(option, value):

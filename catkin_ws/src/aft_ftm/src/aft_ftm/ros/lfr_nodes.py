@@ -468,6 +468,7 @@ class LfrAfterNode(AfterNode):
             transfer = self.core.start_transfer(join.site, t0)
             if transfer is None:
                 return
+            epoch = self.core.epoch   # the follower is admitted only in this epoch (a late ADMIT is refused)
             out.seq = transfer.seq
             record = {'event': 'join', 'joiner': join.site, 'seq': transfer.seq, 'state_bytes': len(state),
                       'replies': len(transfer.cache), 'parts': out.count, 'sent_wall': time.time()}
@@ -495,13 +496,15 @@ class LfrAfterNode(AfterNode):
             self.side.tell('join_failed', 'state transfer %d to %s not admitted: %s; it asks again'
                            % (transfer.seq, join.site, unheard))
             return
-        grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation)
+        grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation, epoch=epoch)
         if grant is None:
             return
         if not grant.granted:
             if grant.primary != self.site:
                 self._deposed(grant.message)
             else:
+                with self.lock:   # its epoch, if it had missed a configuration: the next transfer's
+                    self.core.on_configuration(grant)
                 self.side.tell('join_failed', 'the witness refused to admit %s: %s' % (join.site, grant.message))
             return
         if not self._forwarding(Role.PRIMARY, grant.epoch, transfer.seq):

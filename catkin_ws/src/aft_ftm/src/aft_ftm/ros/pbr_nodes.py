@@ -210,6 +210,7 @@ class PbrAfterNode(AfterNode):
         self.deferred = []          # primary: checkpoints made while its parts are sent, sent after its last
         self.incoming = Incoming()  # backup: the parts of the state transfer being received
         self.joiner = None          # (site, incarnation) of the backup being joined
+        self.joiner_epoch = 0       # the epoch its state transfer was made in
         self.join_record = None     # the state transfer under way, for ~events
         self.lock = threading.Lock()
         # backup: a set_state made by the applier runs outside self.lock (a large state takes tens of ms,
@@ -586,14 +587,14 @@ class PbrAfterNode(AfterNode):
 
     def _admit(self):
         with self.lock:
-            joiner = self.joiner
+            joiner, epoch = self.joiner, self.joiner_epoch
         if joiner is None:
             return
         unheard = self.side.joiner_unheard(joiner[0])   # heard when its join came (_on_join): still?
         if unheard:
             self._exclude('%s holds the state transfer, but is not admitted: %s' % (joiner[0], unheard))
             return
-        grant = self.side.ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1])
+        grant = self.side.ask(Op.ADMIT, peer=joiner[0], peer_incarnation=joiner[1], epoch=epoch)
         if grant is None:
             return
         if not grant.granted:
@@ -659,6 +660,7 @@ class PbrAfterNode(AfterNode):
             # its version, when it told it)
             self.encoder.reset(state, version)
             self.joiner = (join.site, join.incarnation)
+            self.joiner_epoch = sender.epoch   # admitted only in this epoch (a late ADMIT is refused)
             cache = self.recent.replies()
             out = Outgoing(seq, state, self.chunk_bytes, self.transfer_window)
             self.join_record = {'event': 'join', 'joiner': join.site, 'seq': seq, 'state_bytes': len(state),

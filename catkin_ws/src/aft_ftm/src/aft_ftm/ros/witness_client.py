@@ -1,12 +1,12 @@
 """A replica's side of the witness: its site's incarnation and calls with a deadline."""
 import os
 
-import psutil
 import rospy
 from aft_msgs.msg import Configuration
 from aft_msgs.srv import Witness as WitnessSrv
 
 from ..errors import AftError
+from ..process_start import started
 from ..site_guard import OWNERS_ENV, GuardError, parse_owners
 from ..witness import Grant, Op
 from .deadline import CallTimeout, Deadline
@@ -33,11 +33,11 @@ def site_launcher_pid():
 
 
 def incarnation(pid):
-    """One start of a site: its launcher's pid and start time ('' if it is gone)."""
-    try:
-        return '%d@%.3f' % (pid, psutil.Process(pid).create_time())
-    except psutil.NoSuchProcess:
-        return ''
+    """One start of a site: its launcher's pid and start time, on the boot clock, so that every process
+    of the site (Recovery, the After, an After an adaptation starts later) tells the same one across a
+    wall-clock step ('' if it is gone)."""
+    start = started(pid, zombie=True)
+    return '' if start is None else '%d@%.2f' % (pid, start)
 
 
 class WitnessClient(object):
@@ -63,10 +63,11 @@ class WitnessClient(object):
             return False
         return True
 
-    def request(self, op, peer='', peer_incarnation='', claim=False):
-        """One request; returns a Grant, or raises WitnessUnreachable."""
+    def request(self, op, peer='', peer_incarnation='', claim=False, epoch=0):
+        """One request; returns a Grant, or raises WitnessUnreachable. ``epoch`` (ADMIT): the epoch the
+        state transfer was made in."""
         try:
-            answer = self.deadline.call(self._call, self.timeout, op, peer, peer_incarnation, claim)
+            answer = self.deadline.call(self._call, self.timeout, op, peer, peer_incarnation, claim, epoch)
         except CallTimeout as e:
             self.proxy = self.proxy.fresh()   # the call that timed out may still hold the old connection
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
@@ -74,9 +75,9 @@ class WitnessClient(object):
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
         return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
 
-    def _call(self, op, peer, peer_incarnation, claim):
+    def _call(self, op, peer, peer_incarnation, claim, epoch):
         return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
-                          peer_incarnation=peer_incarnation, claim=claim)
+                          peer_incarnation=peer_incarnation, claim=claim, epoch=epoch)
 
     def subscribe(self, callback):
         """callback(aft_msgs/Configuration) on every configuration (the latest at once: latched)."""

@@ -81,7 +81,7 @@ class WitnessNode(object):
             before = self.witness.epoch
             try:
                 grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation,
-                                             req.claim)
+                                             req.claim, req.epoch)
             except OSError as e:   # the record could not be saved: nothing was granted or changed
                 why = '%s could not save its record (%s): %s of %s not granted, nothing changed; ask again' % (
                     rospy.get_name(), e, op.name, req.site)

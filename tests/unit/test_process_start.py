@@ -1,0 +1,49 @@
+"""aft_ftm.process_start: a process's start on the boot clock, the identity every process agrees on
+whatever the wall clock does (psutil's create_time moves with a clock step). Real processes, and a
+fake /proc for the odd command names. No ROS."""
+import os
+import subprocess
+import sys
+
+import psutil
+
+from aft_ftm.process_start import CLOCK_TICKS, started
+
+
+def test_a_process_start_is_the_kernel_s_clock_ticks_since_boot():
+    me = started(os.getpid())
+    assert me is not None and me > 0 and round(me * CLOCK_TICKS) == me * CLOCK_TICKS
+    # psutil's create_time is the boot time plus the same ticks: they differ by the boot time only
+    assert abs(psutil.Process().create_time() - psutil.boot_time() - me) < 0.02
+    child = subprocess.Popen([sys.executable, '-c', 'import sys; sys.stdin.read()'], stdin=subprocess.PIPE)
+    try:
+        assert started(child.pid) >= me                       # started later
+        assert started(child.pid) == started(child.pid)       # asked again: the same, exactly
+    finally:
+        child.stdin.close()
+        child.wait(10)
+    assert started(child.pid) is None                        # gone
+
+
+def test_a_zombie_has_a_start_only_when_asked_for_it():
+    child = subprocess.Popen([sys.executable, '-c', 'pass'])
+    import time
+    for _ in range(200):   # exited, not reaped yet: a zombie
+        if psutil.Process(child.pid).status() == psutil.STATUS_ZOMBIE:
+            break
+        time.sleep(0.01)
+    try:
+        assert started(child.pid) is None and started(child.pid, zombie=True) > 0
+    finally:
+        child.wait(10)
+
+
+def test_a_command_name_with_brackets_and_spaces_does_not_shift_the_fields(tmp_path):
+    """The name in /proc/PID/stat is in brackets and may hold anything, brackets and spaces too."""
+    (tmp_path / '77').mkdir()
+    fields = ['S', '1', '77', '77', '0', '-1', '4194560'] + ['0'] * 12 + ['123456'] + ['0'] * 30
+    (tmp_path / '77' / 'stat').write_bytes(b'77 (a) b) c (d) ' + ' '.join(fields).encode())
+    assert started(77, proc=str(tmp_path)) == 123456 / CLOCK_TICKS
+    fields[0] = 'Z'
+    (tmp_path / '77' / 'stat').write_bytes(b'77 (x) ' + ' '.join(fields).encode())
+    assert started(77, proc=str(tmp_path)) is None and started(77, zombie=True, proc=str(tmp_path)) == 123456 / CLOCK_TICKS
