@@ -47,3 +47,15 @@ def test_a_command_name_with_brackets_and_spaces_does_not_shift_the_fields(tmp_p
     fields[0] = 'Z'
     (tmp_path / '77' / 'stat').write_bytes(b'77 (x) ' + ' '.join(fields).encode())
     assert started(77, proc=str(tmp_path)) is None and started(77, zombie=True, proc=str(tmp_path)) == 123456 / CLOCK_TICKS
+
+
+def test_a_wall_clock_step_moves_psutil_s_create_time_but_not_a_site_s_incarnation(monkeypatch):
+    """The boot time psutil adds is the kernel's btime, which a clock step moves; each process reads it
+    once. Two processes of one site on either side of a step (Recovery, an After started later) told
+    the witness two incarnations, and the one that differed was "not the one serving"."""
+    import psutil._pslinux as pslinux
+    from aft_ftm.ros.witness_client import incarnation
+    before, mine = psutil.Process().create_time(), incarnation(os.getpid())
+    monkeypatch.setattr(pslinux, 'BOOT_TIME', psutil.boot_time() + 3600.0)   # the clock stepped an hour
+    assert abs(psutil.Process().create_time() - before - 3600.0) < 1.0
+    assert incarnation(os.getpid()) == mine and mine.startswith('%d@' % os.getpid())
