@@ -5,7 +5,8 @@ from aft_ftm import config
 from aft_ftm.errors import ConfigError, RebindError
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec, check_rebind
 from aft_ftm.protocol import Role
-from aft_ftm.recovery import Step, failed_steps, incomplete, plan, role_after, same_process, start_plan, unfenceable
+from aft_ftm.recovery import (Step, failed_steps, incomplete, plan, promoted_unasked, role_after, same_process, start_plan,
+                              unfenceable)
 
 SPECS = {'requests': PortSpec('requests', SUBSCRIBE, 'aft_msgs/Request'),
          'replies': PortSpec('replies', PUBLISH, 'aft_msgs/Reply')}
@@ -136,3 +137,15 @@ def test_an_incomplete_recovery_says_who_still_serves_by_the_role_it_had():
         assert incomplete(Role.PRIMARY, record(*failed))[0] == 'promotion_failed'
     assert Step.AFTER_ALONE in plan(Role.PRIMARY, witness=True)[-1]   # alone without waiting for FAIL_SILENCE
     assert Step.FAIL_SILENCE in plan(Role.PRIMARY, witness=True)[-1]
+
+
+def test_a_site_made_primary_without_its_recovery_asking_is_told_from_its_own_promotion():
+    """A late PROMOTE (granted after its Recovery gave it up) names this backup the lone primary: it
+    must take over, or nobody serves. Its own promotion (granted to this Recovery), a primary that
+    lost its backup, and another site's promotion are not that."""
+    from aft_ftm.protocol import Role
+    assert promoted_unasked(Role.BACKUP, Role.ALONE, 'slave', 'slave', granted=2, epoch=5)
+    assert not promoted_unasked(Role.BACKUP, Role.ALONE, 'slave', 'slave', granted=5, epoch=5)   # its own grant
+    assert not promoted_unasked(Role.PRIMARY, Role.ALONE, 'slave', 'slave', granted=2, epoch=5)  # excluded its backup
+    assert not promoted_unasked(Role.BACKUP, None, 'slave', 'master', granted=2, epoch=5)        # excluded itself
+

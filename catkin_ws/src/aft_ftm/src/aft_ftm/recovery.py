@@ -100,6 +100,16 @@ def waves(steps):
     return result
 
 
+def promoted_unasked(before, after, site, primary, granted, epoch):
+    """Whether a configuration made this site the lone primary without this Recovery's grant: a PROMOTE
+    of an earlier failover, answered too late for its Recovery (which gave it up, the site re-joining
+    meanwhile) and delivered by TCP after a partition healed, deposes a working primary. The witness
+    then names this site the primary while nothing here was promoted: the old primary fail-stops
+    (deposed) and nobody serves. Such a site takes over as if its peer had failed (the witness grants
+    its PROMOTE again: "already the primary")."""
+    return before == Role.BACKUP and after == Role.ALONE and primary == site and granted != epoch
+
+
 def role_after(role):
     """The replica's role once the plan for its peer's failure is carried out."""
     return Role.ALONE if role in (Role.BACKUP, Role.PRIMARY) else role

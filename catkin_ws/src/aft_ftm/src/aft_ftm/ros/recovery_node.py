@@ -16,8 +16,8 @@ from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..realtime import RealtimeBurst
 from ..detector import DEFAULT_REALTIME_PRIORITY
-from ..recovery import (GATES, Step, failed_steps, incomplete, plan, role_after, role_in, same_process, start_plan,
-                        unfenceable)
+from ..recovery import (GATES, Step, failed_steps, incomplete, plan, promoted_unasked, role_after, role_in,
+                        same_process, start_plan, unfenceable)
 from ..sites import silence_trees, this_host
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
@@ -164,6 +164,8 @@ class RecoveryNode(object):
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
         self.granted = 0       # the epoch the witness granted to the recovery under way
+        self.primary_seen = ''  # the primary of the last configuration seen
+        self.unasked = None     # the epoch that made this site primary without its asking, not taken over yet
         self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
 
     def setup(self, timeout):
@@ -298,16 +300,29 @@ class RecoveryNode(object):
             if conf.epoch <= self.epoch:
                 return
             self.epoch = conf.epoch
-            before = self.role
+            before, deposed = self.role, self.primary_seen
             self.role = role_in(conf.primary, conf.backup, self.site)
+            self.primary_seen = conf.primary
             if self.role in (Role.PRIMARY, Role.BACKUP):
                 self.recovered = False
                 self.fencing.rearm()
                 self.promotion_waits = False
+            unasked = self.witness is not None and promoted_unasked(before, self.role, self.site, conf.primary,
+                                                                    self.granted, conf.epoch)
+            # Until it is carried out, any failure handling here takes over as the backup it was (the
+            # old primary, deposed, fail-stops at once: its detector's verdict may come first).
+            self.unasked = conf.epoch if unasked else None
         record = {'event': 'configuration', 'epoch': conf.epoch, 'primary': conf.primary, 'backup': conf.backup,
                   'reason': conf.reason, 'role_before': before.name if before else None,
                   'role_after': self.role.name if self.role else None}
         self._event(record)
+        if unasked:
+            # Taken over as if the peer had failed (a recovery under way already makes this a no-op).
+            why = ('the witness made %s the primary of epoch %d (%s) without this Recovery asking: a late '
+                   'PROMOTE; %s is deposed and this site takes over' % (self.site, conf.epoch, conf.reason, deposed))
+            alarm(self.ports, 'pbr', 'late_promotion', why)
+            failure = Failure(site=deposed or '', host='', pid=0, reason=why, silence=0.0, detected=rospy.Time.now())
+            threading.Thread(target=self._on_failure, args=(failure, Role.BACKUP), daemon=True).start()
         if self.role is None and before is not None:
             alarm(self.ports, 'pbr', 'out_of_configuration', '%s is in no configuration of epoch %d (primary %r, '
                   'backup %r: %s): it neither serves nor takes over until it re-joins'
@@ -369,7 +384,8 @@ class RecoveryNode(object):
         with self.lock:
             # A retry keeps the role of its first attempt: the witness may have granted that attempt late,
             # and the configuration it published since names this site alone, with nothing promoted yet.
-            role = retried_role or self.role
+            role = retried_role or (Role.BACKUP if self.unasked is not None else self.role)
+            self.unasked = None
             record = {'failed_site': failure.site, 'reason': failure.reason, 'silence': failure.silence,
                       'role_before': role.name if role else None, 'steps': [], 'ok': True,
                       'detected_wall': failure.detected.to_sec()}
