@@ -51,3 +51,52 @@ def test_a_running_service_s_whole_group_is_signalled():
                 pass
         leader.stdout.close()
         leader.wait(5)
+
+
+def _node(tmp_path):
+    """A manager without ROS: only what starting a process needs (a service beating on ROS, no spare)."""
+    import threading
+    from aft_service_manager.ros.service_manager_node import ServiceManagerNode
+    from aft_service_manager.services import Supervisor, parse_config
+    config = parse_config('manager: {state_dir: %s}\nservices:\n  a: {command: [%s, -c, "import time; time.sleep(60)"], '
+                          'heartbeat_channel: ros}\n' % (tmp_path, sys.executable))
+    node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.config, node.supervisor, node.closing, node.instances = config, Supervisor(config), False, 0
+    node.heartbeat_topic, node.local, node.lock = '/aft/service_heartbeat', None, threading.RLock()
+    node.children, node.spares = {}, {}
+
+    class NoTree(object):
+        def prepare(self, name):
+            return [], {}, None
+    node.tree = NoTree()
+    return node
+
+
+def test_a_service_spawned_while_the_manager_shuts_down_on_the_same_thread_is_stopped(tmp_path, monkeypatch):
+    """rospy runs the shutdown hook in the signal handler of the main thread, which spawns the services
+    at set-up (the lock is re-entrant): a SIGINT between the manager's check and the fork let the
+    service start after the shutdown's sweep, to run on unsupervised."""
+    from aft_service_manager.ros import service_manager_node
+    node, started = _node(tmp_path), []
+    real = subprocess.Popen
+
+    def popen_interrupted(*args, **kwargs):   # the signal comes as the fork is under way
+        node.closing = True
+        started.append(real(*args, **kwargs))
+        return started[-1]
+    monkeypatch.setattr(service_manager_node.subprocess, 'Popen', popen_interrupted)
+    try:
+        node._start_process('a', spare=False)
+        raise AssertionError('a process was started during the shutdown and kept')
+    except OSError as e:
+        assert 'shutting down' in str(e)
+    assert started and started[0].wait(10) == -signal.SIGKILL
+
+
+def test_what_a_spawn_added_after_the_shutdown_took_its_list_is_stopped(tmp_path):
+    node = _node(tmp_path)
+    child = node._start_process('a', spare=False)
+    node.children['a'] = child     # added after the shutdown had emptied the list
+    node.closing = True
+    node._stop_left_by_shutdown()
+    assert node.children == {} and child.popen.wait(10) == -signal.SIGKILL

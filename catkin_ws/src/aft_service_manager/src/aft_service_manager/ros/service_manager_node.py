@@ -348,6 +348,9 @@ class ServiceManagerNode(object):
                 elif name in self.children:
                     self._ensure_spare(name)
             self._sync_safe_state()
+        if self.closing:   # a shutdown ran during those spawns, on this thread: what it could not see goes too
+            self._stop_left_by_shutdown()
+            return False
         threading.Thread(target=self._loop, name='service_manager', daemon=True).start()
         # the operators' services last: no command meets a manager still adopting or spawning
         for verb in ('start', 'stop', 'restart', 'status'):
@@ -430,6 +433,11 @@ class ServiceManagerNode(object):
             env.update(extra)
             popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True,
                                      pass_fds=tuple(fd for fd in (watchdog and watchdog.fd, promote_r) if fd))
+            if self.closing:
+                # The shutdown ran meanwhile, on this very thread (rospy runs it in the signal handler of
+                # the main thread, which spawns at set-up; the lock is re-entrant): it did not see this
+                # process, which would outlive the manager unsupervised.
+                raise OSError('the manager is shutting down: %s started during its shutdown is stopped' % name)
             child = Child(popen, cfg['cpu_window'], slot, spare, self.instances, self.tree, handle, watchdog)
             child.promote_w, promote_w = promote_w, None
             return child
@@ -955,6 +963,19 @@ class ServiceManagerNode(object):
             self._sync_safe_state()
         rospy.logwarn('%s: clear safe state: %s', rospy.get_name(), message)
         return TriggerResponse(success=ok, message=message)
+
+    def _stop_left_by_shutdown(self):
+        """Kill the services a spawn added after the shutdown took its list (the shutdown ran in the signal
+        handler of the thread that was spawning them). Never raises."""
+        with self.lock:
+            left = list(self.children.values()) + list(self.spares.values())
+            self.children, self.spares = {}, {}
+        for child in left:
+            try:
+                child.kill(self.config['manager']['kill_timeout'])
+                child.close()
+            except Exception as e:
+                rospy.logerr('%s: stopping pid %d: %s: %s', rospy.get_name(), child.pid, type(e).__name__, e)
 
     def shutdown(self):
         """Stop every service, those being stopped too, and their spares: SIGTERM to all, then SIGKILL
