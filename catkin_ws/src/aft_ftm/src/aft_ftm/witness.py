@@ -188,20 +188,17 @@ class Witness(object):
         save left the new epoch in memory: the caller's retry was granted "already", and a restarted
         witness, back at the old epoch, granted that epoch again to the other site."""
         incarnations = {k: v for k, v in incarnations.items() if k and v is not None}
-        self._save(self._record(self.epoch + 1, primary, backup, reason, incarnations))
+        self._save(self._record(epoch=self.epoch + 1, primary=primary, backup=backup, reason=reason,
+                                incarnations=incarnations))
         self.epoch += 1
         self.primary, self.backup, self.reason = primary, backup, reason
         self.incarnations = incarnations
         self.history.append((self.epoch, primary, backup, reason))
 
-    def _record(self, epoch=None, primary=None, backup=None, reason=None, incarnations=None):
-        """The record as saved: the current one, with what is given changed."""
-        return {'epoch': self.epoch if epoch is None else epoch,
-                'primary': self.primary if primary is None else primary,
-                'backup': self.backup if backup is None else backup,
-                'reason': self.reason if reason is None else reason,
-                'incarnations': self.incarnations if incarnations is None else incarnations,
-                'initial_primary': self.initial_primary}
+    def _record(self, **changes):
+        """The record as saved: the current one, with ``changes`` made."""
+        return dict({'epoch': self.epoch, 'primary': self.primary, 'backup': self.backup, 'reason': self.reason,
+                     'incarnations': self.incarnations, 'initial_primary': self.initial_primary}, **changes)
 
     def _save(self, record):
         if self.store is not None:

@@ -484,7 +484,7 @@ class ServiceManagerNode(object):
         restart silently fell back to a cold start."""
         for name, spare in list(self.spares.items()):
             timeout = self.supervisor[name].config['start_timeout']
-            if spare.ready or spare.spare is False or now - spare.born <= timeout:
+            if spare.ready or now - spare.born <= timeout:
                 continue
             self._kill_from(self.spares, name)
             self.supervisor[name].errors['spare_start_timeout'] += 1
