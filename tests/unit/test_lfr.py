@@ -163,6 +163,17 @@ def test_a_late_join_is_ignored_by_last_seq_and_a_join_after_the_transfer_means_
     assert lead.on_join(join(incarnation='i2', last_seq=0)) == JoinDecision.EXCLUDE   # restarted site
 
 
+def test_a_late_join_naming_a_transfer_of_a_leader_before_a_clock_step_back_is_still_late():
+    # The follower accepted transfer 5000 of a leader started before the clock was stepped back;
+    # the leader now numbers from 100. Its Join sent before it accepted 101 names 5000: late.
+    lead = leader(State.ALONE, join_seq=100)
+    transfer = lead.start_transfer('slave', now=0.0)
+    lead.end_transfer()
+    lead.admitted(FOLLOWER, 'i1', transfer.seq, epoch=2)
+    assert lead.on_join(join(last_seq=5000)) == JoinDecision.IGNORE
+    assert lead.on_join(join(last_seq=transfer.seq)) == JoinDecision.EXCLUDE
+
+
 @pytest.mark.parametrize('core,j', [
     (leader(State.ALONE), join(site='master')),      # our own site's Join
     (follower(), join(site='master')),               # a follower transfers nothing

@@ -19,8 +19,10 @@ Invariants the After keeps (:class:`LfrAfter`):
   transfer (a full aft_msgs/Checkpoint on /ftm/lfr_transfers/<site>) from the peer site's After; it
   may take over (ALONE) only while FOLLOWING, unless the witness made it the first primary.
   A Join tells the last transfer the follower accepted (``last_seq``): a Join of the admitted
-  follower sent before it accepted our transfer is late and ignored; one sent after means it lost
-  its state (it restarted): the leader has it excluded first.
+  follower that does not name our transfer was sent before it accepted it, and is late and ignored;
+  one naming it was sent after: the follower lost its state, and the leader has it excluded first.
+  Numbers are only compared for equality, so that a leader started after a backward clock step
+  (numbering its transfers below its predecessor's) tells them apart all the same.
 - A follower sets a transferred state only once its Before follows that transfer and every request
   the Before passed on before is computed (:meth:`LfrAfter.in_flight`): a request the leader
   forwarded before the transfer (contained in its state) is never computed after it, whatever
@@ -138,7 +140,7 @@ class LfrAfter(object):
     """An LFR After's decisions. ``name`` its node name (in messages), ``site`` and ``peer`` its own
     and its peer's site ('' without a witness: then transfers and acks are not checked for their
     sender), ``join_seq`` the number below the first state transfer's (the adapter takes the wall
-    clock, so that a restarted leader numbers above its predecessor)."""
+    clock in microseconds, so that a restarted leader's numbers differ from its predecessor's)."""
 
     def __init__(self, name, role, joined=True, site='', peer='', ack_timeout=1.0, join_period=0.5,
                  join_seq=0, cache_bytes=0):
@@ -282,7 +284,7 @@ class LfrAfter(object):
         if self.state == State.LEADING:
             follower = self.follower
             if follower is not None and (join.after, join.incarnation) == follower[:2] \
-                    and join.last_seq < follower[2]:
+                    and join.last_seq != follower[2]:
                 return JoinDecision.IGNORE   # sent before it accepted our transfer: late
             return JoinDecision.EXCLUDE
         return JoinDecision.TRANSFER

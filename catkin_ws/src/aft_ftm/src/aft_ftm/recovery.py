@@ -115,12 +115,16 @@ def role_after(role):
     return Role.ALONE if role in (Role.BACKUP, Role.PRIMARY) else role
 
 
-def same_process(create_time, last_heard_wall, tolerance=0.05):
-    """True if a process created at create_time could have sent a heartbeat at last_heard_wall.
+def same_process(age, since_heard, tolerance=0.05):
+    """True if a process started ``age`` seconds ago could have sent a heartbeat last heard
+    ``since_heard`` seconds ago.
 
-    Guards fail-silence against a pid reused by an unrelated process after the site died.
+    Guards fail-silence against a pid reused by an unrelated process after the site died. Both are
+    durations, not dates: a process's start read as a date (psutil's create time) moves with a step of
+    the wall clock after boot, and a launcher started before a step back was taken for a newer process
+    (its fail-silence skipped) or, after a step forward, a new one for the launcher.
     """
-    return create_time <= last_heard_wall + tolerance
+    return age + tolerance >= since_heard
 
 
 def unfenceable(remote, switch, tls):

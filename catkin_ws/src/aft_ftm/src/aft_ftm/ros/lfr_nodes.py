@@ -212,8 +212,8 @@ class LfrAfterNode(AfterNode):
         self.lock = threading.Condition()   # guards self.core
         # The decisions and the one owner of this replica's role. A follower with a witness holds
         # nothing until a state transfer: it joins. State transfers are numbered from the wall clock
-        # (microseconds), so that a follower's Join sent before it accepted a transfer (last_seq below
-        # it) is told from one sent after, across a restart of the leader.
+        # (microseconds), so that a restarted leader's numbers differ from those of its predecessor
+        # a follower may name in its Join (only equality counts: the clock may have been stepped back).
         self.core = LfrAfter(self.name, role, joined=self.witness is None or role != Role.BACKUP or self.in_sync,
                              site=self.site, peer=self.peer, ack_timeout=self.ack_timeout,
                              join_period=self.join_period, join_seq=int(time.time() * 1e6), cache_bytes=cache_bytes)

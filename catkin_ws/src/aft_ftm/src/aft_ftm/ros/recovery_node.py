@@ -12,6 +12,7 @@ from std_msgs.msg import String
 from .. import config, health
 from ..power_switch import FenceState, Fencing, SwitchError, parse_spec
 from ..power_switch_exec import call_switch
+from ..process_start import started
 from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..realtime import RealtimeBurst
@@ -665,9 +666,13 @@ class RecoveryNode(object):
         try:
             launcher = psutil.Process(failure.pid)
             created = launcher.create_time()
+            start = started(failure.pid)
         except psutil.NoSuchProcess:
+            start = None
+        if start is None:
             return None, 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
-        if not same_process(created, failure.detected.to_sec() - failure.silence):
+        since_heard = time.time() - (failure.detected.to_sec() - failure.silence)
+        if not same_process(time.clock_gettime(time.CLOCK_BOOTTIME) - start, since_heard):
             return None, 'pid %d now belongs to another process: not killed' % failure.pid
         if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
             return None, 'launcher %d also runs this replica: only the name space is killed' % failure.pid
