@@ -24,13 +24,15 @@ from aft_ftm.checkpoint import (HARMLESS, NOT_EXECUTED, BatchError, CheckpointRe
                                 Follow, GroupCommit, Need, is_refusal)
 from aft_ftm.detector import PeerState
 from aft_ftm.errors import RoleError
-from aft_ftm.protocol import Answer as AnswerAction, DuplicateCache, Forward, ProtocolCore, Refuse, Role, key
+from aft_ftm.protocol import Answer as AnswerAction, DuplicateCache, Forward, ProtocolCore, Refuse, Renumber, Role, key
 from aft_ftm.proxy import PendingTable
 from aft_ftm.transfer import Incoming, Outgoing, TransferError
 from aft_ftm.recovery import GATES, OnHang, SiteRole, Step, plan, role_after, role_in, start_plan
 from aft_ftm.witness import Op, Witness
 
 from .world import CLIENTS, Answer, Call, Process, Sleep
+
+STALE_ID = 3   # aft_msgs/Reply.STALE_ID
 
 ns = types.SimpleNamespace
 
@@ -354,6 +356,11 @@ class ProtocolModel(Node):
                     after = self.own('after')
                     self.world.send(self, after, 'prd2aft', after.handle if after else None, refusal)
                 # A backup (being promoted) refuses nothing yet: the request waits for its promotion.
+            elif isinstance(action, Renumber):   # ProtocolNode: a STALE_ID reply, straight to the Proxies
+                r = action.request
+                self.answer(ns(id=r.id, origin=r.origin, client=r.client, attempt=r.attempt,
+                               oldest_pending=action.first_id, ok=False, value=None, error='renumber',
+                               epoch=self.core.epoch, status=STALE_ID, batch=getattr(r, 'batch', (0, 0))))
 
     def answer(self, reply):
         self.world.log('%s answers %s/%d epoch %d %s', self.name, reply.origin, reply.id, reply.epoch,
@@ -863,7 +870,7 @@ class AfterModel(Node):
             tell = ('join_failed', '%s: %s; it asks again' % (self.site.name, refused_transfer), None)
         epoch = receiver.epoch
         if decision in (Decision.APPLY, Decision.APPLY_FULL):
-            receiver.accept(cp.seq, cp.sender, cp.epoch)
+            receiver.accept(cp.seq, cp.sender, cp.epoch, cp.first_seq)
             epoch = receiver.epoch
         self.world.log('%s checkpoint %d from %s epoch %d: %s', self.name, cp.seq, cp.sender, cp.epoch, decision.name)
         self.ack(cp.seq, not error, error, epoch, cp.sender)
@@ -1286,6 +1293,12 @@ class ProxyModel(Process):
         if not self.table.fresh(reply.epoch):
             self.env.alarm(self, 'stale_reply', 'reply to %d from epoch %d refused: epoch %d answers now'
                            % (reply.id, reply.epoch, self.table.epoch))
+            return
+        if getattr(reply, 'status', None) == STALE_ID:   # no outcome: sent again under a new id
+            entry = self.table.renumber(reply.id, reply.oldest_pending)
+            if entry is not None:
+                self.env.alarm(self, 'ids_behind', '%d sent again as %d' % (reply.id, entry.id))
+                self.publish(entry)
             return
         entry = self.table.close(reply.id, reply)
         self.env.checker.accepted(self, reply, entry is not None)

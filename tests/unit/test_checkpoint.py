@@ -337,3 +337,16 @@ def test_a_joiner_let_in_unchecked_is_said_once_per_joiner_while_it_re_asks_and_
     assert unchecked.say('slave', why, 110.0)                # still unchecked 10 s on: said again
     assert len(said) == 3 and all(why in s and 'without its site being checked as heard' in s for s in said)
     assert said[0].startswith('slave ') and said[1].startswith('witness ')
+
+
+def test_an_after_started_again_numbering_below_the_numbers_followed_is_a_gap_not_a_copy():
+    """Review, stop 38: a primary's After respawned under its name (a rollback) after the clock was
+    stepped back numbers from below the checkpoints the backup holds; each was acknowledged as a
+    re-sent copy (REACK) but neither stored nor applied, and the primary released replies the backup
+    never held. It is a gap now (the backup says it cannot follow); a real copy is still a copy."""
+    receiver = CheckpointReceiver()
+    receiver.accept(5000, '/master/after', first_seq=5000)
+    receiver.accept(5001, '/master/after', first_seq=5000)
+    assert receiver.decide(5001, '/master/after', first_seq=5000) == Decision.REACK   # re-sent
+    assert receiver.decide(40, '/master/after', first_seq=40) == Decision.GAP          # started again, behind
+    assert receiver.decide(6000, '/master/after', first_seq=6000) == Decision.APPLY    # started again, ahead

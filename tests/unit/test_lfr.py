@@ -523,3 +523,22 @@ def test_the_campaigns_case_a_frozen_before_passes_on_nothing_its_new_state_hold
         pair.compute()
     assert pair.follower_before.stale == 3
     assert pair.follower_state == pair.leader_state == [1, 2, 3, 4, 5]
+
+
+def test_a_leader_alone_that_the_witness_names_a_backup_for_must_have_it_excluded():
+    """Review, stop 38: the leader's ADMIT got no answer in time and the leader went on alone; the
+    witness carried it out later and named the follower its backup. A promotion of that follower
+    would serve a state without the replies answered since: the leader must see it and exclude it."""
+    lead = leader(State.ALONE, join_seq=100)
+    lead.on_configuration(conf(2, 'master'))
+    assert not lead.unfollowed_backup()
+    transfer = lead.start_transfer('slave', now=0.0)
+    lead.on_configuration(conf(3, 'master', 'slave'))   # granted: the configuration may come first
+    assert not lead.unfollowed_backup()                   # a transfer under way: its admission follows
+    lead.end_transfer()
+    assert lead.unfollowed_backup()                        # ... but none did (the ADMIT given up on)
+    lead.admitted(FOLLOWER, 'i1', transfer.seq, epoch=3)
+    assert not lead.unfollowed_backup()                    # admitted: it leads the follower
+    alone = leader(State.ALONE)
+    alone.on_configuration(conf(4, 'master', 'other'))     # another site: not its peer
+    assert not alone.unfollowed_backup()

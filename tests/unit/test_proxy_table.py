@@ -40,7 +40,7 @@ def test_due_returns_unanswered_requests_not_sent_for_a_period():
 def test_abandoned_request_is_not_resent():
     table = PendingTable(first_id=1)
     entry = table.open('/c', b'', 0)
-    table.abandon(entry.id)
+    table.abandon(entry)
     assert table.due(now=10, period=0) == [] and len(table) == 0
 
 
@@ -53,3 +53,14 @@ def test_oldest_age_counts_from_the_first_send_not_the_last_resend():
     assert table.oldest_age(13.0) == 3.0
     table.close(first.id, 'reply')
     assert table.oldest_age(13.0) == 2.0
+
+
+def test_a_renumbered_request_takes_an_id_from_the_one_given_and_later_ones_follow_it():
+    table = PendingTable(first_id=40)
+    a, b = table.open('/c', b'a', 0), table.open('/c', b'b', 0)
+    assert table.renumber(a.id, 5004) is a and a.id == 5004 and table.renumbered == 1
+    assert table.renumber(b.id, 5004) is b and b.id == 5005    # above the ids taken since
+    assert table.open('/c', b'c', 0).id == 5006
+    assert table.renumber(40, 6000) is None                    # no longer waits under 40: a late message
+    assert table.renumber(a.id, a.id) is None and table.renumber(b.id, 1 << 63) is None   # not above / absurd
+    assert table.abandon(a) is a and table.abandon(a) is None and table.close(b.id, 'r') is b

@@ -352,6 +352,7 @@ class CheckpointReceiver(object):
         self.epoch = epoch
         self.last_seq = 0
         self.sender = None
+        self.first_seq = 0      # the first checkpoint number the sender followed said (0: not said)
         self.invalid = 'holds no state yet' if join else None   # why it cannot take over, while it cannot
         self.expect = ''        # join: a state transfer is accepted from an After whose name starts so
 
@@ -396,16 +397,24 @@ class CheckpointReceiver(object):
             return Decision.APPLY
         if sender != self.sender:
             return Decision.STRAY if self.join else Decision.FENCED
+        if self.first_seq and first_seq and first_seq != self.first_seq:
+            # The same After started again, numbering from a clock stepped back below the numbers
+            # followed: acknowledged as a copy, its checkpoint was neither stored nor applied, and the
+            # primary released replies this backup never held. It cannot be followed.
+            return Decision.GAP
         if seq <= self.last_seq:
             return Decision.REACK
         if seq != self.last_seq + 1:
             return Decision.GAP
         return Decision.APPLY
 
-    def accept(self, seq, sender, epoch=0):
-        """Checkpoint seq is held (its reply stored, its state to be applied)."""
+    def accept(self, seq, sender, epoch=0, first_seq=0):
+        """Checkpoint seq is held (its reply stored, its state to be applied); ``first_seq``: the first
+        number its sender said it numbers from."""
         if self.state == Follow.JOINING:
             self._change(Follow.FOLLOWING)
+        if sender != self.sender or first_seq:
+            self.first_seq = first_seq
         self.last_seq = seq
         self.sender = sender
         self.epoch = max(self.epoch, epoch)

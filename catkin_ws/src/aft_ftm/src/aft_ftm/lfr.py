@@ -159,7 +159,7 @@ class LfrAfter(object):
         self.acked = set()      # leader: acks that came before our own result
         self.computed = 0       # follower: results of forwarded requests
         self.notified = 0
-        self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
+        self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
         self.transfer = None    # leader: the Transfer waiting for its ack
         self.join_seq = join_seq
@@ -371,6 +371,15 @@ class LfrAfter(object):
             self._change(State.JOINING, 'excluded at epoch %d' % conf.epoch)
             return ConfChange.EXCLUDED
         return ConfChange.NOTHING
+
+    def unfollowed_backup(self):
+        """Whether the witness's newest configuration names this leader's peer its backup while this
+        leader goes on alone, no transfer under way: an ADMIT it gave up on (no answer within its
+        timeout) that the witness carried out later. A promotion of that follower would serve a state
+        without every reply answered since: the leader must have it excluded."""
+        conf = self.configuration
+        return (self.state == State.ALONE and self.transfer is None and conf is not None and bool(self.peer)
+                and conf.primary == self.site and conf.backup == self.peer and conf.epoch >= self.epoch)
 
     # -- role changes (Recovery) -----------------------------------------------------------------
     def check_role(self, role, initial=False):

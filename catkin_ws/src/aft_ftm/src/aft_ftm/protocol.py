@@ -40,7 +40,7 @@ class DuplicateCache(object):
     """
 
     def __init__(self, capacity=100000, max_bytes=0):
-        self._capacity = capacity
+        self._capacity = capacity       # 0: no bound in entries
         self.max_bytes = max_bytes      # 0: no bound in bytes
         self.bytes = 0
         self._replies = collections.OrderedDict()   # key -> reply, in insertion order
@@ -75,13 +75,17 @@ class DuplicateCache(object):
         self._replies[k] = reply
         self.bytes += reply_size(reply)
         self._by_origin[reply.origin].add(k)
-        if len(self._replies) > self._capacity:
+        if self._capacity and len(self._replies) > self._capacity:
             old_key, old = self._replies.popitem(last=False)
             self._by_origin[old_key[0]].discard(old_key)
             self.bytes -= reply_size(old)
             self.evicted += 1
             return old
         return None
+
+    def highest(self, origin):
+        """The highest request id of origin with a stored reply, or 0."""
+        return max((k[1] for k in self._by_origin.get(origin, ())), default=0)
 
     def forget_below(self, origin, watermark):
         """Forget the replies of origin whose id is below watermark (already received)."""
@@ -145,6 +149,21 @@ class Answer(object):
         return 'Answer(%s/%s%s)' % (self.reply.origin, self.reply.id, ', cached' if self.cached else '')
 
 
+class Renumber(object):
+    """Action: the request's id is below ids this replica answered already (its Proxy started again,
+    under the same name, with a clock behind its predecessor's): it is not executed, and its Proxy is
+    told to send it again under an id from ``first_id`` on. No outcome: a Proxy that had that id
+    answered already ignores it."""
+    __slots__ = ('request', 'first_id')
+
+    def __init__(self, request, first_id):
+        self.request = request
+        self.first_id = first_id
+
+    def __repr__(self):
+        return 'Renumber(%s/%s from %d)' % (self.request.origin, self.request.id, self.first_id)
+
+
 class Refuse(object):
     """Action: answer this request with a definite "not executed" error (nothing was changed)."""
     __slots__ = ('request', 'reason')
@@ -167,6 +186,7 @@ class ProtocolStats(object):
         self.stored = 0              # replies stored from checkpoints (backup)
         self.refused = 0             # new requests refused, not executed (the reply cache is full)
         self.dropped = 0             # queued requests dropped: their Proxy has their answer already
+        self.stale_ids = 0           # requests numbered below ids answered already (a Proxy's clock behind)
 
 
 class ProtocolCore(object):
@@ -199,6 +219,7 @@ class ProtocolCore(object):
         self.refused = {}           # request key -> why it was refused: every copy gets that answer
         self.watermarks = {}        # origin -> the highest oldest_pending it sent: it has every answer below
         self.stored_high = {}       # origin -> the highest request id whose reply a checkpoint brought (backup)
+        self.seen_high = {}         # origin -> the highest request id received
         self.stats = ProtocolStats()
 
     # -- requests and results -------------------------------------------------
@@ -209,8 +230,15 @@ class ProtocolCore(object):
         if request.id < self.watermarks[request.origin]:
             # Its Proxy has its answer already (a late copy: a backup hears the Proxy on one connection and
             # the checkpoints that say so on another): its reply may be forgotten, it must not execute.
+            # Or a Proxy started again under the same name numbers from a wall clock stepped back below
+            # its predecessor's ids: dropped in silence, its every call hung. The primary tells it the ids
+            # to use (a Proxy that had that id answered already ignores it).
             self.stats.dropped += 1
-            return []
+            if self.role == Role.BACKUP:
+                return []
+            self.stats.stale_ids += 1
+            return [Renumber(request, self._highest_id(request.origin) + 1)]
+        self.seen_high[request.origin] = max(request.id, self.seen_high.get(request.origin, 0))
         k = key(request)
         cached = self.cache.lookup(k)
         if cached is not None and self.role != Role.BACKUP:
@@ -361,6 +389,11 @@ class ProtocolCore(object):
         self.refused[key(request)] = ('not executed: the reply cache holds %d bytes (bound %d) of replies its '
                                       'clients have not confirmed' % (self.cache.bytes, self.cache.max_bytes))
         return Refuse(request, self.refused[key(request)])
+
+    def _highest_id(self, origin):
+        """The highest id of origin this replica knows of (received, answered, or below its watermark)."""
+        return max(self.watermarks.get(origin, 1) - 1, self.seen_high.get(origin, 0),
+                   self.stored_high.get(origin, 0), self.cache.highest(origin))
 
     def _answer(self, reply, cached=False):
         if hasattr(reply, 'epoch'):

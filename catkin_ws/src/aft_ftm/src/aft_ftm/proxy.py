@@ -40,6 +40,7 @@ class PendingTable(object):
         self.stale_replies = 0    # replies from a configuration older than one already seen
         self.resends = 0
         self.refused = 0
+        self.renumbered = 0       # requests sent again under a new id (ids below those answered already)
         self.epoch = 0            # the newest configuration epoch a reply came from
 
     def open(self, client, payload, now):
@@ -78,12 +79,32 @@ class PendingTable(object):
         entry.done.set()
         return entry
 
-    def abandon(self, request_id):
-        """The caller gave up (timeout): stop re-sending it."""
+    def abandon(self, entry):
+        """The caller gave up (timeout): stop re-sending its entry. Returns it, or None if it was answered
+        meanwhile (its reply is being handed over). By the entry, not its id: a renumber may change that."""
         with self._lock:
-            entry = self._pending.pop(request_id, None)
-            if entry is not None:
-                self.bytes -= len(entry.payload) + 64
+            if self._pending.get(entry.id) is not entry:
+                return None
+            del self._pending[entry.id]
+            self.bytes -= len(entry.payload) + 64
+            return entry
+
+    def renumber(self, request_id, first_id):
+        """The replicas answered ids up to first_id - 1 already (this Proxy started again, under the same
+        name, with a clock behind its predecessor's), and did not execute request_id: the waiting entry
+        takes a new id, from first_id on, as do the requests opened after it. Returns the entry, or None
+        if request_id does not wait (answered already: the message is a late one) or first_id is not
+        above it or past 2**63 (no replica says so)."""
+        with self._lock:
+            entry = self._pending.get(request_id)
+            if entry is None or not request_id < first_id < 1 << 63:
+                return None
+            del self._pending[request_id]
+            self._next = max(self._next, first_id)
+            entry.id = self._next
+            self._next += 1
+            self._pending[entry.id] = entry
+            self.renumbered += 1
             return entry
 
     def oldest_pending(self):

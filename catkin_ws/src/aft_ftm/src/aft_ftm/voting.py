@@ -49,5 +49,9 @@ class TimeRedundancyVote(object):
             return Vote(Outcome.NO_MAJORITY, None, 0, len(results))
         return Vote(Outcome.REPEAT, None, 0, len(results))
 
+    def forget(self, key):
+        """Stop voting on request key (it cannot be executed again): its results are dropped."""
+        self._results.pop(key, None)
+
     def pending(self):
         return len(self._results)

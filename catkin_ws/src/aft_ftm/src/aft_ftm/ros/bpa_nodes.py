@@ -112,6 +112,12 @@ class BeforeNode(StageNode):
     STAGE = 'before'
 
 
+def unsent(problem):
+    """Whether a failed server call's error says the request was never written: rospy could not connect
+    (nor exchange headers), so the server cannot have it. Any other break leaves its outcome unknown."""
+    return 'unable to connect' in problem.lower()
+
+
 class ProceedNode(StageNode):
     """Proceed: calls the real server with the application's request and passes the reply on.
 
@@ -130,6 +136,9 @@ class ProceedNode(StageNode):
     whose peer cannot take over now, as its site's crash detector says (failed a moment ago, the
     witness not told yet; silent): it waits, asking again every 0.1 s, and fail-stops once the peer
     can. Alone, a connection that breaks (the server died, its state with it) still fail-stops the replica.
+    Outside a replica, a connection that broke once the request was written is answered "outcome
+    unknown" with a ``server_unavailable`` alarm (the server may have applied it: never called again);
+    one that could not be made is waited for (``~server_timeout``) and the request sent then.
 
     Parameters:
         ~server_timeout (float, 5 s): the longest a call of the server may take.
@@ -235,17 +244,17 @@ class ProceedNode(StageNode):
         except CallTimeout as e:
             problem = 'the server %s did not answer %s/%d within %.3f s (it hangs)' % (
                 self.server_name, request.origin, request.id, self.server_timeout)
-            late = e.future
+            late, written = e.future, True
         except rospy.ServiceException as e:
             if 'responded with an error' in str(e):
                 raise
             problem = 'the connection to the server %s broke during %s/%d: %s' % (
                 self.server_name, request.origin, request.id, e)
-            late = None
-        except rospy.ROSException as e:
+            late, written = None, not unsent(str(e))
+        except rospy.ROSException as e:   # raised before the request is written (no such service)
             problem = 'the server %s cannot be called for %s/%d: %s' % (
                 self.server_name, request.origin, request.id, e)
-            late = None
+            late, written = None, False
         broken = self._proxies.get(request.service_type)
         if broken is not None:   # a new connection next time, to the address known (the call may still run)
             self._proxies[request.service_type] = broken.fresh()
@@ -258,10 +267,19 @@ class ProceedNode(StageNode):
             return self._wait_late(request, late, problem)
         if self.site:
             return self._fail_stop(problem)
-        # The connection broke (a server restarted): reconnect once it is back, then call once more.
+        if written:
+            # The request was written and the connection broke: the server may have applied it (then
+            # restarted, or reset the connection). Called again, it would run twice; "not executed"
+            # would be a lie. The client is told the truth, and an alarm says it.
+            alarm(self.ports, 'proceed', 'server_unavailable', '%s: outcome unknown, not called again' % problem,
+                  request)
+            raise rospy.ServiceException('outcome unknown: %s' % problem)
+        # Never written (no connection could be made: a server restarting): once it is back, called.
         try:
             rospy.wait_for_service(self.server_name, self.server_timeout)
         except rospy.ROSException:
+            alarm(self.ports, 'proceed', 'server_unavailable', '%s; not back within %.1f s: not executed'
+                  % (problem, self.server_timeout), request)
             raise rospy.ServiceException('not executed: server %s unavailable (%s)' % (self.server_name, problem))
         return self._proxy(request.service_type)(app_request)
 

@@ -354,8 +354,12 @@ class LfrAfterNode(AfterNode):
     # -- losing the follower -----------------------------------------------------------
     def _check_acks(self, _event):
         with self.lock:
-            if not self.core.overdue(time.monotonic()):
+            unfollowed = self.core.unfollowed_backup()
+            if not unfollowed and not self.core.overdue(time.monotonic()):
                 return
+        if unfollowed:
+            self.side.alone(self._exclude_unfollowed)
+            return
         why = 'the follower did not compute a request for %.1f s' % self.ack_timeout
         if self.witness is None:
             with self.lock:
@@ -380,6 +384,25 @@ class LfrAfterNode(AfterNode):
         for reply in released:
             self.ports.publish('out', reply)
         self.side.tell('alone', '%s goes on ALONE at epoch %d (%s); %s' % (self.site, grant.epoch, why, grant.message))
+
+    def _exclude_unfollowed(self):
+        """The witness names the peer this leader's backup, which it does not forward to (an ADMIT given up
+        on, carried out late): exclude it, or a promotion would serve a state without the replies since."""
+        with self.lock:
+            if not self.core.unfollowed_backup():
+                return
+            conf = self.core.configuration
+        self.side.tell('backup_unfollowed', 'the witness names %s the backup of epoch %d, but %s leads alone and '
+                       'forwards nothing to it (an ADMIT answered after its caller gave up): it is excluded'
+                       % (conf.backup, conf.epoch, self.site), key=('unfollowed', conf.epoch))
+        grant = self.side.exclusion(self._deposed)
+        if grant is None:
+            return   # unreachable (alarmed): asked again at the next check
+        self._forwarding(Role.ALONE, grant.epoch)
+        with self.lock:
+            self.core.epoch = max(self.core.epoch, grant.epoch)
+        self.side.tell('alone', '%s goes on ALONE at epoch %d (%s excluded: %s)'
+                       % (self.site, grant.epoch, conf.backup, grant.message))
 
     def _forwarding(self, role, epoch, transfer=0):
         """Tell this replica's Before to forward (PRIMARY, stamping ``transfer``) or not (ALONE); True if it did."""
@@ -497,6 +520,10 @@ class LfrAfterNode(AfterNode):
                            % (transfer.seq, join.site, unheard))
             return
         grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation, epoch=epoch)
+        if grant is None and not self.side.hold_protocol(2 * self.state_timeout):
+            # No answer: the witness may still carry it out. Asked once more (an identical repeat is
+            # granted "already"); still unknown, a late grant is caught by _check_acks (unfollowed_backup).
+            grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation, epoch=epoch)
         if grant is None:
             return
         if not grant.granted:
@@ -588,8 +615,11 @@ class LfrAfterNode(AfterNode):
                                                         cache=cp.cache, epoch=cp.epoch))
                 self.ports.publish('peer_acks', Notify(origin='', id=cp.seq, seq=computed))
         if problem is not None:
+            # Once per transfer of the peer (each attempt's cause is told: a fence or set_state timeout, a
+            # bad state), once per any other sender (a flood raises one).
             self.side.tell('stray_checkpoint', 'state transfer %d from %s refused, nothing changed: %s'
-                           % (cp.seq, cp.sender, problem), cp.sender)
+                           % (cp.seq, cp.sender, problem),
+                           (cp.sender, cp.seq) if self.core.from_peer(cp.sender) else cp.sender)
         else:
             rospy.loginfo('%s: joined %s (state transfer %d, epoch %d)', self.name, cp.sender, cp.seq, cp.epoch)
 

@@ -191,7 +191,7 @@ class PbrAfterNode(AfterNode):
             self.receiver.in_sync()
         if self.receiver is not None and self.peer:
             self.receiver.expect = '/%s/' % self.peer
-        self.recent = DuplicateCache(max_bytes=cache_bytes)   # replies a state transfer carries
+        self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.group = GroupCommit()  # primary: the replies of a batch until its last (the Protocol's ~max_batch)
         self.incremental = param('incremental', config.flag, True)
         self.encoder = DeltaEncoder(param('delta_min_bytes', config.non_negative_int, 1024))
@@ -768,7 +768,7 @@ class PbrAfterNode(AfterNode):
             # Acknowledged once held. A promotion takes this lock and applies the state first.
             epoch = self.receiver.epoch if self.receiver is not None else self.sender.epoch
             if decision in (Decision.APPLY, Decision.APPLY_FULL):
-                self.receiver.accept(cp.seq, cp.sender, cp.epoch)
+                self.receiver.accept(cp.seq, cp.sender, cp.epoch, cp.first_seq)
                 epoch = self.receiver.epoch
             self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=not error, error=error, epoch=epoch,
                                                           to=cp.sender))

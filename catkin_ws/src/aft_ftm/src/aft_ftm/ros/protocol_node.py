@@ -9,7 +9,7 @@ from aft_msgs.srv import SetRole, SetRoleResponse, StoredReplies
 from .. import config, health
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
-from ..protocol import Answer, Forward, ProtocolCore, Refuse, Role
+from ..protocol import Answer, Forward, ProtocolCore, Refuse, Renumber, Role
 from ..recovery import OnHang
 from ..suspension import GateState
 from .alarms import alarm
@@ -47,7 +47,7 @@ class ProtocolNode(object):
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before
             the processing timeout fail-stops the site: a peer that cannot (failed a moment ago, the
             witness not told yet) leaves the request waiting, with the alarm (aft_ftm.recovery.SiteRole).
-        ~cache_capacity (int, 100000): safety limit of the reply cache (entries).
+        ~cache_capacity (int, 100000): safety limit of the reply cache (entries; 0: none).
         ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
             "not executed" (the client may retry) until clients confirm replies, never forgotten.
         ~replicate_refusals (bool, false): a replica's Protocol: a request refused (not executed, the
@@ -179,6 +179,15 @@ class ProtocolNode(object):
                 self.ports.publish('replies', action.reply)
             elif isinstance(action, Refuse):
                 self._refuse(action)
+            elif isinstance(action, Renumber):
+                r = action.request
+                self.ports.publish('replies', Reply(id=r.id, origin=r.origin, client=r.client,
+                                                    oldest_pending=action.first_id, attempt=r.attempt, batch=r.batch,
+                                                    status=Reply.STALE_ID, epoch=self.core.epoch,
+                                                    error='id below those answered already: renumber'))
+                alarm(self.ports, 'protocol', 'stale_request', 'request %d of %s is below the ids answered '
+                      'already (its Proxy started again with a clock behind?): not executed; it is told to '
+                      'number from %d on' % (r.id, r.origin, action.first_id), r)
 
     def _refuse(self, action):
         r = action.request

@@ -109,7 +109,9 @@ class ProxyNode(object):
         self.calls += 1
         self.ports.publish('requests', self._request(entry))
         if not entry.done.wait(self.timeout or None):
-            self.table.abandon(entry.id)
+            if self.table.abandon(entry) is None:
+                entry.done.wait()   # its reply came at the deadline: closed, being handed over now
+        if not entry.done.is_set():
             self.errors += 1
             raise rospy.ServiceException('outcome UNKNOWN: no reply to request %d within %.1f s (it may still '
                                          'execute; is a Protocol bound to %s?)'
@@ -127,6 +129,14 @@ class ProxyNode(object):
         if not self.table.fresh(reply.epoch):
             alarm(self.ports, 'pbr', 'stale_reply', 'reply to %d from epoch %d refused: epoch %d answers now'
                   % (reply.id, reply.epoch, self.table.epoch))
+            return
+        if reply.status == Reply.STALE_ID:
+            entry = self.table.renumber(reply.id, reply.oldest_pending)
+            if entry is not None:
+                alarm(self.ports, 'proxy', 'ids_behind', '%s numbered request %d below the ids its replicas '
+                      'answered already (started again with a clock behind): not executed; sent again as %d'
+                      % (self.name, reply.id, entry.id))
+                self.ports.publish('requests', self._request(entry))
             return
         self.table.close(reply.id, reply)
 

@@ -311,7 +311,15 @@ class TrAfterNode(AfterNode):
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
             if ok or why.startswith(FAIL_STOPPED):   # fail-stopped: the peer answers it
                 return None
-            return self._error(reply, 'cannot execute again: %s' % why)
+            # Not executed again, and the state saved before the request not (or not surely) set back:
+            # the server holds an execution the vote never confirmed. Never told as "failed, nothing
+            # changed" (a retry would apply it twice); the saved state and the votes are let go.
+            self.voter.forget((reply.origin, reply.id, reply.attempt))
+            self._tell_before(reply, Repeat._request_class.FORGET)
+            detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
+                      'not confirm' % (reply.origin, reply.id, why))
+            alarm(self.ports, 'tr', 'restore_failed', detail, reply)
+            return self._error(reply, 'outcome unknown: ' + detail)
         if vote.outcome == Outcome.DECIDED:
             self._tell_before(reply, Repeat._request_class.FORGET)
             if vote.masked:
@@ -325,7 +333,8 @@ class TrAfterNode(AfterNode):
         detail = 'no majority among %d executions%s' % (vote.executions, '' if ok else
                                                          '; the state could not be restored: %s' % why)
         alarm(self.ports, 'tr', 'no_majority', detail, reply)
-        return self._error(reply, detail)
+        # Restored, nothing changed; not restored, the state holds an execution: the outcome is unknown.
+        return self._error(reply, detail if ok else 'outcome unknown: ' + detail)
 
     @staticmethod
     def _error(reply, detail):

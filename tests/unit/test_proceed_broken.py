@@ -1,0 +1,69 @@
+"""Proceed outside a replica when its connection to the server breaks: a request that was written is
+never called again nor told "not executed" (the server may have applied it); one never written is
+sent once the server is back. No ROS master: ProceedNode._call on a stand-in node."""
+import types
+
+import pytest
+
+from aft_examples.history import classify_error
+from aft_ftm.recovery import OnHang
+
+bpa = pytest.importorskip('aft_ftm.ros.bpa_nodes')
+rospy = pytest.importorskip('rospy')
+from aft_ftm.ros.deadline import Deadline  # noqa: E402
+
+RECEIVE = "transport error completing service call: unable to receive data from sender, check sender's logs"
+CONNECT = 'unable to connect to service: [Errno 111] Connection refused'
+
+
+class Server(object):
+    """Applies each request it receives; the first call fails with ``first_error`` (after applying
+    it unless the error says the request was never written)."""
+
+    def __init__(self, first_error):
+        self.first_error, self.applied = first_error, []
+
+    def __call__(self, request):
+        error, self.first_error = self.first_error, None
+        if error is None or not bpa.unsent(error):
+            self.applied.append(request)
+        if error is not None:
+            raise rospy.ServiceException(error)
+        return 'ok'
+
+    def fresh(self):
+        return self
+
+
+@pytest.fixture
+def node(monkeypatch):
+    alarms = []
+    monkeypatch.setattr(bpa, 'alarm', lambda ports, mechanism, kind, detail, request=None: alarms.append(kind))
+    monkeypatch.setattr(rospy, 'wait_for_service', lambda name, timeout=None: None)   # the server is back
+
+    def make(server):
+        n = types.SimpleNamespace(site='', server_name='/server', server_timeout=5.0, calling_since=None, ports=None,
+                                  _deadline=Deadline('server-call'), _proxies={'t/T': server}, alarms=alarms,
+                                  hang=types.SimpleNamespace(on_hang=lambda: OnHang.WAIT, why_wait=lambda: ''))
+        n._proxy = lambda type_name: n._proxies[type_name]
+        return n
+    return make
+
+
+def test_a_request_written_before_the_connection_broke_is_an_unknown_outcome_not_a_second_call(node):
+    """Review, stop 38: it was called again once the server was back (applied twice), or answered
+    "not executed" (false); the documented server_unavailable alarm was never raised."""
+    server = Server(RECEIVE)
+    n = node(server)
+    with pytest.raises(rospy.ServiceException) as raised:
+        bpa.ProceedNode._call(n, types.SimpleNamespace(origin='/proxy', id=42, service_type='t/T'), 'move')
+    assert server.applied == ['move']   # once
+    assert classify_error('service [/account] responded with an error: %s' % raised.value) == 'indeterminate'
+    assert n.alarms == ['server_unavailable']
+
+
+def test_a_request_never_written_is_sent_once_the_server_is_back(node):
+    server = Server(CONNECT)
+    n = node(server)
+    assert bpa.ProceedNode._call(n, types.SimpleNamespace(origin='/proxy', id=43, service_type='t/T'), 'move') == 'ok'
+    assert server.applied == ['move'] and n.alarms == []
