@@ -224,8 +224,16 @@ class Msg(object):
 
 
 REQUEST = Msg(origin='/proxy', id=7, client='/bank_client', service_type='aft_msgs/Account', oldest_pending=7,
-              attempt=0, epoch=3, transfer=0)
-REPLY = Msg(origin='/proxy', id=7, client='/bank_client', oldest_pending=7, attempt=0, status=0, error='', epoch=3)
+              attempt=0, epoch=3, transfer=0, batch=(0, 0))
+REPLY = Msg(origin='/proxy', id=7, client='/bank_client', oldest_pending=7, attempt=0, status=0, error='', epoch=3,
+            batch=(0, 0))
+
+
+def changed(value):
+    """Another value of a header field's type."""
+    if isinstance(value, (tuple, list)):
+        return type(value)(v + 1 for v in value)
+    return value + 1 if isinstance(value, int) else value + 'x'
 
 
 @pytest.mark.parametrize('fields,message', [(security.REQUEST_FIELDS, REQUEST), (security.REPLY_FIELDS, REPLY)])
@@ -237,9 +245,9 @@ def test_every_field_that_affects_processing_is_signed(fields, message):
                                 security.header_of(message, fields, 'server')) == b'deposit 10'
     for name in fields:
         value = getattr(message, name)
-        changed = Msg(**dict(message.__dict__, **{name: value + 1 if isinstance(value, int) else value + 'x'}))
+        other = Msg(**dict(message.__dict__, **{name: changed(value)}))
         with pytest.raises(Rejected) as error:
-            security.open_sealed(SERVER, CLIENT.verify_public, blob, security.header_of(changed, fields, 'server'))
+            security.open_sealed(SERVER, CLIENT.verify_public, blob, security.header_of(other, fields, 'server'))
         assert error.value.kind == 'tampered', name
     # and the party it is for: sealed for the server, presented as for another party
     with pytest.raises(Rejected, match='tampered'):
@@ -349,8 +357,192 @@ def test_a_certificate_fetched_again_keeps_the_held_one_as_the_previous():
     issuer = security.Issuer(CA, validity=100.0)
     issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
     book = security.CertificateBook(CA.verify_public)
+    book.on_status(*issuer.status(0.0), now=0.0)
     held = fetch(issuer, book, 'client', 0.0, 0.0)
     book.fetch_again('client')
     assert book.get('client', 0.0) is None and book.candidates('client', 0.0) == [held]
     book.fetch_again('nobody')                               # none held: nothing changes
     assert 'nobody' not in book.previous
+
+
+# -- the review of the SEC mechanism: each test fails on the code before its fix -----------------------
+CLIENT2 = Party.generate('client2')   # a certified insider (the policy gives it its own Proxy only)
+
+
+def resigned(blob, signer, header):
+    """What an insider does with a captured blob: keep its ciphertext, sign it under its own header."""
+    ct = json.loads(bytes(blob)[security.SIGNATURE_BYTES:].decode())['ct']
+    return signer.signing.sign(json.dumps({'party': signer.name, 'header': header, 'ct': ct},
+                                          sort_keys=True).encode())
+
+
+def test_a_captured_ciphertext_signed_again_by_another_party_or_under_another_header_is_refused():
+    header = security.header_of(REQUEST, security.REQUEST_FIELDS, 'server')
+    blob = sealed(header=header)
+    mine = Msg(**dict(REQUEST.__dict__, origin='/proxy2', id=5, oldest_pending=5))
+    theirs = security.header_of(mine, security.REQUEST_FIELDS, 'server')
+    with pytest.raises(Rejected) as error:    # client2 re-signs the client's deposit as its own request
+        security.open_sealed(SERVER, CLIENT2.verify_public, resigned(blob, CLIENT2, theirs), theirs)
+    assert error.value.kind == 'tampered'
+    assert 'party client2 signed a ciphertext sealed by party client' in error.value.detail
+    later = Msg(**dict(REQUEST.__dict__, id=9, oldest_pending=9))
+    again = security.header_of(later, security.REQUEST_FIELDS, 'server')
+    with pytest.raises(Rejected) as error:    # the client's own old ciphertext under a new header
+        security.open_sealed(SERVER, CLIENT.verify_public, resigned(blob, CLIENT, again), again)
+    assert error.value.kind == 'tampered' and 'under another header' in error.value.detail
+    # a ciphertext that binds nobody (as the code before sealed it) is refused too
+    bare = nacl_sealed_box(SERVER.box_public, b'deposit 10')
+    with pytest.raises(Rejected, match='names no sealer'):
+        security.open_sealed(SERVER, CLIENT.verify_public, resigned(json_blob(bare), CLIENT, header), header)
+    assert security.open_sealed(SERVER, CLIENT.verify_public, blob, header) == b'deposit 10'   # the control
+
+
+def nacl_sealed_box(box_public, plaintext):
+    import nacl.public
+    return nacl.public.SealedBox(nacl.public.PublicKey(box_public)).encrypt(plaintext)
+
+
+def json_blob(ciphertext):
+    import base64
+    return b'\0' * security.SIGNATURE_BYTES + json.dumps({'ct': base64.b64encode(ciphertext).decode()}).encode()
+
+
+def test_a_request_signed_for_one_service_is_refused_by_another_and_a_reply_is_no_request():
+    a = security.header_of(REQUEST, security.REQUEST_FIELDS, 'server', '/ftm_a/pxy2pro')
+    blob = sealed(header=a)
+    assert security.destination_of(blob) == '/ftm_a/pxy2pro'
+    assert security.open_sealed(SERVER, CLIENT.verify_public, blob, a) == b'deposit 10'
+    b = security.header_of(REQUEST, security.REQUEST_FIELDS, 'server', '/ftm_b/pxy2pro')
+    with pytest.raises(Rejected) as error:    # copied to service B's topic: B's gate names its own
+        security.open_sealed(SERVER, CLIENT.verify_public, blob, b)
+    assert error.value.kind == 'misaddressed'
+    assert 'signed it for /ftm_a/pxy2pro, it came to /ftm_b/pxy2pro' in error.value.detail
+    reply = sealed(header=security.header_of(REPLY, security.REPLY_FIELDS, 'server', '/ftm_a/pxy2pro'))
+    as_request = security.header_of(REPLY, security.REPLY_FIELDS, 'server', '/ftm_a/pxy2pro')
+    as_request['dir'] = 'request'
+    with pytest.raises(Rejected, match='misaddressed: party client signed it as a reply, it came as a request'):
+        security.open_sealed(SERVER, CLIENT.verify_public, reply, as_request)
+    # a signer that names no destination is taken anywhere (the gate counts it): only a destination
+    # signed and different is refused
+    undestined = sealed(header=security.header_of(REQUEST, security.REQUEST_FIELDS, 'server'))
+    assert security.destination_of(undestined) is None
+    assert security.open_sealed(SERVER, CLIENT.verify_public, undestined, b) == b'deposit 10'
+
+
+def test_the_batch_of_a_request_and_of_a_reply_is_signed():
+    for fields, message in ((security.REQUEST_FIELDS, REQUEST), (security.REPLY_FIELDS, REPLY)):
+        blob = sealed(header=security.header_of(message, fields, 'server'))
+        batched = Msg(**dict(message.__dict__, batch=(2, 2)))   # changed on the way: PBR's After acts on it
+        with pytest.raises(Rejected) as error:
+            security.open_sealed(SERVER, CLIENT.verify_public, blob, security.header_of(batched, fields, 'server'))
+        assert error.value.kind == 'tampered' and 'field(s) batch' in error.value.detail
+        # as rospy gives it (a tuple) or as it was built (a list): the same header
+        listed = Msg(**dict(message.__dict__, batch=[0, 0]))
+        assert security.open_sealed(SERVER, CLIENT.verify_public, blob,
+                                    security.header_of(listed, fields, 'server')) == b'deposit 10'
+
+
+@pytest.mark.parametrize('blob', [b'\0' * 64 + b'[' * 100000, b'\0' * 64 + b'{"a":' * 100000])
+def test_a_payload_nested_too_deep_is_refused_not_raised(blob):
+    for read in (security.sender_of, security.addressee_of):
+        with pytest.raises(Rejected) as error:
+            read(blob)
+        assert error.value.kind == 'malformed' and 'nested too deep' in error.value.detail
+    with pytest.raises(Rejected, match='malformed'):
+        security.destination_of(blob)
+    deep = CLIENT.signing.sign(b'[' * 100000)           # signed by a certified party, still refused
+    with pytest.raises(Rejected, match='malformed'):
+        security.open_sealed(SERVER, CLIENT.verify_public, deep, HEADER)
+
+
+def test_a_payload_too_large_is_refused_unread(monkeypatch):
+    monkeypatch.setattr(security, 'MAX_SEALED_BYTES', 1000)
+    blob = sealed(plaintext=b'x' * 2000)
+    for read in (security.sender_of, lambda b: security.open_sealed(SERVER, CLIENT.verify_public, b, HEADER)):
+        with pytest.raises(Rejected) as error:
+            read(blob)
+        assert error.value.kind == 'malformed' and 'more than a SEC message may be (1000)' in error.value.detail
+
+
+def test_no_certificate_is_taken_before_the_first_status_of_the_ca():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    cert, signature = issuer.certificate('client', 5000.0)
+    issuer.bar(['client'])                                   # revoked ...
+    book = security.CertificateBook(CA.verify_public)        # ... before this gate heard any status
+    with pytest.raises(Rejected) as error:
+        book.add('client', cert, 0.0)
+    assert error.value.kind == 'ca_unreachable' and 'no certificate status from the CA' in error.value.detail
+    assert book.get('client', 0.0) is None
+    book.on_status(*issuer.status(5000.5), now=0.5)
+    with pytest.raises(Rejected, match='is revoked'):
+        book.add('client', cert, 0.5)
+
+
+def restarted(issuer):
+    """The CA restarted: a new Issuer from the state the old one saved (through JSON, as ca_state.json)."""
+    again = security.Issuer(CA, validity=issuer.validity, overlap=issuer.overlap)
+    again.restore(json.loads(json.dumps(issuer.state())))
+    return again
+
+
+def test_certificates_issued_before_a_restart_of_the_ca_are_revoked_after_it():
+    issuer = security.Issuer(CA, validity=86400.0, overlap=10.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 1000.0)
+    old, _ = issuer.certificate('client', 1000.0)
+    issuer.status(1000.0)
+    # the operator revokes the client after a restart
+    again = restarted(issuer)
+    again.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 1060.0)
+    again.bar(['client'])
+    assert old.serial in again.status(1061.0)[2]
+    # the client's key rotated after a restart: the old certificate ends after the overlap
+    again = restarted(issuer)
+    again.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 1060.0)
+    fresh = Party.generate('client')
+    assert again.set_keys('client', fresh.box_public, fresh.verify_public, 1070.0) is True
+    assert old.serial in again.status(1200.0)[2]
+    # ... or while the CA was down: the keys it certified are kept too
+    again = restarted(issuer)
+    assert again.set_keys('client', fresh.box_public, fresh.verify_public, 1060.0) is True
+    assert old.serial in again.status(1200.0)[2]
+
+
+def test_the_ca_state_forgets_expired_serials_and_names_a_corrupt_entry():
+    issuer = security.Issuer(CA, validity=100.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 0.0)
+    first, _ = issuer.certificate('client', 0.0)
+    second, _ = issuer.certificate('client', 60.0)           # renewed
+    issuer.status(120.0)                                     # the first expired at 100
+    assert issuer.state()['serials'] == {'client': {str(second.serial): 160.0}}
+    for bad, words in [({'client': {'x': 1.0}}, "entry 'x'"), ({'client': {'5': 'soon'}}, "entry '5'"),
+                       ({'client': [5]}, 'serials of'), ({'../x': {'5': 1.0}}, "'../x'"), ([], 'serials')]:
+        state = dict(issuer.state(), serials=bad)
+        fresh = security.Issuer(CA, validity=100.0)
+        with pytest.raises(ValueError) as error:
+            fresh.restore(state)
+        assert words in str(error.value), (bad, str(error.value))
+        assert fresh.serials == {} and fresh.revoked == set()   # nothing taken from a corrupt state
+    with pytest.raises(ValueError, match='keys of'):
+        security.Issuer(CA, validity=100.0).restore(dict(issuer.state(), keys={'client': ['AAAA', 'x']}))
+    with pytest.raises(ValueError, match='seq'):
+        security.Issuer(CA, validity=100.0).restore(dict(issuer.state(), seq='later'))
+    older = {'revoked': [3], 'retiring': {}}                 # a state saved before serials were
+    fresh = security.Issuer(CA, validity=100.0)
+    fresh.restore(older)
+    assert fresh.revoked == {3}
+
+
+def test_a_ca_restarted_after_its_clock_stepped_back_publishes_statuses_the_gates_take():
+    issuer = security.Issuer(CA, validity=86400.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 1.7e9)
+    cert, _ = issuer.certificate('client', 1.7e9)
+    book = security.CertificateBook(CA.verify_public)
+    for k in range(3):
+        book.on_status(*issuer.status(1.7e9 + k), now=float(k))
+    book.add('client', cert, 3.0)
+    again = restarted(issuer)                                # its clock now 30 s behind
+    again.set_keys('client', CLIENT.box_public, CLIENT.verify_public, 1.7e9 - 30)
+    again.bar(['client'])
+    assert book.on_status(*again.status(1.7e9 - 29), now=4.0) == ['client']   # taken: the revocation arrives
+    assert book.on_status(*again.status(1.7e9 - 28), now=5.0) == []

@@ -240,3 +240,50 @@ def test_an_outbound_connection_closed_before_its_header_came_is_not_judged(monk
     with pytest.raises(Exception, match='refused by the TLS policy'):
         tls_transport._check_caller(lying)
     assert refused and 'may not run a node named /intruder' in refused[0][2]
+
+
+def test_revoking_a_party_revokes_the_certificates_a_re_issue_replaced_too(tmp_path):
+    """tls_keygen DIR client twice (a rotation: the old key suspected), then --revoke client: the old
+    certificate is revoked, not only the new one; --revoke-replaced revokes the old one only."""
+    import os
+    import subprocess
+    import sys
+    tool = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_ftm', 'nodes', 'tls_keygen')
+
+    def run(*args):
+        done = subprocess.run([sys.executable, tool] + list(args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              universal_newlines=True)
+        assert done.returncode == 0, done.stdout
+        return done.stdout
+
+    def revoked(directory):
+        held = tls.Revocations.of_directory(directory)
+        with open(os.path.join(directory, tls.CRL), 'rb') as f:
+            held.take(f.read())
+        return held
+    for case in ('revoke', 'revoke-replaced'):
+        home = str(tmp_path / case)
+        run(home, 'client', 'master')
+        old = tls.serial_of(home, 'client')
+        run(home, 'client')                                  # re-issued: a rotation
+        new = tls.serial_of(home, 'client')
+        out = run(home, '--' + case, 'client')
+        held = revoked(home)
+        assert old != new and held.revoked(old), out
+        assert held.revoked(new) == (case == 'revoke'), out
+        assert not held.revoked(tls.serial_of(home, 'master'))
+        assert tls.issued_serials(home)['client'] == [old, new]
+    # a certificate issued before the record was kept is recorded when a re-issue replaces it
+    home = str(tmp_path / 'older')
+    tls.make_authority(home)
+    tls.issue(home, 'client')
+    old = tls.serial_of(home, 'client')
+    os.remove(os.path.join(home, tls.ISSUED))
+    tls.issue(home, 'client')
+    tls.revoke(home, ['client'], replaced_only=True)
+    assert revoked(home).revoked(old) and not revoked(home).revoked(tls.serial_of(home, 'client'))
+    with open(os.path.join(home, tls.ISSUED), 'w') as f:
+        f.write('{"client": ["zz"]}')
+    with pytest.raises(ConfigError) as error:
+        tls.revoke(home, ['client'])
+    assert tls.ISSUED in str(error.value) and "party 'client'" in str(error.value)

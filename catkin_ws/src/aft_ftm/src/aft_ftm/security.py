@@ -1,12 +1,16 @@
 """SEC: cipher and signature of requests and replies, with a certification authority (paper
 section 5.3.2). Built on PyNaCl (libsodium): SealedBox (X25519 + XSalsa20-Poly1305) ciphers a
 payload for its recipient, Ed25519 signs it for its sender; the CA signs each party's public keys.
+A SealedBox is anonymous, so the ciphered plaintext itself names its sealer and the hash of the
+header it was sealed under: another party cannot keep a captured ciphertext and sign it under its
+own name or header (``open_sealed`` refuses it, ``tampered``).
 
 Nothing here logs or returns key material in error messages.
 """
 import base64
 import collections
 import fnmatch
+import hashlib
 import json
 import os
 import secrets
@@ -22,10 +26,13 @@ SIGNATURE_BYTES = 64
 
 
 class Rejected(AftError):
-    """A message refused by SEC. ``kind``: unsigned, bad_signature, unknown_party, tampered, replay,
-    undecryptable, misaddressed (signed for another party), spoofed_origin (a party sending as a
-    Proxy that is not its own), revoked, expired, bad_certificate, stale_status, ca_unreachable (the CA
-    did not answer about a certificate in time)."""
+    """A message refused by SEC. ``kind``: unsigned, malformed (too large, or nested too deep to read),
+    bad_signature, unknown_party, tampered (its signed header is not the envelope's, or its ciphertext
+    was sealed by another party or under another header), replay, undecryptable, misaddressed (signed
+    for another destination, or a request presented as a reply or the reverse), spoofed_origin (a
+    party sending as a Proxy that is not its own), revoked, expired, bad_certificate, stale_status,
+    ca_unreachable (the CA did not answer about a certificate in time, or no status of the CA has come
+    yet to judge it by)."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))
@@ -163,7 +170,8 @@ class CertificateBook(object):
     its sequence number is newer (a replayed status is refused), then drops every certificate it
     revokes. Expiry is judged in the CA's time, carried forward by this gate's monotonic clock from
     the last status (``now``: monotonic seconds): no wall clock is compared with another. A revoked
-    key is thus refused within one status period of its revocation, plus delivery."""
+    key is thus refused within one status period of its revocation, plus delivery. Before the first
+    status no certificate is taken (``ca_unreachable``): a revoked or expired one would pass."""
 
     def __init__(self, ca_verify_public, silent_after=3.0):
         self.ca_verify = bytes(ca_verify_public)
@@ -238,7 +246,11 @@ class CertificateBook(object):
         if cert.serial in self.revoked:
             return ('revoked', 'is revoked')
         ca_now = self.ca_now(now)
-        if ca_now is not None and cert.not_after <= ca_now:
+        if ca_now is None:
+            # Before the first status nothing says whether it is revoked, nor what time it is for the CA.
+            return ('ca_unreachable', 'cannot be judged: no certificate status from the CA has come yet '
+                                      '(its revocations and time are unknown)')
+        if cert.not_after <= ca_now:
             return ('expired', 'expired at CA time %.1f (now %.1f)' % (cert.not_after, ca_now))
         return None
 
@@ -261,7 +273,15 @@ class Issuer(object):
     - a certificate past half its validity is renewed on the next ask (a new serial; the old one
       stays valid until it expires);
     - a party named in the revocations has every serial it holds revoked and gets no new one until
-      it is named no more."""
+      it is named no more.
+
+    ``state()`` is what outlives a restart (``restore``): the revoked and retiring serials, every
+    serial issued and not expired yet with its expiry and the keys it certifies (so a party revoked,
+    or whose key changed, after a restart, or while the CA was down, has its older certificates
+    revoked too), and the status sequence number reserved (a restarted CA's statuses stay newer,
+    whatever its clock did meanwhile)."""
+
+    SEQ_RESERVE = 60000   # status numbers reserved (saved) ahead of the last published: one save a minute
 
     def __init__(self, ca, validity, overlap=10.0):
         self.ca = ca
@@ -269,16 +289,20 @@ class Issuer(object):
         self.overlap = overlap
         self.retiring = {}       # serial -> CA time from which it is revoked (a rotated key)
         self.keys = {}           # party -> (box_public, verify_public)
+        self.saved_keys = {}     # party -> the keys a previous run certified, until set_keys reads its own
         self.issued = {}         # party -> (Cert, signature)
-        self.serials = {}        # party -> every serial issued to it
+        self.serials = {}        # party -> {serial: not_after}: every serial issued to it, until it expires
         self.revoked = set()
         self.barred = set()      # parties named in the revocations
-        self.seq = 0
+        self.seq = 0             # the last status number published
+        self.seq_reserved = 0    # no status number above it was published: saved in state()
 
     def set_keys(self, party, box_public, verify_public, now=0.0):
         """A party's public keys (read again every period); returns True if they changed (rotated)."""
         keys = (bytes(box_public), bytes(verify_public))
         old = self.keys.get(party)
+        if old is None:   # the first read since a restart: changed while the CA was down?
+            old = self.saved_keys.pop(party, None)
         self.keys[party] = keys
         if old is not None and old != keys:
             # Every certificate of the old key ends (a renewal may have made more than one).
@@ -290,16 +314,50 @@ class Issuer(object):
         return False
 
     def state(self):
-        """What must outlive a restart of the CA: the revoked serials and those being retired."""
-        return {'revoked': sorted(self.revoked), 'retiring': dict((str(k), v) for k, v in self.retiring.items())}
+        """What must outlive a restart of the CA (JSON): the revoked serials, those being retired,
+        the serials issued with their expiry, the keys certified and the status number reserved."""
+        keys = dict(self.saved_keys, **self.keys)
+        return {'revoked': sorted(self.revoked),
+                'retiring': dict((str(k), v) for k, v in self.retiring.items()),
+                'serials': dict((party, dict((str(s), t) for s, t in sorted(serials.items())))
+                                for party, serials in self.serials.items() if serials),
+                'keys': dict((party, [base64.b64encode(k).decode() for k in pair]) for party, pair in keys.items()),
+                'seq': self.seq_reserved}
 
     def restore(self, state):
-        """The state() a previous run saved (ValueError if it is not one)."""
+        """The state() a previous run saved (ValueError naming what is wrong if it is not one; nothing
+        is taken then). ``serials``, ``keys`` and ``seq`` may be missing (a state saved before them)."""
         try:
-            self.revoked |= set(int(r) for r in state['revoked'])
-            self.retiring.update((int(k), float(v)) for k, v in state['retiring'].items())
+            revoked = set(int(r) for r in state['revoked'])
+            retiring = dict((int(k), float(v)) for k, v in state['retiring'].items())
         except (KeyError, TypeError, ValueError, AttributeError):
-            raise ValueError('not a CA state: %r' % (state,))
+            raise ValueError('not a CA state (revoked, retiring): %r' % (state,))
+        serials, keys = {}, {}
+        for party, entries in _mapping(state.get('serials', {}), 'serials').items():
+            for serial, not_after in _mapping(entries, 'serials of %s' % _state_name(party)).items():
+                try:
+                    serials.setdefault(party, {})[int(serial)] = float(not_after)
+                except (TypeError, ValueError):
+                    raise ValueError('serials of %s: the entry %r: %r is not a serial and its expiry'
+                                     % (party, serial, not_after))
+        for party, pair in _mapping(state.get('keys', {}), 'keys').items():
+            party = _state_name(party)
+            try:
+                box, verify = (base64.b64decode(k, validate=True) for k in pair)
+            except (TypeError, ValueError):
+                box = verify = b''
+            if len(box) != 32 or len(verify) != 32:
+                raise ValueError('keys of %s: %r are not two base64 public keys' % (party, pair))
+            keys[party] = (box, verify)
+        seq = state.get('seq', 0)
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+            raise ValueError('seq: %r is not a status number' % (seq,))
+        self.revoked |= revoked
+        self.retiring.update(retiring)
+        for party, entries in serials.items():
+            self.serials.setdefault(party, {}).update(entries)
+        self.saved_keys.update(keys)
+        self.seq = self.seq_reserved = max(self.seq, seq)
 
     def bar(self, parties):
         """The parties the revocations name now; returns those newly barred."""
@@ -327,54 +385,111 @@ class Issuer(object):
             cert = Cert(box, verify, serial, now + self.validity)
             held = (cert, certify(self.ca, party, box, verify, serial, cert.not_after))
             self.issued[party] = held
-            self.serials.setdefault(party, []).append(serial)
+            self.serials.setdefault(party, {})[serial] = cert.not_after
         return held
 
     def status(self, now):
         """(ca_time, seq, revoked serials, signature): the next status to publish. The sequence
-        number follows the CA's clock (milliseconds), so a restarted CA goes on above its last one."""
+        number follows the CA's clock (milliseconds) and is above every one published before, a
+        previous run's included (its reservation restored): a CA restarted after its clock stepped
+        back still publishes statuses the gates take. Serials that expired are forgotten."""
         self.seq = max(self.seq + 1, int(now * 1000))
+        if self.seq > self.seq_reserved:
+            self.seq_reserved = self.seq + self.SEQ_RESERVE
         for serial, until in list(self.retiring.items()):
             if until <= now:
                 self.revoked.add(serial)
                 del self.retiring[serial]
+        for party, serials in list(self.serials.items()):
+            for serial in [s for s, not_after in serials.items() if not_after <= now]:
+                del serials[serial]   # expired: no gate takes it any more, revoked or not
+            if not serials:
+                del self.serials[party]
         revoked = sorted(self.revoked)
         return now, self.seq, revoked, sign_status(self.ca, now, self.seq, revoked)
 
 
+def _mapping(value, what):
+    if not isinstance(value, dict):
+        raise ValueError('%s: expected a mapping, got %r' % (what, value))
+    return value
+
+
+def _state_name(name):
+    """name, if it is a party name (ValueError otherwise)."""
+    if isinstance(name, str) and name and all(c.isalnum() or c in '_-' for c in name):
+        return name
+    raise ValueError('%r is not a party name' % (name,))
+
+
 # -- messages -------------------------------------------------------------------------------------
 # Every field of a request or reply that affects how it is processed is signed (issue 16: a replayed
-# request with its unsigned ``attempt`` changed executed again), and so is the party it is for.
-REQUEST_FIELDS = ('origin', 'id', 'client', 'service_type', 'oldest_pending', 'attempt', 'epoch', 'transfer')
-REPLY_FIELDS = ('origin', 'id', 'client', 'oldest_pending', 'attempt', 'status', 'error', 'epoch')
+# request with its unsigned ``attempt`` changed executed again; ``batch``, PBR's group commit, acted
+# on by the After), and so are the party it is for (``to``), its direction (``dir``: request or
+# reply) and its destination (``dest``: the service's request topic, as the gates name it), so
+# that a request sealed for one service and copied to another's topic is refused there.
+REQUEST_FIELDS = ('origin', 'id', 'client', 'service_type', 'oldest_pending', 'attempt', 'epoch', 'transfer',
+                  'batch')
+REPLY_FIELDS = ('origin', 'id', 'client', 'oldest_pending', 'attempt', 'status', 'error', 'epoch', 'batch')
+DIRECTIONS = {REQUEST_FIELDS: 'request', REPLY_FIELDS: 'reply'}
+MAX_SEALED_BYTES = 64 * 1024 * 1024   # a larger payload is refused unread (``malformed``)
+_SEALED_TAG = b'aft-sealed-v2|'       # the ciphered plaintext: tag, sealer, '|', sha256(header), plaintext
 
 
-def header_of(message, fields, to):
-    """The header to sign for ``message`` (any object with those attributes): its fields, and ``to``,
-    the party it is sealed for."""
-    header = dict((name, getattr(message, name)) for name in fields)
+def header_of(message, fields, to, destination=None):
+    """The header to sign for ``message`` (any object with those attributes): its fields (arrays as
+    lists, as JSON gives them back), ``to``, the party it is sealed for, ``dir``, its direction (for
+    REQUEST_FIELDS and REPLY_FIELDS), and ``dest``, its destination, when given."""
+    header = dict((name, _plain(getattr(message, name))) for name in fields)
     header['to'] = to
+    direction = DIRECTIONS.get(tuple(fields))
+    if direction is not None:
+        header['dir'] = direction
+    if destination is not None:
+        header['dest'] = destination
     return header
 
 
+def _plain(value):
+    return list(value) if isinstance(value, (tuple, list)) else value
+
+
+def _digest(header):
+    return hashlib.sha256(json.dumps(header, sort_keys=True, separators=(',', ':')).encode()).digest()
+
+
 def seal(sender, recipient_box_public, header, plaintext):
-    """Cipher plaintext for the recipient and sign it with the header: bytes to put in a payload."""
-    ciphertext = nacl.public.SealedBox(nacl.public.PublicKey(bytes(recipient_box_public))).encrypt(bytes(plaintext))
+    """Cipher plaintext for the recipient and sign it with the header: bytes to put in a payload. The
+    ciphered plaintext names the sender and the hash of the header: see open_sealed."""
+    header = json.loads(json.dumps(header))   # as the recipient will read it
+    inner = _SEALED_TAG + sender.name.encode() + b'|' + _digest(header) + bytes(plaintext)
+    ciphertext = nacl.public.SealedBox(nacl.public.PublicKey(bytes(recipient_box_public))).encrypt(inner)
     content = json.dumps({'party': sender.name, 'header': header,
                           'ct': base64.b64encode(ciphertext).decode()}, sort_keys=True).encode()
     return sender.signing.sign(content)
 
 
-def _claims(blob):
-    """The (not yet verified) content of a sealed blob, or Rejected('unsigned')."""
+def _parse(data):
+    """The JSON object in data, or Rejected: too large or nested too deep (malformed), not one
+    (unsigned)."""
+    if len(data) > MAX_SEALED_BYTES:
+        raise Rejected('malformed', 'the payload is %d bytes, more than a SEC message may be (%d)'
+                       % (len(data), MAX_SEALED_BYTES))
     try:
-        content = json.loads(bytes(blob)[SIGNATURE_BYTES:].decode())
+        content = json.loads(data.decode())
+    except RecursionError:
+        raise Rejected('malformed', 'the payload is nested too deep to be a SEC message')
     except (ValueError, TypeError, UnicodeDecodeError):
         content = None
     if not isinstance(content, dict) or not isinstance(content.get('party'), str) \
             or not isinstance(content.get('header'), dict):
         raise Rejected('unsigned', 'the payload is not a signed SEC message')
     return content
+
+
+def _claims(blob):
+    """The (not yet verified) content of a sealed blob, or Rejected('unsigned', 'malformed')."""
+    return _parse(bytes(blob)[SIGNATURE_BYTES:])
 
 
 def sender_of(blob):
@@ -388,25 +503,62 @@ def addressee_of(blob):
     return to if isinstance(to, str) else None
 
 
-def open_sealed(recipient, sender_verify_public, blob, header):
-    """Verify the sender's signature, check the signed header equals header, decipher.
+def destination_of(blob):
+    """The destination a sealed blob's header names (``dest``; not verified yet), or None."""
+    dest = _claims(blob)['header'].get('dest')
+    return dest if isinstance(dest, str) else None
 
-    Raises Rejected: bad_signature, tampered (header changed), undecryptable."""
+
+def open_sealed(recipient, sender_verify_public, blob, header):
+    """Verify the sender's signature, check the signed header against header (the envelope's, as
+    header_of makes it), decipher, and check that the ciphertext was sealed by the signer under that
+    very header (not kept from another message and signed again).
+
+    A signed header without ``dest`` (a signer that names no destination) is taken for any: only a
+    destination signed and different is refused. Raises Rejected: unsigned, malformed, bad_signature,
+    misaddressed (another direction or destination), tampered (another header, or a ciphertext
+    sealed by another party or under another header), undecryptable."""
     blob = bytes(blob)
     if len(blob) <= SIGNATURE_BYTES:
         raise Rejected('unsigned', 'the payload is not a signed SEC message')
+    if len(blob) > MAX_SEALED_BYTES:
+        _parse(blob)   # refused, unread
     try:
         content = nacl.signing.VerifyKey(bytes(sender_verify_public)).verify(blob)
     except nacl.exceptions.BadSignatureError:
         raise Rejected('bad_signature', 'the signature does not match the sender\'s certified key')
-    message = json.loads(content.decode())
-    if message.get('header') != header:
-        raise Rejected('tampered', 'the envelope says %s but the signed header says %s'
-                       % (header, message.get('header')))
+    message = _parse(content)
+    signer, signed = message['party'], message['header']
+    if signed.get('dir') != header.get('dir'):
+        raise Rejected('misaddressed', 'party %s signed it as a %s, it came as a %s'
+                       % (signer, signed.get('dir') or 'message of no direction', header.get('dir')))
+    if 'dest' in header and 'dest' in signed and signed['dest'] != header['dest']:
+        raise Rejected('misaddressed', 'party %s signed it for %s, it came to %s'
+                       % (signer, signed['dest'], header['dest']))
+    expected = header if 'dest' in signed else dict((k, v) for k, v in header.items() if k != 'dest')
+    if signed != expected:
+        changed = sorted(k for k in set(signed) | set(expected) if signed.get(k) != expected.get(k))
+        raise Rejected('tampered', 'field(s) %s: the envelope says %s but the header party %s signed says %s'
+                       % (', '.join(changed), expected, signer, signed))
     try:
-        return nacl.public.SealedBox(recipient.box_private).decrypt(base64.b64decode(message['ct']))
+        inner = nacl.public.SealedBox(recipient.box_private).decrypt(base64.b64decode(message['ct']))
     except (nacl.exceptions.CryptoError, KeyError, ValueError, TypeError):
         raise Rejected('undecryptable', 'the payload was not ciphered for %s' % recipient.name)
+    binding = _SEALED_TAG + signer.encode() + b'|' + _digest(signed)
+    if not inner.startswith(binding):
+        raise Rejected('tampered', 'party %s signed a ciphertext %s' % (signer, _sealer(inner, signer)))
+    return inner[len(binding):]
+
+
+def _sealer(inner, signer):
+    """Who sealed a ciphered plaintext whose binding is not its signer's, for a refusal's detail."""
+    if not inner.startswith(_SEALED_TAG):
+        return 'that names no sealer (sealed by an older SEC, or re-signed)'
+    name = inner[len(_SEALED_TAG):len(_SEALED_TAG) + 64].split(b'|', 1)[0].decode('ascii', 'replace')
+    name = ''.join(c if c.isalnum() or c in '_-' else '?' for c in name)
+    if name == signer:
+        return 'it sealed under another header (kept from another message and signed again)'
+    return 'sealed by party %s (kept from its message and signed again)' % name
 
 
 class OriginBinding(object):

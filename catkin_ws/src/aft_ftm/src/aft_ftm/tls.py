@@ -29,7 +29,10 @@ integrity on every message of the connection.
 Revocation follows the X.509 way: the CA signs a certificate revocation list (``ca.tls.crl``,
 ``revoke``) with a number one higher each time; the operator copies it to every party's directory
 (as CRLs are distributed); each node follows its copy (``Revocations``: only a list the CA signed,
-never an older one) and refuses, and cuts, connections of a revoked certificate.
+never an older one) and refuses, and cuts, connections of a revoked certificate. The CA keeps the
+serial of every certificate it issued to each party (``ca.tls.issued``): revoking a party revokes
+them all, those a re-issue replaced included (a rotation of a suspected key), or only the replaced
+ones (``revoke(..., replaced_only=True)``, ``tls_keygen --revoke-replaced``).
 """
 import datetime
 import fnmatch
@@ -88,7 +91,8 @@ def make_authority(directory, days=3650):
 
 def issue(directory, party, days=30, lifetime=None):
     """<party>.tls.key (0600) and <party>.tls.crt, signed by the CA of directory (common name: the
-    party), valid for days (or lifetime, a timedelta). Replaces an existing pair (a rotation)."""
+    party), valid for days (or lifetime, a timedelta). Replaces an existing pair (a rotation); the
+    serial of each, the replaced one's included, is recorded in ca.tls.issued (``revoke`` uses it)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -108,6 +112,12 @@ def issue(directory, party, days=30, lifetime=None):
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
             .sign(ca_key, hashes.SHA256()))
     key_path, crt_path = _names(directory, party)
+    issued = issued_serials(directory)
+    serials = issued.setdefault(party, [])
+    if os.path.exists(crt_path):   # the certificate replaced, if made before the record was kept
+        serials.append(serial_of(directory, party))
+    serials.append(cert.serial_number)
+    _write_issued(directory, issued)   # recorded before the certificate is written: never one unrecorded
     _write(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()), 0o600)
     _write(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
@@ -156,10 +166,46 @@ def serial_of(directory, party):
         raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
 
 
-def revoke(directory, parties=(), serials=(), days=7):
-    """Revoke the current certificates of parties (and the certificates of serials) of the CA in
-    directory: <directory>/ca.tls.crl is signed again listing every serial revoked so far, its CRL
-    number one higher. Returns (the CRL's path, its number)."""
+ISSUED = 'ca.tls.issued'   # {party: [serials, hexadecimal]}: every certificate the CA issued to it
+
+
+def issued_serials(directory):
+    """{party: [serial, ...]}: the certificates the CA of directory issued, oldest first ({} before any
+    was recorded). ConfigError names the file and the entry that is wrong."""
+    import json
+    path = os.path.join(directory, ISSUED)
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as e:
+        raise ConfigError('the record of issued TLS certificates %s cannot be read: %s' % (path, e))
+    if not isinstance(data, dict):
+        raise ConfigError('%s: expected a mapping of party names to lists of serials' % path)
+    issued = {}
+    for party, serials in data.items():
+        if not isinstance(serials, list) or not all(isinstance(s, str) for s in serials):
+            raise ConfigError('%s: party %r: expected a list of hexadecimal serials, got %r' % (path, party, serials))
+        try:
+            issued[party] = [_serial(s) for s in serials]
+        except ConfigError as e:
+            raise ConfigError('%s: party %r: %s' % (path, party, e))
+    return issued
+
+
+def _write_issued(directory, issued):
+    import json
+    data = dict((party, ['%x' % s for s in dict.fromkeys(serials)]) for party, serials in issued.items())
+    _write(os.path.join(directory, ISSUED), json.dumps(data, indent=1, sort_keys=True).encode(), 0o600)
+
+
+def revoke(directory, parties=(), serials=(), days=7, replaced_only=False):
+    """Revoke every certificate the CA in directory issued to parties (their current ones and those
+    a re-issue replaced: ca.tls.issued), or, with replaced_only, the replaced ones only (the current
+    one stays valid: a rotation of a suspected key); and the certificates of serials.
+    <directory>/ca.tls.crl is signed again listing every serial revoked so far, its CRL number one
+    higher. Returns (the CRL's path, its number)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     ca_key, ca_cert = _authority(directory)
@@ -168,7 +214,13 @@ def revoke(directory, parties=(), serials=(), days=7):
     if os.path.exists(path):
         with open(path, 'rb') as f:
             held.take(f.read())
-    revoked = set(held.serials) | set(_serial(s) for s in serials) | set(serial_of(directory, p) for p in parties)
+    issued = issued_serials(directory)
+    named = set()
+    for party in parties:
+        current = serial_of(directory, party)
+        every = set(issued.get(party, ())) | {current}
+        named |= every - {current} if replaced_only else every
+    revoked = set(held.serials) | set(_serial(s) for s in serials) | named
     number = (held.number or 0) + 1
     now = datetime.datetime.utcnow()
     builder = (x509.CertificateRevocationListBuilder().issuer_name(ca_cert.subject).last_update(now)

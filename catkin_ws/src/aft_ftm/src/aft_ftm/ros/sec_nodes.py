@@ -10,8 +10,10 @@ from aft_msgs.msg import CertificateStatus, Reply, Request
 from aft_msgs.srv import Certificate, CertificateResponse
 
 from .. import config, health, sec_policy, security
+from ..health import Level, Report
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
+from . import tls_transport
 from .alarms import alarm
 from .diagnostics import Diagnostics
 from .params import param
@@ -34,6 +36,11 @@ class CertificationAuthorityNode(object):
         ~revocations (str, <keys_dir>/revoked.yaml): ``revoked: [party, ...]``, written by the operator
             (its file permissions are its authentication); a missing file revokes nothing, a malformed
             one changes nothing (logged, naming the problem).
+    State: <keys_dir>/ca_state.json (security.Issuer.state): the revoked and retiring serials, every
+        serial issued and not expired with its expiry, the keys certified, the status number
+        reserved; read at start (so a party revoked or rotated after a restart, or while the CA was
+        down, has its older certificates revoked too, and the statuses stay newer whatever the clock
+        did); a corrupt one stops the CA, naming the file and the entry.
     Services: ~certificate (aft_msgs/Certificate)
     Publishes: ~status (aft_msgs/CertificateStatus, latched)
     """
@@ -48,7 +55,7 @@ class CertificationAuthorityNode(object):
                                       param('rotation_overlap', config.positive_float, 10.0))
         self.lock = threading.Lock()
         self.revocations_seen = None
-        # The revoked serials outlive a restart of the CA (a rotated key stays refused).
+        # The revoked serials, the serials issued and the status number outlive a restart of the CA.
         self.state_path = os.path.join(self.keys_dir, 'ca_state.json')
         self.saved = None
         if os.path.exists(self.state_path):
@@ -57,7 +64,7 @@ class CertificationAuthorityNode(object):
                     self.issuer.restore(json.load(f))
             except (OSError, ValueError) as e:
                 raise config.ConfigError('the CA state %s cannot be used (%s): move it away to start afresh '
-                                         '(the revocations it held are then lost)' % (self.state_path, e))
+                                         '(the revocations and serials it held are then lost)' % (self.state_path, e))
         self._reload()
 
     def setup(self, timeout):
@@ -131,12 +138,20 @@ class SecGateNode(object):
     Client side: ciphers each request of the Proxy for ~server_party and signs it; checks and
     deciphers the replies. Server side: checks each request's signature against the sender's
     certified key, its signed header against the envelope (every field that affects processing:
-    security.REQUEST_FIELDS, and the party it is for), that its sender may speak for its origin
+    security.REQUEST_FIELDS, the party it is for, its direction and destination), that its
+    ciphertext was sealed by its signer under that header, that its sender may speak for its origin
     (security.OriginBinding, from ~policy), and that it is not a replay; deciphers it for the
     Protocol; ciphers and signs the reply (security.REPLY_FIELDS) for the party bound to its
     origin. Rejected messages are dropped with an alarm (a forged message has nobody waiting for
     it); a client re-sends a request whose reply was rejected. A client gate passes over, without
     an alarm, a reply signed for another party (replies share one topic): that party's gate checks it.
+
+    At set-up a gate waits (within the set-up's time) for the CA's first status: until one comes it
+    takes no certificate (a revoked or expired one would pass), and refuses what needs one
+    (``ca_unreachable``). Started without TLS (no AFT_TLS_DIR), it raises ``tls sec_without_tls``
+    once and its diagnostics stay WARN: its plaintext side (the Protocol's or the Proxy's topics)
+    is open to every node of the graph, which may read what it deciphers and publish requests that
+    never cross SEC; mutual TLS closes it (README, Security).
 
     Parameters:
         ~side (client | server), ~party (this side's party name), ~keys_dir (its key files),
@@ -150,6 +165,11 @@ class SecGateNode(object):
             message that needed it is refused (``ca_unreachable``) and sent again by its Proxy
         ~ca_silent_after (float, 3 s): the CA's status unheard this long raises ``ca_silent`` (revocations
             cannot reach this gate meanwhile)
+        ~destination (str, default: the resolved name of the requests' shared topic: requests_out on the
+            client side, requests_in on the server side, e.g. /ftm/pxy2pro): the service the requests
+            and replies are signed for (``dest``); a message signed for another is refused
+            (``misaddressed``). The client's and the server's gates must name the same. A message
+            signed with no destination (a signer that names none) is taken, and counted.
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
@@ -171,6 +191,10 @@ class SecGateNode(object):
         ca_public = param('ca_public', config.non_empty_str, required=True)
         self.ca_verify = security.read_public(*_split(ca_public))[1]
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
+        self.destination = param('destination', config.optional_name, '') or rospy.resolve_name(
+            'requests_out' if self.side == 'client' else 'requests_in')
+        self.undestined = {}      # party -> messages it signed with no destination (taken)
+        self.tls = tls_transport.active()
         self.role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         self.ports = Ports([PortSpec('requests_in', SUBSCRIBE, 'aft_msgs/Request'),
                             PortSpec('requests_out', PUBLISH, 'aft_msgs/Request'),
@@ -198,8 +222,16 @@ class SecGateNode(object):
             rospy.logerr('%s: the certification authority (%s) is not available: %s', rospy.get_name(),
                          rospy.resolve_name('certificate'), e)
             return False
+        deadline = time.monotonic() + timeout
+        self.ports.bind('alarms', queue_size=0)   # a status refused raises an alarm from now on
+        # The CA's status first (latched: it comes at once from a running CA): no certificate is
+        # taken before it says which are revoked and what time it is.
+        self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
+        if not self._wait_for_status(deadline):
+            rospy.logwarn('%s: no status from the certification authority (%s) within %.1f s: every message that '
+                          'needs a certificate is refused (ca_unreachable) until one comes', rospy.get_name(),
+                          rospy.resolve_name('certificate_status'), timeout)
         if self.side == 'client':
-            deadline = time.monotonic() + timeout
             while True:   # a CA slow to answer (a loaded machine) is asked again within the set-up's time
                 try:
                     self._peer(self.server_party)
@@ -208,7 +240,7 @@ class SecGateNode(object):
                     if e.kind != 'ca_unreachable' or time.monotonic() > deadline:
                         rospy.logerr('%s: %s', rospy.get_name(), e)
                         return False
-        self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
+                    time.sleep(0.1)
         # What goes to another host is queued per connection (a dead host must not block the others:
         # see the Proxy's requests and the Protocol's replies): the client side's requests, the server
         # side's replies to the clients' gates. A message a queue drops is sent again (the Proxy re-sends).
@@ -224,6 +256,8 @@ class SecGateNode(object):
         self.diagnostics = Diagnostics(self._health)
         threading.Thread(target=self._watch_ca, name='ca-watch', daemon=True).start()
         threading.Thread(target=self._watch_own_key, name='key-watch', daemon=True).start()
+        if not self.tls:
+            threading.Thread(target=self._tell_without_tls, args=(timeout,), name='tls-notice', daemon=True).start()
         if self.side == 'server' and self.policy is None:
             rospy.logwarn('%s: no SEC policy (~policy): each origin is bound to the first party whose signed request '
                           'uses it', rospy.get_name())
@@ -231,16 +265,56 @@ class SecGateNode(object):
 
     def _health(self):
         with self.lock:
-            return health.sec_gate(self.side, self.me.name, self.role, len(self.book.peers), len(self.sent),
-                                   self.rejected, policy=self.policy if self.side == 'server' else '')
+            report = health.sec_gate(self.side, self.me.name, self.role, len(self.book.peers), len(self.sent),
+                                     self.rejected, policy=self.policy if self.side == 'server' else '')
+            undestined = sum(self.undestined.values())
+        values = list(report.values) + [('destination', self.destination), ('undestined', undestined),
+                                        ('tls', 'on' if self.tls else 'off')]
+        if self.tls:
+            return Report(report.level, report.message, values)
+        told = 'no TLS: its plaintext side is open to every node of the graph (%s)' % ', '.join(self._plaintext_side())
+        return Report(max(report.level, Level.WARN),
+                      told if report.level == Level.OK else '%s; %s' % (report.message, told), values)
+
+    def _plaintext_side(self):
+        """The topics where this gate's messages are in clear: the Proxy's (client side) or the Protocol's."""
+        ports = ('requests_in', 'replies_out') if self.side == 'client' else ('requests_out', 'replies_in')
+        return [self.ports.topic(p) or rospy.resolve_name(p) for p in ports]
+
+    def _wait_for_status(self, deadline):
+        while True:
+            with self.lock:
+                if self.book.seq is not None:
+                    return True
+            if time.monotonic() > deadline or rospy.is_shutdown():
+                return False
+            time.sleep(0.02)
+
+    def _tell_without_tls(self, wait):
+        """``tls sec_without_tls``, once: after an alarm subscriber is heard (or ``wait`` s), so that
+        it is seen. Not ``sec``: the change model takes every SEC alarm for an attack."""
+        end = time.monotonic() + wait
+        while self.ports.connections('alarms') < 1 and time.monotonic() < end and not rospy.is_shutdown():
+            time.sleep(0.1)
+        alarm(self.ports, 'tls', 'sec_without_tls',
+              'SEC runs without TLS: the plaintext side of %s (%s) is open to every node of the ROS graph, which '
+              'may read there what SEC ciphers and publish there what SEC never checks (%s); mutual TLS '
+              '(AFT_TLS_DIR, the launch files\' tls_dir:=) closes it' % (
+                  rospy.get_name(), ', '.join(self._plaintext_side()),
+                  'requests this gate signs as its own, replies for its Proxy' if self.side == 'client'
+                  else 'requests for the Protocol'))
 
     def _peer(self, party):
         """The certified public keys of party: held while valid, else fetched from the CA and checked."""
         now = time.monotonic()
         with self.lock:
             cert = self.book.get(party, now)
+            heard = self.book.seq is not None
         if cert is not None:
             return cert.box_public, cert.verify_public
+        if not heard:   # nothing to judge a certificate by: the CA is not asked for one it could not take
+            raise security.Rejected('ca_unreachable', 'no status from the CA has come yet: the certificate of %s '
+                                    'cannot be judged' % party)
         answer = self._ask_ca(party)
         if not answer.found:
             kind = 'revoked' if answer.message.startswith('revoked') else 'unknown_party'
@@ -289,11 +363,14 @@ class SecGateNode(object):
             for cert in certs:
                 for me in mine:
                     try:
-                        return security.open_sealed(me, cert.verify_public, blob, header)
+                        plaintext = security.open_sealed(me, cert.verify_public, blob, header)
                     except security.Rejected as e:
                         error = e
                         if e.kind != 'undecryptable':
                             break   # this certificate's signature or header: the next certificate
+                        continue
+                    self._count_undestined(party, blob)
+                    return plaintext
             now = time.monotonic()
             if attempt or error.kind != 'bad_signature' or now - self.refetched.get(party, -1e9) < 1.0:
                 raise error
@@ -301,6 +378,18 @@ class SecGateNode(object):
             with self.lock:
                 self.book.fetch_again(party)
         raise error
+
+    def _count_undestined(self, party, blob):
+        """A message signed with no destination is taken (a signer that names none), counted and said once
+        per party: a copy of it could be taken by another service's gate too."""
+        if security.destination_of(blob) is not None:
+            return
+        with self.lock:
+            first = party not in self.undestined
+            self.undestined[party] = self.undestined.get(party, 0) + 1
+        if first:
+            rospy.logwarn('%s: party %s signs no destination (an older gate?): its messages are taken, but a copy '
+                          'could be taken by another service\'s gate too', rospy.get_name(), party)
 
     def _key_file_id(self):
         try:
@@ -372,11 +461,12 @@ class SecGateNode(object):
             if self.side == 'client':
                 box, _ = self._peer(self.server_party)
                 payload = security.seal(self.me, box, security.header_of(request, security.REQUEST_FIELDS,
-                                                                         self.server_party), request.payload)
+                                                                         self.server_party, self.destination),
+                                        request.payload)
             else:
                 party = security.sender_of(request.payload)
-                payload = self._open(party, request.payload,
-                                     security.header_of(request, security.REQUEST_FIELDS, self.me.name))
+                payload = self._open(party, request.payload, security.header_of(
+                    request, security.REQUEST_FIELDS, self.me.name, self.destination))
                 with self.lock:
                     self.origins.bind(party, request.origin)
                     self.replays.check(request.origin, request.id)
@@ -412,8 +502,8 @@ class SecGateNode(object):
                 if party is None:
                     raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
                 box, _ = self._peer(party)
-                payload = security.seal(self.me, box, security.header_of(reply, security.REPLY_FIELDS, party),
-                                        reply.payload)
+                payload = security.seal(self.me, box, security.header_of(reply, security.REPLY_FIELDS, party,
+                                                                         self.destination), reply.payload)
             else:
                 if security.addressee_of(reply.payload) not in (self.me.name, None):
                     with self.lock:   # for another client's gate, which checks it: not an attack on this one
@@ -421,8 +511,8 @@ class SecGateNode(object):
                     return
                 if security.sender_of(reply.payload) != self.server_party:
                     raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
-                payload = self._open(self.server_party, reply.payload,
-                                     security.header_of(reply, security.REPLY_FIELDS, self.me.name))
+                payload = self._open(self.server_party, reply.payload, security.header_of(
+                    reply, security.REPLY_FIELDS, self.me.name, self.destination))
         except security.Rejected as e:
             self._reject(e, reply)
             return

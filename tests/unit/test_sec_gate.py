@@ -1,0 +1,86 @@
+"""The SEC gate's own decisions (aft_ftm.ros.sec_nodes.SecGateNode), on a gate built without ROS: its
+ports, the CA and the clock are fakes. No ROS master."""
+import threading
+
+import pytest
+import rospy
+
+from aft_ftm import health, security
+from aft_ftm.protocol import Role
+from aft_ftm.ros import sec_nodes
+from aft_ftm.security import Party, Rejected
+
+CA, SERVER, CLIENT = (Party.generate(n) for n in ('ca', 'server', 'client'))
+
+
+class FakePorts(object):
+    TOPICS = {'requests_in': '/ftm/pxy2pro', 'requests_out': '/master/sec2pro', 'replies_in': '/master/pro2sec',
+              'replies_out': '/ftm/pro2pxy'}
+
+    def __init__(self, listeners=1):
+        self.published = []
+        self.listeners = listeners
+
+    def topic(self, name):
+        return self.TOPICS[name]
+
+    def connections(self, name):
+        return self.listeners
+
+    def publish(self, name, msg):
+        self.published.append((name, msg))
+        return True
+
+
+def gate(side='server', tls=False):
+    """A SecGateNode as __init__ leaves it, without reading parameters or key files."""
+    node = sec_nodes.SecGateNode.__new__(sec_nodes.SecGateNode)
+    node.side, node.me, node.role, node.tls = side, SERVER, Role.PRIMARY, tls
+    node.book = security.CertificateBook(CA.verify_public)
+    node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
+    node.undestined, node.destination, node.ports = {}, '/ftm/pxy2pro', FakePorts()
+    return node
+
+
+@pytest.fixture(autouse=True)
+def no_ros_clock(monkeypatch):
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
+
+
+def test_a_gate_without_tls_says_its_plaintext_side_is_open_in_an_alarm_and_its_diagnostics():
+    open_gate = gate(tls=False)
+    report = open_gate._health()
+    assert report.level == health.Level.WARN
+    assert 'no TLS: its plaintext side is open to every node of the graph (/master/sec2pro, /master/pro2sec)' \
+        in report.message and report.value('tls') == 'off'
+    open_gate._tell_without_tls(0.0)
+    (port, raised), = open_gate.ports.published
+    assert (port, raised.mechanism, raised.kind) == ('alarms', 'tls', 'sec_without_tls')
+    assert '/master/sec2pro, /master/pro2sec' in raised.detail and 'mutual TLS' in raised.detail
+    # not a SEC alarm: the change model would take it for an attack
+    from aft_ftm import change_model
+    assert change_model.observed_fault(raised.mechanism, raised.kind) is None
+    client = gate(side='client', tls=False)
+    assert '(/ftm/pxy2pro, /ftm/pro2pxy)' in client._health().message   # the Proxy's side
+    closed = gate(tls=True)
+    assert closed._health().level == health.Level.OK and closed._health().value('tls') == 'on'
+
+
+def test_a_gate_asks_the_ca_for_no_certificate_before_its_first_status():
+    early = gate()
+    early._ask_ca = lambda party: pytest.fail('the CA was asked before any status came')
+    with pytest.raises(Rejected) as error:
+        early._peer('client')
+    assert error.value.kind == 'ca_unreachable' and 'no status from the CA' in error.value.detail
+
+
+def test_a_message_signed_with_no_destination_is_counted_once_said():
+    taken = gate()
+    header = security.header_of(type('M', (), dict(origin='/p', id=1))(), ('origin', 'id'), 'server')
+    blob = security.seal(CLIENT, SERVER.box_public, header, b'x')
+    taken._count_undestined('client', blob)
+    taken._count_undestined('client', blob)
+    assert taken.undestined == {'client': 2} and taken._health().value('undestined') == '2'
+    named = security.seal(CLIENT, SERVER.box_public, dict(header, dest='/ftm/pxy2pro'), b'x')
+    taken._count_undestined('client', named)
+    assert taken.undestined == {'client': 2}
