@@ -329,14 +329,17 @@ def test_a_leaders_before_stamps_the_transfer_its_follower_joined_with():
     assert forwarder.stamp() == 1000
 
 
-def test_a_follower_refuses_the_forwards_of_an_older_transfer_and_passes_the_newer():
+def test_a_follower_passes_only_the_forwards_of_the_transfer_it_follows():
     forwarder = LfrForwarder(Role.BACKUP)
-    assert forwarder.on_forwarded(1000) == Forwarded.PASS
+    assert forwarder.on_forwarded(1000) == Forwarded.PASS   # followed none yet (started in sync): nothing to refuse by
     assert forwarder.follow(1001) == 1       # passed on so far: its After waits until they are computed
     assert forwarder.on_forwarded(1000) == Forwarded.STALE
-    assert forwarder.on_forwarded(1001) == Forwarded.PASS and forwarder.on_forwarded(1002) == Forwarded.PASS
-    assert forwarder.follow(1000) == 3 and forwarder.transfer == 1001   # a late, abandoned call lowers nothing
-    assert (forwarder.passed, forwarder.stale, forwarder.refused) == (3, 1, 0)
+    assert forwarder.on_forwarded(1001) == Forwarded.PASS and forwarder.on_forwarded(1002) == Forwarded.STALE
+    # Review, stop 38: a leader started after the clock was stepped back numbers its transfer 101; a
+    # maximum kept (1001) refused every one of its forwards, the follower excluded and re-joined for ever.
+    assert forwarder.follow(101) == 2
+    assert forwarder.on_forwarded(101) == Forwarded.PASS and forwarder.on_forwarded(1001) == Forwarded.STALE
+    assert (forwarder.passed, forwarder.stale, forwarder.refused) == (3, 3, 0)
 
 
 def test_a_follower_sets_a_transfer_only_once_what_its_before_passed_on_is_computed():

@@ -67,3 +67,41 @@ def test_a_request_never_written_is_sent_once_the_server_is_back(node):
     n = node(server)
     assert bpa.ProceedNode._call(n, types.SimpleNamespace(origin='/proxy', id=43, service_type='t/T'), 'move') == 'ok'
     assert server.applied == ['move'] and n.alarms == []
+
+
+@pytest.mark.parametrize('text', [
+    'unable to connect to service: [Errno 111] Connection refused',
+    'service /server unavailable: no provider',
+    'service /server: the master cannot be reached to find it (Connection refused)',
+])
+def test_a_call_that_never_left_is_told_not_executed_after_a_wait_never_unknown(text):
+    """Review of stop 38: these said "outcome unknown" for calls that never reached a server."""
+    assert bpa.unsent(text)
+    assert not bpa.unsent(RECEIVE)
+
+
+def test_a_persistent_connection_its_server_closed_is_opened_again_before_a_request_is_written():
+    """A server restarted between two calls closed the old connection: a request written there was
+    lost, and its failure ("unable to receive data") told nothing of whether it ran."""
+    import socket
+    from aft_ftm.ros.persistent_service import _closed_by_peer
+    listener = socket.socket()
+    listener.bind(('127.0.0.1', 0))
+    listener.listen(1)
+    client = socket.create_connection(listener.getsockname())
+    server, _ = listener.accept()
+    try:
+        assert not _closed_by_peer(client)        # open, nothing to read
+        server.sendall(b'x')
+        assert not _closed_by_peer(client)        # something to read: open (nothing taken)
+        assert client.recv(1) == b'x'
+        server.close()
+        for _ in range(100):                      # bounded: the FIN arrives at once on the loopback
+            if _closed_by_peer(client):
+                break
+            import time
+            time.sleep(0.01)
+        assert _closed_by_peer(client)
+    finally:
+        client.close()
+        listener.close()

@@ -533,6 +533,8 @@ def test_a_request_below_the_watermark_is_not_executed_and_the_primary_says_the_
     actions = core.on_request(request(rid=40, oldest_pending=40), 1)   # started again, clock behind
     assert [type(a).__name__ for a in actions] == ['Renumber'] and actions[0].first_id == 5004
     assert core.stats.executed == 4 and core.stats.stale_ids == 1
+    # A re-send built as its reply came (its oldest_pending above it already): a late copy, no renumber.
+    assert core.on_request(request(rid=5001, oldest_pending=5003), 1) == [] and core.stats.stale_ids == 1
     backup = ProtocolCore(Role.BACKUP)
     backup.on_request(request(rid=5003, oldest_pending=5002), 0)
     assert backup.on_request(request(rid=40, oldest_pending=40), 1) == []   # a backup tells nothing

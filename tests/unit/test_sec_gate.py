@@ -84,3 +84,29 @@ def test_a_message_signed_with_no_destination_is_counted_once_said():
     named = security.seal(CLIENT, SERVER.box_public, dict(header, dest='/ftm/pxy2pro'), b'x')
     taken._count_undestined('client', named)
     assert taken.undestined == {'client': 2}
+
+
+def test_a_proxy_started_again_with_its_clock_behind_is_told_sealed_where_to_number_from_not_left_hanging():
+    """Review of stop 38: behind a SEC gate, a Proxy started again under its name with ids below its
+    predecessor's was refused as a replay for ever (every call hung); the Protocol's STALE_ID never
+    reached it. The gate refuses it (the replay alarm still) and tells its party, sealed, the ids to use."""
+    from aft_msgs.msg import Reply, Request
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: b'plaintext'
+
+    def request(rid):
+        msg = Request(id=rid, origin='/proxy', client='/c', service_type='aft_msgs/Account', oldest_pending=rid)
+        msg.payload = security.seal(CLIENT, SERVER.box_public, security.header_of(
+            msg, security.REQUEST_FIELDS, 'server', '/ftm/pxy2pro'), b'deposit')
+        return msg
+    server._on_request(request(5000))
+    server._on_request(request(5001))
+    assert [name for name, _ in server.ports.published] == ['requests_out', 'requests_out']
+    server._on_request(request(40))                                # started again, its clock behind
+    (_, raised), (port, told) = server.ports.published[2:]
+    assert (raised.kind, port, told.status, told.id) == ('replay', 'replies_out', Reply.STALE_ID, 40)
+    assert told.oldest_pending == 5002                             # above every id verified from /proxy
+    security.open_sealed(CLIENT, SERVER.verify_public, told.payload, security.header_of(
+        told, security.REPLY_FIELDS, 'client', '/ftm/pxy2pro'))   # sealed for its party, signed by the server

@@ -172,3 +172,38 @@ def test_an_admission_delivered_late_is_refused_once_the_configuration_changed()
     # The same ADMIT asked again (its answer lost) is granted, whatever epoch it was made in.
     assert w.request(Op.ADMIT, 'master', 'm1', peer='slave', peer_incarnation='s2', epoch=3).granted
     assert w.epoch == 4
+
+
+@pytest.mark.parametrize('lost', ['file', 'rolled_back'])
+def test_a_witness_whose_record_was_lost_or_rolled_back_grants_nothing_once_a_site_says_a_newer_epoch(tmp_path, lost):
+    """Its record lost (restarted without its file) or rolled back (the file replaced by an old copy),
+    a witness granted again epochs granted already: the excluded backup of an old record promoted while
+    the real primary went on alone, two primaries in one epoch; a restarted site claiming a fresh
+    witness served from an empty state. A request saying a newer epoch than the record stops it."""
+    path = str(tmp_path / 'witness.json')
+    w = pair(StateStore(path))                                    # epoch 2: master, backup slave
+    old = open(path).read()
+    assert w.request(Op.EXCLUDE, 'master', 'm1').granted          # epoch 3: master alone, slave excluded
+    if lost == 'file':
+        import os
+        os.remove(path)
+    else:
+        with open(path, 'w') as f:
+            f.write(old)
+    w = Witness(store=StateStore(path))
+    assert w.epoch == (0 if lost == 'file' else 2)
+    # Without a word about epochs, the old rules grant what must not be (the flaw the check closes):
+    if lost == 'rolled_back':
+        assert w.request(Op.STATUS, 'slave', 's1').backup == 'slave'
+    from aft_ftm.witness import WitnessBehind
+    with pytest.raises(WitnessBehind, match='epoch 3'):
+        w.request(Op.STATUS, 'master', 'm1', known_epoch=3)       # the primary says what it has seen
+    record = (w.epoch, w.primary, w.backup)
+    for op, site, kwargs in [(Op.PROMOTE, 'slave', dict(incarnation='s1', known_epoch=2)),
+                             (Op.REGISTER, 'master', dict(incarnation='m2', claim=True)),
+                             (Op.STATUS, 'slave', {})]:
+        with pytest.raises(WitnessBehind):
+            w.request(op, site, **kwargs)
+    assert (w.epoch, w.primary, w.backup) == record               # nothing granted, nothing changed
+    fresh = pair()
+    assert fresh.request(Op.STATUS, 'master', 'm1', known_epoch=2).granted   # a known epoch not above: as before

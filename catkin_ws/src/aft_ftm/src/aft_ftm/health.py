@@ -135,11 +135,14 @@ def stage(mechanism, stage, calling_for=None, patience=None, failed=None, calls_
     return Report(Level.OK, 'calling the server (for %.3f s)' % calling_for, values)
 
 
-def witness(epoch, primary, backup, reason, persistent):
+def witness(epoch, primary, backup, reason, persistent, behind=0):
     """The witness: the configuration it granted last. ``persistent``: it keeps its record in a
-    state file (a restart forgets nothing)."""
+    state file (a restart forgets nothing); ``behind``: an epoch a caller has seen above the record."""
     values = [('site', 'witness'), ('role', 'WITNESS'), ('epoch', epoch), ('primary', primary), ('backup', backup),
               ('reason', reason), ('state_file', 'yes' if persistent else 'no')]
+    if behind:
+        return Report(Level.ERROR, 'record at epoch %d, behind epoch %d a site has seen (lost or rolled back): '
+                                   'it grants nothing until restored' % (epoch, behind), values + [('behind', behind)])
     if not primary:
         # No replica has registered (a deployment without replication, or one still starting).
         return Report(Level.OK, 'epoch %d: no replica registered' % epoch, values)

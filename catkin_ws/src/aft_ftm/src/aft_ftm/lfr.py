@@ -455,7 +455,8 @@ class LfrForwarder(object):
         if self.role != Role.BACKUP:
             self.refused += 1
             return Forwarded.NOT_FOLLOWER
-        if transfer < self.transfer:
+        if self.transfer and transfer != self.transfer:   # (equality: a leader started after a backward
+            # clock step numbers lower; a follower that followed no transfer has nothing to refuse by)
             self.stale += 1
             return Forwarded.STALE
         self.passed += 1
@@ -463,11 +464,14 @@ class LfrForwarder(object):
 
     def follow(self, transfer):
         """Follower: its After is about to set the state of ``transfer``. Refuse from now on every
-        forward stamped below it; returns how many requests were passed on so far (the After waits
-        until it computed them all before it sets the state). Raises RoleError unless a follower."""
+        forward stamped otherwise; returns how many requests were passed on so far (the After waits
+        until it computed them all before it sets the state). Raises RoleError unless a follower.
+        Numbers are only compared for equality: a leader started after a backward clock step numbers
+        its transfers below its predecessor's (a maximum kept refused all its forwards). The After's
+        calls never overtake one another (an exclusive deadline: no call while an abandoned one runs)."""
         if self.role != Role.BACKUP:
             raise RoleError('a %s Before follows no state transfer' % self.role.name)
-        self.transfer = max(self.transfer, transfer)   # a late call (abandoned past its deadline) lowers nothing
+        self.transfer = transfer
         return self.passed
 
     def set_role(self, role, epoch=0, transfer=0):

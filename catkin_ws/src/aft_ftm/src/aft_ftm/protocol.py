@@ -234,8 +234,8 @@ class ProtocolCore(object):
             # its predecessor's ids: dropped in silence, its every call hung. The primary tells it the ids
             # to use (a Proxy that had that id answered already ignores it).
             self.stats.dropped += 1
-            if self.role == Role.BACKUP:
-                return []
+            if self.role == Role.BACKUP or request.oldest_pending > request.id:
+                return []   # (its own oldest_pending says its Proxy has it answered: a late copy)
             self.stats.stale_ids += 1
             return [Renumber(request, self._highest_id(request.origin) + 1)]
         self.seen_high[request.origin] = max(request.id, self.seen_high.get(request.origin, 0))

@@ -595,10 +595,19 @@ class ReplayGuard(object):
 
     def __init__(self):
         self.watermarks = {}
+        self.highest = {}     # origin -> the highest id of a verified request
 
     def check(self, origin, request_id):
         if request_id < self.watermarks.get(origin, 0):
-            raise Rejected('replay', 'request %s/%d was already answered' % (origin, request_id))
+            raise Rejected('replay', 'request %s/%d was already answered (or its Proxy started again with a '
+                                     'clock behind: it is told to number from %d on)'
+                           % (origin, request_id, self.first_free(origin)))
 
-    def advance(self, origin, oldest_pending):
+    def advance(self, origin, oldest_pending, request_id=0):
         self.watermarks[origin] = max(self.watermarks.get(origin, 0), oldest_pending)
+        self.highest[origin] = max(self.highest.get(origin, 0), request_id)
+
+    def first_free(self, origin):
+        """The lowest id of origin above every one verified here: where a Proxy started again with its
+        clock behind numbers from (a STALE_ID answer, aft_msgs/Reply)."""
+        return max(self.watermarks.get(origin, 0), self.highest.get(origin, 0) + 1)

@@ -33,8 +33,18 @@ restarted is a new incarnation, whose server holds none of the old one's state.
 ``store`` (optional) persists the record before a grant is answered, so that a witness that
 restarts never grants an epoch twice; without it a restarted witness starts from epoch 0 and
 must not be restarted while replicas run (the README says so).
+
+A record lost or rolled back (a witness without a state file restarted, its file deleted or restored
+from an old copy) would grant epochs again that were granted already: two primaries in one epoch.
+Each request says the newest epoch its caller has seen (``known_epoch``); one above the record shows
+it is behind, and from then on the witness grants nothing, not even a STATUS (WitnessBehind), until
+it is restored. The sites see its older configuration too and tell it so (witness_client).
 """
 import enum
+
+
+class WitnessBehind(Exception):
+    """The record is older than an epoch a caller has seen: it was lost or rolled back."""
 
 
 class Op(enum.Enum):
@@ -73,6 +83,8 @@ class Witness(object):
         self.incarnations = {}      # site -> the incarnation that holds its role in this epoch
         self.reason = ''
         self.history = []           # (epoch, primary, backup, reason): every configuration made
+        self.behind = 0             # the newest epoch a caller has seen, once above the record (lost or rolled back)
+        self.behind_told_by = ''
         if store is not None:
             self._load(store.load())
 
@@ -85,11 +97,20 @@ class Witness(object):
         return 'primary' if site == self.primary else 'backup' if site == self.backup and site else ''
 
     # -- requests ---------------------------------------------------------------------------
-    def request(self, op, site, incarnation='', peer='', peer_incarnation='', claim=False, epoch=0):
+    def request(self, op, site, incarnation='', peer='', peer_incarnation='', claim=False, epoch=0, known_epoch=0):
         """Carry out one request; returns a Grant. Refusals change nothing. ``epoch`` (ADMIT): the epoch
-        the joined site's state transfer was made in; 0: not said."""
+        the joined site's state transfer was made in; 0: not said. ``known_epoch``: the newest epoch the
+        caller has seen; above the record, it raises WitnessBehind (and so does every request after)."""
         if not site:
             return self._grant(False, 'a request must name its site')
+        if known_epoch > max(self.epoch, self.behind):
+            self.behind = known_epoch
+            self.behind_told_by = site
+        if self.behind:
+            raise WitnessBehind('the witness\'s record is at epoch %d but %s has seen epoch %d: the record was '
+                                'lost or rolled back (restarted without its state file, or the file replaced); '
+                                'it grants nothing, or it could grant an epoch twice, until its record is '
+                                'restored' % (self.epoch, self.behind_told_by, self.behind))
         if op == Op.STATUS:
             return self.status()
         if op == Op.REGISTER:

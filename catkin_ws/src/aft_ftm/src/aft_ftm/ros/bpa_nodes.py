@@ -112,10 +112,17 @@ class BeforeNode(StageNode):
     STAGE = 'before'
 
 
+# rospy's words (and persistent_service's) for a call that failed before its request was written: no
+# connection could be made, the service has no provider, the master cannot tell where it is.
+_UNSENT = ('unable to connect', 'unavailable', 'no provider', 'cannot be reached', 'unable to contact master')
+
+
 def unsent(problem):
-    """Whether a failed server call's error says the request was never written: rospy could not connect
-    (nor exchange headers), so the server cannot have it. Any other break leaves its outcome unknown."""
-    return 'unable to connect' in problem.lower()
+    """Whether a failed server call's error says the request was never written, so the server cannot
+    have it. Any other break leaves its outcome unknown. (A connection its server closed before the
+    call is opened again first: aft_ftm.ros.persistent_service.)"""
+    low = problem.lower()
+    return any(words in low for words in _UNSENT)
 
 
 class ProceedNode(StageNode):

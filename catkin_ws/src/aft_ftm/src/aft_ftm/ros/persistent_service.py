@@ -60,6 +60,19 @@ class NotConnected(Exception):
     to be made with :meth:`PersistentService.call`, which opens one."""
 
 
+def _closed_by_peer(sock):
+    """Whether the peer closed (or reset) a connection that has nothing to read: a look, no byte taken.
+    A TLS socket is not looked at (its records are not the bytes read)."""
+    if isinstance(sock, ssl.SSLSocket):
+        return False
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b''
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
+
+
 class PersistentService(rospy.ServiceProxy):
     """A persistent rospy.ServiceProxy that can connect without the master.
 
@@ -115,6 +128,8 @@ class PersistentService(rospy.ServiceProxy):
         if not self._lock.acquire(timeout=timeout):
             raise Busy('another call on %s did not return within %.3f s' % (self.resolved_name, timeout))
         try:
+            if self.connected and _closed_by_peer(self.transport.socket):
+                self.reset()   # its server closed it (restarted): the worker's way opens a new one
             if not self.can_call_within:
                 raise NotConnected(self.resolved_name)
             return self._call_within(self.transport, deadline, args, kwds)
@@ -221,7 +236,12 @@ class PersistentService(rospy.ServiceProxy):
         return other
 
     def connect(self):
-        """Open the persistent connection if it is not open; raises rospy.ServiceException."""
+        """Open the persistent connection if it is not open, or if its server closed it (a server that
+        restarted: a request written there would be lost, its failure telling nothing of whether it
+        ran); raises rospy.ServiceException."""
+        if self.transport is not None and self.transport.socket is not None \
+                and _closed_by_peer(self.transport.socket):
+            self.reset()
         if self.transport is not None:
             return
         uri = self._get_service_uri(None)

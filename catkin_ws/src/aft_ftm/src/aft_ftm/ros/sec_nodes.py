@@ -470,9 +470,11 @@ class SecGateNode(object):
                 with self.lock:
                     self.origins.bind(party, request.origin)
                     self.replays.check(request.origin, request.id)
-                    self.replays.advance(request.origin, request.oldest_pending)
+                    self.replays.advance(request.origin, request.oldest_pending, request.id)
         except security.Rejected as e:
             self._reject(e, request)
+            if e.kind == 'replay':
+                self._renumber(request)
             return
         out = Request(id=request.id, origin=request.origin, client=request.client,
                       service_type=request.service_type, oldest_pending=request.oldest_pending,
@@ -484,6 +486,17 @@ class SecGateNode(object):
                 for key in [k for k in self.sent if k[0] == request.origin and k[1] < request.oldest_pending]:
                     del self.sent[key]   # answered: the Proxy will not ask again
         self.ports.publish('requests_out', out)
+
+    def _renumber(self, request):
+        """A verified request below the ids answered: a replay, or its Proxy started again with its clock
+        behind (numbering below its predecessor: refused here for ever, it hung). Its party is told, sealed,
+        the ids to use (STALE_ID, as the Protocol would): a Proxy waiting for that id sends it again
+        under a new one; one that is not (the replay's) ignores it. Nothing is executed."""
+        with self.lock:
+            first_id = self.replays.first_free(request.origin)
+        self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client, oldest_pending=first_id,
+                             attempt=request.attempt, batch=request.batch, status=Reply.STALE_ID,
+                             error='id below those answered already: renumber'))
 
     def resend(self):
         """A new server gate subscribed (a backup took over): send it what is not answered yet, at

@@ -1,5 +1,7 @@
 """A replica's side of the witness: its site's incarnation and calls with a deadline."""
 import os
+import threading
+import time
 
 import rospy
 from aft_msgs.msg import Configuration
@@ -53,6 +55,8 @@ class WitnessClient(object):
         self.timeout = timeout
         self.deadline = Deadline('witness')
         self.proxy = None
+        self.known = 0          # the newest epoch heard from the witness (told with every request)
+        self.told_back = 0      # the last older configuration the witness was told about
 
     def setup(self, timeout):
         try:
@@ -73,15 +77,41 @@ class WitnessClient(object):
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
         except (rospy.ServiceException, rospy.ROSException) as e:   # its connection is closed: opened again next
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
+        self.known = max(self.known, answer.epoch)
         return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
 
     def _call(self, op, peer, peer_incarnation, claim, epoch):
         return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
-                          peer_incarnation=peer_incarnation, claim=claim, epoch=epoch)
+                          peer_incarnation=peer_incarnation, claim=claim, epoch=epoch, known_epoch=self.known)
 
     def subscribe(self, callback):
-        """callback(aft_msgs/Configuration) on every configuration (the latest at once: latched)."""
-        return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, callback, tcp_nodelay=True)
+        """callback(aft_msgs/Configuration) on every configuration (the latest at once: latched). A
+        configuration older than one heard before means the witness lost or rolled back its record
+        (restarted without its state file): it is told at once, with a STATUS saying the epoch heard,
+        so that it grants nothing from then on (witness_behind), before a site that restarts claims it."""
+        def on_configuration(conf):
+            if conf.epoch < self.known and self.told_back != conf.epoch + 1:
+                self.told_back = conf.epoch + 1
+                threading.Thread(target=self._tell_behind, args=(conf.epoch,), daemon=True,
+                                 name='witness-behind').start()
+            self.known = max(self.known, conf.epoch)
+            callback(conf)
+        return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, on_configuration, tcp_nodelay=True)
+
+    def _tell_behind(self, epoch):
+        rospy.logerr('%s: the witness published epoch %d, older than epoch %d heard before: its record was lost '
+                     'or rolled back; it is told', rospy.get_name(), epoch, self.known)
+        for _ in range(10):   # bounded: the connection to the witness's old process broke, and opens again
+            try:
+                self.request(Op.STATUS)
+                return
+            except WitnessUnreachable as e:
+                if 'lost or rolled back' in str(e):   # told: it refuses everything now (witness_behind)
+                    rospy.loginfo('%s: the witness answers: %s', rospy.get_name(), e)
+                    return
+                if rospy.is_shutdown():
+                    return
+                time.sleep(0.2)
 
 
 def follow_site_role(site_role):

@@ -2,13 +2,13 @@
 import threading
 
 import rospy
-from aft_msgs.msg import Configuration
+from aft_msgs.msg import Alarm, Configuration
 from aft_msgs.srv import Witness as WitnessSrv, WitnessResponse
 
 from .. import config, health
 from ..errors import ConfigError
 from ..state_store import StateStore
-from ..witness import Op, Witness
+from ..witness import Op, Witness, WitnessBehind
 from .diagnostics import Diagnostics
 
 
@@ -28,6 +28,8 @@ class WitnessNode(object):
         ~request (aft_msgs/Witness)
     Publishes:
         ~configuration (aft_msgs/Configuration, latched): the current configuration, on every change.
+        /aft/alarms (aft_msgs/Alarm): ``witness witness_behind`` once a caller has seen a newer epoch than
+            the record (lost or rolled back): every request is then refused with a ServiceException.
     """
 
     def __init__(self):
@@ -44,6 +46,7 @@ class WitnessNode(object):
         self.persistent = store is not None
         self.lock = threading.Lock()
         self.diagnostics = None
+        self.told_behind = 0
 
     @staticmethod
     def _check(state):
@@ -54,6 +57,7 @@ class WitnessNode(object):
         return None
 
     def setup(self, timeout):
+        self.alarms = rospy.Publisher('/aft/alarms', Alarm, queue_size=10)
         self.publisher = rospy.Publisher('~configuration', Configuration, queue_size=10, latch=True)
         self._publish()
         rospy.Service('~request', WitnessSrv, self._on_request)
@@ -64,7 +68,7 @@ class WitnessNode(object):
     def _health(self):
         with self.lock:
             w = self.witness
-            return health.witness(w.epoch, w.primary, w.backup, w.reason, self.persistent)
+            return health.witness(w.epoch, w.primary, w.backup, w.reason, self.persistent, w.behind)
 
     def _publish(self):
         w = self.witness
@@ -81,7 +85,14 @@ class WitnessNode(object):
             before = self.witness.epoch
             try:
                 grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation,
-                                             req.claim, req.epoch)
+                                             req.claim, req.epoch, req.known_epoch)
+            except WitnessBehind as e:   # lost or rolled back: nothing is granted, and it is said
+                if self.told_behind != self.witness.behind:
+                    self.told_behind = self.witness.behind
+                    rospy.logerr('%s: %s', rospy.get_name(), e)
+                    self.alarms.publish(Alarm(source=rospy.get_name(), mechanism='witness', kind='witness_behind',
+                                              detail=str(e), stamp=rospy.Time.now()))
+                raise rospy.ServiceException(str(e))
             except OSError as e:   # the record could not be saved: nothing was granted or changed
                 why = '%s could not save its record (%s): %s of %s not granted, nothing changed; ask again' % (
                     rospy.get_name(), e, op.name, req.site)
