@@ -25,7 +25,8 @@ def deliver(backup, out, sender, now, node_accepts=True):
     """A checkpoint reaches the backup; returns (ok, notes) as its acknowledgment says."""
     decision, notes = backup.on_checkpoint(out.seq, sender, out.first_seq, True)
     if decision in (Decision.APPLY, Decision.APPLY_FULL):
-        notes += backup.applied(out.seq, sender, node_accepts, '' if node_accepts else 'state refused', now)
+        notes += backup.applied(out.seq, sender, node_accepts, '' if node_accepts else 'state refused', now,
+                                out.first_seq)
         return node_accepts, notes
     return decision == Decision.REACK, notes
 
@@ -219,3 +220,15 @@ def test_the_controller_state_survives_two_failovers_with_a_rejoin_in_between():
     assert integrals == list(range(1, 51))
     assert [c[1] for c in pair.commands] == ['board_a'] * 20 + ['board_b'] * 20 + ['board_a'] * 10
     assert not [n for n in pair.notes if n.alarm]
+
+
+def test_a_primary_started_again_behind_the_clock_is_a_gap_for_its_backup_not_copies():
+    """Review of stop 38: the primary's cycle After respawned under its name, numbering from a clock
+    stepped back below the checkpoints its backup held; each was acknowledged as a re-sent copy and
+    never applied. It is a gap now: the backup says it cannot follow and joins again."""
+    primary, backup = replica(A, Role.PRIMARY, first_seq=5000), replica(B, Role.BACKUP, expect='/board_a/')
+    out, _ = primary.cycle_end(b'state 1', now=0.0)
+    assert deliver(backup, out, A, now=0.0)[0]
+    again, _ = replica(A, Role.PRIMARY, first_seq=40).cycle_end(b'state 2', now=0.1)
+    ok, notes = deliver(backup, again, A, now=0.1)
+    assert not ok and alarms(notes) and not backup.following

@@ -177,12 +177,14 @@ class CycleReplica(object):
             return decision, self._invalid(seq, 'a checkpoint is missing before it')
         return decision, []
 
-    def applied(self, seq, sender, ok, error, now):
-        """The node took the state of checkpoint seq (ok), or refused it (error). Returns notes."""
+    def applied(self, seq, sender, ok, error, now, first_seq=0):
+        """The node took the state of checkpoint seq (ok), or refused it (error); ``first_seq``: the number
+        its sender numbers from (a sender started again numbering below is then a gap, not copies).
+        Returns notes."""
         if not ok:
             return self._invalid(seq, error)
         joining = self.receiver.state == Follow.JOINING
-        self.receiver.accept(seq, sender)
+        self.receiver.accept(seq, sender, first_seq=first_seq)
         self.last_applied, self.own_cycles = now, 0
         if joining:
             return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]

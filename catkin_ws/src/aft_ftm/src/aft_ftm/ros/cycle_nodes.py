@@ -236,7 +236,7 @@ class CycleAfterNode(object):
             except (rospy.ServiceException, rospy.ROSException) as e:
                 ok, error = False, 'set_state failed: %s' % e
             with self.lock:
-                notes = self.replica.applied(cp.seq, cp.sender, ok, error, time.monotonic())
+                notes = self.replica.applied(cp.seq, cp.sender, ok, error, time.monotonic(), cp.first_seq)
             self._report(notes)
         elif decision == Decision.REACK:
             ok = True
