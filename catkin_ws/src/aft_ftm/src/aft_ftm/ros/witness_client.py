@@ -99,15 +99,15 @@ class WitnessClient(object):
         return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, on_configuration, tcp_nodelay=True)
 
     def _tell_behind(self, epoch):
-        rospy.logerr('%s: the witness published epoch %d, older than epoch %d heard before: its record was lost '
-                     'or rolled back; it is told', rospy.get_name(), epoch, self.known)
+        # (A configuration overtaken by a newer grant's answer comes older too: the witness then answers.)
         for _ in range(10):   # bounded: the connection to the witness's old process broke, and opens again
             try:
                 self.request(Op.STATUS)
                 return
             except WitnessUnreachable as e:
                 if 'lost or rolled back' in str(e):   # told: it refuses everything now (witness_behind)
-                    rospy.loginfo('%s: the witness answers: %s', rospy.get_name(), e)
+                    rospy.logerr('%s: the witness published epoch %d, older than epoch %d heard before: %s',
+                                 rospy.get_name(), epoch, self.known, e)
                     return
                 if rospy.is_shutdown():
                     return
