@@ -40,3 +40,21 @@ def test_a_publisher_writes_to_the_port_only_once_it_lists_the_connection(monkey
 def test_a_publisher_that_cannot_be_asked_holds_nothing_up(monkeypatch):
     monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi([], fail=True))
     assert _writes_to(FakeMaster(), '/master/before', '/master/tr/protocol', TOPIC, deadline=1e18) is True
+
+
+def test_a_connection_listed_before_the_binding_is_not_taken_for_the_new_one(monkeypatch):
+    """CI, stop 38: a rollback bound Proceed's input back a moment after unbinding it; Before still
+    listed the old, closed connection to it, the check passed on it, and the first request after the
+    resume went there and was lost (30 s later the site fail-stopped). Only a newer connection counts."""
+    from aft_ftm.ros.ports import _outbound_to
+    old = [(7, '/master/proceed', 'o', 'TCPROS', TOPIC, True, '')]
+    monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi(old))
+
+    class Master(FakeMaster):
+        def getSystemState(self):
+            return [(TOPIC, ['/master/before']), ('/other', ['/x'])], [], []
+    assert _outbound_to(Master(), TOPIC, '/master/proceed', timeout=1.0) == {'/master/before': 7}
+    assert not _writes_to(FakeMaster(), '/master/before', '/master/proceed', TOPIC, deadline=1e18, above=7)
+    both = old + [(9, '/master/proceed', 'o', 'TCPROS', TOPIC, True, '')]
+    monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi(both))
+    assert _writes_to(FakeMaster(), '/master/before', '/master/proceed', TOPIC, deadline=1e18, above=7)

@@ -198,9 +198,14 @@ class Ports(object):
             return 'rebind of port %s to %s would be accepted' % (port, resolved or '(none)'), previous
         if not activate:
             return self.unbind(port), previous
+        stale = {}
+        if connect_timeout > 0 and spec.direction == rules.SUBSCRIBE:
+            # What each publisher writes to this node now, before the new connection: a connection of a
+            # binding undone a moment ago may still be listed (its publisher has not seen it closed yet).
+            stale = _outbound_to(master, resolved, rospy.get_name(), connect_timeout)
         message = self.bind(port, resolved, queue_size)
         if connect_timeout > 0:
-            missing = self._wait_peers(master, port, spec, resolved, connect_timeout)
+            missing = self._wait_peers(master, port, spec, resolved, connect_timeout, stale)
             if missing:
                 if previous:
                     self.bind(port, previous, queue_size)
@@ -211,8 +216,10 @@ class Ports(object):
             message += ', connected'
         return message, previous
 
-    def _wait_peers(self, master, port, spec, topic, timeout):
-        """Wait until the port's handle counts as many connections as the topic has peers."""
+    def _wait_peers(self, master, port, spec, topic, timeout, stale=None):
+        """Wait until the port's handle counts as many connections as the topic has peers (a subscribe
+        port: until each publisher lists a connection to it newer than those in ``stale``,
+        {publisher: highest connection id it listed before the binding})."""
         me = rospy.get_name()
         try:
             pubs, subs, _ = master.getSystemState()
@@ -231,10 +238,14 @@ class Ports(object):
         # publisher adds the connection to those it writes to only after answering: a message
         # published in between never reaches this port (adaptation.test under load: the request
         # Before passed on right after the pause reached nobody, and hung for good). So each
-        # publisher is asked until it lists this node among the subscribers it writes to.
+        # publisher is asked until it lists this node among the subscribers it writes to, on a
+        # connection newer than any it listed before the binding: the connection of a binding undone
+        # a moment ago (a rollback's restore_binding) was still listed, closed, and took the first
+        # request after the resume (CI, stop 38: it hung 30 s, then its site fail-stopped).
+        stale = stale or {}
         waiting = list(peers)
         while waiting:
-            waiting = [p for p in waiting if not _writes_to(master, p, me, topic, deadline)]
+            waiting = [p for p in waiting if not _writes_to(master, p, me, topic, deadline, stale.get(p, 0))]
             if waiting and time.monotonic() >= deadline:
                 return ['%s (it does not write to %s yet)' % (p, me) for p in waiting]
             if waiting:
@@ -347,18 +358,41 @@ class Ports(object):
                 self._unbind_locked(name)
 
 
-def _writes_to(master, publisher, subscriber, topic, deadline):
-    """Whether the publisher node lists an outbound connection of topic to subscriber (getBusInfo);
-    True where it cannot be asked in time (it answered the subscriber a moment ago: it lives)."""
+def _outbound_ids(master, publisher, subscriber, topic, deadline):
+    """The ids of the outbound connections of topic to subscriber the publisher node lists (getBusInfo;
+    a node's connection ids only grow), or None where it cannot be asked in time."""
     from .fencing import node_api
     try:
         uri = master.lookupNode(publisher)
         code, _, info = node_api(uri, max(0.05, min(1.0, deadline - time.monotonic()))).getBusInfo(subscriber)
-    except Exception:   # not asked: no worse than before the check
-        return True
+    except Exception:
+        return None
     if code != 1:
-        return True
-    return any(len(c) > 4 and c[1] == subscriber and c[2] == 'o' and c[4] == topic for c in info)
+        return None
+    return [c[0] for c in info if len(c) > 4 and c[1] == subscriber and c[2] == 'o' and c[4] == topic
+            and isinstance(c[0], int)]
+
+
+def _writes_to(master, publisher, subscriber, topic, deadline, above=0):
+    """Whether the publisher node lists an outbound connection of topic to subscriber with an id above
+    ``above``; True where it cannot be asked in time (it answered the subscriber a moment ago: it lives)."""
+    ids = _outbound_ids(master, publisher, subscriber, topic, deadline)
+    return ids is None or any(i > above for i in ids)
+
+
+def _outbound_to(master, topic, subscriber, timeout):
+    """{publisher of topic: the highest id of the connections of topic to subscriber it lists now}."""
+    deadline = time.monotonic() + timeout
+    try:
+        pubs, _, _ = master.getSystemState()
+    except Exception:   # not asked: the wait after the binding asks again (no worse than before)
+        return {}
+    listed = {}
+    for publisher in sorted({n for t, nodes in pubs if t == topic for n in nodes} - {subscriber}):
+        ids = _outbound_ids(master, publisher, subscriber, topic, deadline)
+        if ids:
+            listed[publisher] = max(ids)
+    return listed
 
 
 def publisher_callers(impl, live_only=False):
