@@ -12,9 +12,12 @@ from aft_ftm.process_start import CLOCK_TICKS, started
 
 def test_a_process_start_is_the_kernel_s_clock_ticks_since_boot():
     me = started(os.getpid())
-    assert me is not None and me > 0 and round(me * CLOCK_TICKS) == me * CLOCK_TICKS
-    # psutil's create_time is the boot time plus the same ticks: they differ by the boot time only
-    assert abs(psutil.Process().create_time() - psutil.boot_time() - me) < 0.02
+    assert me is not None and me > 0 and abs(me * CLOCK_TICKS - round(me * CLOCK_TICKS)) < 1e-6   # whole ticks
+    # psutil's create_time is the boot time plus the same ticks: they differ by the boot time only.
+    # The kernel's boot time (btime of /proc/stat, whole seconds, derived from the wall clock) may
+    # read one second apart from psutil's cached one as the clock is slewed: that is the point here.
+    off = psutil.Process().create_time() - psutil.boot_time() - me
+    assert abs(off - round(off)) < 0.02 and abs(round(off)) <= 1, off
     child = subprocess.Popen([sys.executable, '-c', 'import sys; sys.stdin.read()'], stdin=subprocess.PIPE)
     try:
         assert started(child.pid) >= me                       # started later
