@@ -34,6 +34,7 @@ Invariants the After keeps (:class:`LfrAfter`):
 Every change of state goes through ``_change`` along :data:`EDGES`; the replica's role is derived
 from the state (:data:`ROLE_OF`), so that each node has exactly one owner of its role.
 """
+import collections
 import enum
 
 from .errors import RoleError
@@ -417,6 +418,9 @@ class Forwarded(enum.Enum):
     STALE = 2           # refused: forwarded before the state transfer this follower joined with,
                         # so that transfer's state contains it already (computing it again would
                         # put the follower ahead of its leader)
+    DUPLICATE = 3       # refused: this follower passed the same request (origin, id) on already; a
+                        # second copy (a publisher heard on two connections across a rebind, or a
+                        # message published again by anyone on the graph) would compute it twice
 
 
 class LfrForwarder(object):
@@ -433,10 +437,17 @@ class LfrForwarder(object):
     A Before frozen past the leader's ack timeout, whose follower was excluded and joined again
     meanwhile, thus never passes its backlog on to the server again. Transfer seqs grow (the
     leader numbers them from the wall clock), so the forwards of the transfer joined with and of
-    later ones pass."""
+    later ones pass.
 
-    def __init__(self, role):
+    A follower remembers the last ``remember`` requests it passed on (origin, id): the leader forwards
+    each request once, so a second copy is refused (:attr:`Forwarded.DUPLICATE`), never computed
+    twice (the follower's state would run ahead of its leader's, silently, until a failover served it)."""
+
+    def __init__(self, role, remember=65536):
         self.role = role
+        self.remember = remember
+        self.recent = collections.OrderedDict()   # follower: (origin, id) of the requests passed on, oldest first
+        self.duplicates = 0  # second copies of a forward refused
         self.epoch = 0       # the witness's epoch of the last role given (a late, older order changes nothing)
         self.transfer = 0    # leader: the stamp of its forwards; follower: forwards stamped below are stale
         self.passed = 0
@@ -450,8 +461,9 @@ class LfrForwarder(object):
         """Leader: the state transfer its follower joined with (stamped on each forwarded request)."""
         return self.transfer
 
-    def on_forwarded(self, transfer=0):
-        """A request forwarded by the leader, stamped ``transfer``: pass it on or refuse it (Forwarded)."""
+    def on_forwarded(self, transfer=0, key=None):
+        """A request forwarded by the leader, stamped ``transfer``, ``key`` its (origin, id): pass it on
+        or refuse it (Forwarded)."""
         if self.role != Role.BACKUP:
             self.refused += 1
             return Forwarded.NOT_FOLLOWER
@@ -459,6 +471,13 @@ class LfrForwarder(object):
             # clock step numbers lower; a follower that followed no transfer has nothing to refuse by)
             self.stale += 1
             return Forwarded.STALE
+        if key is not None:
+            if key in self.recent:
+                self.duplicates += 1
+                return Forwarded.DUPLICATE
+            self.recent[key] = True
+            while len(self.recent) > self.remember:
+                self.recent.popitem(last=False)
         self.passed += 1
         return Forwarded.PASS
 

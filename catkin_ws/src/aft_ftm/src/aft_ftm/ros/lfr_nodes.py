@@ -22,6 +22,7 @@ from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from ..transfer import Incoming, Outgoing, TransferError
 from ..witness import Op
+from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
 from .params import param
@@ -58,12 +59,14 @@ class LfrBeforeNode(BeforeNode):
         self.forwarder = LfrForwarder(_role())   # the one owner of this Before's role
         super(LfrBeforeNode, self).__init__(
             extra_ports=[PortSpec('forward', PUBLISH, 'aft_msgs/Request'),
-                         PortSpec('forwarded', SUBSCRIBE, 'aft_msgs/Request')],
+                         PortSpec('forwarded', SUBSCRIBE, 'aft_msgs/Request'),
+                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             extra_callbacks={'forwarded': self._on_forwarded})
         self.lock = threading.Lock()
 
     def setup(self, timeout):
         self.ports.bind('forward')
+        self.ports.bind('alarms', '/aft/alarms')
         # Offered first: the LFR After waits for it before it takes input, and this Before's pipeline
         # connects only once the After does (see StageNode.setup).
         rospy.Service('~set_role', SetRole, self._on_set_role)
@@ -83,12 +86,16 @@ class LfrBeforeNode(BeforeNode):
 
     def _on_forwarded(self, request):
         with self.lock:
-            decision = self.forwarder.on_forwarded(request.transfer)
+            decision = self.forwarder.on_forwarded(request.transfer, (request.origin, request.id))
             if decision == Forwarded.PASS:
                 self.ports.publish('out', request)
                 return
-            stale = self.forwarder.stale
-        if decision == Forwarded.NOT_FOLLOWER:
+            stale, duplicates = self.forwarder.stale, self.forwarder.duplicates
+        if decision == Forwarded.DUPLICATE:
+            alarm(self.ports, 'lfr', 'duplicate_forward', 'forwarded request %s/%d refused: passed on once already, '
+                  'a second copy is not computed (%d refused so far)' % (request.origin, request.id, duplicates),
+                  request)
+        elif decision == Forwarded.NOT_FOLLOWER:
             rospy.logwarn('%s: forwarded request %s/%d refused: no longer a follower', self.name,
                           request.origin, request.id)
         else:
