@@ -36,7 +36,7 @@ class FakeNodes(object):
                 with nodes.lock:
                     nodes.created.append((self.node, threading.current_thread().name))
 
-            def __call__(self, probe=False, renew=False, lease=0.0):
+            def __call__(self, probe=False, renew=False, lease=0.0, owner=""):
                 mode = nodes.mode.get(self.node, 'ok')
                 if probe:
                     return type('Answer', (), {'success': True, 'message': 'CLOSED'})()

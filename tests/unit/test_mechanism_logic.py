@@ -70,10 +70,39 @@ def crashes(*_):
     raise KeyError('speed')
 
 
+class NumpyLikeFalse(object):
+    """What numpy.all() returns for a failed check: numpy.False_, false but not ``False``."""
+    def __bool__(self):
+        return False
+
+    def __repr__(self):
+        return 'np.False_'
+
+
+class Ambiguous(object):
+    """A numpy array returned by mistake: its truth cannot be told."""
+    def __bool__(self):
+        raise ValueError('the truth value of an array with more than one element is ambiguous')
+
+
+def numpy_false(*_):
+    return NumpyLikeFalse()
+
+
+def zero(*_):
+    return 0
+
+
+def an_array(*_):
+    return Ambiguous()
+
+
 @pytest.mark.parametrize('fn,detail', [
     (passes, None), (silent, None), (fails, 'returned False'),
     (explains, 'speed 12 km/h is above 10 km/h'), (asserts, 'one is not two'),
     (crashes, "raised KeyError: 'speed'"),                   # cannot be evaluated: violated, never passed
+    # Review, stop 39: only ``is False`` was a violation; numpy.all()'s False_ let the reply through.
+    (numpy_false, 'returned np.False_'), (zero, 'returned 0'), (an_array, 'not a verdict: the truth value'),
 ])
 def test_assertion_outcomes(fn, detail):
     violations = assertions.check([(fn.__name__, fn)], 'request', 'response')

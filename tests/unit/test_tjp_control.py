@@ -147,3 +147,66 @@ def test_bad_parameters_are_named(kwargs, message):
 def test_bad_emergency_braking_parameters_are_named(kwargs, message):
     with pytest.raises(TjpConfigError, match=message):
         EmergencyBraking(**kwargs)
+
+
+# -- review of stop 39: Emergency Braking's own speed, and readings that are not numbers -------------
+def test_imu_dropouts_towards_zero_do_not_shrink_the_braking_distance():
+    """The FMECA's IMU value faults (a quarter of the readings drop towards zero): with the raw
+    reading, a dropout made the braking distance that of a standing car and broke the confirmation
+    chain; the car ran into obstacles it brakes for without the faults."""
+    import random
+    rng = random.Random(39)
+    braking = EmergencyBraking(confirm=3, period=0.04)
+    t, active = 0.0, False
+    for step in range(200):                        # 4 s at 6 m/s, IMU every 20 ms, ultrasonic every 40 ms
+        t = step * 0.02
+        braking.observe_speed(0.0 if rng.random() < 0.25 else 6.0, t)
+        if step >= 10:                             # a full window: never the speed of a dropout
+            assert braking.speed_at(t) == 6.0, (step, t)
+        if step % 2 == 0 and step >= 100:           # an obstacle 5 m ahead from 2 s on
+            active = braking.update(5.0, t)
+            if active:
+                break
+    assert active and braking.activations == 1 and t <= 2.0 + 3 * 0.04
+
+
+def test_one_upward_imu_spike_does_not_make_it_brake_for_the_car_ahead():
+    braking = EmergencyBraking(confirm=3, period=0.04)
+    for step in range(50):                         # standing 2 m behind the leader, one spike of 10 m/s
+        t = step * 0.02
+        braking.observe_speed(10.0 if step == 20 else 0.0, t)
+        if step % 2 == 0:
+            assert not braking.update(2.0, t), step
+
+
+def test_without_imu_readings_it_brakes_for_the_speed_the_car_may_have_reached():
+    braking = EmergencyBraking(max_accel=3.0, speed_window=0.2)
+    assert braking.speed_at(0.0) == 0.0 and not braking.speed_stale(0.0)
+    braking.observe_speed(5.0, 1.0)
+    assert braking.speed_at(1.1) == 5.0 and not braking.speed_stale(1.1)
+    assert braking.speed_stale(2.0) and braking.speed_at(2.0) == pytest.approx(8.0)
+    for bad in (float('nan'), float('inf'), None, True):
+        assert not braking.observe_speed(bad, 2.0)
+    assert braking.speed_refused == 4 and braking.speed_stale(2.0)
+
+
+def test_an_invalid_ultrasonic_reading_neither_confirms_nor_clears_an_obstacle():
+    braking = EmergencyBraking(confirm=1, release_delay=0.5)
+    nan = float('nan')
+    assert not braking.update(nan, 0.0, speed=3.0)
+    assert braking.update(0.8, 0.1, speed=3.0)
+    assert all(braking.update(nan, t, speed=0.0) for t in (0.2, 1.0, 2.0))   # NaN compared false: "gone"
+    assert braking.invalid == 4 and braking.activations == 1
+
+
+def test_a_controller_state_with_a_number_that_is_not_finite_is_refused():
+    pid = PidController()
+    pid.update(15.0, 10.0, 0.0)
+    before = pid.state()
+    nan, inf = float('nan'), float('inf')
+    for bad in ({'integral': nan, 'last_gap': 1.0, 'last_time': 1.0},
+                {'integral': 0.0, 'last_gap': nan, 'last_time': 1.0},
+                {'integral': 0.0, 'last_gap': 1.0, 'last_time': inf}):
+        with pytest.raises(TjpConfigError, match='not a finite number'):
+            pid.set_state(bad)
+        assert pid.state() == before

@@ -69,3 +69,39 @@ def test_the_fmeca_ships_every_row_of_the_paper_each_with_a_mechanism_and_a_scen
 def test_a_malformed_fmeca_is_refused_naming_the_problem(text, message):
     with pytest.raises(TjpConfigError, match=message):
         fmeca.parse(text)
+
+
+# -- review of stop 39: readings that are not numbers, and a lasting jump ---------------------------
+def test_a_reading_that_is_not_a_number_is_masked_never_averaged_in():
+    window = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    for _ in range(5):
+        window.add(10.0)
+    for bad in (float('nan'), float('inf'), float('-inf')):
+        value, masked = window.add(bad)
+        assert masked and value == 10.0        # NaN compared false with the median: it entered the window
+    assert window.masked == 3 and window.value() == 10.0
+
+
+def test_a_stuck_sensor_the_window_follows_is_said_not_silent():
+    """A stuck-at-zero IMU at 10 m/s agrees with itself: after ``persist`` readings the window follows
+    it (it cannot tell it from a collision); ``followed`` and ``jump`` say so, for the node's alarm."""
+    window = SlidingAverage(size=5, tolerance=1.0, persist=10)
+    for _ in range(20):
+        window.add(10.0)
+    outputs = [window.add(0.0)[0] for _ in range(40)]
+    assert outputs[:9] == [10.0] * 9 and outputs[-1] == 0.0
+    assert window.followed == 1 and window.jump == (10.0, 0.0)
+
+
+def test_nan_lasers_vote_as_missing_and_never_outvote_a_good_one():
+    from tjp_sim.filters import LaserVoter
+    voter = LaserVoter(tolerance=0.2, silent_after=3)
+    decided = []
+    for stamp in range(1, 6):
+        for index, value in ((0, float('nan')), (1, float('nan')), (2, 8.0)):
+            decided += voter.add(index, stamp, value)
+    assert len(decided) == 5 and voter.invalid == 10
+    # Before: NaN was "nothing in range", two of them agreed: free road, the good laser named faulty.
+    assert all(not vote_.ok and vote_.faulty == [] for _, vote_, _ in decided)
+    silent = sorted(i for _, _, newly in decided for i in newly)
+    assert silent == [0, 1]                    # a laser that gives only NaN is as good as silent

@@ -3,8 +3,9 @@
 An assertion is an importable callable, named ``package.module:function``:
   * a request assertion is called as f(request) before the request is executed;
   * a reply assertion is called as f(request, response) on each reply.
-It passes by returning True or None; it is violated by returning False or a string (the
-detail), or by raising AssertionError. Any other exception is a violation too (a safety check
+It passes by returning True or None (or anything true, such as numpy.True_); it is violated by
+returning a string (the detail) or anything false (False, numpy.False_, 0, an empty list), or by
+raising AssertionError; a value whose truth cannot be told (a numpy array) is a violation. Any other exception is a violation too (a safety check
 that cannot be evaluated must not let a reply through).
 """
 import importlib
@@ -49,8 +50,16 @@ def check(assertions, *args):
         except Exception as e:   # a check that cannot be evaluated is a violation
             violations.append((name, 'raised %s: %s' % (type(e).__name__, e)))
             continue
-        if verdict is False:
-            violations.append((name, 'returned False'))
-        elif isinstance(verdict, str):
+        if verdict is None or verdict is True:
+            continue
+        if isinstance(verdict, str):
             violations.append((name, verdict))
+            continue
+        try:
+            passed = bool(verdict)    # numpy.bool_, 0, [] ... (numpy.all() returns numpy.False_, not False)
+        except Exception as e:        # an array's truth is ambiguous: not a verdict
+            violations.append((name, 'returned %s, not a verdict: %s' % (type(verdict).__name__, e)))
+            continue
+        if not passed:
+            violations.append((name, 'returned %r' % (verdict,)))
     return violations

@@ -116,6 +116,13 @@ class Gate(object):
     the suspension up (every held message is delivered, that one last) rather than drop it.
     ``on_self_resume(event, detail)`` is told each time the gate ends a suspension on its own
     (:data:`SELF_RESUMING`), after the held messages are delivered.
+
+    A suspension may name its ``owner`` (an adaptation's own token; '' for none, as an operator's):
+    while one owner holds the gate, another's close, renew and open are refused (SuspendError). Two
+    engines each took the other's suspension for its own, and a resume by one ended the other's
+    pause in the middle of its rebinds with nothing said (review of stop 39). An open without an
+    owner (an operator's) still opens any suspension: the owner finds out at its own resume
+    (:meth:`suspended_by`).
     """
 
     def __init__(self, callbacks, log_error=None, size=approx_size, max_bytes=None, on_self_resume=None):
@@ -132,6 +139,7 @@ class Gate(object):
         self._lease = None            # s, of the current suspension (None: until resumed)
         self._lease_until = None      # when it runs out (the clock of close(), renew(), expire())
         self.state = GateState.OPEN
+        self.owner = ''               # who holds the current suspension ('' none named, or not suspended)
         self.last_end = ''            # why the last suspension ended (the reason of its edge)
         self.delivered_late = 0       # messages held and delivered on resume, in all
         self.self_resumed = 0         # suspensions the gate ended on its own (lease, buffer)
@@ -145,6 +153,7 @@ class Gate(object):
         if self.state == GateState.OPENING:
             self.last_end = reason
             self._lease = self._lease_until = None
+            self.owner = ''
         self._cond.notify_all()
         return reason
 
@@ -200,16 +209,30 @@ class Gate(object):
                 self._active -= 1
                 self._cond.notify_all()
 
-    def close(self, ports, quiescent, timeout, clock=time.monotonic, lease=None):
+    def _check_owner(self, owner, what):
+        """SuspendError if another owner holds the suspension (caller holds the lock)."""
+        if owner and self.owner and owner != self.owner and self.state in (GateState.CLOSING, GateState.CLOSED):
+            raise SuspendError('suspended by %s: not %s\'s to %s' % (self.owner, owner, what))
+
+    def suspended_by(self, owner):
+        """Whether the gate is suspended (CLOSED) by ``owner`` now."""
+        with self._cond:
+            return self.state == GateState.CLOSED and self.owner == owner
+
+    def close(self, ports, quiescent, timeout, clock=time.monotonic, lease=None, owner=''):
         """Hold ports and wait until nothing is inside (no handler running, quiescent() true).
 
         Returns the number of messages held so far. On timeout the gate opens again (held
         messages delivered) and SuspendError says what was still inside. ``lease`` (s, None for
-        none) starts once CLOSED, on ``clock``; closing a CLOSED gate only sets its lease anew.
+        none) starts once CLOSED, on ``clock``; closing a CLOSED gate only sets its lease anew
+        (refused if another ``owner`` holds it).
         """
         with self._cond:
+            self._check_owner(owner, 'suspend')
             if self.state == GateState.CLOSED:
                 self._set_lease(lease, clock())
+                if owner and not self.owner:
+                    self.owner = owner
                 return len(self._held)
             if self.state == GateState.CLOSING:
                 raise SuspendError('a suspension is already in progress')
@@ -217,6 +240,7 @@ class Gate(object):
                 raise SuspendError('still delivering the messages held by the last suspension: try again')
             self._hold_ports = frozenset(ports)
             self._change(Event.SUSPEND)
+            self.owner = owner
             deadline = clock() + timeout
             while True:
                 if self.state != GateState.CLOSING:   # given up meanwhile (buffer full, resume asked)
@@ -241,10 +265,12 @@ class Gate(object):
         self._lease = lease
         self._lease_until = None if lease is None else now + lease
 
-    def renew(self, lease, now):
+    def renew(self, lease, now, owner=''):
         """Extend the current suspension's lease to ``now + lease``; change nothing else. Returns
-        the messages held. SuspendError if the gate is not suspended (saying how it ended)."""
+        the messages held. SuspendError if the gate is not suspended (saying how it ended), or
+        suspended by another owner."""
         with self._cond:
+            self._check_owner(owner, 'renew')
             if self.state != GateState.CLOSED:
                 ended = ' (last suspension: %s)' % self.last_end if self.last_end else ''
                 raise SuspendError('not suspended (%s): nothing to renew%s' % (self.state.name, ended))
@@ -265,10 +291,12 @@ class Gate(object):
                              'renewal: resumed by itself, %d held messages delivered' % (lease, late, delivered))
         return delivered
 
-    def open(self):
+    def open(self, owner=''):
         """Deliver the held messages in arrival order, then handle messages as they come.
-        Returns how many held messages were delivered (0 if another caller is delivering them)."""
+        Returns how many held messages were delivered (0 if another caller is delivering them).
+        SuspendError if another ``owner`` holds the suspension (nothing changes)."""
         with self._cond:
+            self._check_owner(owner, 'resume')
             if self.state in (GateState.OPEN, GateState.OPENING):
                 return 0
             self._change(Event.RESUME)

@@ -22,6 +22,12 @@ Invariants:
 - the run stops between groups of steps, never inside one: an interrupt (the ``adapt`` command's
   SIGINT or SIGTERM) or a lost suspension (its lease ran out) rolls back before the next group;
   a step that fails while interrupted is reported as interrupted;
+- the group of the last resumes is the commit point: once one of its nodes is resumed, that site
+  serves in the new configuration, and undoing the bindings would rebind it live (a request inside
+  a stopped mechanism lost, review of stop 39). So a resume that fails while another of the group
+  succeeded is not rolled back: it is reported (``resume_errors``, ok false, an alarm), and the node
+  resumes when its lease runs out. Only a group none of whose resumes succeeded is rolled back (the
+  engine fails them all, resuming none, when it finds the pause broken);
 - once the last suspended node is resumed the new configuration serves (CLEANING_UP): what is
   left (the prepared order's kills) is cleanup; its failures are reported, never rolled back
   (undoing would rebind a live graph), and an interrupt leaves the rest undone;
@@ -118,6 +124,7 @@ class Transaction(object):
         self.undo_index = 0         # the next undo step
         self.rollback = []          # {'action', 'target', 'ok', 'detail'} of each undo step
         self.cleanup_errors = []    # 'action target: why' of each cleanup step failed or left undone
+        self.resume_errors = []     # 'resume target: why' of the last resumes that failed beside one that did not
         self.error = ''             # why it was rolled back
         self.interrupted = ''       # the interrupt acted on ('' if none)
         self.pause_start = None     # when the first suspension started (caller's clock)
@@ -239,7 +246,12 @@ class Transaction(object):
                 # lost): the rollback resumes it too, which is harmless on a running node.
                 self.done.append((o.step, o.info))
         failed = [o for o in outcomes if o.error is not None]
-        if failed:
+        if failed and len(failed) < len(outcomes) and self.index - 1 == self.last_resume:
+            # Committed: a site of the group serves in the new configuration (see the invariants).
+            self.resume_errors += ['%s %s: %s' % (o.step.action, o.step.target, o.error) for o in failed]
+            self.error = 'the last resumes partly failed (the adaptation stands): %s' % '; '.join(self.resume_errors)
+            self.pause_end = now
+        elif failed:
             first = failed[0]
             if interrupted:
                 error = 'interrupted (%s) during step %s %s' % (interrupted, first.step.action, first.step.target)
@@ -269,7 +281,7 @@ class Transaction(object):
     # -- the outcome --------------------------------------------------------------------------
     @property
     def ok(self):
-        return self.state is State.DONE
+        return self.state is State.DONE and not self.resume_errors
 
     @property
     def rolled_back(self):
@@ -283,7 +295,12 @@ class Transaction(object):
 
     @property
     def alarm(self):
-        """'' unless the rollback failed; then what is left as it should not be (an alarm's text)."""
+        """'' unless the rollback failed, or a last resume failed beside one that did not; then what
+        is left as it should not be (an alarm's text)."""
+        if self.state is State.DONE and self.resume_errors:
+            return ('adaptation %s: the new configuration serves, but %s: a node not resumed resumes by itself '
+                    'when its lease runs out; one whose suspension had ended ran during the rebinds (requests '
+                    'then may have been lost or executed twice)' % (self.name, '; '.join(self.resume_errors)))
         if self.state is not State.FAILED:
             return ''
         failed = ['%s %s (%s)' % (r['action'], r['target'], r['detail']) for r in self.rollback if not r['ok']]
@@ -293,7 +310,8 @@ class Transaction(object):
     def summary(self):
         """The transaction's part of the engine's report (JSON-ready)."""
         out = {'ok': self.ok, 'error': self.error, 'interrupted': self.interrupted, 'rolled_back': self.rolled_back,
-               'cleanup_errors': list(self.cleanup_errors), 'pause_s': self.pause_s, 'state': self.state.name,
+               'cleanup_errors': list(self.cleanup_errors), 'resume_errors': list(self.resume_errors),
+               'pause_s': self.pause_s, 'state': self.state.name,
                'alarm': self.alarm}
         if self.rolled_back:
             out['rollback'] = [dict(r) for r in self.rollback]

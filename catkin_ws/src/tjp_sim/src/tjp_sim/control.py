@@ -11,7 +11,9 @@
 
 Units: metres, seconds, m/s, m/s^2. ``now`` is passed in; nothing here sleeps.
 """
+import collections
 import enum
+import math
 
 from .errors import TjpConfigError
 
@@ -103,6 +105,11 @@ class PidController(object):
             raise TjpConfigError('bad controller state: integral %g outside +-%g' % (integral, self.integral_limit))
         if closing != closing or abs(closing) > MAX_CLOSING:
             raise TjpConfigError('bad controller state: closing speed %r is not a speed' % closing)
+        # NaN passes every comparison above: an integral of NaN pinned the command at full braking for
+        # good, a last_time of NaN or inf froze the integral and derivative terms (review, stop 39).
+        for name, value in (('integral', integral), ('last_gap', last_gap), ('last_time', last_time)):
+            if value is not None and not math.isfinite(value):
+                raise TjpConfigError('bad controller state: %s %r is not a finite number' % (name, value))
         self.integral, self.closing, self.last_gap, self.last_time = integral, closing, last_gap, last_time
 
 
@@ -122,9 +129,19 @@ class EmergencyBraking(object):
     row before it brakes: a single false detection (the FMECA's inconsistent ultrasonic data) is
     masked, at the price of (confirm - 1) readings of reaction time, which the braking distance
     includes.
+
+    Its speed is its own reading of the IMU (:meth:`observe_speed`), not the TJP's filtered one: it
+    stays independent of the TJP's nodes. A reading that drops out towards zero must not shrink the
+    braking distance (the FMECA's IMU value faults: a quarter of the readings, and Emergency Braking
+    ran into obstacles it would have braked for, review of stop 39), so the speed braked for is
+    the second largest of the readings of the last ``speed_window`` seconds (one reading off in
+    either direction changes nothing). A reading that is not a number is refused and counted. With
+    no reading for ``speed_window``, it is the last speed plus what the car may have gained since at
+    ``max_accel`` (``speed_stale`` says so; the node raises an alarm).
     """
 
-    def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, confirm=1, period=0.04):
+    def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, confirm=1, period=0.04,
+                 speed_window=0.2, max_accel=3.0):
         self.emergency_distance = _positive('emergency_distance', emergency_distance)
         self.release_delay = _non_negative('release_delay', release_delay)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
@@ -138,6 +155,11 @@ class EmergencyBraking(object):
         self.masked = 0          # detections not confirmed (masked by time redundancy)
         self.activations = 0
         self.reason = ''
+        self.speed_window = _positive('speed_window', speed_window)
+        self.max_accel = _positive('max_accel', max_accel)
+        self.speeds = collections.deque(maxlen=16)   # (time, speed) of the IMU's recent valid readings
+        self.speed_refused = 0   # IMU readings that are not numbers
+        self.invalid = 0         # ultrasonic readings that are not numbers (REP 117: NaN)
 
     def braking_distance(self, speed):
         """How close an obstacle may come before braking must start at this speed: the stopping
@@ -146,9 +168,38 @@ class EmergencyBraking(object):
         reaction = 0.1 + (self.confirm - 1) * self.period
         return self.emergency_distance + reaction * speed + speed * speed / (2 * self.emergency_decel)
 
-    def update(self, distance, now, speed=0.0):
-        """An ultrasonic reading (m; None: nothing in range) while driving at speed (m/s).
-        Returns whether Emergency Braking is active."""
+    def observe_speed(self, speed, now):
+        """An IMU reading (m/s) at ``now``; False if refused (not a finite number)."""
+        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not math.isfinite(speed):
+            self.speed_refused += 1
+            return False
+        self.speeds.append((now, max(0.0, float(speed))))
+        return True
+
+    def speed_at(self, now):
+        """The speed braked for at ``now`` (m/s): the second largest reading of the last speed_window
+        seconds; with none, the last one plus what the car may have gained since (0 before any)."""
+        recent = sorted((v for t, v in self.speeds if now - self.speed_window <= t <= now), reverse=True)
+        if recent:
+            return recent[1] if len(recent) > 1 else recent[0]
+        if not self.speeds:
+            return 0.0
+        when, last = self.speeds[-1]
+        return last + self.max_accel * max(0.0, now - when)
+
+    def speed_stale(self, now):
+        """Whether no IMU reading came in the last speed_window seconds (after a first one)."""
+        return bool(self.speeds) and now - self.speeds[-1][0] > self.speed_window
+
+    def update(self, distance, now, speed=None):
+        """An ultrasonic reading (m; None: nothing in range; NaN: an invalid reading, REP 117) while
+        driving at ``speed`` (m/s; None: :meth:`speed_at`). Returns whether Emergency Braking is active.
+        An invalid reading tells nothing: it neither confirms an obstacle nor clears one."""
+        if distance is not None and not (isinstance(distance, (int, float)) and distance == distance):
+            self.invalid += 1
+            return self.active
+        if speed is None:
+            speed = self.speed_at(now)
         if distance is not None and distance < self.braking_distance(speed):
             self.seen += 1
             self.clear_since = None

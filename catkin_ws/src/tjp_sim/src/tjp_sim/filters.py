@@ -9,13 +9,18 @@
   (crashed) laser noticed, and each group voted.
 """
 import collections
+import math
 
 from .errors import TjpConfigError
 
 
 class SlidingAverage(object):
     """Mean of the last ``size`` accepted readings; outliers (farther than ``tolerance`` from the
-    window's median) are masked unless ``persist`` of them in a row agree with each other."""
+    window's median) are masked unless ``persist`` of them in a row agree with each other. A
+    reading that is not a finite number is always masked (NaN compares false with everything: it
+    entered the window and the mean was NaN until it left). Each time the window follows a
+    lasting change, ``followed`` counts it and ``jump`` holds (from, to): a collision, or a stuck or
+    offset sensor that the window cannot tell from one; the node says so (review, stop 39)."""
 
     def __init__(self, size=5, tolerance=1.0, persist=3):
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
@@ -28,6 +33,8 @@ class SlidingAverage(object):
         self.window = collections.deque(maxlen=size)
         self.suspects = []
         self.masked = 0
+        self.followed = 0
+        self.jump = None
 
     def _median(self):
         values = sorted(self.window)
@@ -36,12 +43,17 @@ class SlidingAverage(object):
 
     def add(self, value):
         """Take a reading; returns (filtered value, masked: whether this reading was masked)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            self.masked += 1
+            return self.value(), True
         if self.window and abs(value - self._median()) > self.tolerance:
             self.suspects = (self.suspects + [value])[-self.persist:]
             if len(self.suspects) == self.persist and max(self.suspects) - min(self.suspects) <= 2 * self.tolerance:
                 # They agree among themselves: the speed really changed. Follow it; the earlier
                 # ones, counted as masked, were not faults after all.
                 self.masked -= self.persist - 1
+                self.followed += 1
+                self.jump = (self.value(), sum(self.suspects) / len(self.suspects))
                 self.window.clear()
                 self.window.extend(self.suspects)
                 self.suspects = []
@@ -86,10 +98,14 @@ class LaserVoter(object):
     instant already decided is late: counted in ``late``, not voted.
 
     "Nothing in range" (None) from a laser that answered is a reading like any other: it agrees with
-    another None. Only lasers that gave a reading can be named faulty.
+    another None. Only lasers that gave a reading can be named faulty. A reading that is not a number
+    (NaN, REP 117's invalid reading) is counted in ``invalid`` and votes as a missing one: two of them
+    never outvote a good laser (they were taken for "nothing in range" and agreed, review of stop 39),
+    and a laser that gives nothing else is reported silent.
     """
 
     NOTHING = 1e9   # stands for "nothing in range" in the vote
+    INVALID = object()   # an invalid reading of one instant: the laser answered, with no value
 
     def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2):
         self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
@@ -100,6 +116,7 @@ class LaserVoter(object):
         self.reported_silent = set()
         self.voted = 0
         self.late = 0
+        self.invalid = 0
 
     def add(self, index, stamp, value):
         """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
@@ -109,6 +126,9 @@ class LaserVoter(object):
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
             self.late += 1
             return []
+        if value is not None and not (isinstance(value, (int, float)) and value == value):
+            self.invalid += 1
+            value = self.INVALID
         self.groups.setdefault(stamp, {})[index] = value
         if self.latest[index] is None or stamp > self.latest[index]:
             self.latest[index] = stamp
@@ -128,6 +148,7 @@ class LaserVoter(object):
 
     def _decide(self, stamp, group):
         newly_silent = []
+        group = {i: v for i, v in group.items() if v is not self.INVALID}
         for i in range(self.count):
             if i in group:
                 self.missing_in_a_row[i] = 0

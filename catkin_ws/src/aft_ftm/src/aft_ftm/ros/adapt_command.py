@@ -1,6 +1,6 @@
 """The ``adapt`` command: run an adaptation script against the live system.
 
-SIGINT (Ctrl-C) or SIGTERM while it runs rolls the adaptation back (the step in progress ends
+SIGINT (Ctrl-C), SIGTERM or SIGHUP (its terminal gone) while it runs rolls the adaptation back (the step in progress ends
 first): suspended nodes resumed, launched nodes stopped, killed nodes started again, bindings
 restored; then it exits with status 1, saying it was interrupted and what was undone. A second
 signal does not cut the rollback short. If the command is killed (SIGKILL) or stopped
@@ -100,7 +100,9 @@ def main(argv):
             for step in steps:
                 print('  %-13s %s' % (step.action, step.target))
             return 0
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        # SIGHUP too: an ssh session that ends killed the command in the middle of its pause, with
+        # nothing undone (review of stop 39). All three roll back.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, functools.partial(_on_signal, engine))
         report = engine.run(script, options.mode)
     except ScriptError as e:

@@ -43,7 +43,7 @@ from ..adaptation import ScriptError, StepError
 from ..process_start import started
 from ..transaction import Action, Outcome, State, Transaction, stop_reason
 from ..site_watch import mark_retired
-from ..sites import Site, launch_failure, terminate_tree, wait_dead, wait_until
+from ..sites import Site, launch_failure, wait_dead, wait_until
 from ..where import run_where
 from .graph import roslaunch, unwired
 from .fencing import NotTheNode, node_api, visible_pid
@@ -125,8 +125,9 @@ class LeaseKeeper(object):
     again at the next period, on a new connection. A node that hangs in its answer holds its own
     thread only (rospy waits for an answer for ever: :meth:`stop` cuts the connection)."""
 
-    def __init__(self, lease, log):
+    def __init__(self, lease, log, owner=''):
         self.lease = lease
+        self.owner = owner           # the engine's run that holds the nodes (aft_msgs/Suspend owner)
         self.period = lease / 4.0
         self._log = log
         self._lock = threading.Lock()
@@ -171,6 +172,11 @@ class LeaseKeeper(object):
         with self._lock:
             return dict(self._lost)
 
+    def held(self):
+        """The nodes held suspended now (neither released nor lost)."""
+        with self._lock:
+            return set(self._held)
+
     def stop(self):
         """Renew nothing more (the nodes still held then resume by themselves). Never raises."""
         self._stop.set()
@@ -179,12 +185,7 @@ class LeaseKeeper(object):
             ready, self._ready = list(self._ready.values()), {}
             active = list(self._active.values())
         for proxy in active:   # a thread waiting for a hung node's answer: its connection cut, it ends
-            sock = getattr(getattr(proxy, 'transport', None), 'socket', None)
-            try:
-                if sock is not None:
-                    sock.shutdown(socket.SHUT_RDWR)
-            except OSError:   # closed meanwhile
-                pass
+            _cut(proxy)
         deadline = time.monotonic() + 5.0   # one still running is left behind (a daemon)
         for thread in threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -229,13 +230,34 @@ class LeaseKeeper(object):
                 proxy = rospy.ServiceProxy(node + '/suspend', Suspend, persistent=True)
                 with self._lock:
                     self._active[threading.current_thread()] = proxy
-            answer = proxy(renew=True, lease=self.lease)
+            answer = proxy(renew=True, lease=self.lease, owner=self.owner)
         except Exception as e:   # rospy raises several kinds for a lost connection: try again later
             if proxy is not None:
                 proxy.close()
             self._log('warning: lease renewal of %s not sent (%s): trying again in %.2f s' % (node, e, self.period))
             return None, None
         return (None if answer.success else answer.message), proxy
+
+
+def _cut(proxy):
+    """Shut a persistent service proxy's socket: a thread waiting for its answer gets an error."""
+    sock = getattr(getattr(proxy, 'transport', None), 'socket', None)
+    try:
+        if sock is not None:
+            sock.shutdown(socket.SHUT_RDWR)
+    except OSError:   # closed meanwhile
+        pass
+
+
+def _never_raises(log):
+    """The engine's log: a line that cannot be written (a closed pipe, a full disk, an ssh session
+    gone) must not abandon a transaction half-way, nor cut its rollback short (review of stop 39)."""
+    def write(text):
+        try:
+            log(text)
+        except Exception:   # nothing better to do than go on: the report still says everything
+            pass
+    return write
 
 
 LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners')
@@ -300,7 +322,7 @@ class Engine(object):
                  guard_grace=5.0):
         if not lease > 0:
             raise ValueError('the lease must be > 0 s, got %r' % (lease,))
-        self.log = log or (lambda text: rospy.loginfo(text))
+        self.log = _never_raises(log or (lambda text: rospy.loginfo(text)))
         self.lease = lease
         self.guard_poll = guard_poll
         self.guard_grace = guard_grace
@@ -315,6 +337,7 @@ class Engine(object):
         self.transaction = None    # the Transaction of the last run
         self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
         self._launch_count = itertools.count()
+        self._run_count = itertools.count(1)
         # The script validated last (the run in progress):
         self._launches = {}        # Launch entry -> LaunchPlan
         self._launched_names = []  # the nodes its launches start
@@ -322,6 +345,7 @@ class Engine(object):
         self._nodes_seen = (None, frozenset())   # (when, the running nodes): _graph_nodes' cache
         self._keeper = None        # the LeaseKeeper of the run in progress
         self._run_sites = []       # the LaunchedSites it started
+        self._owner = ''           # the run in progress's name on the nodes it suspends (aft_msgs/Suspend owner)
 
     def interrupt(self, why):
         """Stop the run in progress and roll it back (from a signal handler, or another thread):
@@ -475,7 +499,8 @@ class Engine(object):
                   'rolled_back': False, 'error': '', 'interrupted': '', 'validated_s': time.monotonic() - t0}
         self.log('adaptation %s (%s, %s order): %d steps' % (script.name, script.kind, mode, len(steps)))
         self._run_sites = []
-        self._keeper = LeaseKeeper(self.lease, self.log)
+        self._owner = '%s/%d/%s/%d' % (rospy.get_name(), os.getpid(), script.name, next(self._run_count))
+        self._keeper = LeaseKeeper(self.lease, self.log, self._owner)
         try:
             self._execute(tx, report['steps'])
         finally:
@@ -524,14 +549,61 @@ class Engine(object):
                         o.step.action, o.step.target, o.error))
             tx.ran(outcomes, time.monotonic(), self._interrupted)
 
+    def _call_limit(self, action):
+        """How long a step's service calls may take (None: the step bounds itself: launches, kills).
+        A node that hangs in its answer (stopped, its master call hung) held the whole pause for ever
+        while the lease keeper renewed every other node's suspension (review of stop 39)."""
+        if action == 'suspend':
+            return 2 * self.service_timeout + self.quiesce_timeout
+        if action == 'rebind':
+            return 2 * self.service_timeout + self.connect_timeout
+        if action in ('resume', 'promote'):
+            return 2 * self.service_timeout
+        return None
+
+    def _bounded(self, step, function, limit):
+        """function() for ``step``, or StepError past ``limit`` s (None: unbounded). Past it the call
+        is abandoned: its connections to the node are cut (the thread waiting in it ends) and
+        forgotten. The node may still carry it out later (a rollback undoes what may have been done)."""
+        if limit is None:
+            return function()
+        box = {}
+
+        def run():
+            try:
+                box['value'] = function()
+            except BaseException as e:   # handed to the caller
+                box['error'] = e
+        thread = threading.Thread(target=run, name='adapt %s %s' % (step.action, step.target), daemon=True)
+        thread.start()
+        thread.join(limit)
+        if thread.is_alive():
+            self._forget_proxies(step.target, cut=True)
+            raise StepError('%s did not answer its %s within %.1f s (stopped or hung): call abandoned'
+                            % (step.target, step.action, limit))
+        if 'error' in box:
+            raise box['error']
+        return box.get('value')
+
     def _run_group(self, group):
-        """Run steps (in parallel if more than one); returns an Outcome per step, in order."""
+        """Run steps (in parallel if more than one); returns an Outcome per step, in order.
+
+        The group that ends the pause (the last resumes) first checks that every node is still
+        suspended by this run (:meth:`_pause_intact`): if one is not, none is resumed and every
+        step fails, so that the rollback runs on a graph still paused."""
         results = [None] * len(group)
+        s0 = time.monotonic()
+        if group[0].action == 'resume' and self.transaction is not None and \
+                self.transaction.index == self.transaction.last_resume:
+            broken = self._pause_intact()
+            if broken:
+                return [Outcome(step, s0, 'not resumed: %s' % broken, None) for step in group]
 
         def one(i, step):
             s0 = time.monotonic()
             try:
-                results[i] = Outcome(step, s0, None, self._do(step))
+                results[i] = Outcome(step, s0, None, self._bounded(step, lambda: self._do(step),
+                                                                   self._call_limit(step.action)))
             except (StepError, ScriptError, rospy.ServiceException, rospy.ROSException) as e:
                 self._forget_proxies(step.target)   # rospy keeps a broken persistent connection
                 results[i] = Outcome(step, s0, str(e), None)
@@ -546,6 +618,35 @@ class Engine(object):
             for thread in threads:
                 thread.join()
         return results
+
+    def _pause_intact(self):
+        """'' if every node this run suspended is still suspended by it, else which are not and why.
+        A node resumed by someone else (an operator, another engine) or by itself (its lease ran out
+        while this engine was stopped) ran while the bindings changed: requests may have gone to
+        both mechanisms or neither. Said, and rolled back while the others are still paused."""
+        held = sorted(self._keeper.held())
+        lost = dict(self._lost())
+        answers = {}
+
+        def check(node):
+            step = adaptation.Step('suspend', node, None)
+            try:
+                answer = self._bounded(step, lambda: self._proxy(node + '/suspend', Suspend)(
+                    renew=True, lease=self.lease, owner=self._owner), self._call_limit('resume'))
+                answers[node] = '' if answer.success else answer.message
+            except Exception:   # not reachable: its resume says so (a dead site, say)
+                self._forget_proxies(node)
+                answers[node] = None
+        threads = [threading.Thread(target=check, args=(node,)) for node in held if node not in lost]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        lost.update({node: why for node, why in answers.items() if why})
+        if not lost:
+            return ''
+        return 'the pause was broken: %s' % '; '.join('%s is no longer suspended by this adaptation (%s)' % item
+                                                       for item in sorted(lost.items()))
 
     def _connect(self, steps):
         """Open persistent connections to the services the pause will call, by no-op calls
@@ -565,9 +666,14 @@ class Engine(object):
             except Exception:   # not reachable yet (paper order: launched in the pause): connect then
                 self._proxies.pop(step.target + '/rebind', None)
 
-    def _forget_proxies(self, node):
+    def _forget_proxies(self, node, cut=False):
+        """Close the connections to node's services (``cut``: shut their sockets first, so that a
+        thread waiting in a call on one ends)."""
         for name in [n for n in self._proxies if n.startswith(node + '/')]:
-            self._proxies.pop(name).close()
+            proxy = self._proxies.pop(name)
+            if cut:
+                _cut(proxy)
+            proxy.close()
 
     def _close_proxies(self):
         for proxy in self._proxies.values():
@@ -604,14 +710,19 @@ class Engine(object):
     def _do(self, step):
         action = step.action
         if action == 'suspend':
-            answer = self._proxy(step.target + '/suspend', Suspend)(timeout=self.quiesce_timeout, lease=self.lease)
+            answer = self._proxy(step.target + '/suspend', Suspend)(timeout=self.quiesce_timeout, lease=self.lease,
+                                                                    owner=self._owner)
             if not answer.success:
                 raise StepError('%s could not be suspended: %s' % (step.target, answer.message))
             self._keeper.hold(step.target)
             return answer.held
         if action == 'resume':
             self._keeper.release(step.target)
-            answer = self._proxy(step.target + '/resume', Suspend)()
+            answer = self._proxy(step.target + '/resume', Suspend)(owner=self._owner)
+            if not answer.success:
+                # Its suspension had ended before this resume (lease, someone else): it ran during
+                # the rebinds. Said, never taken for a resume (it was, as "was not suspended").
+                raise StepError('%s was not suspended by this adaptation any more: %s' % (step.target, answer.message))
             return answer.held
         if action == 'kill':
             return self._kill(step.target)
@@ -722,6 +833,7 @@ class Engine(object):
         checking that the pid its API gives is that node's process, and recording how to start it again
         (for a rollback). Not over XML-RPC (rosnode kill): a node under TLS refuses every shutdown asked
         that way, since anyone on the network can ask."""
+        self._keeper.release(node)   # retired: nothing of it to renew or to find still suspended
         try:
             uri = self.master.lookupNode(node)   # checked again: it may have been registered anew since
             pid = visible_pid(uri, rospy.get_name(), node)
@@ -753,14 +865,20 @@ class Engine(object):
 
     # -- rollback -------------------------------------------------------------------------------
     def _undo(self, step):
+        return self._bounded(step, lambda: self._undo_step(step), self._call_limit(
+            {'restore_binding': 'rebind', 'restore_promote': 'promote'}.get(step.action, step.action)))
+
+    def _undo_step(self, step):
         if step.action == 'resume':
             self._keeper.release(step.target)
-            answer = self._proxy(step.target + '/resume', Suspend)()
+            answer = self._proxy(step.target + '/resume', Suspend)(owner=self._owner)
+            # Not suspended (any more), or suspended by another owner: nothing of this run's to resume.
             return '%s, %d held messages delivered' % (answer.message, answer.held)
         if step.action == 'stop_launch':
             site = step.detail
-            terminate_tree(site.pid, grace=5.0)
-            site.stop()
+            # Site.stop signals the tree only while the launch is not reaped: once reaped (its
+            # failure seen by _wait_launched), its pid may be another process's (review of stop 39).
+            site.stop(grace=5.0)
             if site in self.sites:
                 self.sites.remove(site)
             return 'stopped %s' % ', '.join(site.nodes)

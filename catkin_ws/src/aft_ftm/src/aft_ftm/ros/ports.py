@@ -28,6 +28,7 @@ SUSPENSION_PARAMS = {
                              'message that would exceed it ends the suspension early (alarm), none is dropped'),
 }
 ALARMS_TOPIC = '/aft/alarms'   # where a node without an ``alarms`` port raises its suspension alarms
+NOT_SUSPENDED = 'was not suspended'   # how ~resume begins its answer when the node was not suspended
 
 
 class Ports(object):
@@ -278,12 +279,13 @@ class Ports(object):
             rospy.loginfo('rebind: %s', message)
         return RebindResponse(success=True, message=message, previous_topic=previous)
 
-    def suspend(self, timeout, lease=None):
+    def suspend(self, timeout, lease=None, owner=''):
         """Hold the inputs and wait until quiescent; returns the messages held. Raises SuspendError.
-        ``lease`` (s): resume by itself unless resumed or renewed within it (None: ~suspend_lease)."""
+        ``lease`` (s): resume by itself unless resumed or renewed within it (None: ~suspend_lease);
+        ``owner``: who suspends (aft_ftm.suspension.Gate)."""
         if self._before_suspend is not None:
             self._before_suspend()
-        held = self.gate.close(self._hold, self._quiescent, timeout, lease=lease or self.suspend_lease)
+        held = self.gate.close(self._hold, self._quiescent, timeout, lease=lease or self.suspend_lease, owner=owner)
         self._lease_wakeup.set()
         return held
 
@@ -293,7 +295,7 @@ class Ports(object):
         lease = req.lease if req.lease > 0 else self.suspend_lease
         if req.renew:
             try:
-                held = self.gate.renew(lease, time.monotonic())
+                held = self.gate.renew(lease, time.monotonic(), req.owner)
             except SuspendError as e:
                 rospy.logwarn('%s: lease renewal refused: %s', rospy.get_name(), e)
                 return SuspendResponse(success=False, message=str(e))
@@ -301,7 +303,7 @@ class Ports(object):
             return SuspendResponse(success=True, message='lease renewed: %.3g s' % lease, held=held)
         timeout = req.timeout if req.timeout > 0 else 5.0
         try:
-            held = self.suspend(timeout, lease)
+            held = self.suspend(timeout, lease, req.owner)
         except SuspendError as e:
             rospy.logerr('%s: suspend refused: %s', rospy.get_name(), e)
             return SuspendResponse(success=False, message=str(e))
@@ -343,14 +345,20 @@ class Ports(object):
         if req.probe:
             return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
         before = self.gate.state
-        delivered = self.gate.open()
+        try:
+            delivered = self.gate.open(req.owner)
+        except SuspendError as e:
+            rospy.logwarn('%s: resume refused: %s', rospy.get_name(), e)
+            return SuspendResponse(success=False, message=str(e))
         self._resumed()
         if before in (GateState.CLOSED, GateState.CLOSING):
             rospy.loginfo('%s: resumed, %d held messages delivered', rospy.get_name(), delivered)
             return SuspendResponse(success=True, message='resumed', held=delivered)
-        # Harmless (a rollback resumes every node it may have suspended), but said.
+        # Harmless for whoever named no owner (a rollback resumes every node it may have suspended),
+        # but said; refused for an owner: the suspension it relied on had ended before its resume.
         ended = ': the last suspension ended so: %s' % self.gate.last_end if self.gate.last_end else ''
-        return SuspendResponse(success=True, message='was not suspended (%s)%s' % (before.name, ended), held=delivered)
+        return SuspendResponse(success=not req.owner, message='%s (%s)%s' % (NOT_SUSPENDED, before.name, ended),
+                               held=delivered)
 
     def shutdown(self):
         with self._lock:

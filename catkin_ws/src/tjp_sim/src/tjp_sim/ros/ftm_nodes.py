@@ -33,7 +33,8 @@ class ImuTrNode(PortedNode):
         e.g. a crash). A car cannot change its speed by 1 m/s in one 20 ms reading, so a burst of
         faulty readings shorter than 10 (200 ms) is masked, whatever they agree on.
     Subscribes: inp (geometry_msgs/TwistStamped), port ``inp``
-    Publishes: out (geometry_msgs/TwistStamped), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``
+    Publishes: out (geometry_msgs/TwistStamped), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``:
+        value_fault_masked (a NaN or inf reading too), speed_jump_followed (the window followed a lasting change)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -52,10 +53,22 @@ class ImuTrNode(PortedNode):
     def _on_reading(self, msg):
         raw = msg.twist.linear.x
         with self.lock:
+            followed = self.filter.followed
             value, masked = self.filter.add(raw)
+            jump = self.filter.jump if self.filter.followed > followed else None
+        if jump is not None:
+            # A lasting change the window followed: a collision, or a stuck or offset IMU it cannot
+            # tell from one. Never silent (a stuck-at-zero IMU was followed after 10 readings, and the
+            # safety distance collapsed with nothing said).
+            self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='speed_jump_followed',
+                                               detail='IMU speed went from %.2f to %.2f m/s and stayed there: followed '
+                                               '(a collision, or a stuck or offset IMU)' % jump,
+                                               stamp=msg.header.stamp))
+        if value is None:
+            return    # nothing valid yet
         if masked:
             self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='value_fault_masked',
-                                               detail='IMU speed %.2f m/s, window mean %.2f m/s' % (raw, value),
+                                               detail='IMU speed %r m/s, window mean %.2f m/s' % (raw, value),
                                                stamp=msg.header.stamp))
         msg.twist.linear.x = value
         self.ports.publish('out', msg)
@@ -119,15 +132,19 @@ class AlarmManagerNode(PortedNode):
     commandManager for a controlled stop, once.
 
     Parameters:
-        ~watch (dict port -> timeout in s of ROS time, default {imu: 0.3, ultrasonic: 0.3, gap: 0.5})
+        ~watch (dict port -> timeout in s of ROS time, default {imu: 0.3, ultrasonic: 0.3, gap: 0.5}); also
+            safety_distance (distanceSecurityCalculator's, renewed from measureManager's speed) and emergency
+            (Emergency Braking's decisions): car.launch watches them when no service manager restarts those nodes
         ~clock_timeout (float, 0.5 s of wall clock), ~master_period (float, 0.25 s of wall clock)
     Subscribes: clock (rosgraph_msgs/Clock), port ``clock``; imu (geometry_msgs/TwistStamped),
-        ultrasonic (sensor_msgs/Range), gap (aft_msgs/Measure): ports of the same names (liveness only)
+        ultrasonic (sensor_msgs/Range), gap, safety_distance (aft_msgs/Measure), emergency (std_msgs/Bool):
+        ports of the same names (liveness only)
     Publishes: alarms (aft_msgs/Alarm), port ``alarms``; safe_stop (std_msgs/String), port ``safe_stop``
     Services: ~rebind, ~suspend, ~resume
     """
 
-    TYPES = {'imu': 'geometry_msgs/TwistStamped', 'ultrasonic': 'sensor_msgs/Range', 'gap': 'aft_msgs/Measure'}
+    TYPES = {'imu': 'geometry_msgs/TwistStamped', 'ultrasonic': 'sensor_msgs/Range', 'gap': 'aft_msgs/Measure',
+             'safety_distance': 'aft_msgs/Measure', 'emergency': 'std_msgs/Bool'}
 
     def __init__(self):
         self.watch = param('watch', config.number_map, {'imu': 0.3, 'ultrasonic': 0.3, 'gap': 0.5})

@@ -32,8 +32,32 @@ def number(name, value):
 
 
 def _range(msg):
-    """A sensor_msgs/Range reading in metres, None when nothing is in range (REP 117: +inf)."""
-    return None if math.isinf(msg.range) or math.isnan(msg.range) else msg.range
+    """A sensor_msgs/Range reading in metres as REP 117 defines it: None when nothing is in range
+    (+inf), the sensor's min_range when something is too close to measure (-inf), NaN for an invalid
+    reading (the callers refuse it). Both were taken for a free road (review, stop 39): a -inf
+    released Emergency Braking, two NaN lasers outvoted a good one."""
+    if math.isnan(msg.range):
+        return float('nan')
+    if math.isinf(msg.range):
+        return None if msg.range > 0 else max(0.0, msg.min_range)
+    return msg.range
+
+
+class Episodes(object):
+    """Alarms raised once per run of bad readings, not once per reading: ``bad()`` is True for the
+    first of a run (then raise the alarm), ``good()`` ends the run; ``count`` counts them all."""
+
+    def __init__(self):
+        self.count = 0
+        self.running = False
+
+    def bad(self):
+        self.count += 1
+        first, self.running = not self.running, True
+        return first
+
+    def good(self):
+        self.running = False
 
 
 class PortedNode(object):
@@ -62,23 +86,35 @@ class PortedNode(object):
 class MeasureManagerNode(PortedNode):
     """measureManager: the car's speed from the IMU.
 
+    A speed that is not a finite number is refused (nothing is published for it), with an alarm at
+    the first of each run of them (``invalid_speed``): the TJP's safety distance is not renewed
+    meanwhile, which no watch of the IMU itself would see.
+
     Subscribes: imu (geometry_msgs/TwistStamped, linear.x), port ``imu``
-    Publishes: speed (aft_msgs/Measure), port ``speed``
+    Publishes: speed (aft_msgs/Measure), port ``speed``; alarms (aft_msgs/Alarm), port ``alarms``
     Services: ~rebind, ~suspend, ~resume
     """
 
     def __init__(self):
         super(MeasureManagerNode, self).__init__(
-            [PortSpec('imu', SUBSCRIBE, 'geometry_msgs/TwistStamped'), PortSpec('speed', PUBLISH, 'aft_msgs/Measure')],
+            [PortSpec('imu', SUBSCRIBE, 'geometry_msgs/TwistStamped'), PortSpec('speed', PUBLISH, 'aft_msgs/Measure'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'imu': self._on_imu})
-        self.refused = 0
+        self.refused = Episodes()
 
     def _on_imu(self, msg):
         speed = msg.twist.linear.x
         if math.isnan(speed) or math.isinf(speed):
-            self.refused += 1
-            rospy.logerr_throttle(1.0, '%s: IMU speed %r refused (%d so far)' % (self.name, speed, self.refused))
+            with self.lock:
+                first = self.refused.bad()
+            if first:
+                self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='invalid_speed',
+                                                   detail='IMU speed %r refused: the safety distance is not renewed '
+                                                   'until a valid one (%d refused so far)' % (speed, self.refused.count),
+                                                   stamp=msg.header.stamp))
             return
+        with self.lock:
+            self.refused.good()
         self.ports.publish('speed', Measure(stamp=msg.header.stamp, value=speed, source=self.name))
 
 
@@ -93,7 +129,7 @@ class DistanceSecurityCalculatorNode(PortedNode):
         ~max_rate (float, 30 m/s): the fastest plausible change of the gap
     Subscribes: laser (sensor_msgs/Range), port ``laser``; speed (aft_msgs/Measure), port ``speed``
     Publishes: gap (aft_msgs/Measure), port ``gap``; safety_distance (aft_msgs/Measure), port ``safety_distance``;
-        alarms (aft_msgs/Alarm), port ``alarms``: implausible_gap
+        alarms (aft_msgs/Alarm), port ``alarms``: implausible_gap, invalid_gap (a NaN reading: refused)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -110,13 +146,26 @@ class DistanceSecurityCalculatorNode(PortedNode):
              PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'laser': self._on_laser, 'speed': self._on_speed})
         self.last = None   # (time, gap) of the last reading
+        self.invalid = Episodes()
 
     def _on_laser(self, msg):
         gap = _range(msg)
+        if gap is not None and gap != gap:
+            # An invalid reading (NaN): not a free road (it was taken for max_range, and the car
+            # accelerated). Nothing is passed on: the controller keeps its last gap; the alarm
+            # manager's watch of the gap sees a lasting silence.
+            with self.lock:
+                first = self.invalid.bad()
+            if first:
+                self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='invalid_gap',
+                                                   detail='laser reading NaN refused (%d so far)' % self.invalid.count,
+                                                   stamp=msg.header.stamp))
+            return
         # Nothing within the laser's range: the road ahead is free up to its range.
         gap = msg.max_range if gap is None else gap
         now = msg.header.stamp.to_sec()
         with self.lock:
+            self.invalid.good()
             last, self.last = self.last, (now, gap)
         if last is not None and now > last[0] and abs(gap - last[1]) / (now - last[0]) > self.max_rate:
             self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='implausible_gap',
@@ -218,28 +267,52 @@ class EmergencyBrakingNode(PortedNode):
                 release_delay=param('release_delay', number, 1.0),
                 emergency_decel=param('emergency_decel', config.positive_float, 6.0),
                 confirm=param('confirm', config.non_negative_int, 1),
-                period=param('period', config.positive_float, 0.04))
+                period=param('period', config.positive_float, 0.04),
+                speed_window=param('speed_window', config.positive_float, 0.2),
+                max_accel=param('max_accel', config.positive_float, 3.0))
         except TjpConfigError as e:
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(EmergencyBrakingNode, self).__init__(
             [PortSpec('ultrasonic', SUBSCRIBE, 'sensor_msgs/Range'), PortSpec('imu', SUBSCRIBE, 'geometry_msgs/TwistStamped'),
              PortSpec('emergency', PUBLISH, 'std_msgs/Bool'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'ultrasonic': self._on_ultrasonic, 'imu': self._on_imu})
-        self.speed = 0.0
+        self.bad_speed, self.stale, self.bad_range = Episodes(), Episodes(), Episodes()
+
+    def _alarm(self, kind, detail, stamp):
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='emergency_braking', kind=kind, detail=detail,
+                                           stamp=stamp))
 
     def _on_imu(self, msg):
         with self.lock:
-            self.speed = msg.twist.linear.x
+            ok = self.braking.observe_speed(msg.twist.linear.x, msg.header.stamp.to_sec())
+            first = False if ok else self.bad_speed.bad()
+            if ok:
+                self.bad_speed.good()
+        if first:
+            self._alarm('invalid_speed', 'IMU speed %r refused: braking for the last valid speed plus what the car '
+                        'may have gained since' % msg.twist.linear.x, msg.header.stamp)
 
     def _on_ultrasonic(self, msg):
+        now = msg.header.stamp.to_sec()
+        distance = _range(msg)
         with self.lock:
             masked = self.braking.masked
-            active = self.braking.update(_range(msg), msg.header.stamp.to_sec(), self.speed)
+            active = self.braking.update(distance, now)
             masked = self.braking.masked > masked
+            stale = self.braking.speed_stale(now)
+            first_stale = self.stale.bad() if stale else self.stale.good()
+            invalid = distance is not None and distance != distance
+            first_invalid = self.bad_range.bad() if invalid else self.bad_range.good()
+            speed = self.braking.speed_at(now)
         if masked:
-            self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='false_detection_masked',
-                                               detail='an obstacle seen in fewer than %d readings in a row'
-                                               % self.braking.confirm, stamp=msg.header.stamp))
+            self._alarm('false_detection_masked', 'an obstacle seen in fewer than %d readings in a row'
+                        % self.braking.confirm, msg.header.stamp)
+        if first_stale:
+            self._alarm('speed_stale', 'no valid IMU speed for %.2f s: braking for %.1f m/s (the last plus what the car '
+                        'may have gained since)' % (self.braking.speed_window, speed), msg.header.stamp)
+        if first_invalid:
+            self._alarm('invalid_range', 'ultrasonic reading NaN: neither confirms nor clears an obstacle (%d so far)'
+                        % self.braking.invalid, msg.header.stamp)
         self.ports.publish('emergency', Bool(data=active))
 
 

@@ -1,0 +1,236 @@
+"""The Adaptation Engine's pause against what others do meanwhile (review of stop 39): the real Engine,
+Transaction and LeaseKeeper, and each node's real suspension handlers (aft_ftm.ros.ports.Ports), with
+the ROS calls faked (no master, no process started or signalled).
+
+- a node resumed by someone else, or by itself (its lease ran out), in the middle of the rebinds: the
+  engine resumed the rest and reported success; now nothing is resumed and the adaptation is rolled
+  back while the others are still paused;
+- one site's resume failing beside another's that succeeded: the rollback rebound the serving site;
+  now the adaptation stands, and the failure is reported with an alarm;
+- a node hanging in its answer: the pause lasted for ever; now the call is abandoned past its bound;
+- a log line that cannot be written: it abandoned the transaction half-way.
+"""
+import threading
+import time
+import types
+
+import pytest
+import rospy
+from aft_msgs.srv import SuspendRequest
+
+from aft_ftm import adaptation
+from aft_ftm.ports import SUBSCRIBE, PortSpec
+from aft_ftm.ros import adaptation_engine, ports as ros_ports
+from aft_ftm.suspension import GateState, SuspendError
+
+import adaptation_scripts
+
+
+class Graph(object):
+    """The nodes a compose adaptation touches, each a real Ports with its suspension gate, and what
+    each service call does (``hooks``: service name -> callable run before the node answers)."""
+
+    def __init__(self):
+        self.nodes = {}
+        self.hooks = {}
+        self.rebinds = []    # (node, 'bind topic' | 'unbind', state of that site's Protocol gate then)
+
+    def node(self, name):
+        if name not in self.nodes:
+            ports = ros_ports.Ports([PortSpec('inp', SUBSCRIBE, 'aft_msgs/Request')], {'inp': lambda msg: None})
+            ports.suspension(['inp'])
+            self.nodes[name] = ports
+        return self.nodes[name]
+
+    def gate(self, name):
+        return self.node(name).gate
+
+    def proxy(self, name, _cls=None):
+        graph = self
+
+        class Proxy(object):
+            transport = None
+
+            def __call__(self, **kw):
+                hook = graph.hooks.get(name)
+                if hook is not None:
+                    hook(kw)
+                node, service = name.rsplit('/', 1)
+                if service == 'suspend':
+                    return graph.node(node)._handle_suspend(SuspendRequest(**kw))
+                if service == 'resume':
+                    return graph.node(node)._handle_resume(SuspendRequest(**kw))
+                if service == 'rebind':
+                    site = node.strip('/').split('/')[0]
+                    graph.rebinds.append((node, 'bind %s' % kw['topic'] if kw['activate'] else 'unbind',
+                                          graph.gate('/%s/protocol' % site).state))
+                    return types.SimpleNamespace(success=True, message='ok',
+                                                 previous_topic='' if kw['activate'] else '/%s/bfr2prd' % site)
+                raise ValueError(name)
+
+            def close(self):
+                pass
+        return Proxy()
+
+
+class FakeLaunch(object):
+    def __init__(self):
+        self.stopped = False
+        self.pid = 4194304 + 1   # above any pid_max: never a process of this machine
+        self.nodes = []
+
+    def alive(self):
+        return False
+
+    def stop(self, grace=5.0):
+        self.stopped = True
+
+
+@pytest.fixture
+def graph(monkeypatch):
+    graph = Graph()
+    monkeypatch.setattr(ros_ports, 'param', lambda name, convert, default: default)
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))   # a self-resume's alarm stamp
+    monkeypatch.setattr(adaptation_engine.rospy, 'ServiceProxy', lambda name, cls, persistent=False: graph.proxy(name))
+
+    def nothing_started(*args, **kwargs):
+        raise AssertionError('a test of the pause starts no process')
+    monkeypatch.setattr(adaptation_engine, 'Site', nothing_started)
+    monkeypatch.setattr(adaptation_engine, 'run_where', nothing_started)
+    yield graph
+    for hook in graph.hooks.values():
+        release = getattr(hook, 'release', None)
+        if release is not None:
+            release()
+
+
+def engine(graph, log=None, **kwargs):
+    engine = adaptation_engine.Engine(log=log or (lambda text: None), quiesce_timeout=1.0, **kwargs)
+    engine.validate = lambda script, mode: adaptation.plan(script, mode)
+    engine._proxy = lambda name, cls: graph.proxy(name, cls)
+    engine._connect = lambda steps: None
+    engine.launched = []
+
+    def launch(entry):
+        site = FakeLaunch()
+        engine.launched.append(site)
+        return site
+    engine._launch = launch
+    engine._wait_launched = lambda: 0
+    engine._kill = lambda node: adaptation_engine.Killed(2, [], '/', {}, [])
+    return engine
+
+
+def compose():
+    return adaptation.load(adaptation_scripts.COMPOSE)
+
+
+def test_a_node_resumed_by_someone_else_during_the_rebinds_fails_the_adaptation_before_any_resume(graph):
+    seen = {}
+
+    def operator_resumes(kw):   # an operator, or another engine's rollback: no owner named
+        graph.node('/master/protocol')._handle_resume(SuspendRequest())
+        seen['master'] = graph.gate('/master/protocol').state
+    graph.hooks['/master/proceed/rebind'] = operator_resumes
+    report = engine(graph).run(compose(), 'prepared')
+    assert seen['master'] == GateState.OPEN
+    assert not report['ok'] and report['rolled_back'], report
+    assert 'the pause was broken' in report['error'] and '/master/protocol' in report['error'], report['error']
+    # Nothing was resumed by the failed group: the rollback's rebinds ran with the slave still paused.
+    assert not [r for r in report['steps'] if r['action'] == 'resume' and r['ok']]
+    slave = [r for r in graph.rebinds if r[0].startswith('/slave/')]
+    assert slave and all(state == GateState.CLOSED for _, _, state in slave), slave
+    assert graph.gate('/slave/protocol').state == GateState.OPEN   # resumed by the rollback at the end
+
+
+def test_a_lease_run_out_while_the_engine_was_stopped_fails_the_adaptation(graph):
+    def engine_stopped_past_the_lease(kw):
+        graph.gate('/slave/protocol').expire(time.monotonic() + 3600.0)
+    graph.hooks['/slave/tr/protocol/rebind'] = engine_stopped_past_the_lease
+    report = engine(graph).run(compose(), 'prepared')
+    assert not report['ok'] and report['rolled_back'] and 'the pause was broken' in report['error'], report
+
+
+def test_another_owner_can_neither_suspend_renew_nor_resume_a_suspended_node(graph):
+    ports = graph.node('/n')
+    mine = ports._handle_suspend(SuspendRequest(timeout=1.0, lease=5.0, owner='engine A'))
+    assert mine.success
+    theirs = ports._handle_suspend(SuspendRequest(timeout=1.0, lease=5.0, owner='engine B'))
+    assert not theirs.success and 'suspended by engine A' in theirs.message
+    assert not ports._handle_suspend(SuspendRequest(renew=True, lease=5.0, owner='engine B')).success
+    refused = ports._handle_resume(SuspendRequest(owner='engine B'))
+    assert not refused.success and ports.gate.state == GateState.CLOSED
+    assert ports._handle_suspend(SuspendRequest(renew=True, lease=5.0, owner='engine A')).success
+    assert ports._handle_resume(SuspendRequest(owner='engine A')).success
+    # The owner's resume of a node no longer suspended is refused: the pause it relied on was broken.
+    late = ports._handle_resume(SuspendRequest(owner='engine A'))
+    assert not late.success and late.message.startswith(ros_ports.NOT_SUSPENDED)
+    # Without an owner (an operator), as before: harmless, said.
+    assert ports._handle_resume(SuspendRequest()).success
+
+
+def test_the_gate_keeps_its_owner_until_it_opens():
+    from aft_ftm.suspension import Gate
+    gate = Gate({'inp': lambda msg: None})
+    gate.close(['inp'], lambda: True, 1.0, lease=5.0, owner='a')
+    assert gate.suspended_by('a') and not gate.suspended_by('b')
+    with pytest.raises(SuspendError, match='suspended by a'):
+        gate.open('b')
+    gate.open('a')
+    assert gate.owner == '' and not gate.suspended_by('a')
+    gate.close(['inp'], lambda: True, 1.0, lease=5.0, owner='b')    # anyone may suspend it again
+    assert gate.suspended_by('b')
+
+
+def test_a_resume_failing_beside_one_that_succeeded_leaves_the_adaptation_standing_and_says_so(graph):
+    def master_site_dies(kw):
+        raise rospy.ServiceException('transport error completing service call: connection reset')
+    graph.hooks['/master/protocol/resume'] = master_site_dies
+    report = engine(graph).run(compose(), 'prepared')
+    assert report['state'] == 'DONE' and not report['ok'] and not report['rolled_back'], report
+    assert report['resume_errors'] and '/master/protocol' in report['resume_errors'][0]
+    assert 'the new configuration serves' in report['alarm']
+    # The serving slave was not rebound after its resume.
+    assert not [r for r in graph.rebinds if r[0].startswith('/slave/') and r[2] == GateState.OPEN], graph.rebinds
+    assert graph.gate('/slave/protocol').state == GateState.OPEN
+
+
+def test_a_node_hanging_in_its_answer_holds_the_pause_only_for_the_calls_bound(graph):
+    released = threading.Event()
+
+    def hangs(kw):
+        released.wait(30.0)
+    hangs.release = released.set
+    graph.hooks['/slave/tr/protocol/rebind'] = hangs
+    e = engine(graph, service_timeout=0.2, connect_timeout=0.1)
+    t0 = time.monotonic()
+    report = e.run(compose(), 'prepared')
+    took = time.monotonic() - t0
+    assert not report['ok'] and report['rolled_back'], report
+    assert 'did not answer its rebind within 0.5 s' in report['error'], report['error']
+    # The rollback's undo of that hung node is bounded too; every other node is resumed.
+    assert took < 5.0, took
+    assert all(graph.gate(n).state == GateState.OPEN for n in ('/master/protocol', '/slave/protocol'))
+
+
+def test_a_log_that_cannot_be_written_abandons_nothing(graph):
+    def log(text):
+        if text.startswith('step resume'):
+            raise BrokenPipeError(32, 'Broken pipe')   # `adapt ... | head`, an ssh session gone
+    report = engine(graph, log=log).run(compose(), 'prepared')
+    assert report['ok'] and report['state'] == 'DONE', report
+    assert all(graph.gate(n).state == GateState.OPEN for n in ('/master/protocol', '/slave/protocol'))
+
+
+def test_a_rollback_stops_its_launches_through_the_site_never_by_a_bare_pid(graph, monkeypatch):
+    signalled = []
+    monkeypatch.setattr(adaptation_engine, 'terminate_tree', lambda pid, grace=5.0: signalled.append(pid),
+                        raising=False)
+
+    def refused(kw):
+        raise rospy.ServiceException('refused')
+    graph.hooks['/slave/tr/protocol/rebind'] = refused
+    e = engine(graph)
+    report = e.run(compose(), 'prepared')
+    assert report['rolled_back'] and e.launched and all(site.stopped for site in e.launched)
+    assert signalled == []
