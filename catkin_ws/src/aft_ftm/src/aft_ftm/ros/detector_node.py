@@ -124,6 +124,7 @@ class CrashDetectorNode(object):
                     rospy.resolve_name('~phi_min_samples'), self.phi['min_samples'],
                     rospy.resolve_name('~phi_window'), self.phi['window']))
         self.monitor = self._new_monitor(time.monotonic())
+        self.watched_since = 0   # the witness's epoch that made this detector watch its peer afresh (0: at start)
         self.lock = threading.Lock()
         self.beat_lock = threading.Lock()   # one heartbeat at a time: none after the last (stopping) one
         self.host = this_host()
@@ -337,6 +338,7 @@ class CrashDetectorNode(object):
             now = time.monotonic()
             self.monitor = self._new_monitor(now)
             self.monitor.beat(now)   # heard (it joined): silent from now on, it is declared failed
+            self.watched_since = conf.epoch
             self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
 
@@ -377,7 +379,8 @@ class CrashDetectorNode(object):
         info = verdict.last_info
         rospy.logwarn('%s: site %s failed: %s', rospy.get_name(), self.peer, verdict.reason)
         failure = Failure(site=self.peer, host=info.host if info else '', pid=info.pid if info else 0,
-                          reason=verdict.reason, silence=verdict.silence, detected=rospy.Time.now())
+                          reason=verdict.reason, silence=verdict.silence, detected=rospy.Time.now(),
+                          epoch=self.watched_since)
         if not self._connected('failures'):
             # Published now, it would reach nobody: kept until Recovery is connected. Never silent.
             self.undelivered = (self.monitor, failure)

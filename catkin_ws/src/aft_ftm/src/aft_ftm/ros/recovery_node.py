@@ -161,6 +161,8 @@ class RecoveryNode(object):
         self.stale_told = set()           # stale registrations of the peer logged
         self.unfenceable_told = False     # fence_incomplete raised (while it holds)
         self.recovered = False
+        self.deferred = None        # a verdict of a configuration not seen yet (Failure.epoch): run once it is
+        self.conf_sites = ()        # (primary, backup) of the last configuration seen
         self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
@@ -304,10 +306,20 @@ class RecoveryNode(object):
             before, deposed = self.role, self.primary_seen
             self.role = role_in(conf.primary, conf.backup, self.site)
             self.primary_seen = conf.primary
+            self.conf_sites = (conf.primary, conf.backup)
+            waiting = deferred = None
             if self.role in (Role.PRIMARY, Role.BACKUP):
                 self.recovered = False
                 self.fencing.rearm()
+                # A promotion held for the power switch when the peer re-joined as this site's backup
+                # (its new incarnation took this site's state): forgotten here, it left the Protocol a
+                # backup for good while the witness named this site the primary (review of stop 39).
+                waiting = self.promotion_waits and self.role == Role.PRIMARY
                 self.promotion_waits = False
+                # A verdict on the re-joined peer that came before this configuration did (the
+                # callbacks are not ordered): dropped, the backup never took over (review of stop 39).
+                if self.deferred is not None and self.deferred.epoch <= conf.epoch:
+                    deferred, self.deferred = self.deferred, None
             unasked = self.witness is not None and promoted_unasked(before, self.role, self.site, conf.primary,
                                                                     self.granted, conf.epoch)
             # Until it is carried out, any failure handling here takes over as the backup it was (the
@@ -324,6 +336,10 @@ class RecoveryNode(object):
             alarm(self.ports, 'pbr', 'late_promotion', why)
             failure = Failure(site=deposed or '', host='', pid=0, reason=why, silence=0.0, detected=rospy.Time.now())
             threading.Thread(target=self._on_failure, args=(failure, Role.BACKUP), daemon=True).start()
+        if waiting:
+            threading.Thread(target=self._complete_promotion, args=(conf,), daemon=True).start()
+        if deferred is not None:
+            threading.Thread(target=self._on_failure, args=(deferred,), daemon=True).start()
         if self.role is None and before is not None:
             alarm(self.ports, 'pbr', 'out_of_configuration', '%s is in no configuration of epoch %d (primary %r, '
                   'backup %r: %s): it neither serves nor takes over until it re-joins'
@@ -366,10 +382,36 @@ class RecoveryNode(object):
         if first:
             self._event({'event': 'fail_stop', 'reason': self.stopped})
 
+    def _complete_promotion(self, conf):
+        """The peer re-joined as this site's backup while this site's promotion waited for the power
+        switch: the witness names this site the primary, so its Protocol is promoted now. The failed
+        site was never confirmed off: said (``promotion_unfenced``)."""
+        with self.lock:
+            self._start = time.monotonic()
+            record = {'failed_site': self.peer_ns.strip('/'), 'reason': 'the peer re-joined before the power switch '
+                      'confirmed it off', 'steps': [], 'ok': True, 'late_promotion': True,
+                      'role_before': self.role.name if self.role else None}
+            self._run_step(Step.PROMOTE_PROTOCOL, None, record)
+            record['seconds'] = time.monotonic() - self._start
+            record['done_wall'] = time.time()
+            record['role_after'] = self.role.name if self.role else None
+        alarm(self.ports, 'pbr', 'promotion_unfenced', '%s re-joined as the backup of %s (epoch %d) before the power '
+              'switch confirmed its old incarnation off: the promotion that waited for it %s' % (
+                  conf.backup, self.site, conf.epoch,
+                  'is completed now' if record['ok'] else 'could not be completed (%s): nobody serves until it is'
+                  % failed_steps(record)))
+        self._event(record)
+
     def _on_failure(self, failure, retried_role=None):
         retry = False
         with self.lock:
             if self.recovered:
+                if failure.epoch > self.epoch:
+                    # The detector watched the peer afresh for a configuration this Recovery has not
+                    # seen yet: kept until it has (then run), never dropped.
+                    self.deferred = failure
+                    rospy.logwarn('%s: %s failed (watched since epoch %d, not seen here yet): kept until that '
+                                  'configuration comes', rospy.get_name(), failure.site, failure.epoch)
                 return
             self.recovered = True
             stopped = self.stopped
@@ -419,9 +461,25 @@ class RecoveryNode(object):
             alarm(self.ports, 'pbr', kind, '%s failed and %s did not complete its recovery: %s; %s'
                   % (failure.site, self.site or rospy.get_name(), failed, consequence))
         if retry:
-            threading.Timer(self.retry, self._on_failure, [failure, role]).start()
+            threading.Timer(self.retry, self._retry_failure, [failure, role, self.epoch]).start()
         elif record['ok'] and record['steps']:
             threading.Thread(target=self._clean_master, daemon=True).start()
+
+    def _retry_failure(self, failure, role, epoch):
+        """A recovery retried after the witness was unreachable; dropped if the failed site is in a newer
+        configuration meanwhile (it re-joined): the retry would exclude and fence its new, healthy
+        incarnation (review of stop 39). Its detector, re-armed, judges that one afresh."""
+        with self.lock:
+            rejoined = self.epoch != epoch and failure.site in self.conf_sites
+            if rejoined:
+                self.recovered = False
+        if rejoined:
+            rospy.logwarn('%s: the retried recovery from the failure of %s is dropped: it is in the configuration '
+                          'of epoch %d (re-joined since epoch %d)', rospy.get_name(), failure.site, self.epoch, epoch)
+            self._event({'event': 'retry_dropped', 'failed_site': failure.site, 'epoch': self.epoch,
+                         'since': epoch})
+            return
+        self._on_failure(failure, role)
 
     def _run_plan(self, waves, failure, record):
         """Run the waves of a plan; a failed gate (the witness's vote) ends it."""
