@@ -196,3 +196,42 @@ def test_a_spare_is_promoted_by_the_managers_byte_and_never_by_the_managers_deat
             assert out.strip() == 'promoted'
     finally:
         manager.close()
+
+
+def test_a_stalled_manager_never_blocks_a_services_beat_and_no_change_of_status_is_lost(tmp_path):
+    """The manager's socket holds a few datagrams; a manager stopped (SIGSTOP, busy) with it full
+    blocked the service in its beat, its own cycle with it (review of stop 39)."""
+    import socket
+    path = str(tmp_path / 'stalled.sock')
+    manager = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    manager.bind(path)                                 # never read while "stopped"
+    try:
+        slot = channel.BeatSlot(channel.slot_path(str(tmp_path), 'a'), create=True)
+        end = channel.ServiceEnd('a', slot.path, path)
+        import threading
+
+        def beats():
+            for i in range(200):                       # a change of status at every beat
+                end.beat('error' if i % 2 else 'ok', 'x')
+        cycle = threading.Thread(target=beats, daemon=True)
+        cycle.start()
+        cycle.join(5.0)
+        assert not cycle.is_alive(), 'the service blocked in its beat'   # for ever before, at about the 11th
+        said = []
+        manager.setblocking(False)
+        while True:                                    # the manager runs again and reads its queue
+            try:
+                said.append(manager.recv(4096).decode())
+            except BlockingIOError:
+                break
+        assert said and len(said) < 200                # what did not fit was not sent...
+        end.beat('error', 'x')                         # the status of the last beat above, which did not fit
+        last = []
+        while True:
+            try:
+                last.append(manager.recv(4096).decode())
+            except BlockingIOError:
+                break
+        assert last == ['error a x']                   # ...the latest status is told once there is room
+    finally:
+        manager.close()

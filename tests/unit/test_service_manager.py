@@ -394,8 +394,8 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
                     spawned.add(target)
                 else:   # never a spawn, then a kill of the same service in one plan (left with no process)
                     assert target not in spawned, (move, name, actions)
-            # a critical service a fault stopped is the safe state (never silent)
-            if move in ('exit', 'check'):
+            # a critical service a fault or an operator's stop or restart stopped is the safe state
+            if move in ('exit', 'check', 'stop', 'restart'):
                 for other in sup.services.values():
                     if other.config['critical'] and other.state in (State.STOPPED, State.FAILED) \
                             and before[other.name] not in (State.STOPPED, State.FAILED):
@@ -461,3 +461,71 @@ def test_a_held_restart_holds_the_dependants_too_and_spawns_them_with_it():
     assert decision.actions == [('kill', 'c4g'), ('kill', 'pub')]        # nothing spawned yet
     assert sup['pub'].state == State.RESTARTING and sup.due(1.4) == []
     assert sup.due(1.5) == [('spawn', 'c4g'), ('spawn', 'pub')]
+
+
+# -- review of stop 39 -----------------------------------------------------------------------------
+def test_an_operators_restart_or_stop_that_leaves_a_critical_service_down_is_the_safe_state():
+    """`servicectl restart c4g` (the README's example) terminates the trajectory generator, which must
+    not run without it, and leaves it stopped: it was down with no safe state, shown like a deliberate stop."""
+    c = config('  tg: {command: x, critical: true}\n  c4g: {command: y, terminate_with: [tg]}\n')
+    sup = Supervisor(c)
+    running(sup, 'tg')
+    running(sup, 'c4g')
+    ok, actions, message = sup.restart('c4g', 1.0)
+    assert ok and actions[:2] == [('kill', 'tg'), ('kill', 'c4g')] and sup['tg'].state == State.STOPPED
+    assert sup.safe_state == "tg (critical) terminated by an operator's restart of c4g" and 'safe state' in message
+    sup = Supervisor(c)
+    running(sup, 'tg')
+    running(sup, 'c4g')
+    ok, actions, _ = sup.stop('c4g', 1.0)
+    assert ok and ('kill', 'tg') in actions and sup['tg'].state == State.STOPPED and sup.safe_state
+    sup = Supervisor(c)
+    running(sup, 'tg')
+    assert sup.stop('tg', 1.0)[0] and sup.safe_state == 'tg (critical) stopped by an operator (with tg)'
+
+
+def test_what_must_not_run_without_a_terminated_service_is_terminated_transitively():
+    sup = Supervisor(config('  a: {command: x, on_failure: terminate, terminate_with: [b]}\n'
+                            '  b: {command: y, terminate_with: [c]}\n  c: {command: z, terminate_with: [a]}\n'))
+    for name in 'abc':
+        running(sup, name)
+    decision = sup.fault('a', 'exit', '', 1.0)
+    assert [t for verb, t in decision.actions if verb == 'kill'] == ['b', 'c', 'a']   # c ran on without b before
+    assert all(sup[n].state == State.STOPPED for n in 'abc')
+
+
+def test_an_alerted_error_hides_no_later_hang_nor_limit():
+    sup = Supervisor(config('  a: {command: x, on_failure: alert, heartbeat_timeout: 0.1, memory_limit: 100MB}\n'))
+    running(sup, 'a')
+    sup['a'].heard(0.02, 'error', 'sensor lost')
+    assert sup.check('a', ALIVE, 0.05, GB).kind == 'reported_error'
+    # It hangs: no beat since 0.02 s. Before, the alerted error hid the timeout for ever.
+    assert sup.check('a', ALIVE, 1.0, GB).kind == 'heartbeat_timeout'
+    assert sup.check('a', ALIVE._replace(rss=200e6), 2.0, GB).kind == 'memory_limit'
+    assert sup['a'].errors == {'reported_error': 1, 'heartbeat_timeout': 1, 'memory_limit': 1}
+    assert sup.check('a', ALIVE._replace(rss=200e6), 3.0, GB) is None   # each alerted once while it lasts
+    sup['a'].heard(3.1, 'ok')
+    assert sup.check('a', ALIVE, 3.15, GB) is None and not sup['a'].alerted
+
+
+def test_a_manager_started_again_keeps_the_safe_state_and_the_services_left_down():
+    """Who watches the watcher: a manager killed and started again under the same name lifted the safe
+    state and restarted a critical service whose restart limit was exhausted, with nothing said."""
+    c = config('  a: {command: x, critical: true, restart_limit: 0}\n  b: {command: y}\n  d: {command: z}\n'
+               '  e: {command: w, autostart: false}\n')
+    sup = Supervisor(c)
+    for name in 'abd':
+        running(sup, name)
+    sup.fault('a', 'exit', 'status 1', 1.0)
+    sup.stop('b', 2.0)
+    assert sup['a'].state == State.FAILED and sup.safe_state
+    record = json.loads(json.dumps(sup.record()))          # as written to, and read from, its file
+    assert set(record['down']) == {'a', 'b'}                # d runs; e was never started: not held
+    again = Supervisor(c)
+    assert again.restore(record, 0.0) == ['a', 'b']
+    assert again.safe_state.startswith("held from the manager's previous run: a: restart limit exhausted")
+    assert 'down in the manager\'s previous run' in again['a'].reason
+    assert not again.clear_safe_state(1.0)[0]               # a, critical, is down: start it first
+    assert again.start('a', 1.0)[0]
+    with pytest.raises(ServiceConfigError, match='not a mapping'):
+        Supervisor(c).restore(['a'], 0.0)

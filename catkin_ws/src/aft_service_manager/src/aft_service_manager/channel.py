@@ -255,6 +255,10 @@ class ServiceEnd(object):
         self.slot = BeatSlot(slot_file)
         self.socket_path = socket_path
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        # Never blocking: the manager's queue holds 10 datagrams (net.unix.max_dgram_qlen) for every
+        # service; a manager stopped 1.5 s with it full blocked the service's own cycle in its beat
+        # (review of stop 39). A message that does not fit is sent again at the next beat.
+        self.sock.setblocking(False)
         self.spare = spare
         self.promoted = threading.Event()
         self.promote_fds = []   # readable once promoted: the manager's pipe, and this process's own
@@ -290,8 +294,8 @@ class ServiceEnd(object):
         try:
             self.sock.sendto(('%s %s %s' % (verb, self.name, detail)).encode()[:MAX_DATAGRAM], self.socket_path)
             return True
-        except OSError:
-            return False   # the manager is gone or restarting: the slot still carries the beats
+        except OSError:   # (BlockingIOError: its queue is full)
+            return False   # the manager is gone, restarting or stopped: the slot still carries the beats
 
     def beat(self, status='ok', detail=''):
         """Each cycle. The first beat, and any change of status, also wake the manager."""
@@ -302,8 +306,8 @@ class ServiceEnd(object):
             except OSError:   # supervision never stops the service's cycle: the manager's deadline remains
                 self.watchdog = None
         if status != self.status:
-            self.send('started' if self.status is None and status == 'ok' else status, detail)
-            self.status = status
+            if self.send('started' if self.status is None and status == 'ok' else status, detail):
+                self.status = status   # else told again at the next beat: a change is never lost
 
     def wait_promoted(self, timeout=None):
         """A warm spare, set up (its publishers made): say it is ready, then wait for the manager's

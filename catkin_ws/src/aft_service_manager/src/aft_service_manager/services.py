@@ -383,24 +383,34 @@ def detect(config, sample, now, last_heard, reported_error, started_at, total_me
 
     ``last_heard``: when its last heartbeat came (None: never); ``reported_error``: the detail of an
     error it reported in a heartbeat (None: none)."""
+    found = detect_all(config, sample, now, last_heard, reported_error, started_at, total_memory)
+    return found[0] if found else None
+
+
+def detect_all(config, sample, now, last_heard, reported_error, started_at, total_memory):
+    """Every fault a service shows now, [(kind, detail)], the most severe first (an alerted one must
+    not hide another behind it: a service that reported an error, alerted, then hung was never seen
+    hung, review of stop 39)."""
     if not sample.alive:
-        return 'exit', 'the process exited with status %s' % sample.exit_code
+        return [('exit', 'the process exited with status %s' % sample.exit_code)]
+    found = []
     if sample.stopped:
-        return 'hang', 'the process is stopped (not scheduled)'
+        found.append(('hang', 'the process is stopped (not scheduled)'))
     if reported_error is not None:
-        return 'reported_error', 'the service reported an error: %s' % reported_error
+        found.append(('reported_error', 'the service reported an error: %s' % reported_error))
     timeout = config['heartbeat_timeout']
     if timeout is not None and last_heard is not None and now - last_heard > timeout:
-        return 'heartbeat_timeout', 'no heartbeat for %.0f ms (timeout %.0f ms)' % ((now - last_heard) * 1e3, timeout * 1e3)
+        found.append(('heartbeat_timeout', 'no heartbeat for %.0f ms (timeout %.0f ms)'
+                      % ((now - last_heard) * 1e3, timeout * 1e3)))
     if config['cpu_limit'] is not None and sample.cpu_percent is not None and sample.cpu_percent > config['cpu_limit']:
-        return 'cpu_limit', 'CPU %.0f%% of a core over %.1f s (limit %.0f%%)' % (
-            sample.cpu_percent, config['cpu_window'], config['cpu_limit'])
+        found.append(('cpu_limit', 'CPU %.0f%% of a core over %.1f s (limit %.0f%%)' % (
+            sample.cpu_percent, config['cpu_window'], config['cpu_limit'])))
     if config['memory_limit'] is not None and sample.rss is not None:
         kind, value = config['memory_limit']
         limit = value if kind == 'bytes' else value / 100.0 * total_memory
         if sample.rss > limit:
-            return 'memory_limit', 'memory %.1f MB (limit %.1f MB)' % (sample.rss / 1e6, limit / 1e6)
-    return None
+            found.append(('memory_limit', 'memory %.1f MB (limit %.1f MB)' % (sample.rss / 1e6, limit / 1e6)))
+    return found
 
 
 # -- one service ---------------------------------------------------------------------------------
@@ -506,15 +516,16 @@ class Supervisor(object):
             return None
         if s.consecutive and now - s.since >= s.config['stable_after']:
             s.consecutive = 0   # a stable run: the back-off starts again from restart_delay
-        found = detect(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
-        if found is None:
-            if s.alerted:
-                s.reason = 'running; the fault alerted (%s) has cleared' % ', '.join(sorted(s.alerted))
-                s.alerted.clear()
-            return None
-        if found[0] in s.alerted:
-            return None        # alerted already; alerted again only once the condition has cleared
-        return self.fault(name, found[0], found[1], now)
+        found = detect_all(s.config, sample, now, s.last_heard, s.reported_error, s.started_at, total_memory)
+        cleared = s.alerted - {kind for kind, _ in found}
+        if cleared:
+            s.alerted -= cleared
+            if not s.alerted:
+                s.reason = 'running; the fault alerted (%s) has cleared' % ', '.join(sorted(cleared))
+        for kind, detail in found:
+            if kind not in s.alerted:   # alerted already: alerted again only once the condition has cleared
+                return self.fault(name, kind, detail, now)
+        return None
 
     def fault(self, name, kind, detail, now):
         """A fault of service name: count it, decide and return what to do."""
@@ -560,16 +571,35 @@ class Supervisor(object):
             self._escalate(escalate, now)
         return Decision(name, kind, detail, actions, escalate)
 
-    def _terminate_with(self, name, now):
-        """Actions terminating the services that must not run without name (left stopped)."""
+    def _terminate_with(self, name, now, seen=None):
+        """Actions terminating the services that must not run without name (left stopped), and those
+        that must not run without them, followed transitively (B terminated with A left C, which must
+        not run without B, running; review of stop 39)."""
+        seen = {name} if seen is None else seen
         actions = []
         for other in self.services[name].config['terminate_with']:
+            if other in seen:
+                continue
+            seen.add(other)
             o = self.services[other]
             if o.state in (State.STARTING, State.RUNNING, State.ERROR, State.RESTARTING):
                 o.spawn_at = None
                 o._change(State.STOPPED, now, 'terminated with %s' % name)
                 actions.append(('kill', other))
+                actions += self._terminate_with(other, now, seen)
         return actions
+
+    def _critical_stopped(self, name, actions, now, why):
+        """Escalate when actions left a critical service stopped (an operator's stop or restart of a
+        service it must not run without, or of itself): a critical service down is never left without
+        the safe state (review of stop 39). Returns the reason, or None."""
+        stopped = [other for verb, other in actions if verb == 'kill' and self.services[other].config['critical']
+                   and self.services[other].state in (State.STOPPED, State.FAILED)]
+        if not stopped:
+            return None
+        reason = '%s (critical) %s' % (', '.join(stopped), why)
+        self._escalate(reason, now)
+        return reason
 
     def _restart(self, name, now, why, seen=None, delay=0.0):
         """Actions restarting name: terminate its terminate_with first, restart it, then its dependants
@@ -631,7 +661,9 @@ class Supervisor(object):
             return False, [], '%s is restarting: wait until it settles' % name
         was, s.spawn_at = s.state, None    # (a restart the back-off holds is called off)
         s._change(State.STOPPED, now, 'stopped by an operator')
-        return True, ([] if was == State.FAILED else [('kill', name)]), 'stopping %s' % name
+        actions = [] if was == State.FAILED else self._terminate_with(name, now) + [('kill', name)]
+        escalated = self._critical_stopped(name, actions, now, 'stopped by an operator (with %s)' % name)
+        return True, actions, 'stopping %s%s' % (name, '; safe state: %s' % escalated if escalated else '')
 
     def restart(self, name, now):
         s = self.services[name]
@@ -640,7 +672,35 @@ class Supervisor(object):
         if s.state == State.ERROR or (s.state == State.RESTARTING and s.spawn_at is None):
             return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
         s.spawn_at = None   # an operator's restart does not wait for the back-off
-        return True, self._restart(name, now, 'restarted by an operator'), 'restarting %s' % name
+        actions = self._restart(name, now, 'restarted by an operator')
+        escalated = self._critical_stopped(name, actions, now, 'terminated by an operator\'s restart of %s' % name)
+        return True, actions, 'restarting %s%s' % (name, '; safe state: %s' % escalated if escalated else '')
+
+    def record(self):
+        """What a manager started again (killed, crashed, restarted) must not forget: the safe state,
+        and the services an operator, a failure action or an exhausted restart limit left down. Its
+        successor lifted the safe state and restarted them all at once (review of stop 39)."""
+        down = {n: {'state': s.state.name, 'reason': s.reason} for n, s in self.services.items()
+                if s.state == State.FAILED or (s.state == State.STOPPED and s.starts)}
+        return {'safe_state': self.safe_state, 'down': down}
+
+    def restore(self, record, now):
+        """Take a record of an earlier run (:meth:`record`) before anything starts. Returns the names of
+        the services held down (not autostarted); a malformed record raises ServiceConfigError."""
+        if not isinstance(record, dict) or not isinstance(record.get('down', {}), dict):
+            raise ServiceConfigError('the manager\'s record is not a mapping: %r' % (record,))
+        held = []
+        for name, entry in sorted(record.get('down', {}).items()):
+            s = self.services.get(name)
+            if s is None or s.state != State.STOPPED:   # no longer configured: nothing to hold
+                continue
+            reason = entry.get('reason', '') if isinstance(entry, dict) else ''
+            s.reason = 'down in the manager\'s previous run (%s): start it to run it again' % reason
+            held.append(name)
+        reason = record.get('safe_state')
+        if reason:
+            self._escalate('held from the manager\'s previous run: %s' % reason, now)
+        return held
 
     def clear_safe_state(self, now):
         """An operator clears the safe state. Refused while a critical service is not running."""

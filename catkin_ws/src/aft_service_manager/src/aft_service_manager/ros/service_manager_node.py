@@ -310,6 +310,10 @@ class ServiceManagerNode(object):
         self.published_safe = None    # the safe state last published (its reason, None: not in it)
         self.pid_file = os.path.join(self.config['manager']['state_dir'],
                                      'manager%s.pids' % rospy.get_name().replace('/', '_'))
+        # The safe state and the services left down, for a manager of this name started again.
+        self.record_file = os.path.join(self.config['manager']['state_dir'],
+                                        'manager%s.record' % rospy.get_name().replace('/', '_'))
+        self.recorded = None          # what record_file holds (written only when it changes)
         self.prefix = 'manager%s' % rospy.get_name().replace('/', '_')
         self.spares = {}              # name -> Child: its warm spare, idle until promoted
         self.closing = False          # shutting down: nothing more is spawned
@@ -327,7 +331,12 @@ class ServiceManagerNode(object):
         self.diag_pub = rospy.Publisher('/diagnostics', DiagnosticArray, queue_size=10)
         self.events_pub = rospy.Publisher('~events', String, queue_size=100)
         rospy.Subscriber(self.heartbeat_topic, ServiceHeartbeat, self._on_heartbeat, queue_size=1000, tcp_nodelay=True)
-        self.safe_pub.publish(SafeState(active=False, reason='', stamp=rospy.Time.now()))
+        held = self._restore()
+        self.published_safe = self.supervisor.safe_state
+        if self.published_safe:
+            rospy.logerr('%s: SAFE STATE, held from the previous run: %s', rospy.get_name(), self.published_safe)
+        self.safe_pub.publish(SafeState(active=self.published_safe is not None, reason=self.published_safe or '',
+                                        stamp=rospy.Time.now()))
         rospy.on_shutdown(self.shutdown)
         # the socket first: what adopted services say from now on reaches it
         self.local = channel.ManagerSocket(channel.socket_path(self.config['manager']['state_dir'], self.prefix))
@@ -343,7 +352,7 @@ class ServiceManagerNode(object):
         with self.lock:
             self._record_pids()
             for name, service in self.supervisor.services.items():
-                if service.config['autostart'] and name not in self.children:
+                if service.config['autostart'] and name not in self.children and name not in held:
                     self._spawn(name, now)
                 elif name in self.children:
                     self._ensure_spare(name)
@@ -637,10 +646,39 @@ class ServiceManagerNode(object):
                 self.supervisor.spawn_failed(name, now, str(e))
 
     def _sync_safe_state(self):
-        """Publish the safe state whenever the supervisor's has changed (whatever changed it)."""
+        """Publish the safe state whenever the supervisor's has changed (whatever changed it), and keep
+        the record a manager started again reads (:meth:`_restore`)."""
         if self.supervisor.safe_state != self.published_safe:
             self.published_safe = self.supervisor.safe_state
             self._publish_safe_state()
+        record = self.supervisor.record()
+        if record != self.recorded:
+            try:
+                trust.write_private_json(self.record_file, record)
+                self.recorded = record
+            except OSError as e:
+                rospy.logerr_throttle(10.0, '%s: cannot keep the safe state and the services down in %s: %s; '
+                                      'a manager started again would not know them' % (rospy.get_name(),
+                                                                                      self.record_file, e))
+
+    def _restore(self):
+        """Read what an earlier manager of this name recorded, if it did not stop cleanly (killed,
+        crashed, a power loss): its safe state holds (an operator clears it), and the services it left
+        down stay down (an operator starts them). Returns those names."""
+        try:
+            record = trust.read_private_json(self.record_file)
+            held = self.supervisor.restore(record, time.monotonic()) if record is not None else []
+        except (OSError, ValueError, ServiceConfigError) as e:
+            # Not trusted or not readable: the safe state, rather than a start as if nothing had happened.
+            rospy.logerr('%s: the record of the previous run %s is not usable: %s', rospy.get_name(),
+                         self.record_file, e)
+            self.supervisor._escalate('the record of the manager\'s previous run is not usable (%s): an operator '
+                                      'checks the services and clears the safe state' % e, time.monotonic())
+            return []
+        self.recorded = record
+        for name in held:
+            rospy.logwarn('%s: %s stays down: %s', rospy.get_name(), name, self.supervisor[name].reason)
+        return held
 
     # -- the loop --------------------------------------------------------------------------------
     def _loop(self):
@@ -1018,4 +1056,10 @@ class ServiceManagerNode(object):
             self.tree.close(0.3)
             os.unlink(self.pid_file)
         except Exception:   # shutdown paths never raise
+            pass
+        try:
+            # A clean stop stopped everything: a manager started again starts afresh. Only a manager
+            # killed or crashed leaves its record (and its services, which the next one adopts).
+            os.unlink(self.record_file)
+        except OSError:
             pass
