@@ -273,7 +273,7 @@ class ProtocolModel(Node):
 
     def on_stored(self, cp):
         if cp.full:
-            self.core.on_state_transfer(cp.cache, cp.seq, cp.sender)
+            self.core.on_state_transfer(cp.cache, cp.seq, cp.sender, getattr(cp, 'first_seq', 0))
         else:   # ProtocolNode._on_stored: a group commit's batch, then its last reply
             for reply in list(getattr(cp, 'batch', None) or []) + [cp.reply]:
                 self.core.on_stored(reply, cp.seq, cp.sender, getattr(cp, 'first_seq', 0))

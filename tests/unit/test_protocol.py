@@ -600,3 +600,15 @@ def test_the_replies_a_state_transfer_carries_are_never_evicted_by_count():
     for rid in range(4):
         bounded.store(reply(rid=rid + 1))
     assert len(bounded) == 3 and bounded.evicted == 1     # the Protocol's safety net still counts
+
+
+def test_a_state_transfer_from_an_after_started_again_under_its_name_is_no_gap():
+    """Review of stop 39: the Protocol was told the transfer without its sender's first number; the
+    next checkpoint, carrying the new first number, reset the count below the transfer: a gap at the
+    transfer itself, and no take-over without asking the After for every reply."""
+    core = ProtocolCore(Role.BACKUP)
+    for seq in range(1000, 1005):                       # the first incarnation of /a/after
+        core.on_stored(reply(rid=seq), seq, '/a/after', first_seq=1000)
+    core.on_state_transfer([reply(rid=5000)], 5000, '/a/after', first_seq=4990)   # started again, joined
+    core.on_stored(reply(rid=5001), 5001, '/a/after', first_seq=4990)
+    assert core.stored_gap is None and core.last_stored_seq == 5001

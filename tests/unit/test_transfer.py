@@ -127,3 +127,25 @@ def test_a_checkpoint_the_catching_up_joiner_refuses_excludes_it():
     assert sender.on_ack(during, False) == ([], Need.EXCLUDE)
     assert sender.excluded(2) == [] and not sender.catchup and sender.role == Role.ALONE
     assert sender.on_ack(seq, True) == ([], Need.NOTHING)              # a late answer changes nothing
+
+
+def test_a_joiner_acknowledging_its_catch_up_steadily_is_never_taken_for_silent():
+    """Review of stop 39: only a part's ack was progress; once the last part was acknowledged, every
+    catch-up checkpoint had to be acknowledged within the ack timeout of it. A joiner acknowledging one
+    every 10 ms was excluded at 1.0 s, and each new attempt built the same backlog: it never joined."""
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    queued = [sender.hold('r%d' % i, now=0.001 * i) for i in range(120)]   # sent while the transfer went
+    assert sender.on_ack(seq, True, 0.1) == ([], Need.NOTHING)
+    now = 0.1
+    for i, cp in enumerate(queued):
+        now += 0.01
+        assert not sender.overdue(now, 1.0), 'excluded after %d of %d catch-up acks at %.2f s' % (i, len(queued), now)
+        assert sender.on_ack(cp, True, now)[1] == (Need.ADMIT if i == len(queued) - 1 else Need.NOTHING)
+    # A joiner that stops acknowledging is still found silent, one timeout after its last ack.
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    first, second = sender.hold('r1', now=0.01), sender.hold('r2', now=0.02)
+    sender.on_ack(seq, True, 0.1)
+    sender.on_ack(first, True, 0.5)
+    assert not sender.overdue(1.4, 1.0) and sender.overdue(1.6, 1.0)

@@ -136,8 +136,11 @@ class CheckpointSender(object):
             self.catchup[queued] = now
         return True
 
-    def on_ack(self, seq, ok):
-        """The backup answered checkpoint seq. Returns (released replies, Need)."""
+    def on_ack(self, seq, ok, now=None):
+        """The backup answered checkpoint seq (at ``now``, None: not told). Returns (released replies, Need).
+        A catch-up checkpoint acknowledged is progress, as a part is (:meth:`progress`): the ones still
+        queued count their ack timeout from now. Before, they counted from the last part's ack, and a
+        joiner acknowledging a steady stream of them was excluded for silence (review of stop 39)."""
         if self.deposed or self.role != Role.PRIMARY or seq < self.session:
             return [], Need.NOTHING   # a late answer of a backup excluded since: says nothing of this one
         if seq == self.join_seq:
@@ -152,6 +155,9 @@ class CheckpointSender(object):
             if not ok:
                 self.refused += 1
                 return [], Need.EXCLUDE
+            if now is not None:
+                for queued in self.catchup:
+                    self.catchup[queued] = now
             return [], Need.ADMIT if self.ready_to_admit() else Need.NOTHING
         held = self.held.pop(seq, None)
         if held is None:

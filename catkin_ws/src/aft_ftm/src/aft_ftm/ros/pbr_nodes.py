@@ -207,6 +207,7 @@ class PbrAfterNode(AfterNode):
         # The parts, and the checkpoints behind them, are written by a thread of their own, in order: a
         # publisher writes synchronously, and a part on a slow link must not hold the lock the replies need.
         self.outbox = queue.Queue()
+        self.parts_dropped = 0      # parts of transfers given up, never written (_write_outbox)
         self.deferred = []          # primary: checkpoints made while its parts are sent, sent after its last
         self.incoming = Incoming()  # backup: the parts of the state transfer being received
         self.joiner = None          # (site, incarnation) of the backup being joined
@@ -496,11 +497,22 @@ class PbrAfterNode(AfterNode):
             except queue.Empty:
                 continue
             try:
+                if cp.parts > 1 and not self._part_live(cp.seq):
+                    # A part of a transfer given up (the joiner excluded): never written. Each retry
+                    # queued behind the last one's unwritten parts on a slow link, and the outbox grew
+                    # without bound (50 MB in 30 s) while the joiner was never admitted (review of stop 39).
+                    self.parts_dropped += 1
+                    continue
                 self.ports.publish('checkpoints', cp)
             except rospy.ROSException as e:   # shutting down: nothing more leaves
                 rospy.logwarn('%s: checkpoint %d not sent: %s', self.name, cp.seq, e)
             finally:
                 self.outbox.task_done()
+
+    def _part_live(self, seq):
+        """Whether a part of transfer ``seq`` is still to be sent: that transfer is the join under way."""
+        out, sender = self.outgoing, self.sender
+        return out is not None and out.seq == seq and sender is not None and sender.join_seq == seq
 
     def _transfer_live(self):
         """The state transfer in parts is still the sender's join under way (else forget it)."""
@@ -549,7 +561,7 @@ class PbrAfterNode(AfterNode):
             record = self.join_record
             if record is not None and ack.ok and ack.seq == record['seq'] and 'acknowledged_s' not in record:
                 record['acknowledged_s'] = time.monotonic() - record['t0']
-            released, need = self.sender.on_ack(ack.seq, ack.ok)
+            released, need = self.sender.on_ack(ack.seq, ack.ok, time.monotonic())
             self._release(released)
         if need:
             self._resolve(need, 'the backup refused checkpoint %d: %s' % (ack.seq, ack.error) if not ack.ok
@@ -720,8 +732,10 @@ class PbrAfterNode(AfterNode):
             else:
                 decision = self.receiver.decide(cp.seq, cp.sender, cp.first_seq, cp.replaces, cp.epoch, cp.full)
             error = refused_transfer = ''
-            if decision == Decision.APPLY_FULL and cp.parts > 1:
-                # A state transfer in parts: acknowledge each, apply nothing before the last.
+            if decision in (Decision.APPLY_FULL, Decision.APPLY) and cp.full and cp.parts > 1:
+                # A state transfer in parts: acknowledge each, apply nothing before the last. (Whatever the
+                # receiver decided: one that followed nobody yet, or took the sender for a replacement, got
+                # APPLY, and set the first part as the whole state, review of stop 39.)
                 cp.state, error = self.incoming.take(cp)
                 if error:
                     refused_transfer, decision = error, Decision.GAP
@@ -729,6 +743,8 @@ class PbrAfterNode(AfterNode):
                     self.ports.publish('peer_acks', CheckpointAck(seq=cp.seq, ok=True, partial=True, part=cp.part,
                                                                   epoch=self.receiver.epoch, to=cp.sender))
                     return
+                else:
+                    decision = Decision.APPLY_FULL   # the whole state, and the replies its last part carries
             if decision == Decision.GAP and not refused_transfer:
                 error = 'checkpoint %d received after %d: one is missing' % (cp.seq, self.receiver.last_seq)
             elif decision == Decision.JOINING:
@@ -780,8 +796,8 @@ class PbrAfterNode(AfterNode):
             elif decision == Decision.APPLY_FULL:
                 for reply in cp.cache:
                     self._remember(reply)
-                self.ports.publish('stored', Checkpoint(seq=cp.seq, sender=cp.sender, full=True, cache=cp.cache,
-                                                        epoch=cp.epoch))
+                self.ports.publish('stored', Checkpoint(seq=cp.seq, first_seq=cp.first_seq, sender=cp.sender, full=True,
+                                                        cache=cp.cache, epoch=cp.epoch))
             if decision == Decision.APPLY_FULL:
                 self.followed_since = time.monotonic()
             if state is not None:

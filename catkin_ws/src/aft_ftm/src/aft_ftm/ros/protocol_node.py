@@ -233,7 +233,7 @@ class ProtocolNode(object):
         with self.lock:
             gap = self.core.stored_gap
             if checkpoint.full:
-                self.core.on_state_transfer(checkpoint.cache, checkpoint.seq, checkpoint.sender)
+                self.core.on_state_transfer(checkpoint.cache, checkpoint.seq, checkpoint.sender, checkpoint.first_seq)
             else:   # a group commit's batch, then its last reply
                 for reply in list(checkpoint.batch) + [checkpoint.reply]:
                     self.core.on_stored(reply, checkpoint.seq, checkpoint.sender, checkpoint.first_seq)
