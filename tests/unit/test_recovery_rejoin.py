@@ -152,6 +152,8 @@ def test_a_verdict_before_the_configuration_that_rearms_recovery_is_kept_and_run
     a._on_configuration(configuration(witness))
     assert eventually(lambda: witness.primary == 'a'), 'dropped: nobody served again'
     assert eventually(lambda: ('after', Role.ALONE) in a.calls[calls:]), a.calls
+    assert eventually(lambda: ('protocol', Role.ALONE) in a.calls[calls:]), a.calls   # the plan's last step
+    assert eventually(lambda: not a.lock.locked())
     # A stale verdict (of an epoch already seen) is still dropped as before.
     b_again = len(a.calls)
     a._on_failure(failure(epoch=2))

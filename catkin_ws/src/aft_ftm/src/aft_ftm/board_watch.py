@@ -111,6 +111,7 @@ class Board(object):
         self.incarnation = None         # (host, launcher pid) from its heartbeats
         self.failed_incarnation = None  # the incarnation declared failed
         self.stray_beats = 0            # heartbeats of the failed incarnation (late, or fail-silence broken)
+        self.stray_told = False         # fail_silence_broken said for the failed incarnation
         self.silent_since = None        # declared silent (not FAILED) at, until heard again
         self.lost_at = None             # FAILED or silent at, until a new incarnation is heard
         self.back_at = None             # when a new incarnation was heard, until it re-joins
@@ -175,6 +176,13 @@ class BoardWatch(object):
         if board.standing == Standing.FAILED:
             if incarnation == board.failed_incarnation:
                 board.stray_beats += 1
+                if board.lost_at is not None and now - board.lost_at > self.timeout and not board.stray_told:
+                    # Not a late beat: the incarnation declared failed still runs (a remote board not powered
+                    # off, a frozen one resumed), beside the promoted board. Said once (review of stop 39).
+                    board.stray_told = True
+                    return [Report('fail_silence_broken', 'board %s, declared failed %.2f s ago, still beats (launcher '
+                                   'pid %d on %s): it was not silenced and may still publish beside board %s'
+                                   % (name, now - board.lost_at, pid, host, self.primary), True, None)]
                 return []
             self._change(board, Standing.JOINING)
             return self._heard_again(board, now, incarnation, info)
@@ -272,6 +280,7 @@ class BoardWatch(object):
             if backup is not None:
                 self._change(board, Standing.FAILED)
                 board.failed_incarnation, board.connected, board.back_at = board.incarnation, False, None
+                board.stray_told = False
                 self._change(backup, Standing.PROMOTING)
                 return [Failover(board.name, verdict, backup.name, list(backup.nodes))]
             board.silent_since = now
