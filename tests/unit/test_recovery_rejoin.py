@@ -181,3 +181,34 @@ def test_a_recovery_retried_after_the_peer_rejoined_leaves_the_new_backup_alone(
     assert (witness.epoch, witness.primary, witness.backup) == (epoch, 'a', 'b'), 'the new backup was excluded'
     assert a.fencing.attempts == 0, 'the new backup was powered off'
     assert not a.recovered                                        # its detector's next verdict is acted on
+
+
+def test_a_kept_verdict_whose_configuration_was_skipped_is_dropped(world):
+    witness = Witness()
+    witness.request(Op.REGISTER, 'b', 'b@1', claim=True)
+    witness.request(Op.ADMIT, 'b', 'b@1', 'a', 'a@1')           # epoch 2 (b, a)
+    a = recovery('a', witness, switch=False)
+    a.recovered = True                                            # a recovery under way
+    a._on_failure(failure(epoch=3))                               # judged for epoch 3, not seen here yet
+    assert a.deferred is not None
+    witness.request(Op.EXCLUDE, 'b', 'b@1')                      # epoch 3, then 4: only 4 is delivered
+    witness.request(Op.ADMIT, 'b', 'b@1', 'a', 'a@1', False, witness.epoch)
+    calls = len(a.calls)
+    a._on_configuration(configuration(witness))
+    assert a.deferred is None and len(a.calls) == calls          # not run against the incarnation of epoch 4
+
+
+def test_a_recovery_retried_after_the_peer_registered_again_leaves_it_alone(world):
+    witness = Witness()
+    witness.request(Op.REGISTER, 'a', 'a@1', claim=True)
+    witness.request(Op.ADMIT, 'a', 'a@1', 'b', 'b@1')           # epoch 2 (a, b)
+    world.switch_confirms = True
+    a = recovery('a', witness, role=Role.PRIMARY)
+    a.witness.down = True
+    a._on_failure(failure())
+    a.witness.down = False
+    witness.request(Op.EXCLUDE, 'a', 'a@1')                      # epoch 3: a alone; b, restarted, joins
+    a._on_configuration(configuration(witness))
+    timer = world.timers.pop(0)
+    timer.function(*timer.args)                                   # before b's admission
+    assert a.fencing.attempts == 0, 'the re-joining backup was powered off'

@@ -486,7 +486,7 @@ def test_an_operators_restart_or_stop_that_leaves_a_critical_service_down_is_the
 
 def test_what_must_not_run_without_a_terminated_service_is_terminated_transitively():
     sup = Supervisor(config('  a: {command: x, on_failure: terminate, terminate_with: [b]}\n'
-                            '  b: {command: y, terminate_with: [c]}\n  c: {command: z, terminate_with: [a]}\n'))
+                            '  b: {command: y, terminate_with: [c]}\n  c: {command: z}\n'))
     for name in 'abc':
         running(sup, name)
     decision = sup.fault('a', 'exit', '', 1.0)
@@ -529,3 +529,19 @@ def test_a_manager_started_again_keeps_the_safe_state_and_the_services_left_down
     assert again.start('a', 1.0)[0]
     with pytest.raises(ServiceConfigError, match='not a mapping'):
         Supervisor(c).restore(['a'], 0.0)
+    # Killed again before an operator did anything: still held, the reasons not nested.
+    third = Supervisor(c)
+    assert third.restore(json.loads(json.dumps(_after_restore(c, record))), 0.0) == ['a', 'b']
+    assert third.safe_state.count('held from') == 1 and third['b'].reason.count('down in') == 1
+
+
+def _after_restore(c, record):
+    again = Supervisor(c)
+    again.restore(record, 0.0)
+    return again.record()
+
+
+def test_a_transitive_terminate_with_that_would_kill_what_a_restart_starts_is_refused():
+    with pytest.raises(ServiceConfigError, match='would start and stop b at once.*through'):
+        config('  a: {command: x, restart_with: [b, d]}\n  b: {command: y}\n  d: {command: z, terminate_with: [e]}\n'
+               '  e: {command: w, terminate_with: [b]}\n')

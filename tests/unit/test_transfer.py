@@ -149,3 +149,17 @@ def test_a_joiner_acknowledging_its_catch_up_steadily_is_never_taken_for_silent(
     sender.on_ack(seq, True, 0.1)
     sender.on_ack(first, True, 0.5)
     assert not sender.overdue(1.4, 1.0) and sender.overdue(1.6, 1.0)
+
+
+def test_a_joiner_acknowledging_more_slowly_than_checkpoints_are_made_is_excluded_in_the_end():
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    sender.on_ack(seq, True, 0.0)
+    now, sent = 0.0, []
+    while not sender.overdue(now, 1.0):
+        now += 0.01
+        sent.append(sender.hold('r', now))       # 100 checkpoints a second
+        if len(sent) % 2 == 0:
+            sender.on_ack(sent[len(sent) // 2 - 1], True, now)   # acknowledged at half that rate
+        assert now < 20.0, 'never excluded: the catch-up grows for ever'
+    assert now <= 10.0 + 0.02

@@ -112,6 +112,7 @@ class Board(object):
         self.failed_incarnation = None  # the incarnation declared failed
         self.stray_beats = 0            # heartbeats of the failed incarnation (late, or fail-silence broken)
         self.stray_told = False         # fail_silence_broken said for the failed incarnation
+        self.stray_since = None         # when the first of those beats came
         self.silent_since = None        # declared silent (not FAILED) at, until heard again
         self.lost_at = None             # FAILED or silent at, until a new incarnation is heard
         self.back_at = None             # when a new incarnation was heard, until it re-joins
@@ -176,7 +177,12 @@ class BoardWatch(object):
         if board.standing == Standing.FAILED:
             if incarnation == board.failed_incarnation:
                 board.stray_beats += 1
-                if board.lost_at is not None and now - board.lost_at > self.timeout and not board.stray_told:
+                if board.stray_since is None:
+                    board.stray_since = now
+                # Beats that keep coming over more than a timeout (a backlog of late ones comes at once),
+                # a timeout after the verdict.
+                if board.lost_at is not None and now - board.lost_at > self.timeout and \
+                        now - board.stray_since > self.timeout and not board.stray_told:
                     # Not a late beat: the incarnation declared failed still runs (a remote board not powered
                     # off, a frozen one resumed), beside the promoted board. Said once (review of stop 39).
                     board.stray_told = True
@@ -280,7 +286,7 @@ class BoardWatch(object):
             if backup is not None:
                 self._change(board, Standing.FAILED)
                 board.failed_incarnation, board.connected, board.back_at = board.incarnation, False, None
-                board.stray_told = False
+                board.stray_told, board.stray_since = False, None
                 self._change(backup, Standing.PROMOTING)
                 return [Failover(board.name, verdict, backup.name, list(backup.nodes))]
             board.silent_since = now

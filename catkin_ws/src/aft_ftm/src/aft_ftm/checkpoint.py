@@ -50,6 +50,9 @@ class Need(enum.IntEnum):
     ADMIT = 2       # a joined backup holds our state: make it the backup of a new epoch
 
 
+CATCHUP_TIMEOUTS = 10   # a catch-up checkpoint is acknowledged within this many ack timeouts of being sent
+
+
 class CheckpointSender(object):
     """Primary's After: sequence numbers, replies held until acknowledged, joins."""
 
@@ -74,7 +77,7 @@ class CheckpointSender(object):
         # only to be acknowledged before the joiner is admitted.
         self.catching_up = False
         self.catchup = {}
-
+        self.catchup_sent = {}   # seq -> when sent: acks of the others refresh ``catchup``, never this
     def _change_role(self, role):
         """The one place where the sender's role changes (RoleError unless an allowed edge)."""
         check_role_change(self.role, role)
@@ -89,7 +92,7 @@ class CheckpointSender(object):
         while a joiner catches up (:meth:`releases_at_once`), the caller releases them at once."""
         self.seq += 1
         if self.catching_up:
-            self.catchup[self.seq] = now
+            self.catchup[self.seq] = self.catchup_sent[self.seq] = now
         else:
             self.held[self.seq] = Held(self.seq, list(batch) + ([reply] if reply is not None else []), now)
         return self.seq
@@ -115,7 +118,7 @@ class CheckpointSender(object):
         self.seq += 1
         self.join_seq = self.session = self.seq
         self.join_since = now
-        self.catching_up, self.catchup = catch_up, {}
+        self.catching_up, self.catchup, self.catchup_sent = catch_up, {}, {}
         return self.seq
 
     def ready_to_admit(self):
@@ -152,6 +155,7 @@ class CheckpointSender(object):
             return [], Need.EXCLUDE
         if seq in self.catchup:
             del self.catchup[seq]
+            self.catchup_sent.pop(seq, None)
             if not ok:
                 self.refused += 1
                 return [], Need.EXCLUDE
@@ -193,7 +197,7 @@ class CheckpointSender(object):
         """The backup is gone: release every held reply, send no more checkpoints."""
         self._change_role(Role.ALONE)
         self.joiner = self.join_seq = self.join_since = None
-        self.catching_up, self.catchup = False, {}
+        self.catching_up, self.catchup, self.catchup_sent = False, {}, {}
         released = [r for s in sorted(self.held) for r in self.held[s].replies]
         self.held.clear()
         return released
@@ -209,8 +213,11 @@ class CheckpointSender(object):
             return False
         if self.join_since is not None and now - self.join_since > timeout:
             return True
+        # A joiner acknowledging more slowly than checkpoints are made never catches up: each catch-up
+        # checkpoint must be acknowledged within CATCHUP_TIMEOUTS ack timeouts of being sent.
         return any(now - h.since > timeout for h in self.held.values()) or \
-            any(now - since > timeout for since in self.catchup.values())
+            any(now - since > timeout for since in self.catchup.values()) or \
+            any(now - sent > CATCHUP_TIMEOUTS * timeout for sent in self.catchup_sent.values())
 
 
 class AdmissionGate(object):

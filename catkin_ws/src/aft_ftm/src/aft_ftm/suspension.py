@@ -271,6 +271,11 @@ class Gate(object):
         suspended by another owner."""
         with self._cond:
             self._check_owner(owner, 'renew')
+            if owner and self.state == GateState.CLOSED and self.owner != owner:
+                # Suspended again by nobody named (a join's quiescence, an operator) after this owner's
+                # suspension ended: not this owner's suspension, whatever it looks like.
+                raise SuspendError('suspended by %s, not by %s: its suspension ended meanwhile (%s)'
+                                   % (self.owner or 'someone else', owner, self.last_end or 'resumed'))
             if self.state != GateState.CLOSED:
                 ended = ' (last suspension: %s)' % self.last_end if self.last_end else ''
                 raise SuspendError('not suspended (%s): nothing to renew%s' % (self.state.name, ended))

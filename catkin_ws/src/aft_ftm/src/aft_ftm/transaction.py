@@ -92,6 +92,10 @@ Outcome.__doc__ = """How one step ran: ``started`` (the caller's clock), ``error
 succeeded, else why) and ``info`` (what undoing it needs: the previous binding, the launch, ...)."""
 
 
+ABANDONED = 'call abandoned'   # how a step's error says its call got no answer in time (it may still take effect)
+UNKNOWN = object()             # the undo info of such a step: what it replaced is not known
+
+
 def stop_reason(interrupted, lost):
     """Why a run must stop and roll back now ('' if it goes on): an interrupt, or suspensions
     lost (node -> why it is no longer suspended)."""
@@ -245,6 +249,10 @@ class Transaction(object):
                 # A suspension that failed may still have closed the node's gate (its answer
                 # lost): the rollback resumes it too, which is harmless on a running node.
                 self.done.append((o.step, o.info))
+            elif o.step.action in ('rebind', 'promote') and ABANDONED in o.error:
+                # A call abandoned past its bound may still be carried out: its undo is asked for, with
+                # nothing known of what it replaced (the rollback says so, never silent).
+                self.done.append((o.step, UNKNOWN))
         failed = [o for o in outcomes if o.error is not None]
         if failed and len(failed) < len(outcomes) and self.index - 1 == self.last_resume:
             # Committed: a site of the group serves in the new configuration (see the invariants).
@@ -281,7 +289,7 @@ class Transaction(object):
     # -- the outcome --------------------------------------------------------------------------
     @property
     def ok(self):
-        return self.state is State.DONE and not self.resume_errors
+        return self.state is State.DONE   # (with resume_errors: it stands, and the alarm says what failed)
 
     @property
     def rolled_back(self):

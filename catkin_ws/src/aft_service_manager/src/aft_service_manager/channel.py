@@ -314,12 +314,15 @@ class ServiceEnd(object):
         SIGUSR1. True once promoted (at once for an instance that is no spare)."""
         if self.promoted.is_set():
             return True
-        self.send('ready')
+        said = self.send('ready')
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self.promoted.is_set():
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
                 break
+            if not said:   # the manager's queue was full: said again until it fits (else replaced as hung)
+                said = self.send('ready')
+                left = 0.1 if said is False and (left is None or left > 0.1) else left
             for fd in select.select(self.promote_fds, [], [], left)[0]:
                 if os.read(fd, 1):
                     self.promoted.set()

@@ -329,12 +329,23 @@ def _restarted_then_terminated(services):
                     path[other] = '%s -> %s' % (path[current], other)
                     restarted.append(other)
         for current in restarted:
-            for other in services[current]['terminate_with']:
+            # terminate_with is followed transitively, as the supervisor does (_terminate_with)
+            terminated, via = list(services[current]['terminate_with']), {}
+            for other in terminated:
+                via.setdefault(other, current)
+            for other in terminated:
+                for further in services[other]['terminate_with']:
+                    if further not in via:
+                        via[further] = '%s -> %s' % (via[other], other) if via[other] != current else other
+                        terminated.append(further)
+            for other in terminated:
                 if other in path:
+                    through = via[other]
                     return ('a restart of %s would start and stop %s at once: it restarts %s (%s) and %s '
-                            '(restart_with: %s), whose terminate_with names %s'
+                            '(restart_with: %s), whose terminate_with names %s%s'
                             % (name, other, other, 'itself' if other == name else 'restart_with: ' + path[other],
-                               current, path[current], other))
+                               current, path[current], other,
+                               '' if through == current else ' (through %s)' % through))
     return None
 
 
@@ -436,6 +447,7 @@ class Service(object):
         self.alerted = set()                   # fault kinds alerted and still present (alerted once)
         self.consecutive = 0                   # faults since it last ran for stable_after (the back-off)
         self.spawn_at = None                   # a restart held back by the back-off: when to spawn
+        self.held_down = False                 # down in a manager's earlier run, kept down until started
 
     def _change(self, state, now, reason):
         if state == self.state:
@@ -448,6 +460,7 @@ class Service(object):
     def spawned(self, now):
         """Its process was (re)started."""
         self.spawn_at = None
+        self.held_down = False
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
         self.starts += 1
@@ -476,6 +489,9 @@ class Service(object):
             self.restarts.popleft()
         return len(self.restarts)
 
+
+HELD_DOWN = 'down in the manager\'s previous run'
+HELD_SAFE = 'held from the manager\'s previous run'
 
 Decision = collections.namedtuple('Decision', 'service kind detail actions escalate')
 Decision.__doc__ = """What the supervisor decided about a fault: ``actions`` is a list of
@@ -681,7 +697,7 @@ class Supervisor(object):
         and the services an operator, a failure action or an exhausted restart limit left down. Its
         successor lifted the safe state and restarted them all at once (review of stop 39)."""
         down = {n: {'state': s.state.name, 'reason': s.reason} for n, s in self.services.items()
-                if s.state == State.FAILED or (s.state == State.STOPPED and s.starts)}
+                if s.state == State.FAILED or (s.state == State.STOPPED and (s.starts or s.held_down))}
         return {'safe_state': self.safe_state, 'down': down}
 
     def restore(self, record, now):
@@ -695,11 +711,13 @@ class Supervisor(object):
             if s is None or s.state != State.STOPPED:   # no longer configured: nothing to hold
                 continue
             reason = entry.get('reason', '') if isinstance(entry, dict) else ''
-            s.reason = 'down in the manager\'s previous run (%s): start it to run it again' % reason
+            s.reason = reason if reason.startswith(HELD_DOWN) else '%s (%s): start it to run it again' % (HELD_DOWN,
+                                                                                                          reason)
+            s.held_down = True   # recorded again, whatever number of restarts of the manager
             held.append(name)
         reason = record.get('safe_state')
         if reason:
-            self._escalate('held from the manager\'s previous run: %s' % reason, now)
+            self._escalate(reason if reason.startswith(HELD_SAFE) else '%s: %s' % (HELD_SAFE, reason), now)
         return held
 
     def clear_safe_state(self, now):

@@ -47,7 +47,10 @@ def _on_signal(engine, signum, _frame):
     else:
         text = 'adapt: %s: the rollback goes on until every suspended node is resumed (SIGKILL would ' \
                'leave them to their lease)\n' % name
-    os.write(sys.stderr.fileno(), text.encode())
+    try:
+        os.write(sys.stderr.fileno(), text.encode())
+    except OSError:   # a terminal gone (SIGHUP: EIO), a closed pipe: raised here, it would skip the rollback
+        pass
 
 
 def _say_interrupted(report):

@@ -41,7 +41,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..process_start import started
-from ..transaction import Action, Outcome, State, Transaction, stop_reason
+from ..transaction import ABANDONED, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, wait_dead, wait_until
 from ..where import run_where
@@ -579,8 +579,8 @@ class Engine(object):
         thread.join(limit)
         if thread.is_alive():
             self._forget_proxies(step.target, cut=True)
-            raise StepError('%s did not answer its %s within %.1f s (stopped or hung): call abandoned'
-                            % (step.target, step.action, limit))
+            raise StepError('%s did not answer its %s within %.1f s (stopped or hung): %s'
+                            % (step.target, step.action, limit, ABANDONED))
         if 'error' in box:
             raise box['error']
         return box.get('value')
@@ -632,7 +632,7 @@ class Engine(object):
             step = adaptation.Step('suspend', node, None)
             try:
                 answer = self._bounded(step, lambda: self._proxy(node + '/suspend', Suspend)(
-                    renew=True, lease=self.lease, owner=self._owner), self._call_limit('resume'))
+                    renew=True, lease=self.lease, owner=self._owner), self.service_timeout)
                 answers[node] = '' if answer.success else answer.message
             except Exception:   # not reachable: its resume says so (a dead site, say)
                 self._forget_proxies(node)
@@ -899,6 +899,11 @@ class Engine(object):
                               (step.target in self._graph()[0] and not self._offers_rebind(record)), 30.0, 0.05):
                 raise StepError('%s started again (pid %d) but not set up within 30 s' % (step.target, site.pid))
             return 'started again, pid %d' % site.pid
+        if step.action in ('restore_binding', 'restore_promote') and (
+                step.detail is UNKNOWN or isinstance(step.detail, tuple) and step.detail[1] is UNKNOWN):
+            raise StepError('its %s got no answer in time and may have been carried out later: what it replaced '
+                            'is not known, so it is not undone; check %s by hand' % (
+                                'rebind' if step.action == 'restore_binding' else 'promotion', step.target))
         if step.action == 'restore_binding':
             bind, previous = step.detail
             restore = adaptation.Bind(bind.node, bind.port, previous, bind.direction, bool(previous))

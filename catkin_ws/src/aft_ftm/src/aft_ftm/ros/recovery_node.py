@@ -318,8 +318,12 @@ class RecoveryNode(object):
                 self.promotion_waits = False
                 # A verdict on the re-joined peer that came before this configuration did (the
                 # callbacks are not ordered): dropped, the backup never took over (review of stop 39).
-                if self.deferred is not None and self.deferred.epoch <= conf.epoch:
+                if self.deferred is not None and self.deferred.epoch == conf.epoch:
                     deferred, self.deferred = self.deferred, None
+            if self.deferred is not None and self.deferred.epoch < conf.epoch:
+                # Its own configuration was skipped (the latched topic gives only the latest): the
+                # incarnation it judged may be gone; the re-armed detector judges the one there now.
+                self.deferred = None
             unasked = self.witness is not None and promoted_unasked(before, self.role, self.site, conf.primary,
                                                                     self.granted, conf.epoch)
             # Until it is carried out, any failure handling here takes over as the backup it was (the
@@ -466,16 +470,18 @@ class RecoveryNode(object):
             threading.Thread(target=self._clean_master, daemon=True).start()
 
     def _retry_failure(self, failure, role, epoch):
-        """A recovery retried after the witness was unreachable; dropped if the failed site is in a newer
-        configuration meanwhile (it re-joined): the retry would exclude and fence its new, healthy
-        incarnation (review of stop 39). Its detector, re-armed, judges that one afresh."""
+        """A recovery retried after the witness was unreachable; dropped if a newer configuration came
+        meanwhile: the failed site may have re-registered or re-joined since, and the retry would
+        exclude and fence its new, healthy incarnation (review of stop 39). The failure it was about
+        was decided by whoever made that configuration; the detector, re-armed when the site is back,
+        judges the new incarnation afresh."""
         with self.lock:
-            rejoined = self.epoch != epoch and failure.site in self.conf_sites
-            if rejoined:
+            moved = self.epoch != epoch
+            if moved and self.role in (Role.PRIMARY, Role.BACKUP):
                 self.recovered = False
-        if rejoined:
-            rospy.logwarn('%s: the retried recovery from the failure of %s is dropped: it is in the configuration '
-                          'of epoch %d (re-joined since epoch %d)', rospy.get_name(), failure.site, self.epoch, epoch)
+        if moved:
+            rospy.logwarn('%s: the retried recovery from the failure of %s is dropped: the witness is at epoch %d '
+                          '(was %d when it was tried)', rospy.get_name(), failure.site, self.epoch, epoch)
             self._event({'event': 'retry_dropped', 'failed_site': failure.site, 'epoch': self.epoch,
                          'since': epoch})
             return

@@ -196,12 +196,12 @@ class WatchdogNode(object):
         info = verdict.last_info
         if info is not None and info.host == self.host and info.pid > 0:
             return power_off(info.pid, on_stopped=on_stopped)
+        on_stopped()   # the take-over first: the alarm below may take a while (a master gone)
         # Another host's board (or one never heard): this watchdog cannot stop it. Said, not silent:
         # if it still runs, its beats say so later (fail_silence_broken).
         self._report(Report('fail_silence_unenforced', 'board %s failed on %s: this watchdog (on %s) cannot power it '
                             'off; the take-over goes on, relying on the board being really down'
                             % (board, info.host if info is not None else 'an unknown host', self.host), True, None))
-        on_stopped()
         return 0
 
     def _connect(self, action):
