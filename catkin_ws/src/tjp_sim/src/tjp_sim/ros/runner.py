@@ -121,6 +121,16 @@ class ScenarioRun(object):
         args += ['%s:=%s' % (m, str(m in self.scenario['mechanisms']).lower()) for m in scenarios.MECHANISMS]
         return args + ['managed_tjp:=%s' % str(self.scenario['managed_tjp']).lower()]
 
+    def _forget_last_run_of_the_manager(self):
+        """Each run is a new car: the record the service manager of the last run left (powered off at its
+        end, as a car is) must not hold its safe state or its services down in this one."""
+        from aft_service_manager import trust
+        record = os.path.join(trust.default_state_dir(self.env), 'manager_tjp_service_manager.record')
+        try:
+            os.unlink(record)
+        except OSError:   # none left
+            pass
+
     def expected_nodes(self):
         nodes = CAR_NODES + board_nodes('board_a', self.pbr) + (board_nodes('board_b', True) if self.pbr else [])
         for mechanism in self.scenario['mechanisms']:
@@ -144,6 +154,8 @@ class ScenarioRun(object):
         else:
             self._site('recorder', ['/usr/lib/rosbag/record', '-O', self.bag, '--tcpnodelay',
                                     '__name:=' + RECORDER[1:]] + TOPICS)
+        if self.scenario['managed_tjp']:
+            self._forget_last_run_of_the_manager()
         self._site('car', ['roslaunch', 'tjp_sim', 'car.launch'] + self._launch_args())
         self._site('board_a', self._board_argv('board_a', 'primary'))
         if self.pbr:
