@@ -87,12 +87,6 @@ class Verdict(object):
         return 'Verdict(%r, silence=%.4f)' % (self.reason, self.silence)
 
 
-def _incarnation(info):
-    """(host, launcher pid) a heartbeat names, or None where it names none (pid 0, no heartbeat)."""
-    pid = getattr(info, 'pid', 0)
-    return (getattr(info, 'host', ''), pid) if pid else None
-
-
 class HeartbeatMonitor(object):
     """Watches one peer's heartbeats. ``now`` is always passed in (seconds)."""
 
@@ -120,12 +114,6 @@ class HeartbeatMonitor(object):
     def announced(self, now, reason, info=None):
         """The peer says it fail-stopped (its last heartbeat): it is declared failed, and the next
         check() returns the verdict. Returns True if this declares it (False: already failed)."""
-        if _incarnation(info) and _incarnation(self.last_info) and _incarnation(info) != _incarnation(self.last_info):
-            # The last word of an incarnation other than the one heard last (a late one of the old
-            # incarnation, after the site was started again and re-joined): it says nothing of the
-            # one that runs, which it would have failed over (review of stop 39).
-            self.stale_announcements += 1
-            return False
         self.last_beat = None   # it said it stops: not heard since
         if self.state == PeerState.FAILED:
             return False
@@ -134,8 +122,6 @@ class HeartbeatMonitor(object):
         self.last_info = info if info is not None else self.last_info
         self.announcement = Verdict('it announced its fail-stop: %s' % reason, silence, self.last_info)
         return True
-
-    stale_announcements = 0   # fail-stops announced by an incarnation other than the one heard last
 
     def beat(self, now, info=None):
         """A heartbeat arrived. Returns True if it comes from a peer already declared failed."""

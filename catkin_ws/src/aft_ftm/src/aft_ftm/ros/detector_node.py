@@ -299,12 +299,7 @@ class CrashDetectorNode(object):
     def _on_heartbeat(self, beat):
         if beat.stopping:
             with self.lock:
-                stale = self.monitor.stale_announcements
                 self.monitor.announced(time.monotonic(), beat.stopping, beat)   # the loop reports it
-                stale = self.monitor.stale_announcements > stale
-            if stale:
-                rospy.logwarn('%s: site %s announced a fail-stop from pid %d on %s, not the incarnation heard last: '
-                              'ignored (%s)', rospy.get_name(), beat.site, beat.pid, beat.host, beat.stopping)
             return
         with self.lock:
             before = self.monitor.last_info
