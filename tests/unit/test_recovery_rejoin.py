@@ -90,7 +90,7 @@ def recovery(site, witness, role=Role.BACKUP, switch=True):
     node.lock = threading.Lock()
     node.stopped = node.last_recovery = node.unasked = node.last_seq = node.deferred = None
     node.recovered = node.promotion_waits = False
-    node.epoch, node.granted, node.primary_seen, node.conf_sites = witness.epoch, 0, '', ()
+    node.epoch, node.granted, node.primary_seen = witness.epoch, 0, ''
     node.fence = types.SimpleNamespace(processes=lambda: {}, shut_down_the_rest=lambda: 0, lock=threading.Lock())
     node.master = MasterWatch(60.0)
     node.events, node.ports = types.SimpleNamespace(publish=lambda msg: None), None
@@ -109,6 +109,23 @@ def eventually(predicate, timeout=5.0):
     return True
 
 
+def paired(primary, backup):
+    """The witness's record at epoch 2: ``primary`` registered first, ``backup`` admitted."""
+    witness = Witness()
+    witness.request(Op.REGISTER, primary, primary + '@1', claim=True)
+    witness.request(Op.ADMIT, primary, primary + '@1', backup, backup + '@1')
+    return witness
+
+
+def retry_pending(world, witness):
+    """Primary a, whose recovery from b's failure met an unreachable witness: retried later (a timer)."""
+    world.switch_confirms = True
+    a = recovery('a', witness, role=Role.PRIMARY)
+    a.witness.down = True
+    a._on_failure(failure())
+    return a
+
+
 def configuration(witness):
     return Configuration(epoch=witness.epoch, primary=witness.primary, backup=witness.backup, reason=witness.reason)
 
@@ -119,9 +136,7 @@ def failure(site='b', epoch=0):
 
 
 def test_a_promotion_waiting_for_the_switch_is_completed_when_the_peer_rejoins_as_its_backup(world):
-    witness = Witness()
-    witness.request(Op.REGISTER, 'b', 'b@1', claim=True)
-    witness.request(Op.ADMIT, 'b', 'b@1', 'a', 'a@1')           # epoch 2: b primary, a backup
+    witness = paired('b', 'a')   # epoch 2: b primary, a backup
     a = recovery('a', witness)
     a._on_failure(failure())                                      # b hangs; the switch never confirms
     assert a.promotion_waits and ('protocol', Role.ALONE) not in a.calls and 'fence_failed' in world.alarms
@@ -136,9 +151,7 @@ def test_a_promotion_waiting_for_the_switch_is_completed_when_the_peer_rejoins_a
 
 
 def test_a_verdict_before_the_configuration_that_rearms_recovery_is_kept_and_run(world):
-    witness = Witness()
-    witness.request(Op.REGISTER, 'b', 'b@1', claim=True)
-    witness.request(Op.ADMIT, 'b', 'b@1', 'a', 'a@1')           # epoch 2 (b, a)
+    witness = paired('b', 'a')   # epoch 2 (b, a)
     a = recovery('a', witness, switch=False)
     witness.request(Op.EXCLUDE, 'b', 'b@1')                      # a partition: b excludes a first (epoch 3)
     a._on_failure(failure())                                      # a's take-over is refused
@@ -161,13 +174,8 @@ def test_a_verdict_before_the_configuration_that_rearms_recovery_is_kept_and_run
 
 
 def test_a_recovery_retried_after_the_peer_rejoined_leaves_the_new_backup_alone(world):
-    witness = Witness()
-    witness.request(Op.REGISTER, 'a', 'a@1', claim=True)
-    witness.request(Op.ADMIT, 'a', 'a@1', 'b', 'b@1')           # epoch 2 (a, b)
-    world.switch_confirms = True
-    a = recovery('a', witness, role=Role.PRIMARY)
-    a.witness.down = True
-    a._on_failure(failure())                                      # witness unreachable: retried later
+    witness = paired('a', 'b')   # epoch 2 (a, b)
+    a = retry_pending(world, witness)   # witness unreachable: retried later
     assert len(world.timers) == 1
     a.witness.down = False
     # Meanwhile the After excluded b (ack timeout), b re-joined and was admitted as b@2 (epoch 4).
@@ -184,9 +192,7 @@ def test_a_recovery_retried_after_the_peer_rejoined_leaves_the_new_backup_alone(
 
 
 def test_a_kept_verdict_whose_configuration_was_skipped_is_dropped(world):
-    witness = Witness()
-    witness.request(Op.REGISTER, 'b', 'b@1', claim=True)
-    witness.request(Op.ADMIT, 'b', 'b@1', 'a', 'a@1')           # epoch 2 (b, a)
+    witness = paired('b', 'a')   # epoch 2 (b, a)
     a = recovery('a', witness, switch=False)
     a.recovered = True                                            # a recovery under way
     a._on_failure(failure(epoch=3))                               # judged for epoch 3, not seen here yet
@@ -199,13 +205,8 @@ def test_a_kept_verdict_whose_configuration_was_skipped_is_dropped(world):
 
 
 def test_a_recovery_retried_after_the_peer_registered_again_leaves_it_alone(world):
-    witness = Witness()
-    witness.request(Op.REGISTER, 'a', 'a@1', claim=True)
-    witness.request(Op.ADMIT, 'a', 'a@1', 'b', 'b@1')           # epoch 2 (a, b)
-    world.switch_confirms = True
-    a = recovery('a', witness, role=Role.PRIMARY)
-    a.witness.down = True
-    a._on_failure(failure())
+    witness = paired('a', 'b')   # epoch 2 (a, b)
+    a = retry_pending(world, witness)
     a.witness.down = False
     witness.request(Op.EXCLUDE, 'a', 'a@1')                      # epoch 3: a alone; b, restarted, joins
     a._on_configuration(configuration(witness))

@@ -162,7 +162,6 @@ class RecoveryNode(object):
         self.unfenceable_told = False     # fence_incomplete raised (while it holds)
         self.recovered = False
         self.deferred = None        # a verdict of a configuration not seen yet (Failure.epoch): run once it is
-        self.conf_sites = ()        # (primary, backup) of the last configuration seen
         self.stopped = None         # why this site fail-stopped, if it did: it then takes nothing over
         self.last_recovery = None   # the last failover record (~events)
         self.epoch = 0         # the witness's epoch last seen
@@ -306,7 +305,6 @@ class RecoveryNode(object):
             before, deposed = self.role, self.primary_seen
             self.role = role_in(conf.primary, conf.backup, self.site)
             self.primary_seen = conf.primary
-            self.conf_sites = (conf.primary, conf.backup)
             waiting = deferred = None
             if self.role in (Role.PRIMARY, Role.BACKUP):
                 self.recovered = False
