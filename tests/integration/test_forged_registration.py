@@ -12,7 +12,9 @@ Here, on a running PBR bank, names are registered under MASTER's name space (/ma
 - one at the ROS master's address (spelt another way), and one at the plain rospy node's: after a
   failover, fencing asks what is left of the failed site to shut down, and both would obey.
 Then, under client load, MASTER is powered off, or (the other case) its heartbeat is forged: a last
-beat announcing MASTER's fail-stop, naming the drawn process as MASTER's launcher on this host; Recovery
+beat announcing MASTER's fail-stop, naming the drawn process as MASTER's launcher on this host. Alone,
+it names another incarnation than MASTER's beats: SLAVE's detector refuses it (``stale_announcement``)
+and nothing fails over. Sent right after a beat naming that launcher, it is taken; Recovery
 kills a failed site's launcher's process tree, so it must be sure the pid is that launcher (a process above
 a node of MASTER learned by pid, and not above itself), else it raises ``fence_refused`` and kills the name
 space's nodes only. The false failover itself is what a wrong announcement costs (no more). Checked: SLAVE's Recovery raised ``fence_refused`` for
@@ -153,9 +155,28 @@ try:
                           10.0, 0.05):
             sys.exit('seed %d: the forged heartbeats reach no detector' % seed)
 
+        wrong = []
+
+        def stale_told():
+            return [d for source, kind, d in list(alarms) if source == '/slave/crash_detector'
+                    and kind == 'stale_announcement' and 'from pid %d on ' % victim in d]
+
         def fault():
-            for seq in range(200):   # until SLAVE's Recovery took over (bounded: 10 s)
-                beats.publish(Heartbeat(site='master', host=this_host(), pid=victim, seq=10 ** 6 + seq,
+            # A last word alone, naming another launcher than MASTER's beats name: taken for a late one
+            # of an old incarnation (or forged), it is refused with an alarm and fails nothing over.
+            beats.publish(Heartbeat(site='master', host=this_host(), pid=victim, seq=10 ** 6,
+                                    stamp=rospy.Time.now(), stopping='forged'))
+            # (this runs in drive_with_faults' thread: what is wrong is kept, and said once the failover came)
+            if not wait_until(stale_told, 5.0, 0.02):
+                wrong.append('a fail-stop announced by pid %d, not MASTER\'s launcher, raised no '
+                             'stale_announcement: %s' % (victim, alarms[-6:]))
+            elif any('failed_site' in e for e in events):
+                wrong.append('a stale fail-stop announcement failed MASTER over: %s' % (events[-2:],))
+            # So the forger beats as the victim's incarnation first, then says it stops.
+            for seq in range(1, 200):   # until SLAVE's Recovery took over (bounded: 10 s)
+                beats.publish(Heartbeat(site='master', host=this_host(), pid=victim, seq=10 ** 6 + 2 * seq,
+                                        stamp=rospy.Time.now()))
+                beats.publish(Heartbeat(site='master', host=this_host(), pid=victim, seq=10 ** 6 + 2 * seq + 1,
                                         stamp=rospy.Time.now(), stopping='forged'))
                 if wait_until(lambda: any('failed_site' in e for e in events), 0.05, 0.01):
                     return
@@ -187,6 +208,8 @@ try:
                                                                                expected.snapshot()))
     if not wait_until(lambda: any('failed_site' in e for e in events), 10):
         sys.exit('seed %d: no failover record of /slave/recovery: %s' % (seed, events))
+    if FAULT == 'forged fail-stop' and wrong:
+        sys.exit('seed %d: %s' % (seed, wrong[0]))
     failover = [e for e in events if 'failed_site' in e][-1]
     if not failover['ok']:
         sys.exit('seed %d: the failover failed: %s' % (seed, failover))

@@ -384,3 +384,27 @@ def test_a_site_runs_while_its_beats_are_heard_even_declared_failed_and_not_once
     assert not monitor.heard_within(clock.now, 0.03)                    # it said it stops
     monitor.beat(clock.advance(2.0))                                    # a new site process beats
     assert monitor.heard_within(clock.now, 0.03)
+
+
+@pytest.mark.parametrize('make', [lambda: HeartbeatMonitor(timeout=0.03),
+                                  lambda: PhiAccrualMonitor(threshold=8, bootstrap_timeout=0.03)])
+def test_the_last_word_of_an_older_incarnation_does_not_fail_the_one_that_runs(make):
+    """Review of stop 39: a site started again and re-joined; a late 'stopping' beat of its old
+    incarnation (another launcher pid) declared the healthy new one failed, and it was failed over."""
+    import types
+    clock = FakeClock()
+    monitor = make()
+    new = types.SimpleNamespace(host='slave', pid=2002)
+    for _ in range(20):
+        monitor.beat(clock.advance(0.01), new)
+    old = types.SimpleNamespace(host='slave', pid=1001)
+    assert monitor.announced(clock.advance(0.001), 'fail-stop of the old incarnation', old) is False
+    assert monitor.state == PeerState.ALIVE and monitor.stale_announcements == 1
+    assert monitor.check(clock.advance(0.005)) is None
+    # one that names no incarnation (pid 0) is not judged stale: nothing to tell it by
+    unnamed = types.SimpleNamespace(host='slave', pid=0)
+    other = make()
+    other.beat(clock.advance(0.01), new)
+    assert other.announced(clock.advance(0.001), 'unnamed', unnamed) is True
+    assert monitor.announced(clock.advance(0.001), 'its own fail-stop', new) is True   # its own last word counts
+    assert monitor.check(clock.advance(0.001)).reason.endswith('its own fail-stop')

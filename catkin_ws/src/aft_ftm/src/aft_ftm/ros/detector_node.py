@@ -10,7 +10,7 @@ from aft_msgs.srv import PeerStatus, PeerStatusResponse
 
 from .. import config, health
 from ..detector import (DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor,
-                        PeerState, PhiAccrualMonitor, why_heard_again)
+                        PeerState, PhiAccrualMonitor, incarnation, why_heard_again)
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..site_watch import SiteWatch, WatchError, children_nodes
 from ..sites import this_host
@@ -137,6 +137,7 @@ class CrashDetectorNode(object):
         self.seq = 0
         self.stopped = None        # why this site fail-stopped: no heartbeat is sent any more
         self.peer_back_told = False
+        self.stale_told = set()   # incarnations whose stale fail-stop announcement was told (once each)
         # A failure report published while Recovery was not connected (rospy handles a publisher's
         # inbound connections one at a time: one stalled handshake holds the others back for up to
         # 60 s): (the monitor that declared it, the message), published once Recovery connects.
@@ -299,7 +300,17 @@ class CrashDetectorNode(object):
     def _on_heartbeat(self, beat):
         if beat.stopping:
             with self.lock:
+                heard = self.monitor.last_info
+                stale = self.monitor.stale_announcements
                 self.monitor.announced(time.monotonic(), beat.stopping, beat)   # the loop reports it
+                stale = self.monitor.stale_announcements > stale
+                first = stale and incarnation(beat) not in self.stale_told
+                if first:
+                    self.stale_told.add(incarnation(beat))
+            if first:   # once per incarnation named: a forger may repeat it at any rate
+                alarm(self.ports, 'pbr', 'stale_announcement', 'site %s announced a fail-stop (%s) from pid %d on %s, '
+                      'not the incarnation heard last (pid %d on %s): ignored; a late last word of an old '
+                      'incarnation, or forged' % (beat.site, beat.stopping, beat.pid, beat.host, heard.pid, heard.host))
             return
         with self.lock:
             before = self.monitor.last_info
@@ -336,8 +347,12 @@ class CrashDetectorNode(object):
             if self.monitor.state != PeerState.FAILED:
                 return
             now = time.monotonic()
+            last = self.monitor.last_info
             self.monitor = self._new_monitor(now)
-            self.monitor.beat(now)   # heard (it joined): silent from now on, it is declared failed
+            # heard (it joined): silent from now on, it is declared failed. The incarnation heard last
+            # (the new one, beating since it started again) is kept: a late last word of the old one is
+            # then stale, also before the new one's next beat.
+            self.monitor.beat(now, last)
             self.watched_since = conf.epoch
             self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
