@@ -552,6 +552,14 @@ class PbrAfterNode(AfterNode):
     def _on_ack(self, ack):
         if ack.to and ack.to != self.name:
             return   # another After's (both run side by side while an adaptation replaces one)
+        # rospy gives every received message its publisher's node name in the connection header. An
+        # ack from a node outside the peer's site (a stray or forged one) would release replies the
+        # backup may not hold: ignored, with one alarm per sender (as LFR's leader does).
+        sender = getattr(ack, '_connection_header', {}).get('callerid')
+        if self.peer and sender and not sender.startswith('/%s/' % self.peer):
+            self.side.tell('stray_ack', 'ack of checkpoint %d from %s ignored: %s is not in site %s, the peer '
+                           'of %s' % (ack.seq, sender, sender, self.peer, self.name), sender)
+            return
         if ack.partial:
             self._on_part_ack(ack)
             return
