@@ -350,3 +350,19 @@ def test_an_after_started_again_numbering_below_the_numbers_followed_is_a_gap_no
     assert receiver.decide(5001, '/master/after', first_seq=5000) == Decision.REACK   # re-sent
     assert receiver.decide(40, '/master/after', first_seq=40) == Decision.GAP          # started again, behind
     assert receiver.decide(6000, '/master/after', first_seq=6000) == Decision.APPLY    # started again, ahead
+
+
+def test_a_batch_whose_later_replies_never_come_is_broken_after_the_gap():
+    """Review of group commit (session 33): a batch's last reply lost inside the site left the After
+    gathering, nothing held (no ack timeout), and the Protocol waiting max_batch times its processing
+    timeout (8 minutes for 16) with no alarm. The After now finds it broken once no reply of the batch
+    came for its gap."""
+    group = GroupCommit()
+    assert group.stalled(100.0, 10.0) is None                    # nothing gathered: never
+    assert group.add(batched(1, 3), 1.0) is None
+    assert group.add(batched(2, 2, 3), 4.0) is None
+    assert group.stalled(13.9, 10.0) is None                      # each reply restarts the gap
+    broken = group.stalled(14.1, 10.0)
+    assert broken and '/2 with 2 of 3 left' in broken, broken
+    assert [r.id for r in group.add(batched(3, 1, 3), 14.2)] == [1, 2, 3]
+    assert group.stalled(100.0, 10.0) is None                     # complete: nothing waits

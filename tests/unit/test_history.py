@@ -255,3 +255,63 @@ def test_a_tag_enters_the_chain_and_an_untagged_chain_is_unchanged():
     assert untagged[2] == hashlib.sha256(('0' * 16 + '|deposit:5').encode()).hexdigest()[:16]
     tagged = Account().apply('deposit', 5, 'c0:1')
     assert tagged[:2] == untagged[:2] and tagged[2] != untagged[2]
+
+
+def test_a_refusal_sees_only_positions_reached_before_it_was_answered():
+    """Review of the checker (session 33): the window of balances a refusal may have seen ended at the
+    last operation invoked before the refusal completed, so a slow call overlapping it let a later,
+    low balance (reached only after an operation invoked once the refusal was answered) excuse it."""
+    acc = Account()
+    ra, rb, rc = acc.apply('deposit', 10, 'a'), acc.apply('withdraw', 8, 'b'), acc.apply('deposit', 1, 'c')
+    refusal = 'responded with an error: error processing request: cannot withdraw 5 from a balance of 2'
+    ops = [Op('c1', 0, 0.0, 1.0, 'deposit', 10, 'ok', ra, tag='a'),
+           Op('c2', 0, 2.0, 5.0, 'withdraw', 5, 'error', error=refusal, tag='r'),
+           Op('c2', 1, 6.0, 7.0, 'withdraw', 8, 'ok', rb, tag='b'),      # invoked after the refusal came back
+           Op('c3', 0, 3.0, 10.0, 'deposit', 1, 'ok', rc, tag='c')]      # slow, overlapping the refusal
+    assert [v.kind for v in check(ops, [acc.snapshot()]).violations] == ['wrong_refusal']
+    # The same refusal while b could have run (b invoked before it was answered): right.
+    ops[2] = Op('c2', 1, 4.0, 7.0, 'withdraw', 8, 'ok', rb, tag='b')
+    ops[1] = Op('c4', 0, 2.0, 5.0, 'withdraw', 5, 'error', error=refusal, tag='r')
+    assert check(ops, [acc.snapshot()]).ok
+
+
+def test_a_refusal_must_name_a_balance_the_account_held_inside_its_call():
+    """A refusal naming a balance no position inside its call held is a wrong value (a deposed
+    primary's, or a corrupted one), even when that balance happens to be below the amount."""
+    r1 = chain(('deposit', 4))[0]
+    a = op('a', 0, 0.0, 1.0, 'deposit', 4, reply=r1)
+    wrong = op('b', 0, 2.0, 3.0, 'withdraw', 5, 'error', error='cannot withdraw 5 from a balance of 2')
+    assert [v.kind for v in check([a, wrong], [r1]).violations] == ['wrong_refusal']
+    right = op('b', 0, 2.0, 3.0, 'withdraw', 5, 'error', error='cannot withdraw 5 from a balance of 4')
+    assert check([a, right], [r1]).ok
+
+
+def test_a_call_in_flight_past_the_proxys_call_limit_is_hung_not_a_pass():
+    """The run kills a client only after waiting longer than the Proxy's call limit: its call in
+    flight then was never answered, not even "outcome unknown"."""
+    r1, r2 = chain(('deposit', 4), ('deposit', 3))
+    ok_a = op('a', 0, 0.0, 1.0, 'deposit', 4, reply=r1)
+    hung = op('a', 1, 1.0, None, 'deposit', 3, 'unfinished')
+    assert check([ok_a, hung], [r2], end=101.0, killed_clients={'a'}).ok   # no limit given: as before
+    result = check([ok_a, hung], [r2], end=101.0, killed_clients={'a'}, call_limit=30.0)
+    assert [v.kind for v in result.violations] == ['hung'], result.violations
+    assert check([ok_a, hung], [r2], end=20.0, killed_clients={'a'}, call_limit=30.0).ok
+
+
+def test_a_client_that_stopped_calling_before_it_was_told_to_is_named():
+    """A client that died or gave up early leaves the faults after it without load: a history
+    with no calls (or none near the stop) must not pass for an available service."""
+    r1 = chain(('deposit', 4))[0]
+    a = op('a', 0, 0.0, 1.0, 'deposit', 4, reply=r1)
+    result = check([a], [r1], clients=['a', 'b'], stopped=50.0)
+    assert sorted(v.detail.split()[0] for v in result.violations if v.kind == 'client_silent') == ['a', 'b']
+    assert check([a], [r1], clients=['a'], stopped=3.0).ok
+    in_flight = op('a', 1, 2.0, None, 'deposit', 1, 'unfinished')
+    assert check([a, in_flight], [r1], clients=['a'], stopped=50.0, killed_clients={'a'}).ok
+
+
+def test_a_proxy_kill_stamped_before_and_after_its_signal_covers_a_call_begun_between():
+    r1 = chain(('deposit', 4))[0]
+    cut = op('a', 0, 100.00005, 100.01, 'deposit', 4, 'indeterminate', error='transport error')
+    assert [v.kind for v in check([cut], [r1], {'a': [100.0]}).violations] == ['indeterminate_without_cause']
+    assert check([cut], [r1], {'a': [(100.0, 100.0002)]}).ok

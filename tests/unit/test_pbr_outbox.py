@@ -33,3 +33,32 @@ def test_the_parts_of_a_transfer_given_up_are_dropped_and_the_live_ones_written(
     writer.join(2.0)
     assert written == [(7, 0), (7, 1), (7, 2), (7, 3), (8, 0)]
     assert after.parts_dropped == 8
+
+
+def test_a_join_whose_capture_outlived_the_protocols_suspension_is_given_up():
+    """Review of group commit (session 33): the capture of a join's state may take two state timeouts,
+    as long as the Protocol's suspension lease. Once the lease ran out, the Protocol forwarded a batch
+    that straddled the join: its first reply released alone, the rest found the batch broken, and the
+    only serving site fail-stopped. The join is now given up unless the Protocol is still held."""
+    from aft_ftm.checkpoint import CheckpointSender, Role
+    import threading as _threading
+    told, joined = [], []
+    for held in (False, True):
+        after = pbr_nodes.PbrAfterNode.__new__(pbr_nodes.PbrAfterNode)
+        after.lock = _threading.RLock()
+        after.sender = CheckpointSender(Role.ALONE, first_seq=1)
+        after.sender.join = lambda *a, **k: joined.append(a) or 3
+        after.state_timeout, after.catch_up = 5.0, True
+        after._capture_whole = lambda: (b'state', 0, None)
+        after.side = types.SimpleNamespace(
+            hold_protocol=lambda lease, held=held: None if held else 'its lease ran out: it resumed by itself',
+            tell=lambda kind, detail, key=None: told.append((kind, detail)))
+        after.encoder = types.SimpleNamespace(reset=lambda *a: None)
+        after.recent = types.SimpleNamespace(replies=lambda: [])
+        after.chunk_bytes, after.transfer_window = 1 << 20, 4
+        after.first_seq, after.name, after.replaces = 1, '/master/after', ''
+        after.ports = types.SimpleNamespace(publish=lambda port, cp: None)
+        after._transfer(types.SimpleNamespace(site='slave', after='/slave/after', incarnation='i2'))
+        if not held:
+            assert joined == [] and told and told[0][0] == 'join_failed' and 'not held' in told[0][1], told
+    assert len(joined) == 1   # held: the join goes on

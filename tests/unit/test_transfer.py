@@ -163,3 +163,23 @@ def test_a_joiner_acknowledging_more_slowly_than_checkpoints_are_made_is_exclude
             sender.on_ack(sent[len(sent) // 2 - 1], True, now)   # acknowledged at half that rate
         assert now < 20.0, 'never excluded: the catch-up grows for ever'
     assert now <= 10.0 + 0.02
+
+
+def test_a_long_transfer_acknowledged_part_by_part_does_not_run_out_its_catch_up_bound():
+    """Review of group commit (session 33): the catch-up checkpoints made while the parts are sent
+    (queued behind them) counted their CATCHUP_TIMEOUTS bound from when they were made, so a transfer of
+    20 parts acknowledged every 0.6 s excluded its joiner at 10 s, every attempt alike."""
+    sender = CheckpointSender(Role.ALONE, first_seq=1)
+    seq = sender.join('/b/after', now=0.0, catch_up=True)
+    queued = [sender.hold('r%d' % i, now=0.05 * i) for i in range(1, 6)]
+    now = 0.0
+    for part in range(20):
+        now += 0.6
+        assert not sender.overdue(now, 1.0), 'excluded at part %d (%.1f s), every part acknowledged in time' % (part, now)
+        assert sender.progress(seq, now)
+    assert sender.on_ack(seq, True, now)[1] == Need.NOTHING
+    for cp in queued:
+        now += 0.05
+        assert not sender.overdue(now, 1.0)
+        sender.on_ack(cp, True, now)
+    assert sender.ready_to_admit()

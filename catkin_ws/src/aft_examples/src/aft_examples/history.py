@@ -34,14 +34,16 @@ repair action: a failover, a freeze waited out) from what its repair cost (a rel
 re-join, whose state transfer holds the primary's requests).
 """
 import collections
-import math
 import json
+import math
+import re
 
 from .bank import GENESIS, Account, InsufficientFunds
 
 OUTCOMES = ('ok', 'not_executed', 'error', 'indeterminate', 'unfinished')
 DEFINITE = ('ok', 'not_executed', 'error')
 INSUFFICIENT = 'cannot withdraw'   # the bank's wording of InsufficientFunds
+_REFUSAL = re.compile(r'cannot withdraw -?\d+ from a balance of (-?\d+)')
 SEARCH_LIMIT = 20000               # nodes of the search for indeterminate operations' positions
 
 
@@ -93,7 +95,7 @@ class Op(object):
 Violation = collections.namedtuple('Violation', 'kind detail')
 KINDS = ('lost', 'duplicated', 'wrong_value', 'real_time', 'unexplained_execution', 'indeterminate_without_cause',
          'unfinished_without_cause', 'wrong_refusal', 'final_states_differ', 'final_state_unreadable',
-         'history_missing', 'undecided')
+         'history_missing', 'undecided', 'hung', 'client_silent')
 
 
 class Result(object):
@@ -152,7 +154,8 @@ class _Exhausted(Exception):
     pass
 
 
-def check(ops, final_states=(), proxy_kills=None, end=None, killed_clients=()):
+def check(ops, final_states=(), proxy_kills=None, end=None, killed_clients=(), call_limit=None, clients=(),
+          stopped=None, silent_after=5.0):
     """Check a campaign's history.
 
     Parameters:
@@ -162,10 +165,17 @@ def check(ops, final_states=(), proxy_kills=None, end=None, killed_clients=()):
             is no integer, or a count below 0) is a violation: what only they show (an answered operation lost, an execution
             nothing explains after the last answer) would otherwise pass unchecked.
         proxy_kills: {client: [wall times its Proxy was killed]}: an indeterminate outcome is
-            acceptable only for a call in flight at one of them.
+            acceptable only for a call in flight at one of them. A time may be a pair (stamped
+            before the signal, after it): a call in flight at any instant between counts.
         end: the run's end (wall clock); unfinished operations must have been invoked before it.
         killed_clients: the clients killed at the end, their call in flight: only such a client's last
             operation may be unfinished.
+        call_limit: how long a Proxy holds a call before it answers "outcome unknown" (seconds): an
+            operation still unfinished at ``end`` after longer is ``hung`` (a call nothing answers is
+            never silent; the client was killed in it only because it never returned).
+        clients: the clients that were to call until ``stopped`` (when they were told to stop): one
+            with no call in flight and none ended within ``silent_after`` s before it is
+            ``client_silent`` (it died or gave up early: the faults after went untested under its load).
     Returns a Result. Raises HistoryError if two operations carry the same tag (they could not be
     told apart: one executed twice would pass for the other).
     """
@@ -184,14 +194,33 @@ def check(ops, final_states=(), proxy_kills=None, end=None, killed_clients=()):
     last = {}
     for op in ops:
         last[op.client] = max(last.get(op.client, op.index), op.index)
+    def killed_during(op):
+        for t in proxy_kills.get(op.client, ()):
+            before, after = t if isinstance(t, (tuple, list)) else (t, t)
+            if op.invoke <= after and before <= op.complete:
+                return True
+        return False
     for op in unknown:
-        if op.outcome == 'indeterminate' and not any(op.invoke <= t <= op.complete for t in proxy_kills.get(op.client, ())):
+        if op.outcome == 'indeterminate' and not killed_during(op):
             result.add('indeterminate_without_cause', '%r: outcome unknown to the client, but its Proxy was not '
                        'killed during the call (error: %s)' % (op, op.error))
         if op.outcome == 'unfinished' and (op.client not in killed_clients or op.index != last[op.client]
                                            or (end is not None and op.invoke > end)):
             result.add('unfinished_without_cause', '%r: never ended, but its client was not killed in that call '
                        'at the end of the run' % (op,))
+        elif op.outcome == 'unfinished' and call_limit is not None and end is not None and \
+                end - op.invoke > call_limit:
+            result.add('hung', '%r: in flight for %.1f s when the run ended, past the Proxy\'s call limit of '
+                       '%.0f s: nothing answered it' % (op, end - op.invoke, call_limit))
+    if stopped is not None:
+        for client in clients:
+            own = [op for op in ops if op.client == client]
+            pending = any(op.complete is None for op in own)
+            latest = max([op.complete for op in own if op.complete is not None], default=None)
+            if not pending and (latest is None or latest < stopped - silent_after):
+                result.add('client_silent', '%s %s before it was told to stop: the faults after ran without its '
+                           'load' % (client, 'made no call' if latest is None else
+                                     'ended its last call %.1f s' % (stopped - latest)))
 
     readable = [tuple(s) for s in final_states   # unreadable: ('unreadable: why', -1, '')
                 if all(isinstance(x, int) and not isinstance(x, bool) for x in s[:2]) and s[1] >= 0]
@@ -312,12 +341,29 @@ def _check_refusals(result, ops, sequence, balances):
             continue
         # Positions whose state the call may have seen: from the last operation completed before it was
         # invoked to the last one invoked before it completed.
+        # Positions whose state the call may have seen: from the last operation completed before it was
+        # invoked, up to (not including) the first one invoked after it completed (that one, and every
+        # later position, came after the refusal was answered).
         low = max([p for p, other in placed if other.end() < op.invoke], default=0)
-        high = max([p for p, other in placed if other.invoke < op.complete], default=0)
-        seen = [balances[p] for p in range(low, high + 1) if balances[p] is not None]
+        high = min([p for p, other in placed if other.invoke > op.complete], default=len(balances)) - 1
+        window = range(low, max(low, high) + 1)
+        seen = [balances[p] for p in window if p < len(balances) and balances[p] is not None]
+        unknown = any(p >= len(balances) or balances[p] is None for p in window)
         if seen and min(seen) >= op.amount:
             result.add('wrong_refusal', '%r was refused for insufficient funds, but the balance was %s at every '
                        'position %d..%d its call could see' % (op, sorted(set(seen))[:5], low, high))
+            continue
+        said = _refused_balance(op.error)
+        if said is not None and not unknown and said not in seen:
+            result.add('wrong_refusal', '%r was refused on a balance of %d, which no position %d..%d its call could '
+                       'see held (%s)' % (op, said, low, high, sorted(set(seen))[:5]))
+
+
+def _refused_balance(error):
+    """The balance a refusal for insufficient funds names (the bank's 'cannot withdraw A from a balance
+    of N'), or None."""
+    found = _REFUSAL.search(error or '')
+    return int(found.group(1)) if found else None
 
 
 # -- unavailability ---------------------------------------------------------------------------------

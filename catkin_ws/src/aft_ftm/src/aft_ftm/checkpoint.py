@@ -136,7 +136,10 @@ class CheckpointSender(object):
         for held in self.held.values():
             held.since = now
         for queued in self.catchup:
-            self.catchup[queued] = now
+            # Queued behind the parts, they are not sent yet: their bound counts from when they can be
+            # (a transfer longer than CATCHUP_TIMEOUTS ack timeouts excluded a joiner acknowledging every
+            # part on time: review of group commit, session 33).
+            self.catchup[queued] = self.catchup_sent[queued] = now
         return True
 
     def on_ack(self, seq, ok, now=None):
@@ -285,8 +288,22 @@ class GroupCommit(object):
 
     def __init__(self):
         self.replies = []       # the batch so far (its last not there yet)
+        self.since = None       # when its latest reply came (the clock the caller passes)
 
-    def add(self, reply):
+    def stalled(self, now, gap):
+        """Why the batch gathered is broken, if no reply of it came for longer than ``gap`` seconds
+        (its requests run one after the other, each bounded by the server timeout: a later one lost in
+        the pipeline, the last included, would otherwise hold the Protocol for max_batch times its
+        processing timeout, minutes, with no alarm), else None. The caller must fail-stop, as for a
+        BatchError."""
+        if not self.replies or self.since is None or now - self.since <= gap:
+            return None
+        last = self.replies[-1]
+        return 'no reply of the batch for %.1f s after %s/%d with %d of %d left: the rest never came' % (
+            now - self.since, last.origin, last.id, last.batch[0], last.batch[1])
+
+    def add(self, reply, now=None):
+        self.since = now
         left, size = tuple(getattr(reply, 'batch', None) or (0, 0))
         if left == 0:
             if self.replies and not is_refusal(reply):

@@ -311,11 +311,12 @@ class ProcessBackend(FaultBackend):
             start = time.time()
             if kind == 'kill':
                 _signal([pid], signal.SIGKILL)
+                signalled = time.time()
                 if guarded:
                     # A node an adaptation started fails its site through its guard: its roslaunch
                     # notices the death, exits, and the guard fail-stops the site.
                     time.sleep(GUARD_SETTLE)
-                return dict(start=start, end=time.time(), what='%s (pid %d) killed' % (node, pid),
+                return dict(start=start, end=time.time(), signalled=signalled, what='%s (pid %d) killed' % (node, pid),
                             proxy_killed=client)
             _signal([pid], signal.SIGSTOP)
             time.sleep(fault.duration)
@@ -611,8 +612,9 @@ def heal(deployment, log=print, fail_stopped=None, acted=None):
         time.sleep(0.05)
 
 
-def final_states(deployment, settle=5.0):
-    """The (balance, count, digest) of every replica in the pair, once they agree (or after settle s)."""
+def final_states(deployment, settle=5.0, quiet=1.0):
+    """The (balance, count, digest) of every replica in the pair, once they agree and stay the same for
+    ``quiet`` s (or after settle s)."""
     import rospy
     from aft_msgs.srv import GetState
     from aft_examples.bank import Account
@@ -634,8 +636,17 @@ def final_states(deployment, settle=5.0):
                 found.append(('unreadable: %s' % e, -1, ''))
         return found
     got = []
-    wait_until(lambda: got.append(states()) or (len(set(got[-1])) == 1 and got[-1][0][1] != -1), settle, 0.1)
-    return got[-1]
+    deadline = time.monotonic() + settle
+    while True:
+        wait_until(lambda: got.append(states()) or (len(set(got[-1])) == 1 and got[-1][0][1] != -1),
+                   max(0.1, deadline - time.monotonic()), 0.1)
+        # Quiescent: the same state a little later (a late copy of a request, resent or queued, that
+        # executes after the agreement would otherwise go unseen by the checker).
+        time.sleep(quiet)
+        again = states()
+        if again == got[-1] or time.monotonic() >= deadline:
+            return again   # (still changing past settle: the latest read, which the checker judges)
+        got.append(again)
 
 
 _STATE_CALLS = Deadline('final-state', exclusive=True)   # a hung server: 'unreadable', never a hung campaign
@@ -723,6 +734,7 @@ class Segment(object):
                              'skipped' % (fault.segment, fault.index, self.skipped))
                     break
             time.sleep(0.5)   # load after the last fault
+            self.stopped = time.time()   # the clients are told to stop: each called until now (checked)
             unfinished = deployment.stop_clients()
             self.finals = final_states(deployment)
             self.ended = time.time()
@@ -738,7 +750,9 @@ class Segment(object):
             deployment.teardown()
         # A verdict the runner could not hear (a partitioned site's) is in that site's own log.
         self.verdicts = suspicions.merge(self.verdicts, suspicions.logged_verdicts(_log_lines(self.log_dir)))
-        self.result = history.check(self.ops, self.finals, self.kills, self.ended, self.unfinished_clients)
+        self.result = history.check(self.ops, self.finals, self.kills, self.ended, self.unfinished_clients,
+                                    call_limit=CALL_TIMEOUT, clients=['client%d' % k for k in range(1, self.clients + 1)],
+                                    stopped=self.stopped)
         for missing in self.missing:
             self.result.add('history_missing', missing)
         windows = [r['start'] for r in self.records[1:]] + [self.ended]
@@ -784,7 +798,9 @@ class Segment(object):
             return record
         record.update(injected)
         if injected.get('proxy_killed'):
-            self.kills.setdefault(injected['proxy_killed'], []).append(injected['start'])
+            # (stamped before the signal, and after it: a call cut by the kill may start between)
+            self.kills.setdefault(injected['proxy_killed'], []).append(
+                (injected['start'], injected.get('signalled', injected['end'])))
         acted = []
         done, why = heal(deployment, self.log, self.fail_stopped, acted)
         after = witness_status() or _Status

@@ -85,6 +85,9 @@ class PbrAfterNode(AfterNode):
             and Recovery promotes the one the witness names.
         ~ack_timeout (float, 1 s): a checkpoint (or a state transfer) not acknowledged for this long
             means the backup is lost: it is excluded (with the witness's grant) and held replies released.
+        ~batch_gap (float, 10 s): group commit: a batch gathered with no further reply of it for this
+            long is broken (one lost on its way): the site fail-stops, as for a reply out of order.
+            Its requests run one after the other, each within the server timeout (5 s).
         ~connect_timeout (float, 10 s): how long set-up waits for the peer's After.
         ~apply_period (float, 0.01 s; 0 = at once): a backup applies the newest checkpointed state
             to its server at most this often, and always before it takes over.
@@ -169,6 +172,7 @@ class PbrAfterNode(AfterNode):
         self.site_pid = param('site_pid', config.non_negative_int, site_launcher_pid())
         self.join_period = param('join_period', config.positive_float, 0.5)
         self.state_timeout = param('state_timeout', config.positive_float, 5.0)
+        self.batch_gap = param('batch_gap', config.positive_float, 10.0)
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         # Checkpoints are numbered from the wall clock (microseconds), so that an After replacing
         # another one (an adaptation) numbers above it: the backup's Protocol compares them.
@@ -439,7 +443,7 @@ class PbrAfterNode(AfterNode):
                 self._release(self.group.flush())
                 return reply
             try:
-                replies = self.group.add(reply)
+                replies = self.group.add(reply, time.monotonic())
             except BatchError as e:
                 self.sender.depose('group commit broken: %s' % e)
                 problem = 'group commit broken: %s' % e
@@ -577,6 +581,14 @@ class PbrAfterNode(AfterNode):
 
     def _check_acks(self, _event):
         with self.lock:
+            broken = self.group.stalled(time.monotonic(), self.batch_gap) \
+                if self.sender is not None and not self.sender.deposed else None
+            if broken:
+                self.sender.depose('group commit broken: %s' % broken)
+        if broken:
+            self.side.fail_stop('group commit broken: %s' % broken)
+            return
+        with self.lock:
             need = Need.NOTHING
             if self.sender is not None and self.sender.overdue(time.monotonic(), self.ack_timeout):
                 need = Need.EXCLUDE
@@ -674,6 +686,15 @@ class PbrAfterNode(AfterNode):
             state, version, error = self._capture_whole()
             if state is None:
                 self.side.tell('join_failed', 'cannot transfer the state to %s: %s' % (join.site, error))
+                return
+            # The capture may take up to two state timeouts, as long as the Protocol's suspension lease:
+            # if it ran out, the Protocol resumed and forwarded requests the state may or may not hold,
+            # and a batch of them straddled the join (released alone, then found broken: the only
+            # serving site fail-stopped). Still held (renewed for the rest of the join), it ran nothing.
+            why = self.side.hold_protocol(2 * self.state_timeout)
+            if why:
+                self.side.tell('join_failed', 'cannot transfer the state to %s: the Protocol is not held (%s); '
+                               'it asks again' % (join.site, why))
                 return
             seq = sender.join(join.after, time.monotonic(), catch_up=self.catch_up)
             # the joiner holds this state: the next checkpoints are deltas on it (the server's changes since

@@ -476,10 +476,13 @@ class SecGateNode(object):
             if e.kind == 'replay':
                 self._renumber(request)
             return
+        # batch is PBR's group commit, numbered by the Protocol behind the server's gate: a client's
+        # request carries none. One a client set (signed: it is its own) made PBR's After wait for batch
+        # members that never came, or fail-stop the primary (review of group commit, session 33).
         out = Request(id=request.id, origin=request.origin, client=request.client,
                       service_type=request.service_type, oldest_pending=request.oldest_pending,
                       attempt=request.attempt, payload=payload, epoch=request.epoch, transfer=request.transfer,
-                      batch=request.batch)
+                      batch=request.batch if self.side == 'client' else (0, 0))
         if self.side == 'client':
             with self.lock:
                 self.sent[(request.origin, request.id)] = out
