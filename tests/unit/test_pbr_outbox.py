@@ -62,3 +62,35 @@ def test_a_join_whose_capture_outlived_the_protocols_suspension_is_given_up():
         if not held:
             assert joined == [] and told and told[0][0] == 'join_failed' and 'not held' in told[0][1], told
     assert len(joined) == 1   # held: the join goes on
+
+
+def test_a_backup_the_witness_names_but_this_primary_does_not_checkpoint_to_is_excluded_loudly():
+    """Review of the witness (session 33): an ADMIT given up on and carried out late named slave the
+    backup of a primary that went on alone; nothing noticed, and slave, holding none of the replies
+    released since, was promoted at the next failure. The primary's After now excludes it
+    (backup_unfollowed), once: the exclusion's epoch makes that configuration past."""
+    import threading as _threading
+    from aft_ftm.checkpoint import CheckpointSender, Role
+    after = pbr_nodes.PbrAfterNode.__new__(pbr_nodes.PbrAfterNode)
+    after.lock, after.site, after.ack_timeout = _threading.RLock(), 'master', 1.0
+    after.sender = CheckpointSender(Role.ALONE, first_seq=1)
+    after.sender.epoch = 4
+    after.joiner = None
+    after.group = types.SimpleNamespace(stalled=lambda now, gap: None)
+    after.batch_gap = 10.0
+    after.configuration_seen = types.SimpleNamespace(epoch=5, primary='master', backup='slave', reason='admitted')
+    told, asked = [], []
+    after.side = types.SimpleNamespace(tell=lambda kind, detail, key=None: told.append(kind),
+                                       alone=lambda act, why: asked.append(why),
+                                       exclusion=lambda deposed: types.SimpleNamespace(epoch=6, message='excluded'))
+    after._check_acks(None)
+    assert told == ['backup_unfollowed'] and len(asked) == 1, (told, asked)
+    after._exclude(asked[0])                      # granted: epoch 6, the unfollowed configuration is past
+    told.clear(), asked.clear()
+    after._check_acks(None)                       # the configuration of epoch 6 not heard yet: no new ask
+    assert asked == [] and told == []
+    # a primary checkpointing to its backup, or a join under way, is not hit
+    after.configuration_seen = types.SimpleNamespace(epoch=7, primary='master', backup='slave', reason='admitted')
+    after.joiner = ('slave', 'i2')
+    after._check_acks(None)
+    assert asked == []

@@ -4,7 +4,7 @@ import random
 import pytest
 
 from aft_ftm.errors import RoleError
-from aft_ftm.protocol import DuplicateCache, Forward, ProtocolCore, Role, check_role_change
+from aft_ftm.protocol import DuplicateCache, Forward, ProtocolCore, Refuse, Role, check_role_change
 from fakes import reply, request
 
 
@@ -157,12 +157,37 @@ def test_refused_role_change_leaves_the_protocol_unchanged():
     assert core.role == Role.ALONE
 
 
-def test_cache_capacity_evicts_oldest_and_counts_it():
+def test_a_cache_at_its_capacity_is_full_and_forgets_no_reply():
     cache = DuplicateCache(capacity=2)
-    for rid in (1, 2, 3):
-        cache.store(reply(rid=rid))
-    assert cache.evicted == 1 and len(cache) == 2
-    assert cache.lookup(('/proxy', 1, 0)) is None and cache.lookup(('/proxy', 3, 0)) is not None
+    cache.store(reply(rid=1))
+    assert not cache.full()
+    cache.store(reply(rid=2))
+    assert cache.full() and '2 replies (bound 2)' in cache.why_full()
+    cache.store(reply(rid=3))   # one in flight when it filled: kept too
+    assert cache.evicted == 0 and len(cache) == 3 and cache.lookup(('/proxy', 1, 0)) is not None
+    cache.forget_below('/proxy', 3)   # its Proxy confirmed them: room again
+    assert not cache.full() and len(cache) == 1
+
+
+def test_a_flood_of_origins_never_makes_a_captured_request_run_twice():
+    """Review of SEC (session 33): past 100 000 entries the Protocol evicted its oldest reply, one still
+    at or above its origin's watermark. An insider sending from many origins (each keeping its
+    oldest_pending) evicted a victim's last reply in 1.7 s; the captured request then ran again,
+    with no alarm. A cache at its bound now refuses new requests instead."""
+    core = ProtocolCore(Role.ALONE, cache_capacity=50)
+    victim = request(rid=7, origin='/victim')
+    assert [type(a).__name__ for a in core.on_request(victim, 0.0)] == ['Forward']
+    core.on_result(reply(rid=7, origin='/victim'), 0.0)
+    refused = 0
+    for i in range(200):   # the insider's flood, from origins of its own
+        actions = core.on_request(request(rid=1, origin='/insider%d' % i), 0.0)
+        for a in actions:
+            if isinstance(a, Forward):
+                core.on_result(reply(rid=1, origin='/insider%d' % i), 0.0)
+            refused += isinstance(a, Refuse)
+    assert refused == 200 - 49 and core.cache.full()
+    replay = core.on_request(request(rid=7, origin='/victim'), 0.0)
+    assert [type(a).__name__ for a in replay] == ['Answer'], replay   # from the cache: never executed again
 
 
 def test_a_repeated_execution_is_not_taken_for_a_resend():
@@ -596,10 +621,6 @@ def test_the_replies_a_state_transfer_carries_are_never_evicted_by_count():
     for rid in range(100001):
         cache.store(reply(origin='/p%d' % (rid % 7), rid=rid + 1))
     assert len(cache) == 100001 and cache.evicted == 0
-    bounded = DuplicateCache(capacity=3)
-    for rid in range(4):
-        bounded.store(reply(rid=rid + 1))
-    assert len(bounded) == 3 and bounded.evicted == 1     # the Protocol's safety net still counts
 
 
 def test_a_state_transfer_from_an_after_started_again_under_its_name_is_no_gap():

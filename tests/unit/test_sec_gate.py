@@ -38,7 +38,7 @@ def gate(side='server', tls=False):
     node.side, node.me, node.role, node.tls = side, SERVER, Role.PRIMARY, tls
     node.book = security.CertificateBook(CA.verify_public)
     node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
-    node.undestined, node.destination, node.ports = {}, '/ftm/pxy2pro', FakePorts()
+    node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
     return node
 
 
@@ -72,18 +72,6 @@ def test_a_gate_asks_the_ca_for_no_certificate_before_its_first_status():
     with pytest.raises(Rejected) as error:
         early._peer('client')
     assert error.value.kind == 'ca_unreachable' and 'no status from the CA' in error.value.detail
-
-
-def test_a_message_signed_with_no_destination_is_counted_once_said():
-    taken = gate()
-    header = security.header_of(type('M', (), dict(origin='/p', id=1))(), ('origin', 'id'), 'server')
-    blob = security.seal(CLIENT, SERVER.box_public, header, b'x')
-    taken._count_undestined('client', blob)
-    taken._count_undestined('client', blob)
-    assert taken.undestined == {'client': 2} and taken._health().value('undestined') == '2'
-    named = security.seal(CLIENT, SERVER.box_public, dict(header, dest='/ftm/pxy2pro'), b'x')
-    taken._count_undestined('client', named)
-    assert taken.undestined == {'client': 2}
 
 
 def test_a_proxy_started_again_with_its_clock_behind_is_told_sealed_where_to_number_from_not_left_hanging():

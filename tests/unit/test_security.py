@@ -422,11 +422,13 @@ def test_a_request_signed_for_one_service_is_refused_by_another_and_a_reply_is_n
     as_request['dir'] = 'request'
     with pytest.raises(Rejected, match='misaddressed: party client signed it as a reply, it came as a request'):
         security.open_sealed(SERVER, CLIENT.verify_public, reply, as_request)
-    # a signer that names no destination is taken anywhere (the gate counts it): only a destination
-    # signed and different is refused
+    # a signer that names no destination is refused too (review of SEC, session 33: it was taken
+    # anywhere, and only counted): every gate signs its destination
     undestined = sealed(header=security.header_of(REQUEST, security.REQUEST_FIELDS, 'server'))
     assert security.destination_of(undestined) is None
-    assert security.open_sealed(SERVER, CLIENT.verify_public, undestined, b) == b'deposit 10'
+    with pytest.raises(Rejected, match='misaddressed: party client signed it for no destination, it came to '
+                                       '/ftm_b/pxy2pro'):
+        security.open_sealed(SERVER, CLIENT.verify_public, undestined, b)
 
 
 def test_the_batch_of_a_request_and_of_a_reply_is_signed():

@@ -207,3 +207,38 @@ def test_a_witness_whose_record_was_lost_or_rolled_back_grants_nothing_once_a_si
     assert (w.epoch, w.primary, w.backup) == record               # nothing granted, nothing changed
     fresh = pair()
     assert fresh.request(Op.STATUS, 'master', 'm1', known_epoch=2).granted   # a known epoch not above: as before
+
+
+def test_an_admit_still_in_flight_when_its_primary_went_on_alone_is_refused_when_it_comes():
+    """Review of the witness (session 33): master, alone, sent ADMIT(slave) made in epoch e; its answer
+    lost, master's ack timed out and it asked EXCLUDE, answered "already alone" with no new epoch, and
+    released replies slave never held. The ADMIT, delivered late, was still of epoch e: granted, it
+    named slave the backup, promoted at master's next failure with a stale state."""
+    w = pair()
+    assert w.request(Op.EXCLUDE, 'master', 'm1').granted              # slave excluded: epoch 3, master alone
+    transfer_epoch = w.epoch                                           # slave joins again: its transfer
+    late = dict(peer='slave', peer_incarnation='s1', epoch=transfer_epoch)
+    alone = w.request(Op.EXCLUDE, 'master', 'm1')                      # the ADMIT unanswered: master goes on alone
+    assert alone.granted and alone.epoch == transfer_epoch + 1 and (w.primary, w.backup) == ('master', '')
+    refused = w.request(Op.ADMIT, 'master', 'm1', **late)              # the ADMIT, delivered now
+    assert not refused.granted and w.backup == '' and 'not admitted' in refused.message
+    assert not w.request(Op.PROMOTE, 'slave', 's1').granted
+
+
+def test_a_witness_found_behind_is_still_behind_when_restarted_with_the_same_record(tmp_path):
+    """Review of the witness (session 33): the flag lived in memory only. Restarted again with the same
+    rolled-back record, the witness was no longer behind, and the site that had told it did not tell
+    again (once per epoch number): a site relaunched claiming the first primary's role got it."""
+    path = str(tmp_path / 'witness.json')
+    w = pair(StateStore(path))                                    # epoch 2
+    old = open(path).read()
+    assert w.request(Op.EXCLUDE, 'master', 'm1').granted          # epoch 3
+    with open(path, 'w') as f:
+        f.write(old)                                              # rolled back to epoch 2
+    from aft_ftm.witness import WitnessBehind
+    w = Witness(store=StateStore(path))
+    with pytest.raises(WitnessBehind):
+        w.request(Op.STATUS, 'master', 'm1', known_epoch=3)
+    again = Witness(store=StateStore(path))                       # restarted once more, the record unchanged
+    with pytest.raises(WitnessBehind, match='master has seen epoch 3'):
+        again.request(Op.REGISTER, 'slave', 's2', claim=True)

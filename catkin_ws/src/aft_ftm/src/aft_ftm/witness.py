@@ -11,7 +11,9 @@ current record, so at most one site holds the right to serve in any epoch:
   old primary is deposed: it is neither primary nor backup any more. Asked again by the incarnation
   it promoted (its answer was lost) while it is alone, it is granted again and changes nothing.
 - EXCLUDE (the primary goes on alone): granted only to the primary. The backup is excluded and
-  can never be promoted until it re-joins (a join transfers the state again).
+  can never be promoted until it re-joins (a join transfers the state again). Granted to a primary
+  already alone, it makes a new epoch too, so that an ADMIT of an older epoch still on its way is
+  refused.
 - ADMIT (a joined site becomes the backup): granted only to the primary, naming the joined site
   and its incarnation, and only in the epoch its state transfer was made in (when the request says
   it): a late ADMIT never names a site whose state is older than the configuration.
@@ -106,6 +108,10 @@ class Witness(object):
         if known_epoch > max(self.epoch, self.behind):
             self.behind = known_epoch
             self.behind_told_by = site
+            try:   # kept in the record: restarted with it unchanged, the witness is still behind
+                self._save(self._record())
+            except Exception:   # (refusing is what matters: it does so from memory, and is told again)
+                pass
         if self.behind:
             raise WitnessBehind('the witness\'s record is at epoch %d but %s has seen epoch %d: the record was '
                                 'lost or rolled back (restarted without its state file, or the file replaced); '
@@ -169,7 +175,13 @@ class Witness(object):
         if refused:
             return refused
         if not self.backup:
-            return self._grant(True, '%s is already alone in epoch %d' % (site, self.epoch))
+            # Already alone, still a new epoch: an ADMIT of this primary still in flight (its answer
+            # lost, TCP delivering it after a partition healed) was made in an older epoch and is
+            # refused when it comes. Answered "already alone" with no new epoch, it was granted after
+            # the primary had released replies the joiner never held: it named a stale backup, promoted
+            # at the next failure (review of the witness, session 33).
+            self._change(site, '', '%s alone again (an ADMIT still in flight is void)' % site, {site: incarnation})
+            return self._grant(True, '%s is already alone, in epoch %d now' % (site, self.epoch))
         excluded = self.backup
         self._change(site, '', '%s excluded by %s' % (excluded, site), {site: incarnation})
         return self._grant(True, '%s is alone in epoch %d; %s is excluded until it re-joins'
@@ -219,7 +231,8 @@ class Witness(object):
     def _record(self, **changes):
         """The record as saved: the current one, with ``changes`` made."""
         return dict({'epoch': self.epoch, 'primary': self.primary, 'backup': self.backup, 'reason': self.reason,
-                     'incarnations': self.incarnations, 'initial_primary': self.initial_primary}, **changes)
+                     'incarnations': self.incarnations, 'initial_primary': self.initial_primary,
+                     'behind': self.behind, 'behind_told_by': self.behind_told_by}, **changes)
 
     def _save(self, record):
         if self.store is not None:
@@ -234,6 +247,10 @@ class Witness(object):
         self.primary, self.backup = state['primary'], state['backup']
         self.incarnations = dict(state['incarnations'])
         self.reason = 'restored: %s' % state['reason']
+        # A record a site had found behind stays so (review of the witness, session 33: the flag lived
+        # in memory, and a second restart with the same record handed the first primary's role out again).
+        self.behind = int(state.get('behind', 0) or 0)
+        self.behind_told_by = str(state.get('behind_told_by', '') or '')
 
     def _grant(self, granted, message):
         return Grant(granted, message, self.epoch, self.primary, self.backup)

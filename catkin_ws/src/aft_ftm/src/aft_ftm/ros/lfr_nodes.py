@@ -532,6 +532,7 @@ class LfrAfterNode(AfterNode):
             # granted "already"); still unknown, a late grant is caught by _check_acks (unfollowed_backup).
             grant = self.side.ask(Op.ADMIT, peer=join.site, peer_incarnation=join.incarnation, epoch=epoch)
         if grant is None:
+            self._void_admit(join.site)
             return
         if not grant.granted:
             if grant.primary != self.site:
@@ -554,6 +555,32 @@ class LfrAfterNode(AfterNode):
         self.events.publish(String(data=json.dumps(record, sort_keys=True)))
         self.side.told.clear()
         rospy.loginfo('%s: %s is the follower again (epoch %d)', self.name, join.site, grant.epoch)
+
+    def _void_admit(self, site):
+        """An ADMIT left unanswered may still be carried out by the witness, naming a follower this leader
+        will not forward to once it serves again: if the leader then failed before noticing (_check_acks),
+        that follower was promoted without the replies released meanwhile (review of the witness, session
+        33). Before the Protocol resumes, an EXCLUDE is granted: a new epoch, in which that ADMIT is
+        refused when it comes. Asked while the Protocol is held (bounded: 10 s); past that the leader
+        serves alone with the alarm admit_unsettled, and _check_acks still excludes a late admission."""
+        deadline = time.monotonic() + 10.0
+        refused = []
+        while not rospy.is_shutdown():
+            grant = self.side.exclusion(lambda why: refused.append(why) or self._deposed(why))
+            if refused:
+                return   # deposed (said there): it serves nothing
+            if grant is not None:
+                with self.lock:
+                    self.core.epoch = max(self.core.epoch, grant.epoch)
+                self.side.tell('join_failed', 'the admission of %s went unanswered: %s (epoch %d) voids it'
+                               % (site, grant.message, grant.epoch))
+                return
+            if time.monotonic() > deadline or self.side.hold_protocol(2 * self.state_timeout):
+                break
+            time.sleep(0.5)
+        self.side.tell('admit_unsettled', 'the admission of %s went unanswered and the witness could not be asked '
+                       'to void it: %s serves alone; if the witness still admits %s, it is excluded as soon as '
+                       'this leader hears it' % (site, self.site, site))
 
     def _send_transfer(self, out, transfer):
         """Queue the transfer's parts for the writer as the window allows, each acknowledgment opening it

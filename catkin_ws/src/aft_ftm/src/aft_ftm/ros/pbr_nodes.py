@@ -590,11 +590,25 @@ class PbrAfterNode(AfterNode):
             return
         with self.lock:
             need = Need.NOTHING
-            if self.sender is not None and self.sender.overdue(time.monotonic(), self.ack_timeout):
+            conf = self.configuration_seen
+            # The witness names the peer this primary's backup while it checkpoints to nobody (ALONE, no
+            # join under way): an ADMIT given up on and carried out late. A promotion would serve a state
+            # without the replies released since: excluded, with an alarm (LFR's leader does the same).
+            unfollowed = self.sender is not None and not self.sender.deposed and self.sender.role == Role.ALONE \
+                and self.joiner is None and conf is not None and conf.primary == self.site and conf.backup \
+                and conf.backup != self.site and conf.epoch >= self.sender.epoch
+            if unfollowed:
+                need = Need.EXCLUDE
+            elif self.sender is not None and self.sender.overdue(time.monotonic(), self.ack_timeout):
                 need = Need.EXCLUDE
             elif self.sender is not None and self.sender.ready_to_admit() and self.joiner is not None:
                 need = Need.ADMIT   # the witness could not be reached earlier: ask again
-        if need == Need.EXCLUDE:
+        if unfollowed:
+            self.side.tell('backup_unfollowed', 'the witness names %s the backup of epoch %d, but %s goes on alone '
+                           'and checkpoints to nobody (an ADMIT answered after its caller gave up): it is excluded'
+                           % (conf.backup, conf.epoch, self.site), key=('unfollowed', conf.epoch))
+            self._resolve(need, '%s named the backup, but not followed' % conf.backup)
+        elif need == Need.EXCLUDE:
             self._resolve(need, 'no acknowledgment from the backup for %.1f s' % self.ack_timeout)
         elif need == Need.ADMIT:
             self._resolve(need, 'the backup holds the state transfer')
@@ -610,6 +624,8 @@ class PbrAfterNode(AfterNode):
             return
         with self.lock:
             if self.sender is None or self.sender.role == Role.ALONE and not self.sender.held:
+                if self.sender is not None:   # (an unfollowed backup excluded: that configuration is past)
+                    self.sender.epoch = max(self.sender.epoch, grant.epoch)
                 return
             released = self.sender.excluded(grant.epoch)
             self.joiner = None

@@ -47,7 +47,8 @@ class ProtocolNode(object):
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before
             the processing timeout fail-stops the site: a peer that cannot (failed a moment ago, the
             witness not told yet) leaves the request waiting, with the alarm (aft_ftm.recovery.SiteRole).
-        ~cache_capacity (int, 100000): safety limit of the reply cache (entries; 0: none).
+        ~cache_capacity (int, 100000): bound of the reply cache (entries; 0: none): once reached, new
+            requests are refused (not executed), with the alarm cache_full; no reply is ever forgotten.
         ~cache_bytes (int, 64 MiB): bound of the reply cache in bytes; at it, new requests are answered
             "not executed" (the client may retry) until clients confirm replies, never forgotten.
         ~replicate_refusals (bool, false): a replica's Protocol: a request refused (not executed, the
@@ -96,6 +97,7 @@ class ProtocolNode(object):
         max_batch = param('max_batch', config.positive_int, 1)
         self.core = ProtocolCore(ROLES[role_name], capacity, cache_bytes, max_batch)
         self.hung = None   # the request whose outcome is unknown, once one is
+        self.full_told = False   # the cache_full alarm of the episode under way was raised
         self.hung_waits = False   # ... waited for because the peer could not take over then (asked again)
         self.hang = HangRule(self.site, param('detector', config.optional_name, '') or None)
         self.lock = threading.Condition()
@@ -209,9 +211,11 @@ class ProtocolNode(object):
     def _on_request(self, request):
         with self.lock:
             self._act(self.core.on_request(request, time.monotonic()))
-            evicted = self.core.cache.evicted
-        if evicted:
-            rospy.logwarn_throttle(10, '%s: reply cache over capacity, %d replies evicted' % (self.name, evicted))
+            full = self.core.cache.full() and self.core.role != Role.BACKUP
+            told, self.full_told = self.full_told, full
+        if full and not told:   # once per episode: every request refused meanwhile is answered so
+            alarm(self.ports, 'protocol', 'cache_full', '%s refuses new requests: %s (a Proxy that never '
+                  'confirms its replies, or many origins)' % (self.name, self.core.cache.why_full()))
 
     def _on_result(self, reply):
         with self.lock:

@@ -275,8 +275,16 @@ class RecoveryNode(object):
             try:
                 grant = self.witness.request(Op.REGISTER, claim=self.claim)
             except WitnessUnreachable as e:
-                rospy.logerr('%s: %s', rospy.get_name(), e)
-                return False
+                # Asked again within the set-up time: the witness may have granted it, its answer lost
+                # (a slow disk past the call limit). Given up at once, the site stopped, and its next
+                # incarnation was refused the first primary's role for good (review of the witness,
+                # session 33); the same incarnation is granted again.
+                if time.monotonic() > deadline or rospy.is_shutdown():
+                    rospy.logerr('%s: %s', rospy.get_name(), e)
+                    return False
+                rospy.logwarn('%s: %s: asked again', rospy.get_name(), e)
+                time.sleep(0.2)
+                continue
             if grant.granted or grant.primary or time.monotonic() > deadline:
                 break
             time.sleep(0.05)   # no primary yet: the first primary's site registers first

@@ -193,7 +193,6 @@ class SecGateNode(object):
         self.server_party = param('server_party', config.non_empty_str, 'server' if self.side == 'client' else '')
         self.destination = param('destination', config.optional_name, '') or rospy.resolve_name(
             'requests_out' if self.side == 'client' else 'requests_in')
-        self.undestined = {}      # party -> messages it signed with no destination (taken)
         self.tls = tls_transport.active()
         self.role = ROLES[param('role', config.choice(*ROLES), 'primary')]
         self.ports = Ports([PortSpec('requests_in', SUBSCRIBE, 'aft_msgs/Request'),
@@ -267,8 +266,7 @@ class SecGateNode(object):
         with self.lock:
             report = health.sec_gate(self.side, self.me.name, self.role, len(self.book.peers), len(self.sent),
                                      self.rejected, policy=self.policy if self.side == 'server' else '')
-            undestined = sum(self.undestined.values())
-        values = list(report.values) + [('destination', self.destination), ('undestined', undestined),
+        values = list(report.values) + [('destination', self.destination),
                                         ('tls', 'on' if self.tls else 'off')]
         if self.tls:
             return Report(report.level, report.message, values)
@@ -369,7 +367,6 @@ class SecGateNode(object):
                         if e.kind != 'undecryptable':
                             break   # this certificate's signature or header: the next certificate
                         continue
-                    self._count_undestined(party, blob)
                     return plaintext
             now = time.monotonic()
             if attempt or error.kind != 'bad_signature' or now - self.refetched.get(party, -1e9) < 1.0:
@@ -378,18 +375,6 @@ class SecGateNode(object):
             with self.lock:
                 self.book.fetch_again(party)
         raise error
-
-    def _count_undestined(self, party, blob):
-        """A message signed with no destination is taken (a signer that names none), counted and said once
-        per party: a copy of it could be taken by another service's gate too."""
-        if security.destination_of(blob) is not None:
-            return
-        with self.lock:
-            first = party not in self.undestined
-            self.undestined[party] = self.undestined.get(party, 0) + 1
-        if first:
-            rospy.logwarn('%s: party %s signs no destination (an older gate?): its messages are taken, but a copy '
-                          'could be taken by another service\'s gate too', rospy.get_name(), party)
 
     def _key_file_id(self):
         try:

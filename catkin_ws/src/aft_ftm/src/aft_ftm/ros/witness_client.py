@@ -90,7 +90,10 @@ class WitnessClient(object):
         (restarted without its state file): it is told at once, with a STATUS saying the epoch heard,
         so that it grants nothing from then on (witness_behind), before a site that restarts claims it."""
         def on_configuration(conf):
-            if conf.epoch < self.known and self.told_back != conf.epoch + 1:
+            # Told at every older configuration, not once per epoch number: a witness restarted again
+            # without its record publishes the same older epoch, and forgot it was told (review of the
+            # witness, session 33). Configurations come only at changes and at a (re)start: no flood.
+            if conf.epoch < self.known:
                 self.told_back = conf.epoch + 1
                 threading.Thread(target=self._tell_behind, args=(conf.epoch,), daemon=True,
                                  name='witness-behind').start()

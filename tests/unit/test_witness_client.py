@@ -1,0 +1,77 @@
+"""A replica's WitnessClient, its configuration callback driven by hand (rospy's Subscriber faked). No ROS."""
+import types
+
+from aft_ftm.ros import witness_client
+
+
+def test_every_older_configuration_is_told_to_the_witness_not_once_per_epoch_number(monkeypatch):
+    """Review of the witness (session 33): a site told a witness behind only once per epoch number. A
+    witness restarted twice without its record publishes epoch 0 both times: the second time nobody
+    told it, and it handed out the first primary's role again."""
+    heard = {}
+    monkeypatch.setattr(witness_client.rospy, 'Subscriber',
+                        lambda topic, kind, callback, **kw: heard.setdefault('callback', callback))
+    told = []
+    client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
+    client.known, client.told_back = 0, 0
+    client._tell_behind = lambda epoch: told.append(epoch)
+    monkeypatch.setattr(witness_client.threading, 'Thread',
+                        lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
+    client.subscribe(lambda conf: None)
+    conf = lambda epoch: types.SimpleNamespace(epoch=epoch)   # noqa: E731
+    heard['callback'](conf(5))
+    heard['callback'](conf(0))          # the witness restarted without its record
+    heard['callback'](conf(0))          # ... and again
+    assert told == [0, 0] and client.known == 5
+
+
+def test_a_registration_whose_answer_was_lost_is_asked_again_within_the_set_up_time(monkeypatch):
+    """Review of the witness (session 33): a REGISTER past its call limit (a slow disk at the witness)
+    failed the set-up at once; granted meanwhile, it left the first primary's role to an incarnation
+    that had stopped, and nobody could ever serve. It is asked again; the same incarnation is granted."""
+    from aft_ftm.ros import recovery_node
+    from aft_ftm.witness import Grant
+    answers = [witness_client.WitnessUnreachable('witness /aft/witness/request: timed out after 1.0 s'),
+               Grant(True, 'slave is the backup of epoch 2', 2, 'master', 'slave')]
+
+    def request(op, claim=False):
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+    node = recovery_node.RecoveryNode.__new__(recovery_node.RecoveryNode)
+    node.witness = types.SimpleNamespace(request=request)
+    node.claim, node.site, node.role = False, 'slave', recovery_node.Role.BACKUP
+    events = []
+    node._event = events.append
+    monkeypatch.setattr(recovery_node.time, 'sleep', lambda s: None)
+    assert node._register(timeout=5.0) is True
+    assert answers == [] and node.epoch == 2 and events[0]['epoch'] == 2
+
+
+def test_an_lfr_leader_whose_admit_went_unanswered_voids_it_before_it_serves_alone(monkeypatch):
+    """Review of the witness (session 33): the leader gave up an unanswered ADMIT and served alone; the
+    witness carried it out later, after the leader had lost power, and promoted the follower, which
+    held none of the replies released meanwhile. The leader now has an EXCLUDE granted first (a new
+    epoch: the ADMIT of the old one is refused), asking while its Protocol stays held."""
+    import threading
+    from aft_ftm.ros import lfr_nodes
+    leader = lfr_nodes.LfrAfterNode.__new__(lfr_nodes.LfrAfterNode)
+    leader.lock, leader.site, leader.state_timeout = threading.RLock(), 'master', 5.0
+    leader.core = types.SimpleNamespace(epoch=3)
+    answers = [None, types.SimpleNamespace(epoch=5, message='master is already alone, in epoch 5 now')]
+    told, held = [], []
+    leader.side = types.SimpleNamespace(exclusion=lambda deposed: answers.pop(0),
+                                        hold_protocol=lambda lease: held.append(lease),   # None: still held
+                                        tell=lambda kind, detail, key=None: told.append((kind, detail)))
+    monkeypatch.setattr(lfr_nodes.time, 'sleep', lambda s: None)
+    leader._void_admit('slave')
+    assert answers == [] and leader.core.epoch == 5 and held == [10.0]
+    assert told[0][0] == 'join_failed' and 'voids it' in told[0][1]
+    # the witness never answers: bounded, and said
+    clock = iter(range(0, 100, 3))
+    monkeypatch.setattr(lfr_nodes.time, 'monotonic', lambda: next(clock))
+    leader.side.exclusion = lambda deposed: None
+    told.clear()
+    leader._void_admit('slave')
+    assert told and told[-1][0] == 'admit_unsettled'
