@@ -98,3 +98,31 @@ def test_a_proxy_started_again_with_its_clock_behind_is_told_sealed_where_to_num
     assert told.oldest_pending == 5002                             # above every id verified from /proxy
     security.open_sealed(CLIENT, SERVER.verify_public, told.payload, security.header_of(
         told, security.REPLY_FIELDS, 'client', '/ftm/pxy2pro'))   # sealed for its party, signed by the server
+
+
+def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clients_gate():
+    """Review of SEC (session 33): the error of a reply went in clear beside its ciphered payload, and
+    a server's error names the client's data ("cannot withdraw 999999 from a balance of 4342"): any
+    subscriber read other clients' balances."""
+    from aft_msgs.msg import Reply
+    server = gate()
+    server.origins = security.OriginBinding(None)
+    server.origins.bind('client', '/proxy')
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    error = 'service cannot process request: cannot withdraw 999999 from a balance of 4342'
+    server._on_reply(Reply(id=7, origin='/proxy', client='/c', status=Reply.ERROR, error=error, payload=b'resp'))
+    (port, wire), = server.ports.published
+    assert port == 'replies_out' and wire.error == sec_nodes.SEALED_ERROR and b'4342' not in bytes(wire.payload)
+    client = gate(side='client')
+    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
+    client._on_reply(wire)
+    (port, restored), = client.ports.published
+    assert (port, restored.error, bytes(restored.payload), restored.status) == ('replies_out', error, b'resp',
+                                                                                Reply.ERROR)
+    # a reply with no error says none on the wire either
+    server.ports.published.clear()
+    server._on_reply(Reply(id=8, origin='/proxy', client='/c', status=Reply.OK, payload=b'ok'))
+    assert server.ports.published[0][1].error == ''
+    with pytest.raises(Rejected, match='malformed'):
+        security.unframe_error(security.ERROR_FRAME + b'\x00\x00\x00\x09abc')

@@ -563,6 +563,36 @@ def _sealer(inner, signer):
     return 'sealed by party %s (kept from its message and signed again)' % name
 
 
+ERROR_FRAME = b'AFTERR1'   # a sealed reply's plaintext: this mark, the error's length (4 bytes), the error, the payload
+
+
+def frame_error(error, payload):
+    """The plaintext of a reply sealed with its error text (review of SEC, session 33: the error went
+    in clear, and a server's error names the client's data)."""
+    text = (error or '').encode('utf-8')
+    return ERROR_FRAME + struct.pack('>I', len(text)) + text + bytes(payload)
+
+
+def unframe_error(plaintext):
+    """(error, payload) of a reply's plaintext; (None, plaintext) if it carries no framed error.
+    Rejected ('malformed') if the frame is cut."""
+    plaintext = bytes(plaintext)
+    if not plaintext.startswith(ERROR_FRAME):
+        return None, plaintext
+    start = len(ERROR_FRAME) + 4
+    if len(plaintext) < start:
+        raise Rejected('malformed', 'a sealed reply\'s error frame is cut')
+    (length,) = struct.unpack('>I', plaintext[len(ERROR_FRAME):start])
+    if len(plaintext) < start + length:
+        raise Rejected('malformed', 'a sealed reply\'s error is cut (%d bytes said, %d there)'
+                       % (length, len(plaintext) - start))
+    try:
+        error = plaintext[start:start + length].decode('utf-8')
+    except UnicodeDecodeError:
+        raise Rejected('malformed', 'a sealed reply\'s error is not UTF-8')
+    return error, plaintext[start + length:]
+
+
 class OriginBinding(object):
     """Which party may send requests as which origin (a Proxy's name): the reply to an origin is
     sealed for that party only, so a party sending as another's Proxy could otherwise read its

@@ -503,8 +503,12 @@ class SecGateNode(object):
                 if party is None:
                     raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
                 box, _ = self._peer(party)
+                # The error text is sealed with the payload (a server's error names the client's data: "cannot
+                # withdraw 999 from a balance of 4342"); the reply on the wire says only that there is one.
+                error, reply = reply.error, _with_error(reply, SEALED_ERROR if reply.error else '')
                 payload = security.seal(self.me, box, security.header_of(reply, security.REPLY_FIELDS, party,
-                                                                         self.destination), reply.payload)
+                                                                         self.destination),
+                                        security.frame_error(error, reply.payload))
             else:
                 if security.addressee_of(reply.payload) not in (self.me.name, None):
                     with self.lock:   # for another client's gate, which checks it: not an attack on this one
@@ -514,6 +518,8 @@ class SecGateNode(object):
                     raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
                 payload = self._open(self.server_party, reply.payload, security.header_of(
                     reply, security.REPLY_FIELDS, self.me.name, self.destination))
+                error, payload = security.unframe_error(payload)
+                reply = _with_error(reply, error if error is not None else reply.error)
         except security.Rejected as e:
             self._reject(e, reply)
             return
@@ -524,6 +530,15 @@ class SecGateNode(object):
                                                 oldest_pending=reply.oldest_pending, attempt=reply.attempt,
                                                 batch=reply.batch, status=reply.status, error=reply.error, payload=payload,
                                                 epoch=reply.epoch))
+
+
+SEALED_ERROR = '(sealed)'   # the error text a reply carries on the wire: the real one is sealed with its payload
+
+
+def _with_error(reply, error):
+    return Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
+                 attempt=reply.attempt, batch=reply.batch, status=reply.status, error=error, payload=reply.payload,
+                 epoch=reply.epoch)
 
 
 class _ResendOnConnect(rospy.SubscribeListener):
