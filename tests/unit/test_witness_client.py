@@ -13,12 +13,12 @@ def test_every_older_configuration_is_told_to_the_witness_not_once_per_epoch_num
                         lambda topic, kind, callback, **kw: heard.setdefault('callback', callback))
     told = []
     client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
-    client.known, client.told_back = 0, 0
+    client.known, client.told_back, client.seen = 0, 0, {}
     client._tell_behind = lambda epoch: told.append(epoch)
     monkeypatch.setattr(witness_client.threading, 'Thread',
                         lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
     client.subscribe(lambda conf: None)
-    conf = lambda epoch: types.SimpleNamespace(epoch=epoch)   # noqa: E731
+    conf = lambda epoch: types.SimpleNamespace(epoch=epoch, primary='slave' if epoch else 'master', backup='')  # noqa
     heard['callback'](conf(5))
     heard['callback'](conf(0))          # the witness restarted without its record
     heard['callback'](conf(0))          # ... and again
@@ -75,3 +75,25 @@ def test_an_lfr_leader_whose_admit_went_unanswered_voids_it_before_it_serves_alo
     told.clear()
     leader._void_admit('slave')
     assert told and told[-1][0] == 'admit_unsettled'
+
+
+def test_one_epoch_naming_two_configurations_makes_the_site_tell_the_witness_it_is_behind(monkeypatch):
+    """Review of the witness (session 33): a witness restored from an older record granted epoch 3 a
+    second time, to the other site; configurations of an equal epoch were ignored, and both sites served
+    in epoch 3. Two contents for one epoch now make the site tell the witness it is behind that epoch."""
+    heard = {}
+    monkeypatch.setattr(witness_client.rospy, 'Subscriber',
+                        lambda topic, kind, callback, **kw: heard.setdefault('callback', callback))
+    monkeypatch.setattr(witness_client.threading, 'Thread',
+                        lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
+    told = []
+    client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
+    client.known, client.told_back, client.seen = 0, 0, {}
+    client._tell_behind = lambda epoch: told.append((epoch, client.known))
+    client.subscribe(lambda conf: None)
+    conf = lambda epoch, primary, backup='': types.SimpleNamespace(epoch=epoch, primary=primary, backup=backup)  # noqa
+    heard['callback'](conf(3, 'slave'))          # slave promoted: epoch 3
+    heard['callback'](conf(3, 'slave'))          # the same again (a latched copy): nothing
+    assert told == []
+    heard['callback'](conf(3, 'master'))         # epoch 3 granted again, to master
+    assert told == [(3, 4)]                      # told, saying epoch 4: it grants nothing more

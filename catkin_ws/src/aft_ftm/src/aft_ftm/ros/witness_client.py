@@ -57,6 +57,7 @@ class WitnessClient(object):
         self.proxy = None
         self.known = 0          # the newest epoch heard from the witness (told with every request)
         self.told_back = 0      # the last older configuration the witness was told about
+        self.seen = {}          # epoch -> (primary, backup) heard for it (configurations and answers; the last 16)
 
     def setup(self, timeout):
         try:
@@ -78,7 +79,16 @@ class WitnessClient(object):
         except (rospy.ServiceException, rospy.ROSException) as e:   # its connection is closed: opened again next
             raise WitnessUnreachable('witness %s: %s' % (self.service, e))
         self.known = max(self.known, answer.epoch)
+        self._saw(answer.epoch, answer.primary, answer.backup)
         return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
+
+    def _saw(self, epoch, primary, backup):
+        """Remember what epoch named; True if it named something else before: two configurations of one
+        epoch, which only a witness whose record was rolled back (restored from an older copy) grants."""
+        before = self.seen.setdefault(epoch, (primary, backup))
+        while len(self.seen) > 16:
+            del self.seen[min(self.seen)]
+        return before != (primary, backup)
 
     def _call(self, op, peer, peer_incarnation, claim, epoch):
         return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
@@ -93,6 +103,15 @@ class WitnessClient(object):
             # Told at every older configuration, not once per epoch number: a witness restarted again
             # without its record publishes the same older epoch, and forgot it was told (review of the
             # witness, session 33). Configurations come only at changes and at a (re)start: no flood.
+            diverged = self._saw(conf.epoch, conf.primary, conf.backup)
+            if diverged:
+                # Epoch e granted twice (review of the witness, session 33: a witness restored from an
+                # older record granted e again to the other site; both served in e, and nothing noticed).
+                # The witness is told it is behind e, so it grants nothing more until it is restored.
+                rospy.logerr('%s: the witness names primary %r, backup %r for epoch %d, which named %r, %r before: '
+                             'its record was rolled back; it is told so', rospy.get_name(), conf.primary,
+                             conf.backup, conf.epoch, *self.seen[conf.epoch])
+                self.known = max(self.known, conf.epoch + 1)
             if conf.epoch < self.known:
                 self.told_back = conf.epoch + 1
                 threading.Thread(target=self._tell_behind, args=(conf.epoch,), daemon=True,
