@@ -249,3 +249,22 @@ def test_a_node_resumed_then_suspended_again_by_nobody_named_is_not_taken_for_pa
     graph.hooks['/slave/tr/protocol/rebind'] = join_quiesces
     report = engine(graph).run(compose(), 'prepared')
     assert not report['ok'] and report['rolled_back'] and 'the pause was broken' in report['error'], report
+
+
+def test_the_probes_before_the_pause_are_bounded_too(graph):
+    """Review of the monitor (session 33): the connections opened before the pause (a probe of each
+    node to suspend, a dry-run rebind) waited for a hung node for ever; the monitor, which runs the
+    engine, then acted on nothing more (a site lost meanwhile was never answered)."""
+    released = threading.Event()
+
+    def hangs(kw):
+        released.wait(30.0)
+    hangs.release = released.set
+    graph.hooks['/slave/protocol/suspend'] = hangs
+    e = engine(graph, service_timeout=0.2)
+    e._keeper = adaptation_engine.LeaseKeeper(5.0, lambda text: None)
+    e._graph_nodes = lambda: set()
+    steps = adaptation.plan(compose(), 'prepared')
+    t0 = time.monotonic()
+    adaptation_engine.Engine._connect(e, steps)
+    assert time.monotonic() - t0 < 3.0

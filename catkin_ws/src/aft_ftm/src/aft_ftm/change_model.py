@@ -257,38 +257,56 @@ def _minimal(names, faults):
     return all(_faults_of(names[:i] + names[i + 1:]) & faults != covered for i in range(len(names)))
 
 
-def _best(model, faults, high, low):
+def _keeps(names, keep):
+    """True if names keeps the composition keep (a tuple, or None) as its outermost part: keep itself,
+    or keep with more composed inside."""
+    return bool(keep) and tuple(names[:len(keep)]) == keep
+
+
+def _best(model, faults, high, low, allowed=None, keep=None):
     """(names, covered, reason) for the given F: the cheapest feasible composition covering faults,
-    else the feasible one covering most of it (the empty composition when none covers anything)."""
-    feasible = [c for c in candidates(faults) if not _unmet_needs(c, model, high, low)]
+    else the feasible one covering most of it (the empty composition when none covers anything).
+    ``allowed``: when given, only the compositions it accepts are candidates; ``keep``: among those
+    covering as much, the ones keeping it (see :func:`select`) come before the cheaper ones."""
+    pool = candidates(faults)
+    if keep and keep not in pool:
+        pool.append(keep)   # e.g. a running sec when F holds no attack: judged like the others
+    feasible = [c for c in pool if not _unmet_needs(c, model, high, low) and (allowed is None or allowed(c))]
     helpful = tuple(n for n, m in mechanisms.TABLE.items() if m.faults & faults)
     excluded = _unmet_needs(helpful, model, high, low)   # why the mechanisms that would help are ruled out
     prefix = '; '.join(excluded) + '; ' if excluded else ''
-    covering = sorted((c for c in feasible if faults <= _faults_of(c)), key=_cost)
+    covering = sorted((c for c in feasible if faults <= _faults_of(c)), key=lambda c: (not _keeps(c, keep), _cost(c)))
     if covering:
         best = covering[0]
         options = [c for c in covering if _minimal(c, faults)]
+        choice = 'cheapest consistent choice'
+        if _keeps(best, keep) and best != keep:
+            choice += ' keeping %s:' % composition_name(keep)
         if len(options) > 1:
             listed = ', '.join('%s (%s)' % (composition_name(c), _needs_text(c)) for c in options)
-            text = 'covering %s: %s; cheapest consistent choice %s' % (kinds_text(faults), listed,
-                                                                         composition_name(best))
+            text = 'covering %s: %s; %s %s' % (kinds_text(faults), listed, choice, composition_name(best))
         else:
-            text = '%s covers %s: cheapest consistent choice %s (%s)' % (
-                composition_name(best), kinds_text(faults), composition_name(best), _needs_text(best))
+            text = '%s covers %s: %s %s (%s)' % (
+                composition_name(best), kinds_text(faults), choice, composition_name(best), _needs_text(best))
         return best, faults, prefix + text
-    partial = sorted([()] + feasible, key=lambda c: (-len(_faults_of(c) & faults), _cost(c)))
+    # The empty composition stays a candidate here whatever ``allowed`` says: it stands for "nothing
+    # considered covers any of it" (the caller tells whether it can get there).
+    partial = sorted([()] + feasible, key=lambda c: (-len(_faults_of(c) & faults), not _keeps(c, keep), _cost(c)))
     best = partial[0]
     covered = _faults_of(best) & faults
-    text = 'no consistent composition covers %s' % kinds_text(faults)
+    among = '' if allowed is None else ' among those allowed'
+    text = 'no consistent composition%s covers %s' % (among, kinds_text(faults))
     if covered:
         text += '; best partial choice %s covers %s, leaves %s uncovered' % (
             composition_name(best), kinds_text(covered), kinds_text(faults - covered))
+    elif best:
+        text += '; none%s covers any of it: %s is kept' % (among, composition_name(best))
     else:
-        text += '; no consistent mechanism covers any of it: none runs'
+        text += '; no consistent mechanism%s covers any of it: none runs' % among
     return best, covered, prefix + text
 
 
-def select(model, high=DEFAULT_HIGH, low=DEFAULT_LOW):
+def select(model, high=DEFAULT_HIGH, low=DEFAULT_LOW, allowed=None, keep=None):
     """The cheapest composition consistent with model.
 
     Candidates: every composition in the nesting order sec, replication (pbr | lfr), tr, ad (sec
@@ -297,10 +315,19 @@ def select(model, high=DEFAULT_HIGH, low=DEFAULT_LOW):
     With fewer CPUs than replication needs, crash is replaced by transient_value (the survivor
     masks its own transient faults) and the selection is marked degraded. If nothing covers F,
     the consistent composition covering most of it (cheapest on ties; none when it covers
-    nothing) is chosen, degraded, with the uncovered kinds named."""
+    nothing) is chosen, degraded, with the uncovered kinds named.
+
+    ``allowed`` (optional): a predicate on compositions (tuples of names); only those it accepts
+    are candidates (the monitor passes the running one and those a shipped adaptation reaches
+    from it). The empty composition is still returned when none of them covers any of F.
+    ``keep`` (optional): the running composition; among candidates covering as much of F, those
+    keeping it as their outermost part (it, or it with more composed inside, e.g. pbr+tr for pbr)
+    come first, before the cheaper ones: a mechanism is not changed merely because another is
+    cheaper."""
     if not isinstance(model, ChangeModel):
         raise ConfigError('select needs a ChangeModel, got %r' % (model,))
     _check_thresholds(high, low)
+    keep = tuple(keep) if keep else None
     faults = model.faults
     if not faults:
         return Selection((), NO_MECHANISM, frozenset(), frozenset(), False,
@@ -314,7 +341,7 @@ def select(model, high=DEFAULT_HIGH, low=DEFAULT_LOW):
         prefix = ('only %s alive: crash cannot be tolerated (replication needs %d CPUs), degraded '
                   'to masking the transient value faults of the remaining processor; '
                   % (_sites_text(model.resources.cpus), crash_cpus))
-    names, covered, reason = _best(model, faults, high, low)
+    names, covered, reason = _best(model, faults, high, low, allowed, keep)
     uncovered = model.faults - _faults_of(names)
     return Selection(names, composition_name(names), frozenset(covered), frozenset(uncovered),
                      bool(uncovered), prefix + reason)

@@ -7,7 +7,21 @@ asks :meth:`MonitorCore.decide` for a decision, carries it out and reports the o
 :meth:`MonitorCore.adapted` or :meth:`MonitorCore.adaptation_failed`.
 
 The monitor adapts only when the running composition becomes inconsistent with the model
-(F not covered, or an A or R need not met), never merely because a cheaper one exists.
+(F not covered, or an A or R need not met), never merely because a cheaper one exists. It then
+selects among the compositions a shipped adaptation script reaches from the running one
+(:func:`reachable`), those keeping the running one first (pbr -> pbr+tr rather than lfr+tr, which
+no script reaches from pbr): a decision always names a target :func:`transition` can carry out.
+
+A site is lost after ``lost_after`` seconds of silence observed while the monitor itself ran: a
+gap between two ticks longer than ``stall_after`` is the monitor's own stall (its heartbeats may
+still be unread), excused from the sites' silence, and the tick that ends it judges no site. A
+site never heard is waiting for its first beat, not lost.
+
+What the operator must hear of is returned as :class:`MonitorAlarm` by :meth:`MonitorCore.take_alarms`
+(the node publishes them as aft_msgs/Alarm): an adaptation that failed or was refused, one whose
+rollback failed, one that stands with an alarm, a running composition kept although inconsistent
+(degraded) and an inconsistency no reachable composition fits. Each once per change of state, not
+at every tick.
 """
 import collections
 import enum
@@ -41,6 +55,19 @@ _EDGES = {
 }
 
 
+# Alarm kinds the monitor raises (aft_msgs/Alarm.kind, mechanism 'monitor').
+ADAPTATION_FAILED = 'adaptation_failed'          # refused or rolled back: the old composition still runs
+ROLLBACK_FAILED = 'rollback_failed'              # and its rollback failed too: check by hand
+ADAPTATION_INCOMPLETE = 'adaptation_incomplete'  # the adaptation stands, with an alarm (resumes that failed)
+DEGRADED = 'degraded'                            # inconsistent, but kept: nothing reachable covers more of F
+NO_MECHANISM_FITS = 'no_mechanism_fits'          # nothing reachable (the running one too) covers any of F or runs
+
+
+class MonitorAlarm(collections.namedtuple('MonitorAlarm', ['kind', 'detail'])):
+    """An alarm for the operator (the node publishes it with mechanism 'monitor')."""
+    __slots__ = ()
+
+
 class Decision(collections.namedtuple('Decision', ['from_', 'to', 'reason', 'model', 'selection'])):
     """Adapt from the running composition ``from_`` to ``to`` (tuples of names, outermost first)."""
     __slots__ = ()
@@ -67,37 +94,54 @@ def _time(now):
 class MonitorCore(object):
     """The change model of one replicated server and the adaptation state machine.
 
-    ``sites``: the replica sites' names; a site never heard counts as alive until ``lost_after``
-    seconds after construction, and a site not heard for longer than ``lost_after`` is lost
-    (fail-silence: a later heartbeat does not bring it back) until it re-joins: the witness admits
-    it again once it holds the primary's state (:meth:`rejoined`). R.cpus = sites alive.
+    ``sites``: the replica sites' names; a site never heard counts as alive (it waits for its first
+    beat: a monitor started before the sites does not lose them), and a site heard, then silent for
+    longer than ``lost_after`` while the monitor ran, is lost (fail-silence: a later heartbeat does
+    not bring it back) until it re-joins: the witness admits it again once it holds the primary's
+    state (:meth:`rejoined`). R.cpus = sites alive. ``stall_after`` (default lost_after / 2): a gap
+    between two ticks longer than this is the monitor's own stall; the part of it beyond
+    stall_after is excused from the silence of every site, and the tick that ends it judges none
+    (the beats that came meanwhile may still be unread). The next tick judges, late or not, so a
+    monitor stalled at every tick still loses a dead site.
     """
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
-                 high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW):
+                 high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None):
         sites = list(sites) if not isinstance(sites, str) else [sites]
         if not sites or len(set(sites)) != len(sites) or not all(isinstance(s, str) and s for s in sites):
             raise ConfigError('sites must be distinct non-empty names, got %r' % (sites,))
         if isinstance(lost_after, bool) or not isinstance(lost_after, numbers.Real) or not lost_after > 0:
             raise ConfigError('lost_after must be a number of seconds > 0, got %r' % (lost_after,))
+        if stall_after is None:
+            stall_after = lost_after / 2.0
+        if (isinstance(stall_after, bool) or not isinstance(stall_after, numbers.Real)
+                or not 0 < stall_after <= lost_after):
+            raise ConfigError('stall_after must be a number of seconds > 0 and <= lost_after (%r), got %r'
+                              % (lost_after, stall_after))
         change_model.bandwidth_level(None, high, low)   # validates the thresholds
         now = _time(now)
         self.high, self.low = high, low
         self.lost_after = lost_after
+        self.stall_after = stall_after
         self.sites = sites
         self.started_at = now
+        self.last_tick = now
+        self.deferred = False       # the last tick ended a stall of the monitor and judged no site
+        self.stalls = 0             # ticks that found the monitor stalled
         self.declared = change_model.check_faults(declared_faults)
         self.observed = frozenset()
         self.application = application
         self.bytes_per_s = None
         self.last_heard = dict((s, None) for s in sites)
+        self.excused = dict((s, 0.0) for s in sites)   # the monitor's own stalls since the site was heard
         self.lost = set()
         self.running = _composition(running, 'running')
         self.state = MonitorState.WATCHING
         self.pending = None         # the Decision being carried out, while ADAPTING
         self.failed_model = None    # the model signature when the last adaptation failed
         self.history = []           # [(now, description)]
-        self._last_note = None
+        self.condition = None       # (alarm kind, running, model signature) of the inconsistency alarmed last
+        self.outbox = []            # MonitorAlarms not yet taken by take_alarms()
         self.model()                # validates the application
         self._note(now, 'watching %s with %s' % (change_model.composition_name(self.running),
                                                 self.model().to_dict()))
@@ -149,6 +193,7 @@ class MonitorCore(object):
             self._note(now, 'heartbeat from %s, lost for good: ignored (fail-silence broken)' % site)
             return False
         self.last_heard[site] = now
+        self.excused[site] = 0.0
         return True
 
     def rejoined(self, site, now):
@@ -161,6 +206,7 @@ class MonitorCore(object):
             return False
         self.lost.discard(site)
         self.last_heard[site] = now
+        self.excused[site] = 0.0
         self._note(now, 'site %s re-joined: %d sites alive again' % (site, len(self.alive_sites())))
         return True
 
@@ -193,21 +239,57 @@ class MonitorCore(object):
         return fault
 
     def tick(self, now):
-        """Declare lost the sites silent for longer than lost_after. Returns the newly lost."""
+        """Declare lost the sites heard, then silent for longer than lost_after while the monitor ran
+        (its own stalls excused; none judged by the tick that ends a stall). Returns the newly lost."""
         now = _time(now)
+        stalled = self._note_stall(now)
+        self.deferred = stalled and not self.deferred
+        if self.deferred:
+            return []
         newly = []
         for site in self.alive_sites():
             since = self.last_heard[site]
-            if now - (self.started_at if since is None else since) > self.lost_after:
+            if since is None:
+                continue   # never heard: waits for its first beat (sites may start after the monitor)
+            silence = now - since - self.excused[site]
+            if silence > self.lost_after:
                 newly.append(site)
                 self.lost.add(site)
-                self._note(now, 'site %s %s for more than %gs: lost for good'
-                           % (site, 'never heard' if since is None else 'silent', self.lost_after))
+                excused = ' (%.2fs more excused: the monitor stalled)' % self.excused[site] if self.excused[site] else ''
+                self._note(now, 'site %s silent for %.2fs%s, more than %gs: lost for good'
+                           % (site, silence, excused, self.lost_after))
         return newly
 
+    def _note_stall(self, now):
+        """Whether this tick comes late (the monitor stalled): add to each site's excused time the part
+        of the gap beyond stall_after that follows its last beat (a stall before the site was last
+        heard is no excuse for a later silence)."""
+        previous, self.last_tick = self.last_tick, max(self.last_tick, now)
+        if now - previous <= self.stall_after:
+            return False
+        stall_start = previous + self.stall_after
+        for site in self.alive_sites():
+            heard = self.last_heard[site]
+            if heard is not None and now > max(stall_start, heard):
+                self.excused[site] += now - max(stall_start, heard)
+        self.stalls += 1
+        self._note(now, 'the monitor stalled: %.2fs since its last tick (more than %gs): the silence of '
+                        'the sites meanwhile is excused, none judged at this tick' % (now - previous, self.stall_after))
+        return True
+
     # -- decisions ----------------------------------------------------------------------------------
+    def selection(self):
+        """The composition the monitor would adapt to now: the cheapest consistent with the model among
+        the running one and those a shipped adaptation reaches from it (:func:`reachable`), those
+        keeping the running one first. The empty composition when none of them covers any of F."""
+        running, alive = self.running, self.alive_sites()
+        return change_model.select(self.model(), self.high, self.low,
+                                   allowed=lambda c: c == running or reachable(running, c, alive), keep=running)
+
     def decide(self, now):
-        """None, or the Decision to adapt (handed out once; none while ADAPTING)."""
+        """None, or the Decision to adapt (handed out once; none while ADAPTING). Its target is always
+        one :func:`transition` reaches from the running composition. An inconsistency it cannot act on
+        is alarmed (:meth:`take_alarms`) once per change of the running composition or of the model."""
         now = _time(now)
         self.tick(now)
         if self.state == MonitorState.ADAPTING:
@@ -219,26 +301,55 @@ class MonitorCore(object):
         model = self.model()
         ok, why = change_model.consistent(self.running, model, self.high, self.low)
         if ok:
+            self.condition = None
             return None
-        selection = change_model.select(model, self.high, self.low)
+        running = change_model.composition_name(self.running)
+        selection = self.selection()
         if selection.mechanisms == self.running:
-            note = '%s is inconsistent (%s) but remains the best choice: %s' % (
-                selection.name, why, selection.reason)
-            if note != self._last_note:   # noted once, not at every tick
-                self._last_note = note
-                self._note(now, note)
+            # degraded: it covers part of F at least; else nothing reachable fits, not even it
+            self._alarm(now, DEGRADED if selection.covered else NO_MECHANISM_FITS,
+                        '%s is inconsistent (%s) but remains the best choice among the compositions a shipped '
+                        'adaptation reaches from it: %s%s' % (running, why, selection.reason, self._unreachable(model)))
             return None
-        self._last_note = None
+        if not reachable(self.running, selection.mechanisms, self.alive_sites()):
+            self._alarm(now, NO_MECHANISM_FITS, '%s is inconsistent (%s) and no composition a shipped adaptation '
+                        'reaches from it does better: %s%s; %s keeps running' % (
+                            running, why, selection.reason, self._unreachable(model), running))
+            return None
+        self.condition = None
         self.pending = Decision(self.running, selection.mechanisms,
                                 '%s is inconsistent: %s; selected %s: %s' % (
-                                    change_model.composition_name(self.running), why,
-                                    selection.name, selection.reason),
+                                    running, why, selection.name, selection.reason),
                                 model, selection)
         self._change_state(MonitorState.ADAPTING, self.pending.reason, now)
         return self.pending
 
-    def adapted(self, target, now):
-        """The adaptation is done: target runs now."""
+    def _unreachable(self, model):
+        """What the selection over every composition would be, when no shipped adaptation reaches it."""
+        anywhere = change_model.select(model, self.high, self.low)
+        if anywhere.mechanisms in ((), self.running) or reachable(self.running, anywhere.mechanisms,
+                                                                   self.alive_sites()):
+            return ''
+        return '; over every composition the selection would be %s, which no shipped adaptation reaches from %s' % (
+            anywhere.name, change_model.composition_name(self.running))
+
+    def _alarm(self, now, kind, detail):
+        """Alarm an inconsistency left as it is, once per (kind, running composition, model signature)."""
+        key = (kind, self.running, self._signature())
+        if key == self.condition:
+            return
+        self.condition = key
+        self._note(now, 'alarm %s: %s' % (kind, detail))
+        self.outbox.append(MonitorAlarm(kind, detail))
+
+    def take_alarms(self):
+        """The alarms raised since the last call (oldest first), for the node to publish."""
+        alarms, self.outbox = self.outbox, []
+        return alarms
+
+    def adapted(self, target, now, alarm=''):
+        """The adaptation is done: target runs now. ``alarm``: what the adaptation's report says went
+        wrong although it stands (resumes that failed): raised as adaptation_incomplete."""
         target = _composition(target, 'target')
         now = _time(now)
         if self.state != MonitorState.ADAPTING:
@@ -246,21 +357,37 @@ class MonitorCore(object):
         if target != self.pending.to:
             self._note(now, 'adapted to %s instead of the decided %s' % (
                 change_model.composition_name(target), change_model.composition_name(self.pending.to)))
+        before = change_model.composition_name(self.running)
         self.running = target
         self.pending = None
         self._change_state(MonitorState.WATCHING, 'running %s' % change_model.composition_name(target), now)
+        if alarm:
+            self.outbox.append(MonitorAlarm(ADAPTATION_INCOMPLETE, 'adaptation %s -> %s stands, but: %s' % (
+                before, change_model.composition_name(target), alarm)))
 
-    def adaptation_failed(self, error, now):
-        """The adaptation failed: the old composition still runs; no retry until the model changes."""
+    def adaptation_failed(self, error, now, rollback_failed=False):
+        """The adaptation failed (refused, or rolled back): the old composition still runs; no retry until
+        the model changes. ``rollback_failed``: its rollback could not undo everything (the report's
+        state FAILED): the system may not be as before. Raises adaptation_failed or rollback_failed."""
         now = _time(now)
         if self.state != MonitorState.ADAPTING:
             raise TransitionError('adaptation_failed(%r) while %s: no adaptation was under way'
                                   % (error, self.state.name))
         self.failed_model = self._signature()
+        move = '%s -> %s' % (change_model.composition_name(self.pending.from_),
+                             change_model.composition_name(self.pending.to))
         target = change_model.composition_name(self.pending.to)
+        running = change_model.composition_name(self.running)
         self.pending = None
         self._change_state(MonitorState.FAILED, 'adaptation to %s failed: %s; still running %s' % (
-            target, error, change_model.composition_name(self.running)), now)
+            target, error, running), now)
+        if rollback_failed:
+            self.outbox.append(MonitorAlarm(ROLLBACK_FAILED, 'adaptation %s failed and its rollback did not undo '
+                                            'everything: %s; the system may not be as before (check by hand); '
+                                            'retried when the model changes' % (move, error)))
+        else:
+            self.outbox.append(MonitorAlarm(ADAPTATION_FAILED, 'adaptation %s failed: %s; still running %s, '
+                                            'retried when the model changes' % (move, error, running)))
 
 
 # -- from a decision to a shipped adaptation script ------------------------------------------------
@@ -269,6 +396,15 @@ class Transition(collections.namedtuple('Transition', ['script', 'overrides', 's
     """The script (shipped name) and arguments that carry out a decision; ``suffix`` is the one
     the replicas' Before and After carry afterwards (a switch starts them under new names)."""
     __slots__ = ()
+
+
+def reachable(from_, to, alive_sites):
+    """Whether a shipped adaptation script carries out from_ -> to (:func:`transition` has one)."""
+    try:
+        transition(tuple(from_), tuple(to), alive_sites)
+    except ConfigError:
+        return False
+    return True
 
 
 def transition(from_, to, alive_sites, suffix=''):

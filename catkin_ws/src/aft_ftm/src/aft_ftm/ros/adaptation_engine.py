@@ -108,6 +108,14 @@ def wait_for_service(name, timeout):
             return 'its provider %s does not answer' % uri
 
 
+class _Probe(object):
+    """What _bounded names in its error for a call before the pause: the action and its node."""
+    __slots__ = ('action', 'target')
+
+    def __init__(self, action, target):
+        self.action, self.target = action, target
+
+
 class LeaseKeeper(object):
     """Renews the leases of the nodes an engine holds suspended, every ``lease / 4`` seconds, so
     that no step, however long, loses the engine its pause.
@@ -431,8 +439,9 @@ class Engine(object):
                                   'own, or with required false)' % (node, ', '.join(sorted(stopped))))
         for bind in script.bind:
             if bind.node not in launched:
-                try:
-                    self._rebind(bind, dry_run=True)
+                try:   # bounded: a node hung in its answer held the engine (and the monitor) for ever
+                    self._bounded(_Probe('rebind', bind.node), lambda bind=bind: self._rebind(bind, dry_run=True),
+                                  2 * self.service_timeout)
                 except (StepError, rospy.ServiceException, rospy.ROSException) as e:
                     raise ScriptError('%s does not answer its rebind service: %s' % (bind.node, e))
         self._launches, self._launched_names = launches, launched
@@ -652,19 +661,23 @@ class Engine(object):
         """Open persistent connections to the services the pause will call, by no-op calls
         (a resume of a running node, a dry-run rebind), so that the pause pays no connection set-up."""
         for step in steps:
-            try:
-                if step.action in ('suspend', 'resume'):
-                    # Probes: they answer and change nothing, whoever has the node suspended.
-                    self._proxy(step.target + '/suspend', Suspend)(probe=True)
-                    self._proxy(step.target + '/resume', Suspend)(probe=True)
-                    if step.action == 'suspend':
-                        self._keeper.connect(step.target)
-                elif step.action == 'rebind' and step.target in self._graph_nodes():
-                    self._rebind(step.detail, dry_run=True)
-                elif step.action == 'promote':
-                    self._proxy(step.target + '/set_promote', SetNodes)
+            try:   # each bounded (review of the monitor, session 33: a hung node held this for ever)
+                self._bounded(_Probe(step.action, step.target), lambda step=step: self._probe(step),
+                              2 * self.service_timeout)
             except Exception:   # not reachable yet (paper order: launched in the pause): connect then
                 self._proxies.pop(step.target + '/rebind', None)
+
+    def _probe(self, step):
+        if step.action in ('suspend', 'resume'):
+            # Probes: they answer and change nothing, whoever has the node suspended.
+            self._proxy(step.target + '/suspend', Suspend)(probe=True)
+            self._proxy(step.target + '/resume', Suspend)(probe=True)
+            if step.action == 'suspend':
+                self._keeper.connect(step.target)
+        elif step.action == 'rebind' and step.target in self._graph_nodes():
+            self._rebind(step.detail, dry_run=True)
+        elif step.action == 'promote':
+            self._proxy(step.target + '/set_promote', SetNodes)
 
     def _forget_proxies(self, node, cut=False):
         """Close the connections to node's services (``cut``: shut their sockets first, so that a

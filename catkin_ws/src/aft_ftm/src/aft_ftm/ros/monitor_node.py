@@ -14,6 +14,7 @@ from ..adaptation import ScriptError
 from ..change_model import Application as AppModel
 from ..errors import ConfigError
 from ..monitor import ForgedAlarm, MonitorCore, transition
+from .alarms import alarm
 from .params import param
 from .witness_client import CONFIGURATION_TOPIC
 
@@ -51,7 +52,9 @@ class MonitorNode(object):
         ~deterministic, ~state_access (bool, default true): A as declared at start.
         ~sites (list, default [master, slave]): the replica sites, primary first.
         ~running (str, default pbr): the composition running at start, e.g. pbr or pbr+tr.
-        ~lost_after (float, 2 s): a site silent this long is lost for good (R: CPUs).
+        ~lost_after (float, 2 s): a site heard, then silent this long while the monitor ran, is lost for
+            good (R: CPUs); a site never heard waits for its first beat; a gap between the monitor's own
+            ticks of more than lost_after / 2 (a stall) is not counted as the sites' silence.
         ~bandwidth_high, ~bandwidth_low (float, 1e6 and 1e4 B/s): what a link must carry for
             mechanisms needing high / low bandwidth (Table I).
         ~mode (prepared | paper, default prepared): the order adaptations run in.
@@ -66,9 +69,17 @@ class MonitorNode(object):
         ~application (aft_msgs/Application): the application declares A (a new version).
         ~bandwidth (std_msgs/Float64, bytes/s): available bandwidth between the sites, from a link monitor.
     Publishes:
-        ~model (std_msgs/String, JSON, latched): F, A, R, the running composition and the selection.
+        ~model (std_msgs/String, JSON, latched): F, A, R, the running composition, the sites alive and
+            those never heard, the selection over every composition (selection) and the one the monitor
+            would adapt to: among those a shipped script reaches from the running one (reachable_selection).
         ~events (std_msgs/String, JSON, latched): each decision, adaptation report or failure.
-        alarms (aft_msgs/Alarm): forged_alarm, for each alarm refused.
+        alarms (aft_msgs/Alarm, mechanism monitor): forged_alarm, for each alarm refused; adaptation_failed
+            (refused or rolled back), rollback_failed (the report's state FAILED), adaptation_incomplete
+            (it stands, with an alarm), for each adaptation; degraded (the running composition is
+            inconsistent, and kept: no composition a shipped script reaches from it covers more of F)
+            and no_mechanism_fits (none of them, the running one included, covers any of F or can run),
+            once each time the running composition or the model (F, A, sites alive, bandwidth level)
+            changes.
     """
 
     def __init__(self):
@@ -137,9 +148,7 @@ class MonitorNode(object):
         except ForgedAlarm as e:
             self.forged += 1
             detail = '%s: refused, F unchanged (%d so far)' % (e, self.forged)
-            rospy.logwarn('%s: monitor forged_alarm: %s', rospy.get_name(), detail)
-            self.alarms.publish(Alarm(source=rospy.get_name(), mechanism='monitor', kind='forged_alarm',
-                                      detail=detail, stamp=rospy.Time.now()))
+            alarm(self, 'monitor', 'forged_alarm', detail)
             return
         if fault:
             rospy.logwarn('%s: %s alarm %s: F now includes %s', rospy.get_name(), msg.mechanism, msg.kind, fault)
@@ -165,16 +174,32 @@ class MonitorNode(object):
         except ConfigError as e:
             rospy.logerr('%s: bandwidth measurement refused: %s', rospy.get_name(), e)
 
+    def publish(self, port, msg):
+        """The ports interface of aft_ftm.ros.alarms.alarm: the node's one port is ``alarms``."""
+        if port != 'alarms':
+            raise ConfigError('the monitor publishes no port %r' % (port,))
+        self.alarms.publish(msg)
+
+    def _raise(self, alarms):
+        """Publish the core's alarms (taken under the lock, published outside it)."""
+        for a in alarms:
+            alarm(self, 'monitor', a.kind, a.detail)
+
     # -- decisions ----------------------------------------------------------------------------
     def _tick(self, _event):
         with self.lock:
             decision = self.core.decide(time.monotonic())
+            alarms = self.core.take_alarms()
             model = self.core.model()
             running = change_model.composition_name(self.core.running)
             alive = self.core.alive_sites()
+            never_heard = [s for s in alive if self.core.last_heard[s] is None]
+            reachable = self.core.selection()
         self.model_pub.publish(String(data=json.dumps({
-            'model': model.to_dict(), 'running': running, 'alive_sites': alive,
-            'selection': change_model.select(model, self.core.high, self.core.low).to_dict()}, sort_keys=True)))
+            'model': model.to_dict(), 'running': running, 'alive_sites': alive, 'never_heard': never_heard,
+            'selection': change_model.select(model, self.core.high, self.core.low).to_dict(),
+            'reachable_selection': reachable.to_dict()}, sort_keys=True)))
+        self._raise(alarms)
         if decision is not None:
             self.work.put((decision, alive))
 
@@ -189,30 +214,40 @@ class MonitorNode(object):
                 decision, alive = self.work.get(timeout=0.5)
             except queue.Empty:
                 continue
-            record = {'event': 'decision', 'decision': decision.to_dict()}
-            try:
-                if not decision.to:
-                    raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
-                                      % decision.selection.reason)
-                move = transition(decision.from_, decision.to, alive, self.suffix)
-                move = move._replace(overrides=list(self.script_args.get(move.script, [])) + list(move.overrides))
-                record['script'], record['args'] = move.script, move.overrides
-                self._event(record)
-                from .adapt_command import load_script
-                report = self.engine.run(load_script(move.script, move.overrides), self.mode)
-                ok = report['ok']
-                error = report['error']
-                record = {'event': 'adapted' if ok else 'adaptation_failed', 'report': report}
-            except (ConfigError, ScriptError) as e:
-                ok, error = False, str(e)
-                record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
-            except Exception as e:   # never leave the monitor ADAPTING forever: report and go on
-                ok, error = False, '%s: %s' % (type(e).__name__, e)
-                record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
-            with self.lock:
-                if ok:
-                    self.core.adapted(decision.to, time.monotonic())
-                    self.suffix = move.suffix
-                else:
-                    self.core.adaptation_failed(error, time.monotonic())
+            self._carry_out(decision, alive)
+
+    def _carry_out(self, decision, alive):
+        """Run the decision's script; tell the core the outcome, publish the event and the alarms."""
+        record = {'event': 'decision', 'decision': decision.to_dict()}
+        report = {}
+        try:
+            if not decision.to:
+                raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
+                                  % decision.selection.reason)
+            move = transition(decision.from_, decision.to, alive, self.suffix)
+            move = move._replace(overrides=list(self.script_args.get(move.script, [])) + list(move.overrides))
+            record['script'], record['args'] = move.script, move.overrides
             self._event(record)
+            from .adapt_command import load_script
+            report = self.engine.run(load_script(move.script, move.overrides), self.mode)
+            ok = report['ok']
+            error = report['error']
+            record = {'event': 'adapted' if ok else 'adaptation_failed', 'report': report}
+        except (ConfigError, ScriptError) as e:
+            ok, error = False, str(e)
+            record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
+        except Exception as e:   # never leave the monitor ADAPTING forever: report and go on
+            ok, error = False, '%s: %s' % (type(e).__name__, e)
+            record = {'event': 'adaptation_failed', 'error': error, 'decision': decision.to_dict()}
+        with self.lock:
+            if ok:
+                self.core.adapted(decision.to, time.monotonic(), alarm=report.get('alarm') or '')
+                self.suffix = move.suffix
+            else:
+                rollback_failed = report.get('state') == 'FAILED'
+                if rollback_failed and report.get('alarm'):
+                    error = report['alarm']   # the error, and what the rollback could not undo
+                self.core.adaptation_failed(error, time.monotonic(), rollback_failed=rollback_failed)
+            alarms = self.core.take_alarms()
+        self._event(record)
+        self._raise(alarms)
