@@ -4,7 +4,8 @@ Brings a replica site back into its PBR pair: optionally starts it (COMMAND, e.g
 detached in a session of its own so that it outlives this command), then waits until the witness
 names SITE the backup of the serving primary, which happens once its state transfer is
 acknowledged. A site re-joins by itself when it starts; this command tells when it has.
-Exit status: 0 re-joined, 1 not within the timeout, 2 bad use or no witness.
+Exit status: 0 re-joined (or, without --launch, SITE is the primary), 1 not within the timeout or
+SITE still the primary with --launch (nothing started), 2 bad use or no witness.
 """
 import argparse
 import shlex
@@ -35,6 +36,16 @@ def main(argv):
     except (rospy.ROSException, rospy.ServiceException) as e:
         print('rejoin: the witness %s cannot be reached: %s' % (args.witness, e), file=sys.stderr)
         return 2
+    if before.primary == args.site and args.launch:
+        # Not launched, and said as a failure (review of the witness, session 33: it exited 0 having
+        # started nothing, right after the primary failed). A site launched while it still serves would
+        # replace its running nodes; one that failed re-joins once its peer took over.
+        print('rejoin: %s is still the primary of epoch %d for the witness: not launched. If it failed, its '
+              'backup takes over once its crash detector declares it (the witness then names another '
+              'primary): run this again then. A primary alone that failed cannot be replaced by its own '
+              'restart (it holds no state); see the README, "When the failed site comes back"'
+              % (args.site, before.epoch), file=sys.stderr)
+        return 1
     if before.primary == args.site:
         print('rejoin: %s is the primary of epoch %d: nothing to re-join' % (args.site, before.epoch))
         return 0
