@@ -315,3 +315,24 @@ def test_the_node_publishes_a_degraded_composition_once(no_ros):
     [published] = node.alarms.published
     assert (published.mechanism, published.kind) == ('monitor', DEGRADED)
     assert len(node.model_pub.published) == 10
+
+
+def test_a_change_while_an_adaptation_runs_is_acted_on_after_it_failed():
+    """Review of the monitor (session 33): the failed adaptation's model was taken when it failed, so a
+    change that came while it ran (here the slave site lost during a PBR -> PBR+TR that then failed)
+    was absorbed into it: the monitor never decided again, and TR on the survivor never came."""
+    core, clock = monitor()
+    node = Node(core, clock)
+    node.run(1.0)
+    core.alarm('tr', 'value_fault_masked', clock.now, source='/master/tr/after', sender='/master/tr/after')
+    decision = core.decide(clock.now)
+    assert decision is not None and core.state == MonitorState.ADAPTING
+    for _ in range(40):                        # meanwhile the slave falls silent: lost for good
+        clock.advance(PERIOD)
+        core.heartbeat('master', clock.now)
+        core.tick(clock.now)
+    assert core.alive_sites() == ['master']
+    core.adaptation_failed('rolled back', clock.now)
+    assert core.state == MonitorState.FAILED
+    again = core.decide(clock.now)
+    assert again is not None and again.to == ('tr',), core.history[-3:]   # decided on the model as it is now

@@ -138,7 +138,8 @@ class MonitorCore(object):
         self.running = _composition(running, 'running')
         self.state = MonitorState.WATCHING
         self.pending = None         # the Decision being carried out, while ADAPTING
-        self.failed_model = None    # the model signature when the last adaptation failed
+        self.failed_model = None    # the model signature the last failed adaptation was decided on
+        self.pending_signature = None   # the model signature of the decision under way
         self.history = []           # [(now, description)]
         self.condition = None       # (alarm kind, running, model signature) of the inconsistency alarmed last
         self.outbox = []            # MonitorAlarms not yet taken by take_alarms()
@@ -317,6 +318,7 @@ class MonitorCore(object):
                             running, why, selection.reason, self._unreachable(model), running))
             return None
         self.condition = None
+        self.pending_signature = self._signature()   # the model the decision was made on
         self.pending = Decision(self.running, selection.mechanisms,
                                 '%s is inconsistent: %s; selected %s: %s' % (
                                     running, why, selection.name, selection.reason),
@@ -373,7 +375,10 @@ class MonitorCore(object):
         if self.state != MonitorState.ADAPTING:
             raise TransitionError('adaptation_failed(%r) while %s: no adaptation was under way'
                                   % (error, self.state.name))
-        self.failed_model = self._signature()
+        # The model the decision was made on, not the one now: a change while it ran (a site lost, an
+        # application that changed) is a reason to decide again; taken in here, it was never acted on
+        # (review of the monitor, session 33).
+        self.failed_model = self.pending_signature or self._signature()
         move = '%s -> %s' % (change_model.composition_name(self.pending.from_),
                              change_model.composition_name(self.pending.to))
         target = change_model.composition_name(self.pending.to)
