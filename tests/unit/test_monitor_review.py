@@ -336,3 +336,22 @@ def test_a_change_while_an_adaptation_runs_is_acted_on_after_it_failed():
     assert core.state == MonitorState.FAILED
     again = core.decide(clock.now)
     assert again is not None and again.to == ('tr',), core.history[-3:]   # decided on the model as it is now
+
+
+def test_a_bandwidth_figure_no_longer_renewed_is_alarmed_once_stale():
+    """Review of the monitor (session 33): a link too slow for the probe to finish publishes nothing,
+    and the monitor kept an hour-old 50 MB/s figure, silently: a drop was never seen."""
+    core, clock = monitor()
+    node = Node(core, clock, alarms=True)
+    node.run(5.0)
+    assert node.alarms == []                             # no link monitor at all: nothing to say
+    core.bandwidth(50e6, clock.now)
+    node.run(29.0)
+    assert [a.kind for a in node.alarms] == []
+    node.run(3.0)
+    assert [a.kind for a in node.alarms] == ['bandwidth_stale'] and '5e+07 B/s' in node.alarms[0].detail
+    node.run(60.0)
+    assert len(node.alarms) == 1                         # once, until a figure comes again
+    core.bandwidth(40e6, clock.now)
+    node.run(31.0)
+    assert [a.kind for a in node.alarms] == ['bandwidth_stale'] * 2

@@ -61,6 +61,7 @@ ROLLBACK_FAILED = 'rollback_failed'              # and its rollback failed too: 
 ADAPTATION_INCOMPLETE = 'adaptation_incomplete'  # the adaptation stands, with an alarm (resumes that failed)
 DEGRADED = 'degraded'                            # inconsistent, but kept: nothing reachable covers more of F
 NO_MECHANISM_FITS = 'no_mechanism_fits'          # nothing reachable (the running one too) covers any of F or runs
+BANDWIDTH_STALE = 'bandwidth_stale'              # no bandwidth measured for bandwidth_stale_after: R's figure is old
 
 
 class MonitorAlarm(collections.namedtuple('MonitorAlarm', ['kind', 'detail'])):
@@ -106,7 +107,8 @@ class MonitorCore(object):
     """
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
-                 high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None):
+                 high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None,
+                 bandwidth_stale_after=30.0):
         sites = list(sites) if not isinstance(sites, str) else [sites]
         if not sites or len(set(sites)) != len(sites) or not all(isinstance(s, str) and s for s in sites):
             raise ConfigError('sites must be distinct non-empty names, got %r' % (sites,))
@@ -132,6 +134,9 @@ class MonitorCore(object):
         self.observed = frozenset()
         self.application = application
         self.bytes_per_s = None
+        self.bandwidth_at = None    # when the last bandwidth figure came (None: never: no link monitor)
+        self.bandwidth_stale_after = bandwidth_stale_after
+        self.bandwidth_stale_told = False
         self.last_heard = dict((s, None) for s in sites)
         self.excused = dict((s, 0.0) for s in sites)   # the monitor's own stalls since the site was heard
         self.lost = set()
@@ -216,6 +221,7 @@ class MonitorCore(object):
         now = _time(now)
         before = change_model.bandwidth_level(self.bytes_per_s, self.high, self.low)
         self.bytes_per_s = change_model.Resources(0, bytes_per_s).bandwidth   # validates
+        self.bandwidth_at, self.bandwidth_stale_told = now, False
         after = change_model.bandwidth_level(self.bytes_per_s, self.high, self.low)
         if after != before:
             self._note(now, "bandwidth %s: now supports '%s' mechanisms (was '%s')"
@@ -247,6 +253,17 @@ class MonitorCore(object):
         self.deferred = stalled and not self.deferred
         if self.deferred:
             return []
+        if self.bandwidth_at is not None and not self.bandwidth_stale_told and \
+                now - self.bandwidth_at > self.bandwidth_stale_after:
+            # The link monitors fell silent, or their probes no longer finish (a link too slow for one
+            # to drain): the figure R holds is old, and a drop below it is not seen (review of the
+            # monitor, session 33). Said once until a figure comes again; the figure is kept.
+            self.bandwidth_stale_told = True
+            detail = 'no bandwidth measured for %.0f s: the selection goes on from %s, measured then (a link ' \
+                     'monitor silent, or a link too slow for its probe to finish)' % (
+                         now - self.bandwidth_at, change_model.bandwidth_text(self.bytes_per_s))
+            self._note(now, 'alarm %s: %s' % (BANDWIDTH_STALE, detail))
+            self.outbox.append(MonitorAlarm(BANDWIDTH_STALE, detail))
         newly = []
         for site in self.alive_sites():
             since = self.last_heard[site]
