@@ -355,3 +355,28 @@ def test_a_bandwidth_figure_no_longer_renewed_is_alarmed_once_stale():
     core.bandwidth(40e6, clock.now)
     node.run(31.0)
     assert [a.kind for a in node.alarms] == ['bandwidth_stale'] * 2
+
+
+def test_with_both_sites_alive_pbr_is_never_traded_for_tr_alone():
+    """Review of this session's fixes: F = {crash, transient_value} and a low bandwidth, both sites
+    alive: lfr+tr (the best) is not reachable in one step, and tr alone was chosen among the reachable
+    ones; compose then ran pbr+tr while the monitor held 'tr', from which no transition leads."""
+    assert not reachable(('pbr',), ('tr',), SITES) and reachable(('pbr',), ('tr',), ['master'])
+    core, clock = monitor(faults=(CRASH, TRANSIENT_VALUE))
+    node = Node(core, clock)
+    core.bandwidth(5e4, clock.now)
+    node.run(5.0)
+    assert all(d.to != ('tr',) for d in node.decisions), [(d.from_, d.to) for d in node.decisions]
+
+
+def test_a_site_never_heard_is_said_once_past_its_grace():
+    """Review of this session's fixes: a site never heard is counted alive until its first beat; one
+    dead before the monitor started was counted alive for ever, silently."""
+    core, clock = monitor()
+    node = Node(core, clock, alarms=True)
+    node.run(29.0, sites=['master'])
+    assert node.alarms == []
+    node.run(2.0, sites=['master'])
+    assert [a.kind for a in node.alarms] == ['site_never_heard'] and 'slave' in node.alarms[0].detail
+    node.run(60.0, sites=['master'])
+    assert len(node.alarms) == 1

@@ -62,6 +62,7 @@ ADAPTATION_INCOMPLETE = 'adaptation_incomplete'  # the adaptation stands, with a
 DEGRADED = 'degraded'                            # inconsistent, but kept: nothing reachable covers more of F
 NO_MECHANISM_FITS = 'no_mechanism_fits'          # nothing reachable (the running one too) covers any of F or runs
 BANDWIDTH_STALE = 'bandwidth_stale'              # no bandwidth measured for bandwidth_stale_after: R's figure is old
+SITE_NEVER_HEARD = 'site_never_heard'            # a site not heard since the start, past never_heard_after
 
 
 class MonitorAlarm(collections.namedtuple('MonitorAlarm', ['kind', 'detail'])):
@@ -108,7 +109,7 @@ class MonitorCore(object):
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
                  high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None,
-                 bandwidth_stale_after=30.0):
+                 bandwidth_stale_after=30.0, never_heard_after=30.0):
         sites = list(sites) if not isinstance(sites, str) else [sites]
         if not sites or len(set(sites)) != len(sites) or not all(isinstance(s, str) and s for s in sites):
             raise ConfigError('sites must be distinct non-empty names, got %r' % (sites,))
@@ -137,6 +138,8 @@ class MonitorCore(object):
         self.bandwidth_at = None    # when the last bandwidth figure came (None: never: no link monitor)
         self.bandwidth_stale_after = bandwidth_stale_after
         self.bandwidth_stale_told = False
+        self.never_heard_after = never_heard_after
+        self.never_heard_told = set()
         self.last_heard = dict((s, None) for s in sites)
         self.excused = dict((s, 0.0) for s in sites)   # the monitor's own stalls since the site was heard
         self.lost = set()
@@ -268,7 +271,17 @@ class MonitorCore(object):
         for site in self.alive_sites():
             since = self.last_heard[site]
             if since is None:
-                continue   # never heard: waits for its first beat (sites may start after the monitor)
+                # never heard: waits for its first beat (sites may start after the monitor), counted
+                # alive meanwhile; past never_heard_after that is said, once (dead before the monitor
+                # started, or its heartbeat topic wired wrong: R may count a CPU that is not there)
+                if site not in self.never_heard_told and now - self.started_at > self.never_heard_after:
+                    self.never_heard_told.add(site)
+                    detail = 'site %s not heard in the %.0f s since the monitor started: counted alive until ' \
+                             'its first beat (dead before the start, or its heartbeats not reaching the ' \
+                             'monitor)' % (site, now - self.started_at)
+                    self._note(now, 'alarm %s: %s' % (SITE_NEVER_HEARD, detail))
+                    self.outbox.append(MonitorAlarm(SITE_NEVER_HEARD, detail))
+                continue
             silence = now - since - self.excused[site]
             if silence > self.lost_after:
                 newly.append(site)
@@ -440,8 +453,10 @@ def transition(from_, to, alive_sites, suffix=''):
         new = '_' + to[0]
         return Transition('switch', ['to:=%s' % to[0], 'old:=%s' % suffix, 'new:=%s' % new,
                                      'primary:=%s' % alive_sites[0], 'backup:=%s' % alive_sites[1]], new)
-    if from_ in (('pbr',), ('lfr',)) and to in (('tr',), ('ad',)):
+    if from_ in (('pbr',), ('lfr',)) and to in (('tr',), ('ad',)) and len(alive_sites) == 1:
         # One site left: the replication shell goes on alone; the mechanism stands in for its Proceed.
+        # (With both sites alive, compose makes pbr+tr, not tr: the monitor would then hold a wrong
+        # view of what runs, from which no transition leads; review of session 33.)
         return Transition('compose', ['mechanism:=%s' % to[0], 'site:=%s' % ','.join(alive_sites)], suffix)
     if len(from_) == 1 and to[:1] == from_ and len(to) == 2 and to[1] in ('tr', 'ad'):
         return Transition('compose', ['mechanism:=%s' % to[1], 'site:=%s' % ','.join(alive_sites)], suffix)

@@ -304,8 +304,8 @@ class CrashDetectorNode(object):
                 stale = self.monitor.stale_announcements
                 self.monitor.announced(time.monotonic(), beat.stopping, beat)   # the loop reports it
                 stale = self.monitor.stale_announcements > stale
-                first = stale and incarnation(beat) not in self.stale_told
-                if first:
+                first = stale and incarnation(beat) not in self.stale_told and len(self.stale_told) < 64
+                if first:   # (bounded: a forger naming ever new pids gets 64 alarms, then the log's count)
                     self.stale_told.add(incarnation(beat))
             if first:   # once per incarnation named: a forger may repeat it at any rate
                 alarm(self.ports, 'pbr', 'stale_announcement', 'site %s announced a fail-stop (%s) from pid %d on %s, '

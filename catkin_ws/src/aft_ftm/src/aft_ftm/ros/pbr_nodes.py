@@ -85,9 +85,10 @@ class PbrAfterNode(AfterNode):
             and Recovery promotes the one the witness names.
         ~ack_timeout (float, 1 s): a checkpoint (or a state transfer) not acknowledged for this long
             means the backup is lost: it is excluded (with the witness's grant) and held replies released.
-        ~batch_gap (float, 10 s): group commit: a batch gathered with no further reply of it for this
-            long is broken (one lost on its way): the site fail-stops, as for a reply out of order.
-            Its requests run one after the other, each within the server timeout (5 s).
+        ~batch_gap (float, 30 s, the Protocol's processing timeout): group commit: a batch gathered with
+            no further reply of it for this long is broken (one lost on its way): the site fail-stops,
+            as for a reply out of order. Its requests run one after the other, each within the server
+            timeout (5 s; an inner TR runs each up to 3 times): keep it above what one request may take.
         ~connect_timeout (float, 10 s): how long set-up waits for the peer's After.
         ~apply_period (float, 0.01 s; 0 = at once): a backup applies the newest checkpointed state
             to its server at most this often, and always before it takes over.
@@ -172,7 +173,7 @@ class PbrAfterNode(AfterNode):
         self.site_pid = param('site_pid', config.non_negative_int, site_launcher_pid())
         self.join_period = param('join_period', config.positive_float, 0.5)
         self.state_timeout = param('state_timeout', config.positive_float, 5.0)
-        self.batch_gap = param('batch_gap', config.positive_float, 10.0)
+        self.batch_gap = param('batch_gap', config.positive_float, 30.0)
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         # Checkpoints are numbered from the wall clock (microseconds), so that an After replacing
         # another one (an adaptation) numbers above it: the backup's Protocol compares them.

@@ -58,6 +58,7 @@ class WitnessClient(object):
         self.known = 0          # the newest epoch heard from the witness (told with every request)
         self.told_back = 0      # the last older configuration the witness was told about
         self.seen = {}          # epoch -> (primary, backup) heard for it (configurations and answers; the last 16)
+        self._seen_lock = threading.Lock()
 
     def setup(self, timeout):
         try:
@@ -85,9 +86,10 @@ class WitnessClient(object):
     def _saw(self, epoch, primary, backup):
         """Remember what epoch named; True if it named something else before: two configurations of one
         epoch, which only a witness whose record was rolled back (restored from an older copy) grants."""
-        before = self.seen.setdefault(epoch, (primary, backup))
-        while len(self.seen) > 16:
-            del self.seen[min(self.seen)]
+        with self._seen_lock:   # (the configuration thread and every caller of request())
+            before = self.seen.setdefault(epoch, (primary, backup))
+            while len(self.seen) > 16:
+                del self.seen[min(self.seen)]
         return before != (primary, backup)
 
     def _call(self, op, peer, peer_incarnation, claim, epoch):
