@@ -14,7 +14,7 @@ def test_every_older_configuration_is_told_to_the_witness_not_once_per_epoch_num
                         lambda topic, kind, callback, **kw: heard.setdefault('callback', callback))
     told = []
     client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
-    client.known, client.told_back, client.seen, client._seen_lock = 0, 0, {}, threading.Lock()
+    client.known, client.seen, client._seen_lock = 0, {}, threading.Lock()
     client._tell_behind = lambda epoch: told.append(epoch)
     monkeypatch.setattr(witness_client.threading, 'Thread',
                         lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
@@ -89,7 +89,7 @@ def test_one_epoch_naming_two_configurations_makes_the_site_tell_the_witness_it_
                         lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
     told = []
     client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
-    client.known, client.told_back, client.seen, client._seen_lock = 0, 0, {}, threading.Lock()
+    client.known, client.seen, client._seen_lock = 0, {}, threading.Lock()
     client._tell_behind = lambda epoch: told.append((epoch, client.known))
     client.subscribe(lambda conf: None)
     conf = lambda epoch, primary, backup='': types.SimpleNamespace(epoch=epoch, primary=primary, backup=backup)  # noqa

@@ -265,8 +265,7 @@ class MonitorCore(object):
             detail = 'no bandwidth measured for %.0f s: the selection goes on from %s, measured then (a link ' \
                      'monitor silent, or a link too slow for its probe to finish)' % (
                          now - self.bandwidth_at, change_model.bandwidth_text(self.bytes_per_s))
-            self._note(now, 'alarm %s: %s' % (BANDWIDTH_STALE, detail))
-            self.outbox.append(MonitorAlarm(BANDWIDTH_STALE, detail))
+            self._say(now, BANDWIDTH_STALE, detail)
         newly = []
         for site in self.alive_sites():
             since = self.last_heard[site]
@@ -279,8 +278,7 @@ class MonitorCore(object):
                     detail = 'site %s not heard in the %.0f s since the monitor started: counted alive until ' \
                              'its first beat (dead before the start, or its heartbeats not reaching the ' \
                              'monitor)' % (site, now - self.started_at)
-                    self._note(now, 'alarm %s: %s' % (SITE_NEVER_HEARD, detail))
-                    self.outbox.append(MonitorAlarm(SITE_NEVER_HEARD, detail))
+                    self._say(now, SITE_NEVER_HEARD, detail)
                 continue
             silence = now - since - self.excused[site]
             if silence > self.lost_after:
@@ -371,6 +369,10 @@ class MonitorCore(object):
         if key == self.condition:
             return
         self.condition = key
+        self._say(now, kind, detail)
+
+    def _say(self, now, kind, detail):
+        """An alarm for the node to publish (take_alarms), noted in the history."""
         self._note(now, 'alarm %s: %s' % (kind, detail))
         self.outbox.append(MonitorAlarm(kind, detail))
 

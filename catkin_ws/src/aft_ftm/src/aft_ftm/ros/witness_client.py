@@ -56,7 +56,6 @@ class WitnessClient(object):
         self.deadline = Deadline('witness')
         self.proxy = None
         self.known = 0          # the newest epoch heard from the witness (told with every request)
-        self.told_back = 0      # the last older configuration the witness was told about
         self.seen = {}          # epoch -> (primary, backup) heard for it (configurations and answers; the last 16)
         self._seen_lock = threading.Lock()
 
@@ -84,13 +83,14 @@ class WitnessClient(object):
         return Grant(answer.granted, answer.message, answer.epoch, answer.primary, answer.backup)
 
     def _saw(self, epoch, primary, backup):
-        """Remember what epoch named; True if it named something else before: two configurations of one
-        epoch, which only a witness whose record was rolled back (restored from an older copy) grants."""
+        """Remember what epoch named; returns what it named before if that was something else (two
+        configurations of one epoch, which only a witness whose record was rolled back, restored from
+        an older copy, grants), else None."""
         with self._seen_lock:   # (the configuration thread and every caller of request())
             before = self.seen.setdefault(epoch, (primary, backup))
             while len(self.seen) > 16:
                 del self.seen[min(self.seen)]
-        return before != (primary, backup)
+        return before if before != (primary, backup) else None
 
     def _call(self, op, peer, peer_incarnation, claim, epoch):
         return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
@@ -112,10 +112,9 @@ class WitnessClient(object):
                 # The witness is told it is behind e, so it grants nothing more until it is restored.
                 rospy.logerr('%s: the witness names primary %r, backup %r for epoch %d, which named %r, %r before: '
                              'its record was rolled back; it is told so', rospy.get_name(), conf.primary,
-                             conf.backup, conf.epoch, *self.seen[conf.epoch])
+                             conf.backup, conf.epoch, *diverged)
                 self.known = max(self.known, conf.epoch + 1)
             if conf.epoch < self.known:
-                self.told_back = conf.epoch + 1
                 threading.Thread(target=self._tell_behind, args=(conf.epoch,), daemon=True,
                                  name='witness-behind').start()
             self.known = max(self.known, conf.epoch)
