@@ -2,7 +2,7 @@
 row): every section present, every claim measured whose benchmark ran, numbers that add up. Its
 figures are not asserted as timings (a quick run on a shared machine proves the report builds).
 
-Its campaign step is the suite's short campaign (issue 15): 20 faults (two segments of 10;
+Its campaign step is the suite's short campaign (issue 15): 50 faults (two segments of 25;
 AFT_CAMPAIGN_FAULTS) on the PBR and LFR bank, two client processes each through its own Proxy, every
 fault healed before the next; the history checker must find no violation. The sites are adaptable
 (`--adapt`): the adaptations are drawn among the faults (each about once per 39: an update of the
@@ -31,7 +31,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, os.path.join(ROOT, 'catkin_ws', 'src', 'aft_bench', 'src'))
 from aft_bench import report  # noqa: E402
 
-CAMPAIGN_FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 20))
+CAMPAIGN_FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 50))
 BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'state',
            'clients', 'detection', 'campaign')
 

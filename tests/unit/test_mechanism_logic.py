@@ -45,6 +45,16 @@ def test_votes_of_two_requests_do_not_mix():
     assert vote.add('a', OK).outcome == Outcome.DECIDED
 
 
+def test_one_execution_heard_twice_is_counted_once():
+    """Review of session 34: one corrupted execution delivered twice made a majority of 3 on its own."""
+    vote = TimeRedundancyVote(3)
+    assert vote.add('a', BAD, 0).outcome == Outcome.REPEAT
+    assert vote.add('a', BAD, 0) is None                      # the same execution again: not a vote
+    assert vote.add('a', OK, 1).outcome == Outcome.REPEAT
+    final = vote.add('a', OK, 2)
+    assert (final.outcome, final.value, final.masked) == (Outcome.DECIDED, OK, 1)
+
+
 # -- Assertion & Duplex -------------------------------------------------------------------------------
 def passes(*_):
     return True
@@ -97,12 +107,18 @@ def an_array(*_):
     return Ambiguous()
 
 
+def not_a_number(*_):
+    return float('nan')
+
+
 @pytest.mark.parametrize('fn,detail', [
     (passes, None), (silent, None), (fails, 'returned False'),
     (explains, 'speed 12 km/h is above 10 km/h'), (asserts, 'one is not two'),
     (crashes, "raised KeyError: 'speed'"),                   # cannot be evaluated: violated, never passed
     # Review, stop 39: only ``is False`` was a violation; numpy.all()'s False_ let the reply through.
     (numpy_false, 'returned np.False_'), (zero, 'returned 0'), (an_array, 'not a verdict: the truth value'),
+    # Review of session 34: bool(nan) is True, so a verdict computed from a NaN field passed.
+    (not_a_number, 'returned nan, not a verdict'),
 ])
 def test_assertion_outcomes(fn, detail):
     violations = assertions.check([(fn.__name__, fn)], 'request', 'response')

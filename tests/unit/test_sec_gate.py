@@ -39,6 +39,7 @@ def gate(side='server', tls=False):
     node.book = security.CertificateBook(CA.verify_public)
     node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
     node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
+    node.nonce, node.nonces = security.new_nonce(), security.ReplyNonces()
     return node
 
 
@@ -109,12 +110,14 @@ def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clie
     server.origins = security.OriginBinding(None)
     server.origins.bind('client', '/proxy')
     server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    client = gate(side='client')
+    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    server.nonces.note('/proxy', 7, client.nonce, 7)   # request 7 came through the client's gate
+    client.sent[('/proxy', 7)] = None
     error = 'service cannot process request: cannot withdraw 999999 from a balance of 4342'
     server._on_reply(Reply(id=7, origin='/proxy', client='/c', status=Reply.ERROR, error=error, payload=b'resp'))
     (port, wire), = server.ports.published
     assert port == 'replies_out' and wire.error == sec_nodes.SEALED_ERROR and b'4342' not in bytes(wire.payload)
-    client = gate(side='client')
-    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
     client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
     client._on_reply(wire)
     (port, restored), = client.ports.published
@@ -126,3 +129,89 @@ def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clie
     assert server.ports.published[0][1].error == ''
     with pytest.raises(Rejected, match='malformed'):
         security.unframe_error(security.ERROR_FRAME + b'\x00\x00\x00\x09abc')
+
+
+def test_an_old_sealed_reply_is_refused_for_an_id_a_proxy_started_again_asks_again():
+    """Review of SEC (session 33): replies were not tied to their request. A Proxy started again with its
+    clock behind uses ids again; an attacker who captured the sealed reply of such an id from the earlier
+    run replayed it, and the new call took the old answer. Each run of a client's gate now signs a nonce
+    into its requests, the server's gate seals each reply with the nonce its request came with, and the
+    client's gate refuses a reply naming another run's for an id it waits for."""
+    from aft_msgs.msg import Reply, Request
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: security.open_sealed(SERVER, CLIENT.verify_public, blob, header)
+
+    def client_gate():
+        client = gate(side='client')
+        client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+        client._peer = lambda party: (SERVER.box_public, SERVER.verify_public)
+        client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
+        return client
+
+    def through(client, rid, answer):
+        """A request of the Proxy through its gate and the server's, answered: the sealed reply on the wire."""
+        client.ports.published.clear()
+        client._on_request(Request(id=rid, origin='/proxy', client='/c', service_type='aft_msgs/Account',
+                                   oldest_pending=rid, payload=b'deposit'))
+        (_, sealed), = client.ports.published
+        server.ports.published.clear()
+        server._on_request(sealed)
+        (_, plain), = server.ports.published
+        assert bytes(plain.payload) == b'deposit'
+        server.ports.published.clear()
+        server._on_reply(Reply(id=rid, origin='/proxy', client='/c', status=Reply.OK, payload=answer))
+        (_, wire), = server.ports.published
+        return wire
+
+    first = client_gate()
+    captured = through(first, 9000, b'balance 10')
+    first.ports.published.clear()
+    first._on_reply(captured)
+    (port, taken), = first.ports.published
+    assert (port, bytes(taken.payload)) == ('replies_out', b'balance 10')   # its own run's reply: taken
+
+    again = client_gate()                       # the Proxy and its gate started again, its clock behind:
+    assert again.nonce != first.nonce           # the id 9000 is used again
+    server.replays = security.ReplayGuard()     # (a promoted backup's gate: it never saw the first run)
+    fresh = through(again, 9000, b'balance 25')
+    again.ports.published.clear()
+    again._on_reply(captured)                   # the attacker's replay comes first
+    (port, raised), = again.ports.published
+    assert (port, raised.mechanism, raised.kind) == ('alarms', 'sec', 'replay'), raised
+    assert '/proxy/9000' in raised.detail and 'earlier run' in raised.detail
+    again.ports.published.clear()
+    again._on_reply(fresh)                      # ... and the right answer is still taken
+    (port, taken), = again.ports.published
+    assert (port, bytes(taken.payload)) == ('replies_out', b'balance 25')
+    # An old reply for an id this run does not wait for is passed over, as another party's: its Proxy
+    # has nothing waiting for it.
+    again.ports.published.clear()
+    again._on_reply(captured)
+    assert again.ports.published == [] and again.not_for_me == 1
+    # A reply that names no nonce (a request that named none: not a client gate's) is refused too.
+    server.nonces = security.ReplyNonces()
+    again._on_request(Request(id=9100, origin='/proxy', client='/c', service_type='aft_msgs/Account',
+                              oldest_pending=9100, payload=b'deposit'))
+    server.ports.published.clear()
+    server._on_reply(Reply(id=9100, origin='/proxy', client='/c', status=Reply.OK, payload=b'forged'))
+    (_, unbound), = server.ports.published
+    again.ports.published.clear()
+    again._on_reply(unbound)
+    (port, raised), = again.ports.published
+    assert (port, raised.mechanism, raised.kind) == ('alarms', 'sec', 'replay') and 'for no run' in raised.detail
+
+
+def test_the_server_gate_forgets_a_requests_nonce_once_its_proxy_has_its_answer():
+    nonces = security.ReplyNonces(per_origin=3)
+    for rid in (10, 11, 12):
+        nonces.note('/p', rid, 'n%d' % rid, oldest_pending=10)
+    assert [nonces.of('/p', rid) for rid in (10, 11, 12)] == ['n10', 'n11', 'n12']
+    nonces.note('/p', 13, 'n13', oldest_pending=12)           # 10 and 11 answered
+    assert [nonces.of('/p', rid) for rid in (10, 11, 12, 13)] == [None, None, 'n12', 'n13']
+    for rid in (14, 15):
+        nonces.note('/p', rid, 'n%d' % rid, oldest_pending=12)
+    assert sorted(nonces.by_origin['/p']) == [13, 14, 15]     # bounded: the lowest goes first
+    nonces.note('/q', 1, None, oldest_pending=0)               # a request that names no nonce: none kept
+    assert nonces.of('/q', 1) is None

@@ -63,7 +63,7 @@ def _node(tmp_path):
     node = ServiceManagerNode.__new__(ServiceManagerNode)
     node.config, node.supervisor, node.closing, node.instances = config, Supervisor(config), False, 0
     node.heartbeat_topic, node.local, node.lock = '/aft/service_heartbeat', None, threading.RLock()
-    node.children, node.spares = {}, {}
+    node.children, node.spares, node.own_trees = {}, {}, []
 
     class NoTree(object):
         def prepare(self, name):

@@ -278,6 +278,7 @@ def test_operator_commands_follow_the_state_machine():
     assert sup.restart('a', 1.0)[:2] == (True, [('kill', 'a'), ('spawn', 'a')])
     sup['a'].spawned(1.1)
     assert sup.stop('a', 2.0)[:2] == (True, [('kill', 'a')]) and sup['a'].state == State.STOPPED
+    sup['a'].restarts.extend([2.5] * 3)          # its allowance used: the spawn failure exhausts it
     sup.spawn_failed('a', 3.0, 'gone')
     assert sup['a'].state == State.FAILED
     assert sup.restart('a', 3.5) == (False, [], 'a has failed: start it instead')
@@ -285,8 +286,15 @@ def test_operator_commands_follow_the_state_machine():
 
 def test_a_service_that_cannot_be_spawned_fails_and_a_critical_one_escalates():
     sup = Supervisor(config('  a: {command: x, critical: true}\n'))
-    sup.spawn_failed('a', 0.0, 'no such file')
-    assert sup['a'].state == State.FAILED and 'cannot be spawned' in sup.safe_state
+    now = 0.0
+    for _ in range(3):                            # retried within its restart limit (review of session 34)
+        decision = sup.spawn_failed('a', now, 'no such file')
+        assert sup['a'].state == State.RESTARTING and decision.escalate is None
+        now = sup.next_due()
+        assert sup.due(now) == [('spawn', 'a')]
+    decision = sup.spawn_failed('a', now, 'no such file')
+    assert sup['a'].state == State.FAILED and 'restart limit exhausted after spawn' in sup.safe_state
+    assert sup['a'].errors['spawn'] == 4
 
 
 def test_an_alert_is_raised_once_per_fault_until_it_clears():
@@ -383,7 +391,7 @@ def test_no_sequence_of_faults_operator_commands_and_spawn_failures_breaks_the_s
             elif move in ('start', 'stop', 'restart'):
                 actions = getattr(sup, move)(name, now)[1]
             elif move == 'spawn_failed' and s.state in (State.STOPPED, State.RESTARTING):
-                sup.spawn_failed(name, now, 'no such file')
+                actions = sup.spawn_failed(name, now, 'no such file').actions
             elif move == 'clear':
                 sup.clear_safe_state(now)
             actions += sup.due(now)          # held restarts, as the manager's loop spawns them

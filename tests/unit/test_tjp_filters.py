@@ -73,7 +73,7 @@ def test_a_malformed_fmeca_is_refused_naming_the_problem(text, message):
 
 # -- review of stop 39: readings that are not numbers, and a lasting jump ---------------------------
 def test_a_reading_that_is_not_a_number_is_masked_never_averaged_in():
-    window = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    window = SlidingAverage(size=5, tolerance=1.0, persist=4)
     for _ in range(5):
         window.add(10.0)
     for bad in (float('nan'), float('inf'), float('-inf')):
@@ -105,3 +105,34 @@ def test_nan_lasers_vote_as_missing_and_never_outvote_a_good_one():
     assert all(not vote_.ok and vote_.faulty == [] for _, vote_, _ in decided)
     silent = sorted(i for _, _, newly in decided for i in newly)
     assert silent == [0, 1]                    # a laser that gives only NaN is as good as silent
+
+
+def test_an_imu_that_gives_nan_for_good_is_not_masked_for_ever_with_a_stale_speed():
+    """Review of session 34: readings that are not numbers were masked for as long as they came, the
+    window's last mean passed on as the speed (1 000 NaN: 10 m/s, masked 1 000). After ``persist`` in a
+    row the window is dropped and nothing is given (the node passes the reading on, for measureManager
+    to refuse it, alarmed), and ``given_up`` counts the run; a valid reading starts again."""
+    window = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    for _ in range(5):
+        window.add(10.0)
+    outputs = [window.add(float('nan')) for _ in range(6)]
+    assert outputs[:2] == [(10.0, True), (10.0, True)]          # a transient: masked
+    assert outputs[2:] == [(None, False)] * 4                   # lasting: not masked any longer
+    assert (window.masked, window.given_up, window.invalid_run) == (2, 1, 6)
+    assert window.add(12.0) == (12.0, False) and window.invalid_run == 0
+    fresh = SlidingAverage(size=5, tolerance=1.0, persist=3)    # NaN from the start: nothing to mask with
+    assert [fresh.add(float('inf')) for _ in range(4)] == [(None, False)] * 4
+    assert fresh.given_up == 1 and fresh.masked == 0
+
+
+def test_readings_near_the_floats_limit_average_to_a_finite_value():
+    """Review of session 34: the sum of the window overflowed (5 readings of 1e308: inf)."""
+    window = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    for _ in range(5):
+        value, _ = window.add(1.7e308)
+    assert value == pytest.approx(1.7e308)
+    for _ in range(5):
+        window.add(10.0)
+    for _ in range(3):
+        value, _ = window.add(1e308)                            # a stuck value the window follows
+    assert window.jump[1] == pytest.approx(1e308)

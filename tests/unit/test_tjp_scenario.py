@@ -144,6 +144,20 @@ def test_value_faults_apply_only_in_their_window_and_are_counted():
     assert f.injected == {'laser_0': 1, 'laser_1': 1}
 
 
+def test_a_stuck_sensor_reads_its_value_with_nothing_in_range_and_an_invalid_value_goes_as_given():
+    """Review of session 34: a stuck laser with nothing in range read nothing (the phantom obstacle never
+    came, uncounted), and a scenario's NaN or -inf was clamped to 0 (an obstacle at 0 m, a speed of 0)."""
+    import math
+    f = faults({'kind': 'stuck', 'sensor': 'laser_0', 'at': 1.0, 'until': 2.0, 'value': 3.0},
+               {'kind': 'stuck', 'sensor': 'laser_1', 'at': 1.0, 'until': 2.0, 'value': float('nan')},
+               {'kind': 'stuck', 'sensor': 'imu', 'at': 1.0, 'until': 2.0, 'value': float('-inf')})
+    assert f.apply('laser_0', 1.5, None) == (3.0, True)
+    reading, faulty = f.apply('laser_1', 1.5, 12.0)
+    assert math.isnan(reading) and faulty
+    assert f.apply('imu', 1.5, 8.0) == (float('-inf'), True)
+    assert f.injected == {'laser_0': 1, 'laser_1': 1, 'imu': 1}
+
+
 def test_a_crashed_sensor_stays_silent():
     f = faults({'kind': 'crash', 'sensor': 'imu', 'at': 3.0})
     assert f.apply('imu', 2.9, 5.0) == (5.0, False)

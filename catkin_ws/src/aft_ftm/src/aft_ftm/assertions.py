@@ -9,6 +9,8 @@ raising AssertionError; a value whose truth cannot be told (a numpy array) is a 
 that cannot be evaluated must not let a reply through).
 """
 import importlib
+import math
+import numbers
 
 from .errors import ConfigError
 
@@ -54,6 +56,9 @@ def check(assertions, *args):
             continue
         if isinstance(verdict, str):
             violations.append((name, verdict))
+            continue
+        if isinstance(verdict, numbers.Real) and math.isnan(verdict):   # bool(nan) is True: it passed
+            violations.append((name, 'returned nan, not a verdict'))    # (review of session 34)
             continue
         try:
             passed = bool(verdict)    # numpy.bool_, 0, [] ... (numpy.all() returns numpy.False_, not False)

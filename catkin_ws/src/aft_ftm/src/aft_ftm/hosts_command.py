@@ -122,7 +122,10 @@ def exec_in(options):
     if not argv:
         raise HostsError('no command given: hosts exec HOST -- COMMAND ...')
     ex.check_platform()
-    host = _need_up().topology.host(options.host)
+    net = _need_up()
+    host = net.topology.host(options.host)
+    if not net.runs(host.name):   # review of session 34: what ran there lived on past its power_on
+        raise HostsError('host %s is off: nothing runs in it until "hosts fault power_on %s"' % (host.name, host.name))
     env = dict(os.environ, ROS_IP=host.ip, ROS_HOSTNAME=host.ip)
     os.execvpe('ip', ['ip', 'netns', 'exec', host.namespace] + argv, env)
 
@@ -157,7 +160,9 @@ def fault(options):
         namespace = net.topology.host(name).namespace
         decision = net.power_off(name, ex.netns_pids(namespace))
     plan, changes = decision
-    ex.carry_out(plan)
+    if kind == 'power_on':   # what got into the old namespace while off: killed, not left in a nameless one
+        ex.clear_namespace(net.topology.host(name).namespace, _log)
+    ex.carry_out(plan, log=_log)
     if kind == 'power_off':      # and any process forked meanwhile (they were stopped, the link is down)
         left = ex.kill_and_wait(ex.netns_pids(net.topology.host(name).namespace))
         if left:
@@ -166,6 +171,10 @@ def fault(options):
     ex.write_record(net, None)
     print('hosts: %s %s%s done' % (kind, name, ' ' + options.other if getattr(options, 'other', None) else ''))
     return 0
+
+
+def _log(message):
+    print(message, file=sys.stderr)
 
 
 COMMANDS = {'up': up, 'down': down, 'status': status, 'exec': exec_in, 'fault': fault}

@@ -15,12 +15,14 @@ together with every process whose network namespace is the host's (a daemon that
 and started a session of its own is still found).
 """
 import atexit
+import ctypes
 import json
 import os
 import secrets
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 
@@ -35,6 +37,13 @@ STATE_DIRS = ('/run/aft_hosts', '/tmp/aft_hosts')
 COMMAND_TIMEOUT = 10.0
 KILL_WAIT = 5.0
 ISOLATE_WAIT = 0.5      # s: the power switch waits at most this for every thread of a host to be seen stopped
+NETNS_DIR = '/run/netns'
+CLONE_NEWNET = 0x40000000
+KILL_ROUNDS = 3         # rescans of a host's namespace for processes that entered it during a kill
+# What ip/tc print when the thing a removal step removes is already gone: that step is done (review of
+# session 34: a power_on whose rollback had removed the new namespace failed at its first step for ever).
+ABSENT = ('No such file or directory', 'Cannot find device', 'does not exist', 'Cannot open network namespace',
+          'Cannot delete qdisc with handle of zero')
 
 
 class PlatformError(HostsError):
@@ -47,6 +56,7 @@ class CommandError(HostsError):
     def __init__(self, argv, message):
         HostsError.__init__(self, '%s: %s' % (' '.join(argv), message))
         self.argv = argv
+        self.message = message
 
 
 def run(argv, timeout=COMMAND_TIMEOUT):
@@ -58,6 +68,8 @@ def run(argv, timeout=COMMAND_TIMEOUT):
         raise CommandError(argv, 'no such program')
     except subprocess.TimeoutExpired:
         raise CommandError(argv, 'still running after %g s' % timeout)
+    except OSError as e:      # review of session 34: any other (not executable, no memory) skipped the rollback
+        raise CommandError(argv, 'cannot run: %s' % e)
     if done.returncode != 0:
         raise CommandError(argv, 'exit %d: %s' % (done.returncode, done.stderr.decode(errors='replace').strip()))
     return done.stdout.decode(errors='replace')
@@ -111,12 +123,32 @@ def _owner_alive(owner):
         return False
 
 
-def write_record(net, owner):
-    path = os.path.join(state_dir(), net.topology.prefix + '.json')
-    tmp = path + '.tmp'
-    with open(tmp, 'w') as f:
-        json.dump({'network': net.to_dict(), 'owner': owner}, f, indent=1, sort_keys=True)
-    os.replace(tmp, path)
+def write_record(net, owner, claim=False):
+    """Write the run's record (whole, or not at all). ``claim``: the run's first record, made only if
+    no record of its prefix exists, else HostsError (review of session 34: two runs that drew the same
+    prefix overwrote each other's record, and the first to end removed the other's)."""
+    directory = state_dir()
+    prefix = net.topology.prefix
+    path = os.path.join(directory, prefix + '.json')
+    fd, tmp = tempfile.mkstemp(prefix=prefix + '.', suffix='.json.tmp', dir=directory)   # swept with the run
+    try:
+        with os.fdopen(fd, 'w') as f:
+            json.dump({'network': net.to_dict(), 'owner': owner}, f, indent=1, sort_keys=True)
+        os.chmod(tmp, 0o644)
+        if claim:
+            try:
+                os.link(tmp, path)       # atomic, and refused if the record exists
+            except OSError as e:
+                raise HostsError('run prefix %s is taken (its record %s: %s): nothing was made' % (prefix, path, e))
+        else:
+            os.replace(tmp, path)
+            tmp = None
+    finally:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
     return path
 
 
@@ -163,9 +195,9 @@ def used_networks():
 
 
 def netns_pids(namespace):
-    """The processes whose network namespace is the named one."""
+    """The processes whose network namespace is the named one (this one too: see others_in)."""
     try:
-        target = os.stat('/run/netns/%s' % namespace)
+        target = os.stat(os.path.join(NETNS_DIR, namespace))
     except OSError:
         return []
     pids = []
@@ -179,10 +211,51 @@ def netns_pids(namespace):
     return pids
 
 
+def own_ids():
+    """This process's pid and the ids of its threads: never signalled (review of session 34: the
+    campaign's main thread lives in the rosmaster host, so /proc showed this process in that namespace
+    and the tear-down SIGKILLed itself before removing anything)."""
+    ids = {os.getpid()}
+    try:
+        ids.update(int(tid) for tid in os.listdir('/proc/self/task'))
+    except (OSError, ValueError):
+        pass
+    return ids
+
+
+def others_in(namespace):
+    """The processes in the named namespace, other than this one."""
+    own = own_ids()
+    return [pid for pid in netns_pids(namespace) if pid not in own]
+
+
+def clear_namespace(namespace, log):
+    """Kill whatever is still in a namespace about to be deleted (bounded rounds). Review of session 34:
+    a process that got into an 'off' host (an exec there, a site started with ``ip netns exec``) lived on
+    in a namespace without a name, which no cleanup finds. Raises HostsError naming those that would not
+    die (the namespace is then kept: a later cleanup still finds them)."""
+    killed = set()
+    for _ in range(KILL_ROUNDS):
+        pids = [pid for pid in others_in(namespace) if pid not in killed]
+        if not pids:
+            break
+        killed.update(pids)
+        left = kill_and_wait(pids)
+        if left:
+            raise HostsError('processes %s of %s would not die: the namespace is kept' % (left, namespace))
+    if killed:
+        log('hosts: %d processes still in %s killed before it is removed: %s'
+            % (len(killed), namespace, sorted(killed)))
+    return sorted(killed)
+
+
 def send(signum, pids):
-    """Send signum to each pid still alive; the pids it reached."""
+    """Send signum to each pid still alive (never to this process); the pids it reached."""
     reached = []
+    own = own_ids()
     for pid in pids:
+        if pid in own:
+            continue
         try:
             os.kill(pid, signum)
             reached.append(pid)
@@ -225,31 +298,67 @@ def cleanup_leftovers(prefix=PROJECT_PREFIX, log=None):
     """Remove the namespaces and root-namespace links named ``<prefix><4 hex>-...`` whose run is not
     alive (no record, or a record whose owner process is gone), killing any process still in them,
     and their records. Never raises; returns the names removed."""
-    log = log or (lambda message: sys.stderr.write(message + '\n'))
+    log = log or _stderr
     pattern = run_prefix_pattern(prefix)
     removed = []
     try:
+        # The names are listed BEFORE the records are read (review of session 34: a run starting between
+        # the two was swept). A run writes its record before it makes any name, so every name listed
+        # here belongs to a run whose record is read below.
+        namespaces = [n for n in netns_names() if pattern.match(n)]
+        links = [n for n in root_links() if pattern.match(n)]
         records = read_records()
-        alive = set(p for p, (record, _) in records.items()
-                    if record is not None and _owner_alive(record.get('owner', False)))
-        namespaces = [n for n in netns_names() if pattern.match(n) and pattern.match(n).group(1) not in alive]
+        alive = set(p for p, (record, _) in records.items() if _record_alive(record))
+        namespaces = [n for n in namespaces if pattern.match(n).group(1) not in alive]
         # hosts first, the switch last (a host's namespace removes its cable, and the switch's end)
         namespaces.sort(key=lambda n: n.endswith('-sw'))
         for ns in namespaces:
-            pids = netns_pids(ns)
+            if _alive_now(pattern.match(ns).group(1)):
+                continue      # its record made since it was read: a run starting with that prefix
+            pids = others_in(ns)
             if pids:
                 kill_and_wait(pids)
             _quiet(['ip', 'netns', 'del', ns], log, removed, ns)
-        for link in root_links():
-            match = pattern.match(link)
-            if match and match.group(1) not in alive:
+        for link in links:
+            run_prefix = pattern.match(link).group(1)
+            if run_prefix not in alive and not _alive_now(run_prefix):
                 _quiet(['ip', 'link', 'del', link], log, removed, link)
-        for run_prefix, (record, path) in records.items():
-            if run_prefix not in alive and pattern.match(run_prefix + '-'):
-                os.unlink(path)
+        for run_prefix in records:
+            if run_prefix not in alive and pattern.match(run_prefix + '-') and not _alive_now(run_prefix):
+                _remove_run_files(run_prefix)
     except (HostsError, OSError, ValueError) as e:
         log('hosts: cleanup of leftovers incomplete: %s' % e)
     return removed
+
+
+def _stderr(message):
+    sys.stderr.write(message + '\n')
+
+
+def _record_alive(record):
+    return record is not None and _owner_alive(record.get('owner', False))
+
+
+def _alive_now(run_prefix):
+    """Whether the run's record, read again now, names a live owner."""
+    try:
+        with open(os.path.join(state_dir(), run_prefix + '.json')) as f:
+            return _record_alive(json.load(f))
+    except (OSError, ValueError, HostsError):
+        return False
+
+
+def _remove_run_files(run_prefix):
+    """A swept run's files: its record last, and its power switch socket and unfinished record writes
+    (review of session 34: only the record went)."""
+    directory = state_dir()
+    names = sorted(n for n in os.listdir(directory) if n == run_prefix + '.switch' or
+                   (n.startswith(run_prefix + '.') and n.endswith('.json.tmp')))
+    for name in names + [run_prefix + '.json']:
+        try:
+            os.unlink(os.path.join(directory, name))
+        except FileNotFoundError:
+            pass
 
 
 def _quiet(argv, log, done, name):
@@ -265,30 +374,41 @@ def leftovers(prefix):
     return [n for n in netns_names() + root_links() if n.startswith(prefix + '-')]
 
 
-def carry_out(plan, on_signal=send):
+def run_step(argv):
+    """Run one step of a plan. A removal whose object is already gone is done, not failed (review of
+    session 34: after a rollback, power_on and unrate failed at their first step on every retry)."""
+    try:
+        run(argv)
+    except CommandError as e:
+        if 'del' not in argv or not any(text in e.message for text in ABSENT):
+            raise
+
+
+def carry_out(plan, on_signal=send, log=None):
     """Run a plan's steps in order. If a step fails, the undo of the steps done is run in reverse
-    and CommandError is raised: the hosts are as before."""
+    and CommandError is raised: the hosts are as before (an undo that fails is logged)."""
     done = []
     try:
         for item in plan:
             if isinstance(item, Signal):
                 on_signal(item.signum, item.pids)
             else:
-                run(item.argv)
+                run_step(item.argv)
                 done.append(item)
     except CommandError:
         for step in reversed(done):
             if step.undo is not None:
                 try:
-                    run(step.undo)
-                except CommandError:
-                    pass
+                    run_step(step.undo)
+                except CommandError as e:
+                    (log or _stderr)('hosts: undo of "%s" failed, left as it is: %s' % (step.why, e))
         raise
 
 
 def bring_up(net, owner):
-    """Make a topology's hosts, with its record; on failure everything made is removed again."""
-    write_record(net, owner)
+    """Make a topology's hosts, with its record (claimed first: HostsError, nothing made, if the prefix
+    is taken); on failure everything made is removed again."""
+    write_record(net, owner, claim=True)
     try:
         carry_out(plan_up(net.topology))
     except CommandError:
@@ -300,7 +420,7 @@ def tear_down(topology, log):
     """Kill every process in the run's namespaces, remove them. Never raises; the errors, logged."""
     errors = []
     for ns in topology.namespaces():
-        pids = netns_pids(ns)
+        pids = others_in(ns)
         if pids:
             left = kill_and_wait(pids)
             if left:
@@ -328,8 +448,26 @@ def remove_record(prefix):
         pass
 
 
-def new_topology(hosts):
-    return Topology.make(hosts, token=secrets.token_hex(2), taken=used_networks())
+def setns(fd):
+    """Move the calling thread into the network namespace of ``fd``. Raises OSError."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.setns(fd, CLONE_NEWNET) != 0:
+        errno = ctypes.get_errno()
+        raise OSError(errno, 'setns: %s' % os.strerror(errno))
+
+
+def new_topology(hosts, draws=16):
+    """A topology whose prefix no run uses: no record and no name of it (review of session 34: a prefix
+    drawn twice made one run overwrite, then remove, the other's record). At most ``draws`` draws."""
+    pattern = run_prefix_pattern(PROJECT_PREFIX)
+    taken = set(read_records())
+    taken.update(pattern.match(n).group(1) for n in netns_names() + root_links() if pattern.match(n))
+    for _ in range(draws):
+        token = secrets.token_hex(2)
+        if PROJECT_PREFIX + token not in taken:
+            return Topology.make(hosts, token=token, taken=used_networks())
+    raise HostsError('no free run prefix in %d draws: %d runs recorded or left over (hosts down removes '
+                     'the leftovers)' % (draws, len(taken)))
 
 
 class Freeze(object):
@@ -381,6 +519,9 @@ class Hosts(object):
         self._isolated = set()    # hosts whose power_off has cut the link and stopped every process (read unlocked)
         self._previous = {}       # signum -> handler replaced
         self._open = False
+        self._claimed = False     # the record is ours: close() may remove what carries the prefix
+        self._home = None         # fd of the network namespace __enter__ ran in (close() goes back there)
+        self._deferred = []       # signals that came during close(), delivered once it is done
 
     @property
     def topology(self):
@@ -391,11 +532,17 @@ class Hosts(object):
         cleanup_leftovers(log=self.log)
         topology = self._hosts if isinstance(self._hosts, Topology) else new_topology(self._hosts)
         self.net = Network(topology)
+        try:
+            self._home = os.open('/proc/thread-self/ns/net', os.O_RDONLY)
+        except OSError:
+            self._home = None
         self._install_handlers()
         atexit.register(self.close)
         self._open = True
         try:
-            bring_up(self.net, _owner_record())
+            write_record(self.net, _owner_record(), claim=True)   # a prefix taken: nothing of it is touched
+            self._claimed = True
+            carry_out(plan_up(topology), log=self.log)
         except BaseException:
             self.close()
             raise
@@ -427,7 +574,7 @@ class Hosts(object):
     def processes(self, name):
         """pids of every live process of the host: started with run_in and their descendants, and
         every process in its network namespace."""
-        pids = set(netns_pids(self.topology.host(name).namespace))
+        pids = set(others_in(self.topology.host(name).namespace))
         for popen, proc in self._started.get(name, []):
             try:
                 if proc.is_running():
@@ -435,13 +582,12 @@ class Hosts(object):
                     pids.update(child.pid for child in proc.children(recursive=True))
             except psutil.NoSuchProcess:
                 pass
-        pids.discard(os.getpid())
-        return sorted(pids)
+        return sorted(pids - own_ids())
 
     # -- faults -----------------------------------------------------------------------------------
     def _do(self, decision):
         plan, changes = decision
-        carry_out(plan)
+        carry_out(plan, log=self.log)
         self.net.commit(changes)
         write_record(self.net, _owner_record())
 
@@ -477,7 +623,7 @@ class Hosts(object):
                 return []
             plan, changes = self.net.power_off(name, self.processes(name))
             link, stop, kill = plan                    # link down, SIGSTOP, SIGKILL: in this order
-            carry_out([link])                          # nothing more leaves the host
+            carry_out([link], log=self.log)            # nothing more leaves the host
             self.powered_off_at[name] = time.time()
             if on_link_down is not None:
                 on_link_down()
@@ -494,7 +640,14 @@ class Hosts(object):
                 self._isolated.add(name)
                 on_isolated(sorted(stopped), sorted(p.pid for p in running))
             self._isolated.add(name)
-            left = kill_and_wait(sorted(stopped | set(kill.pids)))
+            killed = stopped | set(kill.pids)
+            left = kill_and_wait(sorted(killed))
+            for _ in range(KILL_ROUNDS):               # review of session 34: entered meanwhile (ip netns exec)
+                late = set(self.processes(name)) - killed
+                if not late:
+                    break
+                killed |= late
+                left += kill_and_wait(sorted(late))
             for popen, _ in self._started.get(name, []):
                 try:
                     popen.wait(timeout=KILL_WAIT)
@@ -505,12 +658,15 @@ class Hosts(object):
             write_record(self.net, _owner_record())
             if left:
                 raise HostsError('host %s: processes %s still alive after SIGKILL' % (name, left))
-            return sorted(stopped)
+            return sorted(killed)
 
     def power_on(self, name):
-        """The host made again from nothing (new namespace, same address), linked."""
+        """The host made again from nothing (new namespace, same address), linked. Whatever got into
+        the old namespace while the host was off is killed first (clear_namespace)."""
         with self._lock:
-            self._do(self.net.power_on(name))
+            decision = self.net.power_on(name)        # refused unless the host is off
+            clear_namespace(self.topology.host(name).namespace, self.log)
+            self._do(decision)
             self._isolated.discard(name)
 
     def freeze(self, target, seconds):
@@ -586,27 +742,31 @@ class Hosts(object):
     # -- tear-down --------------------------------------------------------------------------------
     def close(self):
         """Kill every process of the hosts, remove every namespace and link and the record.
-        Idempotent; never raises."""
+        Idempotent; never raises, but a SIGINT/SIGTERM that came meanwhile goes on once it is done."""
         with self._lock:
             if not self._open:
                 return
             self._open = False
+            self._defer_signals()
             try:
+                self._go_home()
                 if self._switch is not None:
                     self._switch.stop()
                 for freeze in self._freezes:
                     freeze.thaw()
-                for name in self.topology.hosts:
-                    pids = self.processes(name)
-                    if pids:
-                        kill_and_wait(pids)
+                if self._claimed:       # else the prefix may be another run's: nothing of ours to remove
+                    for name in self.topology.hosts:
+                        pids = self.processes(name)
+                        if pids:
+                            kill_and_wait(pids)
                 for launched in self._started.values():
                     for popen, _ in launched:
                         try:
                             popen.wait(timeout=KILL_WAIT)
                         except subprocess.TimeoutExpired:
                             pass
-                tear_down(self.topology, self.log)
+                if self._claimed:
+                    tear_down(self.topology, self.log)
             except Exception as e:      # shutdown never raises
                 self.log('hosts: tear-down failed: %s' % e)
             finally:
@@ -615,6 +775,37 @@ class Hosts(object):
                     atexit.unregister(self.close)
                 except Exception:
                     pass
+                if self._home is not None:
+                    os.close(self._home)
+                    self._home = None
+            deferred, self._deferred = self._deferred, []
+        for signum in sorted(set(deferred)):    # their handlers are back: the signal goes on now
+            signal.raise_signal(signum)
+
+    def _go_home(self):
+        """Back to the network namespace __enter__ ran in (review of session 34: a signal handled while
+        the campaign's main thread lived in the rosmaster host ran the tear-down from there)."""
+        if self._home is None:
+            return
+        try:
+            here = os.stat('/proc/thread-self/ns/net')
+            home = os.fstat(self._home)
+            if (here.st_dev, here.st_ino) != (home.st_dev, home.st_ino):
+                setns(self._home)
+        except OSError as e:
+            self.log('hosts: could not return to the namespace the hosts were made from: %s' % e)
+
+    def _defer_signals(self):
+        """SIGTERM/SIGINT during close() are held until it is done (review of session 34: a second
+        Ctrl-C raised KeyboardInterrupt in the middle of the tear-down, which then left hosts behind)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for signum in self._previous:
+            signal.signal(signum, self._defer)
+
+    def _defer(self, signum, frame):
+        self._deferred.append(signum)
+        self.log('hosts: signal %d during the tear-down: handled once it is done' % signum)
 
     def _install_handlers(self):
         if threading.current_thread() is not threading.main_thread():

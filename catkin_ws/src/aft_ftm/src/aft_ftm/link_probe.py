@@ -17,7 +17,7 @@ Wire format, in both directions: one header line of ASCII, then (probe only) the
   probe -> sink:  ``AFTPROBE 1\\n`` then bytes, then the write side is shut down (EOF);
   sink -> probe:  ``AFTSINK 1 <bytes> <seconds>\\n``.
 Anything else is refused with a message naming what was wrong; a sink never waits for ever
-(``timeout`` on every read).
+(``timeout`` on every read, ``max_seconds`` and ``max_bytes`` for a whole probe).
 """
 import socket
 import statistics
@@ -31,6 +31,8 @@ SINK_PREFIX = 'AFTSINK 1'
 CHUNK = 16384
 SEND_BUFFER = 16384
 MAX_LINE = 128
+SINK_MAX_BYTES = 256 << 20    # a sink takes at most this from one probe (64 times the default probe's)
+SINK_MAX_SECONDS = 60.0       # ... and for at most this long (a probe streams for a fraction of a second)
 
 
 class ProbeError(AftError):
@@ -163,11 +165,16 @@ def _read_line(sock):
 
 class Sink(object):
     """Answers probes on (host, port) (port 0: any free one, see ``endpoint``), one at a time, in a
-    daemon thread. ``skip``: the bytes of the burst a token bucket lets through at once."""
+    daemon thread. ``skip``: the bytes of the burst a token bucket lets through at once. A probe still
+    sending after ``max_seconds`` or past ``max_bytes`` is refused (review of session 34: a peer trickling
+    bytes held the sink for ever)."""
 
-    def __init__(self, host, port=0, skip=8192, timeout=5.0, clock=time.monotonic):
+    def __init__(self, host, port=0, skip=8192, timeout=5.0, clock=time.monotonic, max_seconds=SINK_MAX_SECONDS,
+                 max_bytes=SINK_MAX_BYTES):
         self.skip = skip
         self.timeout = timeout
+        self.max_seconds = max_seconds
+        self.max_bytes = max_bytes
         self.clock = clock
         self.server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -204,6 +211,7 @@ class Sink(object):
                 conn.close()
 
     def _answer(self, conn):
+        deadline = time.monotonic() + self.max_seconds
         conn.settimeout(self.timeout)
         header = b''
         while len(header) < len(PROBE_HEADER):
@@ -215,10 +223,21 @@ class Sink(object):
             raise ProbeError('not a probe: header %r' % header[:MAX_LINE])
         measure = Measure(self.skip)
         while True:
-            chunk = conn.recv(65536)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ProbeError('probe still sending after %g s: refused' % self.max_seconds)
+            conn.settimeout(min(self.timeout, left))
+            try:
+                chunk = conn.recv(65536)
+            except socket.timeout:
+                if time.monotonic() < deadline:
+                    raise
+                raise ProbeError('probe still sending after %g s: refused' % self.max_seconds)
             if not chunk:
                 break
             measure.add(len(chunk), self.clock())
+            if measure.total > self.max_bytes:
+                raise ProbeError('probe of more than %d bytes: refused' % self.max_bytes)
         count, seconds = measure.result()
         self.served += 1   # before the answer: the prober may look as soon as it has it (a unit test did)
         conn.sendall(('%s %d %.6f\n' % (SINK_PREFIX, count, seconds)).encode('ascii'))

@@ -509,6 +509,18 @@ def destination_of(blob):
     return dest if isinstance(dest, str) else None
 
 
+def nonce_of(blob):
+    """The nonce a sealed blob's header names (``nonce``; not verified yet), or None: the run of the
+    client's gate that sealed a request, which its reply must name (see ReplyNonces)."""
+    nonce = _claims(blob)['header'].get('nonce')
+    return nonce if isinstance(nonce, str) else None
+
+
+def new_nonce():
+    """A client gate's nonce for one run: 128 random bits, as hex."""
+    return secrets.token_hex(16)
+
+
 def open_sealed(recipient, sender_verify_public, blob, header):
     """Verify the sender's signature, check the signed header against header (the envelope's, as
     header_of makes it), decipher, and check that the ciphertext was sealed by the signer under that
@@ -619,6 +631,31 @@ class OriginBinding(object):
 
     def party_of(self, origin):
         return self.bound.get(origin)
+
+
+class ReplyNonces(object):
+    """Server side: the nonce each pending request of an origin came with (its client gate's run), so
+    that its reply is sealed for that run only. A Proxy started again with its clock behind uses ids
+    again; without the nonce, an old sealed reply captured for such an id was accepted for the new
+    call (review of SEC, session 33). Forgotten below the origin's oldest pending id, and at most
+    ``per_origin`` ids kept per origin (the lowest go first: their reply then names no nonce, and the
+    client's gate refuses it; the Proxy's re-send brings the nonce again)."""
+
+    def __init__(self, per_origin=4096):
+        self.per_origin = per_origin
+        self.by_origin = {}   # origin -> {id: nonce}
+
+    def note(self, origin, request_id, nonce, oldest_pending):
+        ids = self.by_origin.setdefault(origin, {})
+        for answered in [i for i in ids if i < oldest_pending]:
+            del ids[answered]
+        if nonce is not None:
+            ids[request_id] = nonce
+        while len(ids) > self.per_origin:
+            del ids[min(ids)]
+
+    def of(self, origin, request_id):
+        return self.by_origin.get(origin, {}).get(request_id)
 
 
 class ReplayGuard(object):

@@ -36,11 +36,16 @@ class TimeRedundancyVote(object):
         self.quorum = executions // 2 + 1
         self._results = {}
 
-    def add(self, key, result):
-        """Record one execution's result (any comparable value) for request key; returns a Vote."""
+    def add(self, key, result, execution=None):
+        """Record one execution's result (any comparable value) for request key; returns a Vote.
+        ``execution``, the execution's number where known: a second result of one execution (a
+        duplicated message) is not counted again, and None is returned for it (review of session 34:
+        one corrupted execution delivered twice decided the vote)."""
         results = self._results.setdefault(key, [])
-        results.append(result)
-        agreeing = sum(1 for r in results if r == result)
+        if execution is not None and any(e == execution for e, _ in results):
+            return None
+        results.append((execution, result))
+        agreeing = sum(1 for _, r in results if r == result)
         if agreeing >= self.quorum:
             del self._results[key]
             return Vote(Outcome.DECIDED, result, len(results) - agreeing, len(results))

@@ -184,8 +184,11 @@ class ManagerSocket(object):
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
         self.sock.bind(path)
+        self.own = None
         if not self.abstract:
             os.chmod(path, 0o600)
+            info = os.lstat(path)
+            self.own = (info.st_dev, info.st_ino)   # what close() may remove
         self.sock.setblocking(False)
 
     def fileno(self):
@@ -212,10 +215,14 @@ class ManagerSocket(object):
         return out
 
     def close(self):
+        """Close it, and remove its file only if it is still this socket's: a manager whose shutdown ran
+        after its successor had started removed the successor's socket (review of session 34)."""
         self.sock.close()
         if not self.abstract:
             try:
-                os.unlink(self.path)
+                info = os.lstat(self.path)
+                if (info.st_dev, info.st_ino) == self.own:
+                    os.unlink(self.path)
             except OSError:
                 pass
 

@@ -19,6 +19,7 @@ import collections
 import enum
 import math
 import re
+import shlex
 
 import yaml
 
@@ -39,7 +40,8 @@ class State(enum.Enum):
 
 
 EDGES = {
-    (State.STOPPED, State.STARTING): 'started (by the manager at start, an operator, or with a dependency)',
+    (State.STOPPED, State.STARTING): 'started (by the manager at start, an operator, or with a dependency; or its '
+                                     'spawn asked, and failed)',
     (State.FAILED, State.STARTING): 'an operator starts it again (error counts kept, restart allowance renewed)',
     (State.STARTING, State.RUNNING): 'heard from (or alive past its start grace, without heartbeats)',
     (State.STARTING, State.ERROR): 'a fault before it was running (exit, start timeout, ...)',
@@ -48,8 +50,9 @@ EDGES = {
     (State.ERROR, State.STOPPED): 'failure action terminate, run or alert; or terminated with a dependency',
     (State.ERROR, State.FAILED): 'restart limit exhausted',
     (State.ERROR, State.RUNNING): 'failure action alert on a service still running: it goes on',
-    (State.RESTARTING, State.STARTING): 'killed and spawned again',
-    (State.RESTARTING, State.FAILED): 'it could not be spawned again',
+    (State.ERROR, State.STARTING): 'failure action alert on a service still starting (memory over its limit): '
+                                   'it goes on starting',
+    (State.RESTARTING, State.STARTING): 'killed and spawned again (or its spawn asked, and failed)',
     (State.RESTARTING, State.STOPPED): 'terminated with a dependency while it was restarting',
     (State.STARTING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
     (State.RUNNING, State.STOPPED): 'stopped by an operator or terminated with a dependency',
@@ -78,8 +81,8 @@ def _size(where, value):
         number, unit = float(match.group(1)), (match.group(2) or 'b').lower()
     except ValueError:   # digits and dots, but not a number: 1.2.3MB
         raise ServiceConfigError('%s must be bytes (e.g. 200MB) or a percentage (e.g. 10%%), got %r' % (where, value))
-    if number <= 0:
-        raise ServiceConfigError('%s must be > 0, got %r' % (where, value))
+    if not number > 0 or not math.isfinite(number):   # 1e400 digits read as inf (review of session 34)
+        raise ServiceConfigError('%s must be a finite number > 0, got %r' % (where, value))
     if unit == '%':
         if number > 100:
             raise ServiceConfigError('%s: a percentage of the RAM cannot exceed 100, got %r' % (where, value))
@@ -104,8 +107,15 @@ def _cpu(where, value):
 
 def _number(value):
     """Whether value is a finite number (not a flag: YAML's true is an int to Python; .inf, .nan refused:
-    a kill timeout of .inf waited for ever, a period of .inf made the manager's wake time NaN)."""
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    a kill timeout of .inf waited for ever, a period of .inf made the manager's wake time NaN). Nor is
+    an int beyond a float's range: math.isfinite raised OverflowError, a traceback instead of a config
+    error (review of session 34)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def _positive(where, value):
@@ -133,12 +143,21 @@ def _flag(where, value):
 
 
 def _command(where, value):
-    if isinstance(value, str) and value.strip():
-        return value.split()
-    if isinstance(value, list) and value and all(isinstance(a, (str, int, float)) and not isinstance(a, bool)
-                                                 for a in value):
-        return [str(a) for a in value]
-    raise ServiceConfigError('%s must be a command: a string or a list of arguments, got %r' % (where, value))
+    """A string is split as a shell would (quotes kept together: sh -c "echo hi" is 3 arguments, not 4),
+    without running a shell; the program, the first argument, must not be empty (review of session 34)."""
+    args = None
+    if isinstance(value, str):
+        try:
+            args = shlex.split(value)
+        except ValueError as e:   # an unbalanced quote
+            raise ServiceConfigError('%s: the command %r cannot be split into arguments: %s' % (where, value, e))
+    elif isinstance(value, list) and all(isinstance(a, (str, int, float)) and not isinstance(a, bool) for a in value):
+        args = [str(a) for a in value]
+    if not args:
+        raise ServiceConfigError('%s must be a command: a string or a list of arguments, got %r' % (where, value))
+    if not args[0].strip():
+        raise ServiceConfigError('%s: the program (its first argument) is empty, got %r' % (where, value))
+    return args
 
 
 def _names(where, value):
@@ -184,14 +203,16 @@ def _text(where, value):
 # key: (default, converter, documentation). REQUIRED marks a key without default.
 REQUIRED = object()
 SERVICE_KEYS = collections.OrderedDict([
-    ('command', (REQUIRED, _command, 'the start command, a string or a list of arguments')),
+    ('command', (REQUIRED, _command, 'the start command, a string (split as a shell would, quotes kept; no shell '
+                                     'runs) or a list of arguments')),
     ('period', (None, _optional(_positive), "the service's own period (s); informational, shown by ~status")),
     ('spare', (0.0, _non_negative, 'spare time (s) left from its previous period; informational, shown by ~status')),
     ('heartbeat_timeout', (None, _optional(_positive), 'silence (s) after which the service is declared hung; '
                                                       'null: the service sends no heartbeat')),
     ('start_timeout', (5.0, _positive, 'a service not heard (or, without heartbeats, not alive) this long (s) '
                                        'after its start has failed to start')),
-    ('start_grace', (0.5, _non_negative, 'without heartbeats: alive this long (s) after its start counts as running')),
+    ('start_grace', (0.5, _non_negative, 'without heartbeats: alive this long (s) after its start counts as running '
+                                         '(at most start_timeout)')),
     ('cpu_limit', (None, _optional(_cpu), 'CPU limit, percent of one core (e.g. 80%); null: none')),
     ('cpu_window', (1.0, _positive, 'the CPU use is averaged over this long (s) before it is compared to the limit')),
     ('memory_limit', (None, _optional(_size), 'memory limit: bytes (200MB, 1GiB) or a percentage of the RAM (10%); '
@@ -201,7 +222,8 @@ SERVICE_KEYS = collections.OrderedDict([
     ('program', (None, _optional(_command), 'the program on_failure: run runs (with AFT_SERVICE and AFT_FAULT in '
                                             'its environment)')),
     ('restart_limit', (3, _count, 'restarts allowed within restart_window; one more fault escalates')),
-    ('restart_window', (60.0, _positive, 'the window (s) of restart_limit')),
+    ('restart_window', (60.0, _positive, 'the window (s) of restart_limit; the back-off\'s holds are not counted in '
+                                         'it')),
     ('restart_with', ([], _names, 'services restarted after this one is restarted (its dependants, and '
                                   'theirs); those stopped stay stopped')),
     ('terminate_with', ([], _names, 'services terminated when this one fails (before it restarts), and left '
@@ -220,7 +242,7 @@ SERVICE_KEYS = collections.OrderedDict([
                                   'is started behind it')),
     ('spare_args', ([], _arguments, 'arguments added to a spare\'s command ({n}: its instance number), so that it '
                                     'does not clash with the active instance, e.g. [__name:=c4g_{n}, '
-                                    '~output:=/c4g/output]')),
+                                    '~output:=/c4g/output]; required with warm_spare')),
     ('restart_delay', (0.0, _non_negative, 'back-off: the delay (s) before the first restart after a fault; '
                                            'multiplied by restart_delay_factor at each consecutive one')),
     ('restart_delay_factor', (2.0, _at_least_one, 'back-off: the growth of the delay per consecutive fault')),
@@ -296,6 +318,15 @@ def parse_config(text, source='config'):
     for name, s in services.items():
         if s['on_failure'] == 'run' and not s['program']:
             raise ServiceConfigError('%s: services.%s: on_failure run needs a program' % (source, name))
+        # review of session 34: both were accepted and failed at run time, without a word
+        if s['heartbeat_timeout'] is None and s['start_grace'] > s['start_timeout']:
+            raise ServiceConfigError('%s: services.%s: start_grace %g s exceeds start_timeout %g s: without heartbeats '
+                                     'every start would time out before it counts as running (make start_timeout '
+                                     '>= start_grace)' % (source, name, s['start_grace'], s['start_timeout']))
+        if s['warm_spare'] and not s['spare_args']:
+            raise ServiceConfigError('%s: services.%s: warm_spare needs spare_args (e.g. [__name:=%s_{n}]): the spare '
+                                     'would start with the active instance\'s own node name and clash with it'
+                                     % (source, name, name.lower()))
         for key in ('restart_with', 'terminate_with'):
             for other in s[key]:
                 if other not in services:
@@ -372,6 +403,17 @@ def _cycle(services):
     return None
 
 
+def dependency_order(services):
+    """The service names, each before the services restarted with it (restart_with, acyclic), else in
+    config order."""
+    parents = {name: {other for other, s in services.items() if name in s['restart_with']} for name in services}
+    order = []
+    while len(order) < len(services):
+        ready = [n for n in services if n not in order and parents[n] <= set(order)]
+        order += ready[:1] or [n for n in services if n not in order]   # (a cycle: parse_config refuses it)
+    return order
+
+
 def documentation():
     """The configuration keys, their defaults and meaning, as a Markdown table (for the README)."""
     lines = ['| key | default | meaning |', '|---|---|---|']
@@ -416,12 +458,21 @@ def detect_all(config, sample, now, last_heard, reported_error, started_at, tota
     if config['cpu_limit'] is not None and sample.cpu_percent is not None and sample.cpu_percent > config['cpu_limit']:
         found.append(('cpu_limit', 'CPU %.0f%% of a core over %.1f s (limit %.0f%%)' % (
             sample.cpu_percent, config['cpu_window'], config['cpu_limit'])))
-    if config['memory_limit'] is not None and sample.rss is not None:
-        kind, value = config['memory_limit']
-        limit = value if kind == 'bytes' else value / 100.0 * total_memory
-        if sample.rss > limit:
-            found.append(('memory_limit', 'memory %.1f MB (limit %.1f MB)' % (sample.rss / 1e6, limit / 1e6)))
+    memory = memory_over(config, sample, total_memory)
+    if memory:
+        found.append(('memory_limit', memory))
     return found
+
+
+def memory_over(config, sample, total_memory):
+    """Why the service's memory is over its limit, or None."""
+    if config['memory_limit'] is None or sample.rss is None:
+        return None
+    kind, value = config['memory_limit']
+    limit = value if kind == 'bytes' else value / 100.0 * total_memory
+    if sample.rss > limit:
+        return 'memory %.1f MB (limit %.1f MB)' % (sample.rss / 1e6, limit / 1e6)
+    return None
 
 
 # -- one service ---------------------------------------------------------------------------------
@@ -447,6 +498,8 @@ class Service(object):
         self.alerted = set()                   # fault kinds alerted and still present (alerted once)
         self.consecutive = 0                   # faults since it last ran for stable_after (the back-off)
         self.spawn_at = None                   # a restart held back by the back-off: when to spawn
+        self.held_from = None                  # when that hold began
+        self.held = 0.0                        # the holds' time so far (s): not counted in restart_window
         self.held_down = False                 # down in a manager's earlier run, kept down until started
 
     def _change(self, state, now, reason):
@@ -457,9 +510,26 @@ class Service(object):
         self.history.append((now, self.state, state, reason))
         self.state, self.since, self.reason = state, now, reason
 
+    def hold(self, now, delay):
+        """Hold the restart for the back-off's delay (spawned by Supervisor.due)."""
+        self.spawn_at, self.held_from = now + delay, now
+
+    def end_hold(self, now):
+        """The held restart is spawned or called off."""
+        if self.held_from is not None:
+            self.held += max(0.0, now - self.held_from)
+        self.spawn_at = self.held_from = None
+
+    def clock(self, now):
+        """The time restart_window is measured on: the manager's, less the back-off's holds. Measured on
+        the manager's, a back-off that spaced the faults beyond restart_window / restart_limit made the
+        limit unreachable: a critical service looped for ever, never FAILED, no safe state (review of
+        session 34). The back-off changes when a restart comes, never whether the limit is reached."""
+        return now - self.held - (now - self.held_from if self.held_from is not None else 0.0)
+
     def spawned(self, now):
         """Its process was (re)started."""
-        self.spawn_at = None
+        self.end_hold(now)
         self.held_down = False
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
@@ -485,13 +555,15 @@ class Service(object):
         return min(c['restart_delay_max'], c['restart_delay'] * c['restart_delay_factor'] ** (self.consecutive - 1))
 
     def restarts_in_window(self, now):
-        while self.restarts and now - self.restarts[0] > self.config['restart_window']:
+        clock = self.clock(now)   # the restarts are recorded on this clock
+        while self.restarts and clock - self.restarts[0] > self.config['restart_window']:
             self.restarts.popleft()
         return len(self.restarts)
 
 
 HELD_DOWN = 'down in the manager\'s previous run'
 HELD_SAFE = 'held from the manager\'s previous run'
+SPAWN_RETRY = 1.0   # s: the least wait before a spawn that failed is tried again (as a warm spare's)
 
 Decision = collections.namedtuple('Decision', 'service kind detail actions escalate')
 Decision.__doc__ = """What the supervisor decided about a fault: ``actions`` is a list of
@@ -505,6 +577,7 @@ class Supervisor(object):
     def __init__(self, config):
         self.config = config
         self.services = collections.OrderedDict((n, Service(n, c)) for n, c in config['services'].items())
+        self.order = dependency_order(config['services'])
         self.safe_state = None      # the reason the system is in the safe state, None while it is not
         self.safe_since = None
         self.escalations = 0
@@ -519,6 +592,12 @@ class Supervisor(object):
         if s.state == State.STARTING:
             if not sample.alive:
                 return self.fault(name, 'exit', 'exited while starting, status %s' % sample.exit_code, now)
+            # Memory is judged while starting too: a start-up allocating without bound was let grow until
+            # its start timeout (review of session 34). CPU is not: a start-up's burst is no fault, and the
+            # start timeout bounds it.
+            memory = memory_over(s.config, sample, total_memory)
+            if memory and 'memory_limit' not in s.alerted:
+                return self.fault(name, 'memory_limit', memory, now)
             if s.config['heartbeat_timeout'] is None and now - s.started_at >= s.config['start_grace']:
                 s._change(State.RUNNING, now, 'alive past its start grace of %.2f s' % s.config['start_grace'])
             elif now - s.started_at > s.config['start_timeout']:
@@ -548,6 +627,7 @@ class Supervisor(object):
         s = self.services[name]
         s.errors[kind] += 1
         s.consecutive += 1
+        was = s.state
         s._change(State.ERROR, now, '%s: %s' % (kind, detail))
         action = s.config['on_failure']
         escalate = None
@@ -559,15 +639,21 @@ class Supervisor(object):
                 actions += self._terminate_with(name, now) + [('kill', name)]
                 escalate = '%s: restart limit exhausted after %s' % (name, kind)
             else:
-                s.restarts.append(now)
-                actions += self._restart(name, now, 'failure action restart after %s' % kind, delay=s.restart_delay())
+                s.restarts.append(s.clock(now))
+                delay = s.restart_delay()
+                if kind == 'spawn':   # never at once: a spawn failing again at once used the whole allowance
+                    delay = max(delay, SPAWN_RETRY)
+                actions += self._restart(name, now, 'failure action restart after %s' % kind, delay=delay)
         elif action == 'alert':
-            if kind in ('exit', 'start_timeout'):
+            if kind in ('exit', 'start_timeout', 'spawn'):
                 s._change(State.STOPPED, now, 'alerted; it is not running')
                 actions += self._terminate_with(name, now) + [('kill', name)]
             else:
                 s.alerted.add(kind)
-                s._change(State.RUNNING, now, 'alerted (%s: %s); left running' % (kind, detail))
+                if was == State.STARTING:   # not yet heard from: still judged by its start timeout
+                    s._change(State.STARTING, now, 'alerted (%s: %s); left starting' % (kind, detail))
+                else:
+                    s._change(State.RUNNING, now, 'alerted (%s: %s); left running' % (kind, detail))
             actions.append(('alert', name))
         else:   # terminate, or run: terminate then run the program
             s._change(State.STOPPED, now, 'failure action %s after %s' % (action, kind))
@@ -599,7 +685,7 @@ class Supervisor(object):
             seen.add(other)
             o = self.services[other]
             if o.state in (State.STARTING, State.RUNNING, State.ERROR, State.RESTARTING):
-                o.spawn_at = None
+                o.end_hold(now)
                 o._change(State.STOPPED, now, 'terminated with %s' % name)
                 actions.append(('kill', other))
                 actions += self._terminate_with(other, now, seen)
@@ -628,7 +714,7 @@ class Supervisor(object):
         s._change(State.RESTARTING, now, why + (' (back-off %.2f s)' % delay if delay else ''))
         actions.append(('kill', name))
         if delay:
-            s.spawn_at = now + delay
+            s.hold(now, delay)
         else:
             actions.append(('spawn', name))
         for other in s.config['restart_with']:
@@ -638,11 +724,14 @@ class Supervisor(object):
         return actions
 
     def due(self, now):
-        """The spawns the back-off held that are due now: [('spawn', name)]."""
+        """The spawns the back-off held that are due now: [('spawn', name)], a service before those
+        restarted with it (in config order, a dependant listed first was spawned before the service it
+        depends on; review of session 34)."""
         actions = []
-        for name, s in self.services.items():
+        for name in self.order:
+            s = self.services[name]
             if s.spawn_at is not None and now >= s.spawn_at:
-                s.spawn_at = None
+                s.end_hold(now)
                 if s.state == State.RESTARTING:
                     actions.append(('spawn', name))
         return actions
@@ -675,7 +764,8 @@ class Supervisor(object):
             return False, [], '%s is already stopped' % name
         if s.state == State.RESTARTING and s.spawn_at is None:
             return False, [], '%s is restarting: wait until it settles' % name
-        was, s.spawn_at = s.state, None    # (a restart the back-off holds is called off)
+        was = s.state
+        s.end_hold(now)    # (a restart the back-off holds is called off)
         s._change(State.STOPPED, now, 'stopped by an operator')
         actions = [] if was == State.FAILED else self._terminate_with(name, now) + [('kill', name)]
         escalated = self._critical_stopped(name, actions, now, 'stopped by an operator (with %s)' % name)
@@ -687,7 +777,7 @@ class Supervisor(object):
             return False, [], '%s has failed: start it instead' % name
         if s.state == State.ERROR or (s.state == State.RESTARTING and s.spawn_at is None):
             return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
-        s.spawn_at = None   # an operator's restart does not wait for the back-off
+        s.end_hold(now)   # an operator's restart does not wait for the back-off
         actions = self._restart(name, now, 'restarted by an operator')
         escalated = self._critical_stopped(name, actions, now, 'terminated by an operator\'s restart of %s' % name)
         return True, actions, 'restarting %s%s' % (name, '; safe state: %s' % escalated if escalated else '')
@@ -702,15 +792,24 @@ class Supervisor(object):
 
     def restore(self, record, now):
         """Take a record of an earlier run (:meth:`record`) before anything starts. Returns the names of
-        the services held down (not autostarted); a malformed record raises ServiceConfigError."""
+        the services held down (not autostarted); a malformed record raises ServiceConfigError, and
+        changes nothing (one with a number for its safe state crashed the manager at start, review of
+        session 34)."""
         if not isinstance(record, dict) or not isinstance(record.get('down', {}), dict):
             raise ServiceConfigError('the manager\'s record is not a mapping: %r' % (record,))
+        if not isinstance(record.get('safe_state'), (str, type(None))):
+            raise ServiceConfigError('the manager\'s record is malformed: its safe_state %r is no text'
+                                     % (record['safe_state'],))
+        for name, entry in record.get('down', {}).items():
+            if not isinstance(entry, dict) or not isinstance(entry.get('reason', ''), str):
+                raise ServiceConfigError('the manager\'s record is malformed: down.%s is %r, not {reason: text}'
+                                         % (name, entry))
         held = []
         for name, entry in sorted(record.get('down', {}).items()):
             s = self.services.get(name)
             if s is None or s.state != State.STOPPED:   # no longer configured: nothing to hold
                 continue
-            reason = entry.get('reason', '') if isinstance(entry, dict) else ''
+            reason = entry.get('reason', '')
             s.reason = reason if reason.startswith(HELD_DOWN) else '%s (%s): start it to run it again' % (HELD_DOWN,
                                                                                                           reason)
             s.held_down = True   # recorded again, whatever number of restarts of the manager
@@ -732,13 +831,12 @@ class Supervisor(object):
 
     # -- what the caller reports back ----------------------------------------------------------------
     def spawn_failed(self, name, now, error):
+        """Its spawn failed: a fault like an exit, counted against the restart limit and retried after
+        the back-off (at least SPAWN_RETRY), escalated once the limit is exhausted. Returns the Decision.
+        One transient failure (EAGAIN) left a service FAILED for good, silently unless critical (review
+        of session 34)."""
         s = self.services[name]
-        s.errors['spawn'] += 1
-        if s.state == State.STOPPED:
+        s.end_hold(now)
+        if s.state in (State.STOPPED, State.FAILED, State.RESTARTING):
             s._change(State.STARTING, now, 'spawn asked')
-        if s.state == State.STARTING:
-            s._change(State.ERROR, now, 'cannot be spawned: %s' % error)
-        if s.state in (State.ERROR, State.RESTARTING):
-            s._change(State.FAILED, now, 'cannot be spawned: %s' % error)
-        if s.config['critical']:
-            self._escalate('%s (critical) cannot be spawned: %s' % (name, error), now)
+        return self.fault(name, 'spawn', 'cannot be spawned: %s' % error, now)

@@ -15,10 +15,12 @@ service is alive, must come from itself or from its own children. No rospy.
   be the process that published it (it holds the other end of the very connection that carried
   it, on this host: a process elsewhere listening on the same port number does not pass).
 """
+import fcntl
 import json
 import os
 import stat
 import tempfile
+import time
 
 from aft_ftm.process_start import started as process_started
 
@@ -60,12 +62,15 @@ def ensure_private_dir(path):
 
 
 def write_private_json(path, data):
-    """Write data as JSON to path atomically (a temporary file in the same directory, 0600, renamed)."""
+    """Write data as JSON to path atomically (a temporary file in the same directory, 0600, renamed).
+    Returns the file's identity (:func:`identity`), so that only that very file is removed later."""
     handle, temporary = tempfile.mkstemp(dir=os.path.dirname(path) or '.', prefix='.tmp-')
     try:
         with os.fdopen(handle, 'w') as f:
             json.dump(data, f)
+            info = os.fstat(f.fileno())
         os.replace(temporary, path)
+        return info.st_dev, info.st_ino
     except BaseException:
         try:
             os.unlink(temporary)
@@ -88,6 +93,58 @@ def read_private_json(path):
                                                                                stat.S_IMODE(info.st_mode)))
     with open(path) as f:
         return json.load(f)
+
+
+def identity(path):
+    """(device, inode) of the file at path (not followed), or None if there is none."""
+    try:
+        info = os.lstat(path)
+    except OSError:
+        return None
+    return info.st_dev, info.st_ino
+
+
+def unlink_own(path, own):
+    """Remove path only if it is still the file whose identity is ``own``: a manager's shutdown removed
+    its successor's socket, pid file and record, whatever the order they ran in (review of session
+    34). Returns whether it was removed."""
+    if own is None or identity(path) != own:
+        return False
+    try:
+        os.unlink(path)
+    except OSError:
+        return False
+    return True
+
+
+def hold_lock(path, wait=0.0, poll=0.05):
+    """Take the exclusive lock (flock) of the file path, 0600, for the life of this process: the
+    descriptor is returned, to be kept open (not inherited: Python's descriptors are not), and the
+    kernel releases the lock when the process ends, however it ends. A holder is waited for up to
+    ``wait`` s (a manager asked to stop, which takes up to its kill_timeout); then ServiceConfigError
+    names it. Two managers of one name destroyed each other's state (review of session 34)."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, 'O_NOFOLLOW', 0), 0o600)
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                try:
+                    holder = os.pread(fd, 32, 0).decode('ascii', 'replace').strip() or 'unknown'
+                finally:
+                    os.close(fd)
+                raise ServiceConfigError('another service manager of this name (pid %s) holds %s: a second one '
+                                         'would take over and destroy its services and state; stop it first'
+                                         % (holder, path))
+            time.sleep(poll)
+        except BaseException:
+            os.close(fd)
+            raise
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, b'%d\n' % os.getpid(), 0)
+    return fd
 
 
 def describe(proc):

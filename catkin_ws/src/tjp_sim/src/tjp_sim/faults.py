@@ -16,6 +16,7 @@ through :meth:`SensorFaults.apply` before publishing it. Kinds of value fault, e
 Random draws come from one generator per sensor seeded from the scenario's seed, so a run with
 the same seed injects the same faults whatever the other sensors do.
 """
+import math
 import random
 
 VALUE_KINDS = ('stuck', 'offset', 'noise', 'spikes', 'false_detection')
@@ -56,10 +57,10 @@ class SensorFaults(object):
                 break
             if kind == 'false_detection':
                 reading, faulty = fault['distance'], True
+            elif kind == 'stuck':   # whatever is there, or nothing (review of session 34: nothing in range
+                reading, faulty = fault['value'], True   # read nothing, the phantom obstacle never came)
             elif reading is None:
                 continue    # nothing in range: a value fault has nothing to alter
-            elif kind == 'stuck':
-                reading, faulty = fault['value'], True
             elif kind == 'offset':
                 reading, faulty = reading + fault['offset'], True
             elif kind == 'noise':
@@ -67,8 +68,10 @@ class SensorFaults(object):
             elif kind == 'spikes' and rng.random() < fault['probability']:
                 sign = {'up': 1.0, 'down': -1.0}.get(fault.get('direction', 'both')) or rng.choice((-1.0, 1.0))
                 reading, faulty = reading + sign * fault['magnitude'], True
-        if faulty and reading is not SILENT and reading is not None:
-            reading = max(0.0, reading)    # a range or a speed is never negative
+        if faulty and reading is not SILENT and reading is not None and math.isfinite(reading):
+            # A range or a speed is never negative. NaN and infinities go as given (REP 117's invalid
+            # readings): max(0.0, nan) made a scenario's NaN an obstacle at 0 m (review of session 34).
+            reading = max(0.0, reading)
         if faulty:
             self.injected[sensor] = self.injected.get(sensor, 0) + 1
         return reading, faulty

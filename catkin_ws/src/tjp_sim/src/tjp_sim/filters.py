@@ -20,7 +20,12 @@ class SlidingAverage(object):
     reading that is not a finite number is always masked (NaN compares false with everything: it
     entered the window and the mean was NaN until it left). Each time the window follows a
     lasting change, ``followed`` counts it and ``jump`` holds (from, to): a collision, or a stuck or
-    offset sensor that the window cannot tell from one; the node says so (review, stop 39)."""
+    offset sensor that the window cannot tell from one; the node says so (review, stop 39).
+
+    Readings that are not finite numbers ``persist`` times in a row are not masked any longer: the
+    window, no measure of the speed by then, is dropped, :meth:`add` returns None until a finite
+    reading comes, and ``given_up`` counts each such run (a sensor sending NaN for good had the
+    window's last mean passed on as its speed for as long as it lasted; review of session 34)."""
 
     def __init__(self, size=5, tolerance=1.0, persist=3):
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
@@ -35,17 +40,27 @@ class SlidingAverage(object):
         self.masked = 0
         self.followed = 0
         self.jump = None
+        self.invalid_run = 0   # readings not finite numbers, in a row
+        self.given_up = 0
 
     def _median(self):
         values = sorted(self.window)
         mid = len(values) // 2
-        return values[mid] if len(values) % 2 else (values[mid - 1] + values[mid]) / 2.0
+        return values[mid] if len(values) % 2 else values[mid - 1] / 2.0 + values[mid] / 2.0
 
     def add(self, value):
         """Take a reading; returns (filtered value, masked: whether this reading was masked)."""
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            self.masked += 1
-            return self.value(), True
+            self.invalid_run += 1
+            if self.invalid_run < self.persist and self.window:
+                self.masked += 1
+                return self.value(), True
+            if self.window or self.invalid_run == self.persist:
+                self.given_up += 1
+            self.window.clear()
+            self.suspects = []
+            return None, False
+        self.invalid_run = 0
         if self.window and abs(value - self._median()) > self.tolerance:
             self.suspects = (self.suspects + [value])[-self.persist:]
             if len(self.suspects) == self.persist and max(self.suspects) - min(self.suspects) <= 2 * self.tolerance:
@@ -53,7 +68,7 @@ class SlidingAverage(object):
                 # ones, counted as masked, were not faults after all.
                 self.masked -= self.persist - 1
                 self.followed += 1
-                self.jump = (self.value(), sum(self.suspects) / len(self.suspects))
+                self.jump = (self.value(), _mean(self.suspects))
                 self.window.clear()
                 self.window.extend(self.suspects)
                 self.suspects = []
@@ -65,7 +80,12 @@ class SlidingAverage(object):
         return self.value(), False
 
     def value(self):
-        return sum(self.window) / len(self.window) if self.window else None
+        return _mean(self.window) if self.window else None
+
+
+def _mean(values):
+    """The mean of finite values, finite too (the sum of readings near the float's limit was inf)."""
+    return sum(v / len(values) for v in values)
 
 
 Vote = collections.namedtuple('Vote', 'value faulty ok')   # faulty: indexes of disagreeing sensors

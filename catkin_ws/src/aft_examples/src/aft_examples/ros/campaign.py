@@ -16,6 +16,7 @@ import time
 import psutil
 import rosgraph
 
+from aft_ftm.hosts import FaultError
 from aft_ftm.ros.deadline import Deadline
 from aft_ftm.ros.fencing import node_api
 from aft_ftm.ros.graph import clean_dead_nodes, master_answers, roslaunch, wait_for_graph
@@ -793,7 +794,7 @@ class Segment(object):
             return record
         try:
             injected = self.backend.inject(fault, deployment, site_of, rng)
-        except CampaignError as e:
+        except (CampaignError, FaultError) as e:   # (a host fault refused: recorded, not a traceback; session 34)
             record.update(start=time.time(), end=time.time(), what=str(e), outcome='not_injected', healed=[])
             return record
         record.update(injected)

@@ -20,6 +20,7 @@ import queue
 import threading
 import time
 
+from aft_ftm.hosts import FaultError
 from aft_ftm.sites import Site, wait_until
 from aft_examples.ros.campaign import DETECTION_TIMEOUT, CampaignDeployment, CampaignError, HostsBackend
 
@@ -139,7 +140,10 @@ class HostsCampaign(object):
         return dict(os.environ, ROS_IP=ip, ROS_HOSTNAME=ip, ROS_MASTER_URI=self.master_uri)
 
     def site(self, name, host, argv, log_path=None):
-        """A Site (not started) running argv in host."""
+        """A Site (not started) running argv in host. Refused for a host that is off (review of session
+        34: a site started there lived on in the old namespace once the host was made again)."""
+        if self.hosts.state(host) == 'off':
+            raise CampaignError('site %s cannot start on host %s: it is off' % (name, host))
         namespace = self.hosts.topology.host(host).namespace
         return Site(name, ['ip', 'netns', 'exec', namespace] + list(argv), self.env(host),
                     log_path or os.path.join(self.log_dir, '%s.log' % name))
@@ -207,24 +211,37 @@ class HostedBackend(HostsBackend):
         return HostedCampaignDeployment(self.campaign, log_dir, mechanism, clients, timeout=timeout, seed=seed)
 
     def _heal(self, *hosts):
-        if any(self.hosts.state(h) == 'off' for h in hosts):
-            return 'fenced: %s powered off by the switch' % ','.join(h for h in hosts if self.hosts.state(h) == 'off')
-        self.hosts.heal(*hosts)
-        return ''
+        return self._unless_fenced(hosts, lambda: self.hosts.heal(*hosts))
 
     def _unrate(self, host):
-        if self.hosts.state(host) == 'off':
-            return 'fenced: %s powered off by the switch' % host
-        self.hosts.unrate(host)
-        return ''
+        return self._unless_fenced((host,), lambda: self.hosts.unrate(host))
+
+    def _unless_fenced(self, hosts, action):
+        """action(), or 'fenced: ...' if a host of ``hosts`` is off, before it or by the time it is
+        refused (review of session 34: the switch powering a host off between the look and the heal
+        aborted the campaign with a FaultError). Another refusal is raised (the segment records it)."""
+        off = [h for h in hosts if self.hosts.state(h) == 'off']
+        if not off:
+            try:
+                action()
+                return ''
+            except FaultError:
+                off = [h for h in hosts if self.hosts.state(h) == 'off']
+                if not off:
+                    raise
+        return 'fenced: %s powered off by the switch' % ','.join(off)
 
     def inject(self, fault, deployment, site_of, rng):
         if fault.kind == 'power_loss':
             name = site_of(fault.target)
+            host = self.host_of[name]
             start = time.time()
-            killed = self.hosts.power_off(self.host_of[name])
-            return dict(start=self.hosts.powered_off_at.get(self.host_of[name], start), end=time.time(),
-                        what='host %s powered off (link down, %d processes killed)' % (self.host_of[name],
-                                                                                         len(killed)),
-                        proxy_killed=None)
+            # if_on: the switch may have powered it off already (review of session 34: that aborted the campaign)
+            killed = self.hosts.power_off(host, if_on=True)
+            at = self.hosts.powered_off_at.get(host)
+            if at is None or at < start:
+                return dict(start=start, end=time.time(), proxy_killed=None,
+                            what='host %s already off (fenced by the power switch before the fault)' % host)
+            return dict(start=at, end=time.time(), proxy_killed=None,
+                        what='host %s powered off (link down, %d processes killed)' % (host, len(killed)))
         return super(HostedBackend, self).inject(fault, deployment, site_of, rng)

@@ -143,6 +143,8 @@ class HostedDeployment(object):
         return env
 
     def _site(self, name, host, argv):
+        if self.hosts.state(host) == 'off':   # review of session 34: it lived on in the old namespace
+            raise RuntimeError('site %s cannot start on host %s: it is off (relaunch powers it on)' % (name, host))
         host_ns = self.hosts.topology.host(host).namespace
         site = Site(name, ['ip', 'netns', 'exec', host_ns] + argv, self._env(host),
                     os.path.join(self.log_dir, '%s.%d.log' % (name, int(time.time() * 1000))))

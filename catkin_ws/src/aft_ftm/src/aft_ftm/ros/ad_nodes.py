@@ -27,7 +27,9 @@ class AdBeforeNode(BeforeNode):
     """A&D's Before: checks the request assertions before the request is executed, and gives
     After the request so that reply assertions can look at both.
 
-    Parameters: ~request_assertions (list of package.module:function, default none)
+    Parameters: ~request_assertions (list of package.module:function, default none); ~reply_assertions
+        (the After's, read here only to refuse an A&D that checks nothing: both lists empty is a
+        ConfigError, not a mechanism that passes everything; review of session 34)
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; bfr2aft (aft_msgs/Request), port ``to_after``;
         aft2pro (aft_msgs/Reply), port ``errors``: refused requests; alarms (aft_msgs/Alarm), port ``alarms``.
@@ -39,6 +41,10 @@ class AdBeforeNode(BeforeNode):
     def __init__(self):
         self.checks = assertions.load_all(param('request_assertions', config.name_list, []),
                                           rospy.resolve_name('~request_assertions'))
+        if not self.checks and not param('reply_assertions', config.name_list, []):
+            raise config.ConfigError('%s: Assertion & Duplex with no assertion at all (~request_assertions and '
+                                     '~reply_assertions both empty) would check nothing: name at least one '
+                                     '(package.module:function)' % rospy.get_name())
         super(AdBeforeNode, self).__init__(extra_ports=[PortSpec('to_after', PUBLISH, 'aft_msgs/Request'),
                                                         PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
                                                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])

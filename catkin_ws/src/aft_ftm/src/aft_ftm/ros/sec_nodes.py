@@ -210,6 +210,11 @@ class SecGateNode(object):
         self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
         self.not_for_me = 0       # client side: replies signed for another party, passed over
         self.replays = security.ReplayGuard()
+        # This run's nonce (client side), signed into each request and named by its reply; the nonce each
+        # pending request came with (server side), named by the reply sealed for it. A reply captured from
+        # an earlier run of a Proxy, for an id the Proxy uses again, is refused (security.ReplyNonces).
+        self.nonce = security.new_nonce()
+        self.nonces = security.ReplyNonces()
         self.lock = threading.Lock()
         self.rejected = 0
         self.diagnostics = None
@@ -443,23 +448,27 @@ class SecGateNode(object):
     # -- requests -----------------------------------------------------------------------------
     def _on_request(self, request):
         try:
+            nonce = None
             if self.side == 'client':
                 box, _ = self._peer(self.server_party)
-                payload = security.seal(self.me, box, security.header_of(request, security.REQUEST_FIELDS,
-                                                                         self.server_party, self.destination),
-                                        request.payload)
+                header = security.header_of(request, security.REQUEST_FIELDS, self.server_party, self.destination)
+                header['nonce'] = self.nonce
+                payload = security.seal(self.me, box, header, request.payload)
             else:
-                party = security.sender_of(request.payload)
-                payload = self._open(party, request.payload, security.header_of(
-                    request, security.REQUEST_FIELDS, self.me.name, self.destination))
+                party, nonce = security.sender_of(request.payload), security.nonce_of(request.payload)
+                header = security.header_of(request, security.REQUEST_FIELDS, self.me.name, self.destination)
+                if nonce is not None:   # signed, when named (a request that names none: no client gate will
+                    header['nonce'] = nonce   # take its reply)
+                payload = self._open(party, request.payload, header)
                 with self.lock:
                     self.origins.bind(party, request.origin)
                     self.replays.check(request.origin, request.id)
                     self.replays.advance(request.origin, request.oldest_pending, request.id)
+                    self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
         except security.Rejected as e:
             self._reject(e, request)
             if e.kind == 'replay':
-                self._renumber(request)
+                self._renumber(request, nonce)
             return
         # batch is PBR's group commit, numbered by the Protocol behind the server's gate: a client's
         # request carries none. One a client set (signed: it is its own) made PBR's After wait for batch
@@ -475,7 +484,7 @@ class SecGateNode(object):
                     del self.sent[key]   # answered: the Proxy will not ask again
         self.ports.publish('requests_out', out)
 
-    def _renumber(self, request):
+    def _renumber(self, request, nonce):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock
         behind (numbering below its predecessor: refused here for ever, it hung). Its party is told, sealed,
         the ids to use (STALE_ID, as the Protocol would): a Proxy waiting for that id sends it again
@@ -484,7 +493,7 @@ class SecGateNode(object):
             first_id = self.replays.first_free(request.origin)
         self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client, oldest_pending=first_id,
                              attempt=request.attempt, batch=request.batch, status=Reply.STALE_ID,
-                             error='id below those answered already: renumber'))
+                             error='id below those answered already: renumber'), nonce)
 
     def resend(self):
         """A new server gate subscribed (a backup took over): send it what is not answered yet, at
@@ -495,20 +504,22 @@ class SecGateNode(object):
             self.ports.publish('requests_out', request)
 
     # -- replies ------------------------------------------------------------------------------
-    def _on_reply(self, reply):
+    def _on_reply(self, reply, nonce=None):
         try:
             if self.side == 'server':
                 with self.lock:
                     party = self.origins.party_of(reply.origin)
+                    nonce = nonce if nonce is not None else self.nonces.of(reply.origin, reply.id)
                 if party is None:
                     raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
                 box, _ = self._peer(party)
                 # The error text is sealed with the payload (a server's error names the client's data: "cannot
                 # withdraw 999 from a balance of 4342"); the reply on the wire says only that there is one.
                 error, reply = reply.error, _with_error(reply, SEALED_ERROR if reply.error else '')
-                payload = security.seal(self.me, box, security.header_of(reply, security.REPLY_FIELDS, party,
-                                                                         self.destination),
-                                        security.frame_error(error, reply.payload))
+                header = security.header_of(reply, security.REPLY_FIELDS, party, self.destination)
+                if nonce is not None:
+                    header['nonce'] = nonce
+                payload = security.seal(self.me, box, header, security.frame_error(error, reply.payload))
             else:
                 if security.addressee_of(reply.payload) not in (self.me.name, None):
                     with self.lock:   # for another client's gate, which checks it: not an attack on this one
@@ -516,8 +527,21 @@ class SecGateNode(object):
                     return
                 if security.sender_of(reply.payload) != self.server_party:
                     raise security.Rejected('unknown_party', 'the reply is not signed by %s' % self.server_party)
-                payload = self._open(self.server_party, reply.payload, security.header_of(
-                    reply, security.REPLY_FIELDS, self.me.name, self.destination))
+                nonce = security.nonce_of(reply.payload)
+                header = security.header_of(reply, security.REPLY_FIELDS, self.me.name, self.destination)
+                if nonce is not None:
+                    header['nonce'] = nonce
+                payload = self._open(self.server_party, reply.payload, header)
+                if nonce != self.nonce:
+                    with self.lock:
+                        asked = (reply.origin, reply.id) in self.sent
+                    if asked:   # an old reply for an id this run asks again: its Proxy would take it
+                        raise security.Rejected('replay', 'reply %s/%d was sealed for %s, not for this run of '
+                                                'the client\'s gate: captured from an earlier run'
+                                                % (reply.origin, reply.id, 'another run' if nonce else 'no run'))
+                    with self.lock:   # for no request of this run: its Proxy has nothing waiting for it
+                        self.not_for_me += 1
+                    return
                 error, payload = security.unframe_error(payload)
                 reply = _with_error(reply, error if error is not None else reply.error)
         except security.Rejected as e:

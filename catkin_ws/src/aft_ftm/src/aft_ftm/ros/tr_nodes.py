@@ -305,8 +305,14 @@ class TrAfterNode(AfterNode):
     def handle(self, reply):
         if self.failed:
             return None   # fail-stopped: the peer answers
+        execution = reply.attempt % SPAN
         reply.attempt //= SPAN   # back to the attempt the request came with
-        vote = self.voter.add((reply.origin, reply.id, reply.attempt), (reply.status, reply.error, bytes(reply.payload)))
+        vote = self.voter.add((reply.origin, reply.id, reply.attempt), (reply.status, reply.error, bytes(reply.payload)),
+                              execution)
+        if vote is None:
+            rospy.logwarn('%s: execution %d of %s/%d heard twice: counted once' % (self.name, execution, reply.origin,
+                                                                                reply.id))
+            return None
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
             if ok or why.startswith(FAIL_STOPPED):   # fail-stopped: the peer answers it
@@ -321,7 +327,9 @@ class TrAfterNode(AfterNode):
             alarm(self.ports, 'tr', 'restore_failed', detail, reply)
             return self._error(reply, 'outcome unknown: ' + detail)
         if vote.outcome == Outcome.DECIDED:
-            self._tell_before(reply, Repeat._request_class.FORGET)
+            ok, why = self._tell_before(reply, Repeat._request_class.FORGET)
+            if not ok and why.startswith(FAIL_STOPPED):
+                return None   # fail-stopped: the peer answers it (it answered all the same; review of session 34)
             if vote.masked:
                 self.masked += vote.masked
                 alarm(self.ports, 'tr', 'value_fault_masked', '%d of %d executions disagreed with the majority'

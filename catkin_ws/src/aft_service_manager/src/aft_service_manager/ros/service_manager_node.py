@@ -1,5 +1,6 @@
 """The service manager as a ROS node: spawns the configured services as child processes, watches
 them, and carries out the decisions of aft_service_manager.services.Supervisor."""
+import collections
 import json
 import math
 import os
@@ -225,6 +226,7 @@ class Child(object):
 
 
 SPARE_AFTER_PROMOTION = 0.1   # s
+LOCK_WAIT = 3.0               # s: beyond kill_timeout, for a manager of the same name that is stopping
 
 
 def _instance_of(handle):
@@ -293,6 +295,16 @@ class ServiceManagerNode(object):
             manager['state_dir'] = trust.ensure_private_dir(manager['state_dir'] or trust.default_state_dir())
         except ServiceConfigError as e:
             raise params.ConfigError('%s: %s' % (path, e))
+        self.prefix = 'manager%s' % rospy.get_name().replace('/', '_')
+        # One manager of a name at a time, before anything of the name is touched (its trees, socket,
+        # pid file and record): a second one adopted what the first was stopping, and the first's
+        # shutdown killed the second's services (review of session 34). Held for the process's life.
+        # One asked to stop (the master stops a node whose name another takes) is waited for.
+        try:
+            self.name_lock = trust.hold_lock(os.path.join(manager['state_dir'], self.prefix + '.lock'),
+                                             wait=manager['kill_timeout'] + LOCK_WAIT)
+        except (ServiceConfigError, OSError) as e:
+            raise params.ConfigError('%s: %s' % (rospy.get_name(), e))
         self.resource_period = param('resource_period', params.positive_float, 0.1)
         self.heartbeat_topic = rospy.resolve_name(param('heartbeat_topic', params.non_empty_str, TOPIC))
         self.period = self.config['manager']['period']
@@ -314,7 +326,8 @@ class ServiceManagerNode(object):
         self.record_file = os.path.join(self.config['manager']['state_dir'],
                                         'manager%s.record' % rospy.get_name().replace('/', '_'))
         self.recorded = None          # what record_file holds (written only when it changes)
-        self.prefix = 'manager%s' % rospy.get_name().replace('/', '_')
+        self.own = {}                 # path -> identity of the pid file and record this manager wrote or took
+        self.own_trees = collections.deque(maxlen=1024)   # the trees it made or adopted (shutdown kills no other)
         self.spares = {}              # name -> Child: its warm spare, idle until promoted
         self.closing = False          # shutting down: nothing more is spawned
         self.instances = 0            # a number per process spawned (a spare's {n})
@@ -399,8 +412,9 @@ class ServiceManagerNode(object):
         try:
             child = self._start_process(name, spare=False)
         except (OSError, psutil.Error) as e:
-            self.supervisor.spawn_failed(name, now, str(e))
-            self._event('spawn_failed', name, str(e), now)
+            if self.closing:
+                return   # the shutdown stops everything: no fault, no retry
+            self._spawn_failed(self.supervisor.spawn_failed(name, now, str(e)), now)
             if service.state in (State.STOPPED, State.FAILED):
                 self._kill_from(self.spares, name)
             return
@@ -409,6 +423,14 @@ class ServiceManagerNode(object):
         service.spawned(now)
         self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
         self._ensure_spare(name)
+
+    def _spawn_failed(self, decision, now):
+        """A spawn that failed is a fault: reported and acted on as any other (it is retried, and an
+        exhausted limit escalates; review of session 34)."""
+        rospy.logerr('%s: %s: %s', rospy.get_name(), decision.service, decision.detail)
+        self._event('fault', decision.service, decision.detail, now, kind=decision.kind, actions=decision.actions,
+                    escalate=decision.escalate)
+        self._act(decision, now)
 
     def _start_process(self, name, spare):
         """A process of service name (its active instance, or a warm spare), in a session of its own,
@@ -439,6 +461,7 @@ class ServiceManagerNode(object):
                 env.update({channel.ENV_WATCHDOG: str(watchdog.fd),
                             channel.ENV_WATCHDOG_TIMEOUT: repr(cfg['heartbeat_timeout'])})
             prefix, extra, handle = self.tree.prepare('%s-%d' % (name, self.instances))
+            self.own_trees.append(handle)
             env.update(extra)
             popen = subprocess.Popen(prefix + command, env=env, stdin=subprocess.DEVNULL, start_new_session=True,
                                      pass_fds=tuple(fd for fd in (watchdog and watchdog.fd, promote_r) if fd))
@@ -512,7 +535,7 @@ class ServiceManagerNode(object):
         try:
             records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
             records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
-            trust.write_private_json(self.pid_file, records)
+            self.own[self.pid_file] = trust.write_private_json(self.pid_file, records)
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
                                    % (rospy.get_name(), self.pid_file, e))
@@ -530,6 +553,7 @@ class ServiceManagerNode(object):
         slot = channel.BeatSlot(slot_file) if slot_file else None
         child = Child(AdoptedProcess(proc.pid), service.config['cpu_window'], slot, spare,
                       int(entry.get('instance') or 0), self.tree, handle)
+        self.own_trees.append(handle)
         child.proc = proc
         child.ready = bool(entry.get('ready'))
         child.beats = slot.read()[0] if slot and slot.read() else 0
@@ -643,7 +667,7 @@ class ServiceManagerNode(object):
         except Exception as e:   # one failed action must not leave the others undone
             rospy.logerr('%s: %s %s failed: %s: %s', rospy.get_name(), verb, name, type(e).__name__, e)
             if verb == 'spawn' and self.supervisor[name].state in (State.RESTARTING, State.STARTING):
-                self.supervisor.spawn_failed(name, now, str(e))
+                self._spawn_failed(self.supervisor.spawn_failed(name, now, str(e)), now)
 
     def _sync_safe_state(self):
         """Publish the safe state whenever the supervisor's has changed (whatever changed it), and keep
@@ -654,7 +678,7 @@ class ServiceManagerNode(object):
         record = self.supervisor.record()
         if record != self.recorded:
             try:
-                trust.write_private_json(self.record_file, record)
+                self.own[self.record_file] = trust.write_private_json(self.record_file, record)
                 self.recorded = record
             except OSError as e:
                 rospy.logerr_throttle(10.0, '%s: cannot keep the safe state and the services down in %s: %s; '
@@ -665,6 +689,7 @@ class ServiceManagerNode(object):
         """Read what an earlier manager of this name recorded, if it did not stop cleanly (killed,
         crashed, a power loss): its safe state holds (an operator clears it), and the services it left
         down stay down (an operator starts them). Returns those names."""
+        self.own[self.record_file] = trust.identity(self.record_file)   # its predecessor's: now its own
         try:
             record = trust.read_private_json(self.record_file)
             held = self.supervisor.restore(record, time.monotonic()) if record is not None else []
@@ -1050,16 +1075,15 @@ class ServiceManagerNode(object):
                 except Exception as e:
                     rospy.logerr('%s: stopping pid %d: %s: %s', rospy.get_name(), child.pid, type(e).__name__, e)
             for handle in self.tree.leftovers():   # anything of this manager's a race let through
-                self.tree.kill(handle, 0.5)
+                if handle in self.own_trees:       # (and nothing of another's: review of session 34)
+                    self.tree.kill(handle, 0.5)
             if self.local is not None:
                 self.local.close()
             self.tree.close(0.3)
-            os.unlink(self.pid_file)
         except Exception:   # shutdown paths never raise
             pass
-        try:
-            # A clean stop stopped everything: a manager started again starts afresh. Only a manager
-            # killed or crashed leaves its record (and its services, which the next one adopts).
-            os.unlink(self.record_file)
-        except OSError:
-            pass
+        # A clean stop stopped everything: a manager started again starts afresh. Only a manager
+        # killed or crashed leaves its record (and its services, which the next one adopts). Each
+        # file is removed only if it is still the one this manager wrote (review of session 34).
+        for path in (self.pid_file, self.record_file):
+            trust.unlink_own(path, self.own.get(path))

@@ -7,6 +7,7 @@ run time by the adaptation engine):
 - :class:`AlarmManagerNode`: alarm message and controlled stop when the simulator, the ROS master
   or a sensor without redundancy stops.
 """
+import math
 import threading
 import time
 
@@ -53,9 +54,15 @@ class ImuTrNode(PortedNode):
     def _on_reading(self, msg):
         raw = msg.twist.linear.x
         with self.lock:
-            followed = self.filter.followed
+            followed, given_up = self.filter.followed, self.filter.given_up
             value, masked = self.filter.add(raw)
             jump = self.filter.jump if self.filter.followed > followed else None
+            gave_up = self.filter.given_up > given_up
+        if gave_up:
+            self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='imu_invalid',
+                                               detail='IMU speed not a number %d times in a row (%r): no longer '
+                                               'masked, passed on as it comes until a valid one'
+                                               % (self.filter.invalid_run, raw), stamp=msg.header.stamp))
         if jump is not None:
             # A lasting change the window followed: a collision, or a stuck or offset IMU it cannot
             # tell from one. Never silent (a stuck-at-zero IMU was followed after 10 readings, and the
@@ -65,7 +72,11 @@ class ImuTrNode(PortedNode):
                                                '(a collision, or a stuck or offset IMU)' % jump,
                                                stamp=msg.header.stamp))
         if value is None:
-            return    # nothing valid yet
+            if not math.isfinite(raw):
+                # Nothing to mask it with (none valid yet, or given up): passed on, for measureManager to
+                # refuse it, alarmed, and not renew the safety distance, rather than a stale mean.
+                self.ports.publish('out', msg)
+            return
         if masked:
             self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='value_fault_masked',
                                                detail='IMU speed %r m/s, window mean %.2f m/s' % (raw, value),

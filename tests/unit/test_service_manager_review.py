@@ -1,0 +1,253 @@
+"""The service manager's fixes of the review of session 34, each failing on the code before it: one
+manager of a name at a time and a shutdown that removes only its own files, a launch that respawns
+the manager, a restart limit a back-off cannot make unreachable, a spawn failure retried as a fault,
+memory judged while starting, and configurations and records refused naming the problem. No master."""
+import errno
+import os
+import sys
+import threading
+import xml.etree.ElementTree as ElementTree
+
+import pytest
+
+from aft_service_manager import channel
+from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
+
+ALIVE = Sample(alive=True, exit_code=None, stopped=False, cpu_percent=5.0, rss=50e6)
+DEAD = ALIVE._replace(alive=False, exit_code=1)
+GB = 1e9
+PACKAGE = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_service_manager')
+
+
+def config(services, manager=''):
+    return parse_config((('manager:\n' + manager) if manager else '') + 'services:\n' + services, source='test.yaml')
+
+
+def running(sup, name, now=0.0):
+    sup[name].spawned(now)
+    sup[name].heard(now + 0.01, 'ok')
+    assert sup[name].state == State.RUNNING
+
+
+# -- 1: two managers of one name -------------------------------------------------------------------
+def _new_manager(tmp_path, monkeypatch, made):
+    """ServiceManagerNode() as run_node builds it, its parameters and process trees faked (no master)."""
+    from aft_service_manager.ros import service_manager_node as node_module
+    path = tmp_path / 'services.yaml'
+    path.write_text('manager: {state_dir: %s, kill_timeout: 0.1}\nservices:\n  a: {command: x}\n' % (tmp_path / 'state'))
+    monkeypatch.setattr(node_module, 'param', lambda name, convert, default=None, required=False:
+                        str(path) if name == 'config' else default)
+    monkeypatch.setattr(node_module.tree, 'make', lambda owner: made.append(owner) or object())
+    monkeypatch.setattr(node_module, 'LOCK_WAIT', 0.2, raising=False)
+    return node_module.ServiceManagerNode()
+
+
+def test_a_second_manager_of_the_same_name_refuses_to_start_naming_the_first(tmp_path, monkeypatch):
+    from aft_ftm.errors import ConfigError
+    made = []
+    first = _new_manager(tmp_path, monkeypatch, made)
+    try:
+        with pytest.raises(ConfigError, match='another service manager of this name \\(pid %d\\)' % os.getpid()):
+            _new_manager(tmp_path, monkeypatch, made)
+        assert len(made) == 1                       # the second touched none of the first's trees
+    finally:
+        os.close(first.name_lock)
+    os.close(_new_manager(tmp_path, monkeypatch, made).name_lock)   # the first gone: a manager starts
+
+
+class _Trees(object):
+    def __init__(self, leftovers):
+        self.left, self.killed = leftovers, []
+
+    def leftovers(self):
+        return list(self.left)
+
+    def kill(self, handle, timeout):
+        self.killed.append(handle)
+
+    def close(self, timeout):
+        pass
+
+
+def test_a_shutdown_after_a_successor_started_leaves_the_successor_s_files_and_trees(tmp_path):
+    """A mis-sequenced shutdown (the successor already wrote its pid file and record, and made its
+    trees) removed the successor's files and killed its services."""
+    from aft_service_manager import trust
+    from aft_service_manager.ros.service_manager_node import ServiceManagerNode
+    node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.lock, node.children, node.spares, node.stopping = threading.RLock(), {}, {}, {}
+    node.config = {'manager': {'kill_timeout': 0.1}}
+    node.wake_r, node.wake_w = os.pipe()
+    node.local, node.safe_pub = None, None
+    node.pid_file, node.record_file = str(tmp_path / 'm.pids'), str(tmp_path / 'm.record')
+    node.own = {node.pid_file: trust.write_private_json(node.pid_file, {}),
+                node.record_file: trust.write_private_json(node.record_file, {})}
+    node.own_trees = ['mine-1']
+    node.tree = _Trees(['mine-1', 'successor-2'])
+    for path in (node.pid_file, node.record_file):   # the successor's, written since
+        trust.write_private_json(path, {'successor': True})
+    node.shutdown()
+    assert os.path.exists(node.pid_file) and os.path.exists(node.record_file)
+    assert node.tree.killed == ['mine-1']
+    os.close(node.wake_r)
+    os.close(node.wake_w)
+
+
+def test_a_manager_s_socket_closed_after_its_successor_bound_its_own_leaves_it(tmp_path):
+    path = channel.socket_path(str(tmp_path), 'manager_x')
+    old = channel.ManagerSocket(path)
+    new = channel.ManagerSocket(path)   # the successor's (it removed the old file)
+    old.close()
+    assert os.path.exists(path)
+    new.close()
+    assert not os.path.exists(path)
+
+
+# -- 2: the launch -----------------------------------------------------------------------------------
+def test_the_shipped_launch_respawns_the_manager_rather_than_requiring_it():
+    launch = ElementTree.parse(os.path.join(PACKAGE, 'launch', 'service_manager.launch')).getroot()
+    [node] = [n for n in launch.iter('node') if n.get('type') == 'service_manager']
+    assert node.get('respawn') == 'true' and node.get('required') in (None, 'false')
+    assert 0 < float(node.get('respawn_delay', '0')) <= 5
+
+
+# -- 3: the restart limit with a back-off ---------------------------------------------------------
+def test_a_back_off_never_makes_the_restart_limit_unreachable():
+    """restart_delay 25 s capped at 25 s spaced the faults beyond 60 s / 3: a service failing at once
+    after each start looped for ever (144 faults an hour), never FAILED, no safe state."""
+    sup = Supervisor(config('  a: {command: x, critical: true, restart_delay: 25, restart_delay_max: 25}\n'))
+    now, faults = 0.0, 0
+    while sup['a'].state != State.FAILED and faults < 20:
+        running(sup, 'a', now)
+        decision = sup.check('a', DEAD, now + 0.5, GB)
+        faults += 1
+        if sup['a'].state == State.RESTARTING:
+            now = sup.next_due()
+            assert sup.due(now) == [('spawn', 'a')]
+    assert sup['a'].state == State.FAILED and faults == 4
+    assert 'restart limit exhausted' in decision.escalate and sup.safe_state
+
+
+def test_restarts_far_apart_in_the_service_s_own_time_still_leave_the_window():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1, restart_window: 5, restart_delay: 25, '
+                            'restart_delay_max: 25, stable_after: 100}\n'))
+    now = 0.0
+    for _ in range(3):   # each runs 10 s: beyond the window, whatever the holds
+        running(sup, 'a', now)
+        assert sup.check('a', DEAD, now + 10.0, GB).escalate is None
+        now = sup.next_due()
+        sup.due(now)
+
+
+# -- 4: a spawn that fails -------------------------------------------------------------------------
+def test_a_transient_spawn_failure_is_retried_after_a_delay_and_the_service_runs():
+    sup = Supervisor(config('  a: {command: x}\n'))
+    decision = sup.spawn_failed('a', 0.0, '[Errno 11] Resource temporarily unavailable')
+    assert decision.kind == 'spawn' and decision.escalate is None and ('spawn', 'a') not in decision.actions
+    assert sup['a'].state == State.RESTARTING and sup.next_due() >= 1.0
+    assert sup.due(sup.next_due()) == [('spawn', 'a')]
+    running(sup, 'a', 1.0)
+    assert sup['a'].errors['spawn'] == 1
+
+
+def test_a_spawn_failing_for_good_exhausts_the_limit_and_escalates_a_service_that_is_not_critical():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 2}\n'))
+    now, decision = 0.0, None
+    for _ in range(3):
+        decision = sup.spawn_failed('a', now, 'no such file')
+        if sup['a'].state == State.RESTARTING:
+            now = sup.next_due()
+            sup.due(now)
+    assert sup['a'].state == State.FAILED and 'restart limit exhausted after spawn' in decision.escalate
+    assert sup.safe_state == decision.escalate
+
+
+def test_the_manager_reports_a_spawn_failure_as_a_fault_and_holds_its_retry(tmp_path):
+    from aft_service_manager.ros.service_manager_node import ServiceManagerNode
+    node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.config = config('  a: {command: x}\n', '  state_dir: %s\n' % tmp_path)
+    node.supervisor, node.closing, node.children, node.spares = Supervisor(node.config), False, {}, {}
+    node.published_safe, node.recorded = None, node.supervisor.record()
+    events = []
+    node._event = lambda event, name, detail, now, **extra: events.append(dict(extra, event=event, service=name))
+
+    def eagain(name, spare):
+        raise OSError(errno.EAGAIN, 'Resource temporarily unavailable')
+    node._start_process = eagain
+    node._spawn('a', 5.0)
+    assert [(e['event'], e.get('kind')) for e in events] == [('fault', 'spawn')]
+    assert node.supervisor['a'].state == State.RESTARTING and node.supervisor.next_due() >= 6.0
+
+
+# -- 6: memory while starting ----------------------------------------------------------------------
+def test_memory_over_its_limit_is_a_fault_while_the_service_starts():
+    sup = Supervisor(config('  a: {command: x, heartbeat_timeout: 0.1, start_timeout: 30, memory_limit: 100MB}\n'))
+    sup['a'].spawned(0.0)
+    decision = sup.check('a', ALIVE._replace(rss=2 * GB), 0.5, GB)
+    assert decision is not None and decision.kind == 'memory_limit' and sup['a'].state == State.RESTARTING
+
+
+def test_memory_alerted_while_starting_leaves_the_service_starting_and_alerted_once():
+    sup = Supervisor(config('  a: {command: x, heartbeat_timeout: 0.1, on_failure: alert, memory_limit: 100MB}\n'))
+    sup['a'].spawned(0.0)
+    fat = ALIVE._replace(rss=2 * GB)
+    assert sup.check('a', fat, 0.5, GB).actions == [('alert', 'a')] and sup['a'].state == State.STARTING
+    assert sup.check('a', fat, 0.6, GB) is None
+    assert sup.check('a', fat, 6.0, GB).kind == 'start_timeout'   # still judged by its start timeout
+
+
+# -- 7, 9, 10: configurations ------------------------------------------------------------------------
+@pytest.mark.parametrize('services,message', [
+    ('  a: {command: x, start_grace: 10, start_timeout: 5}\n', 'start_grace 10 s exceeds start_timeout 5 s'),
+    ('  a: {command: x, memory_limit: %d}\n' % 10 ** 400, 'services.a.memory_limit must be a finite number'),
+    ('  a: {command: x, heartbeat_timeout: %d}\n' % 10 ** 400, 'services.a.heartbeat_timeout must be a finite'),
+    ('  a: {command: x, memory_limit: %sMB}\n' % ('9' * 400), 'services.a.memory_limit must be a finite number'),
+    ("  a: {command: ['']}\n", 'the program \\(its first argument\\) is empty'),
+    ('  a: {command: x, warm_spare: true}\n', 'warm_spare needs spare_args'),
+    ('  a: {command: \'sh -c "echo hi\'}\n', 'cannot be split into arguments'),
+])
+def test_a_configuration_the_review_found_accepted_is_refused_naming_the_problem(services, message):
+    with pytest.raises(ServiceConfigError, match=message):
+        config(services)
+
+
+def test_a_command_string_is_split_as_a_shell_would():
+    c = config('  a: {command: \'sh -c "echo hi"\', program: "logger \'a failed\'", on_failure: run}\n')
+    assert c['services']['a']['command'] == ['sh', '-c', 'echo hi']
+    assert c['services']['a']['program'] == ['logger', 'a failed']
+    # with heartbeats, start_grace is not used: any value is accepted
+    config('  a: {command: x, heartbeat_timeout: 0.1, start_grace: 10, start_timeout: 5}\n')
+
+
+# -- 11: a malformed record ------------------------------------------------------------------------
+@pytest.mark.parametrize('record', [{'safe_state': 1}, {'down': {'a': {'reason': 5}}}, {'down': {'a': 'x'}},
+                                    {'safe_state': ['x'], 'down': {}}])
+def test_a_malformed_record_is_refused_and_changes_nothing(record):
+    sup = Supervisor(config('  a: {command: x}\n'))
+    with pytest.raises(ServiceConfigError, match='record is malformed'):
+        sup.restore(record, 0.0)
+    assert sup.safe_state is None and not sup['a'].held_down
+
+
+def test_a_manager_whose_record_is_malformed_starts_in_the_safe_state(tmp_path):
+    from aft_service_manager import trust
+    from aft_service_manager.ros.service_manager_node import ServiceManagerNode
+    node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.supervisor = Supervisor(config('  a: {command: x}\n'))
+    node.record_file, node.own = str(tmp_path / 'm.record'), {}
+    trust.write_private_json(node.record_file, {'safe_state': 1, 'down': {}})
+    assert node._restore() == []
+    assert 'record of the manager\'s previous run is not usable' in node.supervisor.safe_state
+
+
+# -- 12: held spawns in dependency order -----------------------------------------------------------
+def test_held_spawns_come_in_dependency_order_whatever_the_config_order():
+    sup = Supervisor(config('  dep: {command: y}\n  base: {command: x, restart_with: [dep], restart_delay: 3}\n'))
+    running(sup, 'dep')
+    running(sup, 'base')
+    sup.check('base', DEAD, 0.5, GB)
+    assert sup.due(3.5) == [('spawn', 'base'), ('spawn', 'dep')]
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-q']))
