@@ -109,6 +109,39 @@ def test_a_second_interrupt_during_close_lets_the_tear_down_finish_then_goes_on(
     assert signal.getsignal(signal.SIGINT) is before
 
 
+def test_a_sigterm_during_close_with_the_default_handler_exits_143_after_the_tear_down_never_kills(fake,
+                                                                                                   monkeypatch):
+    """Review of session 34 (of its own fix): the deferred signal was raised again with the default SIGTERM
+    handler back, which killed the process outright: the caller's finally blocks never ran."""
+    hosts = opened_hosts()
+    before = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    finished = []
+
+    def tear_down(topology, log):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(20):
+            time.sleep(0.005)
+        finished.append(topology.prefix)
+    monkeypatch.setattr(hosts_exec, 'tear_down', tear_down)
+    try:
+        hosts._install_handlers()
+        with pytest.raises(SystemExit) as exited:
+            hosts.close()
+        assert exited.value.code == 143 and finished == [TOP.prefix]
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_a_removal_refused_for_another_reason_than_absence_is_not_taken_for_done(fake):
+    """Review of session 34 (of its own fix): any "Cannot open network namespace" counted as done."""
+    fake.ran.fail = lambda argv: 'exit 1: Cannot open network namespace "aftx-master": Too many open files'
+    with pytest.raises(hosts_exec.CommandError, match='Too many open files'):
+        hosts_exec.run_step(['tc', '-n', 'aftx-master', 'qdisc', 'del', 'dev', 'eth0', 'root'])
+    fake.ran.fail = lambda argv: 'exit 1: Cannot open network namespace "aftx-master": No such file or directory'
+    hosts_exec.run_step(['tc', '-n', 'aftx-master', 'qdisc', 'del', 'dev', 'eth0', 'root'])   # gone: done
+
+
 # -- 2: the sweep and a run starting; prefixes drawn twice -------------------------------------------
 def test_a_run_starting_during_the_sweep_is_not_swept(fake, monkeypatch):
     started = []        # the other run writes its record, then makes its namespaces, just after a read

@@ -111,6 +111,10 @@ def not_a_number(*_):
     return float('nan')
 
 
+def a_huge_int(*_):
+    return 10 ** 400
+
+
 @pytest.mark.parametrize('fn,detail', [
     (passes, None), (silent, None), (fails, 'returned False'),
     (explains, 'speed 12 km/h is above 10 km/h'), (asserts, 'one is not two'),
@@ -118,7 +122,7 @@ def not_a_number(*_):
     # Review, stop 39: only ``is False`` was a violation; numpy.all()'s False_ let the reply through.
     (numpy_false, 'returned np.False_'), (zero, 'returned 0'), (an_array, 'not a verdict: the truth value'),
     # Review of session 34: bool(nan) is True, so a verdict computed from a NaN field passed.
-    (not_a_number, 'returned nan, not a verdict'),
+    (not_a_number, 'returned nan, not a verdict'), (a_huge_int, None),
 ])
 def test_assertion_outcomes(fn, detail):
     violations = assertions.check([(fn.__name__, fn)], 'request', 'response')

@@ -39,7 +39,7 @@ def gate(side='server', tls=False):
     node.book = security.CertificateBook(CA.verify_public)
     node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
     node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
-    node.nonce, node.nonces = security.new_nonce(), security.ReplyNonces()
+    node.runs, node.nonces = security.ProxyRuns(), security.ReplyNonces()
     return node
 
 
@@ -112,7 +112,7 @@ def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clie
     server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
     client = gate(side='client')
     client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
-    server.nonces.note('/proxy', 7, client.nonce, 7)   # request 7 came through the client's gate
+    server.nonces.note('/proxy', 7, client.runs.nonce_for('/proxy', 7, 7), 7)   # request 7 came through the gate
     client.sent[('/proxy', 7)] = None
     error = 'service cannot process request: cannot withdraw 999999 from a balance of 4342'
     server._on_reply(Reply(id=7, origin='/proxy', client='/c', status=Reply.ERROR, error=error, payload=b'resp'))
@@ -173,7 +173,7 @@ def test_an_old_sealed_reply_is_refused_for_an_id_a_proxy_started_again_asks_aga
     assert (port, bytes(taken.payload)) == ('replies_out', b'balance 10')   # its own run's reply: taken
 
     again = client_gate()                       # the Proxy and its gate started again, its clock behind:
-    assert again.nonce != first.nonce           # the id 9000 is used again
+    assert again.runs.nonce_for('/proxy', 9000, 9000) != first.runs.current('/proxy')   # id 9000 used again
     server.replays = security.ReplayGuard()     # (a promoted backup's gate: it never saw the first run)
     fresh = through(again, 9000, b'balance 25')
     again.ports.published.clear()
@@ -215,3 +215,64 @@ def test_the_server_gate_forgets_a_requests_nonce_once_its_proxy_has_its_answer(
     assert sorted(nonces.by_origin['/p']) == [13, 14, 15]     # bounded: the lowest goes first
     nonces.note('/q', 1, None, oldest_pending=0)               # a request that names no nonce: none kept
     assert nonces.of('/q', 1) is None
+
+
+def test_a_proxy_started_again_alone_behind_the_same_gate_gets_a_new_run_and_old_replies_are_refused():
+    """Review of session 34 (of its own fix): the nonce was the gate's, so a Proxy started again alone (its
+    gate running on) kept it, and the old reply for a reused id was still taken. A request whose id is below
+    an oldest_pending its Proxy sent before starts a new run; calls of one run published out of order do not."""
+    from aft_msgs.msg import Reply, Request
+    runs = security.ProxyRuns()
+    first = runs.nonce_for('/proxy', 9000, 9000)
+    assert runs.nonce_for('/proxy', 9002, 9001) == first
+    assert runs.nonce_for('/proxy', 9001, 9000) == first        # built before 9001's answer, published after
+    assert runs.nonce_for('/proxy', 9003, 9003) == first
+    second = runs.nonce_for('/proxy', 9001, 9001)               # below 9003: the Proxy started again, behind
+    assert second != first and runs.current('/proxy') == second
+    assert runs.nonce_for('/other', 5, 5) not in (first, second)   # each Proxy its own run
+
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: security.open_sealed(SERVER, CLIENT.verify_public, blob, header)
+    client = gate(side='client')
+    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    client._peer = lambda party: (SERVER.box_public, SERVER.verify_public)
+    client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
+
+    def call(rid, answer):
+        client.ports.published.clear()
+        client._on_request(Request(id=rid, origin='/proxy', client='/c', service_type='aft_msgs/Account',
+                                   oldest_pending=rid, payload=b'deposit'))
+        (_, sealed), = client.ports.published
+        server.ports.published.clear()
+        server.replays = security.ReplayGuard()   # (the backup's gate, which never saw the first run)
+        server._on_request(sealed)
+        server.ports.published.clear()
+        server._on_reply(Reply(id=rid, origin='/proxy', client='/c', status=Reply.OK, payload=answer))
+        (_, wire), = server.ports.published
+        return wire
+    captured = call(9000, b'old')
+    client._on_reply(captured)
+    call(9001, b'next')                             # the first run goes on ...
+    fresh = call(9000, b'new')                      # ... then its Proxy starts again alone, id 9000 again
+    client.ports.published.clear()
+    client._on_reply(captured)
+    (port, raised), = client.ports.published
+    assert (port, raised.kind) == ('alarms', 'replay'), raised
+    client.ports.published.clear()
+    client._on_reply(fresh)
+    (port, taken), = client.ports.published
+    assert (port, bytes(taken.payload)) == ('replies_out', b'new')
+
+
+def test_a_slow_calls_nonce_is_kept_while_thousands_of_later_calls_come_and_go():
+    """Review of session 34 (of its own fix): the bound evicted the lowest id, a slow call's, at once again
+    after each re-send: its reply was refused for good."""
+    nonces = security.ReplyNonces(per_origin=8)
+    nonces.note('/p', 10, 'slow', oldest_pending=10)
+    for rid in range(11, 30):
+        nonces.note('/p', rid, 'n', oldest_pending=10)
+    assert nonces.of('/p', 10) is None                        # noted longest ago: gone ...
+    nonces.note('/p', 10, 'slow', oldest_pending=10)          # ... the Proxy's re-send notes it again
+    assert nonces.of('/p', 10) == 'slow' and len(nonces.by_origin['/p']) == 8

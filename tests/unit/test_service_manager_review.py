@@ -1,12 +1,10 @@
 """The service manager's fixes of the review of session 34, each failing on the code before it: one
-manager of a name at a time and a shutdown that removes only its own files, a launch that respawns
-the manager, a restart limit a back-off cannot make unreachable, a spawn failure retried as a fault,
+manager of a name at a time and a shutdown that removes only its own files, a restart limit a back-off cannot make unreachable, a spawn failure retried as a fault,
 memory judged while starting, and configurations and records refused naming the problem. No master."""
 import errno
 import os
 import sys
 import threading
-import xml.etree.ElementTree as ElementTree
 
 import pytest
 
@@ -16,7 +14,6 @@ from aft_service_manager.services import Sample, ServiceConfigError, State, Supe
 ALIVE = Sample(alive=True, exit_code=None, stopped=False, cpu_percent=5.0, rss=50e6)
 DEAD = ALIVE._replace(alive=False, exit_code=1)
 GB = 1e9
-PACKAGE = os.path.join(os.path.dirname(__file__), '..', '..', 'catkin_ws', 'src', 'aft_service_manager')
 
 
 def config(services, manager=''):
@@ -101,14 +98,6 @@ def test_a_manager_s_socket_closed_after_its_successor_bound_its_own_leaves_it(t
     assert os.path.exists(path)
     new.close()
     assert not os.path.exists(path)
-
-
-# -- 2: the launch -----------------------------------------------------------------------------------
-def test_the_shipped_launch_respawns_the_manager_rather_than_requiring_it():
-    launch = ElementTree.parse(os.path.join(PACKAGE, 'launch', 'service_manager.launch')).getroot()
-    [node] = [n for n in launch.iter('node') if n.get('type') == 'service_manager']
-    assert node.get('respawn') == 'true' and node.get('required') in (None, 'false')
-    assert 0 < float(node.get('respawn_delay', '0')) <= 5
 
 
 # -- 3: the restart limit with a back-off ---------------------------------------------------------

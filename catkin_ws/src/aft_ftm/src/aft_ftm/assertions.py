@@ -57,8 +57,8 @@ def check(assertions, *args):
         if isinstance(verdict, str):
             violations.append((name, verdict))
             continue
-        if isinstance(verdict, numbers.Real) and math.isnan(verdict):   # bool(nan) is True: it passed
-            violations.append((name, 'returned nan, not a verdict'))    # (review of session 34)
+        if _is_nan(verdict):     # bool(nan) is True: it passed (review of session 34)
+            violations.append((name, 'returned nan, not a verdict'))
             continue
         try:
             passed = bool(verdict)    # numpy.bool_, 0, [] ... (numpy.all() returns numpy.False_, not False)
@@ -68,3 +68,13 @@ def check(assertions, *args):
         if not passed:
             violations.append((name, 'returned %r' % (verdict,)))
     return violations
+
+
+def _is_nan(verdict):
+    """Whether a verdict is a real number that is NaN (an int is never one: math.isnan(10**400) raised)."""
+    if isinstance(verdict, bool) or not isinstance(verdict, numbers.Real) or isinstance(verdict, numbers.Integral):
+        return False
+    try:
+        return math.isnan(verdict)
+    except (OverflowError, TypeError, ValueError):
+        return False

@@ -42,8 +42,8 @@ CLONE_NEWNET = 0x40000000
 KILL_ROUNDS = 3         # rescans of a host's namespace for processes that entered it during a kill
 # What ip/tc print when the thing a removal step removes is already gone: that step is done (review of
 # session 34: a power_on whose rollback had removed the new namespace failed at its first step for ever).
-ABSENT = ('No such file or directory', 'Cannot find device', 'does not exist', 'Cannot open network namespace',
-          'Cannot delete qdisc with handle of zero')
+ABSENT = ('No such file or directory', 'Cannot find device', 'Cannot delete qdisc with handle of zero')
+# (not "Cannot open network namespace" alone, nor "does not exist": EPERM or EMFILE were taken for done)
 
 
 class PlatformError(HostsError):
@@ -770,6 +770,7 @@ class Hosts(object):
             except Exception as e:      # shutdown never raises
                 self.log('hosts: tear-down failed: %s' % e)
             finally:
+                previous = dict(self._previous)
                 self._restore_handlers()
                 try:
                     atexit.unregister(self.close)
@@ -779,8 +780,11 @@ class Hosts(object):
                     os.close(self._home)
                     self._home = None
             deferred, self._deferred = self._deferred, []
-        for signum in sorted(set(deferred)):    # their handlers are back: the signal goes on now
-            signal.raise_signal(signum)
+        for signum in sorted(set(deferred)):    # the signal goes on now, as _on_signal would have taken it
+            self.log('hosts: signal %d came during the tear-down: handled now it is done' % signum)
+            # (not raise_signal: with the default handler back, SIGTERM killed the process outright and
+            # the caller's finally blocks never ran; review of session 34)
+            _chain(previous.get(signum), signum, None)
 
     def _go_home(self):
         """Back to the network namespace __enter__ ran in (review of session 34: a signal handled while
@@ -804,8 +808,7 @@ class Hosts(object):
             signal.signal(signum, self._defer)
 
     def _defer(self, signum, frame):
-        self._deferred.append(signum)
-        self.log('hosts: signal %d during the tear-down: handled once it is done' % signum)
+        self._deferred.append(signum)   # only noted: a log write here could re-enter the one interrupted
 
     def _install_handlers(self):
         if threading.current_thread() is not threading.main_thread():
@@ -825,11 +828,16 @@ class Hosts(object):
     def _on_signal(self, signum, frame):
         previous = self._previous.get(signum)
         self.close()
-        if previous == signal.SIG_IGN:
-            return
-        if callable(previous):
-            previous(signum, frame)
-        elif signum == signal.SIGINT:
-            raise KeyboardInterrupt()
-        else:
-            raise SystemExit(128 + signum)
+        _chain(previous, signum, frame)
+
+
+def _chain(previous, signum, frame):
+    """Take a signal as the handler ``previous`` (the one the hosts replaced) would have."""
+    if previous == signal.SIG_IGN:
+        return
+    if callable(previous):
+        previous(signum, frame)
+    elif signum == signal.SIGINT:
+        raise KeyboardInterrupt()
+    else:
+        raise SystemExit(128 + signum)

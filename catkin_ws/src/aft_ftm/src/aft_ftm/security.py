@@ -633,26 +633,50 @@ class OriginBinding(object):
         return self.bound.get(origin)
 
 
+class ProxyRuns(object):
+    """Client side: the nonce of each Proxy's run behind this gate. Within one run a Proxy never sends
+    a request whose id is below an ``oldest_pending`` it sent (every id below it was answered); one
+    that does is a new run (started again, its clock behind, using ids again): it gets a new nonce,
+    so that a reply sealed for the earlier run is refused for it (review of session 34: the nonce was
+    the gate's, and a Proxy started again alone kept it). (Not ``oldest_pending`` going down: two
+    calls of one Proxy built and published in the other order do that within one run.)"""
+
+    def __init__(self):
+        self.runs = {}   # origin -> (nonce, the highest oldest_pending sent)
+
+    def nonce_for(self, origin, request_id, oldest_pending):
+        nonce, floor = self.runs.get(origin, (None, 0))
+        if nonce is None or request_id < floor:
+            nonce, floor = new_nonce(), oldest_pending
+        self.runs[origin] = (nonce, max(floor, oldest_pending))
+        return nonce
+
+    def current(self, origin):
+        return self.runs.get(origin, (None, 0))[0]
+
+
 class ReplyNonces(object):
     """Server side: the nonce each pending request of an origin came with (its client gate's run), so
     that its reply is sealed for that run only. A Proxy started again with its clock behind uses ids
     again; without the nonce, an old sealed reply captured for such an id was accepted for the new
     call (review of SEC, session 33). Forgotten below the origin's oldest pending id, and at most
-    ``per_origin`` ids kept per origin (the lowest go first: their reply then names no nonce, and the
-    client's gate refuses it; the Proxy's re-send brings the nonce again)."""
+    ``per_origin`` ids kept per origin: the one noted longest ago goes first (its reply then names no
+    nonce and the client's gate refuses it; the Proxy's re-send notes it again, newest). Evicting the
+    lowest id instead evicted a slow call's again at each re-send: refused for good (review of session 34)."""
 
     def __init__(self, per_origin=4096):
         self.per_origin = per_origin
-        self.by_origin = {}   # origin -> {id: nonce}
+        self.by_origin = {}   # origin -> OrderedDict {id: nonce}, the one noted last at the end
 
     def note(self, origin, request_id, nonce, oldest_pending):
-        ids = self.by_origin.setdefault(origin, {})
+        ids = self.by_origin.setdefault(origin, collections.OrderedDict())
         for answered in [i for i in ids if i < oldest_pending]:
             del ids[answered]
         if nonce is not None:
             ids[request_id] = nonce
+            ids.move_to_end(request_id)
         while len(ids) > self.per_origin:
-            del ids[min(ids)]
+            ids.popitem(last=False)
 
     def of(self, origin, request_id):
         return self.by_origin.get(origin, {}).get(request_id)

@@ -210,10 +210,12 @@ class SecGateNode(object):
         self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
         self.not_for_me = 0       # client side: replies signed for another party, passed over
         self.replays = security.ReplayGuard()
-        # This run's nonce (client side), signed into each request and named by its reply; the nonce each
-        # pending request came with (server side), named by the reply sealed for it. A reply captured from
-        # an earlier run of a Proxy, for an id the Proxy uses again, is refused (security.ReplyNonces).
-        self.nonce = security.new_nonce()
+        # Client side: per origin (a Proxy), the nonce of its run, signed into each request and named by its
+        # reply, and the highest oldest_pending it sent: one lower is a new run of the Proxy (started again,
+        # its clock behind: it uses ids again), which gets a new nonce. Server side: the nonce each pending
+        # request came with, named by the reply sealed for it. A reply captured from an earlier run of a
+        # Proxy (or of this gate), for an id used again, is refused (security.ReplyNonces).
+        self.runs = security.ProxyRuns()
         self.nonces = security.ReplyNonces()
         self.lock = threading.Lock()
         self.rejected = 0
@@ -452,7 +454,8 @@ class SecGateNode(object):
             if self.side == 'client':
                 box, _ = self._peer(self.server_party)
                 header = security.header_of(request, security.REQUEST_FIELDS, self.server_party, self.destination)
-                header['nonce'] = self.nonce
+                with self.lock:
+                    header['nonce'] = self.runs.nonce_for(request.origin, request.id, request.oldest_pending)
                 payload = security.seal(self.me, box, header, request.payload)
             else:
                 party, nonce = security.sender_of(request.payload), security.nonce_of(request.payload)
@@ -532,12 +535,14 @@ class SecGateNode(object):
                 if nonce is not None:
                     header['nonce'] = nonce
                 payload = self._open(self.server_party, reply.payload, header)
-                if nonce != self.nonce:
+                with self.lock:
+                    current = self.runs.current(reply.origin)
+                if nonce != current:
                     with self.lock:
                         asked = (reply.origin, reply.id) in self.sent
                     if asked:   # an old reply for an id this run asks again: its Proxy would take it
                         raise security.Rejected('replay', 'reply %s/%d was sealed for %s, not for this run of '
-                                                'the client\'s gate: captured from an earlier run'
+                                                'its Proxy and its gate: captured from an earlier run'
                                                 % (reply.origin, reply.id, 'another run' if nonce else 'no run'))
                     with self.lock:   # for no request of this run: its Proxy has nothing waiting for it
                         self.not_for_me += 1
