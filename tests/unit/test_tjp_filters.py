@@ -136,3 +136,19 @@ def test_readings_near_the_floats_limit_average_to_a_finite_value():
     for _ in range(3):
         value, _ = window.add(1e308)                            # a stuck value the window follows
     assert window.jump[1] == pytest.approx(1e308)
+
+
+def test_a_clock_gone_back_starts_the_vote_afresh_instead_of_dropping_every_reading_as_late():
+    """Review of session 34: after a /clock reset every reading was late, and nothing was voted again."""
+    from tjp_sim.filters import LaserVoter
+    voter = LaserVoter(reset_after=50)
+    for stamp in (100, 101):
+        decided = [d for i in range(3) for d in voter.add(i, stamp, 10.0)]
+        assert [s for s, _, _ in decided] == [stamp]
+    assert voter.add(0, 99, 10.0) == [] and voter.late == 1      # late by one instant: late, as before
+    decided = [d for stamp in (1, 2) for i in range(3) for d in voter.add(i, stamp, 12.0)]
+    assert [(s, v.value) for s, v, _ in decided] == [(1, 12.0), (2, 12.0)] and voter.resets == 1
+    never = LaserVoter()                                           # (reset_after None: never, as before)
+    for i in range(3):
+        never.add(i, 100, 10.0)
+    assert never.add(0, 1, 10.0) == [] and never.resets == 0

@@ -122,13 +122,20 @@ class LaserVoter(object):
     (NaN, REP 117's invalid reading) is counted in ``invalid`` and votes as a missing one: two of them
     never outvote a good laser (they were taken for "nothing in range" and agreed, review of stop 39),
     and a laser that gives nothing else is reported silent.
+
+    A reading stamped more than ``reset_after`` before the last instant voted is not late: the clock
+    went back (a /clock reset, a sensor started again). Voting starts afresh from it and ``resets``
+    counts it (review of session 34: every reading was late from then on, nothing voted again, and
+    only a throttled log said so). None: never.
     """
 
     NOTHING = 1e9   # stands for "nothing in range" in the vote
     INVALID = object()   # an invalid reading of one instant: the laser answered, with no value
 
-    def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2):
+    def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2, reset_after=None):
         self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
+        self.reset_after = reset_after
+        self.resets = 0
         self.groups = {}             # stamp -> {index: value}
         self.latest = [None] * count  # the newest stamp heard from each laser
         self.decided_up_to = None
@@ -144,8 +151,13 @@ class LaserVoter(object):
         if not 0 <= index < self.count:
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
-            self.late += 1
-            return []
+            if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
+                self.late += 1
+                return []
+            self.resets += 1    # the clock went back: afresh (the missing counts go on: a silent laser stays so)
+            self.groups.clear()
+            self.latest = [None] * self.count
+            self.decided_up_to = None
         if value is not None and not (isinstance(value, (int, float)) and value == value):
             self.invalid += 1
             value = self.INVALID

@@ -99,7 +99,8 @@ class LaserVoteNode(PortedNode):
 
     def __init__(self):
         self.voter = LaserVoter(tolerance=param('tolerance', config.positive_float, 0.2),
-                                silent_after=param('silent_after', config.non_negative_int, 5))
+                                silent_after=param('silent_after', config.non_negative_int, 5),
+                                reset_after=int(1e9))   # ns: stamps a second back are a clock gone back
         ports = [PortSpec('laser_%d' % i, SUBSCRIBE, 'sensor_msgs/Range') for i in range(3)]
         super(LaserVoteNode, self).__init__(
             ports + [PortSpec('out', PUBLISH, 'sensor_msgs/Range'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
@@ -107,9 +108,12 @@ class LaserVoteNode(PortedNode):
 
     def _on_laser(self, index, msg):
         with self.lock:
-            late = self.voter.late
+            late, resets = self.voter.late, self.voter.resets
             decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg))
-            late = self.voter.late - late
+            late, reset = self.voter.late - late, self.voter.resets > resets
+        if reset:
+            self._alarm('clock_reset', 'laser %d stamped %.3f s, more than 1 s before the last instant voted: the '
+                        'clock went back, voting starts afresh' % (index, msg.header.stamp.to_sec()), msg.header.stamp)
         if late:
             rospy.logwarn_throttle(1.0, '%s: a reading of laser %d came after its instant was voted (%d so far)'
                                    % (self.name, index, self.voter.late))
