@@ -501,6 +501,8 @@ class Service(object):
         self.held_from = None                  # when that hold began
         self.held = 0.0                        # the holds' time so far (s): not counted in restart_window
         self.held_down = False                 # down in a manager's earlier run, kept down until started
+        self.stamped_here = False              # its last beat is stamped when the manager handled it (ROS)
+        self.stall_end = None                  # the end of the manager's last stall since its spawn
 
     def _change(self, state, now, reason):
         if state == self.state:
@@ -533,19 +535,45 @@ class Service(object):
         self.held_down = False
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
+        self.stamped_here, self.stall_end = False, None
         self.starts += 1
 
-    def heard(self, now, status, detail=''):
-        """A heartbeat with the service's own status ('ok' or 'error')."""
+    def heard(self, now, status, detail='', stamped_here=False):
+        """A heartbeat with the service's own status ('ok' or 'error'). ``stamped_here``: ``now`` is
+        when the manager handled it (the ROS channel), not the service's own time (a beat slot's)."""
         if self.state not in (State.STARTING, State.RUNNING):
             return
         self.last_heard = now
+        self.stamped_here = stamped_here
         if status == 'error':
             self.reported_error = detail or 'error'
             return
         self.reported_error = None     # an ok heartbeat: no error reported any more
         if self.state == State.STARTING:
             self._change(State.RUNNING, now, 'heard from')
+
+    def beats_stamped_here(self):
+        """Whether its beats are stamped when the manager handles them (the ROS channel), so that a
+        stall of the manager's own delays them: configured so, or its last beat came so."""
+        return self.config['heartbeat_timeout'] is not None and (
+            self.config['heartbeat_channel'] == 'ros' or self.stamped_here)
+
+    def stalled(self, now):
+        """The manager stalled until now: this service (its beats stamped here) is not judged silent
+        before one heartbeat_timeout from now. Its beats of the stall wait in the manager's sockets,
+        and the loop ran its checks before rospy handled them: it was restarted, the restart counted
+        (review of session 34)."""
+        self.stall_end = now
+        if self.state == State.RUNNING and self.last_heard is not None:
+            self.last_heard = max(self.last_heard, now)
+
+    def start_deadline(self):
+        """When, not yet heard from, it has failed to start: start_timeout after its spawn, or one
+        heartbeat_timeout after a stall of the manager's own, whichever is later (see stalled())."""
+        deadline = self.started_at + self.config['start_timeout']
+        if self.stall_end is not None and self.config['heartbeat_timeout'] is not None:
+            deadline = max(deadline, self.stall_end + self.config['heartbeat_timeout'])
+        return deadline
 
     def restart_delay(self):
         """The back-off before the restart after the current run of consecutive faults."""
@@ -559,6 +587,21 @@ class Service(object):
         while self.restarts and clock - self.restarts[0] > self.config['restart_window']:
             self.restarts.popleft()
         return len(self.restarts)
+
+
+# A wake of the manager's loop this late (s) is a stall of its own (SIGSTOP, swapped out, a debugger,
+# its lock held by a long command): see stall_threshold().
+STALL_MIN = 0.1
+STALL_PERIODS = 10
+
+
+def stall_threshold(period):
+    """How late (s) the manager's loop must wake to have stalled. Lateness, not the time since the
+    previous check: the loop sleeps until the deadline it chose, up to a second (the diagnostics), so
+    that gap is no measure. A wake is late by the scheduler's jitter, milliseconds on a busy machine
+    (a few tens at worst); 0.1 s, or 10 periods if longer, is beyond it, and shorter than most
+    heartbeat timeouts over the network (review of session 34)."""
+    return max(STALL_MIN, STALL_PERIODS * period)
 
 
 HELD_DOWN = 'down in the manager\'s previous run'
@@ -581,6 +624,7 @@ class Supervisor(object):
         self.safe_state = None      # the reason the system is in the safe state, None while it is not
         self.safe_since = None
         self.escalations = 0
+        self.stalls = 0             # stalls of the manager's own (woke())
 
     def __getitem__(self, name):
         return self.services[name]
@@ -600,7 +644,7 @@ class Supervisor(object):
                 return self.fault(name, 'memory_limit', memory, now)
             if s.config['heartbeat_timeout'] is None and now - s.started_at >= s.config['start_grace']:
                 s._change(State.RUNNING, now, 'alive past its start grace of %.2f s' % s.config['start_grace'])
-            elif now - s.started_at > s.config['start_timeout']:
+            elif now > s.start_deadline():
                 return self.fault(name, 'start_timeout', 'not heard within %.1f s of its start'
                                   % s.config['start_timeout'], now)
             elif s.reported_error is not None:
@@ -621,6 +665,21 @@ class Supervisor(object):
             if kind not in s.alerted:   # alerted already: alerted again only once the condition has cleared
                 return self.fault(name, kind, detail, now)
         return None
+
+    def woke(self, now, meant):
+        """The manager's loop woke at now, having meant to wake at ``meant`` (None: its first wake).
+        Woken more than stall_threshold() late, the manager stalled: every service whose beats it
+        stamps when it handles them (the ROS channel) is given one heartbeat_timeout from now before
+        it is judged silent (Service.stalled). A service on the local channel is not: its slot carries
+        its own time. A real hang that coincides with the stall is detected one timeout later.
+        Returns how late it woke (s), or None."""
+        if meant is None or now - meant <= stall_threshold(self.config['manager']['period']):
+            return None
+        self.stalls += 1
+        for s in self.services.values():
+            if s.beats_stamped_here():
+                s.stalled(now)
+        return now - meant
 
     def fault(self, name, kind, detail, now):
         """A fault of service name: count it, decide and return what to do."""

@@ -419,6 +419,7 @@ class ServiceManagerNode(object):
                 self._kill_from(self.spares, name)
             return
         self.children[name] = child
+        self._reused(child.pid)   # its beats are its own, not a replaced instance's (review of session 34)
         self._record_pids()
         service.spawned(now)
         self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
@@ -506,6 +507,7 @@ class ServiceManagerNode(object):
             self.spare_retry[name] = time.monotonic() + 1.0
             rospy.logwarn('%s: the warm spare of %s cannot be started: %s', rospy.get_name(), name, e)
             return
+        self._reused(self.spares[name].pid)   # promoted, its beats are its own (review of session 34)
         self._record_pids()
         self._event('spare_started', name, 'pid %d' % self.spares[name].pid, time.monotonic(),
                     pid=self.spares[name].pid)
@@ -627,6 +629,21 @@ class ServiceManagerNode(object):
             pids = [child.pid]
         self.replaced[name] = (self.replaced.get(name, []) + pids)[-64:]
 
+    def _stale(self, name, pid, child):
+        """Whether a beat from pid is the last words of an instance of name the manager replaced. A
+        process of the current instance (child) is never stale, whatever replaced says: replaced keeps
+        64 pids per service and pid_max may be 32768, and a new instance given a recycled pid had its
+        every ROS heartbeat dropped until its start timed out (review of session 34)."""
+        if pid is None or pid not in self.replaced.get(name, ()):
+            return False
+        return child is None or not child.owns(pid)
+
+    def _reused(self, pid):
+        """A spawned instance (re)uses pid: it names no replaced process any more, of any service."""
+        for pids in self.replaced.values():
+            while pid in pids:
+                pids.remove(pid)
+
     def _published_by(self, header, pid):
         """Whether process pid published on the heartbeat subscription's connection whose header this
         is: it holds that very connection's other end (its local address is the publisher's end, its
@@ -714,6 +731,7 @@ class ServiceManagerNode(object):
         timeout (the last beat plus the timeout, read from the slot then), a start timeout, a
         resource sample, a held restart, the diagnostics. Deadlines fall on the manager's period."""
         next_resources = next_diagnostics = 0.0
+        meant = None   # when the loop meant to wake (a stall of its own shows as a late wake)
         while not rospy.is_shutdown():
             now = time.monotonic()
             resources = now >= next_resources
@@ -722,6 +740,7 @@ class ServiceManagerNode(object):
             cpu = time.thread_time()
             try:
                 with self.lock:
+                    self._notice_stall(meant)
                     fds, deadline = self._cycle(now, resources, next_resources, next_diagnostics)
                 self.cycle_cpu += time.thread_time() - cpu
                 if now >= next_diagnostics:
@@ -738,7 +757,7 @@ class ServiceManagerNode(object):
             # on the period's grid, and at most one timed check per period (an alerted fault's
             # deadline stays in the past)
             period = self.period
-            wake = max(math.ceil(deadline / period) * period + 1e-4, now + period)
+            wake = meant = max(math.ceil(deadline / period) * period + 1e-4, now + period)
             poller = select.poll()
             for fd in fds:
                 poller.register(fd, select.POLLIN)
@@ -751,6 +770,19 @@ class ServiceManagerNode(object):
                     os.read(self.wake_r, 4096)
                 except BlockingIOError:
                     pass
+
+    def _notice_stall(self, meant):
+        """A wake of the loop far later than it meant is a stall of the manager's own (SIGSTOP, swapped
+        out, its lock held): the services beating on the ROS channel get one heartbeat timeout before
+        they are judged silent (Supervisor.woke), and it is logged once. Their beats of the stall waited
+        in the sockets, and the checks ran before rospy handled them: restarted, each restart counted,
+        possibly the safe state (review of session 34). Timed after the lock: a command holding it
+        held the beats too."""
+        late = self.supervisor.woke(time.monotonic(), meant)
+        if late is not None:
+            rospy.logwarn('%s: the manager stalled: its loop woke %.3f s late (stopped, swapped out or starved; '
+                          '%d stalls so far); the services beating on the ROS channel get one heartbeat timeout '
+                          'from now before they are judged silent', rospy.get_name(), late, self.supervisor.stalls)
 
     def _cycle(self, now, resources, next_resources, next_diagnostics):
         """One wake of the loop: beats, what the channel said, held restarts, every check; returns
@@ -797,7 +829,7 @@ class ServiceManagerNode(object):
             s = self.supervisor[name]
             c = s.config
             if s.state == State.STARTING:
-                yield s.started_at + (c['start_timeout'] if c['heartbeat_timeout'] is not None else c['start_grace'])
+                yield s.start_deadline() if c['heartbeat_timeout'] is not None else s.started_at + c['start_grace']
                 if self.children[name].slot is not None and self.children[name].beats:
                     yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
             elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None \
@@ -858,7 +890,7 @@ class ServiceManagerNode(object):
                     self._record_pids()   # a manager that adopts it knows it may promote it
                     self._event('spare_ready', name, 'pid %d' % spare.pid, now, pid=spare.pid)
                 continue
-            if pid is not None and pid in self.replaced.get(name, ()):
+            if self._stale(name, pid, child):
                 self.stale_heartbeats += 1   # the last words of an instance the manager replaced
                 continue
             if child is None or pid is None or not child.owns(pid):
@@ -873,11 +905,11 @@ class ServiceManagerNode(object):
                 if seen is not None:
                     self._heard(name, child, seen[0], seen[1], '')
 
-    def _heard(self, name, child, at, status, detail):
+    def _heard(self, name, child, at, status, detail, stamped_here=False):
         self.heartbeats += 1
         service = self.supervisor[name]
         was = service.state
-        service.heard(at, status, detail)
+        service.heard(at, status, detail, stamped_here)
         if was == State.STARTING and service.state == State.RUNNING:
             child.cpu_marks = []
             self._event('running', name, 'heard from', time.monotonic(), started_at=service.started_at)
@@ -910,7 +942,7 @@ class ServiceManagerNode(object):
                                        % (rospy.get_name(), beat.name, self.unknown_heartbeats))
                 return
             child = self.children.get(beat.name)
-            if child is None or beat.pid in self.replaced.get(beat.name, ()):
+            if child is None or self._stale(beat.name, beat.pid, child):
                 self.stale_heartbeats += 1     # a replaced (or stopped) process's last words
                 return
             header = getattr(beat, '_connection_header', None) or {}
@@ -921,7 +953,7 @@ class ServiceManagerNode(object):
                                        % (rospy.get_name(), beat.name, self.refused_heartbeats, why))
                 return
             was = self.supervisor[beat.name].state
-            self._heard(beat.name, child, now, beat.status, beat.detail)
+            self._heard(beat.name, child, now, beat.status, beat.detail, stamped_here=True)
             if beat.status == 'error' or was != self.supervisor[beat.name].state:
                 self._wake()   # decided on now, not at the next deadline
 
@@ -954,7 +986,8 @@ class ServiceManagerNode(object):
                           'alerted': sorted(s.alerted),
                           'period': s.config['period'], 'spare': s.config['spare']}
             return {'services': out, 'safe_state': self.supervisor.safe_state,
-                    'refused_heartbeats': self.refused_heartbeats, 'wakes': self.wakes, 'tree': self.tree.describe(),
+                    'refused_heartbeats': self.refused_heartbeats, 'stale_heartbeats': self.stale_heartbeats,
+                    'stalls': self.supervisor.stalls, 'wakes': self.wakes, 'tree': self.tree.describe(),
                     'cycle_cpu_s': round(self.cycle_cpu, 6), 'diagnostics_cpu_s': round(self.diagnostics_cpu, 6)}
 
     def _publish_diagnostics(self):
