@@ -226,6 +226,57 @@ class FakeMaster(object):
         return self.uris[name]
 
 
+def test_a_launcher_is_known_by_its_children_in_proc_even_before_any_of_its_nodes_told_its_pid():
+    """healing.test in CI: the primary failed (its server stopped) within a second of the backup's start,
+    before the backup's fence had asked the primary's nodes for their pids. The launcher named by the
+    heartbeats was refused as nobody's launcher and the stopped server lived on. Its children as /proc
+    names them (``__name:=``, ROS_NAMESPACE: a heartbeat cannot forge them) make it the launcher; one
+    that also runs nodes of another name space has only its nodes of this one killed; one with no such
+    child (a forged heartbeat naming any pid) is refused."""
+    from aft_ftm.ros.fencing import launcher_children, launcher_roots
+    from aft_ftm.site_watch import children_nodes
+    import psutil
+    sleeper = [sys.executable, '-c', 'import time; time.sleep(60)']
+    started = []
+
+    def child(name, ns):
+        proc = subprocess.Popen(sleeper + ['__name:=' + name], env=dict(os.environ, ROS_NAMESPACE=ns))
+        started.append(proc)
+        deadline = time.monotonic() + 10.0
+        while '__name:=' + name not in psutil.Process(proc.pid).cmdline() and time.monotonic() < deadline:
+            time.sleep(0.005)
+        return proc
+    try:
+        server, after = child('bank_server', '/master'), child('after', '/master')
+        me = os.getpid()
+        split = launcher_children(children_nodes(me), '/master/')
+        assert sorted(split[0]) == sorted([(server.pid, '/master/bank_server'), (after.pid, '/master/after')])
+        assert split[1] == []
+        assert launcher_roots(me, 'master', '/master', None, split) == (
+            [me], 'launcher %d of master (it started /master/bank_server)' % me, False)
+        # the same, learned by pid meanwhile: the learned node is named
+        assert launcher_roots(me, 'master', '/master', '/master/after', split)[:2] == (
+            [me], 'launcher %d of master (it started /master/after)' % me)
+        # a launcher running another site's node too: only its nodes of /master, each with its tree
+        child('recovery', '/slave')
+        split = launcher_children(children_nodes(me), '/master/')
+        pids, why, refused = launcher_roots(me, 'master', '/master', None, split)
+        assert sorted(pids) == sorted([server.pid, after.pid]) and not refused
+        assert why == 'launcher %d of master also runs /slave/recovery: only its 2 nodes of /master are killed' % me
+        # no child in /master, nothing learned: a forged pid, refused (a prefix of the name is not the name space)
+        child('x', '/master_other')
+        lone = launcher_children(children_nodes(server.pid), '/master/')
+        assert lone == ([], [])
+        assert launcher_roots(server.pid, 'master', '/master', None, lone) == (
+            [], 'pid %d, named as the launcher of master, started no node of /master: its process tree is not '
+            'killed' % server.pid, True)
+        assert launcher_children([(7, '/master_other/x')], '/master/') == ([], ['/master_other/x'])
+    finally:
+        for proc in started:
+            proc.kill()
+            proc.wait()
+
+
 def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_not_forged(started, monkeypatch):
     """A power loss kills a site's nodes and nobody unregisters them: on a busy host another process
     may then listen on a dead node's port and answer its API. Fencing must not signal that process,

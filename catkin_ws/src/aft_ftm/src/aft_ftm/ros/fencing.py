@@ -282,6 +282,39 @@ class NamespaceFence(object):
         return asked
 
 
+def launcher_children(children, prefix):
+    """(the nodes of name space ``prefix`` among a launcher's children, the names of the others), from
+    [(pid, node name)] as site_watch.children_nodes reads them in /proc (its command line and environment,
+    which a heartbeat cannot forge)."""
+    inside = [(pid, name) for pid, name in children if name.startswith(prefix)]
+    outside = sorted(name for _, name in children if not name.startswith(prefix))
+    return inside, outside
+
+
+def launcher_roots(pid, site, namespace, learned, children):
+    """What fail-silence kills for a launcher ``pid`` a heartbeat named (alive, not reused, not above the
+    asker: checked before): (the pids whose process trees are killed, what was decided, whether the pid
+    was refused as nobody's launcher).
+
+    - ``learned``: the node of ``namespace`` learned by pid whose parent it is (NamespaceFence.started),
+      or None; ``children``: launcher_children's split of its children as /proc names them now.
+    - A launcher of the name space (a node learned there, or a child of it naming itself a node there)
+      that runs nothing else has its whole tree killed. Learned or not: a site that fails before its
+      peer's fence has asked its nodes for their pids (it fails within a second of starting, on a busy
+      host) is still silenced, its frozen nodes, which answer no pid, included (healing.test in CI).
+    - One that runs nodes of other name spaces too (another site, a service of the board) is not
+      killed: only its nodes of the name space are, each with its own tree.
+    - Neither: a forged heartbeat naming any pid; nothing is killed (refused)."""
+    inside, outside = children
+    if learned is None and not inside:
+        return [], ('pid %d, named as the launcher of %s, started no node of %s: its process tree is not killed'
+                    % (pid, site, namespace)), True
+    if outside:
+        return [p for p, _ in inside], ('launcher %d of %s also runs %s: only its %d nodes of %s are killed' % (
+            pid, site, ', '.join(outside), len(inside), namespace)), False
+    return [pid], 'launcher %d of %s (it started %s)' % (pid, site, learned or inside[0][1]), False
+
+
 def _lineage(pid):
     """[(pid, create_time)] of the parent of ``pid``, if it is not this process or above it; else []."""
     mine = {p.pid for p in psutil.Process().parents()} | {os.getpid()}

@@ -20,11 +20,12 @@ from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import (GATES, Step, failed_steps, incomplete, plan, promoted_unasked, role_after, role_in,
                         same_process, start_plan, unfenceable)
 from ..sites import silence_trees, this_host
+from ..site_watch import children_nodes
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
 from .diagnostics import Diagnostics
-from .fencing import NamespaceFence
+from .fencing import NamespaceFence, launcher_children, launcher_roots
 from .graph import master_answers
 from .params import param
 from . import tls_transport
@@ -171,6 +172,11 @@ class RecoveryNode(object):
         self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
 
     def setup(self, timeout):
+        # The peer's pids are learned from the start, not once this replica's own nodes answer: a peer
+        # failing meanwhile is silenced all the same (its launcher's children, fencing.launcher_roots),
+        # but its nodes of other launchers only by pid.
+        self.fence = NamespaceFence(self.peer_ns, rospy.get_name())
+        threading.Thread(target=self._learn_peer, name='learn-peer', daemon=True).start()
         names = [n + '/set_role' for n in self.promote] + (
             [self.protocol + '/set_role', self.entry + '/rebind'] if self.role == Role.BACKUP else [])
         for name in names:
@@ -201,8 +207,6 @@ class RecoveryNode(object):
         except (rospy.ServiceException, rospy.ROSException) as e:
             rospy.logerr('%s: cannot reach this replica\'s nodes: %s', rospy.get_name(), e)
             return False
-        self.fence = NamespaceFence(self.peer_ns, rospy.get_name())
-        threading.Thread(target=self._learn_peer, name='learn-peer', daemon=True).start()
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         self.ports = Ports([PortSpec('failures', SUBSCRIBE, 'aft_msgs/Failure'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')], {'failures': self._on_failure})
@@ -669,8 +673,7 @@ class RecoveryNode(object):
         nodes = self.fence.processes()
         roots = []
         if failure.pid > 0 and failure.host == this_host():
-            launcher, why = self._launcher(failure)
-            roots = [launcher] if launcher is not None else []
+            roots, why = self._launcher(failure)
             done.append(why)
         # Every thread seen stopped, then all killed: none runs another instruction or can be resumed, and
         # the promotion does not wait for their tear-down.
@@ -732,7 +735,8 @@ class RecoveryNode(object):
         return outcome.detail
 
     def _launcher(self, failure):
-        """(psutil.Process of the failed site's launcher on this host, or None; what was found)."""
+        """([psutil.Process] whose trees fail-silence kills for the failed site's launcher on this host,
+        what was found): see fencing.launcher_roots."""
         try:
             launcher = psutil.Process(failure.pid)
             created = launcher.create_time()
@@ -740,19 +744,26 @@ class RecoveryNode(object):
         except psutil.NoSuchProcess:
             start = None
         if start is None:
-            return None, 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
+            return [], 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
         since_heard = time.time() - (failure.detected.to_sec() - failure.silence)
         if not same_process(time.clock_gettime(time.CLOCK_BOOTTIME) - start, since_heard):
-            return None, 'pid %d now belongs to another process: not killed' % failure.pid
+            return [], 'pid %d now belongs to another process: not killed' % failure.pid
         if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
-            return None, 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        node = self.fence.started(failure.pid, created)
-        if node is None:   # a forged heartbeat or failure report names any pid it likes
-            why = ('pid %d, named as the launcher of %s, started no node learned of %s: its process tree is '
-                   'not killed' % (failure.pid, failure.site, self.peer_ns))
+            return [], 'launcher %d also runs this replica: only the name space is killed' % failure.pid
+        children = launcher_children(children_nodes(failure.pid), self.fence.prefix)
+        pids, why, refused = launcher_roots(failure.pid, failure.site, self.peer_ns,
+                                            self.fence.started(failure.pid, created), children)
+        if refused:   # a forged heartbeat or failure report names any pid it likes
             alarm(self.ports, 'pbr', 'fence_refused', why)
-            return None, why
-        return launcher, 'launcher %d of %s (it started %s)' % (failure.pid, failure.site, node)
+        roots = []
+        for pid in pids:
+            try:
+                proc = launcher if pid == failure.pid else psutil.Process(pid)
+                if proc.ppid() == failure.pid or proc is launcher:
+                    roots.append(proc)
+            except psutil.NoSuchProcess:
+                continue
+        return roots, why
 
     def _clean_master(self):
         """Ask the failed site's remaining nodes to shut down, and unregister the dead ones. Best effort,
