@@ -40,6 +40,7 @@ def gate(side='server', tls=False):
     node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
     node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
     node.runs, node.nonces = security.ProxyRuns(), security.ReplyNonces()
+    node.quota = security.PartyQuota()
     return node
 
 
@@ -276,3 +277,95 @@ def test_a_slow_calls_nonce_is_kept_while_thousands_of_later_calls_come_and_go()
     assert nonces.of('/p', 10) is None                        # noted longest ago: gone ...
     nonces.note('/p', 10, 'slow', oldest_pending=10)          # ... the Proxy's re-send notes it again
     assert nonces.of('/p', 10) == 'slow' and len(nonces.by_origin['/p']) == 8
+
+
+def test_an_insider_flooding_ids_it_never_confirms_is_held_at_its_quota_and_the_other_clients_are_served():
+    """Issue 16, Limits of session 33: the Protocol's reply cache is shared, and at its bound refuses
+    every new request, of every client. A certified insider sending ids it never confirms, from one
+    origin or from one-shot ones, filled it (100 000 entries in 1.7 s) and denied service to all. Now
+    its gate holds it at its quota: dropped, one alarm, the diagnostics say so; the honest party's
+    calls go through all along; the insider's own calls pass again once it confirms its older ones."""
+    from aft_msgs.msg import Request
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server.quota = security.PartyQuota(limit=20)
+    insider = Party.generate('insider')
+    keys = {'client': CLIENT, 'insider': insider}
+    server._peer = lambda party: (keys[party].box_public, keys[party].verify_public)
+    server._open = lambda party, blob, header: b'plaintext'
+
+    def request(party, origin, rid, oldest):
+        msg = Request(id=rid, origin=origin, client='/c', service_type='aft_msgs/Account', oldest_pending=oldest)
+        msg.payload = security.seal(keys[party], SERVER.box_public, security.header_of(
+            msg, security.REQUEST_FIELDS, 'server', '/ftm/pxy2pro'), b'deposit')
+        return msg
+
+    def forwarded():
+        return [(m.origin, m.id) for name, m in server.ports.published if name == 'requests_out']
+
+    def alarms():
+        return [m for name, m in server.ports.published if name == 'alarms']
+    for i in range(15):                                      # one origin that never confirms
+        server._on_request(request('insider', '/evil', 1000 + i, 1000))
+    for i in range(200):                                     # and one-shot origins
+        server._on_request(request('insider', '/evil%d' % i, 7, 7))
+        server._on_request(request('client', '/proxy', 100 + i, 100 + i))   # the honest client, confirming as it goes
+    assert len([o for o, _ in forwarded() if o.startswith('/evil')]) == 20
+    assert [(o, i) for o, i in forwarded() if o == '/proxy'] == [('/proxy', 100 + i) for i in range(200)]
+    (told,) = alarms()
+    assert (told.mechanism, told.kind) == ('sec', 'party_quota') and 'party insider has 20 requests outstanding' \
+        in told.detail
+    report = server._health()
+    assert report.level == health.Level.WARN and 'insider' in report.message and report.value('at_quota') == 'insider'
+    assert server.rejected == 195
+    # the 195 refused one-shot origins left nothing behind: no binding, no floor, no watermark
+    assert sorted(server.origins.bound) == sorted(server.quota.floors) == sorted(
+        ['/evil', '/proxy'] + ['/evil%d' % i for i in range(5)])
+    assert len(server.replays.watermarks) == 7
+    # a re-send of a counted id passes (its Proxy waits for it); the insider confirming its calls has room again
+    server._on_request(request('insider', '/evil', 1003, 1000))
+    assert forwarded()[-1] == ('/evil', 1003)
+    server._on_request(request('insider', '/evil', 1015, 1015))   # /evil confirms its 15: 5 held, this one counted
+    assert forwarded()[-1] == ('/evil', 1015) and server.quota.count['insider'] == 6
+    assert server.quota.at_quota() == []
+    for i in range(15):                                      # at its quota again (14 fit): told again
+        server._on_request(request('insider', '/evil', 1016 + i, 1015))
+    assert [a.kind for a in alarms()] == ['party_quota', 'party_quota']
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_a_partys_count_is_what_its_proxies_have_not_confirmed_under_random_traffic(seed):
+    """Property: whatever the order of requests, re-sends, late copies and confirmations, a party's
+    count is the number of distinct ids of its origins at or above their highest oldest_pending, never
+    above its limit, and a party's refusal never depends on another party's traffic."""
+    import random
+    rng = random.Random(seed)
+    quota = security.PartyQuota(limit=rng.randint(1, 12))
+    model = {}      # origin -> (party, highest oldest_pending, set of ids counted)
+    origins = {'/a%d' % i: 'a' for i in range(3)}
+    origins.update({'/b%d' % i: 'b' for i in range(3)})
+    for _ in range(400):
+        origin = rng.choice(sorted(origins))
+        party = origins[origin]
+        party_of, floor, ids = model.get(origin, (party, 0, set()))
+        oldest = floor + rng.choice([0, 0, 0, 1, 2]) if rng.random() < 0.9 else max(0, floor - 1)
+        rid = oldest + rng.randint(-1, 6)
+        floor = max(floor, oldest)
+        ids = {i for i in ids if i >= floor}
+        counted = sum(len(v[2] if o != origin else ids) for o, v in model.items() if v[0] == party) + \
+            (0 if origin in model else len(ids))
+        try:
+            quota.admit(party, origin, rid, oldest)
+            refused = False
+        except Rejected as e:
+            assert e.kind == 'party_quota'
+            refused = True
+        expect_refused = rid not in ids and rid >= floor and counted >= quota.limit
+        assert refused == expect_refused, 'seed %d' % seed
+        if not refused and rid >= floor:
+            ids.add(rid)
+        model[origin] = (party, floor, ids)
+        for p in 'ab':
+            held = sum(len(v[2]) for v in model.values() if v[0] == p)
+            assert quota.count[p] == held <= quota.limit, 'seed %d: party %s' % (seed, p)
+

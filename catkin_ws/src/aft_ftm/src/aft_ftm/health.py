@@ -152,15 +152,19 @@ def witness(epoch, primary, backup, reason, persistent, behind=0):
     return Report(Level.OK, 'epoch %d: primary %s, backup %s' % (epoch, primary, backup), values)
 
 
-def sec_gate(side, party, role, peers, awaiting, rejected, policy=''):
+def sec_gate(side, party, role, peers, awaiting, rejected, policy='', at_quota=()):
     """A SEC gate: ``peers`` parties whose certificates it holds, ``awaiting`` requests sealed and
     not answered (client side), ``rejected`` messages refused (forged, replayed, undecryptable);
     ``policy``: a server gate's policy file, None when it has none (each origin then bound to the
-    first party using it: a WARN), '' on the client side."""
+    first party using it: a WARN), '' on the client side; ``at_quota``: parties whose new requests
+    are dropped at their quota (server side, security.PartyQuota): a WARN."""
     values = [('mechanism', 'sec'), ('side', side), ('party', party), ('role', role.name if isinstance(role, Role)
                                                                       else role),
               ('certified_peers', peers), ('awaiting_replies', awaiting), ('rejected', rejected),
-              ('policy', policy or '')]
+              ('policy', policy or ''), ('at_quota', ', '.join(at_quota))]
+    if at_quota:
+        return Report(Level.WARN, 'at their quota of outstanding requests, new ones dropped: %s' % ', '.join(at_quota),
+                      values)
     if rejected:
         return Report(Level.WARN, '%d message(s) rejected (see /aft/alarms)' % rejected, values)
     if policy is None:

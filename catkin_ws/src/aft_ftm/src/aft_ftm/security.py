@@ -11,6 +11,7 @@ import base64
 import collections
 import fnmatch
 import hashlib
+import heapq
 import json
 import os
 import secrets
@@ -32,7 +33,7 @@ class Rejected(AftError):
     for another destination, or a request presented as a reply or the reverse), spoofed_origin (a
     party sending as a Proxy that is not its own), revoked, expired, bad_certificate, stale_status,
     ca_unreachable (the CA did not answer about a certificate in time, or no status of the CA has come
-    yet to judge it by)."""
+    yet to judge it by), party_quota (a party with as many requests outstanding as it may have)."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))
@@ -618,15 +619,18 @@ class OriginBinding(object):
         self.allowed = allowed
         self.bound = {}   # origin -> party
 
-    def bind(self, party, origin):
-        """The party that signed a request from origin: allowed, returns it; else Rejected."""
+    def bind(self, party, origin, keep=True):
+        """The party that signed a request from origin: allowed, returns it (bound to it, unless not
+        ``keep``: only checked); else Rejected."""
         if self.allowed is not None and not any(fnmatch.fnmatchcase(origin, pattern)
                                                 for pattern in self.allowed.get(party, ())):
             raise Rejected('spoofed_origin', 'party %s may not send as %s (policy: %s)'
                            % (party, origin, ', '.join(self.allowed.get(party, ())) or 'no origin'))
-        owner = self.bound.setdefault(origin, party)
+        owner = self.bound.get(origin, party)
         if owner != party:
             raise Rejected('spoofed_origin', 'party %s sent as %s, which is bound to party %s' % (party, origin, owner))
+        if keep:
+            self.bound[origin] = party
         return party
 
     def party_of(self, origin):
@@ -704,3 +708,67 @@ class ReplayGuard(object):
         """The lowest id of origin above every one verified here: where a Proxy started again with its
         clock behind numbers from (a STALE_ID answer, aft_msgs/Reply)."""
         return max(self.watermarks.get(origin, 0), self.highest.get(origin, 0) + 1)
+
+
+class PartyQuota(object):
+    """Server side: the requests each party has outstanding (ids at or above their origin's oldest
+    pending, whose replies the Protocol must keep), at most ``limit`` per party (0: no bound).
+
+    The Protocol's reply cache is shared: at its bound it refuses every new request, of every client
+    (README, Limits of session 33). A certified insider sending many ids it never confirms, from one
+    origin or from many one-shot ones, filled it and denied service to all. Past its quota a party's new
+    ids are refused here (``party_quota``, one alarm while it stays there) and dropped, not answered:
+    its Proxy sends them again, and they pass once its older calls are confirmed (a refusal answered
+    "not executed" would have to be remembered, so that a copy is not executed later, and that memory
+    is what the flood grows). Re-sends of an id counted already always pass. The other parties keep
+    their quotas: with ``parties x limit`` within the cache's bound, no party can fill it. A request
+    whose id is below its own oldest pending (the Protocol drops it as a late copy) is not counted."""
+
+    def __init__(self, limit=10000):
+        self.limit = limit
+        self.ids = {}      # origin -> set of outstanding ids
+        self.heaps = {}    # origin -> min-heap of the same ids (the lowest forgotten first)
+        self.party = {}    # origin -> the party it counts for (its binding: one party per origin)
+        self.floors = {}   # origin -> the highest oldest_pending it sent: ids below are confirmed
+        self.count = collections.Counter()   # party -> outstanding ids over all its origins
+        self.full = set()  # parties refused since they last had room (told once)
+
+    def admit(self, party, origin, request_id, oldest_pending):
+        """Count request ``request_id`` of ``origin`` for ``party``, once; raises Rejected
+        ``party_quota`` if the party holds ``limit`` ids already. Its ``first`` says whether this is the
+        party's first refusal since it last had room (the one to raise an alarm for). A refused request
+        of an origin not seen before leaves nothing behind (a flood of one-shot origins grows nothing)."""
+        known = origin in self.floors
+        floor = max(self.floors.get(origin, 0), oldest_pending)
+        if known:
+            self.floors[origin] = floor
+        ids, heap = self.ids.get(origin, set()), self.heaps.get(origin, [])
+        owner = self.party.get(origin, party)
+        while heap and heap[0] < floor:
+            ids.discard(heapq.heappop(heap))
+            self.count[owner] -= 1
+        if self.count[owner] <= self.limit * 9 // 10:
+            self.full.discard(owner)   # room again (a margin: a party at its quota is not told at every id)
+        if not ids:   # an origin with nothing outstanding keeps only its floor (as ReplayGuard its watermark)
+            for table in (self.ids, self.heaps, self.party):
+                table.pop(origin, None)
+            if not self.count[owner]:
+                del self.count[owner]
+        if request_id in ids or request_id < floor:
+            self.floors[origin] = floor
+            return
+        if self.limit and self.count[party] >= self.limit:
+            error = Rejected('party_quota', 'party %s has %d requests outstanding (its quota): %s/%d is dropped '
+                             'until its older calls are confirmed' % (party, self.count[party], origin, request_id))
+            error.first = party not in self.full
+            self.full.add(party)
+            raise error
+        ids.add(request_id)
+        heapq.heappush(heap, request_id)
+        self.ids[origin], self.heaps[origin], self.party[origin], self.floors[origin] = ids, heap, owner, floor
+        self.count[owner] += 1
+
+    def at_quota(self):
+        """The parties refused since they last had room."""
+        return sorted(self.full)
+

@@ -161,6 +161,10 @@ class SecGateNode(object):
         ~policy (server side, path, default none): the access-control policy file (aft_ftm.sec_policy):
             which party may send as which origin. Without it each origin is bound to the first party
             whose verified request used it (a warning in the log and in the diagnostics).
+        ~party_quota (int, 10000; 0: none): server side, the requests one party may have outstanding
+            (not confirmed by its Proxies), over all its origins; past it its new ones are dropped
+            (``party_quota``, one alarm while it stays there) until its older calls are confirmed. Keep
+            parties x quota within the Protocol's ~cache_capacity: then no party can fill the cache
         ~ca_timeout (float, 2 s): the longest wait for the CA's answer about a certificate; past it the
             message that needed it is refused (``ca_unreachable``) and sent again by its Proxy
         ~ca_silent_after (float, 3 s): the CA's status unheard this long raises ``ca_silent`` (revocations
@@ -217,6 +221,9 @@ class SecGateNode(object):
         # Proxy (or of this gate), for an id used again, is refused (security.ReplyNonces).
         self.runs = security.ProxyRuns()
         self.nonces = security.ReplyNonces()
+        # Server side: requests outstanding per party, bounded, so that no certified party fills the
+        # Protocol's shared reply cache (which then refuses everyone).
+        self.quota = security.PartyQuota(param('party_quota', config.non_negative_int, 10000))
         self.lock = threading.Lock()
         self.rejected = 0
         self.diagnostics = None
@@ -272,7 +279,8 @@ class SecGateNode(object):
     def _health(self):
         with self.lock:
             report = health.sec_gate(self.side, self.me.name, self.role, len(self.book.peers), len(self.sent),
-                                     self.rejected, policy=self.policy if self.side == 'server' else '')
+                                     self.rejected, policy=self.policy if self.side == 'server' else '',
+                                     at_quota=self.quota.at_quota() if self.side == 'server' else ())
         values = list(report.values) + [('destination', self.destination),
                                         ('tls', 'on' if self.tls else 'off')]
         if self.tls:
@@ -464,11 +472,18 @@ class SecGateNode(object):
                     header['nonce'] = nonce   # take its reply)
                 payload = self._open(party, request.payload, header)
                 with self.lock:
-                    self.origins.bind(party, request.origin)
+                    self.origins.bind(party, request.origin, keep=False)
                     self.replays.check(request.origin, request.id)
+                    # Past its quota, nothing of it is kept (a flood of one-shot origins grows nothing).
+                    self.quota.admit(party, request.origin, request.id, request.oldest_pending)
+                    self.origins.bind(party, request.origin)
                     self.replays.advance(request.origin, request.oldest_pending, request.id)
                     self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
         except security.Rejected as e:
+            if e.kind == 'party_quota' and not e.first:
+                with self.lock:
+                    self.rejected += 1   # told once while the party stays at its quota (diagnostics say it)
+                return
             self._reject(e, request)
             if e.kind == 'replay':
                 self._renumber(request, nonce)
