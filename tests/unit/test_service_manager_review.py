@@ -76,6 +76,8 @@ def test_a_shutdown_after_a_successor_started_leaves_the_successor_s_files_and_t
     node.config = {'manager': {'kill_timeout': 0.1}}
     node.wake_r, node.wake_w = os.pipe()
     node.local, node.safe_pub = None, None
+    node.supervisor = Supervisor(config('  a: {command: x}\n'))
+    node.supervisor._escalate('a: restart limit exhausted', 0.0)   # held: still the successor's record stays
     node.pid_file, node.record_file = str(tmp_path / 'm.pids'), str(tmp_path / 'm.record')
     node.own = {node.pid_file: trust.write_private_json(node.pid_file, {}),
                 node.record_file: trust.write_private_json(node.record_file, {})}
@@ -84,7 +86,7 @@ def test_a_shutdown_after_a_successor_started_leaves_the_successor_s_files_and_t
     for path in (node.pid_file, node.record_file):   # the successor's, written since
         trust.write_private_json(path, {'successor': True})
     node.shutdown()
-    assert os.path.exists(node.pid_file) and os.path.exists(node.record_file)
+    assert os.path.exists(node.pid_file) and trust.read_private_json(node.record_file) == {'successor': True}
     assert node.tree.killed == ['mine-1']
     os.close(node.wake_r)
     os.close(node.wake_w)

@@ -152,3 +152,23 @@ def test_a_clock_gone_back_starts_the_vote_afresh_instead_of_dropping_every_read
     for i in range(3):
         never.add(i, 100, 10.0)
     assert never.add(0, 1, 10.0) == [] and never.resets == 0
+
+
+def test_an_unstamped_laser_is_refused_loudly_and_the_other_two_still_vote():
+    """Review of session 34: a laser publishing readings stamped 0 (unset) was voted once as the
+    instant 0, then every later reading of every laser at 0 was late: nothing voted again, only a
+    throttled log. Now its readings are refused (said once), and the other two vote without it, as
+    without a crashed laser; lasers all unstamped vote nothing, said once each."""
+    from tjp_sim.filters import LaserVoter
+    voter = LaserVoter(silent_after=3)
+    assert voter.add(2, 0, 10.0) is LaserVoter.UNSTAMPED              # said once
+    decided = []
+    for stamp in range(1, 7):
+        decided += voter.add(0, stamp, 10.0) + voter.add(1, stamp, 10.05)
+        assert voter.add(2, 0, 99.0) == [] and voter.add(2, 0, 99.0) is not LaserVoter.UNSTAMPED
+    assert [(s, round(v.value, 3), v.ok) for s, v, _ in decided] == [(s, 10.025, True) for s in range(1, 5)]
+    assert [silent for _, _, silent in decided if silent] == [[2]]   # and reported silent, as a crashed one
+    assert voter.unstamped == [0, 0, 13] and voter.late == 0
+    none = LaserVoter()
+    assert [none.add(i, 0, 10.0) is LaserVoter.UNSTAMPED for i in range(3)] == [True] * 3
+    assert [none.add(i, 0, 10.0) for i in range(3)] == [[], [], []] and none.voted == 0

@@ -127,10 +127,16 @@ class LaserVoter(object):
     went back (a /clock reset, a sensor started again). Voting starts afresh from it and ``resets``
     counts it (review of session 34: every reading was late from then on, nothing voted again, and
     only a throttled log said so). None: never.
+
+    A reading stamped 0 (unset, by ROS convention) names no instant: it is refused, counted per laser
+    in ``unstamped``, and ``add`` says so once per laser (its caller raises an alarm). The other
+    lasers vote without it, as without a crashed one. It was voted as the instant 0 once, then every
+    later one was late: nothing was voted again, and only a throttled log said so (review of session 34).
     """
 
     NOTHING = 1e9   # stands for "nothing in range" in the vote
     INVALID = object()   # an invalid reading of one instant: the laser answered, with no value
+    UNSTAMPED = type('Unstamped', (tuple,), {})()   # add's answer to a laser's first unstamped reading (empty)
 
     def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2, reset_after=None):
         self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
@@ -144,12 +150,17 @@ class LaserVoter(object):
         self.voted = 0
         self.late = 0
         self.invalid = 0
+        self.unstamped = [0] * count
 
     def add(self, index, stamp, value):
         """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
-        for every group decided by it, oldest first."""
+        for every group decided by it, oldest first; for a reading stamped 0, the first of that laser,
+        UNSTAMPED (else [])."""
         if not 0 <= index < self.count:
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
+        if not stamp:
+            self.unstamped[index] += 1
+            return self.UNSTAMPED if self.unstamped[index] == 1 else []
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
             if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
                 self.late += 1

@@ -704,7 +704,7 @@ class ServiceManagerNode(object):
 
     def _restore(self):
         """Read what an earlier manager of this name recorded, if it did not stop cleanly (killed,
-        crashed, a power loss): its safe state holds (an operator clears it), and the services it left
+        crashed, a power loss) or stopped holding something: its safe state holds (an operator clears it), and the services it left
         down stay down (an operator starts them). Returns those names."""
         self.own[self.record_file] = trust.identity(self.record_file)   # its predecessor's: now its own
         try:
@@ -1115,8 +1115,32 @@ class ServiceManagerNode(object):
             self.tree.close(0.3)
         except Exception:   # shutdown paths never raise
             pass
-        # A clean stop stopped everything: a manager started again starts afresh. Only a manager
-        # killed or crashed leaves its record (and its services, which the next one adopts). Each
-        # file is removed only if it is still the one this manager wrote (review of session 34).
-        for path in (self.pid_file, self.record_file):
-            trust.unlink_own(path, self.own.get(path))
+        # A clean stop stopped everything, so the pid file goes. The record goes too unless it holds
+        # something: a safe state, or services left down. A manager started again then starts afresh.
+        # Removing a held record lifted the safe state at the next start (review of session 34).
+        # A killed or crashed manager leaves both, and the next one adopts its services. A file is
+        # removed or written only if it is still the one this manager wrote (review of session 34).
+        trust.unlink_own(self.pid_file, self.own.get(self.pid_file))
+        self._keep_or_remove_record()
+
+    def _keep_or_remove_record(self):
+        """At a clean stop: the record written again with what the supervisor holds (the safe state, the
+        services left down), for the next manager of this name, or removed if it holds nothing. Never
+        touches a successor's record. Never raises."""
+        try:
+            with self.lock:
+                held = self.supervisor.record()
+            own = self.own.get(self.record_file)
+            if not held['safe_state'] and not held['down']:
+                trust.unlink_own(self.record_file, own)
+                return
+            if trust.identity(self.record_file) not in (None, own):
+                return   # a successor's: left alone
+            trust.write_private_json(self.record_file, held)
+            rospy.logwarn('%s: stopped cleanly while holding %s: kept in %s for the next start (an operator clears '
+                          'it there)', rospy.get_name(), '; '.join(
+                              (['the safe state (%s)' % held['safe_state']] if held['safe_state'] else []) +
+                              (['%s down' % ', '.join(sorted(held['down']))] if held['down'] else [])),
+                          self.record_file)
+        except Exception as e:   # shutdown paths never raise
+            rospy.logerr('%s: the record %s could not be kept at the stop: %s', rospy.get_name(), self.record_file, e)

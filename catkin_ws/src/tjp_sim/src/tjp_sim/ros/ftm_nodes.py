@@ -93,7 +93,8 @@ class LaserVoteNode(PortedNode):
     Subscribes: laser_0, laser_1, laser_2 (sensor_msgs/Range), ports of the same names
     Publishes: out (sensor_msgs/Range): the voted gap, port ``out``; alarms (aft_msgs/Alarm), port ``alarms``:
         a laser disagreeing (laser_disagrees), a laser silent (laser_silent), no majority (no_majority,
-        nothing is published for that instant: the TJP keeps its last gap)
+        nothing is published for that instant: the TJP keeps its last gap), a laser whose readings are
+        stamped 0 (unstamped, once: they are not voted), the clock gone back (clock_reset)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -111,6 +112,10 @@ class LaserVoteNode(PortedNode):
             late, resets = self.voter.late, self.voter.resets
             decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg))
             late, reset = self.voter.late - late, self.voter.resets > resets
+        if decided is LaserVoter.UNSTAMPED:
+            self._alarm('unstamped', 'laser %d publishes readings stamped 0 (unset): they name no sensing instant and '
+                        'are not voted; the other lasers vote without it' % index, rospy.Time.now())
+            return
         if reset:
             self._alarm('clock_reset', 'laser %d stamped %.3f s, more than 1 s before the last instant voted: the '
                         'clock went back, voting starts afresh' % (index, msg.header.stamp.to_sec()), msg.header.stamp)
