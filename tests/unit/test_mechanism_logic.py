@@ -254,3 +254,24 @@ def test_a_composition_tolerates_the_union_of_its_parts_fault_models():
 def test_unknown_mechanism_is_named():
     with pytest.raises(ConfigError, match="unknown mechanism 'nvp' \\(known: pbr, lfr, tr, ad, sec\\)"):
         mechanisms.compose(['pbr', 'nvp'])
+
+
+def test_a_reply_whose_request_never_reaches_ad_after_is_handed_back_after_its_wait_never_kept_for_ever():
+    """Review of session 34: A&D's After kept a reply whose request it never saw (it started again after
+    Before passed the request on) for ever; only the Protocol's timeout told anything. Now it waits
+    its request ``wait`` seconds, in either order of arrival, then is handed back for an alarm;
+    requests waiting for their replies are bounded, the oldest handed back."""
+    from aft_ftm.assertions import Pairing
+    pairing = Pairing(wait=2.0, max_requests=3)
+    assert pairing.reply('a', 'reply a', now=10.0) is None          # before its request: waits
+    assert pairing.request('a', 'request a') == ('reply a', None)   # its request came: checked now
+    assert pairing.request('b', 'request b') == (None, None)
+    assert pairing.reply('b', 'reply b', now=11.0) == 'request b'
+    assert pairing.reply('lost', 'reply lost', now=11.0) is None
+    assert pairing.expired(12.9) == []                               # still within its wait
+    assert pairing.expired(13.0) == ['reply lost'] and pairing.expired(99.0) == []
+    assert pairing.request('lost', 'request lost (too late)') == (None, None)   # kept now, its reply gone
+    for k in 'cd':
+        assert pairing.request(k, 'request ' + k) == (None, None)
+    assert pairing.request('e', 'request e') == (None, 'request lost (too late)')   # the oldest goes
+    assert sorted(pairing.requests) == ['c', 'd', 'e'] and pairing.replies == {}

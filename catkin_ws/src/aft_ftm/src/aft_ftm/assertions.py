@@ -78,3 +78,43 @@ def _is_nan(verdict):
         return math.isnan(verdict)
     except (OverflowError, TypeError, ValueError):
         return False
+
+
+class Pairing(object):
+    """A&D's After checks each reply against its request, which comes on another topic (from Before)
+    and so in either order. Each waits here for the other, by key.
+
+    A reply whose request never comes (After started again after Before passed it on, or the
+    request lost) was kept for ever, and only the Protocol's timeout told anything (review of session
+    34). Now it waits ``wait`` seconds, then :meth:`expired` hands it back. The caller raises an
+    alarm and drops it: a reply is never passed on unchecked. Requests waiting for their reply (a slow
+    server) are kept, at most ``max_requests``. Past that the oldest goes, and :meth:`request` returns
+    it for the caller to say so."""
+
+    def __init__(self, wait=5.0, max_requests=10000):
+        self.wait, self.max_requests = wait, max_requests
+        self.requests = {}   # key -> request, in arrival order (dicts keep it)
+        self.replies = {}    # key -> (reply, when it came)
+
+    def request(self, k, request):
+        """A request came: returns (its reply if it came first or None, a request evicted or None)."""
+        parked = self.replies.pop(k, None)
+        if parked is not None:
+            return parked[0], None
+        self.requests[k] = request
+        evicted = None
+        if len(self.requests) > self.max_requests:
+            evicted = self.requests.pop(next(iter(self.requests)))
+        return None, evicted
+
+    def reply(self, k, reply, now):
+        """A reply came: returns its request, or None (the reply then waits for it)."""
+        request = self.requests.pop(k, None)
+        if request is None:
+            self.replies[k] = (reply, now)
+        return request
+
+    def expired(self, now):
+        """The replies that waited ``wait`` seconds or more for their request, now forgotten."""
+        old = [k for k, (_, since) in self.replies.items() if now - since >= self.wait]
+        return [self.replies.pop(k)[0] for k in old]

@@ -1,6 +1,7 @@
 """Assertion & Duplex (paper Table II: Before, Compute, Assert): user safety assertions on each
 request (before it is executed) and on each reply; a violation is an error reply and an alarm."""
 import threading
+import time
 
 import rospy
 from aft_msgs.msg import Reply
@@ -74,7 +75,14 @@ class AdAfterNode(AfterNode):
     """A&D's After: checks the reply assertions on (request, response); a violated assertion turns
     the reply into an error reply and raises an alarm. It never lets an unchecked reply through.
 
-    Parameters: ~reply_assertions (list of package.module:function, default none)
+    A reply whose request does not come within ~request_wait (this After started again after Before
+    passed the request on) is dropped with the alarm ``unchecked_reply``: never passed on unchecked;
+    the Protocol's timeout then answers. A request whose reply never comes is kept, at most
+    ~max_waiting; past that the oldest is forgotten with the alarm ``request_forgotten``
+    (assertions.Pairing).
+
+    Parameters: ~reply_assertions (list of package.module:function, default none);
+        ~request_wait (float, 5 s); ~max_waiting (int, 10000)
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``; bfr2aft (aft_msgs/Request), port ``requests``.
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services: ~rebind (aft_msgs/Rebind)
@@ -88,31 +96,41 @@ class AdAfterNode(AfterNode):
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                                           extra_callbacks={'requests': self._on_request})
         self.lock = threading.Lock()
-        self.requests = {}   # key -> request, until its reply comes
-        self.replies = {}    # key -> reply that came before its request
+        self.pairing = assertions.Pairing(param('request_wait', config.positive_float, 5.0),
+                                          param('max_waiting', config.positive_int, 10000))
 
     def setup(self, timeout):
         self.ports.bind('requests', 'bfr2aft')
         self.ports.bind('alarms')
-        return super(AdAfterNode, self).setup(timeout)
+        if not super(AdAfterNode, self).setup(timeout):
+            return False
+        rospy.Timer(rospy.Duration(min(1.0, self.pairing.wait / 2.0)), self._sweep)
+        return True
 
     def _on_request(self, request):
-        k = key(request)
         with self.lock:
-            reply = self.replies.pop(k, None)
-            if reply is None:
-                self.requests[k] = request
+            reply, evicted = self.pairing.request(key(request), request)
+        if evicted is not None:
+            alarm(self.ports, 'ad', 'request_forgotten', 'request %s/%d forgotten unanswered: %d requests wait for '
+                  'their replies (~max_waiting); its reply, if it comes, is not passed on unchecked'
+                  % (evicted.origin, evicted.id, self.pairing.max_requests), evicted)
         if reply is not None:
             self.ports.publish('out', self._checked(request, reply))
 
     def handle(self, reply):
-        k = key(reply)
         with self.lock:
-            request = self.requests.pop(k, None)
-            if request is None:
-                self.replies[k] = reply    # checked when its request arrives
-                return None
+            request = self.pairing.reply(key(reply), reply, time.monotonic())
+        if request is None:
+            return None   # checked when its request arrives
         return self._checked(request, reply)
+
+    def _sweep(self, _event):
+        with self.lock:
+            expired = self.pairing.expired(time.monotonic())
+        for reply in expired:
+            alarm(self.ports, 'ad', 'unchecked_reply', 'the reply to %s/%d came, but its request did not within %.1f s '
+                  '(this After started again after Before passed it on?): it cannot be checked and is not passed on; '
+                  'the Protocol\'s timeout answers the client' % (reply.origin, reply.id, self.pairing.wait), reply)
 
     def _checked(self, request, reply):
         if reply.status != Reply.OK or not self.checks:
