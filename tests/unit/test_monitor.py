@@ -131,6 +131,47 @@ def test_adaptation_failed_is_not_retried_until_the_model_changes():
     assert decision.to == select(core.model()).mechanisms
 
 
+@pytest.mark.parametrize('seed', range(10))
+def test_a_failing_adaptation_under_a_flapping_bandwidth_is_retried_ever_less_often(seed):
+    """Review of session 33: the bandwidth measured around a threshold changed the model every few
+    seconds, and each change retried an adaptation that kept failing (each a pause of the application
+    and a rollback). Now each failure in a row doubles the hold before a retry (2 s, 4 s, ... at most
+    120 s), whatever the model does; one success starts the count afresh. Property over random flaps:
+    no retry comes before its hold, and the holds grow."""
+    import random
+    rng = random.Random(seed)
+    core, clock = monitor(('pbr',))
+    high = core.high
+    attempts, elapsed = [], 0.0
+    while elapsed < 600.0:
+        step = rng.uniform(0.1, 3.0)
+        clock.advance(step)
+        elapsed += step
+        for site in SITES:
+            core.heartbeat(site, clock.now)
+        core.bandwidth(high * rng.choice([0.1, 10.0]), clock.now)   # flapping across the threshold
+        decision = core.decide(clock.now)
+        if decision is not None:
+            if attempts:
+                assert clock.now - attempts[-1] >= min(120.0, 2.0 * 2 ** (len(attempts) - 1)), 'seed %d' % seed
+            attempts.append(clock.now)
+            core.adaptation_failed('the new nodes did not start', clock.now)
+    gaps = [b - a for a, b in zip(attempts, attempts[1:])]
+    assert 3 <= len(attempts) <= 12, 'seed %d: %d attempts in 600 s: %s' % (seed, len(attempts), gaps)
+    assert max(n for n, _ in core.holds.values()) == len(attempts)
+    alarms = [a for a in core.take_alarms() if a.kind == 'adaptation_failed']
+    assert 'on this model not before 4 s from now (2 failed in a row)' in alarms[1].detail
+    # a success starts afresh
+    core.holds = {k: (n, clock.now) for k, (n, _) in core.holds.items()}
+    while core.decide(clock.now) is None:
+        clock.advance(0.5)
+        for site in SITES:
+            core.heartbeat(site, clock.now)
+        core.bandwidth(high * rng.choice([0.1, 10.0]), clock.now)
+    core.adapted(core.pending.to, clock.now)
+    assert core.holds == {}
+
+
 def test_inconsistent_but_no_better_choice_decides_nothing():
     core, clock = monitor(('pbr',))
     run(core, clock, 1.0)

@@ -109,8 +109,11 @@ class MonitorCore(object):
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
                  high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None,
-                 bandwidth_stale_after=30.0, never_heard_after=30.0):
+                 bandwidth_stale_after=30.0, never_heard_after=30.0, retry_hold=2.0, retry_hold_max=120.0):
         sites = list(sites) if not isinstance(sites, str) else [sites]
+        for name, value in (('retry_hold', retry_hold), ('retry_hold_max', retry_hold_max)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value >= 0:
+                raise ConfigError('%s must be a number of seconds >= 0, got %r' % (name, value))
         if not sites or len(set(sites)) != len(sites) or not all(isinstance(s, str) and s for s in sites):
             raise ConfigError('sites must be distinct non-empty names, got %r' % (sites,))
         if isinstance(lost_after, bool) or not isinstance(lost_after, numbers.Real) or not lost_after > 0:
@@ -147,6 +150,14 @@ class MonitorCore(object):
         self.state = MonitorState.WATCHING
         self.pending = None         # the Decision being carried out, while ADAPTING
         self.failed_model = None    # the model signature the last failed adaptation was decided on
+        # Per model signature an adaptation failed on: (failures in a row, not retried before). A model
+        # flapping across a threshold (a bandwidth measured around it) came back to it every few seconds,
+        # and each time retried the adaptation that kept failing, each a pause and a rollback (review of
+        # session 33). The hold doubles with each failure; a model never failed on (a site lost) is
+        # decided on at once; a success forgets them all.
+        self.retry_hold, self.retry_hold_max = retry_hold, retry_hold_max
+        self.holds = {}
+        self.hold_told = None       # the signature whose hold was noted last
         self.pending_signature = None   # the model signature of the decision under way
         self.history = []           # [(now, description)]
         self.condition = None       # (alarm kind, running, model signature) of the inconsistency alarmed last
@@ -345,8 +356,16 @@ class MonitorCore(object):
                         'reaches from it does better: %s%s; %s keeps running' % (
                             running, why, selection.reason, self._unreachable(model), running))
             return None
+        signature = self._signature()
+        failures, not_before = self.holds.get(signature, (0, now))
+        if now < not_before:
+            if self.hold_told != signature:
+                self.hold_told = signature
+                self._note(now, 'an adaptation on this model failed %d time(s) in a row: not tried again before '
+                                '%.1f s from now' % (failures, not_before - now))
+            return None
         self.condition = None
-        self.pending_signature = self._signature()   # the model the decision was made on
+        self.pending_signature = signature   # the model the decision was made on
         self.pending = Decision(self.running, selection.mechanisms,
                                 '%s is inconsistent: %s; selected %s: %s' % (
                                     running, why, selection.name, selection.reason),
@@ -394,6 +413,7 @@ class MonitorCore(object):
         before = change_model.composition_name(self.running)
         self.running = target
         self.pending = None
+        self.holds.clear()
         self._change_state(MonitorState.WATCHING, 'running %s' % change_model.composition_name(target), now)
         if alarm:
             self.outbox.append(MonitorAlarm(ADAPTATION_INCOMPLETE, 'adaptation %s -> %s stands, but: %s' % (
@@ -401,7 +421,8 @@ class MonitorCore(object):
 
     def adaptation_failed(self, error, now, rollback_failed=False):
         """The adaptation failed (refused, or rolled back): the old composition still runs; no retry until
-        the model changes. ``rollback_failed``: its rollback could not undo everything (the report's
+        the model changes; on the model it failed on, not before a hold that doubles with each failure
+        there (retry_hold, at most retry_hold_max seconds). ``rollback_failed``: its rollback could not undo everything (the report's
         state FAILED): the system may not be as before. Raises adaptation_failed or rollback_failed."""
         now = _time(now)
         if self.state != MonitorState.ADAPTING:
@@ -411,6 +432,11 @@ class MonitorCore(object):
         # application that changed) is a reason to decide again; taken in here, it was never acted on
         # (review of the monitor, session 33).
         self.failed_model = self.pending_signature or self._signature()
+        failures = self.holds.get(self.failed_model, (0, now))[0] + 1
+        hold = min(self.retry_hold_max, self.retry_hold * 2 ** (failures - 1))
+        self.holds[self.failed_model], self.hold_told = (failures, now + hold), None
+        retry = 'retried when the model changes, on this model not before %.0f s from now (%d failed in a row)' % (
+            hold, failures)
         move = '%s -> %s' % (change_model.composition_name(self.pending.from_),
                              change_model.composition_name(self.pending.to))
         target = change_model.composition_name(self.pending.to)
@@ -421,10 +447,10 @@ class MonitorCore(object):
         if rollback_failed:
             self.outbox.append(MonitorAlarm(ROLLBACK_FAILED, 'adaptation %s failed and its rollback did not undo '
                                             'everything: %s; the system may not be as before (check by hand); '
-                                            'retried when the model changes' % (move, error)))
+                                            '%s' % (move, error, retry)))
         else:
             self.outbox.append(MonitorAlarm(ADAPTATION_FAILED, 'adaptation %s failed: %s; still running %s, '
-                                            'retried when the model changes' % (move, error, running)))
+                                            '%s' % (move, error, running, retry)))
 
 
 # -- from a decision to a shipped adaptation script ------------------------------------------------

@@ -61,6 +61,9 @@ class MonitorNode(object):
         ~script_args (dict, default {}): arguments given to each shipped script, before the monitor's
             own, e.g. {compose: [server:=plan, state_manager:=planner], switch: [state_manager:=planner]}.
         ~period (float, 0.1 s): how often the model is checked.
+        ~retry_hold (float, 2 s), ~retry_hold_max (float, 120 s): an adaptation that failed on a model is
+            tried again on that model (it came back: a bandwidth flapping across a threshold) only after
+            a hold that doubles with each failure there, up to ~retry_hold_max; a success forgets them.
     Subscribes:
         <ftm_ns>/heartbeat/<site> (aft_msgs/Heartbeat): R, the sites alive.
         alarms (aft_msgs/Alarm): faults observed by the mechanisms extend F; an alarm whose source is
@@ -99,7 +102,9 @@ class MonitorNode(object):
             for name in running:
                 mechanisms.mechanism(name)
             self.core = MonitorCore(faults, AppModel(deterministic, state_access), self.sites, running,
-                                    time.monotonic(), lost_after, high, low)
+                                    time.monotonic(), lost_after, high, low,
+                                    retry_hold=param('retry_hold', config.non_negative_float, 2.0),
+                                    retry_hold_max=param('retry_hold_max', config.non_negative_float, 120.0))
         except ConfigError as e:
             raise ConfigError('%s: %s' % (rospy.get_name(), e))
         self.lock = threading.Lock()
