@@ -15,3 +15,30 @@ def test_a_launch_asked_for_the_witnesss_primary_is_refused_as_a_failure_not_an_
     assert rejoin_command.main(['master', '--launch', 'roslaunch x y.launch']) == 1
     assert started == [] and 'not launched' in capsys.readouterr().err
     assert rejoin_command.main(['master']) == 0     # without --launch: nothing to re-join, as before
+
+
+def test_with_takeover_a_launch_waits_for_the_backup_to_take_over_and_never_launches_a_primary(monkeypatch, capsys):
+    """Review of session 33: `rejoin SITE --launch` right after SITE failed, before its peer's verdict,
+    could only refuse (exit 1, run it again later). With --takeover it waits for the witness to name
+    another primary, then launches; a primary that never stops being one is never launched."""
+    monkeypatch.setattr(rejoin_command.rospy, 'wait_for_service', lambda service, timeout: None)
+    monkeypatch.setattr(rejoin_command.time, 'sleep', lambda s: None)
+    answers = [('master', 'slave', 7)] * 3 + [('slave', '', 8)] * 2 + [('slave', 'master', 9)]
+    asked = []
+
+    def status(service):
+        asked.append(service)
+        primary, backup, epoch = answers[min(len(asked), len(answers)) - 1]
+        return types.SimpleNamespace(epoch=epoch, primary=primary, backup=backup)
+    monkeypatch.setattr(rejoin_command, 'status', status)
+    started = []
+    monkeypatch.setattr(rejoin_command.subprocess, 'Popen', lambda *a, **k: started.append(a[0]))
+    assert rejoin_command.main(['master', '--launch', 'roslaunch x y.launch', '--takeover', '30']) == 0
+    assert started == [['roslaunch', 'x', 'y.launch']] and len(asked) >= 5   # launched after slave took over
+    # a primary that stays the primary: nothing launched, exit 1
+    answers[:] = [('master', 'slave', 7)]
+    asked.clear(), started.clear()
+    clock = iter(range(0, 1000, 5))
+    monkeypatch.setattr(rejoin_command.time, 'monotonic', lambda: next(clock))
+    assert rejoin_command.main(['master', '--launch', 'roslaunch x y.launch', '--takeover', '30']) == 1
+    assert started == [] and 'not launched' in capsys.readouterr().err

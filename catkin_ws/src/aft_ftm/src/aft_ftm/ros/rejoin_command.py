@@ -1,9 +1,11 @@
-"""rosrun aft_ftm rejoin SITE [--launch 'COMMAND'] [--timeout S] [--witness SERVICE]
+"""rosrun aft_ftm rejoin SITE [--launch 'COMMAND'] [--takeover S] [--timeout S] [--witness SERVICE]
 
 Brings a replica site back into its PBR pair: optionally starts it (COMMAND, e.g. its roslaunch,
 detached in a session of its own so that it outlives this command), then waits until the witness
 names SITE the backup of the serving primary, which happens once its state transfer is
-acknowledged. A site re-joins by itself when it starts; this command tells when it has.
+acknowledged. A site re-joins by itself when it starts; this command tells when it has. A site the
+witness still names the primary is never launched: with --takeover S it waits up to S seconds for
+its backup to take over (right after the primary failed, before its peer's verdict), then launches.
 Exit status: 0 re-joined (or, without --launch, SITE is the primary), 1 not within the timeout or
 SITE still the primary with --launch (nothing started), 2 bad use or no witness.
 """
@@ -29,10 +31,19 @@ def main(argv):
     parser.add_argument('--launch', default='', help='command that starts the site (e.g. its roslaunch)')
     parser.add_argument('--timeout', type=float, default=60.0, help='seconds to wait for the join (60)')
     parser.add_argument('--witness', default='/aft/witness/request', help='the witness service')
+    parser.add_argument('--takeover', type=float, default=0.0,
+                        help='with --launch, seconds to wait for another site to become the primary (0)')
     args = parser.parse_args(rospy.myargv(argv))
     try:
         rospy.wait_for_service(args.witness, 5.0)
         before = status(args.witness)
+        if before.primary == args.site and args.launch and args.takeover > 0:
+            print('rejoin: %s is still the primary of epoch %d: waiting up to %.0f s for its backup to take over'
+                  % (args.site, before.epoch, args.takeover))
+            deadline = time.monotonic() + args.takeover
+            while before.primary == args.site and time.monotonic() < deadline:
+                time.sleep(0.05)
+                before = status(args.witness)
     except (rospy.ROSException, rospy.ServiceException) as e:
         print('rejoin: the witness %s cannot be reached: %s' % (args.witness, e), file=sys.stderr)
         return 2
@@ -42,7 +53,7 @@ def main(argv):
         # replace its running nodes; one that failed re-joins once its peer took over.
         print('rejoin: %s is still the primary of epoch %d for the witness: not launched. If it failed, its '
               'backup takes over once its crash detector declares it (the witness then names another '
-              'primary): run this again then. A primary alone that failed cannot be replaced by its own '
+              'primary): run this again then, or give --takeover. A primary alone that failed cannot be replaced by its own '
               'restart (it holds no state); see the README, "When the failed site comes back"'
               % (args.site, before.epoch), file=sys.stderr)
         return 1
