@@ -226,55 +226,127 @@ class FakeMaster(object):
         return self.uris[name]
 
 
-def test_a_launcher_is_known_by_its_children_in_proc_even_before_any_of_its_nodes_told_its_pid():
-    """healing.test in CI: the primary failed (its server stopped) within a second of the backup's start,
-    before the backup's fence had asked the primary's nodes for their pids. The launcher named by the
-    heartbeats was refused as nobody's launcher and the stopped server lived on. Its children as /proc
-    names them (``__name:=``, ROS_NAMESPACE: a heartbeat cannot forge them) make it the launcher; one
-    that also runs nodes of another name space has only its nodes of this one killed; one with no such
-    child (a forged heartbeat naming any pid) is refused."""
-    from aft_ftm.ros.fencing import launcher_children, launcher_roots
-    from aft_ftm.site_watch import children_nodes
+LAUNCHER = r"""
+import os, subprocess, sys, time
+for spec in sys.argv[1:]:
+    ns, name = spec.split(':')
+    subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)', '__name:=' + name],
+                     env=dict(os.environ, ROS_NAMESPACE=ns))
+print('ready', flush=True)
+time.sleep(60)
+"""
+
+
+class _Ports(object):
+    def __init__(self):
+        self.published = []
+
+    def publish(self, port, msg):
+        self.published.append(msg)
+
+
+@pytest.fixture
+def launchers(tmp_path, monkeypatch):
+    """start(program, 'ns:name', ...): a process whose command line runs ``program`` (roslaunch, or
+    anything else) and whose children are named as roslaunch names nodes; every tree killed at the end."""
     import psutil
-    sleeper = [sys.executable, '-c', 'import time; time.sleep(60)']
+    import rospy
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/recovery')
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
     started = []
 
-    def child(name, ns):
-        proc = subprocess.Popen(sleeper + ['__name:=' + name], env=dict(os.environ, ROS_NAMESPACE=ns))
+    def start(program, *children):
+        script = tmp_path / program
+        script.write_text(LAUNCHER)
+        proc = subprocess.Popen([sys.executable, str(script)] + list(children), stdout=subprocess.PIPE)
         started.append(proc)
+        assert proc.stdout.readline().strip() == b'ready'
         deadline = time.monotonic() + 10.0
-        while '__name:=' + name not in psutil.Process(proc.pid).cmdline() and time.monotonic() < deadline:
-            time.sleep(0.005)
+        while time.monotonic() < deadline and sum('__name:=' in ' '.join(c.cmdline())
+                                                  for c in psutil.Process(proc.pid).children()) < len(children):
+            time.sleep(0.01)
         return proc
-    try:
-        server, after = child('bank_server', '/master'), child('after', '/master')
-        me = os.getpid()
-        split = launcher_children(children_nodes(me), '/master/')
-        assert sorted(split[0]) == sorted([(server.pid, '/master/bank_server'), (after.pid, '/master/after')])
-        assert split[1] == []
-        assert launcher_roots(me, 'master', '/master', None, split) == (
-            [me], 'launcher %d of master (it started /master/bank_server)' % me, False)
-        # the same, learned by pid meanwhile: the learned node is named
-        assert launcher_roots(me, 'master', '/master', '/master/after', split)[:2] == (
-            [me], 'launcher %d of master (it started /master/after)' % me)
-        # a launcher running another site's node too: only its nodes of /master, each with its tree
-        child('recovery', '/slave')
-        split = launcher_children(children_nodes(me), '/master/')
-        pids, why, refused = launcher_roots(me, 'master', '/master', None, split)
-        assert sorted(pids) == sorted([server.pid, after.pid]) and not refused
-        assert why == 'launcher %d of master also runs /slave/recovery: only its 2 nodes of /master are killed' % me
-        # no child in /master, nothing learned: a forged pid, refused (a prefix of the name is not the name space)
-        child('x', '/master_other')
-        lone = launcher_children(children_nodes(server.pid), '/master/')
-        assert lone == ([], [])
-        assert launcher_roots(server.pid, 'master', '/master', None, lone) == (
-            [], 'pid %d, named as the launcher of master, started no node of /master: its process tree is not '
-            'killed' % server.pid, True)
-        assert launcher_children([(7, '/master_other/x')], '/master/') == ([], ['/master_other/x'])
-    finally:
-        for proc in started:
-            proc.kill()
-            proc.wait()
+    yield start
+    for proc in started:
+        try:
+            for child in psutil.Process(proc.pid).children(recursive=True):
+                child.kill()
+        except psutil.Error:
+            pass
+        proc.kill()
+        proc.wait()
+
+
+def _recovery(failed_pid):
+    """The failover's view: a Recovery of /slave (built without ROS) and the failure naming failed_pid."""
+    import rospy
+    from aft_msgs.msg import Failure
+    from aft_ftm.ros.fencing import NamespaceFence
+    from aft_ftm.ros.recovery_node import RecoveryNode
+    from aft_ftm.sites import this_host
+    node = RecoveryNode.__new__(RecoveryNode)
+    node.fence, node.peer_ns, node.ports = NamespaceFence('/master', '/slave/recovery'), '/master', _Ports()
+    failure = Failure(site='master', host=this_host(), pid=failed_pid, reason='silent', silence=0.0,
+                      detected=rospy.Time.from_sec(time.time()))
+    return node, failure
+
+
+def test_a_launcher_is_known_by_its_children_in_proc_even_before_any_of_its_nodes_told_its_pid(launchers):
+    """healing.test in CI: the primary failed (its server stopped) within a second of the backup's start,
+    before the backup's fence had asked the primary's nodes for their pids. The launcher the heartbeats
+    named was refused as nobody's launcher and the stopped server lived on. Now a roslaunch whose
+    children name themselves nodes of the failed site (/proc: a heartbeat cannot forge it) is its
+    launcher, and its whole tree is killed."""
+    site = launchers('roslaunch', '/master:bank_server', '/master:after')
+    node, failure = _recovery(site.pid)
+    roots, why = node._launcher(failure)
+    assert [r.pid for r in roots] == [site.pid] and why == 'launcher %d of master (it started /master/bank_server)' \
+        % site.pid
+    assert node.ports.published == []
+
+
+def test_a_forged_heartbeat_naming_a_process_that_is_no_launcher_kills_nothing(launchers):
+    """Review of session 35: the adaptation engine starts guards that carry their node's command line
+    (``__name:=before``, ROS_NAMESPACE /master): by its children alone, the engine passed for /master's
+    launcher, and a forged heartbeat naming it had its whole tree killed (the surviving site's
+    replacement nodes with it). A process that runs no launcher, or whose children are of another name
+    space (the client's roslaunch), is refused with the alarm fence_refused."""
+    import psutil
+    for program, children in (('adapt', ('/master:before',)), ('roslaunch', ('/client:proxy', '/master_other:x')),
+                              ('roslaunch', ())):
+        other = launchers(program, *children)
+        node, failure = _recovery(other.pid)
+        roots, why = node._launcher(failure)
+        assert roots == [] and why.startswith('pid %d, named as the launcher of master, started no node of /master'
+                                              % other.pid), why
+        (told,) = node.ports.published
+        assert (told.kind, told.detail) == ('fence_refused', why)
+        assert psutil.Process(other.pid).status() != psutil.STATUS_STOPPED
+
+
+def test_a_launcher_running_other_nodes_too_is_stopped_and_only_the_failed_sites_nodes_are_killed(launchers):
+    """Review of session 35: a launcher that runs the failed site's nodes and others (another site, a
+    service of the board) had its whole tree killed; only the failed site's nodes are now, and the
+    launcher is left stopped (it starts none of them again: a respawn, a node not started yet), with
+    the alarm fence_partial."""
+    import psutil
+    mixed = launchers('roslaunch', '/master:bank_server', '/aft:witness')
+    node, failure = _recovery(mixed.pid)
+    roots, why = node._launcher(failure)
+    children = {c.pid: ' '.join(c.cmdline()) for c in psutil.Process(mixed.pid).children()}
+    assert [r.pid for r in roots] == [p for p, c in children.items() if '__name:=bank_server' in c]
+    assert why == 'launcher %d of master also runs /aft/witness: stopped, and only its 1 nodes of /master killed' \
+        % mixed.pid
+    assert psutil.Process(mixed.pid).status() == psutil.STATUS_STOPPED
+    (told,) = node.ports.published
+    assert told.kind == 'fence_partial' and 'its other nodes run on' in told.detail
+    psutil.Process(mixed.pid).resume()
+    from aft_ftm.ros.fencing import is_launcher, launcher_children
+    assert launcher_children([(7, '/master_other/x'), (8, None), (9, '/master/a')], '/master/') == (
+        [(9, '/master/a')], ['/master_other/x', 'pid 8 (no node)'])
+    assert is_launcher(['/usr/bin/python3', '/usr/bin/roslaunch', 'x.launch'])
+    assert is_launcher([sys.executable, '-m', 'aft_ftm.ros.guarded_launch', '--poll', '0.2'])
+    assert not is_launcher([sys.executable, '/opt/ros/lib/aft_ftm/adapt', '__name:=adapt'])
 
 
 def test_a_dead_nodes_registration_whose_port_reaches_another_process_is_stale_not_forged(started, monkeypatch):

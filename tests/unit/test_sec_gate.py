@@ -288,7 +288,8 @@ def test_an_insider_flooding_ids_it_never_confirms_is_held_at_its_quota_and_the_
     from aft_msgs.msg import Request
     server = gate()
     server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
-    server.quota = security.PartyQuota(limit=20)
+    now = [0.0]
+    server.quota = security.PartyQuota(limit=20, clock=lambda: now[0])
     insider = Party.generate('insider')
     keys = {'client': CLIENT, 'insider': insider}
     server._peer = lambda party: (keys[party].box_public, keys[party].verify_public)
@@ -328,7 +329,8 @@ def test_an_insider_flooding_ids_it_never_confirms_is_held_at_its_quota_and_the_
     server._on_request(request('insider', '/evil', 1015, 1015))   # /evil confirms its 15: 5 held, this one counted
     assert forwarded()[-1] == ('/evil', 1015) and server.quota.count['insider'] == 6
     assert server.quota.at_quota() == []
-    for i in range(15):                                      # at its quota again (14 fit): told again
+    now[0] = 11.0
+    for i in range(15):                                      # at its quota again (14 fit), 11 s on: told again
         server._on_request(request('insider', '/evil', 1016 + i, 1015))
     assert [a.kind for a in alarms()] == ['party_quota', 'party_quota']
 
@@ -336,36 +338,96 @@ def test_an_insider_flooding_ids_it_never_confirms_is_held_at_its_quota_and_the_
 @pytest.mark.parametrize('seed', range(20))
 def test_a_partys_count_is_what_its_proxies_have_not_confirmed_under_random_traffic(seed):
     """Property: whatever the order of requests, re-sends, late copies and confirmations, a party's
-    count is the number of distinct ids of its origins at or above their highest oldest_pending, never
-    above its limit, and a party's refusal never depends on another party's traffic."""
+    count is the number of distinct ids of its origins at or above the highest oldest_pending admitted
+    from them, never above its limit, nor its origins; a refused request changes nothing (its floor
+    neither: review of session 35); a party's refusal never depends on another party's traffic."""
     import random
     rng = random.Random(seed)
     quota = security.PartyQuota(limit=rng.randint(1, 12))
-    model = {}      # origin -> (party, highest oldest_pending, set of ids counted)
+    model = {}      # origin -> (party, highest oldest_pending admitted, set of ids counted)
     origins = {'/a%d' % i: 'a' for i in range(3)}
     origins.update({'/b%d' % i: 'b' for i in range(3)})
     for _ in range(400):
         origin = rng.choice(sorted(origins))
         party = origins[origin]
-        party_of, floor, ids = model.get(origin, (party, 0, set()))
+        _, floor, ids = model.get(origin, (party, 0, set()))
         oldest = floor + rng.choice([0, 0, 0, 1, 2]) if rng.random() < 0.9 else max(0, floor - 1)
         rid = oldest + rng.randint(-1, 6)
-        floor = max(floor, oldest)
-        ids = {i for i in ids if i >= floor}
-        counted = sum(len(v[2] if o != origin else ids) for o, v in model.items() if v[0] == party) + \
-            (0 if origin in model else len(ids))
+        new_floor = max(floor, oldest)
+        kept = {i for i in ids if i >= new_floor}
+        fresh = rid >= new_floor and rid not in kept
+        others = sum(len(v[2]) for o, v in model.items() if v[0] == party and o != origin)
+        new_origin = origin not in model
+        expect_refused = (fresh or new_origin) and (
+            others + len(kept) + fresh > quota.limit or
+            new_origin and sum(1 for v in model.values() if v[0] == party) >= quota.limit)
         try:
             quota.admit(party, origin, rid, oldest)
             refused = False
         except Rejected as e:
             assert e.kind == 'party_quota'
             refused = True
-        expect_refused = rid not in ids and rid >= floor and counted >= quota.limit
         assert refused == expect_refused, 'seed %d' % seed
-        if not refused and rid >= floor:
-            ids.add(rid)
-        model[origin] = (party, floor, ids)
+        if not refused:
+            model[origin] = (party, new_floor, kept | ({rid} if fresh else set()))
         for p in 'ab':
             held = sum(len(v[2]) for v in model.values() if v[0] == p)
             assert quota.count[p] == held <= quota.limit, 'seed %d: party %s' % (seed, p)
+            assert quota.origins[p] == sum(1 for v in model.values() if v[0] == p) <= quota.limit
+        assert {o: v[1] for o, v in model.items()} == quota.floors, 'seed %d' % seed
 
+
+def test_a_refused_request_moves_no_floor_so_ids_below_it_cannot_pass_uncounted():
+    """Review of session 35: a request refused at the quota still raised its origin's floor to its
+    oldest_pending; neither the replay guard nor the Protocol ever saw it, so every id below that
+    floor then passed uncounted (503 forwarded against a quota of 3), and filled the cache again."""
+    from aft_msgs.msg import Request
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server.quota = security.PartyQuota(limit=3)
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: b'plaintext'
+
+    def send(origin, rid, oldest):
+        msg = Request(id=rid, origin=origin, client='/c', service_type='aft_msgs/Account', oldest_pending=oldest)
+        msg.payload = security.seal(CLIENT, SERVER.box_public, security.header_of(
+            msg, security.REQUEST_FIELDS, 'server', '/ftm/pxy2pro'), b'deposit')
+        server._on_request(msg)
+    send('/x', 1, 0)
+    send('/x', 2, 0)
+    send('/b', 10 ** 9, 0)
+    send('/b', 10 ** 9 + 1, 10 ** 9)     # refused: changes nothing
+    for i in range(1, 500):
+        send('/b', i, 0)                  # below the refused request's oldest_pending
+    forwarded = [m for name, m in server.ports.published if name == 'requests_out']
+    assert len(forwarded) == 3 and server.quota.count['client'] == 3 and server.quota.floors['/b'] == 0
+    zero = security.PartyQuota(limit=0)   # no quota: nothing tracked at all
+    for i in range(100):
+        zero.admit('p', '/o%d' % i, 5, 0)
+    assert zero.floors == {} and zero.ids == {} and not zero.count
+
+
+def test_a_party_at_its_quota_is_told_again_only_after_it_had_room_and_some_seconds_passed():
+    """Review of session 35: with a small quota, confirming one call and sending one more raised a new
+    party_quota alarm every other request. A party is told again only once it had room and ``retell``
+    seconds passed since it was last told."""
+    now = [0.0]
+    quota = security.PartyQuota(limit=2, clock=lambda: now[0], retell=10.0)
+    quota.admit('p', '/o', 1, 1)
+    quota.admit('p', '/o', 2, 1)
+
+    def refused(rid, oldest):
+        with pytest.raises(Rejected) as error:
+            quota.admit('p', '/o', rid, oldest)
+        return error.value.first
+    assert refused(3, 1) is True and refused(4, 1) is False
+    told = []
+    for c in range(10, 100, 10):              # every 3 s: both confirmed (room), two more, one refused
+        now[0] += 3.0
+        quota.admit('p', '/o', c, c)
+        quota.admit('p', '/o', c + 1, c)
+        assert quota.at_quota() == []
+        if refused(c + 2, c):
+            told.append(now[0])
+        assert quota.at_quota() == ['p']
+    assert told == [12.0, 24.0]

@@ -712,63 +712,83 @@ class ReplayGuard(object):
 
 class PartyQuota(object):
     """Server side: the requests each party has outstanding (ids at or above their origin's oldest
-    pending, whose replies the Protocol must keep), at most ``limit`` per party (0: no bound).
+    pending, whose replies the Protocol must keep), at most ``limit`` per party, and at most ``limit``
+    origins per party (0: no bound, nothing tracked).
 
     The Protocol's reply cache is shared: at its bound it refuses every new request, of every client
     (README, Limits of session 33). A certified insider sending many ids it never confirms, from one
     origin or from many one-shot ones, filled it and denied service to all. Past its quota a party's new
-    ids are refused here (``party_quota``, one alarm while it stays there) and dropped, not answered:
-    its Proxy sends them again, and they pass once its older calls are confirmed (a refusal answered
-    "not executed" would have to be remembered, so that a copy is not executed later, and that memory
-    is what the flood grows). Re-sends of an id counted already always pass. The other parties keep
-    their quotas: with ``parties x limit`` within the cache's bound, no party can fill it. A request
-    whose id is below its own oldest pending (the Protocol drops it as a late copy) is not counted."""
+    ids are refused here (``party_quota``) and dropped, not answered: its Proxy sends them again, and
+    they pass once its older calls are confirmed (a refusal answered "not executed" would have to be
+    remembered, so that a copy is not executed later, and that memory is what the flood grows).
+    Re-sends of an id counted already always pass. The other parties keep their quotas: with
+    ``parties x limit`` within the cache's bound, no party can fill it. A request whose id is below its
+    origin's oldest pending (the Protocol drops it as a late copy) is not counted.
 
-    def __init__(self, limit=10000):
+    Only an admitted request moves its origin's floor (its oldest pending, which the Protocol then
+    learns too): a refused one changes nothing. Its floor moved the quota's count away from the
+    Protocol's cache (review of session 35: ids below it then passed uncounted, 503 against a quota of 3).
+    A party refused is told (``first``) at its first refusal, and again only after it had room and
+    ``retell`` seconds passed."""
+
+    def __init__(self, limit=10000, clock=None, retell=10.0):
         self.limit = limit
+        self.clock = clock or (lambda: 0.0)
+        self.retell = retell
         self.ids = {}      # origin -> set of outstanding ids
         self.heaps = {}    # origin -> min-heap of the same ids (the lowest forgotten first)
         self.party = {}    # origin -> the party it counts for (its binding: one party per origin)
-        self.floors = {}   # origin -> the highest oldest_pending it sent: ids below are confirmed
-        self.count = collections.Counter()   # party -> outstanding ids over all its origins
-        self.full = set()  # parties refused since they last had room (told once)
+        self.floors = {}   # origin -> the highest oldest_pending admitted from it: ids below are confirmed
+        self.count = collections.Counter()     # party -> outstanding ids over all its origins
+        self.origins = collections.Counter()   # party -> origins it has sent from (each costs memory here)
+        self.full = set()  # parties refused since they last had room
+        self.told = {}     # party -> when it was last told
 
     def admit(self, party, origin, request_id, oldest_pending):
         """Count request ``request_id`` of ``origin`` for ``party``, once; raises Rejected
-        ``party_quota`` if the party holds ``limit`` ids already. Its ``first`` says whether this is the
-        party's first refusal since it last had room (the one to raise an alarm for). A refused request
-        of an origin not seen before leaves nothing behind (a flood of one-shot origins grows nothing)."""
-        known = origin in self.floors
-        floor = max(self.floors.get(origin, 0), oldest_pending)
-        if known:
-            self.floors[origin] = floor
-        ids, heap = self.ids.get(origin, set()), self.heaps.get(origin, [])
-        owner = self.party.get(origin, party)
-        while heap and heap[0] < floor:
-            ids.discard(heapq.heappop(heap))
-            self.count[owner] -= 1
-        if self.count[owner] <= self.limit * 9 // 10:
-            self.full.discard(owner)   # room again (a margin: a party at its quota is not told at every id)
-        if not ids:   # an origin with nothing outstanding keeps only its floor (as ReplayGuard its watermark)
-            for table in (self.ids, self.heaps, self.party):
-                table.pop(origin, None)
-            if not self.count[owner]:
-                del self.count[owner]
-        if request_id in ids or request_id < floor:
-            self.floors[origin] = floor
+        ``party_quota`` if the party holds ``limit`` ids (or origins) already, changing nothing. Its
+        ``first`` says whether to raise an alarm for it."""
+        if not self.limit:
             return
-        if self.limit and self.count[party] >= self.limit:
-            error = Rejected('party_quota', 'party %s has %d requests outstanding (its quota): %s/%d is dropped '
-                             'until its older calls are confirmed' % (party, self.count[party], origin, request_id))
-            error.first = party not in self.full
-            self.full.add(party)
+        owner = self.party.get(origin, party)
+        floor = max(self.floors.get(origin, 0), oldest_pending)
+        ids, heap = self.ids.get(origin, set()), self.heaps.get(origin, [])
+        confirmed = []
+        while heap and heap[0] < floor:   # confirmed by this request: forgotten only if it is admitted
+            confirmed.append(heapq.heappop(heap))
+        fresh = request_id >= floor and request_id not in ids
+        new_origin = origin not in self.floors
+        count = self.count[owner] - len(confirmed) + (1 if fresh else 0)
+        if (fresh or new_origin) and (count > self.limit or new_origin and self.origins[owner] >= self.limit):
+            for i in confirmed:
+                heapq.heappush(heap, i)
+            what = ('%d origins' % self.origins[owner]) if new_origin and self.origins[owner] >= self.limit else \
+                ('%d requests outstanding' % self.count[owner])
+            error = Rejected('party_quota', 'party %s has %s (its quota): %s/%d is dropped until its older calls '
+                             'are confirmed' % (owner, what, origin, request_id))
+            now = self.clock()
+            error.first = owner not in self.full and now - self.told.get(owner, -self.retell) >= self.retell
+            if error.first:
+                self.told[owner] = now
+            self.full.add(owner)
             raise error
-        ids.add(request_id)
-        heapq.heappush(heap, request_id)
-        self.ids[origin], self.heaps[origin], self.party[origin], self.floors[origin] = ids, heap, owner, floor
-        self.count[owner] += 1
+        for i in confirmed:
+            ids.discard(i)
+        if fresh:
+            ids.add(request_id)
+            heapq.heappush(heap, request_id)
+        self.count[owner] = count
+        if new_origin:
+            self.origins[owner] += 1
+        self.floors[origin], self.party[origin] = floor, owner
+        if ids:
+            self.ids[origin], self.heaps[origin] = ids, heap
+        else:
+            self.ids.pop(origin, None)
+            self.heaps.pop(origin, None)
+        if count < self.limit:
+            self.full.discard(owner)   # room again
 
     def at_quota(self):
         """The parties refused since they last had room."""
         return sorted(self.full)
-

@@ -129,7 +129,8 @@ class LaserVoter(object):
     only a throttled log said so). None: never.
 
     A reading stamped 0 (unset, by ROS convention) names no instant: it is refused, counted per laser
-    in ``unstamped``, and ``add`` says so once per laser (its caller raises an alarm). The other
+    in ``unstamped``, and ``add`` says so once per laser, again after a stamped one (its caller raises
+    an alarm). The other
     lasers vote without it, as without a crashed one. It was voted as the instant 0 once, then every
     later one was late: nothing was voted again, and only a throttled log said so (review of session 34).
     """
@@ -151,6 +152,7 @@ class LaserVoter(object):
         self.late = 0
         self.invalid = 0
         self.unstamped = [0] * count
+        self.unstamped_told = [False] * count
 
     def add(self, index, stamp, value):
         """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
@@ -160,7 +162,11 @@ class LaserVoter(object):
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
         if not stamp:
             self.unstamped[index] += 1
-            return self.UNSTAMPED if self.unstamped[index] == 1 else []
+            if self.unstamped_told[index]:
+                return []
+            self.unstamped_told[index] = True
+            return self.UNSTAMPED
+        self.unstamped_told[index] = False   # stamped again: told again if it goes back to unstamped
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
             if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
                 self.late += 1

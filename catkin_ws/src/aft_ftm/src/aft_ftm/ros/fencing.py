@@ -282,37 +282,52 @@ class NamespaceFence(object):
         return asked
 
 
+def is_launcher(argv):
+    """Whether a command line runs a launcher: roslaunch, or aft_ftm's guard around a launch. Only
+    such a process is taken for a site's launcher on what /proc says of its children: any process
+    that started a node could pass otherwise (the adaptation engine starts guards that carry their
+    node's command line: review of session 35)."""
+    argv = list(argv or ())
+    return 'roslaunch' in {os.path.basename(a) for a in argv[:2]} or (
+        '-m' in argv[:3] and 'aft_ftm.ros.guarded_launch' in argv[:4])
+
+
 def launcher_children(children, prefix):
-    """(the nodes of name space ``prefix`` among a launcher's children, the names of the others), from
-    [(pid, node name)] as site_watch.children_nodes reads them in /proc (its command line and environment,
-    which a heartbeat cannot forge)."""
-    inside = [(pid, name) for pid, name in children if name.startswith(prefix)]
-    outside = sorted(name for _, name in children if not name.startswith(prefix))
+    """(the nodes of name space ``prefix`` among a launcher's direct children, the others), from
+    [(pid, node name or None)] as /proc names them (site_watch.node_name: its command line and
+    environment, which a heartbeat cannot forge). A child that names no node counts among the others:
+    a launcher's children are its nodes."""
+    inside = [(pid, name) for pid, name in children if name and name.startswith(prefix)]
+    outside = sorted(name or 'pid %d (no node)' % pid for pid, name in children
+                     if not (name and name.startswith(prefix)))
     return inside, outside
 
 
-def launcher_roots(pid, site, namespace, learned, children):
-    """What fail-silence kills for a launcher ``pid`` a heartbeat named (alive, not reused, not above the
-    asker: checked before): (the pids whose process trees are killed, what was decided, whether the pid
-    was refused as nobody's launcher).
+def launcher_roots(pid, site, namespace, learned, program, children):
+    """What fail-silence does to a launcher ``pid`` a heartbeat named (alive, not reused, not above the
+    asker: checked before): (the pids whose process trees are killed, what was decided, refused: whether
+    it is nobody's launcher, partial: whether it runs more than the failed site).
 
     - ``learned``: the node of ``namespace`` learned by pid whose parent it is (NamespaceFence.started),
-      or None; ``children``: launcher_children's split of its children as /proc names them now.
-    - A launcher of the name space (a node learned there, or a child of it naming itself a node there)
-      that runs nothing else has its whole tree killed. Learned or not: a site that fails before its
-      peer's fence has asked its nodes for their pids (it fails within a second of starting, on a busy
-      host) is still silenced, its frozen nodes, which answer no pid, included (healing.test in CI).
-    - One that runs nodes of other name spaces too (another site, a service of the board) is not
-      killed: only its nodes of the name space are, each with its own tree.
+      or None; ``program``: whether its command line is a launcher's (is_launcher); ``children``:
+      launcher_children's split of its direct children.
+    - A launcher of the name space (a node learned there, or a launcher program with a child naming
+      itself a node there) that runs nothing else has its whole tree killed, learned or not: a site that
+      fails before its peer's fence has asked its nodes for their pids (within a second of its start,
+      on a busy host) is still silenced, its frozen nodes included (healing.test in CI).
+    - One that runs other nodes too (another site, a service of the board) is partial: only its
+      nodes of the name space are killed, each with its tree (the caller keeps the launcher stopped, so
+      that it starts none of them again).
     - Neither: a forged heartbeat naming any pid; nothing is killed (refused)."""
     inside, outside = children
-    if learned is None and not inside:
-        return [], ('pid %d, named as the launcher of %s, started no node of %s: its process tree is not killed'
-                    % (pid, site, namespace)), True
+    if learned is None and not (program and inside):
+        return [], ('pid %d, named as the launcher of %s, started no node of %s%s: its process tree is not '
+                    'killed' % (pid, site, namespace, '' if program else ' and runs no launcher')), True, False
     if outside:
-        return [p for p, _ in inside], ('launcher %d of %s also runs %s: only its %d nodes of %s are killed' % (
-            pid, site, ', '.join(outside), len(inside), namespace)), False
-    return [pid], 'launcher %d of %s (it started %s)' % (pid, site, learned or inside[0][1]), False
+        return [p for p, _ in inside], ('launcher %d of %s also runs %s: stopped, and only its %d nodes of %s '
+                                        'killed' % (pid, site, ', '.join(outside), len(inside), namespace)), \
+            False, True
+    return [pid], 'launcher %d of %s (it started %s)' % (pid, site, learned or inside[0][1]), False, False
 
 
 def _lineage(pid):

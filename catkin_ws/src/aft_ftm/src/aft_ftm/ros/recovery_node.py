@@ -1,5 +1,6 @@
 """Recovery: fail-silence of the failed site, then failover or going on alone."""
 import json
+import signal
 import threading
 import time
 
@@ -20,12 +21,12 @@ from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import (GATES, Step, failed_steps, incomplete, plan, promoted_unasked, role_after, role_in,
                         same_process, start_plan, unfenceable)
 from ..sites import silence_trees, this_host
-from ..site_watch import children_nodes
+from ..site_watch import node_name
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
 from .diagnostics import Diagnostics
-from .fencing import NamespaceFence, launcher_children, launcher_roots
+from .fencing import NamespaceFence, is_launcher, launcher_children, launcher_roots
 from .graph import master_answers
 from .params import param
 from . import tls_transport
@@ -750,16 +751,33 @@ class RecoveryNode(object):
             return [], 'pid %d now belongs to another process: not killed' % failure.pid
         if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
             return [], 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        children = launcher_children(children_nodes(failure.pid), self.fence.prefix)
-        pids, why, refused = launcher_roots(failure.pid, failure.site, self.peer_ns,
-                                            self.fence.started(failure.pid, created), children)
+        learned = self.fence.started(failure.pid, created)
+        try:
+            program = is_launcher(launcher.cmdline())
+        except psutil.Error:
+            program = False
+        pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
+                                                     launcher_children(_children(launcher), self.fence.prefix))
+        if partial:
+            # It runs more than the failed site: stopped for good (it starts nothing of the site again, a
+            # respawn or a node it had not started yet), then its children read again, now that none
+            # can come or go; its other nodes run on. Never silent.
+            try:
+                launcher.send_signal(signal.SIGSTOP)
+            except psutil.Error:
+                pass
+            pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
+                                                         launcher_children(_children(launcher), self.fence.prefix))
+            alarm(self.ports, 'pbr', 'fence_partial', '%s; it stays stopped (SIGSTOP) so that it starts nothing of '
+                  '%s again: its other nodes run on without their launcher until an operator resumes or restarts '
+                  'it' % (why, failure.site))
         if refused:   # a forged heartbeat or failure report names any pid it likes
             alarm(self.ports, 'pbr', 'fence_refused', why)
         roots = []
         for pid in pids:
             try:
                 proc = launcher if pid == failure.pid else psutil.Process(pid)
-                if proc.ppid() == failure.pid or proc is launcher:
+                if proc is launcher or proc.ppid() == failure.pid:
                     roots.append(proc)
             except psutil.NoSuchProcess:
                 continue
@@ -778,3 +796,19 @@ class RecoveryNode(object):
             rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), count, self.peer_ns)
         except Exception as e:   # best effort: the failover is already done
             rospy.logwarn('%s: could not clean the master of %s: %s', rospy.get_name(), self.peer_ns, e)
+
+
+def _children(process):
+    """[(pid, node name or None)] of a process's direct children, as /proc names them (gone: left out)."""
+    found = []
+    try:
+        children = process.children()
+    except psutil.Error:
+        return found
+    for child in children:
+        try:
+            found.append((child.pid, node_name(child.cmdline(), child.environ())))
+        except psutil.Error:
+            continue
+    return found
+

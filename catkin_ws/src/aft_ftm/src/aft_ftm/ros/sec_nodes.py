@@ -223,7 +223,7 @@ class SecGateNode(object):
         self.nonces = security.ReplyNonces()
         # Server side: requests outstanding per party, bounded, so that no certified party fills the
         # Protocol's shared reply cache (which then refuses everyone).
-        self.quota = security.PartyQuota(param('party_quota', config.non_negative_int, 10000))
+        self.quota = security.PartyQuota(param('party_quota', config.non_negative_int, 10000), clock=time.monotonic)
         self.lock = threading.Lock()
         self.rejected = 0
         self.diagnostics = None
