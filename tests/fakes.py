@@ -19,3 +19,13 @@ class FakeClock(object):
     def advance(self, dt):
         self.now += dt
         return self.now
+
+
+class FakePublisher(object):
+    """A rospy.Publisher that keeps what it is given."""
+
+    def __init__(self):
+        self.published = []
+
+    def publish(self, msg):
+        self.published.append(msg)

@@ -13,7 +13,7 @@ from aft_ftm.change_model import Application, ChangeModel, Resources, consistent
 from aft_ftm.mechanisms import CRASH, SAFETY_VIOLATION, TAMPERING, TRANSIENT_VALUE
 from aft_ftm.errors import ConfigError
 from aft_ftm.monitor import MonitorCore, MonitorState, transition
-from fakes import FakeClock
+from fakes import FakeClock, FakePublisher
 
 # The kinds of the monitor's alarms (aft_msgs/Alarm.kind, mechanism 'monitor'), as operators filter them.
 ADAPTATION_FAILED, ROLLBACK_FAILED, ADAPTATION_INCOMPLETE = 'adaptation_failed', 'rollback_failed', 'adaptation_incomplete'
@@ -253,14 +253,6 @@ def test_a_degraded_composition_is_alarmed_once_per_change_not_at_every_tick():
 
 
 # -- the node publishes the core's alarms (no master) ------------------------------------------------
-class FakePublisher(object):
-    def __init__(self):
-        self.published = []
-
-    def publish(self, msg):
-        self.published.append(msg)
-
-
 class FakeEngine(object):
     def __init__(self, outcome):
         self.outcome = outcome

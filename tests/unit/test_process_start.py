@@ -62,3 +62,18 @@ def test_a_wall_clock_step_moves_psutil_s_create_time_but_not_a_site_s_incarnati
     monkeypatch.setattr(pslinux, 'BOOT_TIME', psutil.boot_time() + 3600.0)   # the clock stepped an hour
     assert abs(psutil.Process().create_time() - before - 3600.0) < 1.0
     assert incarnation(os.getpid()) == mine and mine.startswith('%d@' % os.getpid())
+
+
+def test_a_launcher_started_again_after_a_reboot_with_the_same_pid_and_time_is_another_incarnation(monkeypatch):
+    """Review of session 35: an incarnation was the launcher's pid and its start on the boot clock. A
+    machine booting the same way again (systemd starting the launch with the same pid in the same
+    10 ms) was the same incarnation for the witness, and a lone primary started again blank was told to
+    serve. The boot's id is part of it now."""
+    from aft_ftm.ros import witness_client
+    monkeypatch.setattr(witness_client, 'started', lambda pid, zombie=False: 12.34)
+    monkeypatch.setattr(witness_client, 'boot_id', lambda: '1d2c3b4a-0000-4000-8000-000000000001')
+    first = witness_client.incarnation(4242)
+    monkeypatch.setattr(witness_client, 'boot_id', lambda: '9f8e7d6c-0000-4000-8000-000000000002')
+    assert witness_client.incarnation(4242) != first and first == '4242@12.34@1d2c3b4a'
+    monkeypatch.undo()
+    assert len(witness_client.boot_id()) == 36   # this machine's, as the kernel gives it

@@ -242,3 +242,75 @@ def test_a_witness_found_behind_is_still_behind_when_restarted_with_the_same_rec
     again = Witness(store=StateStore(path))                       # restarted once more, the record unchanged
     with pytest.raises(WitnessBehind, match='master has seen epoch 3'):
         again.request(Op.REGISTER, 'slave', 's2', claim=True)
+
+
+def test_a_record_that_is_there_but_cannot_be_read_stops_the_witness_instead_of_a_fresh_start(tmp_path):
+    """Review of session 35: the node checked one read of the record and the witness made a second,
+    taking its failure (EIO, EMFILE for a moment) for a fresh start at epoch 0: the first REGISTER was
+    granted the primary's role again. Only "no saved state" is a fresh start now."""
+    from aft_ftm.errors import ConfigError
+
+    class Flaky(StateStore):
+        def load(self):
+            return None, 'saved state unreadable: [Errno 5] Input/output error'
+    with pytest.raises(ConfigError, match='Input/output error.*could grant an epoch twice'):
+        Witness('', Flaky(str(tmp_path / 'w.json')))
+    fresh = Witness('', StateStore(str(tmp_path / 'none.json')))   # nothing saved yet: a fresh start
+    assert fresh.epoch == 0 and fresh.reason == 'fresh witness (no saved state)'
+
+
+def test_the_witness_node_answers_an_unknown_operation_with_a_whole_configuration_and_says_when_it_cannot_save(
+        tmp_path, monkeypatch):
+    """Review of session 35: an unknown operation was answered outside the lock (an epoch half made:
+    e+1 with the old primary, taken by a site for a second content of e+1: a false witness_behind); a
+    record that cannot be saved was only logged (callers see the witness unreachable, its diagnostics
+    said OK). The answer is built under the lock; a failed save raises witness_unsaved once and the
+    diagnostics say ERROR until a save succeeds."""
+    import threading
+    import rospy
+    from aft_msgs.srv import WitnessRequest
+    from aft_ftm.ros.witness_node import WitnessNode
+    from fakes import FakePublisher
+
+    class Lock(object):
+        """A lock that checks it is held whenever the configuration is read."""
+        def __init__(self):
+            self.inner, self.held = threading.Lock(), False
+
+        def __enter__(self):
+            self.inner.acquire()
+            self.held = True
+
+        def __exit__(self, *exc):
+            self.held = False
+            self.inner.release()
+
+    class Watched(Witness):
+        lock = None
+
+        def __getattribute__(self, name):
+            if name in ('epoch', 'primary', 'backup') and Watched.lock is not None:
+                assert Watched.lock.held, 'the configuration read outside the lock'
+            return Witness.__getattribute__(self, name)
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/aft/witness')
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
+    node = WitnessNode.__new__(WitnessNode)
+    store = FailingStore(str(tmp_path / 'w.json'))
+    node.witness = Watched('', store)
+    node.lock, node.alarms, node.persistent, node.told_behind, node.unsaved = Lock(), FakePublisher(), True, 0, None
+    node._publish = lambda: None
+    Watched.lock = node.lock
+    answer = node._on_request(WitnessRequest(op=99, site='x'))
+    assert not answer.granted and answer.message == 'unknown operation 99'
+    Watched.lock = None
+    store.failing = True
+    for _ in range(2):
+        with pytest.raises(rospy.ServiceException, match='could not save its record'):
+            node._on_request(WitnessRequest(op=Op.REGISTER.value, site='master', incarnation='1@1', claim=True))
+    assert [a.kind for a in node.alarms.published] == ['witness_unsaved']
+    report = node._health()
+    assert report.level.name == 'ERROR' and 'cannot be saved' in report.message
+    store.failing = False                                          # the disk has room again: saved, OK
+    assert node._on_request(WitnessRequest(op=Op.REGISTER.value, site='master', incarnation='1@1', claim=True)).granted
+    assert node.unsaved is None and node._health().level.name != 'ERROR'
+

@@ -135,11 +135,15 @@ def stage(mechanism, stage, calling_for=None, patience=None, failed=None, calls_
     return Report(Level.OK, 'calling the server (for %.3f s)' % calling_for, values)
 
 
-def witness(epoch, primary, backup, reason, persistent, behind=0):
+def witness(epoch, primary, backup, reason, persistent, behind=0, unsaved=None):
     """The witness: the configuration it granted last. ``persistent``: it keeps its record in a
-    state file (a restart forgets nothing); ``behind``: an epoch a caller has seen above the record."""
+    state file (a restart forgets nothing); ``behind``: an epoch a caller has seen above the record;
+    ``unsaved``: why its record could not be saved at the last change asked (nothing is granted then)."""
     values = [('site', 'witness'), ('role', 'WITNESS'), ('epoch', epoch), ('primary', primary), ('backup', backup),
               ('reason', reason), ('state_file', 'yes' if persistent else 'no')]
+    if unsaved:
+        return Report(Level.ERROR, 'epoch %d: its record cannot be saved (%s): it grants no change until it can'
+                      % (epoch, unsaved), values + [('unsaved', unsaved)])
     if behind:
         return Report(Level.ERROR, 'record at epoch %d, behind epoch %d a site has seen (lost or rolled back): '
                                    'it grants nothing until restored' % (epoch, behind), values + [('behind', behind)])

@@ -44,6 +44,8 @@ it is restored. The sites see its older configuration too and tell it so (witnes
 """
 import enum
 
+from .errors import ConfigError
+
 
 class WitnessBehind(Exception):
     """The record is older than an epoch a caller has seen: it was lost or rolled back."""
@@ -87,6 +89,7 @@ class Witness(object):
         self.history = []           # (epoch, primary, backup, reason): every configuration made
         self.behind = 0             # the newest epoch a caller has seen, once above the record (lost or rolled back)
         self.behind_told_by = ''
+        self.saves = 0              # records saved (a save that raised is not counted)
         if store is not None:
             self._load(store.load())
 
@@ -237,9 +240,18 @@ class Witness(object):
     def _save(self, record):
         if self.store is not None:
             self.store.save(record)
+            self.saves += 1
+
+    NO_STATE = 'no saved state'
 
     def _load(self, loaded):
+        """Take the record read from the store; only "no saved state" is a fresh start. A record that is
+        there but cannot be read (corrupt, or a read failing for a moment: EIO, EMFILE) raises
+        ConfigError: a witness started afresh over it grants epochs granted already (review of session
+        35: the node checked one read and the witness made a second, taking its failure for a start)."""
         state, why = loaded
+        if state is None and why != self.NO_STATE:
+            raise ConfigError('%s (refusing to start: it could grant an epoch twice)' % why)
         if state is None:
             self.reason = 'fresh witness (%s)' % why
             return

@@ -34,12 +34,24 @@ def site_launcher_pid():
     return os.getppid()
 
 
+def boot_id(path='/proc/sys/kernel/random/boot_id'):
+    """This boot of the machine (the kernel's random id, new at each boot), '' if it cannot be read."""
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return ''
+
+
 def incarnation(pid):
     """One start of a site: its launcher's pid and start time, on the boot clock, so that every process
     of the site (Recovery, the After, an After an adaptation starts later) tells the same one across a
-    wall-clock step ('' if it is gone)."""
+    wall-clock step ('' if it is gone); and this boot's id: a machine that boots the same way again
+    (systemd starting the site's launch with the same pid in the same 10 ms) told the witness the
+    incarnation it had before, and a lone primary started again blank was told to serve (review of
+    session 35)."""
     start = started(pid, zombie=True)
-    return '' if start is None else '%d@%.2f' % (pid, start)
+    return '' if start is None else '%d@%.2f@%s' % (pid, start, boot_id()[:8])
 
 
 class WitnessClient(object):

@@ -37,16 +37,15 @@ class WitnessNode(object):
         initial = param('initial_primary', config.optional_name, '')
         path = param('state_file', config.optional_name, '')
         store = StateStore(path, check=self._check) if path else None
-        if store is not None:
-            state, why = store.load()
-            if state is None and why != 'no saved state':
-                raise ConfigError('witness state file %s: %s (refusing to start: it could grant an epoch twice)'
-                                  % (path, why))
-        self.witness = Witness(initial, store)
+        try:
+            self.witness = Witness(initial, store)   # the record read once (Witness._load)
+        except ConfigError as e:
+            raise ConfigError('witness state file %s: %s' % (path, e))
         self.persistent = store is not None
         self.lock = threading.Lock()
         self.diagnostics = None
         self.told_behind = 0
+        self.unsaved = None   # why the record could not be saved at the last request that changed it
 
     @staticmethod
     def _check(state):
@@ -68,7 +67,7 @@ class WitnessNode(object):
     def _health(self):
         with self.lock:
             w = self.witness
-            return health.witness(w.epoch, w.primary, w.backup, w.reason, self.persistent, w.behind)
+            return health.witness(w.epoch, w.primary, w.backup, w.reason, self.persistent, w.behind, self.unsaved)
 
     def _publish(self):
         w = self.witness
@@ -79,10 +78,12 @@ class WitnessNode(object):
         try:
             op = Op(req.op)
         except ValueError:
-            return WitnessResponse(granted=False, message='unknown operation %d' % req.op,
-                                   epoch=self.witness.epoch, primary=self.witness.primary, backup=self.witness.backup)
+            with self.lock:   # (outside it, an epoch half made: e+1 paired with the old primary and backup)
+                return WitnessResponse(granted=False, message='unknown operation %d' % req.op,
+                                       epoch=self.witness.epoch, primary=self.witness.primary,
+                                       backup=self.witness.backup)
         with self.lock:
-            before = self.witness.epoch
+            before, saves = self.witness.epoch, self.witness.saves
             try:
                 grant = self.witness.request(op, req.site, req.incarnation, req.peer, req.peer_incarnation,
                                              req.claim, req.epoch, req.known_epoch)
@@ -97,7 +98,13 @@ class WitnessNode(object):
                 why = '%s could not save its record (%s): %s of %s not granted, nothing changed; ask again' % (
                     rospy.get_name(), e, op.name, req.site)
                 rospy.logerr(why)
+                if self.unsaved is None:   # the callers only see the witness unreachable: said here, once
+                    self.alarms.publish(Alarm(source=rospy.get_name(), mechanism='witness', kind='witness_unsaved',
+                                              detail=why, stamp=rospy.Time.now()))
+                self.unsaved = str(e)
                 raise rospy.ServiceException(why)
+            if self.witness.saves != saves:
+                self.unsaved = None   # saved again
             if self.witness.epoch != before:
                 self._publish()
         log = rospy.loginfo if grant.granted else rospy.logwarn
