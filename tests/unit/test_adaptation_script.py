@@ -96,6 +96,9 @@ BAD = [
     ('name: x\nkind: compose\nsuspend: [/a/p]\npromote: [{recovery: /a/recovery, nodes: []}]\n',
      '"nodes" must be a non-empty list'),
     ('name: [unclosed\n', 'not valid YAML'),
+    # (review of session 35: these two crashed the engine, ValueError and TypeError, exit 1 "rolled back")
+    ('name: x\nkind: compose\nargs: [a, b]\nsuspend: [/a/p]\n', '"args" must be a mapping'),
+    ('name: x\nkind: compose\nargs: {s: [a]}\neach: [s]\nsuspend: [/a/p]\n', '"each" names'),
     ('- just\n- a list\n', 'must be a mapping'),
 ]
 
@@ -226,6 +229,23 @@ def test_a_launch_that_would_start_a_running_node_is_refused():
     clash = {entry: ['/master/protocol'] for entry in NEW}
     with pytest.raises(ScriptError, match='would start /master/protocol, already running'):
         adaptation.check_fit(script, RUNNING, SERVICES, clash)
+
+
+def test_two_launches_of_one_script_starting_the_same_node_are_refused():
+    """Review of session 35: launch entries were checked against the running nodes only. Two that
+    start the same name passed; the second stopped the first's node, whose required launch then ended,
+    and its guard fail-stopped the site."""
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    (entry,) = script.launch
+    other = adaptation.Launch('aft_ftm/other.launch', entry.args)
+    script.launch = [entry, other]
+    both = {entry: ['/master/tr/protocol', '/master/tr/after'], other: ['/master/tr/after']}
+    with pytest.raises(ScriptError, match='other.launch would start /master/tr/after, which aft_ftm/mechanism.launch '
+                                          'starts too'):
+        adaptation.check_fit(script, RUNNING, SERVICES, both)
+    script.launch = [entry, entry]                     # the same entry twice: one key, started twice
+    with pytest.raises(ScriptError, match='starts too'):
+        adaptation.check_fit(script, RUNNING, SERVICES, {entry: both[entry]})
 
 
 def test_the_copies_of_one_suspend_entry_are_known_to_the_script_itself():

@@ -268,3 +268,44 @@ def test_the_probes_before_the_pause_are_bounded_too(graph):
     t0 = time.monotonic()
     adaptation_engine.Engine._connect(e, steps)
     assert time.monotonic() - t0 < 3.0
+
+
+def test_the_monitors_shutdown_leaves_what_a_finished_adaptation_put_in_place_running(graph):
+    """Review of session 35: the monitor's shutdown (an operator restarting it) called stop_all, which
+    stopped every launch of the engine's runs, done ones too: the TR a composition put in place was
+    killed under both sites, whose guards, asked to stop, did not fail-stop them. Both heartbeated on
+    while every request hung. A run done leaves its launches to the sites; shutdown stops only those
+    of a run that did not finish. (stop_all, for tests and benchmarks tearing everything down, still
+    stops them all.)"""
+    eng = engine(graph)
+
+    def launch(entry):   # as the real one: the launch is the run's and the engine's
+        site = FakeLaunch()
+        eng.launched.append(site)
+        eng.sites.append(site)
+        eng._run_sites.append(site)
+        return site
+    eng._launch = launch
+    report = eng.run(compose(), 'prepared')
+    assert report['ok'] and eng.launched, report
+    eng.shutdown(wait=0.1)
+    assert not any(site.stopped for site in eng.launched) and eng.committed == eng.launched
+    eng.stop_all()
+    assert all(site.stopped for site in eng.launched)
+
+
+def test_a_step_whose_clean_up_of_connections_fails_still_has_its_outcome_and_the_run_rolls_back(graph):
+    """Review of session 35: in a group run in threads, a failed step's clean-up of its connections
+    could raise (the shared table changed under it); its outcome was then missing, the run raised
+    AttributeError, and nothing was rolled back."""
+    eng = engine(graph)
+
+    def broken(node, cut=False):
+        raise RuntimeError('dictionary changed size during iteration')
+    eng._forget_proxies = broken
+
+    def refuse(kw):
+        raise rospy.ServiceException('the node went away')
+    graph.hooks['/master/proceed/rebind'] = refuse
+    report = eng.run(compose(), 'prepared')
+    assert not report['ok'] and report['rolled_back'] and 'the node went away' in report['error'], report

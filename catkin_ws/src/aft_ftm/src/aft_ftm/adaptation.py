@@ -128,9 +128,9 @@ def load(text, overrides=None, source='script'):
     kind = data.get('kind')
     if kind not in KINDS:
         _fail(source, '"kind" must be one of %s, got %r' % (', '.join(KINDS), kind))
-    args = dict(data.get('args') or {})
-    if not isinstance(data.get('args') or {}, dict):
+    if not isinstance(data.get('args') or {}, dict):   # (checked first: dict() of a list raised ValueError)
         _fail(source, '"args" must be a mapping of names to default values')
+    args = dict(data.get('args') or {})
     for key, value in (overrides or {}).items():
         if key not in args:
             _fail(source, 'unknown argument %r (the script declares: %s)' % (key, ', '.join(sorted(args)) or 'none'))
@@ -139,7 +139,7 @@ def load(text, overrides=None, source='script'):
     each = data.get('each')
     values = [None]
     if each is not None:
-        if each not in args:
+        if not isinstance(each, str) or each not in args:   # (a list raised TypeError: unhashable)
             _fail(source, '"each" names %r, which is not an argument' % (each,))
         values = args[each] if isinstance(args[each], list) else [args[each]]
         if not values or not all(isinstance(v, str) and v for v in values):
@@ -323,11 +323,19 @@ def check_fit(script, nodes, services, launched, calls=None):
     services: another service needs its own names, server:= or state_manager:=). What only the nodes
     can answer (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
     """
+    started = {}   # node -> the launch file that starts it
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))
         if clash:
             raise ScriptError('launch file %s would start %s, already running (a second node of the same '
                               'name stops the first): choose other names' % (entry.file, ', '.join(clash)))
+        # Two launches of one run starting the same name: the second stops the first's node, whose
+        # required launch then ends and its guard fail-stops the site (review of session 35).
+        twice = sorted(n for n in launched[entry] if n in started)
+        if twice:
+            raise ScriptError('launch file %s would start %s, which %s starts too (a second node of the same name '
+                              'stops the first)' % (entry.file, ', '.join(twice), started[twice[0]]))
+        started.update((n, entry.file) for n in launched[entry])
     new = {name for names in launched.values() for name in names}
 
     def need(node, service, why):

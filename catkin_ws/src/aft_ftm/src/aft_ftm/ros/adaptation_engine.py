@@ -41,7 +41,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..process_start import started
-from ..transaction import ABANDONED, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
+from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, wait_dead, wait_until
 from ..where import run_where
@@ -340,7 +340,8 @@ class Engine(object):
         self.connect_timeout = connect_timeout
         self.launch_niceness = launch_niceness
         self.log_dir = log_dir or os.path.join(rospkg.get_log_dir(), 'aft_adaptations')
-        self.sites = []            # LaunchedSite: the roslaunch processes started and still running
+        self.sites = []            # LaunchedSite: the roslaunch processes of the run in progress (or failed)
+        self.committed = []        # LaunchedSite: those of runs done: the sites' nodes now, not the engine's
         self.respawned = []        # Site: nodes started again from their command line by a rollback
         self.transaction = None    # the Transaction of the last run
         self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
@@ -350,6 +351,7 @@ class Engine(object):
         self._launches = {}        # Launch entry -> LaunchPlan
         self._launched_names = []  # the nodes its launches start
         self._proxies = {}         # service name -> persistent proxy
+        self._proxies_lock = threading.Lock()
         self._nodes_seen = (None, frozenset())   # (when, the running nodes): _graph_nodes' cache
         self._keeper = None        # the LeaseKeeper of the run in progress
         self._run_sites = []       # the LaunchedSites it started
@@ -514,6 +516,9 @@ class Engine(object):
             self._execute(tx, report['steps'])
         finally:
             self._keeper.stop()
+        if tx.state == State.DONE:   # what it launched is the sites' now: shutdown() leaves it running
+            self.committed += [site for site in self._run_sites if site in self.sites]
+            self.sites = [site for site in self.sites if site not in self._run_sites]
         report.update(tx.summary())
         report['duration_s'] = time.monotonic() - t0
         report['nodes_touched'] = script.nodes_touched(self._launched_names)
@@ -614,8 +619,11 @@ class Engine(object):
                 results[i] = Outcome(step, s0, None, self._bounded(step, lambda: self._do(step),
                                                                    self._call_limit(step.action)))
             except (StepError, ScriptError, rospy.ServiceException, rospy.ROSException) as e:
-                self._forget_proxies(step.target)   # rospy keeps a broken persistent connection
                 results[i] = Outcome(step, s0, str(e), None)
+                try:
+                    self._forget_proxies(step.target)   # rospy keeps a broken persistent connection
+                except Exception:   # the step's outcome stands: a group always has every outcome
+                    pass
             except Exception as e:   # an unexpected error is still a failed step, rolled back
                 results[i] = Outcome(step, s0, '%s: %s' % (type(e).__name__, e), None)
         if len(group) == 1:
@@ -682,24 +690,28 @@ class Engine(object):
     def _forget_proxies(self, node, cut=False):
         """Close the connections to node's services (``cut``: shut their sockets first, so that a
         thread waiting in a call on one ends)."""
-        for name in [n for n in self._proxies if n.startswith(node + '/')]:
-            proxy = self._proxies.pop(name)
+        with self._proxies_lock:   # (the steps of a group run in threads: review of session 35)
+            gone = [self._proxies.pop(n) for n in list(self._proxies) if n.startswith(node + '/')]
+        for proxy in gone:
             if cut:
                 _cut(proxy)
             proxy.close()
 
     def _close_proxies(self):
-        for proxy in self._proxies.values():
+        with self._proxies_lock:
+            gone, self._proxies = list(self._proxies.values()), {}
+        for proxy in gone:
             proxy.close()
-        self._proxies = {}
 
     def _proxy(self, name, cls):
-        proxy = self._proxies.get(name)
+        with self._proxies_lock:
+            proxy = self._proxies.get(name)
         if proxy is None:
             why = wait_for_service(name, self.service_timeout)
             if why:
                 raise StepError('service %s is not available within %.1f s: %s' % (name, self.service_timeout, why))
-            proxy = self._proxies[name] = rospy.ServiceProxy(name, cls, persistent=True)
+            with self._proxies_lock:
+                proxy = self._proxies.setdefault(name, rospy.ServiceProxy(name, cls, persistent=True))
         return proxy
 
     @staticmethod
@@ -934,7 +946,27 @@ class Engine(object):
         return any('aft_ftm' in part for part in record.cmdline)
 
     def stop_all(self):
-        """Stop every process this engine started (tests and benchmarks). Never raises."""
-        for site in self.sites + self.respawned:
+        """Stop every process this engine started, those of runs done too (tests and benchmarks, which
+        tear the whole deployment down). Never raises."""
+        for site in self.sites + self.committed + self.respawned:
             site.stop(grace=5.0)
-        self.sites, self.respawned = [], []
+        self.sites, self.committed, self.respawned = [], [], []
+
+    def shutdown(self, wait=10.0):
+        """The engine's process stops (the monitor's shutdown): a run in progress is interrupted and
+        given ``wait`` seconds to roll back, then what an unfinished run launched is stopped. What runs
+        done launched, and nodes a rollback started again, are the sites' now and go on running: the
+        monitor's shutdown killed them, and the sites heartbeat on while every request hung (review of
+        session 35). Never raises."""
+        tx = self.transaction
+        if tx is not None and tx.state not in TERMINAL:
+            self.interrupt('the engine stops')
+            deadline = time.monotonic() + wait
+            while tx.state not in TERMINAL and time.monotonic() < deadline:
+                time.sleep(0.05)
+        for site in list(self.sites):
+            try:
+                site.stop(grace=5.0)
+            except Exception:   # shutdown paths never raise
+                pass
+        self.sites = []

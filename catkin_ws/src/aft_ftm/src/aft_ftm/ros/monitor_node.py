@@ -128,7 +128,7 @@ class MonitorNode(object):
         rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration)
         threading.Thread(target=self._adapter, name='adapter', daemon=True).start()
         self.timer = rospy.Timer(rospy.Duration(self.period), self._tick)
-        rospy.on_shutdown(self.engine.stop_all)
+        rospy.on_shutdown(self.engine.shutdown)   # what its adaptations put in place runs on
         return True
 
     # -- events -------------------------------------------------------------------------------
