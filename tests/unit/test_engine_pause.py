@@ -309,3 +309,45 @@ def test_a_step_whose_clean_up_of_connections_fails_still_has_its_outcome_and_th
     graph.hooks['/master/proceed/rebind'] = refuse
     report = eng.run(compose(), 'prepared')
     assert not report['ok'] and report['rolled_back'] and 'the node went away' in report['error'], report
+
+
+def test_last_resumes_whose_answers_are_lost_but_that_resumed_the_nodes_let_the_adaptation_stand(graph):
+    """Review of session 35: a last resume whose answer came too late (a stalled engine, a large held
+    buffer delivered before the answer) was taken as not done; with every site's resume so, the
+    rollback rebound sites already serving in the new configuration and stopped its nodes with
+    requests inside. The gate is asked over a new connection: open, the resume stands, said."""
+    released = threading.Event()
+
+    def resumes_then_hangs(node):
+        def hook(kw):
+            if kw.get('probe'):
+                return
+            graph.node(node)._handle_resume(SuspendRequest(**kw))   # the node resumes...
+            released.wait(30.0)                                       # ...and its answer never comes
+        hook.release = released.set
+        return hook
+    for site in ('master', 'slave'):
+        graph.hooks['/%s/protocol/resume' % site] = resumes_then_hangs('/%s/protocol' % site)
+    e = engine(graph, service_timeout=0.2, connect_timeout=0.1)
+    report = e.run(compose(), 'prepared')
+    assert report['ok'] and report['state'] == 'DONE' and not report['rolled_back'], report
+    resumes = [r for r in report['steps'] if r['action'] == 'resume']
+    assert resumes and all(r['ok'] and 'its gate says OPEN: resumed' in str(r['detail']) for r in resumes), resumes
+    assert all(graph.gate(n).state == GateState.OPEN for n in ('/master/protocol', '/slave/protocol'))
+    released.set()
+
+
+def test_last_resumes_whose_answers_are_lost_and_that_did_not_resume_are_rolled_back(graph):
+    """The control of the test above: the gate still closed (the resume never reached the node), the
+    step stays failed and the adaptation is rolled back, every node resumed by the rollback."""
+    released = threading.Event()
+
+    def hangs(kw):
+        if not kw.get('probe'):
+            released.wait(30.0)
+    hangs.release = released.set
+    for site in ('master', 'slave'):
+        graph.hooks['/%s/protocol/resume' % site] = hangs
+    report = engine(graph, service_timeout=0.2, connect_timeout=0.1).run(compose(), 'prepared')
+    released.set()
+    assert not report['ok'] and report['rolled_back'] and 'did not answer its resume' in report['error'], report

@@ -607,8 +607,9 @@ class Engine(object):
         step fails, so that the rollback runs on a graph still paused."""
         results = [None] * len(group)
         s0 = time.monotonic()
-        if group[0].action == 'resume' and self.transaction is not None and \
-                self.transaction.index == self.transaction.last_resume:
+        last_resumes = group[0].action == 'resume' and self.transaction is not None and \
+            self.transaction.index == self.transaction.last_resume
+        if last_resumes:
             broken = self._pause_intact()
             if broken:
                 return [Outcome(step, s0, 'not resumed: %s' % broken, None) for step in group]
@@ -634,7 +635,29 @@ class Engine(object):
                 thread.start()
             for thread in threads:
                 thread.join()
+        if last_resumes:
+            results = [self._resumed_all_the_same(o) for o in results]
         return results
+
+    def _resumed_all_the_same(self, outcome):
+        """A last resume whose answer did not come in time (the engine stalled, or the node delivered a
+        large held buffer before it answered) may have resumed the node all the same: it was taken as
+        not done, and the rollback undid an adaptation already serving (review of session 35). Its
+        gate is asked over a new connection: open (or opening), the resume stands, said in the step's
+        record; otherwise (closed, or no answer) the step stays failed."""
+        if outcome.error is None or ABANDONED not in outcome.error:
+            return outcome
+        step = outcome.step
+        try:
+            state = self._bounded(_Probe('resume', step.target), lambda: self._proxy(
+                step.target + '/resume', Suspend)(probe=True).message, self._call_limit('resume'))
+        except Exception:   # no answer again: it stays failed, and the rollback resumes it
+            return outcome
+        if state not in ('OPEN', 'OPENING'):
+            return outcome
+        self._keeper.release(step.target)
+        return Outcome(step, outcome.started, None, 'its answer was lost (%s), but its gate says %s: resumed' % (
+            outcome.error, state))
 
     def _pause_intact(self):
         """'' if every node this run suspended is still suspended by it, else which are not and why.
@@ -730,6 +753,8 @@ class Engine(object):
             return 'pid %d' % info.pid
         if step.action == 'kill':
             return 'pid %s' % (info.pid if info is not None else None)
+        if step.action == 'resume' and isinstance(info, str):
+            return info   # a resume whose answer was lost, its gate found open (_resumed_all_the_same)
         return ''
 
     def _do(self, step):
