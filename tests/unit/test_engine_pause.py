@@ -117,7 +117,8 @@ def engine(graph, log=None, **kwargs):
         return site
     engine._launch = launch
     engine._wait_launched = lambda: 0
-    engine._kill = lambda node: adaptation_engine.Killed(2, [], '/', {}, [])
+    engine._kill = lambda node, prepared=None: adaptation_engine.Killed(2, [], '/', {}, [])
+    engine._kill_record = lambda node: (None, adaptation_engine.Killed(2, [], '/', {}, []))
     return engine
 
 
@@ -351,3 +352,44 @@ def test_last_resumes_whose_answers_are_lost_and_that_did_not_resume_are_rolled_
     report = engine(graph, service_timeout=0.2, connect_timeout=0.1).run(compose(), 'prepared')
     released.set()
     assert not report['ok'] and report['rolled_back'] and 'did not answer its resume' in report['error'], report
+
+
+def test_every_node_of_a_kill_group_is_recorded_before_any_is_signalled_and_nothing_raises_after_the_signal(
+        graph, monkeypatch):
+    """Review of session 35: the nodes of one required launch go down together; a node recorded after
+    another's kill was found dead, its kill "failed" with no record, and the rollback did not start it
+    again (while reporting ROLLED_BACK). A failure after the signal (the master not answering) lost
+    the record the same way. Now the group is recorded first, and a kill never raises once signalled."""
+    import subprocess
+    import sys
+    import psutil
+    eng = engine(graph)
+    order = []
+    eng._kill_record = lambda node: order.append(('record', node)) or (None, node + ' record')
+    eng._kill = lambda node, prepared=None: order.append(('kill', node, prepared[1]))
+    steps = [adaptation.Step('kill', '/master/tr/a', None), adaptation.Step('kill', '/master/tr/b', None)]
+    outcomes = eng._run_group(steps)
+    assert all(o.error is None for o in outcomes)
+    assert order[:2] == [('record', '/master/tr/a'), ('record', '/master/tr/b')]
+    assert sorted(order[2:]) == [('kill', '/master/tr/a', '/master/tr/a record'),
+                                 ('kill', '/master/tr/b', '/master/tr/b record')]
+    # the real kill: signalled, then the master does not answer: killed all the same, record returned
+    eng = engine(graph)
+    del eng._kill
+    monkeypatch.setattr(adaptation_engine, 'mark_retired', lambda pid: None)
+    monkeypatch.setattr(adaptation_engine, 'disarm_guard_of', lambda pid: None)
+
+    def no_master():
+        raise OSError(111, 'Connection refused')
+    eng._graph = no_master
+    eng._keeper = types.SimpleNamespace(release=lambda node: None)
+    victim = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])
+    try:
+        record = adaptation_engine.Killed(victim.pid, [], '/', {}, [])
+        assert eng._kill('/master/tr/a', (psutil.Process(victim.pid), record)) is record
+        assert victim.wait(5.0) is not None
+    finally:
+        if victim.poll() is None:
+            victim.kill()
+            victim.wait()
+

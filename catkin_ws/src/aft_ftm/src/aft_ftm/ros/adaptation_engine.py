@@ -352,6 +352,7 @@ class Engine(object):
         self._launched_names = []  # the nodes its launches start
         self._proxies = {}         # service name -> persistent proxy
         self._proxies_lock = threading.Lock()
+        self._prepared_kills = {}  # node -> (process, Killed) or StepError: a kill group's, recorded first
         self._nodes_seen = (None, frozenset())   # (when, the running nodes): _graph_nodes' cache
         self._keeper = None        # the LeaseKeeper of the run in progress
         self._run_sites = []       # the LaunchedSites it started
@@ -613,6 +614,15 @@ class Engine(object):
             broken = self._pause_intact()
             if broken:
                 return [Outcome(step, s0, 'not resumed: %s' % broken, None) for step in group]
+        if group[0].action == 'kill' and len(group) > 1:
+            # Every node of the group recorded before any is signalled: nodes of one required launch go
+            # down together, and one recorded after another's kill was found dead, its kill "failed" and
+            # the rollback did not start it again (review of session 35).
+            for step in group:
+                try:
+                    self._prepared_kills[step.target] = self._kill_record(step.target)
+                except StepError as e:
+                    self._prepared_kills[step.target] = e
 
         def one(i, step):
             s0 = time.monotonic()
@@ -775,7 +785,7 @@ class Engine(object):
                 raise StepError('%s was not suspended by this adaptation any more: %s' % (step.target, answer.message))
             return answer.held
         if action == 'kill':
-            return self._kill(step.target)
+            return self._kill(step.target, self._prepared_kills.pop(step.target, None))
         if action == 'launch':
             return self._launch(step.detail)
         if action == 'wait_launched':
@@ -878,12 +888,9 @@ class Engine(object):
             return ''
         return ': ' + why if why else ''
 
-    def _kill(self, node):
-        """Stop the node's process with SIGINT (as roslaunch stops its nodes; SIGKILL 5 s later), after
-        checking that the pid its API gives is that node's process, and recording how to start it again
-        (for a rollback). Not over XML-RPC (rosnode kill): a node under TLS refuses every shutdown asked
-        that way, since anyone on the network can ask."""
-        self._keeper.release(node)   # retired: nothing of it to renew or to find still suspended
+    def _kill_record(self, node):
+        """(psutil.Process, Killed) of node: the pid its API gives, checked to be that node's process,
+        and how to start it again (for a rollback). Raises StepError if it cannot be recorded."""
         try:
             uri = self.master.lookupNode(node)   # checked again: it may have been registered anew since
             pid = visible_pid(uri, rospy.get_name(), node)
@@ -891,9 +898,23 @@ class Engine(object):
                 raise NotTheNode('it is registered at %s, on another machine' % uri)
             proc = psutil.Process(pid)
             # Started again, it stops with its site too (its owners).
-            record = Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
+            return proc, Killed(pid, proc.cmdline(), proc.cwd(), proc.environ(), owners_of_process(pid))
         except Exception as e:   # cannot record: killing it could not be undone
             raise StepError('cannot find the process of %s (%s): not killed' % (node, e))
+
+    def _kill(self, node, prepared=None):
+        """Stop the node's process with SIGINT (as roslaunch stops its nodes; SIGKILL 5 s later), after
+        checking that the pid its API gives is that node's process, and recording how to start it again
+        (for a rollback; ``prepared``: (process, record) made before any node of its group was signalled,
+        or the StepError that made). Not over XML-RPC (rosnode kill): a node under TLS refuses every
+        shutdown asked that way, since anyone on the network can ask. Nothing raises once the signal is
+        sent: the node is killed, and its record is what the rollback needs (a failure after it lost
+        the record, and the rollback did not start the node again: review of session 35)."""
+        self._keeper.release(node)   # retired: nothing of it to renew or to find still suspended
+        if isinstance(prepared, Exception):
+            raise prepared
+        proc, record = prepared if prepared is not None else self._kill_record(node)
+        pid = record.pid
         # A node an adaptation started: its guard, disarmed, lets it go. A node of the site's own launch:
         # marked, its crash detector lets it die (aft_ftm.site_watch).
         if disarm_guard_of(pid) is None:
@@ -906,11 +927,14 @@ class Engine(object):
             proc.send_signal(signal.SIGINT)
         except psutil.NoSuchProcess:
             pass   # gone by itself meanwhile: killed all the same
-        alive = wait_dead([proc], 5.0)
-        if alive:
-            proc.kill()
-            wait_dead([proc], 2.0)
-        wait_until(lambda: node not in self._graph()[0], 5.0, 0.02)
+        try:
+            alive = wait_dead([proc], 5.0)
+            if alive:
+                proc.kill()
+                wait_dead([proc], 2.0)
+            wait_until(lambda: node not in self._graph()[0], 5.0, 0.02)
+        except Exception as e:   # (the master unreachable, the process gone): killed all the same
+            self.log('kill %s: after its signal: %s: %s' % (node, type(e).__name__, e))
         return record
 
     # -- rollback -------------------------------------------------------------------------------
