@@ -228,6 +228,9 @@ class FakeMaster(object):
 
 LAUNCHER = r"""
 import os, subprocess, sys, time
+if os.environ.get('FORKED') and os.fork() == 0:   # a child forked, not exec'd yet: its launcher's argv
+    time.sleep(60)
+    os._exit(0)
 for spec in sys.argv[1:]:
     ns, name = spec.split(':')
     subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)', '__name:=' + name],
@@ -255,10 +258,11 @@ def launchers(tmp_path, monkeypatch):
     monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
     started = []
 
-    def start(program, *children):
+    def start(program, *children, forked=False):
         script = tmp_path / program
         script.write_text(LAUNCHER)
-        proc = subprocess.Popen([sys.executable, str(script)] + list(children), stdout=subprocess.PIPE)
+        proc = subprocess.Popen([sys.executable, str(script)] + list(children), stdout=subprocess.PIPE,
+                                env=dict(os.environ, FORKED='1' if forked else ''))
         started.append(proc)
         assert proc.stdout.readline().strip() == b'ready'
         deadline = time.monotonic() + 10.0
@@ -297,12 +301,13 @@ def test_a_launcher_is_known_by_its_children_in_proc_even_before_any_of_its_node
     named was refused as nobody's launcher and the stopped server lived on. Now a roslaunch whose
     children name themselves nodes of the failed site (/proc: a heartbeat cannot forge it) is its
     launcher, and its whole tree is killed."""
-    site = launchers('roslaunch', '/master:bank_server', '/master:after')
-    node, failure = _recovery(site.pid)
-    roots, why = node._launcher(failure)
-    assert [r.pid for r in roots] == [site.pid] and why == 'launcher %d of master (it started /master/bank_server)' \
-        % site.pid
-    assert node.ports.published == []
+    for forked in (False, True):   # (a child forked, not exec'd yet, is no other's node: review of session 35)
+        site = launchers('roslaunch', '/master:bank_server', '/master:after', forked=forked)
+        node, failure = _recovery(site.pid)
+        roots, why = node._launcher(failure)
+        assert [r.pid for r in roots] == [site.pid] and why == 'launcher %d of master (it started ' \
+            '/master/bank_server)' % site.pid
+        assert node.ports.published == []
 
 
 def test_a_forged_heartbeat_naming_a_process_that_is_no_launcher_kills_nothing(launchers):

@@ -64,34 +64,3 @@ def test_a_renumbered_request_takes_an_id_from_the_one_given_and_later_ones_foll
     assert table.renumber(40, 6000) is None                    # no longer waits under 40: a late message
     assert table.renumber(a.id, a.id) is None and table.renumber(b.id, 1 << 63) is None   # not above / absurd
     assert table.abandon(a) is a and table.abandon(a) is None and table.close(b.id, 'r') is b
-
-
-def test_a_forged_reply_to_no_waiting_request_cannot_raise_the_proxys_epoch_and_hang_it(monkeypatch):
-    """Review of session 35: the Proxy took the epoch of any reply bearing its name, waiting request or
-    not. One forged reply (no SEC: anyone may publish on the reply topic) with the largest epoch made
-    every later genuine reply stale: refused, and every call hung for good. Only a reply to a waiting
-    request moves the epoch now; the others are counted as late duplicates."""
-    import rospy
-    from aft_msgs.msg import Reply
-    from aft_ftm.ros.proxy_node import ProxyNode
-
-    class Ports(object):
-        def __init__(self):
-            self.published = []
-
-        def publish(self, port, msg):
-            self.published.append((port, msg))
-    monkeypatch.setattr(rospy, 'get_name', lambda: '/proxy')
-    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
-    node = ProxyNode.__new__(ProxyNode)
-    node.name, node.table, node.ports = '/proxy', PendingTable(first_id=100), Ports()
-    entry = node.table.open('/c', b'x', 0)
-    node._on_reply(Reply(id=99999, origin='/proxy', epoch=2 ** 64 - 1, status=Reply.OK))   # forged
-    assert node.table.epoch == 0 and node.table.late_replies == 1 and node.ports.published == []
-    node._on_reply(Reply(id=entry.id, origin='/proxy', epoch=7, status=Reply.OK, payload=b''))
-    assert entry.done.is_set() and node.table.epoch == 7 and node.table.stale_replies == 0
-    # a reply of an older epoch to a waiting request is still refused, as before
-    older = node.table.open('/c', b'y', 0)
-    node._on_reply(Reply(id=older.id, origin='/proxy', epoch=6, status=Reply.OK, payload=b''))
-    assert not older.done.is_set() and node.table.stale_replies == 1
-    assert [m.kind for _, m in node.ports.published] == ['stale_reply']

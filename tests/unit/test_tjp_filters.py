@@ -172,5 +172,8 @@ def test_an_unstamped_laser_is_refused_loudly_and_the_other_two_still_vote():
     none = LaserVoter()
     assert [none.add(i, 0, 10.0) is LaserVoter.UNSTAMPED for i in range(3)] == [True] * 3
     assert [none.add(i, 0, 10.0) for i in range(3)] == [[], [], []] and none.voted == 0
-    none.add(0, 5, 10.0)                                             # laser 0 stamped again, then not:
+    none.add(0, 5, 10.0)                                             # laser 0 stamped once, then not:
+    assert none.add(0, 0, 10.0) == []                                # not told at every switch
+    for stamp in range(6, 6 + none.silent_after):                    # stamped for a while, then not:
+        none.add(0, stamp, 10.0)
     assert none.add(0, 0, 10.0) is LaserVoter.UNSTAMPED              # said again

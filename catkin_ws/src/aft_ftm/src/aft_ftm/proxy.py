@@ -57,16 +57,9 @@ class PendingTable(object):
             self._next += 1
             return entry
 
-    def waiting(self, request_id):
-        """Whether a request of this id waits for its reply. Only such a reply's epoch is taken (fresh):
-        any reply's was, so one forged reply (no SEC) with the largest epoch made every later one stale,
-        and the Proxy hung for good (review of session 35)."""
-        with self._lock:
-            return request_id in self._pending
-
     def fresh(self, epoch):
-        """A reply of configuration epoch, to a waiting request, arrived: False (and counted) if it is older
-        than one already seen, the answer of a replica that no longer serves. 0: a mechanism without epochs."""
+        """A reply of configuration epoch arrived: False (and counted) if it is older than one already seen,
+        the answer of a replica that no longer serves. 0: a mechanism without epochs."""
         with self._lock:
             if epoch and epoch < self.epoch:
                 self.stale_replies += 1

@@ -712,8 +712,9 @@ class ReplayGuard(object):
 
 class PartyQuota(object):
     """Server side: the requests each party has outstanding (ids at or above their origin's oldest
-    pending, whose replies the Protocol must keep), at most ``limit`` per party, and at most ``limit``
-    origins per party (0: no bound, nothing tracked).
+    pending, whose replies the Protocol must keep), at most ``limit`` per party (0: no bound, nothing
+    tracked). An origin is tracked only while it has one outstanding, so a party's origins tracked are
+    bounded by its quota too.
 
     The Protocol's reply cache is shared: at its bound it refuses every new request, of every client
     (README, Limits of session 33). A certified insider sending many ids it never confirms, from one
@@ -723,7 +724,8 @@ class PartyQuota(object):
     remembered, so that a copy is not executed later, and that memory is what the flood grows).
     Re-sends of an id counted already always pass. The other parties keep their quotas: with
     ``parties x limit`` within the cache's bound, no party can fill it. A request whose id is below its
-    origin's oldest pending (the Protocol drops it as a late copy) is not counted.
+    origin's oldest pending (the Protocol drops it as a late copy) is not counted; one below an oldest
+    pending admitted before is a replay, refused earlier (security.ReplayGuard).
 
     Only an admitted request moves its origin's floor (its oldest pending, which the Protocol then
     learns too): a refused one changes nothing. Its floor moved the quota's count away from the
@@ -738,16 +740,15 @@ class PartyQuota(object):
         self.ids = {}      # origin -> set of outstanding ids
         self.heaps = {}    # origin -> min-heap of the same ids (the lowest forgotten first)
         self.party = {}    # origin -> the party it counts for (its binding: one party per origin)
-        self.floors = {}   # origin -> the highest oldest_pending admitted from it: ids below are confirmed
+        self.floors = {}   # origin -> the highest oldest_pending admitted from it (while it has ids)
         self.count = collections.Counter()     # party -> outstanding ids over all its origins
-        self.origins = collections.Counter()   # party -> origins it has sent from (each costs memory here)
         self.full = set()  # parties refused since they last had room
         self.told = {}     # party -> when it was last told
 
     def admit(self, party, origin, request_id, oldest_pending):
         """Count request ``request_id`` of ``origin`` for ``party``, once; raises Rejected
-        ``party_quota`` if the party holds ``limit`` ids (or origins) already, changing nothing. Its
-        ``first`` says whether to raise an alarm for it."""
+        ``party_quota`` if the party holds ``limit`` ids already, changing nothing. Its ``first`` says
+        whether to raise an alarm for it."""
         if not self.limit:
             return
         owner = self.party.get(origin, party)
@@ -757,15 +758,12 @@ class PartyQuota(object):
         while heap and heap[0] < floor:   # confirmed by this request: forgotten only if it is admitted
             confirmed.append(heapq.heappop(heap))
         fresh = request_id >= floor and request_id not in ids
-        new_origin = origin not in self.floors
         count = self.count[owner] - len(confirmed) + (1 if fresh else 0)
-        if (fresh or new_origin) and (count > self.limit or new_origin and self.origins[owner] >= self.limit):
+        if fresh and count > self.limit:
             for i in confirmed:
                 heapq.heappush(heap, i)
-            what = ('%d origins' % self.origins[owner]) if new_origin and self.origins[owner] >= self.limit else \
-                ('%d requests outstanding' % self.count[owner])
-            error = Rejected('party_quota', 'party %s has %s (its quota): %s/%d is dropped until its older calls '
-                             'are confirmed' % (owner, what, origin, request_id))
+            error = Rejected('party_quota', 'party %s has %d requests outstanding (its quota): %s/%d is dropped '
+                             'until its older calls are confirmed' % (owner, self.count[owner], origin, request_id))
             now = self.clock()
             error.first = owner not in self.full and now - self.told.get(owner, -self.retell) >= self.retell
             if error.first:
@@ -777,15 +775,15 @@ class PartyQuota(object):
         if fresh:
             ids.add(request_id)
             heapq.heappush(heap, request_id)
-        self.count[owner] = count
-        if new_origin:
-            self.origins[owner] += 1
-        self.floors[origin], self.party[origin] = floor, owner
-        if ids:
-            self.ids[origin], self.heaps[origin] = ids, heap
+        if count:
+            self.count[owner] = count
         else:
-            self.ids.pop(origin, None)
-            self.heaps.pop(origin, None)
+            self.count.pop(owner, None)
+        if ids:
+            self.ids[origin], self.heaps[origin], self.party[origin], self.floors[origin] = ids, heap, owner, floor
+        else:   # nothing outstanding: forgotten (its replays are ReplayGuard's), so that it costs nothing here
+            for table in (self.ids, self.heaps, self.party, self.floors):
+                table.pop(origin, None)
         if count < self.limit:
             self.full.discard(owner)   # room again
 

@@ -129,8 +129,9 @@ class LaserVoter(object):
     only a throttled log said so). None: never.
 
     A reading stamped 0 (unset, by ROS convention) names no instant: it is refused, counted per laser
-    in ``unstamped``, and ``add`` says so once per laser, again after a stamped one (its caller raises
-    an alarm). The other
+    in ``unstamped``, and ``add`` says so once per laser, again only after ``silent_after`` stamped
+    ones in a row (its caller raises an alarm: a laser switching back and forth is not told at
+    every switch). The other
     lasers vote without it, as without a crashed one. It was voted as the instant 0 once, then every
     later one was late: nothing was voted again, and only a throttled log said so (review of session 34).
     """
@@ -153,6 +154,7 @@ class LaserVoter(object):
         self.invalid = 0
         self.unstamped = [0] * count
         self.unstamped_told = [False] * count
+        self.stamped_run = [0] * count   # stamped readings in a row, per laser
 
     def add(self, index, stamp, value):
         """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
@@ -162,11 +164,14 @@ class LaserVoter(object):
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
         if not stamp:
             self.unstamped[index] += 1
+            self.stamped_run[index] = 0
             if self.unstamped_told[index]:
                 return []
             self.unstamped_told[index] = True
             return self.UNSTAMPED
-        self.unstamped_told[index] = False   # stamped again: told again if it goes back to unstamped
+        self.stamped_run[index] += 1
+        if self.stamped_run[index] >= self.silent_after:   # stamped for a while: told again if it relapses
+            self.unstamped_told[index] = False
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
             if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
                 self.late += 1

@@ -189,16 +189,23 @@ class CampaignDeployment(object):
                                  abort=self._exited)
         if missing:
             raise CampaignError('Proxies did not come up: missing %s (logs in %s)' % (missing, self.log_dir))
+        clients_started = time.time()
         for name in sorted(self.client_argv):
             self.sites[name] = self._site(name).start()
-        # Up only once each client runs its calls (its history file is opened then): a fault drawn at
-        # once (the ROS master killed) found both clients in rospy's init_node, which cannot survive a
-        # master that does not answer: they died, their histories empty, and the segment's check
-        # counted 4 violations (the 1000-fault run of session 35, segment 18).
+        # Up only once each client runs its calls (it writes its first call's start to its history): a
+        # fault drawn at once (the ROS master killed) found both clients in rospy's init_node, which
+        # cannot survive a master that does not answer: they died, their histories empty, and the
+        # segment's check counted 4 violations (the 1000-fault run of session 35, segment 18).
         histories = [self.history_path(k) for k in range(1, self.clients + 1)]
-        wait_until(lambda: all(os.path.exists(path) for path in histories) or self._exited(), max(5.0, left()), 0.05)
+
+        def written(path):   # since the clients started (a replay into the same directory appends)
+            try:
+                return os.stat(path).st_mtime >= clients_started - 0.01
+            except OSError:
+                return False
+        wait_until(lambda: all(written(path) for path in histories) or self._exited(), max(5.0, left()), 0.05)
         why = self._exited()
-        missing = [path for path in histories if not os.path.exists(path)]
+        missing = [path for path in histories if not written(path)]
         if why or missing:
             raise CampaignError('clients did not start: %s (logs in %s)' % (why or 'no history %s' % missing,
                                                                           self.log_dir))

@@ -340,8 +340,8 @@ class Engine(object):
         self.connect_timeout = connect_timeout
         self.launch_niceness = launch_niceness
         self.log_dir = log_dir or os.path.join(rospkg.get_log_dir(), 'aft_adaptations')
-        self.sites = []            # LaunchedSite: the roslaunch processes of the run in progress (or failed)
-        self.committed = []        # LaunchedSite: those of runs done: the sites' nodes now, not the engine's
+        self.sites = []            # LaunchedSite: the roslaunch processes started and still running
+        self.committed = []        # those of them whose run is done: the sites' nodes now (shutdown leaves them)
         self.respawned = []        # Site: nodes started again from their command line by a rollback
         self.transaction = None    # the Transaction of the last run
         self._interrupted = ''     # set by interrupt() (from a signal handler: a plain assignment)
@@ -519,7 +519,6 @@ class Engine(object):
             self._keeper.stop()
         if tx.state == State.DONE:   # what it launched is the sites' now: shutdown() leaves it running
             self.committed += [site for site in self._run_sites if site in self.sites]
-            self.sites = [site for site in self.sites if site not in self._run_sites]
         report.update(tx.summary())
         report['duration_s'] = time.monotonic() - t0
         report['nodes_touched'] = script.nodes_touched(self._launched_names)
@@ -997,11 +996,11 @@ class Engine(object):
     def stop_all(self):
         """Stop every process this engine started, those of runs done too (tests and benchmarks, which
         tear the whole deployment down). Never raises."""
-        for site in self.sites + self.committed + self.respawned:
+        for site in self.sites + self.respawned:
             site.stop(grace=5.0)
         self.sites, self.committed, self.respawned = [], [], []
 
-    def shutdown(self, wait=10.0):
+    def shutdown(self, wait=5.0):
         """The engine's process stops (the monitor's shutdown): a run in progress is interrupted and
         given ``wait`` seconds to roll back, then what an unfinished run launched is stopped. What runs
         done launched, and nodes a rollback started again, are the sites' now and go on running: the
@@ -1013,9 +1012,9 @@ class Engine(object):
             deadline = time.monotonic() + wait
             while tx.state not in TERMINAL and time.monotonic() < deadline:
                 time.sleep(0.05)
-        for site in list(self.sites):
+        for site in [site for site in self.sites if site not in self.committed]:
             try:
                 site.stop(grace=5.0)
             except Exception:   # shutdown paths never raise
                 pass
-        self.sites = []
+        self.sites = list(self.committed)

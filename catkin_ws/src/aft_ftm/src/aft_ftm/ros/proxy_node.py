@@ -126,9 +126,6 @@ class ProxyNode(object):
     def _on_reply(self, reply):
         if reply.origin != self.name:
             return   # another Proxy's reply on a shared topic
-        if not self.table.waiting(reply.id):
-            self.table.close(reply.id, reply)   # a late duplicate (counted); its epoch is not taken
-            return
         if not self.table.fresh(reply.epoch):
             alarm(self.ports, 'pbr', 'stale_reply', 'reply to %d from epoch %d refused: epoch %d answers now'
                   % (reply.id, reply.epoch, self.table.epoch))

@@ -799,15 +799,21 @@ class RecoveryNode(object):
 
 
 def _children(process):
-    """[(pid, node name or None)] of a process's direct children, as /proc names them (gone: left out)."""
+    """[(pid, node name or None)] of a process's direct children, as /proc names them (gone: left out;
+    one forked but not yet exec'd, its command line still its launcher's, left out too: it is no
+    other's node, and the launcher's tree, when killed, takes it)."""
     found = []
     try:
         children = process.children()
+        own = process.cmdline()
     except psutil.Error:
         return found
     for child in children:
         try:
-            found.append((child.pid, node_name(child.cmdline(), child.environ())))
+            argv = child.cmdline()
+            if argv == own:
+                continue
+            found.append((child.pid, node_name(argv, child.environ())))
         except psutil.Error:
             continue
     return found
