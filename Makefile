@@ -24,7 +24,7 @@ bench: setup
 	$(ENV) python scripts/bench_report $(if $(QUICK),--quick)
 
 campaign: setup
-	$(ENV) python scripts/campaign --faults $(or $(FAULTS),1000) $(if $(SEED),--seed $(SEED))
+	$(ENV) python scripts/campaign --adapt --faults $(or $(FAULTS),1000) $(if $(SEED),--seed $(SEED))
 
 clean:
 	rm -rf catkin_ws/build catkin_ws/devel
