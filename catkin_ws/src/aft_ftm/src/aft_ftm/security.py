@@ -714,7 +714,8 @@ class PartyQuota(object):
     """Server side: the requests each party has outstanding (ids at or above their origin's oldest
     pending, whose replies the Protocol must keep), at most ``limit`` per party (0: no bound, nothing
     tracked). An origin is tracked only while it has one outstanding, so a party's origins tracked are
-    bounded by its quota too.
+    bounded by its quota too. The caller binds each origin to one party first (OriginBinding), so an
+    origin's ids always count for the party that sends them.
 
     The Protocol's reply cache is shared: at its bound it refuses every new request, of every client
     (README, Limits of session 33). A certified insider sending many ids it never confirms, from one
@@ -739,7 +740,6 @@ class PartyQuota(object):
         self.retell = retell
         self.ids = {}      # origin -> set of outstanding ids
         self.heaps = {}    # origin -> min-heap of the same ids (the lowest forgotten first)
-        self.party = {}    # origin -> the party it counts for (its binding: one party per origin)
         self.floors = {}   # origin -> the highest oldest_pending admitted from it (while it has ids)
         self.count = collections.Counter()     # party -> outstanding ids over all its origins
         self.full = set()  # parties refused since they last had room
@@ -751,24 +751,23 @@ class PartyQuota(object):
         whether to raise an alarm for it."""
         if not self.limit:
             return
-        owner = self.party.get(origin, party)
         floor = max(self.floors.get(origin, 0), oldest_pending)
         ids, heap = self.ids.get(origin, set()), self.heaps.get(origin, [])
         confirmed = []
         while heap and heap[0] < floor:   # confirmed by this request: forgotten only if it is admitted
             confirmed.append(heapq.heappop(heap))
         fresh = request_id >= floor and request_id not in ids
-        count = self.count[owner] - len(confirmed) + (1 if fresh else 0)
+        count = self.count[party] - len(confirmed) + (1 if fresh else 0)
         if fresh and count > self.limit:
             for i in confirmed:
                 heapq.heappush(heap, i)
             error = Rejected('party_quota', 'party %s has %d requests outstanding (its quota): %s/%d is dropped '
-                             'until its older calls are confirmed' % (owner, self.count[owner], origin, request_id))
+                             'until its older calls are confirmed' % (party, self.count[party], origin, request_id))
             now = self.clock()
-            error.first = owner not in self.full and now - self.told.get(owner, -self.retell) >= self.retell
+            error.first = party not in self.full and now - self.told.get(party, -self.retell) >= self.retell
             if error.first:
-                self.told[owner] = now
-            self.full.add(owner)
+                self.told[party] = now
+            self.full.add(party)
             raise error
         for i in confirmed:
             ids.discard(i)
@@ -776,16 +775,16 @@ class PartyQuota(object):
             ids.add(request_id)
             heapq.heappush(heap, request_id)
         if count:
-            self.count[owner] = count
+            self.count[party] = count
         else:
-            self.count.pop(owner, None)
+            self.count.pop(party, None)
         if ids:
-            self.ids[origin], self.heaps[origin], self.party[origin], self.floors[origin] = ids, heap, owner, floor
+            self.ids[origin], self.heaps[origin], self.floors[origin] = ids, heap, floor
         else:   # nothing outstanding: forgotten (its replays are ReplayGuard's), so that it costs nothing here
-            for table in (self.ids, self.heaps, self.party, self.floors):
+            for table in (self.ids, self.heaps, self.floors):
                 table.pop(origin, None)
         if count < self.limit:
-            self.full.discard(owner)   # room again
+            self.full.discard(party)   # room again
 
     def at_quota(self):
         """The parties refused since they last had room."""

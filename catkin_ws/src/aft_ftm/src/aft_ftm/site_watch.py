@@ -140,21 +140,29 @@ def node_name(cmdline, environ):
     return (ns.rstrip('/') + '/' + name) if ns != '/' else '/' + name
 
 
-def children_nodes(launcher_pid):
-    """[(pid, node name)] of the ROS nodes the launcher process started (its direct children)."""
+def children_named(launcher_pid):
+    """[(pid, node name or None)] of a process's direct children, as /proc names them. Left out: a
+    child gone meanwhile or unreadable (looked at again at the next scan), and one forked but not yet
+    exec'd, its command line still its parent's (it is nobody's node yet)."""
     found = []
     try:
-        children = psutil.Process(launcher_pid).children()
+        launcher = psutil.Process(launcher_pid)
+        children, own = launcher.children(), launcher.cmdline()
     except psutil.Error:
         return found
     for child in children:
         try:
-            name = node_name(child.cmdline(), child.environ())
+            argv = child.cmdline()
+            if argv != own:
+                found.append((child.pid, node_name(argv, child.environ())))
         except psutil.Error:
-            continue   # gone meanwhile, or unreadable: looked at again at the next scan
-        if name:
-            found.append((child.pid, name))
+            continue
     return found
+
+
+def children_nodes(launcher_pid):
+    """[(pid, node name)] of the ROS nodes the launcher process started (its direct children)."""
+    return [(pid, name) for pid, name in children_named(launcher_pid) if name]
 
 
 class SiteWatch(object):

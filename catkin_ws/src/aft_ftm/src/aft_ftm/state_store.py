@@ -16,6 +16,9 @@ def _digest(payload):
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
+
+NO_STATE = 'no saved state'   # load()'s reason when nothing was ever saved (a fresh start)
+
 class StateStore(object):
     """``check(state)`` returns None when the state is sane, else what is wrong with it (the range
     check of the service, e.g. a joint position outside its limits)."""
@@ -54,7 +57,7 @@ class StateStore(object):
             with open(self.path) as f:
                 text = f.read()
         except FileNotFoundError:
-            return None, 'no saved state'
+            return None, NO_STATE
         except OSError as e:
             return None, 'saved state unreadable: %s' % e.strerror
         try:

@@ -45,6 +45,7 @@ it is restored. The sites see its older configuration too and tell it so (witnes
 import enum
 
 from .errors import ConfigError
+from .state_store import NO_STATE
 
 
 class WitnessBehind(Exception):
@@ -242,15 +243,13 @@ class Witness(object):
             self.store.save(record)
             self.saves += 1
 
-    NO_STATE = 'no saved state'
-
     def _load(self, loaded):
         """Take the record read from the store; only "no saved state" is a fresh start. A record that is
         there but cannot be read (corrupt, or a read failing for a moment: EIO, EMFILE) raises
         ConfigError: a witness started afresh over it grants epochs granted already (review of session
         35: the node checked one read and the witness made a second, taking its failure for a start)."""
         state, why = loaded
-        if state is None and why != self.NO_STATE:
+        if state is None and why != NO_STATE:
             raise ConfigError('%s (refusing to start: it could grant an epoch twice)' % why)
         if state is None:
             self.reason = 'fresh witness (%s)' % why

@@ -1009,9 +1009,7 @@ class Engine(object):
         tx = self.transaction
         if tx is not None and tx.state not in TERMINAL:
             self.interrupt('the engine stops')
-            deadline = time.monotonic() + wait
-            while tx.state not in TERMINAL and time.monotonic() < deadline:
-                time.sleep(0.05)
+            wait_until(lambda: tx.state in TERMINAL, wait, 0.05)
         for site in [site for site in self.sites if site not in self.committed]:
             try:
                 site.stop(grace=5.0)

@@ -21,7 +21,7 @@ from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import (GATES, Step, failed_steps, incomplete, plan, promoted_unasked, role_after, role_in,
                         same_process, start_plan, unfenceable)
 from ..sites import silence_trees, this_host
-from ..site_watch import node_name
+from ..site_watch import children_named
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
@@ -760,7 +760,7 @@ class RecoveryNode(object):
         except psutil.Error:
             program = False
         pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
-                                                     launcher_children(_children(launcher), self.fence.prefix))
+                                                     launcher_children(children_named(failure.pid), self.fence.prefix))
         if partial:
             # It runs more than the failed site: stopped for good (it starts nothing of the site again, a
             # respawn or a node it had not started yet), then its children read again, now that none
@@ -770,7 +770,7 @@ class RecoveryNode(object):
             except psutil.Error:
                 pass
             pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
-                                                         launcher_children(_children(launcher), self.fence.prefix))
+                                                         launcher_children(children_named(failure.pid), self.fence.prefix))
             alarm(self.ports, 'pbr', 'fence_partial', '%s; it stays stopped (SIGSTOP) so that it starts nothing of '
                   '%s again: its other nodes run on without their launcher until an operator resumes or restarts '
                   'it' % (why, failure.site))
@@ -799,25 +799,3 @@ class RecoveryNode(object):
             rospy.loginfo('%s: master cleaned of %d nodes of %s', rospy.get_name(), count, self.peer_ns)
         except Exception as e:   # best effort: the failover is already done
             rospy.logwarn('%s: could not clean the master of %s: %s', rospy.get_name(), self.peer_ns, e)
-
-
-def _children(process):
-    """[(pid, node name or None)] of a process's direct children, as /proc names them (gone: left out;
-    one forked but not yet exec'd, its command line still its launcher's, left out too: it is no
-    other's node, and the launcher's tree, when killed, takes it)."""
-    found = []
-    try:
-        children = process.children()
-        own = process.cmdline()
-    except psutil.Error:
-        return found
-    for child in children:
-        try:
-            argv = child.cmdline()
-            if argv == own:
-                continue
-            found.append((child.pid, node_name(argv, child.environ())))
-        except psutil.Error:
-            continue
-    return found
-
