@@ -43,6 +43,7 @@ def restore_parameters(master, caller_id, read):
 
 def register_again(master, caller_id, node_uri):
     """Every registration of this node, again; returns (publications, subscriptions, services)."""
+    from .subscription_keeper import master_updates, stale_answer
     topics, services = get_topic_manager(), get_service_manager()
     updates = []
     with topics.lock, services.lock:   # rospy's own order (RegManager.start)
@@ -51,14 +52,16 @@ def register_again(master, caller_id, node_uri):
         for name, data_type in publications:
             master.registerPublisher(caller_id, name, data_type, node_uri)
         for name, data_type in subscriptions:
+            sent_at = master_updates(name)
             code, _, publishers = master.registerSubscriber(caller_id, name, data_type, node_uri)
             if code == 1:
-                updates.append((name, publishers))
+                updates.append((name, publishers, sent_at))
         for name, service_uri in offered:
             master.registerService(caller_id, name, service_uri, node_uri)
     node = node_api(node_uri, CALL_TIMEOUT)
-    for name, publishers in updates:
-        node.publisherUpdate('/master', name, publishers)
+    for name, publishers, sent_at in updates:
+        if not stale_answer(name, sent_at):   # a list the master sent since is newer: it stands
+            node.publisherUpdate('/master', name, publishers)
     return len(publications), len(subscriptions), len(offered)
 
 

@@ -2,9 +2,10 @@
 
 :func:`keep_subscriptions` (``run_node`` calls it before ``init_node``) records, for each topic, the
 publishers the master last told the node of (the answer to ``registerSubscriber``, through rospy's
-``RegManager.publisher_update``, and each ``publisherUpdate``, empty lists included), and starts a
+``RegManager.publisher_update``, and each ``publisherUpdate``, empty lists included; a registration
+answer older than a list taken while it was out is dropped, see record_publisher_lists), and starts a
 daemon thread that every ``period`` seconds (env ``AFT_SUBSCRIPTION_CHECK_PERIOD``, 2 s by default; 0
-turns it off) compares them with each subscription's transports and the connections rospy is making:
+turns the thread off, not the mending of that race) compares them with each subscription's transports and the connections rospy is making:
 no call to the master, nothing sent while every publisher is connected. A publisher lacking a live,
 connecting or being-made transport for ``aft_ftm.subscriptions.GRACE`` seconds is connected again: a
 transport rospy left behind done is removed, and rospy's own connecting thread is started for that
@@ -54,32 +55,113 @@ def transports(impl):
 _TOLD = {}            # topic -> the publisher URIs the master last told this node of
 _CONNECTING = set()   # (topic, uri) rospy is connecting now (its requestTopic retries for up to 32 s)
 _STATE = {}           # 'reg_manager': rospy's RegManager, seen at its first publisher list
+_UPDATES = {}         # topic -> how many publisherUpdate calls (the master's) this node has taken for it
+_REGISTERING = {}     # topic -> _UPDATES[topic] when this node's registration of it was sent
+_LOCAL = threading.local()   # .from_api: the publisher list at hand came through publisherUpdate
 _LOCK = threading.Lock()
+
+
+def master_updates(topic):
+    """How many publisher lists the master has sent this node for topic, through its publisherUpdate
+    API. A registration answer is stale if this number moved while the registration was out."""
+    with _LOCK:
+        return _UPDATES.get(topic, 0)
+
+
+def stale_answer(topic, sent_at):
+    """True if the answer to a registerSubscriber sent when ``master_updates(topic)`` was sent_at is
+    older than a list the master has sent since (see record_publisher_lists)."""
+    return master_updates(topic) != sent_at
 
 
 def record_publisher_lists():
     """Keep each publisher list the master tells this node, and which connections rospy is making (once
     per process). A subscription's first list comes with its registration (RegManager.publisher_update),
     later ones through the node's publisherUpdate API, which rospy passes on only when it names a
-    publisher: an empty list (the last publisher gone) is recorded there."""
+    publisher: an empty list (the last publisher gone) is recorded there.
+
+    It also mends a race in rospy (1.15, ``RegManager.reg_added`` and ``start``): a subscription's
+    registration answer is queued after the registerSubscriber call returns, and the newest list queued
+    wins. A publisher that registers while that call is out is told to this node by the master's
+    publisherUpdate, which can be taken before the answer, a list made earlier, is queued: the answer
+    then replaces it, and rospy never connects to that publisher; the master does not tell again
+    (CI: "the car did not come up within 90 s: /board_a/controller_pid not connected (/board_a/pid_raw
+    to /board_a/cycle_after)", with no warning logged anywhere). The master sends this node updates for
+    a topic only once it has registered the subscription, in order (one at a time per node), each the
+    whole list: one taken while the registration was out is newer than its answer. Such an answer is
+    dropped, with an info line."""
     from rospy.impl.masterslave import ROSHandler
-    from rospy.impl.registration import RegManager
+    from rospy.impl.registration import Registration, RegManager
     if getattr(RegManager.publisher_update, 'recorded', False):
         return
     update, told, connect = RegManager.publisher_update, ROSHandler.publisherUpdate, RegManager._connect_topic_thread
+    added, start, run = RegManager.reg_added, RegManager.start, RegManager.run
 
     def publisher_update(self, resolved_name, uris):
         with _LOCK:
+            # a subscription made after start() was called is registered by it too: from 0 updates
+            sent_at = _REGISTERING.get(resolved_name, 0 if _STATE.get('starting') else None)
+            stale = (not getattr(_LOCAL, 'from_api', False) and sent_at is not None
+                     and _UPDATES.get(resolved_name, 0) != sent_at)
             _STATE['reg_manager'] = self
-            _TOLD[resolved_name] = frozenset(uris)
+            if not stale:
+                _TOLD[resolved_name] = frozenset(uris)
+        if stale:
+            rospy.loginfo('%s: the registration answer for %s (publishers %s) is older than a list the '
+                          'master sent meanwhile: that list stands', rospy.get_caller_id(), resolved_name,
+                          sorted(uris))
+            return None
         return update(self, resolved_name, uris)
 
     def publisher_update_api(self, caller_id, topic, publishers):
-        answer = told(self, caller_id, topic, publishers)
+        with _LOCK:
+            _UPDATES[topic] = _UPDATES.get(topic, 0) + 1
+        _LOCAL.from_api = True
+        try:
+            answer = told(self, caller_id, topic, publishers)
+        finally:
+            _LOCAL.from_api = False
         if answer and answer[0] == 1 and isinstance(publishers, (list, tuple)):   # (validated by rospy)
             with _LOCK:
                 _TOLD[topic] = frozenset(publishers)
         return answer
+
+    def mark(topics):
+        with _LOCK:
+            marked = [t for t in topics if t not in _REGISTERING]
+            for topic in marked:
+                _REGISTERING[topic] = _UPDATES.get(topic, 0)
+        return marked
+
+    def unmark(marked):
+        with _LOCK:
+            for topic in marked:
+                _REGISTERING.pop(topic, None)
+
+    def reg_added(self, resolved_name, data_type_or_uri, reg_type):
+        marked = mark([resolved_name] if reg_type == Registration.SUB else [])
+        try:
+            return added(self, resolved_name, data_type_or_uri, reg_type)
+        finally:
+            unmark(marked)
+
+    def start_registering(self, *args, **kwargs):
+        # rospy's start registers what the node made before init_node's registration, then spins in
+        # run() for the life of the node: the marks end where run begins
+        _STATE['start_marked'] = mark([name for name, _ in get_topic_manager().get_subscriptions()])
+        _STATE['starting'] = True
+        try:
+            return start(self, *args, **kwargs)
+        finally:
+            registered()
+
+    def registered():
+        _STATE.pop('starting', None)
+        unmark(_STATE.pop('start_marked', []))
+
+    def run_registered(self, *args, **kwargs):
+        registered()
+        return run(self, *args, **kwargs)
 
     def connect_topic_thread(self, topic, uri):
         with _LOCK:
@@ -91,6 +173,9 @@ def record_publisher_lists():
                 _CONNECTING.discard((topic, uri))
     publisher_update.recorded = True
     RegManager.publisher_update = publisher_update
+    RegManager.reg_added = reg_added
+    RegManager.start = start_registering
+    RegManager.run = run_registered
     ROSHandler.publisherUpdate = publisher_update_api
     RegManager._connect_topic_thread = connect_topic_thread
 
@@ -190,9 +275,9 @@ def keep_subscriptions(period=None, keeper=None):
     made). Returns it, or None when turned off. Raises ConfigError on a bad AFT_SUBSCRIPTION_CHECK_PERIOD."""
     if period is None:
         period = period_from_env(name='AFT_SUBSCRIPTION_CHECK_PERIOD', default=DEFAULT_PERIOD)
+    record_publisher_lists()   # (rospy's race mended, with the keeper or without)
     if period <= 0 or getattr(keep_subscriptions, 'thread', None) is not None:
         return getattr(keep_subscriptions, 'thread', None)
-    record_publisher_lists()
     thread = threading.Thread(target=_loop, args=(period, keeper or Keeper()), daemon=True,
                               name='aft-subscription-keeper')
     thread.start()
