@@ -326,3 +326,26 @@ def test_nodes_an_adaptation_may_start_again_clear_their_parameters(launch):
     path = os.path.join(os.path.dirname(SHIPPED[0]), '..', 'launch', launch)
     nodes = ElementTree.parse(path).getroot().iter('node')
     assert [n.get('name') for n in nodes if n.get('clear_params') != 'true'] == []
+
+
+def test_a_bind_needs_a_peer_on_its_topic_once_the_script_has_run():
+    script = adaptation.load("""
+name: rewire
+kind: compose
+suspend: [/s/protocol]
+bind:
+  - {node: /s/a, port: inp, topic: /s/t1}
+  - {node: /s/b, port: out, topic: /s/t2, direction: publish}
+  - {node: /s/c, port: inp, topic: /s/t2}
+  - {node: /s/d, port: inp, topic: /s/t3}
+  - {node: /s/e, port: out, topic: /s/t4, direction: publish}
+  - {node: /s/f, port: inp, unbind: true}
+retire: [/s/old]
+""")
+    publishers = {'/s/t1': ['/s/before'], '/s/t3': ['/s/old', '/s/d'], '/s/t4': ['/s/x']}
+    subscribers = {'/s/t4': ['/s/old']}
+    problems = adaptation.unconnected_binds(script, publishers, subscribers)
+    # t1 has a publisher; t2 is published by b and subscribed by c, both binds of the script; t3's
+    # publishers are retired or the port's own node; t4's only subscriber is retired; an unbind needs none.
+    assert problems == ['/s/d.inp would be bound to /s/t3, which no node publishes (a misspelt topic?)',
+                        '/s/e.out would be bound to /s/t4, which no node subscribes to (a misspelt topic?)'], problems

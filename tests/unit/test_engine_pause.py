@@ -393,3 +393,41 @@ def test_every_node_of_a_kill_group_is_recorded_before_any_is_signalled_and_noth
             victim.kill()
             victim.wait()
 
+
+
+class FakeMaster(object):
+    """The master's graph as a compose sees it: each site's Before publishes its bfr2prd, the Proceed
+    and the TR's Protocol just launched subscribe (or not yet)."""
+
+    def getSystemState(self):
+        pubs = [('/master/bfr2prd', ['/master/before']), ('/slave/bfr2prd', ['/slave/before'])]
+        subs = [('/master/bfr2prd', ['/master/proceed']), ('/slave/bfr2prd', ['/slave/proceed'])]
+        return pubs, subs, []
+
+
+def checking_engine(graph, monkeypatch):
+    monkeypatch.setattr(adaptation_engine.Engine, 'master', property(lambda self: FakeMaster()))
+    checked = engine(graph)
+
+    def validate(script, mode):
+        checked._script = script
+        return adaptation.plan(script, mode)
+    checked.validate = validate
+    return checked
+
+
+def test_a_bind_to_a_topic_nobody_publishes_is_rolled_back_before_any_port_moves(graph, monkeypatch):
+    """A misspelt topic in a bind: the run said it succeeded, and every request was lost until the
+    Protocol's backstop fail-stopped the site 30 s later (review of session 35)."""
+    script = adaptation.load(adaptation_scripts.COMPOSE.replace('/$(arg site)/bfr2prd', '/$(arg site)/bfr2pdr'))
+    report = checking_engine(graph, monkeypatch).run(script, 'prepared')
+    assert not report['ok'] and report['rolled_back'], report
+    assert '/master/tr/protocol.requests would be bound to /master/bfr2pdr, which no node publishes' in report['error']
+    assert graph.rebinds == [], 'a port moved: %s' % graph.rebinds
+    assert graph.gate('/master/protocol').state == GateState.OPEN and graph.gate('/slave/protocol').state == GateState.OPEN
+
+
+def test_the_same_bind_to_the_published_topic_goes_through(graph, monkeypatch):
+    report = checking_engine(graph, monkeypatch).run(compose(), 'prepared')
+    assert report['ok'], report
+    assert ('/master/tr/protocol', 'bind /master/bfr2prd') in [r[:2] for r in graph.rebinds], graph.rebinds

@@ -366,6 +366,34 @@ def check_fit(script, nodes, services, launched, calls=None):
                                   % (entry.file, node, ', '.join(names), ', '.join(missing)))
 
 
+def unconnected_binds(script, publishers, subscribers):
+    """The binds of script that would leave their port with no peer; [message naming each].
+
+    ``publishers``, ``subscribers``: {topic: node names} as the master has them once the script's
+    launches are up (before its rebinds). A port bound to a subscription needs a publisher of the
+    topic, a publishing port a subscriber: a node registered on it now, other than the port's own
+    node and the nodes the script retires, or another bind of the script on that topic the other
+    way. A topic nobody publishes (a typo) was accepted, the run said it succeeded, and requests were
+    lost until the Protocol's 30 s backstop fail-stopped the site (review of session 35)."""
+    retired = set(script.retire)
+    bound = collections.defaultdict(set)   # (topic, direction) -> the nodes the script binds there
+    for b in script.bind:
+        if b.activate:
+            bound[(b.topic, b.direction)].add(b.node)
+    problems = []
+    for b in script.bind:
+        if not b.activate:
+            continue
+        subscribing = b.direction == 'subscribe'
+        table = publishers if subscribing else subscribers
+        other = 'publish' if subscribing else 'subscribe'
+        peers = (set(table.get(b.topic, ())) | bound[(b.topic, other)]) - retired - {b.node}
+        if not peers:
+            problems.append('%s.%s would be bound to %s, which no node %s (a misspelt topic?)' % (
+                b.node, b.port, b.topic, 'publishes' if subscribing else 'subscribes to'))
+    return problems
+
+
 # -- planning -----------------------------------------------------------------------------------
 
 Step = collections.namedtuple('Step', 'action target detail')

@@ -354,6 +354,7 @@ class Engine(object):
         self._proxies_lock = threading.Lock()
         self._prepared_kills = {}  # node -> (process, Killed) or StepError: a kill group's, recorded first
         self._nodes_seen = (None, frozenset())   # (when, the running nodes): _graph_nodes' cache
+        self._script = None   # the script being run (validate): its binds and retirements
         self._keeper = None        # the LeaseKeeper of the run in progress
         self._run_sites = []       # the LaunchedSites it started
         self._owner = ''           # the run in progress's name on the nodes it suspends (aft_msgs/Suspend owner)
@@ -399,6 +400,7 @@ class Engine(object):
         """Check script against the live graph; returns the plan. Raises ScriptError naming the
         problem; nothing is changed."""
         steps = adaptation.plan(script, mode)
+        self._script = script
         self._close_proxies()
         self._launches, self._launched_names = {}, []
         nodes, services = self._graph()
@@ -613,6 +615,10 @@ class Engine(object):
             broken = self._pause_intact()
             if broken:
                 return [Outcome(step, s0, 'not resumed: %s' % broken, None) for step in group]
+        if group[0].action == 'rebind':
+            unconnected = self._unconnected_binds([step.detail for step in group])
+            if unconnected:
+                return [Outcome(step, s0, 'not rebound: %s' % '; '.join(unconnected), None) for step in group]
         if group[0].action == 'kill' and len(group) > 1:
             # Every node of the group recorded before any is signalled: nodes of one required launch go
             # down together, and one recorded after another's kill was found dead, its kill "failed" and
@@ -647,6 +653,21 @@ class Engine(object):
         if last_resumes:
             results = [self._resumed_all_the_same(o) for o in results]
         return results
+
+    def _unconnected_binds(self, binds):
+        """What adaptation.unconnected_binds says of these binds, against the master's graph now (the
+        launches are up: every order launches before it rebinds); [] when they all have a peer. A
+        master that cannot be asked is said too: a rebind would not connect without it either."""
+        script = self._script
+        if script is None:
+            return []
+        try:
+            pubs, subs, _ = self.master.getSystemState()
+        except Exception as e:
+            return ['the ROS master cannot be asked who publishes and subscribes: %s' % e]
+        problems = adaptation.unconnected_binds(script, {t: n for t, n in pubs}, {t: n for t, n in subs})
+        named = ['%s.%s ' % (b.node, b.port) for b in binds]
+        return [p for p in problems if any(p.startswith(n) for n in named)]
 
     def _resumed_all_the_same(self, outcome):
         """A last resume whose answer did not come in time (the engine stalled, or the node delivered a
