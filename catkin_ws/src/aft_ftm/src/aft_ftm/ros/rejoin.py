@@ -5,8 +5,9 @@ the master every ``period`` seconds (env ``AFT_MASTER_REJOIN_PERIOD``, 1 s by de
 off) its pid and whether it knows this node; when the master is a new one or does not know the node,
 the node registers again, as rospy does at start-up
 and under the same locks: every publication, subscription and service of the node. Each
-subscription is then told its current publishers, through the node's own ``publisherUpdate`` API,
-as the master would have told it. The private parameters the node read at start-up (through
+subscription is then told its current publishers, as rospy takes a registration answer (queued
+unless a publisher list came from the master meanwhile: then it is asked again, see
+aft_ftm.ros.subscription_keeper.registration_answer). The private parameters the node read at start-up (through
 aft_ftm.ros.params.param) are set again first, where the new master lacks them: tools that look at
 a node's parameters (the campaign reads an After's ``mechanism``) find them; other parameters are
 not restored.
@@ -43,7 +44,7 @@ def restore_parameters(master, caller_id, read):
 
 def register_again(master, caller_id, node_uri):
     """Every registration of this node, again; returns (publications, subscriptions, services)."""
-    from .subscription_keeper import master_updates, stale_answer
+    from .subscription_keeper import _STATE, master_updates, registration_answer
     topics, services = get_topic_manager(), get_service_manager()
     updates = []
     with topics.lock, services.lock:   # rospy's own order (RegManager.start)
@@ -58,9 +59,12 @@ def register_again(master, caller_id, node_uri):
                 updates.append((name, publishers, sent_at))
         for name, service_uri in offered:
             master.registerService(caller_id, name, service_uri, node_uri)
+    manager = _STATE.get('reg_manager')
     node = node_api(node_uri, CALL_TIMEOUT)
     for name, publishers, sent_at in updates:
-        if not stale_answer(name, sent_at):   # a list the master sent since is newer: it stands
+        if manager is not None:   # queued unless a publisher list came meanwhile (then asked again)
+            registration_answer(manager, name, publishers, sent_at)
+        else:   # (the keeper's recording is not in this process: as the master would tell it)
             node.publisherUpdate('/master', name, publishers)
     return len(publications), len(subscriptions), len(offered)
 

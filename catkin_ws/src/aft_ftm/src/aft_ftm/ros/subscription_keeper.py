@@ -58,20 +58,70 @@ _STATE = {}           # 'reg_manager': rospy's RegManager, seen at its first pub
 _UPDATES = {}         # topic -> how many publisherUpdate calls (the master's) this node has taken for it
 _REGISTERING = {}     # topic -> _UPDATES[topic] when this node's registration of it was sent
 _LOCAL = threading.local()   # .from_api: the publisher list at hand came through publisherUpdate
-_LOCK = threading.Lock()
+# Reentrant: a publisherUpdate is counted and queued in one hold (rospy's handler calls back into
+# RegManager.publisher_update); rospy's own locks are taken inside it, never the other way round.
+_LOCK = threading.RLock()
+ASK_TRIES = 6         # fresh registrations asked for a list no publisherUpdate overtook
+ASK_TIMEOUT = 5.0     # s for each
 
 
 def master_updates(topic):
     """How many publisher lists the master has sent this node for topic, through its publisherUpdate
-    API. A registration answer is stale if this number moved while the registration was out."""
+    API. A registration answer is in doubt if this number moved while the registration was out."""
     with _LOCK:
         return _UPDATES.get(topic, 0)
 
 
-def stale_answer(topic, sent_at):
-    """True if the answer to a registerSubscriber sent when ``master_updates(topic)`` was sent_at is
-    older than a list the master has sent since (see record_publisher_lists)."""
-    return master_updates(topic) != sent_at
+def _queue(manager, topic, uris):
+    """(under _LOCK) The list recorded and handed to rospy, which connects to its new publishers."""
+    _TOLD[topic] = frozenset(uris)
+    _STATE['queue'](manager, topic, uris)
+
+
+def registration_answer(manager, topic, uris, sent_at):
+    """The answer to a registerSubscriber sent when ``master_updates(topic)`` was ``sent_at``: queued if
+    no publisherUpdate for topic came since; otherwise it is in doubt and a fresh one is asked for
+    (:func:`_ask_again`, in a thread). Returns True if it was queued."""
+    with _LOCK:
+        if _UPDATES.get(topic, 0) == sent_at:
+            _queue(manager, topic, uris)
+            return True
+    threading.Thread(target=_ask_again, args=(manager, topic, sorted(uris)), daemon=True,
+                     name='aft-ask-again-%s' % topic).start()
+    return False
+
+
+def _ask_again(manager, topic, doubted):
+    """Register the subscription again (rosmaster takes it as the same registration, and tells nobody)
+    until an answer comes back with no publisherUpdate for topic taken meanwhile: that one is the
+    master's newest list, and is queued. A publisherUpdate taken while a registration is out may be
+    newer than its answer (a publisher registered meanwhile) or older (one queued for this node's
+    URI before, held up in the master's three workers by nodes that do not answer: a subscription
+    made again, a node started on a dead one's port, a master started again); neither may win
+    unasked."""
+    caller_id = rospy.get_caller_id()
+    for attempt in range(ASK_TRIES):
+        impl = get_topic_manager().get_subscriber_impl(topic)
+        if impl is None or rospy.core.is_shutdown():
+            return   # unsubscribed meanwhile: nothing to tell
+        sent_at = master_updates(topic)
+        try:
+            code, message, uris = node_api(manager.master_uri, ASK_TIMEOUT).registerSubscriber(
+                caller_id, topic, impl.type, manager.uri)
+        except Exception as e:   # the master is away: asked again after a while
+            code, message, uris = -1, str(e), []
+        if code == 1:
+            with _LOCK:
+                if _UPDATES.get(topic, 0) == sent_at:
+                    _queue(manager, topic, uris)
+                    rospy.loginfo('%s: the registration answer for %s (publishers %s) was in doubt (a publisher '
+                                  'list came while it was out): asked again, publishers %s',
+                                  caller_id, topic, doubted, sorted(uris))
+                    return
+        time.sleep(min(0.05 * 2 ** attempt, 1.0))
+    rospy.logwarn('%s: no registration answer for %s came without a publisher list overtaking it in %d tries '
+                  '(last: %s): the list the master sent last stands, and the subscription keeper looks on',
+                  caller_id, topic, ASK_TRIES, message if code != 1 else 'overtaken')
 
 
 def record_publisher_lists():
@@ -86,43 +136,40 @@ def record_publisher_lists():
     publisherUpdate, which can be taken before the answer, a list made earlier, is queued: the answer
     then replaces it, and rospy never connects to that publisher; the master does not tell again
     (CI: "the car did not come up within 90 s: /board_a/controller_pid not connected (/board_a/pid_raw
-    to /board_a/cycle_after)", with no warning logged anywhere). The master sends this node updates for
-    a topic only once it has registered the subscription, in order (one at a time per node), each the
-    whole list: one taken while the registration was out is newer than its answer. Such an answer is
-    dropped, with an info line."""
+    to /board_a/cycle_after)", with no warning logged anywhere). Here a registration answer is queued
+    only if no publisherUpdate for its topic was taken since the registration was sent (counted and
+    queued under one lock); otherwise the master is asked again (:func:`registration_answer`)."""
     from rospy.impl.masterslave import ROSHandler
     from rospy.impl.registration import Registration, RegManager
     if getattr(RegManager.publisher_update, 'recorded', False):
         return
     update, told, connect = RegManager.publisher_update, ROSHandler.publisherUpdate, RegManager._connect_topic_thread
     added, start, run = RegManager.reg_added, RegManager.start, RegManager.run
+    _STATE['queue'] = update
 
     def publisher_update(self, resolved_name, uris):
         with _LOCK:
+            _STATE['reg_manager'] = self
+            if getattr(_LOCAL, 'from_api', False):
+                _queue(self, resolved_name, uris)
+                return None
             # a subscription made after start() was called is registered by it too: from 0 updates
             sent_at = _REGISTERING.get(resolved_name, 0 if _STATE.get('starting') else None)
-            stale = (not getattr(_LOCAL, 'from_api', False) and sent_at is not None
-                     and _UPDATES.get(resolved_name, 0) != sent_at)
-            _STATE['reg_manager'] = self
-            if not stale:
-                _TOLD[resolved_name] = frozenset(uris)
-        if stale:
-            rospy.loginfo('%s: the registration answer for %s (publishers %s) is older than a list the '
-                          'master sent meanwhile: that list stands', rospy.get_caller_id(), resolved_name,
-                          sorted(uris))
-            return None
-        return update(self, resolved_name, uris)
+            if sent_at is None:   # not a registration answer of the paths watched: as rospy does
+                _queue(self, resolved_name, uris)
+                return None
+        registration_answer(self, resolved_name, uris, sent_at)
+        return None
 
     def publisher_update_api(self, caller_id, topic, publishers):
-        with _LOCK:
+        with _LOCK:   # counted and queued in one hold: no answer checked in between is queued after it
             _UPDATES[topic] = _UPDATES.get(topic, 0) + 1
-        _LOCAL.from_api = True
-        try:
-            answer = told(self, caller_id, topic, publishers)
-        finally:
-            _LOCAL.from_api = False
-        if answer and answer[0] == 1 and isinstance(publishers, (list, tuple)):   # (validated by rospy)
-            with _LOCK:
+            _LOCAL.from_api = True
+            try:
+                answer = told(self, caller_id, topic, publishers)
+            finally:
+                _LOCAL.from_api = False
+            if answer and answer[0] == 1 and isinstance(publishers, (list, tuple)):   # (validated by rospy)
                 _TOLD[topic] = frozenset(publishers)
         return answer
 
