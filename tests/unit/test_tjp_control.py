@@ -210,3 +210,50 @@ def test_a_controller_state_with_a_number_that_is_not_finite_is_refused():
         with pytest.raises(TjpConfigError, match='not a finite number'):
             pid.set_state(bad)
         assert pid.state() == before
+
+
+def test_with_no_imu_reading_since_it_started_it_brakes_for_the_top_speed_and_says_so():
+    """Emergency Braking started again while the car moves (the service manager restarts it), its IMU
+    not connected: it braked as for a standing car, 1 m, and said nothing (review of session 36)."""
+    braking = EmergencyBraking(confirm=1, speed_window=0.2)
+    assert not braking.update(None, 10.0)                 # first reading: no speed yet, not stale yet
+    assert braking.speed_at(10.1) == 0.0 and not braking.speed_stale(10.1)
+    assert braking.speed_stale(10.3) and braking.speed_at(10.3) == pytest.approx(35 / 3.6)
+    # An obstacle 5 m ahead: inside the stopping distance at 35 km/h, far outside a standing car's 1 m.
+    assert braking.update(5.0, 10.3) and braking.activations == 1
+    braking.observe_speed(2.0, 10.35)                    # the IMU speaks: its reading counts again
+    assert braking.speed_at(10.4) == 2.0 and not braking.speed_stale(10.4)
+
+
+def test_a_late_duplicated_or_replayed_ultrasonic_reading_tells_nothing():
+    import random
+    seed = random.randrange(1 << 16)
+    rng = random.Random(seed)
+    braking = EmergencyBraking(confirm=3, period=0.04, release_delay=1.0)
+    # One false detection, replayed twice: time redundancy must still mask it.
+    assert not braking.update(0.9, 1.00, speed=5.0)
+    assert not braking.update(0.9, 1.00, speed=5.0) and not braking.update(0.9, 0.96, speed=5.0)
+    assert not braking.update(None, 1.04, speed=5.0)
+    assert braking.activations == 0 and braking.late == 2, seed
+    # A real obstacle, braked for; then "nothing in range" readings from the past (replayed or
+    # reordered, drawn) must not count as clear time: the brake holds until 1 s of fresh clear readings.
+    for t in (1.08, 1.12, 1.16):
+        braking.update(0.9, t, speed=5.0)
+    assert braking.active, seed
+    t = 1.20
+    braking.update(None, t, speed=0.0)                   # clear from 1.20 on
+    for _ in range(20):
+        old = rng.uniform(0.0, t)
+        assert braking.update(None, old, speed=0.0, clock=t + 0.01), (seed, old)   # the clock goes on: late
+    assert braking.update(None, 2.0, speed=0.0), seed      # 0.8 s clear: still braking
+    assert not braking.update(None, 2.21, speed=0.0), seed  # 1 s clear: released
+    assert braking.late == 22, seed
+
+
+def test_a_clock_gone_back_starts_the_readings_afresh_with_the_brake_held():
+    braking = EmergencyBraking(confirm=1, release_delay=0.5)
+    braking.observe_speed(3.0, 50.0)
+    assert braking.update(0.8, 50.0)
+    assert braking.update(None, 0.5, clock=0.5)          # the simulation started again: its clock went back
+    assert braking.resets == 1 and braking.late == 0 and braking.active
+    assert braking.update(None, 0.9) and not braking.update(None, 1.05)   # then 0.5 s clear, as ever

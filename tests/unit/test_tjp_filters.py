@@ -146,7 +146,7 @@ def test_a_clock_gone_back_starts_the_vote_afresh_instead_of_dropping_every_read
         decided = [d for i in range(3) for d in voter.add(i, stamp, 10.0)]
         assert [s for s, _, _ in decided] == [stamp]
     assert voter.add(0, 99, 10.0) == [] and voter.late == 1      # late by one instant: late, as before
-    decided = [d for stamp in (1, 2) for i in range(3) for d in voter.add(i, stamp, 12.0)]
+    decided = [d for stamp in (1, 2) for i in range(3) for d in voter.add(i, stamp, 12.0, clock=stamp)]
     assert [(s, v.value) for s, v, _ in decided] == [(1, 12.0), (2, 12.0)] and voter.resets == 1
     never = LaserVoter()                                           # (reset_after None: never, as before)
     for i in range(3):
@@ -177,3 +177,24 @@ def test_an_unstamped_laser_is_refused_loudly_and_the_other_two_still_vote():
     for stamp in range(6, 6 + none.silent_after):                    # stamped for a while, then not:
         none.add(0, stamp, 10.0)
     assert none.add(0, 0, 10.0) is LaserVoter.UNSTAMPED              # said again
+
+
+def test_readings_replayed_from_seconds_before_are_refused_while_the_clock_goes_on():
+    """Review of session 36: two lasers re-delivering readings of 3 s before (30 m, the gap then) were
+    taken for a clock gone back: the vote started afresh and passed 30 m on as the gap now."""
+    import random
+    from tjp_sim.filters import LaserVoter
+    seed = random.randrange(1 << 16)
+    rng = random.Random(seed)
+    voter = LaserVoter(reset_after=50)
+    for stamp in range(100, 400, 10):                # the clock goes on; every instant voted at 10 m
+        assert [v.value for i in range(3) for _, v, _ in voter.add(i, stamp, 10.0, clock=stamp)] == [10.0], seed
+    for _ in range(20):                              # lasers 1 and 2 replay old readings of 30 m, drawn
+        old = rng.randrange(1, 390 - 50)
+        for i in (1, 2):
+            assert voter.add(i, old, 30.0, clock=400) == [], (seed, old)
+    assert voter.resets == 0 and voter.stale == 40, seed
+    decided = [d for i in range(3) for d in voter.add(i, 400, 10.0, clock=400)]
+    assert [(s, v.value) for s, v, _ in decided] == [(400, 10.0)], (seed, decided)
+    # Without the reader's clock, an old reading is not taken for a reset either.
+    assert voter.add(0, 1, 30.0) == [] and voter.resets == 0 and voter.stale == 41

@@ -137,11 +137,21 @@ class EmergencyBraking(object):
     the second largest of the readings of the last ``speed_window`` seconds (one reading off in
     either direction changes nothing). A reading that is not a number is refused and counted. With
     no reading for ``speed_window``, it is the last speed plus what the car may have gained since at
-    ``max_accel`` (``speed_stale`` says so; the node raises an alarm).
+    ``max_accel`` (``speed_stale`` says so; the node raises an alarm). With no reading at all for
+    ``speed_window`` after its first ultrasonic reading (started again while the car moves, its IMU
+    not connected), it brakes for ``max_speed``, the TJP's top speed, and ``speed_stale`` says so: it
+    braked as for a standing car, 1 m instead of about 11 m at 10 m/s, and said nothing (review of
+    session 36).
+
+    Ultrasonic readings are taken in the order of their stamps: one stamped at or before the last
+    one taken (a duplicate, a reordered or replayed one) tells nothing and is counted in ``late``: a
+    replayed "nothing in range" released the brake before ``release_delay``, and one false detection
+    repeated confirmed itself. If the caller's own clock went back too (``clock``, a /clock reset),
+    it is a new start: ``resets`` counts it, and the readings are taken afresh (the brake held).
     """
 
     def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, confirm=1, period=0.04,
-                 speed_window=0.2, max_accel=3.0):
+                 speed_window=0.2, max_accel=3.0, max_speed=35 / 3.6):
         self.emergency_distance = _positive('emergency_distance', emergency_distance)
         self.release_delay = _non_negative('release_delay', release_delay)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
@@ -157,7 +167,12 @@ class EmergencyBraking(object):
         self.reason = ''
         self.speed_window = _positive('speed_window', speed_window)
         self.max_accel = _positive('max_accel', max_accel)
+        self.max_speed = _positive('max_speed', max_speed)
         self.speeds = collections.deque(maxlen=16)   # (time, speed) of the IMU's recent valid readings
+        self.first_reading = None   # the stamp of the first ultrasonic reading taken (since a reset)
+        self.last_reading = None    # the stamp of the last one taken
+        self.late = 0               # ultrasonic readings refused: stamped at or before the last one taken
+        self.resets = 0             # the clock gone back
         self.speed_refused = 0   # IMU readings that are not numbers
         self.invalid = 0         # ultrasonic readings that are not numbers (REP 117: NaN)
 
@@ -183,18 +198,36 @@ class EmergencyBraking(object):
         if recent:
             return recent[1] if len(recent) > 1 else recent[0]
         if not self.speeds:
-            return 0.0
+            return self.max_speed if self._no_speed_yet(now) else 0.0
         when, last = self.speeds[-1]
         return last + self.max_accel * max(0.0, now - when)
 
     def speed_stale(self, now):
-        """Whether no IMU reading came in the last speed_window seconds (after a first one)."""
-        return bool(self.speeds) and now - self.speeds[-1][0] > self.speed_window
+        """Whether no IMU reading came in the last speed_window seconds (after a first one, or after the
+        first ultrasonic reading)."""
+        if not self.speeds:
+            return self._no_speed_yet(now)
+        return now - self.speeds[-1][0] > self.speed_window
 
-    def update(self, distance, now, speed=None):
-        """An ultrasonic reading (m; None: nothing in range; NaN: an invalid reading, REP 117) while
-        driving at ``speed`` (m/s; None: :meth:`speed_at`). Returns whether Emergency Braking is active.
-        An invalid reading tells nothing: it neither confirms an obstacle nor clears one."""
+    def _no_speed_yet(self, now):
+        return self.first_reading is not None and now - self.first_reading > self.speed_window
+
+    def update(self, distance, now, speed=None, clock=None):
+        """An ultrasonic reading (m; None: nothing in range; NaN: an invalid reading, REP 117) stamped
+        ``now`` while driving at ``speed`` (m/s; None: :meth:`speed_at`); ``clock``: the caller's own
+        time then, if it has one. Returns whether Emergency Braking is active. An invalid reading, or
+        one out of order (see the class), tells nothing: it neither confirms an obstacle nor clears one."""
+        if self.last_reading is not None and now <= self.last_reading:
+            if not clock or clock >= self.last_reading:   # (0: a clock not started yet tells nothing)
+                self.late += 1
+                return self.active
+            self.resets += 1   # the clock went back: afresh, the brake as it was
+            self.speeds.clear()
+            self.first_reading = self.clear_since = None
+            self.seen = 0
+        self.last_reading = now
+        if self.first_reading is None:
+            self.first_reading = now
         if distance is not None and not (isinstance(distance, (int, float)) and distance == distance):
             self.invalid += 1
             return self.active

@@ -123,10 +123,13 @@ class LaserVoter(object):
     never outvote a good laser (they were taken for "nothing in range" and agreed, review of stop 39),
     and a laser that gives nothing else is reported silent.
 
-    A reading stamped more than ``reset_after`` before the last instant voted is not late: the clock
-    went back (a /clock reset, a sensor started again). Voting starts afresh from it and ``resets``
-    counts it (review of session 34: every reading was late from then on, nothing voted again, and
-    only a throttled log said so). None: never.
+    A reading stamped more than ``reset_after`` before the last instant voted, while the reader's own
+    clock went back too (``clock``, given to ``add``, is before that instant: a /clock reset), starts
+    the vote afresh, counted in ``resets`` (review of session 34: every reading was late from then on,
+    nothing voted again, and only a throttled log said so). None: never. With the reader's clock going
+    on (or not given), such a reading is old, not new: a replayed or delayed one. It is refused and
+    counted in ``stale`` (and ``late``): two lasers replaying readings of 3 s before voted them in as
+    fresh, a gap that was no more, under a ``clock_reset`` alarm (review of session 36).
 
     A reading stamped 0 (unset, by ROS convention) names no instant: it is refused, counted per laser
     in ``unstamped``, and ``add`` says so once per laser, again only after ``silent_after`` stamped
@@ -144,6 +147,7 @@ class LaserVoter(object):
         self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
         self.reset_after = reset_after
         self.resets = 0
+        self.stale = 0
         self.groups = {}             # stamp -> {index: value}
         self.latest = [None] * count  # the newest stamp heard from each laser
         self.decided_up_to = None
@@ -156,10 +160,10 @@ class LaserVoter(object):
         self.unstamped_told = [False] * count
         self.stamped_run = [0] * count   # stamped readings in a row, per laser
 
-    def add(self, index, stamp, value):
-        """A reading (value None: nothing in range). Returns [(stamp, Vote, newly_silent), ...]
-        for every group decided by it, oldest first; for a reading stamped 0, the first of that laser,
-        UNSTAMPED (else [])."""
+    def add(self, index, stamp, value, clock=None):
+        """A reading (value None: nothing in range); ``clock``: the reader's own time now, in the units
+        of the stamps. Returns [(stamp, Vote, newly_silent), ...] for every group decided by it, oldest
+        first; for a reading stamped 0, the first of that laser, UNSTAMPED (else [])."""
         if not 0 <= index < self.count:
             raise TjpConfigError('laser index %r outside 0 .. %d' % (index, self.count - 1))
         if not stamp:
@@ -175,6 +179,10 @@ class LaserVoter(object):
         if self.decided_up_to is not None and stamp <= self.decided_up_to:
             if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
                 self.late += 1
+                return []
+            if not clock or clock >= self.decided_up_to:   # the clock went on: an old reading
+                self.late += 1
+                self.stale += 1
                 return []
             self.resets += 1    # the clock went back: afresh (the missing counts go on: a silent laser stays so)
             self.groups.clear()

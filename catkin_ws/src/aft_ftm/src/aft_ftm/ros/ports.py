@@ -67,6 +67,7 @@ class Ports(object):
         self._default_queue = queue_size
         self._queues = {}   # port -> the queue size it was bound with: a rebind keeps it
         self._spill = set()   # ports whose publisher's writes never block (bind(spill=True)): kept too
+        self._latched = set()   # ports whose publisher latches (bind(latch=True)): kept too
         self._handles = {}
         self._topics = {}
         self._lock = threading.RLock()
@@ -97,10 +98,11 @@ class Ports(object):
         self._before_suspend = before_suspend
         self._resumed = resumed or (lambda: None)
 
-    def bind(self, name, topic=None, queue_size=0, spill=False):
+    def bind(self, name, topic=None, queue_size=0, spill=False, latch=False):
         """Bind port name to topic (default: the port's own name, so it can be remapped). A queue_size
         given (0: none) stays the port's for later binds that give none (a rebind). ``spill``: a
-        publisher without a queue whose writes never block (aft_ftm.ros.spillover), kept on rebinds too."""
+        publisher without a queue whose writes never block (aft_ftm.ros.spillover), kept on rebinds too.
+        ``latch``: a publisher whose last message each new subscriber gets, kept on rebinds too."""
         spec = self.specs[name]
         resolved = rospy.resolve_name(topic if topic else name)
         cls = roslib.message.get_message_class(spec.msg_type)
@@ -108,6 +110,8 @@ class Ports(object):
             self._queues[name] = queue_size
         if spill:
             self._spill.add(name)
+        if latch:
+            self._latched.add(name)
         qs = self._queues.get(name) or self._default_queue
         with self._lock:
             if self._topics.get(name) == resolved:
@@ -117,7 +121,8 @@ class Ports(object):
                 with warnings.catch_warnings():   # rospy warns about queue_size=None: it is chosen
                     warnings.simplefilter('ignore')
                     handle = rospy.Publisher(resolved, cls, queue_size=qs, tcp_nodelay=True,
-                                             subscriber_listener=self._listeners.get(name))
+                                             subscriber_listener=self._listeners.get(name),
+                                             latch=name in self._latched)
                 if name in self._spill:
                     spill_over(handle, warn=rospy.logwarn)
             else:

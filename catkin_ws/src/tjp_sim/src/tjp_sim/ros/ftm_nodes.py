@@ -94,14 +94,16 @@ class LaserVoteNode(PortedNode):
     Publishes: out (sensor_msgs/Range): the voted gap, port ``out``; alarms (aft_msgs/Alarm), port ``alarms``:
         a laser disagreeing (laser_disagrees), a laser silent (laser_silent), no majority (no_majority,
         nothing is published for that instant: the TJP keeps its last gap), a laser whose readings are
-        stamped 0 (unstamped, once: they are not voted), the clock gone back (clock_reset)
+        stamped 0 (unstamped, once: they are not voted), the clock gone back (clock_reset), a reading
+        more than 1 s old while the clock goes on (stale_reading, at most once a second: refused)
     Services: ~rebind, ~suspend, ~resume
     """
 
     def __init__(self):
         self.voter = LaserVoter(tolerance=param('tolerance', config.positive_float, 0.2),
                                 silent_after=param('silent_after', config.non_negative_int, 5),
-                                reset_after=int(1e9))   # ns: stamps a second back are a clock gone back
+                                reset_after=int(1e9))   # ns: stamps a second back are a clock gone back, or old
+        self.stale_told = -1e9   # when stale_reading was last raised (at most once a second)
         ports = [PortSpec('laser_%d' % i, SUBSCRIBE, 'sensor_msgs/Range') for i in range(3)]
         super(LaserVoteNode, self).__init__(
             ports + [PortSpec('out', PUBLISH, 'sensor_msgs/Range'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
@@ -109,9 +111,12 @@ class LaserVoteNode(PortedNode):
 
     def _on_laser(self, index, msg):
         with self.lock:
-            late, resets = self.voter.late, self.voter.resets
-            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg))
+            late, resets, stale = self.voter.late, self.voter.resets, self.voter.stale
+            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg), clock=rospy.get_rostime().to_nsec())
             late, reset = self.voter.late - late, self.voter.resets > resets
+            first_stale = self.voter.stale > stale and time.monotonic() - self.stale_told > 1.0
+            if first_stale:
+                self.stale_told = time.monotonic()
         if decided is LaserVoter.UNSTAMPED:
             self._alarm('unstamped', 'laser %d publishes readings stamped 0 (unset): they name no sensing instant and '
                         'are not voted; the other lasers vote without it' % index, rospy.Time.now())
@@ -119,6 +124,10 @@ class LaserVoteNode(PortedNode):
         if reset:
             self._alarm('clock_reset', 'laser %d stamped %.3f s, more than 1 s before the last instant voted: the '
                         'clock went back, voting starts afresh' % (index, msg.header.stamp.to_sec()), msg.header.stamp)
+        if first_stale:
+            self._alarm('stale_reading', 'laser %d stamped %.3f s, more than 1 s before the last instant voted while '
+                        'the clock goes on: a replayed or delayed reading, refused (%d so far)'
+                        % (index, msg.header.stamp.to_sec(), self.voter.stale), rospy.Time.now())
         if late:
             rospy.logwarn_throttle(1.0, '%s: a reading of laser %d came after its instant was voted (%d so far)'
                                    % (self.name, index, self.voter.late))
@@ -155,7 +164,9 @@ class AlarmManagerNode(PortedNode):
         ~watch (dict port -> timeout in s of ROS time, default {imu: 0.3, ultrasonic: 0.3, gap: 0.5}); also
             safety_distance (distanceSecurityCalculator's, renewed from measureManager's speed) and emergency
             (Emergency Braking's decisions): car.launch watches them when no service manager restarts those nodes
-        ~clock_timeout (float, 0.5 s of wall clock), ~master_period (float, 0.25 s of wall clock)
+        ~clock_timeout (float, 0.5 s of wall clock), ~master_period (float, 0.25 s of wall clock),
+        ~master_timeout (float, 2 s of wall clock: the master asked from a thread of its own, so that
+            a hung master neither holds the other watches nor is waited for past it)
     Subscribes: clock (rosgraph_msgs/Clock), port ``clock``; imu (geometry_msgs/TwistStamped),
         ultrasonic (sensor_msgs/Range), gap, safety_distance (aft_msgs/Measure), emergency (std_msgs/Bool):
         ports of the same names (liveness only)
@@ -173,6 +184,8 @@ class AlarmManagerNode(PortedNode):
                                      % (rospy.resolve_name('~watch'), ', '.join(self.TYPES), self.watch))
         self.clock_timeout = param('clock_timeout', config.positive_float, 0.5)
         self.master_period = param('master_period', config.positive_float, 0.25)
+        self.master_timeout = param('master_timeout', config.positive_float, 2.0)
+        self.master_down = None   # why the master's watch gave up on it (its thread sets it)
         specs = [PortSpec('clock', SUBSCRIBE, 'rosgraph_msgs/Clock'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                  PortSpec('safe_stop', PUBLISH, 'std_msgs/String')]
         specs += [PortSpec(k, SUBSCRIBE, self.TYPES[k]) for k in self.watch]
@@ -184,9 +197,28 @@ class AlarmManagerNode(PortedNode):
         self.stopped = None
 
     def setup(self, timeout):
+        # Latched: a commandManager started again after the stop (the service manager restarts it), or
+        # not yet connected when it was asked, gets it all the same: it started in TJP mode and the car
+        # drove on (review of session 36).
+        self.ports.bind('safe_stop', latch=True)
         self.bind_all()
         threading.Thread(target=self._loop, name='alarm_manager', daemon=True).start()
+        threading.Thread(target=self._watch_master, name='alarm_manager_master', daemon=True).start()
         return True
+
+    def _watch_master(self):
+        """The ROS master asked every master_period, each call bounded by master_timeout. It ran in the
+        loop of the other watches, without a bound of its own: a hung master held them all for rospy's
+        60 s socket timeout, a simulator crash or a silent sensor unseen meanwhile (review of session 36)."""
+        from aft_ftm.ros.fencing import node_api
+        master = node_api(rosgraph.get_master_uri(), self.master_timeout)
+        while not rospy.is_shutdown() and self.stopped is None:
+            try:
+                master.getPid(self.name)
+            except Exception as e:   # any failure to reach it: refused, reset, timed out
+                self.master_down = 'the ROS master does not answer: %s' % (e or type(e).__name__)
+                return
+            time.sleep(self.master_period)
 
     def _on_clock(self, msg):
         with self.lock:
@@ -197,8 +229,6 @@ class AlarmManagerNode(PortedNode):
             self.last_heard[port] = rospy.get_time()
 
     def _loop(self):
-        master = rosgraph.Master(self.name)
-        next_master = 0.0
         while not rospy.is_shutdown() and self.stopped is None:
             wall = time.monotonic()
             reason = None
@@ -212,12 +242,8 @@ class AlarmManagerNode(PortedNode):
                         if now - since > timeout:
                             reason = ('%s_silent' % port, 'nothing on %s for %.2f s' % (self.ports.topic(port), now - since))
                             break
-            if reason is None and wall >= next_master:
-                next_master = wall + self.master_period
-                try:
-                    master.getPid()
-                except Exception as e:   # any failure to reach it: refused, reset, timeout
-                    reason = ('master_crash', 'the ROS master does not answer: %s' % e)
+            if reason is None and self.master_down is not None:
+                reason = ('master_crash', self.master_down)
             if reason is not None:
                 self._stop(*reason)
                 return

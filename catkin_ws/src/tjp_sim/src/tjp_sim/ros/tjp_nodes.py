@@ -256,7 +256,11 @@ class EmergencyBrakingNode(PortedNode):
     Subscribes: ultrasonic (sensor_msgs/Range), port ``ultrasonic``; imu (geometry_msgs/TwistStamped),
         port ``imu``: its own reading of the speed, not the TJP's
     Publishes: emergency (std_msgs/Bool), port ``emergency``: its decision at each reading;
-        alarms (aft_msgs/Alarm), port ``alarms``: a false detection masked
+        alarms (aft_msgs/Alarm), port ``alarms``: a false detection masked (false_detection_masked), no
+        valid speed (speed_stale, braking for the last one plus what the car may have gained, or for
+        the TJP's top speed before any), an invalid reading (invalid_range), ultrasonic readings stamped
+        0 (unstamped: refused) or not after the last one taken (late_reading: refused), the clock
+        gone back (clock_reset); each once per run of them
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -277,6 +281,7 @@ class EmergencyBrakingNode(PortedNode):
              PortSpec('emergency', PUBLISH, 'std_msgs/Bool'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'ultrasonic': self._on_ultrasonic, 'imu': self._on_imu})
         self.bad_speed, self.stale, self.bad_range = Episodes(), Episodes(), Episodes()
+        self.unstamped, self.late = Episodes(), Episodes()
 
     def _alarm(self, kind, detail, stamp):
         self.ports.publish('alarms', Alarm(source=self.name, mechanism='emergency_braking', kind=kind, detail=detail,
@@ -295,13 +300,33 @@ class EmergencyBrakingNode(PortedNode):
     def _on_ultrasonic(self, msg):
         now = msg.header.stamp.to_sec()
         distance = _range(msg)
+        if not msg.header.stamp:   # names no instant: neither confirms nor clears anything
+            with self.lock:
+                first, active = self.unstamped.bad(), self.braking.active
+            if first:
+                self._alarm('unstamped', 'ultrasonic reading stamped 0 (unset) refused: it names no instant',
+                            rospy.Time.now())
+            self.ports.publish('emergency', Bool(data=active))
+            return
         with self.lock:
-            masked = self.braking.masked
-            active = self.braking.update(distance, now)
+            self.unstamped.good()
+            masked, late, resets = self.braking.masked, self.braking.late, self.braking.resets
+            active = self.braking.update(distance, now, clock=rospy.get_time())
             masked = self.braking.masked > masked
+            was_late = self.braking.late > late
+            first_late = self.late.bad() if was_late else self.late.good()
+            reset = self.braking.resets > resets
+        if first_late:
+            self._alarm('late_reading', 'ultrasonic reading stamped %.3f s, not after the last one taken (%.3f s): '
+                        'refused (a duplicate, reordered or replayed reading)' % (now, self.braking.last_reading),
+                        msg.header.stamp)
+        if reset:
+            self._alarm('clock_reset', 'ultrasonic reading stamped %.3f s and the clock went back: readings taken '
+                        'afresh, the brake %s' % (now, 'held' if active else 'released'), msg.header.stamp)
+        with self.lock:
             stale = self.braking.speed_stale(now)
             first_stale = self.stale.bad() if stale else self.stale.good()
-            invalid = distance is not None and distance != distance
+            invalid = not was_late and distance is not None and distance != distance
             first_invalid = self.bad_range.bad() if invalid else self.bad_range.good()
             speed = self.braking.speed_at(now)
         if masked:
@@ -309,7 +334,8 @@ class EmergencyBrakingNode(PortedNode):
                         % self.braking.confirm, msg.header.stamp)
         if first_stale:
             self._alarm('speed_stale', 'no valid IMU speed for %.2f s: braking for %.1f m/s (the last plus what the car '
-                        'may have gained since)' % (self.braking.speed_window, speed), msg.header.stamp)
+                        'may have gained since, or the top speed before any)' % (self.braking.speed_window, speed),
+                        msg.header.stamp)
         if first_invalid:
             self._alarm('invalid_range', 'ultrasonic reading NaN: neither confirms nor clears an obstacle (%d so far)'
                         % self.braking.invalid, msg.header.stamp)
