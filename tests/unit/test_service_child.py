@@ -100,3 +100,27 @@ def test_what_a_spawn_added_after_the_shutdown_took_its_list_is_stopped(tmp_path
     node.closing = True
     node._stop_left_by_shutdown()
     assert node.children == {} and child.popen.wait(10) == -signal.SIGKILL
+
+
+def test_the_memory_cpu_and_stop_of_a_worker_the_service_forked_are_the_service_s():
+    """Review of session 36: only the leader was measured. A wrapper (sh -c) whose worker holds
+    memory and spins never tripped a limit, and a stopped worker never looked hung."""
+    worker_code = ('import time\nb = bytearray(200 * 2 ** 20)\nfor i in range(0, len(b), 4096): b[i] = 1\n'
+                   'print("ready", flush=True)\nt = time.time()\nwhile time.time() - t < 30: pass\n')
+    leader = subprocess.Popen(['/bin/sh', '-c', '"$0" -c "$1"; exit 0', sys.executable, worker_code],
+                              start_new_session=True, stdout=subprocess.PIPE)
+    try:
+        assert leader.stdout.readline().strip() == b'ready'
+        child = Child(leader, 0.5)
+        first = child.sample(True)
+        assert first.alive and not first.stopped
+        assert first.rss > 150 * 2 ** 20, 'the worker\'s 200 MB not counted: %d bytes' % first.rss
+        time.sleep(0.7)
+        second = child.sample(True)
+        assert second.cpu_percent is not None and second.cpu_percent > 50.0, second   # the worker spins
+        worker = psutil.Process(leader.pid).children()[0]
+        worker.suspend()
+        assert child.sample(True).stopped, 'a stopped worker is a stopped service'
+    finally:
+        os.killpg(leader.pid, signal.SIGKILL)
+        leader.wait(10)

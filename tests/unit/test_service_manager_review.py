@@ -158,7 +158,7 @@ def test_the_manager_reports_a_spawn_failure_as_a_fault_and_holds_its_retry(tmp_
     node = ServiceManagerNode.__new__(ServiceManagerNode)
     node.config = config('  a: {command: x}\n', '  state_dir: %s\n' % tmp_path)
     node.supervisor, node.closing, node.children, node.spares = Supervisor(node.config), False, {}, {}
-    node.published_safe, node.recorded = None, node.supervisor.record()
+    node.published_safe, node.published_also, node.recorded = None, 0, node.supervisor.record()
     events = []
     node._event = lambda event, name, detail, now, **extra: events.append(dict(extra, event=event, service=name))
 
@@ -242,3 +242,72 @@ def test_held_spawns_come_in_dependency_order_whatever_the_config_order():
 
 if __name__ == '__main__':
     sys.exit(pytest.main([__file__, '-q']))
+
+
+# -- review of session 36 ----------------------------------------------------------------------------
+def test_a_dependant_is_never_spawned_before_the_service_it_is_restarted_with():
+    """Its spawn failing (retried after a hold), or its back-off longer than the dependant's own: the
+    dependant was spawned first, ran against nothing, and was not restarted after it."""
+    import random
+    seed = random.randrange(1 << 16)
+    rng = random.Random(seed)
+    sup = Supervisor(config('  a: {command: x, restart_with: [b]}\n  b: {command: y}\n'))
+    running(sup, 'a')
+    running(sup, 'b')
+    now = rng.uniform(1.0, 5.0)
+    decision = sup.fault('a', 'exit', 'status 1', now)
+    assert decision.actions == [('kill', 'a'), ('spawn', 'a'), ('kill', 'b'), ('spawn', 'b')], (seed, decision.actions)
+    # The caller carries them out in order: a's spawn fails (retried after at least SPAWN_RETRY).
+    sup.spawn_failed('a', now, 'EAGAIN')
+    assert sup['a'].state == State.RESTARTING and sup['a'].spawn_at >= now + 1.0, seed
+    assert not sup.may_spawn('b', now) and sup['b'].spawn_at == sup['a'].spawn_at, seed
+    assert sup.due(sup['a'].spawn_at) == [('spawn', 'a'), ('spawn', 'b')], seed   # then a before b
+    sup['a'].spawned(sup['a'].spawn_at or now + 1.0)
+    assert sup.may_spawn('b', now + 1.0), seed                       # a is starting: b may go
+    # b in a back-off of its own, shorter than a's: held until a's is due.
+    sup2 = Supervisor(config('  a: {command: x, restart_with: [b], restart_delay: 3.0}\n'
+                             '  b: {command: y, restart_delay: 0.1}\n'))
+    running(sup2, 'a')
+    running(sup2, 'b')
+    sup2['b'].consecutive = 1
+    sup2.fault('b', 'exit', 'status 1', 10.0)
+    sup2['a'].consecutive = 1
+    sup2.fault('a', 'exit', 'status 1', 10.01)
+    b_due = sup2['b'].spawn_at
+    assert b_due is not None and b_due < sup2['a'].spawn_at, (seed, b_due, sup2['a'].spawn_at)
+    assert sup2.due(b_due) == [('spawn', 'b')] and not sup2.may_spawn('b', b_due), seed
+    assert sup2.due(sup2['a'].spawn_at) == [('spawn', 'a'), ('spawn', 'b')], seed
+
+
+def test_an_alerted_error_while_starting_is_alerted_once_not_at_every_wake():
+    sup = Supervisor(config('  a: {command: x, heartbeat_timeout: 0.1, on_failure: alert, start_timeout: 5}\n'))
+    sup['a'].spawned(0.0)
+    sup['a'].heard(0.1, 'error', 'calibration failed')
+    assert sup.check('a', ALIVE, 0.2, GB).actions == [('alert', 'a')] and sup['a'].state == State.STARTING
+    assert all(sup.check('a', ALIVE, t, GB) is None for t in (0.21, 0.3, 1.0, 4.9))
+    assert sum(sup['a'].errors.values()) == 1
+    assert sup.check('a', ALIVE, 5.1, GB).kind == 'start_timeout'
+
+
+def test_a_second_reason_for_the_safe_state_is_kept_and_said_when_it_is_cleared():
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1}\n  b: {command: y, restart_limit: 1}\n'))
+    running(sup, 'a')
+    running(sup, 'b')
+    for name in ('a', 'b'):
+        sup.fault(name, 'exit', 'status 1', 1.0)
+        running(sup, name, 2.0)
+        sup.fault(name, 'exit', 'status 1', 3.0)   # the limit exhausted: safe state
+    assert sup.safe_state.startswith('a: restart limit exhausted') and sup.also_unsafe == [
+        'b: restart limit exhausted after exit'], (sup.safe_state, sup.also_unsafe)
+    ok, message = sup.clear_safe_state(4.0)
+    assert ok and 'a: restart limit' in message and 'b: restart limit' in message, message
+    assert sup.safe_state is None and sup.also_unsafe == []
+
+
+def test_a_service_down_after_a_fault_is_degraded_an_operator_s_stop_is_not():
+    sup = Supervisor(config('  a: {command: x, on_failure: terminate}\n  b: {command: y}\n  c: {command: z}\n'))
+    for name in 'abc':
+        running(sup, name)
+    sup.fault('a', 'exit', 'status 1', 1.0)
+    sup.stop('b', 1.0)
+    assert list(sup.degraded()) == ['a'] and 'terminate' in sup.degraded()['a'], sup.degraded()

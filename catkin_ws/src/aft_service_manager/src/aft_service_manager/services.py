@@ -622,6 +622,7 @@ class Supervisor(object):
         self.services = collections.OrderedDict((n, Service(n, c)) for n, c in config['services'].items())
         self.order = dependency_order(config['services'])
         self.safe_state = None      # the reason the system is in the safe state, None while it is not
+        self.also_unsafe = []       # the reasons to enter it that came while it was in it already
         self.safe_since = None
         self.escalations = 0
         self.stalls = 0             # stalls of the manager's own (woke())
@@ -647,7 +648,8 @@ class Supervisor(object):
             elif now > s.start_deadline():
                 return self.fault(name, 'start_timeout', 'not heard within %.1f s of its start'
                                   % s.config['start_timeout'], now)
-            elif s.reported_error is not None:
+            elif s.reported_error is not None and 'reported_error' not in s.alerted:
+                # (alerted already: not again at every wake until its start timeout; review of session 36)
                 return self.fault(name, 'reported_error', 'the service reported an error: %s' % s.reported_error, now)
             if s.state == State.STARTING:
                 return None
@@ -795,15 +797,51 @@ class Supervisor(object):
                     actions.append(('spawn', name))
         return actions
 
+    def degraded(self):
+        """{name: reason} of the services down after a fault (failed, stopped by a failure policy or
+        with another service, held down from the manager's previous run): not an operator's stop. The
+        summary said "normal" while one was (review of session 36)."""
+        return {n: s.reason for n, s in self.services.items()
+                if s.state == State.FAILED or (s.state == State.STOPPED and
+                                               s.reason not in ('not started', 'stopped by an operator'))}
+
+    def waits_for(self, name):
+        """The services name is restarted with (they list it in restart_with: it runs against them)
+        that are being restarted and not spawned yet."""
+        return [other for other, o in self.services.items()
+                if name in o.config['restart_with'] and o.state == State.RESTARTING]
+
+    def may_spawn(self, name, now):
+        """Whether name, being restarted, may be spawned now: not before a service it is restarted with
+        whose own spawn failed and is retried, or is held longer (its back-off), or a dependant ran
+        against a service not there and was not restarted after it (review of session 36). Held
+        then until the latest of their spawns is due; due() spawns it after them."""
+        s = self.services[name]
+        waiting = self.waits_for(name) if s.state == State.RESTARTING else []
+        if not waiting:
+            return True
+        at = max(self.services[o].spawn_at if self.services[o].spawn_at is not None else now + SPAWN_RETRY
+                 for o in waiting)
+        if s.spawn_at is None or s.spawn_at < at:
+            s.end_hold(now)
+            s.hold(now, max(0.0, at - now))
+            s.reason = 'restarted after %s, which is being restarted' % ', '.join(waiting)
+        return False
+
     def next_due(self):
         """When the earliest held spawn is due (None: none held)."""
         times = [s.spawn_at for s in self.services.values() if s.spawn_at is not None]
         return min(times) if times else None
 
     def _escalate(self, reason, now):
+        """Enter the safe state for reason; in it already, the reason is kept beside the first
+        (``also_unsafe``, said in the status and the diagnostics): an operator clearing the state
+        for the first reason was not told of the second (review of session 36)."""
         if self.safe_state is None:
             self.safe_state, self.safe_since = reason, now
             self.escalations += 1
+        elif reason != self.safe_state and reason not in self.also_unsafe:
+            self.also_unsafe.append(reason)
 
     # -- what an operator asks ---------------------------------------------------------------------
     def start(self, name, now):
@@ -885,8 +923,9 @@ class Supervisor(object):
         down = [n for n, s in self.services.items() if s.config['critical'] and s.state != State.RUNNING]
         if down:
             return False, 'critical services not running: %s (start them first)' % ', '.join(down)
-        reason, self.safe_state, self.safe_since = self.safe_state, None, None
-        return True, 'safe state cleared (it was: %s)' % reason
+        reasons = '; '.join([self.safe_state] + self.also_unsafe)
+        self.safe_state, self.safe_since, self.also_unsafe = None, None, []
+        return True, 'safe state cleared (it was: %s)' % reasons
 
     # -- what the caller reports back ----------------------------------------------------------------
     def spawn_failed(self, name, now, error):

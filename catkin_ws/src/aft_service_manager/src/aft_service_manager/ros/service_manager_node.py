@@ -87,6 +87,9 @@ class Child(object):
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
         self.cpu_window = cpu_window
         self.cpu_marks = []   # (wall time, cpu seconds)
+        self.others = {}      # pid -> psutil.Process: the service's processes beside its leader
+        self.cpu_seen = {}    # pid -> the CPU seconds last read of it
+        self.cpu_total = 0.0  # CPU seconds of the whole service, summed from each process's increments
         self.slot = slot      # its beat slot (local channel), or None
         self.beats = 0        # beats seen in the slot
         self.spare = spare    # a warm spare, not yet promoted
@@ -132,7 +135,33 @@ class Child(object):
     def pid(self):
         return self.popen.pid
 
+    def _processes(self):
+        """The service's processes beside its leader: the members of its cgroup, else the leader's
+        descendants (a process that left its session for a tree of its own is its tree's to kill,
+        not measured here)."""
+        if self.tree is not None and self.handle is not None and getattr(self.tree, 'kind', '') == 'cgroup':
+            pids = set(self.tree.members(self.handle))
+        else:
+            try:
+                pids = {child.pid for child in self.proc.children(recursive=True)}
+            except psutil.Error:
+                pids = set()
+        pids.discard(self.proc.pid)
+        for pid in list(self.others):
+            if pid not in pids:
+                del self.others[pid]
+        for pid in pids - set(self.others):
+            try:
+                self.others[pid] = psutil.Process(pid)
+            except psutil.Error:   # gone meanwhile
+                pass
+        return list(self.others.values())
+
     def sample(self, resources):
+        """Whether it lives; with ``resources``, the CPU (%, over cpu_window), the memory (RSS) and
+        whether it is stopped, of the whole service: its leader and every process it started. The
+        leader's alone were measured: a wrapper (sh -c, roslaunch) or a forked worker leaking memory or
+        spinning never tripped a limit, and a worker stopped never looked hung (review of session 36)."""
         code = self.popen.poll()
         if code is not None:
             return Sample(False, code, False, None, None)
@@ -145,8 +174,24 @@ class Child(object):
                 rss = self.proc.memory_info().rss
         except psutil.NoSuchProcess:
             return Sample(False, self.popen.poll(), False, None, None)
+        cpu_now = {self.proc.pid: times.user + times.system}
+        for other in self._processes():
+            try:
+                with other.oneshot():
+                    stopped = stopped or other.status() in (psutil.STATUS_STOPPED, psutil.STATUS_TRACING_STOP)
+                    t = other.cpu_times()
+                    rss += other.memory_info().rss
+                cpu_now[other.pid] = t.user + t.system
+            except psutil.Error:   # ended between the listing and the reading
+                continue
+        # Each process's increment since it was last read: one that ended takes its last moments with it
+        # (never counted twice, as the leader's children_ times would once it reaps it), and the sum
+        # never goes back.
+        for pid, seconds in cpu_now.items():
+            self.cpu_total += max(0.0, seconds - self.cpu_seen.get(pid, 0.0))
+        self.cpu_seen = cpu_now
         now = time.monotonic()
-        self.cpu_marks.append((now, times.user + times.system))
+        self.cpu_marks.append((now, self.cpu_total))
         while len(self.cpu_marks) > 2 and now - self.cpu_marks[1][0] >= self.cpu_window:
             self.cpu_marks.pop(0)
         cpu = None
@@ -346,6 +391,7 @@ class ServiceManagerNode(object):
         rospy.Subscriber(self.heartbeat_topic, ServiceHeartbeat, self._on_heartbeat, queue_size=1000, tcp_nodelay=True)
         held = self._restore()
         self.published_safe = self.supervisor.safe_state
+        self.published_also = 0   # how many of supervisor.also_unsafe were said
         if self.published_safe:
             rospy.logerr('%s: SAFE STATE, held from the previous run: %s', rospy.get_name(), self.published_safe)
         self.safe_pub.publish(SafeState(active=self.published_safe is not None, reason=self.published_safe or '',
@@ -676,6 +722,9 @@ class ServiceManagerNode(object):
             if verb == 'kill':
                 self._kill(name)
             elif verb == 'spawn':
+                if not self.supervisor.may_spawn(name, now):   # after what it is restarted with (held)
+                    rospy.loginfo('%s: %s held: %s', rospy.get_name(), name, self.supervisor[name].reason)
+                    return
                 self._spawn(name, now)
             elif verb == 'run':
                 self._run_program(name, decision.kind)
@@ -691,7 +740,14 @@ class ServiceManagerNode(object):
         the record a manager started again reads (:meth:`_restore`)."""
         if self.supervisor.safe_state != self.published_safe:
             self.published_safe = self.supervisor.safe_state
+            self.published_also = 0
             self._publish_safe_state()
+        also = self.supervisor.also_unsafe
+        if len(also) > self.published_also:   # in the safe state already: said, never swallowed
+            for reason in also[self.published_also:]:
+                rospy.logerr('%s: SAFE STATE, also: %s', rospy.get_name(), reason)
+            self.published_also = len(also)
+            self._publish_diagnostics()
         record = self.supervisor.record()
         if record != self.recorded:
             try:
@@ -853,6 +909,11 @@ class ServiceManagerNode(object):
             if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
                 child.cpu_marks = []   # its CPU is judged from now on, not its start-up
             if decision is not None:
+                # Said on rosout too, whatever the policy does about it: a service restarted for ever more
+                # slowly than its limit, or left stopped by its policy, showed only on ~events (review of
+                # session 36).
+                rospy.logwarn('%s: %s: %s: %s; %s', rospy.get_name(), name, decision.kind, decision.detail,
+                              ', '.join('%s %s' % a for a in decision.actions) or 'nothing done')
                 self._event('fault', name, decision.detail, now, kind=decision.kind,
                             actions=decision.actions, escalate=decision.escalate)
                 self._act(decision, time.monotonic())
@@ -986,6 +1047,7 @@ class ServiceManagerNode(object):
                           'alerted': sorted(s.alerted),
                           'period': s.config['period'], 'spare': s.config['spare']}
             return {'services': out, 'safe_state': self.supervisor.safe_state,
+                    'also_unsafe': list(self.supervisor.also_unsafe), 'down_after_fault': self.supervisor.degraded(),
                     'refused_heartbeats': self.refused_heartbeats, 'stale_heartbeats': self.stale_heartbeats,
                     'stalls': self.supervisor.stalls, 'wakes': self.wakes, 'tree': self.tree.describe(),
                     'cycle_cpu_s': round(self.cycle_cpu, 6), 'diagnostics_cpu_s': round(self.diagnostics_cpu, 6)}
@@ -1005,12 +1067,16 @@ class ServiceManagerNode(object):
                         KeyValue(key='restarts_in_window', value=str(s['restarts_in_window'])),
                         KeyValue(key='critical', value=str(s['critical']).lower())] +
                 [KeyValue(key='errors.%s' % k, value=str(v)) for k, v in sorted(s['errors'].items())]))
-        safe = status['safe_state']
-        level = DiagnosticStatus.ERROR if safe else DiagnosticStatus.WARN if self.refused_heartbeats else \
+        safe, down = status['safe_state'], status['down_after_fault']
+        level = DiagnosticStatus.ERROR if safe else DiagnosticStatus.WARN if self.refused_heartbeats or down else \
             DiagnosticStatus.OK
-        message = 'SAFE STATE: %s' % safe if safe else ('%d heartbeat(s) refused: not from the service\'s own '
-                                                          'processes' % self.refused_heartbeats
-                                                          if self.refused_heartbeats else 'normal')
+        said = []
+        if down:
+            said.append('down after a fault: %s' % '; '.join('%s (%s)' % item for item in sorted(down.items())))
+        if self.refused_heartbeats:
+            said.append('%d heartbeat(s) refused: not from the service\'s own processes' % self.refused_heartbeats)
+        message = 'SAFE STATE: %s' % '; also: '.join([safe] + status['also_unsafe']) if safe else \
+            ('; '.join(said) or 'normal')
         array.status.append(DiagnosticStatus(level=level, name='service_manager', message=message,
                                              values=[KeyValue(key='heartbeats', value=str(self.heartbeats)),
                                                      KeyValue(key='refused_heartbeats',
