@@ -431,3 +431,20 @@ def test_the_same_bind_to_the_published_topic_goes_through(graph, monkeypatch):
     report = checking_engine(graph, monkeypatch).run(compose(), 'prepared')
     assert report['ok'], report
     assert ('/master/tr/protocol', 'bind /master/bfr2prd') in [r[:2] for r in graph.rebinds], graph.rebinds
+
+
+def test_an_engine_waits_its_turn_behind_another_adaptation_of_the_same_master(graph):
+    """Review of session 35: two engines (the monitor's and an operator's) did not take turns."""
+    import rosgraph
+    from aft_ftm.turns import Turn
+    other = Turn(rosgraph.get_master_uri())
+    other.take('pid 4242, /aft_adapt_operator, running switch', 1.0)
+    try:
+        with pytest.raises(adaptation.ScriptError, match='/aft_adapt_operator, running switch'):
+            engine(graph, turn_timeout=0.3).run(compose(), 'prepared')
+        assert graph.rebinds == [] and all(n.gate.state == GateState.OPEN for n in graph.nodes.values())
+        threading.Timer(0.3, other.give).start()   # the other one ends: this one goes
+        report = engine(graph, turn_timeout=10.0).run(compose(), 'prepared')
+        assert report['ok'] and report['waited_turn_s'] >= 0.2, report
+    finally:
+        other.give()

@@ -42,6 +42,7 @@ from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..process_start import started
 from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
+from ..turns import Busy, Turn
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, wait_dead, wait_until
 from ..where import run_where
@@ -327,13 +328,14 @@ class Engine(object):
 
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
                  connect_timeout=2.0, log_dir=None, launch_niceness=5, lease=5.0, guard_poll=0.2,
-                 guard_grace=5.0):
+                 guard_grace=5.0, turn_timeout=120.0):
         if not lease > 0:
             raise ValueError('the lease must be > 0 s, got %r' % (lease,))
         self.log = _never_raises(log or (lambda text: rospy.loginfo(text)))
         self.lease = lease
         self.guard_poll = guard_poll
         self.guard_grace = guard_grace
+        self.turn_timeout = turn_timeout   # s an adaptation waits for another one of this master (aft_ftm.turns)
         self.quiesce_timeout = quiesce_timeout
         self.launch_timeout = launch_timeout
         self.service_timeout = service_timeout
@@ -503,6 +505,20 @@ class Engine(object):
         """
         t0 = time.monotonic()
         tx = self.transaction = Transaction(script.name, t0)
+        turn = Turn(rosgraph.get_master_uri())
+        try:   # one adaptation at a time on this master: validated once the other one is done
+            waited = turn.take('pid %d, %s, running %s' % (os.getpid(), rospy.get_name(), script.name),
+                               self.turn_timeout, stop=lambda: self._interrupted,
+                               waiting=lambda holder: self.log('waiting for the adaptation in progress: %s' % holder))
+        except Busy as e:
+            tx.refused(str(e), time.monotonic())
+            raise ScriptError(str(e))
+        try:
+            return self._run(script, mode, tx, t0, waited)
+        finally:
+            turn.give()
+
+    def _run(self, script, mode, tx, t0, waited):
         try:
             steps = self.validate(script, mode)
         except ScriptError as e:
@@ -510,7 +526,8 @@ class Engine(object):
             raise
         tx.validated(steps, time.monotonic())
         report = {'script': script.name, 'kind': script.kind, 'mode': mode, 'ok': True, 'steps': [],
-                  'rolled_back': False, 'error': '', 'interrupted': '', 'validated_s': time.monotonic() - t0}
+                  'rolled_back': False, 'error': '', 'interrupted': '', 'validated_s': time.monotonic() - t0,
+                  'waited_turn_s': waited}
         self.log('adaptation %s (%s, %s order): %d steps' % (script.name, script.kind, mode, len(steps)))
         self._run_sites = []
         self._owner = '%s/%d/%s/%d' % (rospy.get_name(), os.getpid(), script.name, next(self._run_count))
