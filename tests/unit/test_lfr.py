@@ -61,6 +61,28 @@ def test_a_duplicate_ack_releases_nothing_twice():
     assert released is None and answer != Ack.RELEASE
 
 
+def test_a_reply_delivered_twice_is_held_once_and_counted_once():
+    """Review of session 36: the leader held a second copy of a released reply for an ack that never
+    came again (a healthy follower excluded); the follower counted each copy as computed (its fence
+    and its promotion went ahead while a forwarded request still ran)."""
+    seed = random.randrange(1 << 16)
+    rng = random.Random(seed)
+    lead, follow = leader(), follower()
+    sent = [reply(rid) for rid in range(1, 41)]
+    copies = [r for r in sent for _ in range(rng.choice((1, 1, 2, 3)))]   # some delivered twice or more
+    rng.shuffle(copies)
+    outs = [follow.on_reply(r, now=0.0) for r in copies]
+    assert outs.count(Out.STORE) == 40 and follow.computed == 40, seed
+    assert follow.in_flight(40) == 0 and follow.in_flight(41) == 1, seed
+    for r in copies:
+        lead.on_reply(r, now=0.0)
+    assert len(lead.held) == 40 and lead.duplicates == len(copies) - 40, seed
+    for r in sent:
+        assert lead.on_ack('/proxy', r.id, now=0.1, sender=FOLLOWER)[0] == Ack.RELEASE, seed
+    assert not lead.held and not lead.overdue(100.0), seed
+    assert lead.on_reply(reply(7), now=0.2) == Out.DROP and not lead.held, seed   # a late copy: nothing held
+
+
 def test_alone_a_leader_replies_at_once_and_a_follower_stores_and_acknowledges():
     assert leader(State.ALONE).on_reply(reply(1), now=0.0) == Out.RELEASE
     core = follower()

@@ -105,3 +105,22 @@ def test_a_persistent_connection_its_server_closed_is_opened_again_before_a_requ
     finally:
         client.close()
         listener.close()
+
+
+def test_a_request_of_another_type_than_the_server_s_is_answered_not_executed_never_a_fail_stop(node):
+    """Review of session 36: a request naming another loadable type (std_srvs/Empty decodes from any
+    payload) made Proceed open a connection the server refused, read as the server gone: the site
+    fail-stopped, then the backup with the same request. It is answered "not executed" instead."""
+    import threading
+    from aft_msgs.msg import Reply, Request
+    from aft_msgs.srv import Account
+    server = Server(None)
+    n = node(server)
+    n.site, n.failed, n._lock = 'master', None, threading.Lock()
+    n.server_type = ('aft_msgs/Account', Account._md5sum)
+    n._call = lambda request, app_request: bpa.ProceedNode._call(n, request, app_request)
+    stray = Request(id=9, origin='/proxy', client='c', attempt=1, service_type='std_srvs/Empty', payload=b'\x01\x02')
+    reply = bpa.ProceedNode.handle(n, stray)
+    assert reply.status == Reply.ERROR and reply.error.startswith('not executed: the request is a std_srvs/Empty')
+    assert 'aft_msgs/Account' in reply.error and n.alarms == ['wrong_type']
+    assert server.applied == [] and not n.failed

@@ -98,3 +98,39 @@ def test_one_epoch_naming_two_configurations_makes_the_site_tell_the_witness_it_
     assert told == []
     heard['callback'](conf(3, 'master'))         # epoch 3 granted again, to master
     assert told == [(3, 4)]                      # told, saying epoch 4: it grants nothing more
+
+
+def test_an_lfr_follower_is_not_admitted_if_the_protocol_resumed_while_the_witness_answered(monkeypatch):
+    """Review of session 36: the Protocol was checked held once, before the witness's ADMIT; its
+    answer and Before's can take seconds (the leader's After stopped), the Protocol's lease ran out
+    meanwhile and it ran requests, and the follower was admitted without them, silently."""
+    import threading
+    from aft_ftm.ros import lfr_nodes
+    from aft_ftm.lfr import Role
+    for resumed in (False, True):
+        leader = lfr_nodes.LfrAfterNode.__new__(lfr_nodes.LfrAfterNode)
+        leader.lock, leader.site, leader.name = threading.RLock(), 'master', '/master/after'
+        leader.state_timeout, leader.ack_timeout, leader.chunk_bytes, leader.transfer_window = 5.0, 1.0, 1 << 20, 4
+        leader.state_calls = types.SimpleNamespace(call=lambda f, t: types.SimpleNamespace(state=b'state'))
+        leader.get_state = None
+        holds = [None, None, 'its lease ran out: it resumed by itself' if resumed else None]
+        told, excluded, admitted, forwarded = [], [], [], []
+        leader.side = types.SimpleNamespace(
+            hold_protocol=lambda lease: holds.pop(0), joiner_unheard=lambda site: '',
+            ask=lambda op, **kw: types.SimpleNamespace(granted=True, epoch=7, primary='master', message=''),
+            tell=lambda kind, detail, key=None: told.append((kind, detail)), told=set())
+        transfer = types.SimpleNamespace(seq=4, cache=[], acknowledged_s=0.1)
+        leader.core = types.SimpleNamespace(epoch=6, start_transfer=lambda site, t0: transfer,
+                                            end_transfer=lambda: None,
+                                            admitted=lambda *a: admitted.append(a))
+        leader._send_transfer = lambda out, transfer: True
+        leader._forwarding = lambda role, epoch, seq=0: forwarded.append((role, epoch)) or True
+        leader._exclude = lambda why: excluded.append(why)
+        leader.events = types.SimpleNamespace(publish=lambda msg: None)
+        leader._join(types.SimpleNamespace(site='slave', after='/slave/after', incarnation='i2'))
+        assert forwarded == [(Role.PRIMARY, 7)] and holds == []
+        if resumed:
+            assert admitted == [] and excluded and 'lacks them' in excluded[0], (admitted, excluded)
+            assert told and told[-1][0] == 'join_failed', told
+        else:
+            assert len(admitted) == 1 and excluded == [], (admitted, excluded)

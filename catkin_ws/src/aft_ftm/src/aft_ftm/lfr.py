@@ -38,7 +38,7 @@ import collections
 import enum
 
 from .errors import RoleError
-from .protocol import DuplicateCache, Role, check_role_change
+from .protocol import DuplicateCache, Role, check_role_change, key as request_key
 
 
 class State(enum.Enum):
@@ -159,6 +159,7 @@ class LfrAfter(object):
         self.held = {}          # leader: (origin, id) -> Held
         self.acked = set()      # leader: acks that came before our own result
         self.computed = 0       # follower: results of forwarded requests
+        self.duplicates = 0     # second copies of replies already had (dropped)
         self.notified = 0
         self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
@@ -195,7 +196,14 @@ class LfrAfter(object):
         self.recent.store(reply)
 
     def on_reply(self, reply, now, refused=False):
-        """This replica's server computed a reply (``refused``: the Protocol's "not executed")."""
+        """This replica's server computed a reply (``refused``: the Protocol's "not executed"). A second
+        copy of a reply already had (the same message delivered twice across a rebind, as Before's
+        forwards can be) is dropped and counted in ``duplicates``: a leader held it for an ack that
+        never came again, excluding a healthy follower; a follower counted it as computed, and its
+        fence and its promotion went ahead while a forwarded request still ran (review of session 36)."""
+        if self.recent.lookup(request_key(reply)) is not None:
+            self.duplicates += 1
+            return Out.DROP
         if self.role == Role.BACKUP:
             if refused:
                 return Out.DROP   # a follower's Protocol refuses nothing (nor does it get requests)

@@ -76,10 +76,12 @@ class AdAfterNode(AfterNode):
     the reply into an error reply and raises an alarm. It never lets an unchecked reply through.
 
     A reply whose request does not come within ~request_wait (this After started again after Before
-    passed the request on) is dropped with the alarm ``unchecked_reply``: never passed on unchecked;
-    the Protocol's timeout then answers. A request whose reply never comes is kept, at most
-    ~max_waiting; past that the oldest is forgotten with the alarm ``request_forgotten``
-    (assertions.Pairing).
+    passed the request on) is never passed on unchecked: it is answered with an error, "outcome
+    unknown" (the server ran it; its reply could not be shown safe), with the alarm ``unchecked_reply``.
+    It was dropped, and the Protocol, which runs one request at a time, waited for it for good: no
+    client was answered again (review of session 36). A request whose reply never comes is kept, at
+    most ~max_waiting; past that the oldest is forgotten with the alarm ``request_forgotten`` (its
+    reply, if it comes, is then answered as above) (assertions.Pairing).
 
     Parameters: ~reply_assertions (list of package.module:function, default none);
         ~request_wait (float, 5 s); ~max_waiting (int, 10000)
@@ -128,9 +130,10 @@ class AdAfterNode(AfterNode):
         with self.lock:
             expired = self.pairing.expired(time.monotonic())
         for reply in expired:
-            alarm(self.ports, 'ad', 'unchecked_reply', 'the reply to %s/%d came, but its request did not within %.1f s '
-                  '(this After started again after Before passed it on?): it cannot be checked and is not passed on; '
-                  'the Protocol\'s timeout answers the client' % (reply.origin, reply.id, self.pairing.wait), reply)
+            detail = ('the reply to %s/%d came, but its request did not within %.1f s (this After started again '
+                      'after Before passed it on?): it cannot be checked' % (reply.origin, reply.id, self.pairing.wait))
+            alarm(self.ports, 'ad', 'unchecked_reply', detail + '; answered "outcome unknown"', reply)
+            self.ports.publish('out', _error(reply, 'outcome unknown: ' + detail))
 
     def _checked(self, request, reply):
         if reply.status != Reply.OK or not self.checks:

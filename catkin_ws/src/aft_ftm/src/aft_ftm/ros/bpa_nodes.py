@@ -171,6 +171,7 @@ class ProceedNode(StageNode):
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.server_name = rospy.resolve_name('server')
         self._proxies = {}
+        self.server_type = None   # the server's service type, once _open_server has asked it
         self._lock = threading.Lock()
         self._deadline = Deadline('server-call')
         self.failed = None    # why this replica fail-stopped: nothing more is executed
@@ -200,6 +201,7 @@ class ProceedNode(StageNode):
             try:
                 type_name = rosservice.get_service_type(self.server_name)
                 if type_name:
+                    self.server_type = (type_name, service_class(type_name)._md5sum)
                     proxy = self._proxies.setdefault(type_name, PersistentService(self.server_name,
                                                                                   service_class(type_name)))
                     proxy.connect()
@@ -227,6 +229,15 @@ class ProceedNode(StageNode):
                 app_request = deserialize(cls._request_class, request.payload)
             except Exception as e:   # a malformed request is answered (not executed), not dropped
                 reply.status, reply.error = Reply.ERROR, 'not executed: cannot decode the request: %s' % e
+                return reply
+            if self.server_type is not None and cls._md5sum != self.server_type[1]:
+                # Not the server's type (a Proxy set up for another service, or a forged request): the
+                # server refuses the connection, which read as the server gone, and fail-stopped this
+                # site, then the backup with the same request (review of session 36). Answered instead.
+                reply.status, reply.error = Reply.ERROR, ('not executed: the request is a %s, the server %s takes %s'
+                                                          % (request.service_type, self.server_name,
+                                                             self.server_type[0]))
+                alarm(self.ports, 'proceed', 'wrong_type', reply.error, request)
                 return reply
             try:
                 response = self._call(request, app_request)

@@ -545,6 +545,18 @@ class LfrAfterNode(AfterNode):
         if not self._forwarding(Role.PRIMARY, grant.epoch, transfer.seq):
             self._exclude('Before cannot forward to the admitted follower %s' % join.site)
             return
+        # Held still? The witness's answer and Before's may have taken seconds (this After stopped,
+        # the machine stalled): a Protocol whose lease ran out meanwhile resumed by itself and ran
+        # requests that neither the transferred state nor the forwarding holds; the follower was
+        # admitted without them, silently, and a later failover lost answered updates (review of
+        # session 36). A renewal that succeeds proves it never resumed.
+        why = self.side.hold_protocol(2 * self.state_timeout)
+        if why:
+            why = 'the Protocol ran requests while %s was admitted (%s): the follower lacks them' % (join.site, why)
+            self.side.tell('join_failed', 'state transfer %d not admitted after all: %s; it is excluded and asks '
+                           'again' % (transfer.seq, why))
+            self._exclude(why)
+            return
         with self.lock:
             try:
                 self.core.admitted(join.after, join.incarnation, transfer.seq, grant.epoch)

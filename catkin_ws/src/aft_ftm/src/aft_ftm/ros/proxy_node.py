@@ -88,7 +88,7 @@ class ProxyNode(object):
         if missing:
             rospy.logwarn('%s: no Protocol subscribed to %s yet; requests will be re-sent when one does',
                           self.name, self.ports.topic('requests'))
-        self.timer = rospy.Timer(rospy.Duration(self.resend_period / 2.0), lambda _: self.resend())
+        self.timer = rospy.Timer(rospy.Duration(self.resend_period / 2.0), lambda _: self._resend_on_timer())
         self.service = rospy.Service('service', self.cls, self._on_call)
         self.diagnostics = Diagnostics(self._health)
         rospy.loginfo('%s: offering %s (%s)', self.name, self.service.resolved_name, self.service_type)
@@ -145,6 +145,16 @@ class ProxyNode(object):
         return health.proxy(self.service.resolved_name, len(table), table.oldest_age(time.monotonic()), table.resends,
                             table.refused, table.bytes, table.max_bytes, table.epoch,
                             patience=max(4 * self.resend_period, self.timeout or 0.0))
+
+    def _resend_on_timer(self):
+        """resend(), never raising: rospy's Timer ends its thread on an exception, and the pending calls
+        were then re-sent only when a new subscriber came (review of session 36: a publish racing a
+        rebind of the requests port raises)."""
+        try:
+            self.resend()
+        except Exception as e:
+            rospy.logerr_throttle(5.0, '%s: re-sending the pending requests failed (tried again): %s: %s'
+                                  % (self.name, type(e).__name__, e))
 
     def resend(self, all_pending=False):
         for entry in self.table.due(time.monotonic(), 0 if all_pending else self.resend_period):
