@@ -1,6 +1,7 @@
 """Calls with a deadline (aft_ftm.ros.deadline): an abandoned call may still land later, so an
 exclusive Deadline makes no other call until it has returned. No ROS master."""
 import threading
+import time
 
 import pytest
 
@@ -71,3 +72,18 @@ def test_an_abandoned_call_that_failed_still_frees_the_deadline():
     with pytest.raises(RuntimeError):
         abandoned.value.future.result(5.0)
     assert deadline.call(lambda: 'ok', 1.0) == 'ok'
+
+
+def test_a_call_abandoned_past_its_deadline_does_not_keep_the_process_from_exiting():
+    """Review of session 36: the worker was a ThreadPoolExecutor's, joined at interpreter exit: a call
+    blocked on a hung server kept a stopped node alive until roslaunch's SIGKILL."""
+    import subprocess
+    import sys
+    code = ('import sys, threading, time\nsys.path[:0] = %r\n'
+            'from aft_ftm.ros.deadline import CallTimeout, Deadline\n'
+            'try:\n    Deadline("hung").call(threading.Event().wait, 0.1)\nexcept CallTimeout:\n    print("abandoned")\n'
+            % sys.path)
+    started = time.monotonic()
+    run = subprocess.run([sys.executable, '-c', code], stdout=subprocess.PIPE, timeout=30)
+    assert run.stdout.strip() == b'abandoned' and run.returncode == 0
+    assert time.monotonic() - started < 10.0

@@ -271,3 +271,62 @@ def test_a_limit_the_kernel_cannot_take_is_a_config_error_naming_the_variable():
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, handshake.MAX_USER_TIMEOUT * 1000)
     finally:
         s.close()
+
+
+def test_a_header_sent_a_byte_at_a_time_is_bounded_as_a_whole_and_its_length_checked():
+    """Review of session 36: the bound was per recv (a byte every few seconds kept the thread and its
+    buffer for ever), and a length sent in pieces escaped the check of what it announced."""
+    for drip, expected in ((b'POST /RPC2 HTTP/1.1\r\n', HandshakeRefused),
+                           (header({'topic': '/aft/alarms', 'callerid': '/x'}), socket.timeout)):
+        server, client = socket.socketpair()
+        stop = threading.Event()
+
+        def send_slowly():
+            for i in range(len(drip)):
+                if stop.wait(0.1):
+                    return
+                try:
+                    client.send(drip[i:i + 1])
+                except OSError:
+                    return
+        sender = threading.Thread(target=send_slowly)
+        sender.start()
+        try:
+            t0 = time.monotonic()
+            with pytest.raises(expected):
+                bounded(read_ros_handshake_header, 0.8)(server, io.BytesIO(), 4096)
+            assert time.monotonic() - t0 < 3.0, (drip[:4], time.monotonic() - t0)
+        finally:
+            stop.set()
+            sender.join(5.0)
+            server.close()
+            client.close()
+
+
+def test_past_the_handshakes_held_at_once_a_new_connection_is_closed_not_the_accept_thread():
+    from aft_ftm.ros import handshake
+    release = threading.Event()
+    pairs = [socket.socketpair() for _ in range(handshake.MAX_HANDSHAKES + 1)]
+
+    def callback(_self, sock, addr):
+        release.wait(10.0)
+    handle = threaded(callback)
+    try:
+        for i, (server, _) in enumerate(pairs):
+            handle(None, server, ('peer', i))   # returns at once, every time: the accept loop goes on
+        last_client = pairs[-1][1]
+        last_client.settimeout(2.0)
+        assert last_client.recv(1) == b''          # the one past the bound: closed, unanswered
+        pairs[0][1].settimeout(0.2)
+        with pytest.raises(socket.timeout):        # the others are held by their handshakes
+            pairs[0][1].recv(1)
+    finally:
+        release.set()
+        time.sleep(0.2)
+        for server, client in pairs:
+            server.close()
+            client.close()
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not handshake._HANDSHAKES.acquire(blocking=False):
+        time.sleep(0.01)
+    handshake._HANDSHAKES.release()

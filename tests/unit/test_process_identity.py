@@ -466,3 +466,40 @@ def test_a_node_shutting_down_is_refused_only_if_it_is_still_there_after_a_grace
     fence.master.uris['/slave/tr/proceed'] = 'http://127.0.0.1:%d/' % (other_port + 1)
     fence.learn()
     assert '/slave/tr/proceed' in fence.refused and fence.unlearned == []
+
+
+def test_the_board_watchdog_kills_only_a_launcher_of_the_failed_board(launchers):
+    """Review of session 36: the car's watchdog killed the tree of whatever pid the primary's last
+    heartbeat named: a forged beat naming pid 1 (its own ancestor), a process that runs no launcher, a
+    launcher of other nodes. Now it checks the pid as Recovery does, and says what it refused."""
+    import types
+    import psutil
+    from aft_ftm.ros.watchdog_node import WatchdogNode
+    from aft_ftm.sites import this_host
+
+    def watchdog():
+        node = WatchdogNode.__new__(WatchdogNode)
+        node.proxies, node.host, node.reports = {}, this_host(), []
+        node._close = lambda proxies: None
+        node._report = lambda report: node.reports.append((report.kind, report.detail))
+        return node
+
+    def fail(node, pid):
+        stopped = []
+        killed = node._power_off('board_a', types.SimpleNamespace(
+            last_info=types.SimpleNamespace(host=this_host(), pid=pid), silence=0.0), lambda: stopped.append(1))
+        return killed, stopped
+    other = launchers('adapt', '/board_a:controller_pid')
+    foreign = launchers('roslaunch', '/tjp:command_manager')
+    for pid in (1, os.getppid(), other.pid, foreign.pid):
+        node = watchdog()
+        killed, stopped = fail(node, pid)
+        assert killed == 0 and stopped == [1], pid                   # the take-over goes on
+        assert node.reports and node.reports[0][0] in ('fence_refused', 'fail_silence_unenforced'), (pid, node.reports)
+        assert psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_STOPPED, pid
+    board = launchers('roslaunch', '/board_a:controller_pid', '/board_a:cycle_after')
+    children = [c.pid for c in psutil.Process(board.pid).children()]
+    node = watchdog()
+    killed, stopped = fail(node, board.pid)
+    assert killed == 3 and stopped == [1] and node.reports == []
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in children)

@@ -16,6 +16,7 @@ made in the caller's thread, its answer awaited at most the timeout
 same way (its future gets the late answer).
 """
 import concurrent.futures
+import queue
 import threading
 import time
 
@@ -34,6 +35,37 @@ class CallTimeout(AftError):
 class CallPending(CallTimeout):
     """A call abandoned past its deadline has not returned yet (it may still take effect): no other
     call is made until it has (Deadline(exclusive=True))."""
+
+
+class _DaemonWorker(object):
+    """One worker thread for a Deadline's calls, a daemon: ThreadPoolExecutor's workers are joined when
+    the interpreter exits, so a call abandoned past its deadline, blocked in recv on a hung server,
+    kept a stopped node alive until roslaunch's SIGKILL (review of session 36)."""
+
+    def __init__(self, name):
+        self._queue = queue.Queue()
+        threading.Thread(target=self._run, name='%s-worker' % name, daemon=True).start()
+
+    def submit(self, function, *args, **kwargs):
+        future = concurrent.futures.Future()
+        self._queue.put((future, function, args, kwargs))
+        return future
+
+    def shutdown(self, wait=False):
+        self._queue.put(None)   # (the call in progress, if any, is left to end when it ends)
+
+    def _run(self):
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            future, function, args, kwargs = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(function(*args, **kwargs))
+            except BaseException as e:   # handed to the caller
+                future.set_exception(e)
 
 
 def _not_sent(why):
@@ -87,7 +119,7 @@ class Deadline(object):
         self._check_abandoned()
         with self._lock:   # submitted here: another caller's timeout may shut this executor down
             if self._executor is None:
-                self._executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=self.name)
+                self._executor = _DaemonWorker(self.name)
             executor = self._executor
             future = executor.submit(function, *args, **kwargs)
         try:

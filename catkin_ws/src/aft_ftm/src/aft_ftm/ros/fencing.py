@@ -362,3 +362,38 @@ def _not_a_node(api, caller_id):
         except Exception:   # no answer: asking it to shut down does no harm then
             continue
     return False
+
+
+def named_launcher(pid, site, namespace, prefix, since_heard, learned=lambda pid, created: None):
+    """What fail-silence may do to the launcher ``pid`` that a heartbeat of ``site`` named, on this host:
+    (its psutil.Process or None, the pids whose trees are killed, what was decided, refused, partial).
+
+    None, and nothing killed, when it is gone, when its pid was taken by a process started after the
+    site was last heard (``since_heard``, seconds on a clock that does not step), or when it is an
+    ancestor of the caller (a launcher that also runs the caller). Otherwise launcher_roots decides,
+    from ``learned(pid, created)`` (the node of ``namespace`` learned by pid whose parent it is, or
+    None), whether its command line is a launcher's, and its direct children as /proc names them.
+    Recovery and the board watchdog both ask it: the watchdog killed the tree of whatever pid the
+    last heartbeat named, pid 1 (its own ancestor) included (review of session 36)."""
+    from ..process_start import started
+    from ..recovery import same_process
+    from ..site_watch import children_named
+    try:
+        launcher = psutil.Process(pid)
+        created = launcher.create_time()
+        start = started(pid)
+    except psutil.NoSuchProcess:
+        start = None
+    if start is None:
+        return None, [], 'launcher of %s (pid %d) already gone' % (site, pid), False, False
+    if not same_process(time.clock_gettime(time.CLOCK_BOOTTIME) - start, since_heard):
+        return None, [], 'pid %d now belongs to another process: not killed' % pid, False, False
+    if pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
+        return None, [], 'launcher %d also runs this process: only the name space is killed' % pid, False, False
+    try:
+        program = is_launcher(launcher.cmdline())
+    except psutil.Error:
+        program = False
+    pids, why, refused, partial = launcher_roots(pid, site, namespace, learned(pid, created), program,
+                                                 launcher_children(children_named(pid), prefix))
+    return launcher, pids, why, refused, partial

@@ -27,6 +27,7 @@ import select
 import socket
 import struct
 import threading
+import time
 
 HANDSHAKE_TIMEOUT = 10.0   # s: a header is a few hundred bytes; rospy answers in milliseconds
 # s: an inbound connection whose sent data stays unacknowledged this long is aborted by the kernel
@@ -42,13 +43,39 @@ class HandshakeRefused(socket.error):
     """The connection announced a header no TCPROS peer sends."""
 
 
-def _announced_length(sock):
+class _Deadlined(object):
+    """A socket whose reads all end by one deadline: the timeout was per recv, and a peer sending a
+    byte every few seconds held its thread and its buffer for as long as it liked (review of session
+    36)."""
+
+    def __init__(self, sock, deadline):
+        self._sock, self._deadline = sock, deadline
+
+    def recv(self, count, *flags):
+        left = self._deadline - time.monotonic()
+        if left <= 0:
+            raise socket.timeout('the handshake\'s time is up')
+        self._sock.settimeout(left)
+        return self._sock.recv(count, *flags)
+
+    def __getattr__(self, name):
+        return getattr(self._sock, name)
+
+
+def _announced_length(sock, deadline=None):
     """The header length in the first 4 bytes, peeked (left for the reader); None if the peer
-    closed before sending them."""
-    first = sock.recv(4, socket.MSG_PEEK | socket.MSG_WAITALL)
-    if len(first) < 4:
-        return None
-    return struct.unpack('<I', first)[0]
+    closed before sending them. A socket with a timeout is non-blocking underneath, where MSG_WAITALL
+    returns what is there: peeked again until the 4 bytes are (one byte sent alone skipped the bound
+    on the announced length; review of session 36), until ``deadline`` (socket.timeout past it)."""
+    while True:
+        first = sock.recv(4, socket.MSG_PEEK | socket.MSG_WAITALL)
+        if len(first) >= 4:
+            return struct.unpack('<I', first[:4])[0]
+        if not first:
+            return None
+        if deadline is not None and time.monotonic() >= deadline:
+            raise socket.timeout('fewer than 4 bytes of a header within the handshake\'s time')
+        time.sleep(0.005)
 
 
 def _read_exactly(sock, count):
@@ -66,6 +93,7 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
     """read_ros_handshake_header bounded to timeout seconds per header and max_bytes per header."""
     def read_bounded(sock, buffer, buff_size):
         previous = sock.gettimeout()
+        deadline = time.monotonic() + (timeout if previous is None else min(previous, timeout))
         if previous is None or previous > timeout:
             sock.settimeout(timeout)
         try:
@@ -73,15 +101,15 @@ def bounded(read, timeout, max_bytes=MAX_HEADER_BYTES):
                 if hasattr(sock, 'getpeercert'):
                     # A TLS socket cannot be peeked at: its 4 length bytes are read into the buffer,
                     # where the reader takes them as its own.
-                    first = _read_exactly(sock, 4)
+                    first = _read_exactly(_Deadlined(sock, deadline), 4)
                     buffer.write(first)
                     length = struct.unpack('<I', first)[0] if len(first) == 4 else None
                 else:
-                    length = _announced_length(sock)
+                    length = _announced_length(sock, deadline)
                 if length is not None and length > max_bytes:
                     raise HandshakeRefused('not a TCPROS handshake: a header of %d bytes announced (%r)'
                                            % (length, struct.pack('<I', length)))
-            return read(sock, buffer, buff_size)
+            return read(_Deadlined(sock, deadline), buffer, buff_size)
         except socket.timeout:
             raise socket.timeout('no complete TCPROS handshake header within %.1f s' % timeout)
         finally:
@@ -158,10 +186,47 @@ def threaded(callback):
         topic_handler = getattr(self, 'topic_connection_handler', None)
         if topic_handler is not None and not getattr(topic_handler, 'one_subscriber_at_a_time', False):
             self.topic_connection_handler = one_subscriber_at_a_time(topic_handler, log=_rospy_info)   # accept thread: no race
-        threading.Thread(target=_with_hooks, args=(callback, self, sock, client_addr), daemon=True,
-                         name='tcpros-inbound-%s:%s' % tuple(client_addr[:2])).start()
+        # At most MAX_HANDSHAKES at once: past that a new connection is closed unanswered (its peer
+        # connects again; rospy's subscribers and service clients do), and a failure to start a thread
+        # closes it too. Both once ended rospy's accept thread (it catches socket errors only), and the
+        # node took no subscriber or service client any more, with a traceback on stderr alone (review
+        # of session 36: a flood of connections that send nothing, or a byte at a time).
+        if not _HANDSHAKES.acquire(blocking=False):
+            _close_refused(sock, client_addr, 'more than %d connections are in their handshake' % MAX_HANDSHAKES)
+            return
+        try:
+            threading.Thread(target=_handshake, args=(callback, self, sock, client_addr), daemon=True,
+                             name='tcpros-inbound-%s:%s' % tuple(client_addr[:2])).start()
+        except RuntimeError as e:   # no thread can be started now
+            _HANDSHAKES.release()
+            _close_refused(sock, client_addr, 'no thread for it: %s' % e)
     handle.threaded = True
     return handle
+
+
+MAX_HANDSHAKES = 64   # inbound connections handled at once (each a thread until its header is read)
+_HANDSHAKES = threading.BoundedSemaphore(MAX_HANDSHAKES)
+_REFUSED = {'count': 0, 'told': 0.0}
+
+
+def _close_refused(sock, client_addr, why):
+    try:
+        sock.close()
+    except (OSError, AttributeError):
+        pass
+    _REFUSED['count'] += 1
+    if time.monotonic() - _REFUSED['told'] >= 10.0:   # at most once every 10 s: a flood is one line
+        _REFUSED['told'] = time.monotonic()
+        import rospy
+        rospy.logwarn('inbound connection from %s closed unanswered: %s (%d so far)' % (client_addr, why,
+                                                                                     _REFUSED['count']))
+
+
+def _handshake(callback, server, sock, client_addr):
+    try:
+        _with_hooks(callback, server, sock, client_addr)
+    finally:
+        _HANDSHAKES.release()
 
 
 def _with_hooks(callback, server, sock, client_addr):

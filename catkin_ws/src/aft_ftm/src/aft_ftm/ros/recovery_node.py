@@ -13,27 +13,29 @@ from std_msgs.msg import String
 from .. import config, health
 from ..power_switch import FenceState, Fencing, SwitchError, parse_spec
 from ..power_switch_exec import call_switch
-from ..process_start import started
 from ..master_watch import Decision, MasterWatch
 from ..protocol import Role
 from ..realtime import RealtimeBurst
 from ..detector import DEFAULT_REALTIME_PRIORITY
 from ..recovery import (GATES, Step, failed_steps, incomplete, plan, promoted_unasked, role_after, role_in,
-                        same_process, start_plan, unfenceable)
+                        start_plan, unfenceable)
 from ..sites import silence_trees, this_host
-from ..site_watch import children_named
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..witness import Op
 from .alarms import alarm
 from .diagnostics import Diagnostics
-from .fencing import NamespaceFence, is_launcher, launcher_children, launcher_roots
+from .fencing import NamespaceFence, named_launcher
 from .graph import master_answers
 from .params import param
 from . import tls_transport
+from .deadline import CallTimeout, Deadline
 from .persistent_service import PersistentService, open_service
 from .ports import Ports
 from .protocol_node import ROLES
 from .witness_client import WitnessClient, WitnessUnreachable, site_launcher_pid
+
+
+_RECEIVED_LOCK = threading.Lock()
 
 
 class RecoveryNode(object):
@@ -368,19 +370,29 @@ class RecoveryNode(object):
         if not names or not all(req.nodes):
             return SetNodesResponse(success=False, message='give a non-empty list of node names',
                                     previous=self.promote)
+        # The new nodes are told the site's role outside the lock, each call bounded: a replacement node
+        # frozen or hung held the lock for ever, and a failure of the peer meanwhile was never recovered
+        # from, with no alarm (review of session 36). The role is checked unchanged once they answered.
+        with self.lock:
+            role = self.role
         proxies = []
+        deadline = Deadline('set-promote')
+        for name in names:
+            try:
+                proxy = open_service(name + '/set_role', SetRole, self.timeout)
+                answer = deadline.call(proxy, self.timeout, role=role.value)
+            except (rospy.ServiceException, rospy.ROSException, CallTimeout) as e:
+                return SetNodesResponse(success=False, previous=self.promote,
+                                        message='%s/set_role cannot be called: %s' % (name, e))
+            if not answer.success:
+                return SetNodesResponse(success=False, previous=self.promote,
+                                        message='%s refused role %s: %s' % (name, role.name, answer.message))
+            proxies.append(proxy)
         with self.lock:   # no recovery runs while the list changes
-            for name in names:
-                try:
-                    proxy = open_service(name + '/set_role', SetRole, self.timeout)
-                    answer = proxy(role=self.role.value)
-                except (rospy.ServiceException, rospy.ROSException) as e:
-                    return SetNodesResponse(success=False, previous=self.promote,
-                                            message='%s/set_role cannot be called: %s' % (name, e))
-                if not answer.success:
-                    return SetNodesResponse(success=False, previous=self.promote,
-                                            message='%s refused role %s: %s' % (name, self.role.name, answer.message))
-                proxies.append(proxy)
+            if self.role != role:
+                return SetNodesResponse(success=False, previous=self.promote,
+                                        message='the site\'s role changed from %s to %s while the nodes were told '
+                                        'it: ask again' % (role.name, self.role.name if self.role else None))
             previous, self.promote, self.set_role_nodes = self.promote, names, proxies
         rospy.loginfo('%s: nodes to promote are now %s (were %s)', rospy.get_name(), names, previous)
         return SetNodesResponse(success=True, message='promote %s' % ', '.join(names), previous=previous)
@@ -420,7 +432,24 @@ class RecoveryNode(object):
                   % failed_steps(record)))
         self._event(record)
 
+    def _received_at(self, failure):
+        """When this Recovery first had the failure report (monotonic). The time since the failed site was
+        last heard is the report's silence plus the time since: on clocks that do not step. It was the
+        wall clock less the report's stamp, which is the simulated time under /use_sim_time, and a clock
+        step during a witness retry took the launcher for a reused pid and spared its tree (review of
+        session 36)."""
+        k = (failure.site, failure.detected.secs, failure.detected.nsecs, failure.pid)
+        with _RECEIVED_LOCK:
+            received = self.__dict__.setdefault('_received', {})   # failure report -> when first had
+            at = received.get(k)
+            if at is None:
+                at = received[k] = time.monotonic()
+                while len(received) > 64:
+                    received.pop(next(iter(received)))
+        return at
+
     def _on_failure(self, failure, retried_role=None):
+        self._received_at(failure)
         retry = False
         with self.lock:
             if self.recovered:
@@ -741,26 +770,11 @@ class RecoveryNode(object):
     def _launcher(self, failure):
         """([psutil.Process] whose trees fail-silence kills for the failed site's launcher on this host,
         what was found): see fencing.launcher_roots."""
-        try:
-            launcher = psutil.Process(failure.pid)
-            created = launcher.create_time()
-            start = started(failure.pid)
-        except psutil.NoSuchProcess:
-            start = None
-        if start is None:
-            return [], 'launcher of %s (pid %d) already gone' % (failure.site, failure.pid)
-        since_heard = time.time() - (failure.detected.to_sec() - failure.silence)
-        if not same_process(time.clock_gettime(time.CLOCK_BOOTTIME) - start, since_heard):
-            return [], 'pid %d now belongs to another process: not killed' % failure.pid
-        if failure.pid in [p.pid for p in psutil.Process().parents()]:   # a few reads, not a scan of /proc
-            return [], 'launcher %d also runs this replica: only the name space is killed' % failure.pid
-        learned = self.fence.started(failure.pid, created)
-        try:
-            program = is_launcher(launcher.cmdline())
-        except psutil.Error:
-            program = False
-        pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
-                                                     launcher_children(children_named(failure.pid), self.fence.prefix))
+        since_heard = failure.silence + max(0.0, time.monotonic() - self._received_at(failure))
+        launcher, pids, why, refused, partial = named_launcher(failure.pid, failure.site, self.peer_ns,
+                                                               self.fence.prefix, since_heard, self.fence.started)
+        if launcher is None:
+            return [], why
         if partial:
             # It runs more than the failed site: stopped for good (it starts nothing of the site again, a
             # respawn or a node it had not started yet), then its children read again, now that none
@@ -769,8 +783,8 @@ class RecoveryNode(object):
                 launcher.send_signal(signal.SIGSTOP)
             except psutil.Error:
                 pass
-            pids, why, refused, partial = launcher_roots(failure.pid, failure.site, self.peer_ns, learned, program,
-                                                         launcher_children(children_named(failure.pid), self.fence.prefix))
+            _, pids, why, refused, partial = named_launcher(failure.pid, failure.site, self.peer_ns,
+                                                            self.fence.prefix, since_heard, self.fence.started)
             alarm(self.ports, 'pbr', 'fence_partial', '%s; it stays stopped (SIGSTOP) so that it starts nothing of '
                   '%s again: its other nodes run on without their launcher until an operator resumes or restarts '
                   'it' % (why, failure.site))

@@ -105,9 +105,20 @@ def _ask_again(manager, topic, doubted):
         if impl is None or rospy.core.is_shutdown():
             return   # unsubscribed meanwhile: nothing to tell
         sent_at = master_updates(topic)
+        master = node_api(manager.master_uri, ASK_TIMEOUT)
         try:
-            code, message, uris = node_api(manager.master_uri, ASK_TIMEOUT).registerSubscriber(
-                caller_id, topic, impl.type, manager.uri)
+            # Never for a name the master now gives another process (this node frozen or cut off while it
+            # asked, and replaced): registering would hand the name back, and the master would tell the
+            # replacement to shut down (review of the plumbing, session 36).
+            known = master.lookupNode(caller_id, caller_id)
+            if known[0] == 1 and known[2] != manager.uri:
+                rospy.logwarn('%s: the master gives this name to %s now: %s is not registered again',
+                              caller_id, known[2], topic)
+                return
+            code, message, uris = master.registerSubscriber(caller_id, topic, impl.type, manager.uri)
+            if code == 1 and get_topic_manager().get_subscriber_impl(topic) is None:
+                master.unregisterSubscriber(caller_id, topic, manager.uri)   # unsubscribed meanwhile: undone
+                return
         except Exception as e:   # the master is away: asked again after a while
             code, message, uris = -1, str(e), []
         if code == 1:

@@ -6,6 +6,7 @@ import os
 import threading
 import time
 
+import psutil
 import rospy
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import SetRole
@@ -15,7 +16,8 @@ from .. import config, health
 from ..board_watch import BoardWatch, Connect, Failover, Report, boards_param
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
-from ..sites import power_off, this_host
+from ..sites import power_off_trees, this_host
+from .fencing import named_launcher
 from .diagnostics import Diagnostics
 from .params import param
 from .ports import Ports
@@ -195,8 +197,20 @@ class WatchdogNode(object):
         self._close(self.proxies.pop(board, {}))
         info = verdict.last_info
         if info is not None and info.host == self.host and info.pid > 0:
-            return power_off(info.pid, on_stopped=on_stopped)
+            # The pid a heartbeat named is checked as Recovery checks it (fencing.named_launcher): alive
+            # since the board was last heard, no ancestor of this watchdog, a launcher of the board's
+            # nodes. Its tree was killed whatever it was: a forged beat naming pid 1 made the watchdog
+            # kill itself, and a reused pid an unrelated tree (review of session 36).
+            _, pids, why, refused, _ = named_launcher(info.pid, board, '/' + board, '/%s/' % board, verdict.silence)
+            if pids:
+                return power_off_trees(pids, on_stopped=on_stopped)
+            if psutil.pid_exists(info.pid):   # (gone: the board is down, nothing to say)
+                self._report(Report('fence_refused' if refused else 'fail_silence_unenforced',
+                                    'board %s failed: %s; the take-over goes on, relying on the board being really '
+                                    'down' % (board, why), True, None))
         on_stopped()   # the take-over first: the alarm below may take a while (a master gone)
+        if info is not None and info.host == self.host and info.pid > 0:
+            return 0
         # Another host's board (or one never heard): this watchdog cannot stop it. Said, not silent:
         # if it still runs, its beats say so later (fail_silence_broken).
         self._report(Report('fail_silence_unenforced', 'board %s failed on %s: this watchdog (on %s) cannot power it '
