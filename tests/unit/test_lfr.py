@@ -583,3 +583,13 @@ def test_a_leader_alone_that_the_witness_names_a_backup_for_must_have_it_exclude
     alone = leader(State.ALONE)
     alone.on_configuration(conf(4, 'master', 'other'))     # another site: not its peer
     assert not alone.unfollowed_backup()
+
+
+def test_a_follower_keeps_its_own_reply_to_a_request_the_leader_refused():
+    """Review of the fix (session 36): a follower stores the leader's refusals too; its own reply to
+    such a request, computed by its nested mechanism, was taken for a copy and dropped, and its count
+    of computed requests never reached what Before passed on."""
+    follow = follower()
+    assert follow.on_peer_refusal(reply(5))
+    assert follow.on_reply(reply(5), now=0.0) == Out.STORE and follow.computed == 1
+    assert follow.on_reply(reply(5), now=0.1) == Out.DROP and follow.computed == 1   # a copy of its own: once

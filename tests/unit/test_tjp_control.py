@@ -253,7 +253,8 @@ def test_a_late_duplicated_or_replayed_ultrasonic_reading_tells_nothing():
 def test_a_clock_gone_back_starts_the_readings_afresh_with_the_brake_held():
     braking = EmergencyBraking(confirm=1, release_delay=0.5)
     braking.observe_speed(3.0, 50.0)
-    assert braking.update(0.8, 50.0)
+    assert braking.update(0.8, 50.0, clock=49.9)         # (its clock a little behind the readings' stamps)
+    assert braking.update(None, 10.0, clock=49.95) and braking.resets == 0 and braking.late == 1   # lagging: late
     assert braking.update(None, 0.5, clock=0.5)          # the simulation started again: its clock went back
-    assert braking.resets == 1 and braking.late == 0 and braking.active
+    assert braking.resets == 1 and braking.late == 1 and braking.active
     assert braking.update(None, 0.9) and not braking.update(None, 1.05)   # then 0.5 s clear, as ever

@@ -143,9 +143,9 @@ def test_a_clock_gone_back_starts_the_vote_afresh_instead_of_dropping_every_read
     from tjp_sim.filters import LaserVoter
     voter = LaserVoter(reset_after=50)
     for stamp in (100, 101):
-        decided = [d for i in range(3) for d in voter.add(i, stamp, 10.0)]
+        decided = [d for i in range(3) for d in voter.add(i, stamp, 10.0, clock=stamp)]
         assert [s for s, _, _ in decided] == [stamp]
-    assert voter.add(0, 99, 10.0) == [] and voter.late == 1      # late by one instant: late, as before
+    assert voter.add(0, 99, 10.0, clock=101) == [] and voter.late == 1   # late by one instant: late, as before
     decided = [d for stamp in (1, 2) for i in range(3) for d in voter.add(i, stamp, 12.0, clock=stamp)]
     assert [(s, v.value) for s, v, _ in decided] == [(1, 12.0), (2, 12.0)] and voter.resets == 1
     never = LaserVoter()                                           # (reset_after None: never, as before)
@@ -196,5 +196,7 @@ def test_readings_replayed_from_seconds_before_are_refused_while_the_clock_goes_
     assert voter.resets == 0 and voter.stale == 40, seed
     decided = [d for i in range(3) for d in voter.add(i, 400, 10.0, clock=400)]
     assert [(s, v.value) for s, v, _ in decided] == [(400, 10.0)], (seed, decided)
-    # Without the reader's clock, an old reading is not taken for a reset either.
+    # Without the reader's clock, an old reading is not taken for a reset either; nor when the reader's
+    # clock lags the readings' stamps (they come on other connections) but has not gone back.
     assert voter.add(0, 1, 30.0) == [] and voter.resets == 0 and voter.stale == 41
+    assert voter.add(1, 2, 30.0, clock=400) == [] and voter.resets == 0 and voter.stale == 42, seed

@@ -57,3 +57,26 @@ def test_a_killed_holder_never_keeps_the_turn(tmp_path):
         if holder.poll() is None:
             holder.kill()
             holder.wait(10)
+
+
+def test_one_master_is_one_turn_however_its_uri_is_spelt(tmp_path):
+    from aft_ftm.turns import master_key
+    assert master_key('http://localhost:11311/') == master_key('http://127.0.0.1:11311') == \
+        master_key('http://LOCALHOST:11311')
+    assert master_key('http://127.0.0.1:11312') != master_key('http://127.0.0.1:11311')
+    first = Turn('http://localhost:11311/', str(tmp_path))
+    first.take('A', 1.0)
+    with pytest.raises(Busy):
+        Turn('http://127.0.0.1:11311', str(tmp_path)).take('B', 0.1)
+    first.give()
+
+
+def test_a_turn_that_cannot_be_taken_is_refused_naming_why(tmp_path):
+    (tmp_path / 'ro').mkdir(mode=0o500)
+    turn = Turn('http://m:11311', str(tmp_path / 'ro'))
+    import os
+    if os.geteuid() == 0:   # root writes anywhere: a path under a file instead
+        (tmp_path / 'file').write_text('x')
+        turn = Turn('http://m:11311', str(tmp_path / 'file'))
+    with pytest.raises(Busy, match='cannot take the adaptation turn'):
+        turn.take('me', 0.1)

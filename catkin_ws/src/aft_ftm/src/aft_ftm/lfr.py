@@ -160,6 +160,7 @@ class LfrAfter(object):
         self.acked = set()      # leader: acks that came before our own result
         self.computed = 0       # follower: results of forwarded requests
         self.duplicates = 0     # second copies of replies already had (dropped)
+        self.peer_refusals = set()   # follower: keys of the leader's refusals it stored (not its own replies)
         self.notified = 0
         self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
@@ -201,9 +202,12 @@ class LfrAfter(object):
         forwards can be) is dropped and counted in ``duplicates``: a leader held it for an ack that
         never came again, excluding a healthy follower; a follower counted it as computed, and its
         fence and its promotion went ahead while a forwarded request still ran (review of session 36)."""
-        if self.recent.lookup(request_key(reply)) is not None:
-            self.duplicates += 1
-            return Out.DROP
+        k = request_key(reply)
+        if self.recent.lookup(k) is not None:
+            if k not in self.peer_refusals:
+                self.duplicates += 1
+                return Out.DROP
+            self.peer_refusals.discard(k)   # the leader refused a request this follower computes: its own
         if self.role == Role.BACKUP:
             if refused:
                 return Out.DROP   # a follower's Protocol refuses nothing (nor does it get requests)
@@ -254,6 +258,9 @@ class LfrAfter(object):
         if self.state != State.FOLLOWING:
             return False
         self.remember(reply)
+        if len(self.peer_refusals) >= 10000:   # bounded: those no longer stored are forgotten
+            self.peer_refusals = {k for k in self.peer_refusals if self.recent.lookup(k) is not None}
+        self.peer_refusals.add(request_key(reply))
         return True
 
     # -- losing the follower ---------------------------------------------------------------

@@ -14,18 +14,38 @@ Plain Python, no ROS.
 import fcntl
 import hashlib
 import os
-import tempfile
+import socket
 import time
+import urllib.parse
 
 
 class Busy(Exception):
     """The turn was not had: the holder, and why the wait ended, are in the message."""
 
 
+def master_key(uri):
+    """One name for one master however its URI is spelt: localhost or its address, a trailing slash,
+    the case of the host (two spellings took two turns; review of session 36)."""
+    try:
+        parsed = urllib.parse.urlparse(uri)
+        host = (parsed.hostname or '').lower()
+        try:
+            host = socket.gethostbyname(host) if host else host
+        except OSError:   # not resolvable here: as written
+            pass
+        if host.startswith('127.'):
+            host = '127.0.0.1'
+        return '%s:%s' % (host, parsed.port or 11311)
+    except ValueError:
+        return uri
+
+
 class Turn(object):
+    DIRECTORY = '/tmp'   # not $TMPDIR: two engines with different ones took two turns
+
     def __init__(self, key, directory=None):
-        name = 'aft_adaptation_%s.lock' % hashlib.sha256(key.encode()).hexdigest()[:16]
-        self.path = os.path.join(directory or tempfile.gettempdir(), name)
+        name = 'aft_adaptation_%s.lock' % hashlib.sha256(master_key(key).encode()).hexdigest()[:16]
+        self.path = os.path.join(directory or self.DIRECTORY, name)
         self.fd = None
 
     def holder(self):
@@ -42,7 +62,10 @@ class Turn(object):
         Busy past the timeout or once stop() returns a reason."""
         if self.fd is not None:
             raise RuntimeError('the turn is held already')
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:   # another user's file, a read-only /tmp: said, and nothing changed
+            raise Busy('cannot take the adaptation turn (%s): %s' % (self.path, e))
         started = time.monotonic()
         told = False
         try:

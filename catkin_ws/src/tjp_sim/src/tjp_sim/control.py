@@ -171,6 +171,7 @@ class EmergencyBraking(object):
         self.speeds = collections.deque(maxlen=16)   # (time, speed) of the IMU's recent valid readings
         self.first_reading = None   # the stamp of the first ultrasonic reading taken (since a reset)
         self.last_reading = None    # the stamp of the last one taken
+        self.last_clock = None      # the caller's clock when it was taken
         self.late = 0               # ultrasonic readings refused: stamped at or before the last one taken
         self.resets = 0             # the clock gone back
         self.speed_refused = 0   # IMU readings that are not numbers
@@ -218,7 +219,10 @@ class EmergencyBraking(object):
         time then, if it has one. Returns whether Emergency Braking is active. An invalid reading, or
         one out of order (see the class), tells nothing: it neither confirms an obstacle nor clears one."""
         if self.last_reading is not None and now <= self.last_reading:
-            if not clock or clock >= self.last_reading:   # (0: a clock not started yet tells nothing)
+            # A reset only if the caller's own clock went back since the last reading taken (its clock
+            # and the readings come on separate connections: compared with the reading's stamp, a
+            # replayed reading in the moment the clock lagged passed for a reset; review of session 36).
+            if not clock or self.last_clock is None or clock >= self.last_clock:
                 self.late += 1
                 return self.active
             self.resets += 1   # the clock went back: afresh, the brake as it was
@@ -226,6 +230,8 @@ class EmergencyBraking(object):
             self.first_reading = self.clear_since = None
             self.seen = 0
         self.last_reading = now
+        if clock:
+            self.last_clock = clock
         if self.first_reading is None:
             self.first_reading = now
         if distance is not None and not (isinstance(distance, (int, float)) and distance == distance):

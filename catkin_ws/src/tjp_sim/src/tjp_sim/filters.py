@@ -148,6 +148,7 @@ class LaserVoter(object):
         self.reset_after = reset_after
         self.resets = 0
         self.stale = 0
+        self.clock_seen = None   # the reader's clock at the newest reading taken (a reset: it goes back)
         self.groups = {}             # stamp -> {index: value}
         self.latest = [None] * count  # the newest stamp heard from each laser
         self.decided_up_to = None
@@ -180,7 +181,9 @@ class LaserVoter(object):
             if self.reset_after is None or self.decided_up_to - stamp <= self.reset_after:
                 self.late += 1
                 return []
-            if not clock or clock >= self.decided_up_to:   # the clock went on: an old reading
+            # A reset only if the reader's own clock went back since the last reading taken (compared with
+            # the stamp, a replayed reading in a moment the clock lagged passed for one; review of session 36).
+            if not clock or self.clock_seen is None or clock >= self.clock_seen:   # the clock went on: old
                 self.late += 1
                 self.stale += 1
                 return []
@@ -188,6 +191,8 @@ class LaserVoter(object):
             self.groups.clear()
             self.latest = [None] * self.count
             self.decided_up_to = None
+        if clock:
+            self.clock_seen = clock
         if value is not None and not (isinstance(value, (int, float)) and value == value):
             self.invalid += 1
             value = self.INVALID

@@ -134,6 +134,13 @@ class Deadline(object):
                 self._abandoned = future
             raise CallTimeout('no answer within %.3f s' % timeout, future)
 
+    def close(self):
+        """End the worker once its call in progress, if any, is done (a Deadline made for a few calls)."""
+        with self._lock:
+            executor, self._executor = self._executor, None
+        if executor is not None:
+            executor.shutdown(wait=False)
+
     def abandoned(self):
         """exclusive: the future of a call abandoned past its deadline that has not returned yet (it may
         still take effect), or None."""

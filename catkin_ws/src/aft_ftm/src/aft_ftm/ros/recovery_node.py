@@ -377,17 +377,20 @@ class RecoveryNode(object):
             role = self.role
         proxies = []
         deadline = Deadline('set-promote')
-        for name in names:
-            try:
-                proxy = open_service(name + '/set_role', SetRole, self.timeout)
-                answer = deadline.call(proxy, self.timeout, role=role.value)
-            except (rospy.ServiceException, rospy.ROSException, CallTimeout) as e:
-                return SetNodesResponse(success=False, previous=self.promote,
-                                        message='%s/set_role cannot be called: %s' % (name, e))
-            if not answer.success:
-                return SetNodesResponse(success=False, previous=self.promote,
-                                        message='%s refused role %s: %s' % (name, role.name, answer.message))
-            proxies.append(proxy)
+        try:
+            for name in names:
+                try:
+                    proxy = open_service(name + '/set_role', SetRole, self.timeout)
+                    answer = deadline.call(proxy, self.timeout, role=role.value)
+                except (rospy.ServiceException, rospy.ROSException, CallTimeout) as e:
+                    return SetNodesResponse(success=False, previous=self.promote,
+                                            message='%s/set_role cannot be called: %s' % (name, e))
+                if not answer.success:
+                    return SetNodesResponse(success=False, previous=self.promote,
+                                            message='%s refused role %s: %s' % (name, role.name, answer.message))
+                proxies.append(proxy)
+        finally:
+            deadline.close()   # its worker thread ends (one per request otherwise)
         with self.lock:   # no recovery runs while the list changes
             if self.role != role:
                 return SetNodesResponse(success=False, previous=self.promote,

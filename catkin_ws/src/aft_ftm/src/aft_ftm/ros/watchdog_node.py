@@ -204,13 +204,13 @@ class WatchdogNode(object):
             _, pids, why, refused, _ = named_launcher(info.pid, board, '/' + board, '/%s/' % board, verdict.silence)
             if pids:
                 return power_off_trees(pids, on_stopped=on_stopped)
+            on_stopped()   # the take-over first: the alarm below may take a while (a master gone)
             if psutil.pid_exists(info.pid):   # (gone: the board is down, nothing to say)
                 self._report(Report('fence_refused' if refused else 'fail_silence_unenforced',
                                     'board %s failed: %s; the take-over goes on, relying on the board being really '
                                     'down' % (board, why), True, None))
-        on_stopped()   # the take-over first: the alarm below may take a while (a master gone)
-        if info is not None and info.host == self.host and info.pid > 0:
             return 0
+        on_stopped()   # the take-over first: the alarm below may take a while (a master gone)
         # Another host's board (or one never heard): this watchdog cannot stop it. Said, not silent:
         # if it still runs, its beats say so later (fail_silence_broken).
         self._report(Report('fail_silence_unenforced', 'board %s failed on %s: this watchdog (on %s) cannot power it '

@@ -8,6 +8,7 @@ run time by the adaptation engine):
   or a sensor without redundancy stops.
 """
 import math
+import socket
 import threading
 import time
 
@@ -212,10 +213,19 @@ class AlarmManagerNode(PortedNode):
         60 s socket timeout, a simulator crash or a silent sensor unseen meanwhile (review of session 36)."""
         from aft_ftm.ros.fencing import node_api
         master = node_api(rosgraph.get_master_uri(), self.master_timeout)
+        slow = 0   # calls in a row that timed out: one slow answer (a registration burst) is no crash
         while not rospy.is_shutdown() and self.stopped is None:
             try:
                 master.getPid(self.name)
-            except Exception as e:   # any failure to reach it: refused, reset, timed out
+                slow = 0
+            except (socket.timeout, TimeoutError) as e:
+                slow += 1
+                if slow >= 2:
+                    self.master_down = 'the ROS master did not answer twice in a row within %.1f s: %s' % (
+                        self.master_timeout, e or type(e).__name__)
+                    return
+                continue
+            except Exception as e:   # any other failure to reach it: refused, reset
                 self.master_down = 'the ROS master does not answer: %s' % (e or type(e).__name__)
                 return
             time.sleep(self.master_period)
