@@ -366,8 +366,9 @@ def check_fit(script, nodes, services, launched, calls=None):
                                   % (entry.file, node, ', '.join(names), ', '.join(missing)))
 
 
-def unconnected_binds(script, publishers, subscribers):
-    """The binds of script that would leave their port with no peer; [message naming each].
+def unconnected_binds(script, publishers, subscribers, only=None):
+    """The binds of script (of ``only``, if given) that would leave their port with no peer; [message
+    naming each].
 
     ``publishers``, ``subscribers``: {topic: node names} as the master has them once the script's
     launches are up (before its rebinds). A port bound to a subscription needs a publisher of the
@@ -381,7 +382,7 @@ def unconnected_binds(script, publishers, subscribers):
         if b.activate:
             bound[(b.topic, b.direction)].add(b.node)
     problems = []
-    for b in script.bind:
+    for b in script.bind if only is None else only:
         if not b.activate:
             continue
         subscribing = b.direction == 'subscribe'

@@ -682,9 +682,7 @@ class Engine(object):
             pubs, subs, _ = self.master.getSystemState()
         except Exception as e:
             return ['the ROS master cannot be asked who publishes and subscribes: %s' % e]
-        problems = adaptation.unconnected_binds(script, {t: n for t, n in pubs}, {t: n for t, n in subs})
-        named = ['%s.%s ' % (b.node, b.port) for b in binds]
-        return [p for p in problems if any(p.startswith(n) for n in named)]
+        return adaptation.unconnected_binds(script, dict(pubs), dict(subs), only=binds)
 
     def _resumed_all_the_same(self, outcome):
         """A last resume whose answer did not come in time (the engine stalled, or the node delivered a
