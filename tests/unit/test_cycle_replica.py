@@ -232,3 +232,105 @@ def test_a_primary_started_again_behind_the_clock_is_a_gap_for_its_backup_not_co
     again, _ = replica(A, Role.PRIMARY, first_seq=40).cycle_end(b'state 2', now=0.1)
     ok, notes = deliver(backup, again, A, now=0.1)
     assert not ok and alarms(notes) and not backup.following
+
+
+# -- a node that hangs (its process lives, its board heartbeats on) -----------------------------------
+def cycling(after, until, start=0.0, period=0.1):
+    """The node ends a cycle every ``period`` of its clock from ``start`` to ``until``; the watch looks after
+    each. Returns the node's clock at its last cycle end, and what the watch said."""
+    said, t = [], start
+    while t <= until + 1e-9:
+        said += after.node_cycled(t)
+        said.append(after.check_node(t))
+        t += period
+    return t - period, said
+
+
+def test_a_primary_whose_node_hangs_fail_stops_once_and_passes_nothing_on_from_then_on():
+    primary = replica(A, Role.PRIMARY, cycle_timeout=0.5)
+    last, said = cycling(primary, 3.0)
+    assert all(s == (None, []) for s in said if isinstance(s, tuple))
+    assert primary.check_node(last + 0.5) == (None, [])        # at the timeout: not yet
+    stop, notes = primary.check_node(last + 0.51)
+    assert 'ended no cycle for 0.51 s' in stop and 'backup takes over' in stop and alarms(notes) == ['node_hung']
+    assert primary.check_node(last + 5.0) == (None, [])        # said once
+    assert not primary.passes_outputs()                         # a node resumed now is not the system's
+    assert primary.cycle_end(b'late', now=9.0) == (None, [])    # nor are its checkpoints
+    primary.node_cycled(last + 5.1)
+    assert not primary.passes_outputs() and primary.check_node(last + 9.0) == (None, [])
+
+
+@pytest.mark.parametrize('seed', range(30))
+def test_a_stopped_clock_a_clock_gone_back_a_suspension_or_late_cycles_are_never_a_hang(seed):
+    """Drawn from a seed: cycles late by up to just under the timeout, the node's clock stopped for any
+    wall time (a crashed simulator), set back (restarted), the After's inputs held by a suspension for
+    any time; none fail-stops a primary. Then a real silence does, once."""
+    import random
+    rng = random.Random(seed)
+    timeout = rng.choice([0.3, 0.5, 1.0])
+    primary = replica(A, Role.PRIMARY, cycle_timeout=timeout)
+    t = rng.uniform(0, 100)
+    for _ in range(200):
+        event = rng.random()
+        if event < 0.6:                      # a cycle, late by up to just under the timeout
+            t += rng.uniform(0.0, timeout * 0.98)
+            said = primary.node_cycled(t)
+        elif event < 0.75:                   # the clock stops: any number of looks, the same time
+            said = [primary.check_node(t) for _ in range(rng.randint(1, 50))]
+        elif event < 0.85:                   # set back, then a look before the next cycle
+            t -= rng.uniform(0.1, 50.0)
+            said = [primary.check_node(t), primary.check_node(t + timeout * 0.9)]
+            primary.node_cycled(t + timeout * 0.95)
+            t += timeout * 0.95
+        else:                                # held for any time, the node's clock running on
+            for _ in range(rng.randint(1, 20)):
+                t += rng.uniform(0.0, 5.0)
+                said = [primary.check_node(t, held=True)]
+            said.append(primary.check_node(t + timeout * 0.9))
+            primary.node_cycled(t + timeout * 0.95)
+            t += timeout * 0.95
+        assert primary.passes_outputs(), 'seed %d: a false hang: %r' % (seed, said)
+        assert primary.check_node(t) == (None, [])
+    stop, notes = primary.check_node(t + timeout * 1.01)
+    assert stop and alarms(notes) == ['node_hung'], 'seed %d' % seed
+
+
+def test_a_replica_alone_whose_node_hangs_raises_an_alarm_each_time_and_does_not_stop():
+    alone = replica(A, Role.ALONE, cycle_timeout=0.5)
+    assert alone.check_node(10.0) == (None, [])   # no cycle yet: not watched (the node waits for inputs)
+    last, _ = cycling(alone, 2.0)
+    stop, notes = alone.check_node(last + 0.6)
+    assert stop is None and alarms(notes) == ['node_hung'] and 'no backup can take over' in notes[0].detail
+    assert [n.kind for n in alone.node_cycled(last + 2.0)] == ['node_resumed'] and alone.passes_outputs()
+    stop, notes = alone.check_node(last + 2.6)
+    assert stop is None and alarms(notes) == ['node_hung']   # a second hang is told again
+
+
+def test_a_following_backup_whose_node_hangs_can_no_longer_take_over_nor_asks_to_join_until_it_resumes():
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, cycle_timeout=0.5)
+    deliver(backup, primary.cycle_end(b's1', now=0.0)[0], A, now=0.0)
+    last, _ = cycling(backup, 1.0)
+    assert backup.following
+    stop, notes = backup.check_node(last + 0.6)
+    assert stop is None and alarms(notes) == ['backup_invalid'] and 'hangs' in notes[0].detail
+    with pytest.raises(RoleError):
+        backup.set_role(Role.ALONE, first_seq=1)     # the watchdog cannot promote it
+    assert backup.check(now=5.0) == (False, [])     # it could not take a state transfer: it does not ask
+    backup.node_cycled(last + 3.0)
+    assert backup.check(now=6.0) == (True, [])      # resumed: it asks to join again
+
+
+def test_without_a_cycle_timeout_a_silent_node_is_not_watched():
+    primary = replica(A, Role.PRIMARY)
+    last, _ = cycling(primary, 1.0)
+    assert primary.check_node(last + 1000.0) == (None, []) and primary.passes_outputs()
+    with pytest.raises(ValueError, match='cycle_timeout'):
+        replica(A, Role.PRIMARY, cycle_timeout=-1)
+
+
+def test_a_node_that_hangs_just_after_its_clock_went_back_is_still_seen():
+    primary = replica(A, Role.PRIMARY, cycle_timeout=0.5)
+    last, _ = cycling(primary, 50.0, start=40.0)
+    assert primary.check_node(1.0) == (None, [])   # the simulation started again at 0: counted from here
+    stop, _ = primary.check_node(1.6)
+    assert stop and 'ended no cycle for 0.60 s' in stop

@@ -47,6 +47,11 @@ def test_defaults_are_filled_in():
     ('faults: [{kind: board_back, board: board_a, at: 3, role: primary}]\n', 'unknown key role'),
     ('mechanisms: [tr_imu]\nfaults: [{kind: power_loss, board: board_b, at: 1}, '
      '{kind: board_back, board: board_b, at: 2}]\n', 'a power_loss of board_b needs the pbr mechanism'),
+    ('mechanisms: [tr_imu]\nfaults: [{kind: board_hang, board: backup, at: 1}]\n',
+     'a board_hang of board_b needs the pbr mechanism'),
+    ('faults: [{kind: board_hang, at: 1}]\n', 'missing key board'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, until: 2}]\n', 'until 2 must come after at 4'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, node: x}]\n', 'unknown key node'),
     ('events: [{kind: parade, at: 1}]\n', 'kind must be pedestrian or adapt'),
     ('events: [{kind: pedestrian, at: 5, leaves: 3}]\n', 'leaves 3 must come after at 5'),
     ('events: [{kind: adapt, script: laser_vote}]\n', 'either at a time .* not neither'),

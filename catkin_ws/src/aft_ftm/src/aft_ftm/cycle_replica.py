@@ -26,6 +26,15 @@ a sender of its own); they guard every change.
 - ``set_role`` ALONE (the watchdog, at failover): a following backup takes over, and may take a
   backup of its own later; a JOINING one refuses (it holds no state). PRIMARY is never asked for:
   a replica becomes primary again when a backup joins it.
+- A node that hangs (``cycle_timeout`` > 0: no cycle end for that long, on the node's own clock,
+  once it has ended one; a SIGSTOP, a deadlock): its process lives on and its board's crash
+  detector beats on, so no watchdog would ever see it. A PRIMARY's After fail-stops its site
+  (``fail_stop``: its crash detector falls silent, the watchdog fences the board and promotes
+  the backup) and passes nothing on from then on; an ALONE one raises ``node_hung`` (nobody can
+  take over: the outputs stop until the node resumes); a following BACKUP no longer mirrors its
+  primary (``backup_invalid``: it must not be promoted with a node that runs nothing). The node's
+  clock (simulated time) is used so that a stopped simulator, which stops every node's cycles, is
+  not taken for a hang; time the After's inputs are held by a suspension is not counted.
 
 Invariants: a backup passes no output on; only a backup that applied a checkpoint of its primary
 takes over; every change that leaves the pair without a valid backup is a Note with ``alarm``.
@@ -59,11 +68,16 @@ class CycleReplica(object):
     """One replica's After of a pub/sub node (see the module's docstring)."""
 
     def __init__(self, name, role, first_seq, expect='', ack_timeout=0.5, join_period=0.25,
-                 stale_after=1.0, stale_cycles=3):
+                 stale_after=1.0, stale_cycles=3, cycle_timeout=0.0):
         for what, value in (('ack_timeout', ack_timeout), ('join_period', join_period),
-                            ('stale_after', stale_after), ('stale_cycles', stale_cycles)):
+                            ('stale_after', stale_after), ('stale_cycles', stale_cycles),
+                            ('cycle_timeout', cycle_timeout or 1)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
                 raise ValueError('%s must be a number > 0, got %r' % (what, value))
+        self.cycle_timeout = cycle_timeout   # 0: a hung node is not watched
+        self.node_cycle_at = None   # the node's clock at its last cycle end (None: none yet)
+        self.node_hung = False      # told, until the node ends a cycle again
+        self.stopped = None         # why this replica fail-stopped (it passes nothing on then)
         self.name = name
         self.ack_timeout = ack_timeout
         self.join_period = join_period
@@ -91,13 +105,51 @@ class CycleReplica(object):
             self.receiver.state == Follow.FOLLOWING
 
     def passes_outputs(self):
-        return self.role != Role.BACKUP
+        return self.role != Role.BACKUP and self.stopped is None
+
+    # -- a hung node -----------------------------------------------------------------------------
+    def node_cycled(self, node_now):
+        """The node ended a cycle at ``node_now`` (its own clock). Returns notes."""
+        self.node_cycle_at = node_now
+        if self.node_hung:
+            self.node_hung = False
+            return [Note('node_resumed', '%s: its node ends cycles again' % self.name)]
+        return []
+
+    def check_node(self, node_now, held=False):
+        """The hang watch, every tick: ``node_now`` is the node's clock, ``held`` whether a suspension
+        holds the After's inputs. Returns (a fail-stop reason or None, notes)."""
+        last = self.node_cycle_at
+        if not self.cycle_timeout or last is None or self.stopped is not None:
+            return None, []
+        if held or node_now < last:   # held: not the node's silence; a clock gone back: counted afresh
+            self.node_cycle_at = node_now
+            return None, []
+        silence = node_now - last
+        if silence <= self.cycle_timeout or self.node_hung:
+            return None, []
+        self.node_hung = True
+        what = 'its node ended no cycle for %.2f s (timeout %.2f s): it hangs' % (silence, self.cycle_timeout)
+        role = self.role
+        if role == Role.PRIMARY:
+            self.stopped = what
+            return '%s; the backup takes over' % what, [
+                Note('node_hung', '%s: %s; this site fail-stops so that the backup takes over' % (self.name, what),
+                     alarm=True)]
+        if role == Role.BACKUP and self.following:
+            return None, self._invalid(self.receiver.last_seq, what)
+        return None, [Note('node_hung', '%s: %s; %s' % (self.name, what, 'no backup can take over: its outputs stop '
+                                                          'until it resumes' if role == Role.ALONE else
+                                                          'this backup holds no state and cannot take over'),
+                           alarm=True)]
 
     # -- every replica ---------------------------------------------------------------------------
     def cycle_end(self, state, now):
         """The node ended a cycle with ``state`` (bytes). Returns (the Outgoing checkpoint or None, notes)."""
         if self.sender is None:
             return None, self._own_cycle(now)
+        if self.stopped is not None:
+            return None, []
         if self.joiner is not None and not self.sender.deposed:
             joiner, self.joiner = self.joiner, None
             if self.sender.role == Role.PRIMARY:
@@ -119,7 +171,8 @@ class CycleReplica(object):
                                     'lost; %s goes on alone until a backup joins' % (self.ack_timeout, self.name),
                                     alarm=True)]
             return False, []
-        if self.receiver.role == Role.BACKUP and self.receiver.state == Follow.JOINING and \
+        # (A backup whose node hangs does not ask: it could not take the state transfer.)
+        if self.receiver.role == Role.BACKUP and self.receiver.state == Follow.JOINING and not self.node_hung and \
                 (self.last_ask is None or now - self.last_ask >= self.join_period):
             self.last_ask = now
             return True, []

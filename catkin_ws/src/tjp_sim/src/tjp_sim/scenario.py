@@ -14,7 +14,9 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   and (except crash) an ``until``; ``power_loss`` and ``board_back`` (the board started again, as
   a backup: it re-joins the primary) name a ``board``, board_a or board_b (or ``primary`` and
   ``backup``, the boards' roles at the start: board_a and board_b); a board's power losses and
-  returns alternate, a power loss first;
+  returns alternate, a power loss first; ``board_hang`` (a ``board``, and an ``until`` if the node
+  resumes) stops that board's controllerPid without killing it (SIGSTOP, then SIGCONT): its
+  board, and its crash detector, live on;
   ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
   (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`; ``intrusion`` takes nothing more:
   an intruder on the car's network (aft_ftm's ``intruder``, once in clear and, under TLS, once with
@@ -51,8 +53,8 @@ MECHANISMS = ('pbr', 'tr_imu', 'tr_ultrasonic', 'triplication_vote', 'alarm_and_
 SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
 # The boards of controllerPid, and the names that designate them (the roles are those at the start).
 BOARDS = {'board_a': 'board_a', 'board_b': 'board_b', 'primary': 'board_a', 'backup': 'board_b'}
-PROCESS_FAULTS = ('power_loss', 'board_back', 'simulator_crash', 'master_crash', 'node_crash', 'node_hang',
-                  'intrusion')
+PROCESS_FAULTS = ('power_loss', 'board_back', 'board_hang', 'simulator_crash', 'master_crash', 'node_crash',
+                  'node_hang', 'intrusion')
 MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {
@@ -104,13 +106,13 @@ def _fault(where, item, duration, rng):
     kind = item.get('kind') if isinstance(item, dict) else None
     extra = {'stuck': ['value'], 'offset': ['offset'], 'noise': ['sigma'], 'spikes': ['probability', 'magnitude'],
              'false_detection': ['distance'], 'crash': [], 'power_loss': ['board'], 'board_back': ['board'],
-             'simulator_crash': [],
+             'board_hang': ['board'], 'simulator_crash': [],
              'master_crash': [], 'node_crash': ['node'], 'node_hang': ['node'], 'intrusion': []}
     if kind not in extra:
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
     sensor = kind in VALUE_KINDS or kind == 'crash'
     required = ['kind', 'at'] + extra[kind] + (['sensor'] if sensor else []) + (['until'] if kind in VALUE_KINDS else [])
-    _keys(where, item, required, ['direction'] if kind == 'spikes' else [])
+    _keys(where, item, required, {'spikes': ['direction'], 'board_hang': ['until']}.get(kind, []))
     if item.get('direction', 'both') not in ('both', 'up', 'down'):
         raise ScenarioError('%s: direction must be both, up or down, got %r' % (where, item['direction']))
     fault = dict(item, at=_time(where + '.at', item['at'], duration, rng))
@@ -132,7 +134,7 @@ def _fault(where, item, duration, rng):
         fault['probability'] = _number(where + '.probability', item['probability'], 0, 1)
     if kind in ('node_crash', 'node_hang') and item['node'] not in MANAGED_NODES:
         raise ScenarioError('%s: node must be one of %s, got %r' % (where, ', '.join(MANAGED_NODES), item['node']))
-    if kind in ('power_loss', 'board_back'):
+    if kind in ('power_loss', 'board_back', 'board_hang'):
         if not isinstance(item['board'], str) or item['board'] not in BOARDS:
             raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
         fault['board'] = BOARDS[item['board']]
@@ -140,13 +142,16 @@ def _fault(where, item, duration, rng):
 
 
 def _check_boards(source, faults, mechanisms):
-    """Each board's power losses and returns alternate, a power loss first; board_b exists with pbr only."""
+    """Each board's power losses and returns alternate, a power loss first; board_b exists with pbr only (its
+    power losses, returns and hangs need it)."""
     for board in sorted(set(BOARDS.values())):
         steps = sorted(((f['at'], f['kind']) for f in faults if f['kind'] in ('power_loss', 'board_back')
                         and f['board'] == board), key=lambda step: (step[0], step[1] != 'power_loss'))
-        if steps and board != 'board_a' and 'pbr' not in mechanisms:
+        steps_or_hangs = steps + [(f['at'], f['kind']) for f in faults
+                                  if f['kind'] == 'board_hang' and f['board'] == board]
+        if steps_or_hangs and board != 'board_a' and 'pbr' not in mechanisms:
             raise ScenarioError('%s: a %s of %s needs the pbr mechanism (without it there is no backup board)'
-                                % (source, steps[0][1], board))
+                                % (source, steps_or_hangs[0][1], board))
         off = None
         for at, kind in steps:
             if kind == 'power_loss' and off is not None:

@@ -39,6 +39,7 @@ from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
 from .diagnostics import Diagnostics
+from .fail_stop import fail_stop
 from .params import param
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
@@ -77,7 +78,12 @@ class CycleAfterNode(object):
         ~stale_after (float, 1 s), ~stale_cycles (int, 3): a backup whose own node ran this many cycles
             over this long without a checkpoint no longer mirrors its primary: it joins again
             (alarm ``backup_invalid``).
-        ~site (str, default: the node's name): the replica's site, in join requests.
+        ~site (str, default: the node's name): the replica's site, in join requests and fail-stops.
+        ~cycle_timeout (float, 0 = off): a node that ended a cycle and then none for this long on
+            its own clock (ROS time: simulated time stops with the simulator) hangs: a primary
+            fail-stops its site (``fail_stop``, alarm ``node_hung``), so that the watchdog promotes
+            the backup; a following backup no longer mirrors (``backup_invalid``); a replica alone
+            raises ``node_hung``. Its site's crash detector must subscribe to ``fail_stop``.
         ~suspend_lease (float, 10 s), ~suspend_buffer_bytes (int, 64 MiB): the lease of a suspension
             and the bound of what it holds (every FTM node: see aft_ftm.ros.ports.Ports).
     Subscribes:
@@ -91,8 +97,10 @@ class CycleAfterNode(object):
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
         acks (aft_msgs/CheckpointAck), port ``acks``
         join (aft_msgs/Join), port ``join``: this backup asking to join, while it holds no state
+        fail_stop (aft_msgs/Failure), port ``fail_stop``: to the site's crash detector (a hung node)
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
-            goes on alone) and ``backup_invalid`` (a backup no longer mirrors its primary)
+            goes on alone), ``backup_invalid`` (a backup no longer mirrors its primary), ``node_hung``
+            and ``fail_stop``
     Services called:
         set_state (aft_msgs/SetState): the node's state manager (backup)
     Services:
@@ -115,7 +123,8 @@ class CycleAfterNode(object):
             ack_timeout=param('ack_timeout', config.positive_float, 0.5),
             join_period=param('join_period', config.positive_float, 0.25),
             stale_after=param('stale_after', config.positive_float, 1.0),
-            stale_cycles=param('stale_cycles', config.positive_int, 3))
+            stale_cycles=param('stale_cycles', config.positive_int, 3),
+            cycle_timeout=param('cycle_timeout', config.non_negative_float, 0.0))
         self.lock = threading.Lock()
         self.forwarded = 0
         self.withheld = 0        # a backup's own outputs, not passed on
@@ -128,6 +137,7 @@ class CycleAfterNode(object):
                             PortSpec('peer_acks', SUBSCRIBE, 'aft_msgs/CheckpointAck'),
                             PortSpec('join', PUBLISH, 'aft_msgs/Join'),
                             PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
+                            PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'raw': self._on_output, 'cycle_end': self._on_cycle_end,
                             'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack,
@@ -137,8 +147,8 @@ class CycleAfterNode(object):
         self.diagnostics = None
 
     def setup(self, timeout):
-        for name in ('out', 'checkpoints', 'acks', 'join', 'alarms', 'peer_checkpoints', 'peer_acks', 'join_requests',
-                     'raw', 'cycle_end'):
+        for name in ('out', 'checkpoints', 'acks', 'join', 'fail_stop', 'alarms', 'peer_checkpoints', 'peer_acks',
+                     'join_requests', 'raw', 'cycle_end'):
             self.ports.bind(name)
         role = self.replica.role
         if role == Role.BACKUP:
@@ -150,6 +160,8 @@ class CycleAfterNode(object):
                 return False
         peers = {Role.PRIMARY: ['checkpoints', 'peer_acks', 'join_requests'],
                  Role.BACKUP: ['peer_checkpoints', 'acks', 'join'], Role.ALONE: []}[role]
+        if self.replica.cycle_timeout:   # a hang is told to the crash detector: it must hear it
+            peers = peers + ['fail_stop']
         missing = wait_for_connections(self.ports, peers, self.connect_timeout)
         if missing:
             rospy.logerr('%s: the peer After is not connected on %s within %.1f s', self.name,
@@ -185,7 +197,9 @@ class CycleAfterNode(object):
     def _on_cycle_end(self, end):
         # Cycle ends arrive one at a time (one subscription, one thread): checkpoints leave in order.
         with self.lock:
-            out, notes = self.replica.cycle_end(end.state, time.monotonic())
+            notes = self.replica.node_cycled(rospy.get_time())
+            out, more = self.replica.cycle_end(end.state, time.monotonic())
+            notes += more
             if out is not None:
                 self.checkpoints += 1
         self._report(notes)
@@ -210,13 +224,19 @@ class CycleAfterNode(object):
         self._report(notes)
 
     def _tick(self):
-        period = min(self.replica.ack_timeout / 4.0, self.replica.join_period / 2.0)
+        period = min(self.replica.ack_timeout / 4.0, self.replica.join_period / 2.0,
+                     self.replica.cycle_timeout / 10.0 or 1.0)   # (the hang watch: within a tenth of it)
         while not rospy.is_shutdown():
             time.sleep(period)
+            held = self.ports.gate.state.name != 'OPEN'
             with self.lock:
-                ask, notes = self.replica.check(time.monotonic())
+                stop, notes = self.replica.check_node(rospy.get_time(), held)
+                ask, more = self.replica.check(time.monotonic())
+                notes += more
                 last_seq = self.replica.receiver.last_seq if ask else 0
             self._report(notes)
+            if stop:
+                fail_stop(self.ports, self.site, '%s: %s' % (self.name, stop))
             if ask:
                 self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=str(self.first_seq),
                                                 last_seq=last_seq, stamp=rospy.Time.now()))
@@ -253,7 +273,8 @@ class CycleAfterNode(object):
             held = len(sender.held) if sender is not None else 0
             report = health.replica_after(
                 self.site, 'pbr', replica.role, 0, self.peer_after or 'any peer After', held=held,
-                stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else None,
+                stopped='deposed: %s' % sender.deposed if sender is not None and sender.deposed else
+                ('fail-stopped: %s' % replica.stopped if replica.stopped else None),
                 cannot_take_over=None if replica.following or replica.role != Role.BACKUP
                 else 'holds no state of its primary yet: it is joining',
                 extra=[('forwarded', self.forwarded), ('withheld', self.withheld), ('checkpoints', self.checkpoints)])

@@ -325,7 +325,7 @@ class ScenarioRun(object):
 
     def _act(self, item):
         kind = item['kind']
-        if kind in ('power_loss', 'board_back') and item['board'] not in self.sites:
+        if kind in ('power_loss', 'board_back', 'board_hang') and item['board'] not in self.sites:
             self.event('fault', fault=kind, target=item['board'], skipped='the board does not run without pbr')
         elif kind == 'power_loss':
             board = item['board']
@@ -344,6 +344,17 @@ class ScenarioRun(object):
             old.stop()
             self._site(board, self._board_argv(board, 'backup'))
             self.log('    board %s started again (as a backup)' % board)
+        elif kind == 'board_hang':
+            # controllerPid stops without exiting: its board, crash detector and After live on.
+            board = item['board']
+            procs = self._board_nodes(board, 'controller_pid')
+            self.event('fault', fault='board_hang', target=board, processes=len(procs), until=item.get('until'))
+            for proc in procs:
+                proc.send_signal(signal.SIGSTOP)
+            if item.get('until') is not None:
+                thread = threading.Thread(target=self._resume, args=(procs, item['until']), daemon=True)
+                self.threads.append(thread)
+                thread.start()
         elif kind == 'simulator_crash':
             self.event('fault', fault='simulator_crash', target='car_sim')
             self.simulator_killed = True
@@ -377,6 +388,31 @@ class ScenarioRun(object):
             thread = threading.Thread(target=self._adapt, args=(item,), daemon=True)
             self.threads.append(thread)
             thread.start()
+
+    def _board_nodes(self, board, node):
+        """The processes of ``node`` in ``board``'s launch (none once it is powered off)."""
+        found = []
+        for proc in process_tree(self.sites[board].pid):
+            try:
+                if '__name:=%s' % node in proc.cmdline():
+                    found.append(proc)
+            except psutil.Error:   # gone meanwhile
+                pass
+        return found
+
+    def _resume(self, procs, until):
+        """SIGCONT to ``procs`` once the simulated time reaches ``until`` (bounded: the run's end)."""
+        deadline = time.monotonic() + self.scenario['duration'] / self.scenario['rate'] * 4 + 60
+        while rospy.get_time() < until and time.monotonic() < deadline and not rospy.is_shutdown():
+            time.sleep(0.005)
+        alive = []
+        for proc in procs:
+            try:
+                proc.send_signal(signal.SIGCONT)
+                alive.append(proc.pid)
+            except psutil.Error:   # fenced meanwhile: killed
+                pass
+        self.event('fault', fault='board_resumed', target='controller_pid', resumed=len(alive))
 
     def _intrude(self):
         """The intruder (aft_ftm's ``intruder``) in clear, and under TLS with the certificate of
