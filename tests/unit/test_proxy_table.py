@@ -64,3 +64,16 @@ def test_a_renumbered_request_takes_an_id_from_the_one_given_and_later_ones_foll
     assert table.renumber(40, 6000) is None                    # no longer waits under 40: a late message
     assert table.renumber(a.id, a.id) is None and table.renumber(b.id, 1 << 63) is None   # not above / absurd
     assert table.abandon(a) is a and table.abandon(a) is None and table.close(b.id, 'r') is b
+
+
+def test_a_refusal_that_cannot_be_renumbered_says_why_while_the_call_waits():
+    """A forged oldest_pending (no SEC) raised the replicas' watermark to 2**64 - 1: the refusals of this
+    Proxy's calls name a first free id it cannot take. The call waits for its timeout: that is said, in
+    words that name the request and the id, and nothing is said of a request that no longer waits."""
+    table = PendingTable(first_id=100)
+    a = table.open('/c', b'a', 0.0)
+    assert table.renumber(a.id, (1 << 64) - 1) is None
+    why = table.unrenumbered(a.id, (1 << 64) - 1)
+    assert 'request %d waits' % a.id in why and 'past 2**63' in why and 'forged' in why
+    assert 'not above it' in table.unrenumbered(a.id, a.id)
+    assert table.unrenumbered(a.id + 7, 1 << 64) is None   # no such call: a late message, nothing to say

@@ -107,6 +107,20 @@ class PendingTable(object):
             self.renumbered += 1
             return entry
 
+    def unrenumbered(self, request_id, first_id):
+        """Why a refusal of request_id's id naming first_id could not be followed, if that leaves the call
+        waiting (None when request_id no longer waits: a late message). A replica that says the ids up to
+        first_id - 1 were answered, when first_id is not above the waiting request's id or is past 2**63,
+        cannot be believed and cannot be obeyed: the call waits for its timeout, and that must be said
+        (a forged ``oldest_pending`` without SEC raises the replicas' watermark so)."""
+        with self._lock:
+            if request_id not in self._pending:
+                return None
+        return ('request %d waits, and its replicas refuse its id as below those they answered already, naming %d '
+                'as the first free one, which is %s: it cannot be renumbered, and the call waits for its timeout '
+                '(the replicas hold a watermark this Proxy never sent: forged without SEC, or corrupt)'
+                % (request_id, first_id, 'past 2**63' if first_id >= 1 << 63 else 'not above it'))
+
     def oldest_pending(self):
         """Every id below this one has been answered (or abandoned)."""
         with self._lock:

@@ -1,4 +1,6 @@
 """Proxy: stands in for the server, with the application's own service type."""
+import collections
+import threading
 import time
 
 import rospy
@@ -67,6 +69,8 @@ class ProxyNode(object):
         self.table = PendingTable(first_id=int(time.time() * 1e6),
                                   max_bytes=param('max_pending_bytes', config.non_negative_int, 64 << 20))
         self.name = rospy.get_name()
+        self.told = collections.OrderedDict()   # requests an ids_refused alarm was raised for (64 at most)
+        self.told_lock = threading.Lock()
         self.ports = Ports(
             [PortSpec('requests', PUBLISH, 'aft_msgs/Request'),
              PortSpec('replies', SUBSCRIBE, 'aft_msgs/Reply'),
@@ -137,8 +141,23 @@ class ProxyNode(object):
                       'answered already (started again with a clock behind): not executed; sent again as %d'
                       % (self.name, reply.id, entry.id))
                 self.ports.publish('requests', self._request(entry))
+                return
+            why = self.table.unrenumbered(reply.id, reply.oldest_pending)
+            if why is not None and self._told_once(reply.id):
+                alarm(self.ports, 'proxy', 'ids_refused', '%s: %s' % (self.name, why))
             return
         self.table.close(reply.id, reply)
+
+    def _told_once(self, request_id):
+        """Whether an alarm about request_id is the first one (a refusal repeats at every re-send; at most
+        64 requests are remembered, the oldest forgotten first)."""
+        with self.told_lock:
+            if request_id in self.told:
+                return False
+            self.told[request_id] = True
+            while len(self.told) > 64:
+                self.told.popitem(last=False)
+            return True
 
     def _health(self):
         table = self.table
