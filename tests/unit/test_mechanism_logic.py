@@ -115,6 +115,25 @@ def a_huge_int(*_):
     return 10 ** 400
 
 
+def numpy_nan(*_):
+    import numpy
+    return numpy.array(numpy.nan)     # a 0-d array: not a float, and bool() of it is True
+
+
+def decimal_nan(*_):
+    import decimal
+    return decimal.Decimal('NaN')
+
+
+def decimal_snan(*_):
+    import decimal
+    return decimal.Decimal('sNaN')
+
+
+def complex_nan(*_):
+    return complex('nan')
+
+
 @pytest.mark.parametrize('fn,detail', [
     (passes, None), (silent, None), (fails, 'returned False'),
     (explains, 'speed 12 km/h is above 10 km/h'), (asserts, 'one is not two'),
@@ -123,6 +142,9 @@ def a_huge_int(*_):
     (numpy_false, 'returned np.False_'), (zero, 'returned 0'), (an_array, 'not a verdict: the truth value'),
     # Review of session 34: bool(nan) is True, so a verdict computed from a NaN field passed.
     (not_a_number, 'returned nan, not a verdict'), (a_huge_int, None),
+    # Review of session 36: NaN-like values that are not floats passed.
+    (numpy_nan, 'returned nan, not a verdict'), (decimal_nan, 'returned nan, not a verdict'),
+    (decimal_snan, 'returned nan, not a verdict'), (complex_nan, 'returned nan, not a verdict'),
 ])
 def test_assertion_outcomes(fn, detail):
     violations = assertions.check([(fn.__name__, fn)], 'request', 'response')

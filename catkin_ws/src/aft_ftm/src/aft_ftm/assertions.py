@@ -9,7 +9,6 @@ raising AssertionError; a value whose truth cannot be told (a numpy array) is a 
 that cannot be evaluated must not let a reply through).
 """
 import importlib
-import math
 import numbers
 
 from .errors import ConfigError
@@ -71,12 +70,21 @@ def check(assertions, *args):
 
 
 def _is_nan(verdict):
-    """Whether a verdict is a real number that is NaN (an int is never one: math.isnan(10**400) raised)."""
-    if isinstance(verdict, bool) or not isinstance(verdict, numbers.Real) or isinstance(verdict, numbers.Integral):
+    """Whether a verdict is NaN-like: a value not equal to itself (a float NaN, numpy's NaN and its 0-d
+    arrays, ``Decimal('NaN')``, a complex NaN), or one that cannot even be compared with itself
+    (``Decimal('sNaN')``). An int is never one (math.isnan(10**400) raised); an array's comparison is
+    ambiguous, which ``bool`` then says (review of session 36: only a real float NaN was caught)."""
+    if isinstance(verdict, (bool, str, numbers.Integral)):
         return False
     try:
-        return math.isnan(verdict)
-    except (OverflowError, TypeError, ValueError):
+        differs = verdict != verdict
+    except ArithmeticError:   # decimal.InvalidOperation: a signalling NaN
+        return True
+    except Exception:
+        return False
+    try:
+        return bool(differs)
+    except Exception:         # an array of comparisons: not NaN, but not a verdict either (bool says so)
         return False
 
 
