@@ -266,3 +266,29 @@ def test_bad_boards_are_refused_naming_the_parameter(value, message):
 def test_the_primary_must_be_one_of_the_boards():
     with pytest.raises(ConfigError, match='board_c'):
         BoardWatch(BOARDS, 'board_c', TIMEOUT, 0.0)
+
+
+class Beat(object):
+    """A heartbeat as the crash detector sends it (aft_msgs/Heartbeat's fields the watch reads)."""
+
+    def __init__(self, site, host, pid, stopping=''):
+        self.site, self.host, self.pid, self.stopping = site, host, pid, stopping
+
+
+def test_a_primary_that_announces_its_fail_stop_is_failed_over_at_the_next_check_not_after_the_timeout():
+    """Its After saw its controller hang: the board's crash detector sends one last beat saying so. The
+    watchdog fails it over at once (it waited out its 50 ms before); an announcement naming another
+    launcher (a late last word of an old incarnation, or forged) is ignored."""
+    car = Car()
+    car.run(0.1, acks=[('board_b', True, A)])
+    car.clock.advance(0.002)
+    stale = car.watch.beat('board_a', car.clock.now, 'car', PIDS['board_a'] + 7, Beat('board_a', 'car', 107, 'x'))
+    assert stale == [] and car.watch.check(car.clock.now) == [] and car.watch.primary == 'board_a'
+    car.clock.advance(0.001)
+    last = Beat('board_a', 'car', PIDS['board_a'], 'its node ended no cycle for 0.51 s: it hangs')
+    assert car.watch.beat('board_a', car.clock.now, 'car', PIDS['board_a'], last) == []
+    car.power_off('board_a')   # it beats no more
+    car.clock.advance(0.001)
+    [failover] = car.watch.check(car.clock.now)
+    assert isinstance(failover, Failover) and failover.to == 'board_b' and 'it hangs' in failover.verdict.reason
+    assert failover.verdict.silence < TIMEOUT

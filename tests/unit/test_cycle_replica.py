@@ -235,74 +235,165 @@ def test_a_primary_started_again_behind_the_clock_is_a_gap_for_its_backup_not_co
 
 
 # -- a node that hangs (its process lives, its board heartbeats on) -----------------------------------
-def cycling(after, until, start=0.0, period=0.1):
-    """The node ends a cycle every ``period`` of its clock from ``start`` to ``until``; the watch looks after
-    each. Returns the node's clock at its last cycle end, and what the watch said."""
+def cycling(after, until, start=0.0, period=0.1, rate=1.0, backup=None):
+    """The node ends a cycle every ``period`` of its clock from ``start`` to ``until`` (wall = clock / rate);
+    after each the After checkpoints (to ``backup``, which acknowledges) and the watch looks. Returns the
+    clock at the last cycle end, and what the watch said."""
     said, t = [], start
     while t <= until + 1e-9:
-        said += after.node_cycled(t)
-        said.append(after.check_node(t))
+        said += after.node_cycled(t, t / rate)
+        out, _ = after.cycle_end(b'state', now=t / rate)
+        if backup is not None:   # its node runs on the same inputs, a little behind
+            backup.node_cycled(t - period / 10, t / rate)
+            assert backup.cycle_end(b'own', now=t / rate) == (None, [])
+        if out is not None and backup is not None:
+            ok, _ = deliver(backup, out, after.name, now=t / rate)
+            after.on_ack(out.seq, ok, '', after.name)
+        said.append(after.check_node(t, t / rate))
         t += period
     return t - period, said
 
 
+def pair(cycle_timeout=0.5, **kw):
+    """A PRIMARY with a following backup."""
+    primary = replica(A, Role.PRIMARY, cycle_timeout=cycle_timeout, **kw)
+    backup = replica(B, Role.BACKUP, cycle_timeout=cycle_timeout)   # (board.launch gives both boards the same)
+    out, _ = primary.cycle_end(b's0', now=0.0)
+    ok, _ = deliver(backup, out, A, now=0.0)
+    primary.on_ack(out.seq, ok, '', A)
+    return primary, backup
+
+
 def test_a_primary_whose_node_hangs_fail_stops_once_and_passes_nothing_on_from_then_on():
-    primary = replica(A, Role.PRIMARY, cycle_timeout=0.5)
-    last, said = cycling(primary, 3.0)
-    assert all(s == (None, []) for s in said if isinstance(s, tuple))
-    assert primary.check_node(last + 0.5) == (None, [])        # at the timeout: not yet
-    stop, notes = primary.check_node(last + 0.51)
+    primary, backup = pair()
+    last, said = cycling(primary, 3.0, backup=backup)
+    assert all(s == (None, []) for s in said if isinstance(s, tuple)) and not primary.sender.held
+    assert primary.check_node(last + 0.5, last + 0.5) == (None, [])        # at the timeout: not yet
+    stop, notes = primary.check_node(last + 0.51, last + 0.51)
     assert 'ended no cycle for 0.51 s' in stop and 'backup takes over' in stop and alarms(notes) == ['node_hung']
-    assert primary.check_node(last + 5.0) == (None, [])        # said once
-    assert not primary.passes_outputs()                         # a node resumed now is not the system's
-    assert primary.cycle_end(b'late', now=9.0) == (None, [])    # nor are its checkpoints
-    primary.node_cycled(last + 5.1)
-    assert not primary.passes_outputs() and primary.check_node(last + 9.0) == (None, [])
+    assert primary.check_node(last + 5.0, last + 5.0) == (None, [])        # said once
+    assert not primary.passes_outputs()                                     # a node resumed now is not the system's
+    assert primary.cycle_end(b'late', now=9.0) == (None, [])                # nor are its checkpoints
+    primary.node_cycled(last + 5.1, last + 5.1)
+    assert not primary.passes_outputs() and primary.check_node(last + 9.0, last + 9.0) == (None, [])
+
+
+def test_a_primary_whose_backup_did_not_acknowledge_its_last_checkpoint_says_the_hang_and_does_not_stop():
+    """The backup's board lost power just before the node hung: a fail-stop would leave nobody. The hang is
+    said; the fail-stop comes only if the acknowledgment does (a slow backup), never without it."""
+    primary, backup = pair()
+    last, _ = cycling(primary, 2.0, backup=backup)
+    out, _ = primary.cycle_end(b'last', now=last + 0.1)      # its last cycle: the backup never answers
+    primary.node_cycled(last + 0.1, last + 0.1)
+    stop, notes = primary.check_node(last + 0.7, last + 0.7)
+    assert stop is None and alarms(notes) == ['node_hung'] and 'not acknowledged' in notes[0].detail
+    assert primary.check_node(last + 0.8, last + 0.8) == (None, []) and primary.passes_outputs()
+    primary.on_ack(out.seq, True, '', A)                     # the backup was only slow
+    stop, notes = primary.check_node(last + 0.9, last + 0.9)
+    assert stop and alarms(notes) == ['node_hung'] and not primary.passes_outputs()
+
+
+@pytest.mark.parametrize('rate', [20.0, 2.0, 1.0, 0.5, 0.1])
+def test_at_any_rate_the_backup_is_still_valid_when_the_hung_primary_is_failed_over(rate):
+    """The primary sees the hang after cycle_timeout on the node's clock (and 0.1 s of wall clock at
+    least); the watchdog's failover takes a few tens of ms of wall clock more. The backup's own
+    staleness must not come first: before, at rate 0.5, it went invalid 1 s of wall clock after its
+    last checkpoint, when the primary's detection alone took 1 s, and the failover failed."""
+    primary, backup = pair()
+    last, _ = cycling(primary, 2.0, rate=rate, backup=backup)
+    t, stopped_at = last, None
+    while stopped_at is None:                # the backup's node runs on; the primary's is hung
+        t += 0.1
+        backup.node_cycled(t, t / rate)
+        assert backup.cycle_end(b'own', now=t / rate) == (None, [])
+        stop, _ = primary.check_node(t, t / rate)
+        stopped_at = t if stop else None
+        assert t < last + 5.0
+    assert stopped_at - last <= 0.5 + 0.1 + 1e-9 or (stopped_at - last) / rate <= 0.1 + 0.1 / rate + 1e-9
+    wall_failover = 0.2                      # the watchdog's timeout, the fencing and the promotion, generously
+    t_promoted = stopped_at + wall_failover * rate
+    while t < t_promoted:
+        t += 0.1
+        backup.node_cycled(t, t / rate)
+        backup.cycle_end(b'own', now=t / rate)
+    assert backup.following, 'rate %g: the backup went stale before the failover' % rate
+    assert backup.set_role(Role.ALONE, first_seq=7) > 0
 
 
 @pytest.mark.parametrize('seed', range(30))
 def test_a_stopped_clock_a_clock_gone_back_a_suspension_or_late_cycles_are_never_a_hang(seed):
     """Drawn from a seed: cycles late by up to just under the timeout, the node's clock stopped for any
     wall time (a crashed simulator), set back (restarted), the After's inputs held by a suspension for
-    any time; none fail-stops a primary. Then a real silence does, once."""
+    any time, a replica that reads no clock yet (0); none fail-stops a primary nor invalidates a
+    backup. Then a real silence does, once."""
     import random
     rng = random.Random(seed)
     timeout = rng.choice([0.3, 0.5, 1.0])
-    primary = replica(A, Role.PRIMARY, cycle_timeout=timeout)
-    t = rng.uniform(0, 100)
+    role = rng.choice([Role.PRIMARY, Role.BACKUP])
+    if role == Role.PRIMARY:
+        after, _ = pair(timeout)
+    else:
+        primary, after = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, cycle_timeout=timeout)
+        deliver(after, primary.cycle_end(b's0', now=0.0)[0], A, now=0.0)
+    t = rng.uniform(1, 100)
+    wall = 0.0
+
+    def ok():
+        return after.passes_outputs() if role == Role.PRIMARY else after.following
+    after.node_cycled(t, wall)
     for _ in range(200):
         event = rng.random()
-        if event < 0.6:                      # a cycle, late by up to just under the timeout
-            t += rng.uniform(0.0, timeout * 0.98)
-            said = primary.node_cycled(t)
-        elif event < 0.75:                   # the clock stops: any number of looks, the same time
-            said = [primary.check_node(t) for _ in range(rng.randint(1, 50))]
-        elif event < 0.85:                   # set back, then a look before the next cycle
-            t -= rng.uniform(0.1, 50.0)
-            said = [primary.check_node(t), primary.check_node(t + timeout * 0.9)]
-            primary.node_cycled(t + timeout * 0.95)
-            t += timeout * 0.95
+        if event < 0.55:                     # a cycle, late by up to just under the timeout
+            step = rng.uniform(0.0, timeout * 0.98)
+            t, wall = t + step, wall + step
+            said = after.node_cycled(t, wall)
+        elif event < 0.65:                   # the clock stops: any number of looks, any wall time
+            said = []
+            for _ in range(rng.randint(1, 50)):
+                wall += rng.uniform(0, 1.0)
+                said.append(after.check_node(t, wall))
+        elif event < 0.7:                    # this replica reads no clock yet
+            wall += rng.uniform(0, 5.0)
+            said = [after.check_node(0.0, wall)]
+        elif event < 0.8:                    # set back, then a look before the next cycle
+            t -= rng.uniform(0.1, t - 0.05)
+            said = [after.check_node(t, wall), after.check_node(t + timeout * 0.9, wall + timeout * 0.9)]
+            t, wall = t + timeout * 0.95, wall + timeout * 0.95
+            after.node_cycled(t, wall)
         else:                                # held for any time, the node's clock running on
+            said = []
             for _ in range(rng.randint(1, 20)):
-                t += rng.uniform(0.0, 5.0)
-                said = [primary.check_node(t, held=True)]
-            said.append(primary.check_node(t + timeout * 0.9))
-            primary.node_cycled(t + timeout * 0.95)
-            t += timeout * 0.95
-        assert primary.passes_outputs(), 'seed %d: a false hang: %r' % (seed, said)
-        assert primary.check_node(t) == (None, [])
-    stop, notes = primary.check_node(t + timeout * 1.01)
-    assert stop and alarms(notes) == ['node_hung'], 'seed %d' % seed
+                step = rng.uniform(0.0, 5.0)
+                t, wall = t + step, wall + step
+                said.append(after.check_node(t, wall, held=True))
+            said.append(after.check_node(t + timeout * 0.9, wall + timeout * 0.9))
+            t, wall = t + timeout * 0.95, wall + timeout * 0.95
+            after.node_cycled(t, wall)
+        assert ok(), 'seed %d (%s): a false hang: %r' % (seed, role.name, said)
+        assert after.check_node(t, wall) == (None, [])
+    stop, notes = after.check_node(t + timeout * 1.01, wall + timeout * 1.01)
+    if role == Role.PRIMARY:
+        assert stop and alarms(notes) == ['node_hung'], 'seed %d' % seed
+    else:
+        assert stop is None and alarms(notes) == ['backup_invalid'] and not after.following, 'seed %d' % seed
+
+
+def test_a_short_silence_on_the_wall_clock_is_not_a_hang_however_fast_the_simulation():
+    primary, backup = pair()
+    last, _ = cycling(primary, 40.0, rate=20.0, backup=backup)
+    assert primary.check_node(last + 0.9, last / 20.0 + 0.05) == (None, [])   # 0.9 s of its clock, 45 ms of wall
+    stop, _ = primary.check_node(last + 2.1, last / 20.0 + 0.105)
+    assert stop
 
 
 def test_a_replica_alone_whose_node_hangs_raises_an_alarm_each_time_and_does_not_stop():
     alone = replica(A, Role.ALONE, cycle_timeout=0.5)
-    assert alone.check_node(10.0) == (None, [])   # no cycle yet: not watched (the node waits for inputs)
+    assert alone.check_node(10.0, 10.0) == (None, [])   # no cycle yet: not watched (the node waits for inputs)
     last, _ = cycling(alone, 2.0)
-    stop, notes = alone.check_node(last + 0.6)
+    stop, notes = alone.check_node(last + 0.6, last + 0.6)
     assert stop is None and alarms(notes) == ['node_hung'] and 'no backup can take over' in notes[0].detail
-    assert [n.kind for n in alone.node_cycled(last + 2.0)] == ['node_resumed'] and alone.passes_outputs()
-    stop, notes = alone.check_node(last + 2.6)
+    assert [n.kind for n in alone.node_cycled(last + 2.0, last + 2.0)] == ['node_resumed'] and alone.passes_outputs()
+    stop, notes = alone.check_node(last + 2.6, last + 2.6)
     assert stop is None and alarms(notes) == ['node_hung']   # a second hang is told again
 
 
@@ -311,26 +402,42 @@ def test_a_following_backup_whose_node_hangs_can_no_longer_take_over_nor_asks_to
     deliver(backup, primary.cycle_end(b's1', now=0.0)[0], A, now=0.0)
     last, _ = cycling(backup, 1.0)
     assert backup.following
-    stop, notes = backup.check_node(last + 0.6)
+    stop, notes = backup.check_node(last + 0.6, last + 0.6)
     assert stop is None and alarms(notes) == ['backup_invalid'] and 'hangs' in notes[0].detail
     with pytest.raises(RoleError):
         backup.set_role(Role.ALONE, first_seq=1)     # the watchdog cannot promote it
     assert backup.check(now=5.0) == (False, [])     # it could not take a state transfer: it does not ask
-    backup.node_cycled(last + 3.0)
+    backup.node_cycled(last + 3.0, last + 3.0)
     assert backup.check(now=6.0) == (True, [])      # resumed: it asks to join again
+
+
+def test_a_state_its_hung_node_takes_once_resumed_does_not_make_the_backup_follow_again():
+    """The backup's After was in the node's set_state when the node hung; the watch invalidated it. The
+    call returns once the node resumes, seconds later: that old state must be refused (acknowledged as
+    such), not followed from."""
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, cycle_timeout=0.5)
+    deliver(backup, primary.cycle_end(b's1', now=0.0)[0], A, now=0.0)
+    last, _ = cycling(backup, 1.0)
+    out, _ = primary.cycle_end(b's2', now=last)
+    decision, _ = backup.on_checkpoint(out.seq, A, out.first_seq, True)
+    assert decision in (Decision.APPLY, Decision.APPLY_FULL) and backup.current(out.seq)
+    assert alarms(backup.check_node(last + 0.6, last + 0.6)[1]) == ['backup_invalid']   # meanwhile, hung
+    assert not backup.current(out.seq)              # the caller acknowledges it as refused
+    notes = backup.applied(out.seq, A, True, '', now=last + 3.0, first_seq=out.first_seq)
+    assert not backup.following and [n.kind for n in notes] == ['join_failed'] and 'hung' in notes[0].detail
+
+
+def test_a_node_that_hangs_just_after_its_clock_went_back_is_still_seen():
+    primary, _ = pair()
+    primary.node_cycled(50.0, 50.0)
+    assert primary.check_node(1.0, 50.05) == (None, [])   # the simulation started again at 0: counted from here
+    stop, _ = primary.check_node(1.6, 50.65)
+    assert stop and 'ended no cycle for 0.60 s' in stop
 
 
 def test_without_a_cycle_timeout_a_silent_node_is_not_watched():
     primary = replica(A, Role.PRIMARY)
     last, _ = cycling(primary, 1.0)
-    assert primary.check_node(last + 1000.0) == (None, []) and primary.passes_outputs()
+    assert primary.check_node(last + 1000.0, last + 1000.0) == (None, []) and primary.passes_outputs()
     with pytest.raises(ValueError, match='cycle_timeout'):
         replica(A, Role.PRIMARY, cycle_timeout=-1)
-
-
-def test_a_node_that_hangs_just_after_its_clock_went_back_is_still_seen():
-    primary = replica(A, Role.PRIMARY, cycle_timeout=0.5)
-    last, _ = cycling(primary, 50.0, start=40.0)
-    assert primary.check_node(1.0) == (None, [])   # the simulation started again at 0: counted from here
-    stop, _ = primary.check_node(1.6)
-    assert stop and 'ended no cycle for 0.60 s' in stop

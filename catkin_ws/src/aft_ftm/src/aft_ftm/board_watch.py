@@ -23,6 +23,11 @@ changed only in :meth:`BoardWatch._change`):
 A board that was FAILED or silent and is heard from a new incarnation (another launcher pid) came
 back, started again: JOINING, with an alarm, and an alarm again once it re-joined.
 
+A board's last heartbeat may say it fail-stops (``stopping``: a node of it found it cannot serve, e.g.
+its controller hangs): it is then declared silent at the next check, without waiting out the
+timeout, as the crash detectors do. One that names another incarnation than the beats heard last
+is stale (a late last word, or forged) and ignored (counted in its monitor's ``stale_announcements``).
+
 Invariants: at most one board is PRIMARY or PROMOTING; only a BACKUP is ever promoted, so a board
 that came back is never promoted before it re-joined; only a primary with a backup to replace it is
 powered off; every change that degrades the pair, and a board coming back and re-joining, is
@@ -194,6 +199,14 @@ class BoardWatch(object):
             return self._heard_again(board, now, incarnation, info)
         if board.silent_since is not None:
             return self._heard_again(board, now, incarnation, info)
+        stopping = getattr(info, 'stopping', '') if info is not None else ''
+        if stopping:   # its last word: silent from now on (the next check fails it over)
+            if board.incarnation is not None and board.incarnation != incarnation:
+                board.monitor.stale_announcements += 1   # not the incarnation heard: a late last word, or forged
+                return []
+            board.incarnation = incarnation
+            board.monitor.announced(now, stopping, info)
+            return []
         actions = []
         if board.incarnation is not None and board.incarnation != incarnation and board.standing != Standing.PRIMARY:
             # Restarted faster than its silence could be noticed: whatever it held is gone.

@@ -26,15 +26,19 @@ a sender of its own); they guard every change.
 - ``set_role`` ALONE (the watchdog, at failover): a following backup takes over, and may take a
   backup of its own later; a JOINING one refuses (it holds no state). PRIMARY is never asked for:
   a replica becomes primary again when a backup joins it.
-- A node that hangs (``cycle_timeout`` > 0: no cycle end for that long, on the node's own clock,
-  once it has ended one; a SIGSTOP, a deadlock): its process lives on and its board's crash
-  detector beats on, so no watchdog would ever see it. A PRIMARY's After fail-stops its site
-  (``fail_stop``: its crash detector falls silent, the watchdog fences the board and promotes
-  the backup) and passes nothing on from then on; an ALONE one raises ``node_hung`` (nobody can
-  take over: the outputs stop until the node resumes); a following BACKUP no longer mirrors its
-  primary (``backup_invalid``: it must not be promoted with a node that runs nothing). The node's
+- A node that hangs (``cycle_timeout`` > 0: no cycle end for that long on the node's own clock, and
+  for ``HANG_WALL_MIN`` on the wall clock, once it has ended one; a SIGSTOP, a deadlock): its
+  process lives on and its board's crash detector beats on, so no watchdog would ever see it. A
+  PRIMARY's After whose backup acknowledged every checkpoint fail-stops its site (``fail_stop``:
+  its crash detector falls silent, the watchdog fences the board and promotes the backup) and
+  passes nothing on from then on; one whose backup may be lost, or an ALONE one, raises
+  ``node_hung`` (nobody can take over: the outputs stop until the node resumes); a following
+  BACKUP no longer mirrors its primary (``backup_invalid``: it must not be promoted with a node
+  that runs nothing; a state its node takes once resumed, decided before, is refused). The node's
   clock (simulated time) is used so that a stopped simulator, which stops every node's cycles, is
-  not taken for a hang; time the After's inputs are held by a suspension is not counted.
+  not taken for a hang; time the After's inputs are held by a suspension is not counted. With the
+  watch on, a backup goes stale only after twice ``cycle_timeout`` of its node's clock as well:
+  a hung primary is failed over before that, at any simulation rate.
 
 Invariants: a backup passes no output on; only a backup that applied a checkpoint of its primary
 takes over; every change that leaves the pair without a valid backup is a Note with ``alarm``.
@@ -60,6 +64,13 @@ class Note(object):
         return 'Note(%s%s: %s)' % (self.kind, ', alarm' if self.alarm else '', self.detail)
 
 
+# A hang must also last this long on the wall clock (s): a simulation at 20 times real time makes 0.5 s
+# of its time 25 ms of scheduling.
+HANG_WALL_MIN = 0.1
+
+# Why a backup refuses a state its node took after the backup stopped mirroring.
+STALE_STATE = 'its node took this state only after the backup stopped mirroring its primary (it hung meanwhile)'
+
 # A checkpoint to send: always a state transfer (full), of the sender numbered from first_seq.
 Outgoing = collections.namedtuple('Outgoing', 'seq first_seq state')
 
@@ -76,6 +87,10 @@ class CycleReplica(object):
                 raise ValueError('%s must be a number > 0, got %r' % (what, value))
         self.cycle_timeout = cycle_timeout   # 0: a hung node is not watched
         self.node_cycle_at = None   # the node's clock at its last cycle end (None: none yet)
+        self.node_cycle_wall = None  # when this replica heard it (monotonic)
+        self.follow_round = 0       # backup: counts its invalidations; a state taken before one is stale
+        self.applying = {}          # backup: checkpoint seq -> the follow_round it was decided in
+        self.applied_node_at = None  # backup: the node's clock at the cycle end before the last checkpoint taken
         self.node_hung = False      # told, until the node ends a cycle again
         self.stopped = None         # why this replica fail-stopped (it passes nothing on then)
         self.name = name
@@ -108,40 +123,53 @@ class CycleReplica(object):
         return self.role != Role.BACKUP and self.stopped is None
 
     # -- a hung node -----------------------------------------------------------------------------
-    def node_cycled(self, node_now):
-        """The node ended a cycle at ``node_now`` (its own clock). Returns notes."""
-        self.node_cycle_at = node_now
+    def node_cycled(self, stamp, wall):
+        """The node ended a cycle stamped ``stamp`` (its own clock), heard at ``wall`` (monotonic).
+        Returns notes."""
+        self.node_cycle_at, self.node_cycle_wall = stamp, wall
         if self.node_hung:
             self.node_hung = False
             return [Note('node_resumed', '%s: its node ends cycles again' % self.name)]
         return []
 
-    def check_node(self, node_now, held=False):
-        """The hang watch, every tick: ``node_now`` is the node's clock, ``held`` whether a suspension
-        holds the After's inputs. Returns (a fail-stop reason or None, notes)."""
+    def check_node(self, node_now, wall, held=False):
+        """The hang watch, every tick: ``node_now`` is the node's clock as this replica reads it (0: none yet),
+        ``wall`` monotonic, ``held`` whether a suspension holds the After's inputs. Returns (a fail-stop
+        reason or None, notes).
+
+        A hang is a silence of more than ``cycle_timeout`` on the node's clock and of ``HANG_WALL_MIN`` at
+        least on the wall clock (at 20 times real time, 0.5 s of simulated time is 25 ms of scheduling).
+        A PRIMARY fail-stops only while its backup can take over: it acknowledged every checkpoint sent
+        (a backup that lost power leaves the last one unacknowledged); else the hang is said, and the
+        fail-stop comes at a later look if the acknowledgment does."""
         last = self.node_cycle_at
-        if not self.cycle_timeout or last is None or self.stopped is not None:
+        if not self.cycle_timeout or last is None or self.stopped is not None or node_now <= 0:
             return None, []
         if held or node_now < last:   # held: not the node's silence; a clock gone back: counted afresh
-            self.node_cycle_at = node_now
+            self.node_cycle_at, self.node_cycle_wall = node_now, wall
             return None, []
         silence = node_now - last
-        if silence <= self.cycle_timeout or self.node_hung:
+        if silence <= self.cycle_timeout or wall - self.node_cycle_wall < HANG_WALL_MIN:
             return None, []
-        self.node_hung = True
         what = 'its node ended no cycle for %.2f s (timeout %.2f s): it hangs' % (silence, self.cycle_timeout)
-        role = self.role
-        if role == Role.PRIMARY:
+        role, notes = self.role, []
+        if role == Role.PRIMARY and not self.sender.held:
             self.stopped = what
+            self.node_hung = True
             return '%s; the backup takes over' % what, [
                 Note('node_hung', '%s: %s; this site fail-stops so that the backup takes over' % (self.name, what),
                      alarm=True)]
+        if self.node_hung:
+            return None, []
+        self.node_hung = True
         if role == Role.BACKUP and self.following:
             return None, self._invalid(self.receiver.last_seq, what)
-        return None, [Note('node_hung', '%s: %s; %s' % (self.name, what, 'no backup can take over: its outputs stop '
-                                                          'until it resumes' if role == Role.ALONE else
-                                                          'this backup holds no state and cannot take over'),
-                           alarm=True)]
+        why = {Role.PRIMARY: 'its backup has not acknowledged the last checkpoint (it may be lost): the site does '
+                             'not fail-stop while the backup cannot take over',
+               Role.ALONE: 'no backup can take over: its outputs stop until it resumes'}.get(
+            role, 'this backup holds no state and cannot take over')
+        notes.append(Note('node_hung', '%s: %s; %s' % (self.name, what, why), alarm=True))
+        return None, notes
 
     # -- every replica ---------------------------------------------------------------------------
     def cycle_end(self, state, now):
@@ -228,25 +256,49 @@ class CycleReplica(object):
         decision = self.receiver.decide(seq, sender, first_seq, full=full)
         if decision == Decision.GAP:
             return decision, self._invalid(seq, 'a checkpoint is missing before it')
+        if decision in (Decision.APPLY, Decision.APPLY_FULL):
+            self.applying[seq] = self.follow_round
+            while len(self.applying) > 64:   # (bounded: a caller that never says applied)
+                self.applying.pop(next(iter(self.applying)))
         return decision, []
 
     def applied(self, seq, sender, ok, error, now, first_seq=0):
         """The node took the state of checkpoint seq (ok), or refused it (error); ``first_seq``: the number
         its sender numbers from (a sender started again numbering below is then a gap, not copies).
         Returns notes."""
+        if ok and not self.current(seq):
+            ok, error = False, STALE_STATE
+        self.applying.pop(seq, None)
         if not ok:
             return self._invalid(seq, error)
         joining = self.receiver.state == Follow.JOINING
         self.receiver.accept(seq, sender, first_seq=first_seq)
         self.last_applied, self.own_cycles = now, 0
+        self.applied_node_at = self.node_cycle_at
         if joining:
             return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]
         return []
+
+    def current(self, seq):
+        """Whether checkpoint seq, being set into the node, was decided since this backup last stopped
+        mirroring its primary. One decided before (its node hung in the set_state call, and the hang
+        watch invalidated it meanwhile) holds an old state: it must be refused, not followed from
+        (review of session 37)."""
+        return self.applying.get(seq, self.follow_round) == self.follow_round
 
     def _own_cycle(self, now):
         if not self.following:
             return []
         self.own_cycles += 1
+        if self.applied_node_at is None:   # (its node's first cycle heard since: counted from there)
+            self.applied_node_at = self.node_cycle_at
+        # With the hang watch on, also twice its timeout on the node's clock: the primary's After sees its
+        # own node hung after one, and its board is failed over meanwhile; a backup invalid by then could
+        # not take over (at half real time, 1 s of wall clock was all the primary's detection).
+        span = None if self.node_cycle_at is None or self.applied_node_at is None else \
+            self.node_cycle_at - self.applied_node_at
+        if self.cycle_timeout and span is not None and 0 <= span < 2 * self.cycle_timeout:
+            return []
         if self.own_cycles >= self.stale_cycles and now - self.last_applied >= self.stale_after:
             return self._invalid(self.receiver.last_seq, 'no checkpoint for %.2f s, over %d cycles of its own node'
                                  % (now - self.last_applied, self.own_cycles))
@@ -255,6 +307,7 @@ class CycleReplica(object):
     def _invalid(self, seq, why):
         """This backup no longer mirrors its primary: JOINING again, asking at once."""
         following = self.receiver.state == Follow.FOLLOWING
+        self.follow_round += 1
         self.receiver.failed(seq, why)
         self.last_ask = None
         if following:

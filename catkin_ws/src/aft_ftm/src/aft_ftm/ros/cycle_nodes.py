@@ -34,7 +34,7 @@ from aft_msgs.srv import SetRole, SetRoleResponse, SetState
 
 from .. import config, health
 from ..checkpoint import Decision
-from ..cycle_replica import CycleReplica
+from ..cycle_replica import STALE_STATE, CycleReplica
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
@@ -197,7 +197,7 @@ class CycleAfterNode(object):
     def _on_cycle_end(self, end):
         # Cycle ends arrive one at a time (one subscription, one thread): checkpoints leave in order.
         with self.lock:
-            notes = self.replica.node_cycled(rospy.get_time())
+            notes = self.replica.node_cycled(end.stamp.to_sec(), time.monotonic())
             out, more = self.replica.cycle_end(end.state, time.monotonic())
             notes += more
             if out is not None:
@@ -230,7 +230,7 @@ class CycleAfterNode(object):
             time.sleep(period)
             held = self.ports.gate.state.name != 'OPEN'
             with self.lock:
-                stop, notes = self.replica.check_node(rospy.get_time(), held)
+                stop, notes = self.replica.check_node(rospy.get_time(), time.monotonic(), held)
                 ask, more = self.replica.check(time.monotonic())
                 notes += more
                 last_seq = self.replica.receiver.last_seq if ask else 0
@@ -256,6 +256,8 @@ class CycleAfterNode(object):
             except (rospy.ServiceException, rospy.ROSException) as e:
                 ok, error = False, 'set_state failed: %s' % e
             with self.lock:
+                if ok and not self.replica.current(cp.seq):
+                    ok, error = False, STALE_STATE   # (acknowledged as refused: it does not mirror)
                 notes = self.replica.applied(cp.seq, cp.sender, ok, error, time.monotonic(), cp.first_seq)
             self._report(notes)
         elif decision == Decision.REACK:

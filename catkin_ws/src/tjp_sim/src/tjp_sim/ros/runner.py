@@ -83,6 +83,7 @@ class ScenarioRun(object):
         self.done = set()
         self.simulator_killed = False   # the clock is then expected to stop: the run ends sooner
         self.threads = []
+        self.finished = threading.Event()   # the run's loop ended: threads waiting on simulated time stop
         self.adaptations = []
         self.engines = []    # adaptation engines: what they launched is stopped with the run
         self.intrusions = []  # what each intruder reported (aft_ftm.ros.intruder.sweep)
@@ -317,6 +318,7 @@ class ScenarioRun(object):
                 ended = 'the wall-clock limit was reached at t=%.2f s' % t
                 break
             time.sleep(0.005)
+        self.finished.set()
         for thread in self.threads:
             thread.join(60.0)
         time.sleep(0.3)   # the last messages on their way to the recorder (wall clock: sim time may have stopped)
@@ -401,10 +403,10 @@ class ScenarioRun(object):
         return found
 
     def _resume(self, procs, until):
-        """SIGCONT to ``procs`` once the simulated time reaches ``until`` (bounded: the run's end)."""
-        deadline = time.monotonic() + self.scenario['duration'] / self.scenario['rate'] * 4 + 60
-        while rospy.get_time() < until and time.monotonic() < deadline and not rospy.is_shutdown():
-            time.sleep(0.005)
+        """SIGCONT to ``procs`` once the simulated time reaches ``until``, or the run ended first (its clock
+        stopped short of it, the simulator crashed): a node is never left stopped."""
+        while rospy.get_time() < until and not self.finished.wait(0.005) and not rospy.is_shutdown():
+            pass
         alive = []
         for proc in procs:
             try:
