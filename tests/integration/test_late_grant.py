@@ -14,7 +14,7 @@ starts carries the test's AFT_TEST_TAG and is killed at the end, pass or fail. A
 from leftovers import run_seeded
 
 SCRIPT = r"""
-import json, os, random, signal, sys, tempfile, threading, time
+import json, random, signal, sys, tempfile, time
 import psutil, rosgraph, rospy
 from std_msgs.msg import String
 from aft_msgs.msg import Alarm, Configuration
@@ -42,8 +42,8 @@ def fail(what):
 
 def on_event(msg):
     record = json.loads(msg.data)
-    if record.get('failed_site') and any(not s['ok'] and 'unreachable' in s['detail'] for s in record['steps']):
-        attempts.append(record)
+    if record.get('failed_site') and any(not s['ok'] and 'unreachable' in s['detail'] for s in record.get('steps', [])):
+        attempts.append(time.monotonic())
 
 
 def stop(procs):
@@ -92,8 +92,9 @@ try:
     if not wait_until(lambda: not launcher.is_running() or launcher.status() == psutil.STATUS_ZOMBIE, 5.0, 0.05):
         fail('MASTER\'s launcher (pid %d) is still there, stopped, %.1f s after the late promotion: one SIGCONT '
              'starts its nodes again' % (launcher.pid, time.monotonic() - resumed['at']))
-    print('RESULT %d calls once each; the witness resumed %.0f ms after the PROMOTE timed out; SLAVE took over '
-          'by the late grant and killed MASTER\'s launcher' % (summary['correct'], 0), flush=True)
+    print('RESULT %d calls once each; the witness resumed %.0f ms after SLAVE\'s PROMOTE timed out; SLAVE took '
+          'over by the late grant and killed MASTER\'s launcher' % (summary['correct'],
+                                                                   (resumed['at'] - attempts[0]) * 1e3), flush=True)
 finally:
     for proc in frozen:
         try:

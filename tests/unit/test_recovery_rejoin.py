@@ -88,7 +88,7 @@ def recovery(site, witness, role=Role.BACKUP, switch=True):
     node.fence_timeout, node.timeout, node.retry = 10.0, 2.0, 0.5
     node.burst = RealtimeBurst(0)
     node.lock = threading.Lock()
-    node.stopped = node.last_recovery = node.unasked = node.last_seq = node.deferred = None
+    node.stopped = node.last_recovery = node.unasked = node.last_seq = node.deferred = node.retrying = None
     node.recovered = node.promotion_waits = False
     node.epoch, node.granted, node.primary_seen = witness.epoch, 0, ''
     node.fence = types.SimpleNamespace(processes=lambda: {}, shut_down_the_rest=lambda: 0, lock=threading.Lock())
@@ -213,3 +213,27 @@ def test_a_recovery_retried_after_the_peer_registered_again_leaves_it_alone(worl
     timer = world.timers.pop(0)
     timer.function(*timer.args)                                   # before b's admission
     assert a.fencing.attempts == 0, 'the re-joining backup was powered off'
+
+
+def test_a_grant_that_came_after_its_call_timed_out_fences_the_launcher_the_failure_report_named(world):
+    """a's PROMOTE timed out (the witness was frozen) and its retry is due; the witness, resumed, grants
+    the PROMOTE it had queued and publishes the configuration, which a takes as a late promotion. Its
+    fail-silence must use the report that named b's launcher: before, the take-over carried pid 0, and
+    only the nodes learned by pid were killed (review of session 36)."""
+    from aft_ftm.sites import this_host
+    witness = paired('b', 'a')                                     # epoch 2: b primary, a backup
+    a = recovery('a', witness, switch=False)
+    fenced = []
+    a._launcher = lambda f: (fenced.append((f.pid, f.host)), ([], 'the launcher (pid %d)' % f.pid))[1]
+    a.witness.down = True
+    report = Failure(site='b', host=this_host(), pid=4321, reason='no heartbeat', silence=0.03,
+                     detected=rospy.Time(1000))
+    a._on_failure(report)                                          # unreachable: a retry is due
+    assert 'witness_unreachable' in world.alarms and len(world.timers) == 1 and fenced == []
+    a.witness.down = False
+    assert witness.request(Op.PROMOTE, 'a', 'a@1').granted        # the queued PROMOTE, granted late
+    a._on_configuration(configuration(witness))                    # epoch 3: a primary, b deposed
+    assert eventually(lambda: ('protocol', Role.ALONE) in a.calls), a.calls
+    assert 'late_promotion' in world.alarms and fenced == [(4321, this_host())]
+    world.timers[0].function(*world.timers[0].args)               # the retry, now due: dropped
+    assert fenced == [(4321, this_host())] and a.retrying is None

@@ -172,6 +172,7 @@ class RecoveryNode(object):
         self.granted = 0       # the epoch the witness granted to the recovery under way
         self.primary_seen = ''  # the primary of the last configuration seen
         self.unasked = None     # the epoch that made this site primary without its asking, not taken over yet
+        self.retrying = None    # the failure report whose recovery waits for the witness (its retry is due)
         self.last_seq = None   # set by PROMOTE_AFTER: the last checkpoint the promoted After holds
 
     def setup(self, timeout):
@@ -345,6 +346,7 @@ class RecoveryNode(object):
             # Until it is carried out, any failure handling here takes over as the backup it was (the
             # old primary, deposed, fail-stops at once: its detector's verdict may come first).
             self.unasked = conf.epoch if unasked else None
+            retrying, self.retrying = self.retrying, None   # a new configuration: its retry is dropped
         record = {'event': 'configuration', 'epoch': conf.epoch, 'primary': conf.primary, 'backup': conf.backup,
                   'reason': conf.reason, 'role_before': before.name if before else None,
                   'role_after': self.role.name if self.role else None}
@@ -355,6 +357,13 @@ class RecoveryNode(object):
                    'PROMOTE; %s is deposed and this site takes over' % (self.site, conf.epoch, conf.reason, deposed))
             alarm(self.ports, 'pbr', 'late_promotion', why)
             failure = Failure(site=deposed or '', host='', pid=0, reason=why, silence=0.0, detected=rospy.Time.now())
+            if retrying is not None and deposed in ('', retrying.site):
+                # The grant of the recovery whose witness call timed out (the witness answered late): its
+                # report names the failed launcher, which fail-silence kills with the rest. Without it,
+                # only the nodes learned by pid were, and the launcher could start them again (review of
+                # session 36). Its silence and reception time stand (_received_at).
+                failure = Failure(site=retrying.site, host=retrying.host, pid=retrying.pid, reason=why,
+                                  silence=retrying.silence, detected=retrying.detected, epoch=retrying.epoch)
             threading.Thread(target=self._on_failure, args=(failure, Role.BACKUP), daemon=True).start()
         if waiting:
             threading.Thread(target=self._complete_promotion, args=(conf,), daemon=True).start()
@@ -490,6 +499,7 @@ class RecoveryNode(object):
             if witness_steps and not witness_steps[0]['ok']:
                 retry = 'unreachable' in witness_steps[0]['detail']
                 self.recovered = not retry
+                self.retrying = failure if retry else None
             else:
                 self.role = role_after(role) if role else None
             record['role_after'] = self.role.name if self.role else None
