@@ -283,7 +283,9 @@ def test_a_primary_that_announces_its_fail_stop_is_failed_over_at_the_next_check
     car.run(0.1, acks=[('board_b', True, A)])
     car.clock.advance(0.002)
     stale = car.watch.beat('board_a', car.clock.now, 'car', PIDS['board_a'] + 7, Beat('board_a', 'car', 107, 'x'))
-    assert stale == [] and car.watch.check(car.clock.now) == [] and car.watch.primary == 'board_a'
+    assert alarms(stale) == ['stale_announcement'] and 'pid 107' in stale[0].detail
+    assert car.watch.check(car.clock.now) == [] and car.watch.primary == 'board_a'
+    assert car.watch.beat('board_a', car.clock.now, 'car', 107, Beat('board_a', 'car', 107, 'x')) == []   # said once
     car.clock.advance(0.001)
     last = Beat('board_a', 'car', PIDS['board_a'], 'its node ended no cycle for 0.51 s: it hangs')
     assert car.watch.beat('board_a', car.clock.now, 'car', PIDS['board_a'], last) == []
@@ -292,3 +294,42 @@ def test_a_primary_that_announces_its_fail_stop_is_failed_over_at_the_next_check
     [failover] = car.watch.check(car.clock.now)
     assert isinstance(failover, Failover) and failover.to == 'board_b' and 'it hangs' in failover.verdict.reason
     assert failover.verdict.silence < TIMEOUT
+
+
+
+def test_a_primary_that_fail_stops_while_its_joiner_is_being_connected_is_failed_over_once_it_is_ready():
+    """Review of session 37: board_b acknowledged (CONNECTING: the watchdog opens its promotion
+    connections) when board_a announced its fail-stop. No backup then: board_a was left running,
+    silent, and never looked at again; board_b became the backup, and nobody served for good."""
+    car = Car()
+    car.watch = BoardWatch(BOARDS, 'board_a', TIMEOUT, car.clock.now)   # board_b's connections not open yet
+    car.run(0.1)
+    assert kinds(car.run(0.01, acks=[('board_b', True, A)])) == ['Connect']
+    car.clock.advance(0.001)
+    car.watch.beat('board_a', car.clock.now, 'car', PIDS['board_a'], Beat('board_a', 'car', PIDS['board_a'], 'hangs'))
+    car.power_off('board_a')
+    actions = car.run(0.02)
+    assert alarms(actions) == ['primary_silent'] and car.watch.standing('board_b') == Standing.CONNECTING
+    actions = car.watch.connected('board_b', '', car.clock.now)
+    [failover] = [a for a in actions if isinstance(a, Failover)]
+    assert failover.board == 'board_a' and failover.to == 'board_b' and 'hangs' in failover.verdict.reason
+    assert car.watch.boards['board_a'].failures == 1
+
+
+def test_a_silent_boards_last_word_keeps_it_silent_and_an_announcing_backup_is_not_promoted():
+    car = Car()
+    car.run(0.1, acks=[('board_b', True, A)])
+    car.power_off('board_b')
+    assert alarms(car.run(0.1)) == ['board_silent']
+    car.clock.advance(0.001)
+    last = Beat('board_b', 'car', PIDS['board_b'], 'a required node died')
+    assert car.watch.beat('board_b', car.clock.now, 'car', PIDS['board_b'], last) == []   # not "heard again"
+    assert car.watch.boards['board_b'].silent_since is not None
+    # A backup that announces its fail-stop in the same instant as the primary goes silent is not promoted.
+    car = Car()
+    car.run(0.1, acks=[('board_b', True, A)])
+    car.power_off('board_a')
+    car.clock.advance(0.06)
+    car.watch.beat('board_b', car.clock.now, 'car', PIDS['board_b'], Beat('board_b', 'car', PIDS['board_b'], 'died'))
+    actions = car.watch.check(car.clock.now)
+    assert not [a for a in actions if isinstance(a, Failover)] and 'primary_silent' in alarms(actions)

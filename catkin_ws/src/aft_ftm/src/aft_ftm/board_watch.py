@@ -36,7 +36,7 @@ reported with an alarm. ``now`` is always passed in.
 import collections
 import enum
 
-from .detector import HeartbeatMonitor
+from .detector import HeartbeatMonitor, PeerState
 from .errors import ConfigError, RoleError
 
 
@@ -119,6 +119,8 @@ class Board(object):
         self.stray_told = False         # fail_silence_broken said for the failed incarnation
         self.stray_since = None         # when the first of those beats came
         self.silent_since = None        # declared silent (not FAILED) at, until heard again
+        self.silent_verdict = None      # a silent primary's verdict: it is failed over once a backup is ready
+        self.stale_told = set()         # incarnations told stale_announcement (bounded)
         self.lost_at = None             # FAILED or silent at, until a new incarnation is heard
         self.back_at = None             # when a new incarnation was heard, until it re-joins
         self.failures = 0
@@ -197,13 +199,21 @@ class BoardWatch(object):
                 return []
             self._change(board, Standing.JOINING)
             return self._heard_again(board, now, incarnation, info)
+        stopping = getattr(info, 'stopping', '') if info is not None else ''
+        if stopping and board.incarnation is not None and board.incarnation != incarnation:
+            # Not the incarnation heard: a late last word of an old one, or forged. Said once per incarnation.
+            board.monitor.stale_announcements += 1
+            if incarnation in board.stale_told or len(board.stale_told) >= 64:
+                return []
+            board.stale_told.add(incarnation)
+            return [Report('stale_announcement', 'board %s announced a fail-stop (%s) from launcher pid %d on %s, not '
+                           'the incarnation heard (pid %d on %s): ignored; a late last word, or forged'
+                           % (name, stopping, pid, host, board.incarnation[1], board.incarnation[0]), True, None)]
+        if stopping and board.silent_since is not None:
+            return []   # its last word: it stays silent (a beat would have it heard again)
         if board.silent_since is not None:
             return self._heard_again(board, now, incarnation, info)
-        stopping = getattr(info, 'stopping', '') if info is not None else ''
         if stopping:   # its last word: silent from now on (the next check fails it over)
-            if board.incarnation is not None and board.incarnation != incarnation:
-                board.monitor.stale_announcements += 1   # not the incarnation heard: a late last word, or forged
-                return []
             board.incarnation = incarnation
             board.monitor.announced(now, stopping, info)
             return []
@@ -223,7 +233,7 @@ class BoardWatch(object):
         """A board declared failed or silent is heard: watched afresh; a new incarnation came back."""
         board.monitor = self._monitor(now)
         board.monitor.beat(now, info)
-        silent_since, board.silent_since = board.silent_since, None
+        silent_since, board.silent_since, board.silent_verdict = board.silent_since, None, None
         if incarnation == board.incarnation:   # it only stalled
             return [Report('board_heard', 'board %s (%s) is heard again after %.0f ms of silence'
                            % (board.name, _MEANING[board.standing], (now - silent_since) * 1e3), False, None)]
@@ -255,7 +265,7 @@ class BoardWatch(object):
             return []
         if board.connected:
             self._change(board, Standing.BACKUP)
-            return self._rejoined(board, primary, now)
+            return self._rejoined(board, primary, now) + self._take_over_silent(now)
         self._change(board, Standing.CONNECTING)
         return [Connect(name, list(board.nodes))]
 
@@ -270,7 +280,21 @@ class BoardWatch(object):
                            'next acknowledgment' % (name, error), True, None)]
         board.connected = True
         self._change(board, Standing.BACKUP)
-        return self._rejoined(board, self._the(Standing.PRIMARY), now)
+        return self._rejoined(board, self._the(Standing.PRIMARY), now) + self._take_over_silent(now)
+
+    def _take_over_silent(self, now):
+        """A backup is ready while the primary is silent, left running for want of one: failed over now. It
+        was never heard since its verdict (a beat would have cleared it), and a primary that fail-stopped
+        never beats again: left, nobody would serve (review of session 37: a board that fail-stopped while
+        its joiner was still being connected)."""
+        primary = self._the(Standing.PRIMARY)
+        if primary is None or primary.silent_since is None or primary.silent_verdict is None:
+            return []
+        verdict, primary.silent_verdict, primary.silent_since = primary.silent_verdict, None, None
+        failures, lost_at = primary.failures, primary.lost_at
+        actions = self._silent(primary, verdict, now)
+        primary.failures, primary.lost_at = failures, lost_at   # the same failure, counted once
+        return actions
 
     def _rejoined(self, board, primary, now):
         if board.back_at is None:   # the first backup at start, or one that only stalled
@@ -296,13 +320,15 @@ class BoardWatch(object):
         board.lost_at = now
         if board.standing == Standing.PRIMARY:
             backup = self._the(Standing.BACKUP)
+            if backup is not None and backup.monitor.state == PeerState.FAILED:
+                backup = None   # it announced its own fail-stop: not promoted (its verdict comes at this check)
             if backup is not None:
                 self._change(board, Standing.FAILED)
                 board.failed_incarnation, board.connected, board.back_at = board.incarnation, False, None
                 board.stray_told, board.stray_since = False, None
                 self._change(backup, Standing.PROMOTING)
                 return [Failover(board.name, verdict, backup.name, list(backup.nodes))]
-            board.silent_since = now
+            board.silent_since, board.silent_verdict = now, verdict
             others = ', '.join('%s is %s' % (b.name, _MEANING[b.standing])
                                for b in self.boards.values() if b is not board)
             return [Report('primary_silent', 'primary board %s is silent (%s) and no board may take over (%s): it is '

@@ -71,6 +71,7 @@ class ProxyNode(object):
         self.name = rospy.get_name()
         self.told = collections.OrderedDict()   # requests an ids_refused alarm was raised for (64 at most)
         self.told_lock = threading.Lock()
+        self.told_at = float('-inf')   # when the last of those alarms was raised
         self.ports = Ports(
             [PortSpec('requests', PUBLISH, 'aft_msgs/Request'),
              PortSpec('replies', SUBSCRIBE, 'aft_msgs/Reply'),
@@ -149,12 +150,15 @@ class ProxyNode(object):
         self.table.close(reply.id, reply)
 
     def _told_once(self, request_id):
-        """Whether an alarm about request_id is the first one (a refusal repeats at every re-send; at most
-        64 requests are remembered, the oldest forgotten first)."""
+        """Whether to raise the alarm about request_id: once per request (a refusal repeats at every re-send;
+        at most 64 requests are remembered, the oldest forgotten first), and at most once a second in all
+        (a forged watermark refuses every new call: one alarm per call would flood at the call rate)."""
+        now = time.monotonic()
         with self.told_lock:
-            if request_id in self.told:
+            if request_id in self.told or now - self.told_at < 1.0:
                 return False
             self.told[request_id] = True
+            self.told_at = now
             while len(self.told) > 64:
                 self.told.popitem(last=False)
             return True

@@ -60,7 +60,8 @@ class WatchdogNode(object):
             board brought back (``board_back``) and re-join (``rejoin``)
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``board_failed`` (a failover),
             ``failover_failed``, ``primary_silent``, ``board_silent``, ``board_back``, ``board_rejoined``,
-            ``backup_unreachable``, ``backup_restarted``
+            ``backup_unreachable``, ``backup_restarted``, ``stale_announcement`` (a fail-stop announced by
+            another incarnation than the board's: late, or forged; ignored)
     Services:
         ~rebind (aft_msgs/Rebind), ~suspend/~resume (aft_msgs/Suspend)
     """
