@@ -221,6 +221,8 @@ SERVICE_KEYS = collections.OrderedDict([
                                         '(report it and let it be)')),
     ('program', (None, _optional(_command), 'the program on_failure: run runs (with AFT_SERVICE and AFT_FAULT in '
                                             'its environment)')),
+    ('program_timeout', (30.0, _positive, 'a failure program still running after this long (s) is killed, with its '
+                                          'whole session, and that is reported; so is one that exits non-zero')),
     ('restart_limit', (3, _count, 'restarts allowed within restart_window; one more fault escalates')),
     ('restart_window', (60.0, _positive, 'the window (s) of restart_limit; the back-off\'s holds are not counted in '
                                          'it')),

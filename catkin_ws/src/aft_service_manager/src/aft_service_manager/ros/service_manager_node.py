@@ -19,7 +19,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger, TriggerResponse
 
 from aft_ftm import config as params
-from aft_service_manager import channel, tree, trust
+from aft_service_manager import channel, programs, tree, trust
 from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
 from aft_ftm.ros.params import param
 from aft_service_manager.ros.service_heartbeat import TOPIC
@@ -322,6 +322,8 @@ class ServiceManagerNode(object):
         ~start, ~stop, ~restart, ~status (aft_msgs/ServiceCommand), ~clear_safe_state (std_srvs/Trigger)
     """
 
+    programs = None   # the on_failure programs running (aft_service_manager.programs.Programs), from __init__
+
     def __init__(self):
         path = param('config', params.non_empty_str, required=True)
         try:
@@ -377,6 +379,7 @@ class ServiceManagerNode(object):
         self.closing = False          # shutting down: nothing more is spawned
         self.instances = 0            # a number per process spawned (a spare's {n})
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
+        self.programs = programs.Programs()   # the on_failure programs running, watched to their end
         self.local = None             # the manager's end of the local channel
         self.tree = tree.make(self.prefix.replace('/', '_'))   # a cgroup per instance, or a tag
         self.wake_r, self.wake_w = os.pipe()   # a command or a ROS heartbeat wakes the loop
@@ -707,10 +710,18 @@ class ServiceManagerNode(object):
     def _run_program(self, name, kind):
         cfg = self.supervisor[name].config
         env = dict(os.environ, AFT_SERVICE=name, AFT_FAULT=kind)
-        try:
-            subprocess.Popen(cfg['program'], env=env, stdin=subprocess.DEVNULL, start_new_session=True)
-        except OSError as e:
-            rospy.logerr('%s: the failure program of %s cannot run: %s', rospy.get_name(), name, e)
+        now = time.monotonic()
+        self._programs_said(self.programs.start(name, kind, cfg['program'], env, now, cfg['program_timeout']), now)
+
+    def _programs_said(self, outcomes, now):
+        """Report what the failure programs did: a failure (exit non-zero, killed past its timeout, could
+        not start) is an error and an event ``program_failed``; a normal end is logged."""
+        for outcome in ([outcomes] if isinstance(outcomes, programs.Outcome) else outcomes or []):
+            if outcome.failed:
+                rospy.logerr('%s: %s', rospy.get_name(), outcome.detail)
+                self._event('program_failed', outcome.service, outcome.detail, now, kind=outcome.fault)
+            else:
+                rospy.loginfo('%s: %s', rospy.get_name(), outcome.detail)
 
     def _act(self, decision, now):
         for verb, name in decision.actions:
@@ -851,6 +862,8 @@ class ServiceManagerNode(object):
         for name in list(self.supervisor.services):
             self._check(name, now, resources and self._sampled(name))
         self._replace_unready_spares(now)
+        if self.programs is not None and self.programs.running:
+            self._programs_said(self.programs.check(now), now)
         for name in list(self.spare_retry):
             if now >= self.spare_retry[name]:
                 del self.spare_retry[name]
@@ -871,6 +884,9 @@ class ServiceManagerNode(object):
 
     def _deadlines(self, next_resources, next_diagnostics):
         yield next_diagnostics
+        if self.programs is not None and self.programs.running:
+            # (a failure program's end is seen within a second; its timeout on time)
+            yield min(self.programs.next_deadline() or float('inf'), time.monotonic() + 1.0)
         if any(self._sampled(n) for n in self.children):
             yield next_resources
         due = self.supervisor.next_due()
@@ -1147,6 +1163,10 @@ class ServiceManagerNode(object):
             spares = list(self.spares.values())
             children = list(self.children.values()) + list(self.stopping.values())
             self.children, self.stopping, self.spares = {}, {}, {}
+            ended = self.programs.end_all() if self.programs is not None else 0
+        if ended:
+            rospy.logwarn('%s: %d failure program(s) still running were killed with the manager', rospy.get_name(),
+                          ended)
         try:   # every service stops, the critical ones too: never silently (a client hook may still publish)
             self.safe_pub.publish(SafeState(active=True, reason='the service manager %s stops: every service it '
                                             'ran is stopped' % rospy.get_name(), stamp=rospy.Time.now()))
