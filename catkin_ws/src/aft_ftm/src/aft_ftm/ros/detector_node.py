@@ -138,6 +138,7 @@ class CrashDetectorNode(object):
         self.stopped = None        # why this site fail-stopped: no heartbeat is sent any more
         self.peer_back_told = False
         self.stale_told = set()   # incarnations whose stale fail-stop announcement was told (once each)
+        self.wrong_sites = set()  # sites other than the peer heard on the peer's topic (told once each)
         # A failure report published while Recovery was not connected (rospy handles a publisher's
         # inbound connections one at a time: one stalled handshake holds the others back for up to
         # 60 s): (the monitor that declared it, the message), published once Recovery connects.
@@ -298,6 +299,17 @@ class CrashDetectorNode(object):
                                   why='site %s: %s' % (self.peer, why), heard=runs, peer=self.peer)
 
     def _on_heartbeat(self, beat):
+        if beat.site != self.peer:
+            # Another site's beats (a topic remapped wrong, two pairs on one topic, or forged) say nothing of
+            # the peer: counted as its, they kept a dead peer alive (review of session 36). Told once per site.
+            with self.lock:
+                first = beat.site not in self.wrong_sites and len(self.wrong_sites) < 16
+                self.wrong_sites.add(beat.site)
+            if first:
+                alarm(self.ports, 'pbr', 'wrong_site', 'a heartbeat of site %r (pid %d on %s) on the topic of peer %s '
+                      '(%s): ignored; it says nothing of %s' % (beat.site, beat.pid, beat.host, self.peer,
+                                                               self.ports.topic('peer_heartbeat'), self.peer))
+            return
         if beat.stopping:
             with self.lock:
                 heard = self.monitor.last_info
