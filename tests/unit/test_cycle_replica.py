@@ -5,7 +5,7 @@ failovers with a re-join in between."""
 import pytest
 
 from aft_ftm.checkpoint import Decision, Follow
-from aft_ftm.cycle_replica import CycleReplica
+from aft_ftm.cycle_replica import STALE_STATE, CycleReplica
 from aft_ftm.errors import RoleError
 from aft_ftm.protocol import Role
 from fakes import FakeClock
@@ -420,9 +420,11 @@ def test_a_state_its_hung_node_takes_once_resumed_does_not_make_the_backup_follo
     last, _ = cycling(backup, 1.0)
     out, _ = primary.cycle_end(b's2', now=last)
     decision, _ = backup.on_checkpoint(out.seq, A, out.first_seq, True)
-    assert decision in (Decision.APPLY, Decision.APPLY_FULL) and backup.current(out.seq)
+    assert decision in (Decision.APPLY, Decision.APPLY_FULL) and backup.refusal(out.seq) is None
     assert alarms(backup.check_node(last + 0.6, last + 0.6)[1]) == ['backup_invalid']   # meanwhile, hung
-    assert not backup.current(out.seq)              # the caller acknowledges it as refused
+    assert backup.refusal(out.seq)                  # the caller acknowledges it as refused
+    backup.node_cycled(last + 3.0, last + 3.0)      # resumed: its set_state answers, it cycles again
+    assert backup.refusal(out.seq) == STALE_STATE
     notes = backup.applied(out.seq, A, True, '', now=last + 3.0, first_seq=out.first_seq)
     assert not backup.following and [n.kind for n in notes] == ['join_failed'] and 'hung' in notes[0].detail
 
@@ -441,3 +443,41 @@ def test_without_a_cycle_timeout_a_silent_node_is_not_watched():
     assert primary.check_node(last + 1000.0, last + 1000.0) == (None, []) and primary.passes_outputs()
     with pytest.raises(ValueError, match='cycle_timeout'):
         replica(A, Role.PRIMARY, cycle_timeout=-1)
+
+
+def test_a_backup_whose_node_still_hangs_takes_no_state_transfer_and_so_never_follows_again():
+    """Review of session 37: the node's set_state may answer while its cycle is stuck. A JOINING backup
+    takes any state transfer: it followed again, acknowledged, and stayed promotable with a node that
+    runs nothing."""
+    primary, backup = replica(A, Role.PRIMARY), replica(B, Role.BACKUP, cycle_timeout=0.5)
+    deliver(backup, primary.cycle_end(b's1', now=0.0)[0], A, now=0.0)
+    last, _ = cycling(backup, 1.0)
+    assert alarms(backup.check_node(last + 0.6, last + 0.6)[1]) == ['backup_invalid']
+    primary.on_join(B)
+    out, _ = primary.cycle_end(b'transfer', now=last + 0.7)
+    assert backup.refusal(out.seq) is not None      # the caller acknowledges it as refused
+    _, notes = deliver(backup, out, A, now=last + 0.7)
+    assert not backup.following and 'hangs' in notes[0].detail
+    with pytest.raises(RoleError):
+        backup.set_role(Role.ALONE, first_seq=1)
+
+
+def test_a_primary_whose_joiner_has_not_acknowledged_its_state_transfer_does_not_fail_stop():
+    """Review of session 37: a restarted backup asked to join; the transfer went out and the primary's node
+    hung at once. Fail-stopped then, the watchdog fenced it and could promote nobody."""
+    primary, backup = pair()
+    last, _ = cycling(primary, 2.0, backup=backup)
+    primary.on_join('/board_b/cycle_after_again')
+    primary.node_cycled(last + 0.1, last + 0.1)
+    out, _ = primary.cycle_end(b'transfer', now=last + 0.1)
+    assert out is not None and primary.sender.join_seq == out.seq and not primary.sender.held
+    stop, notes = primary.check_node(last + 0.7, last + 0.7)
+    assert stop is None and alarms(notes) == ['node_hung'] and primary.passes_outputs()
+
+
+def test_a_cycle_end_stamped_0_is_no_time_to_count_a_hang_from():
+    primary, backup = pair()
+    primary.node_cycled(0.0, 5.0)            # the node read no clock yet
+    assert primary.check_node(30.0, 5.2) == (None, [])
+    last, _ = cycling(primary, 32.0, start=31.0, backup=backup)
+    assert primary.check_node(last + 0.6, last + 0.6)[0]

@@ -126,7 +126,8 @@ class CycleReplica(object):
     def node_cycled(self, stamp, wall):
         """The node ended a cycle stamped ``stamp`` (its own clock), heard at ``wall`` (monotonic).
         Returns notes."""
-        self.node_cycle_at, self.node_cycle_wall = stamp, wall
+        if stamp > 0:   # (stamped 0: the node read no clock yet; not a time to count from)
+            self.node_cycle_at, self.node_cycle_wall = stamp, wall
         if self.node_hung:
             self.node_hung = False
             return [Note('node_resumed', '%s: its node ends cycles again' % self.name)]
@@ -153,7 +154,7 @@ class CycleReplica(object):
             return None, []
         what = 'its node ended no cycle for %.2f s (timeout %.2f s): it hangs' % (silence, self.cycle_timeout)
         role, notes = self.role, []
-        if role == Role.PRIMARY and not self.sender.held:
+        if role == Role.PRIMARY and self._backup_ready():
             self.stopped = what
             self.node_hung = True
             return '%s; the backup takes over' % what, [
@@ -266,8 +267,8 @@ class CycleReplica(object):
         """The node took the state of checkpoint seq (ok), or refused it (error); ``first_seq``: the number
         its sender numbers from (a sender started again numbering below is then a gap, not copies).
         Returns notes."""
-        if ok and not self.current(seq):
-            ok, error = False, STALE_STATE
+        if ok and self.refusal(seq):
+            ok, error = False, self.refusal(seq)
         self.applying.pop(seq, None)
         if not ok:
             return self._invalid(seq, error)
@@ -279,12 +280,24 @@ class CycleReplica(object):
             return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]
         return []
 
-    def current(self, seq):
-        """Whether checkpoint seq, being set into the node, was decided since this backup last stopped
-        mirroring its primary. One decided before (its node hung in the set_state call, and the hang
-        watch invalidated it meanwhile) holds an old state: it must be refused, not followed from
+    def _backup_ready(self):
+        """A primary's backup can take over: admitted, no state transfer under way or asked for, and every
+        checkpoint acknowledged (a backup that lost power leaves the last one unacknowledged; a joiner
+        still taking its transfer holds nothing the watchdog may promote)."""
+        sender = self.sender
+        return sender.admitted and sender.join_seq is None and self.joiner is None and not sender.held
+
+    def refusal(self, seq):
+        """Why checkpoint seq, just set into the node, must be refused (None: it may be followed from). A
+        backup whose node hangs cannot take over, whatever state it took (its node's set_state may answer
+        while its cycle is stuck); one decided before this backup last stopped mirroring its primary (its
+        node hung in the set_state call, and the hang watch invalidated it meanwhile) holds an old state
         (review of session 37)."""
-        return self.applying.get(seq, self.follow_round) == self.follow_round
+        if self.node_hung:
+            return 'its node hangs: this backup could not take over'
+        if self.applying.get(seq, self.follow_round) != self.follow_round:
+            return STALE_STATE
+        return None
 
     def _own_cycle(self, now):
         if not self.following:

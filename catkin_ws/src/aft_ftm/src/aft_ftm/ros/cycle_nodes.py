@@ -34,7 +34,7 @@ from aft_msgs.srv import SetRole, SetRoleResponse, SetState
 
 from .. import config, health
 from ..checkpoint import Decision
-from ..cycle_replica import STALE_STATE, CycleReplica
+from ..cycle_replica import CycleReplica
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
@@ -256,8 +256,9 @@ class CycleAfterNode(object):
             except (rospy.ServiceException, rospy.ROSException) as e:
                 ok, error = False, 'set_state failed: %s' % e
             with self.lock:
-                if ok and not self.replica.current(cp.seq):
-                    ok, error = False, STALE_STATE   # (acknowledged as refused: it does not mirror)
+                refusal = self.replica.refusal(cp.seq) if ok else None
+                if refusal:
+                    ok, error = False, refusal   # (acknowledged as refused: it does not mirror)
                 notes = self.replica.applied(cp.seq, cp.sender, ok, error, time.monotonic(), cp.first_seq)
             self._report(notes)
         elif decision == Decision.REACK:

@@ -709,6 +709,10 @@ class ServiceManagerNode(object):
 
     def _run_program(self, name, kind):
         cfg = self.supervisor[name].config
+        if self.closing:   # (the shutdown ended the programs already: one started now would run unwatched)
+            rospy.logerr('%s: the failure program of %s is not run: the manager is shutting down', rospy.get_name(),
+                         name)
+            return
         env = dict(os.environ, AFT_SERVICE=name, AFT_FAULT=kind)
         now = time.monotonic()
         self._programs_said(self.programs.start(name, kind, cfg['program'], env, now, cfg['program_timeout']), now)
