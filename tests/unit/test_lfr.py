@@ -185,6 +185,21 @@ def test_a_late_join_is_ignored_by_last_seq_and_a_join_after_the_transfer_means_
     assert lead.on_join(join(incarnation='i2', last_seq=0)) == JoinDecision.EXCLUDE   # restarted site
 
 
+def test_late_joins_still_coming_after_two_seconds_are_a_follower_that_lost_its_state():
+    """Review of session 36: a follower's After started again in the same site incarnation (an
+    adaptation's replacement) asks with last_seq 0 every join period, holding nothing. Ignored as late,
+    for ever and with no alarm; the follower could not take over."""
+    lead = leader(State.ALONE, join_seq=100)
+    transfer = lead.start_transfer('slave', now=0.0)
+    lead.end_transfer()
+    lead.admitted(FOLLOWER, 'i1', transfer.seq, epoch=2)
+    assert lead.on_join(join(last_seq=0), now=10.0) == JoinDecision.IGNORE     # sent before it accepted
+    assert lead.on_join(join(last_seq=0), now=11.9) == JoinDecision.IGNORE
+    assert lead.on_join(join(last_seq=0), now=12.0) == JoinDecision.EXCLUDE    # still asking: it lost its state
+    lead.admitted(FOLLOWER, 'i1', transfer.seq + 1, epoch=4)                   # joined again: a fresh window
+    assert lead.on_join(join(last_seq=transfer.seq), now=20.0) == JoinDecision.IGNORE
+
+
 def test_a_late_join_naming_a_transfer_of_a_leader_before_a_clock_step_back_is_still_late():
     # The follower accepted transfer 5000 of a leader started before the clock was stepped back;
     # the leader now numbers from 100. Its Join sent before it accepted 101 names 5000: late.

@@ -41,6 +41,11 @@ from .errors import RoleError
 from .protocol import DuplicateCache, Role, check_role_change, key as request_key
 
 
+# Joins of the admitted follower that name another transfer are late (sent before it accepted ours) for
+# this long after the first; still coming then, they are a follower that lost its state (s).
+LATE_JOINS_FOR = 2.0
+
+
 class State(enum.Enum):
     """Where an LFR After is in its life."""
     JOINING = 0     # follower holding no state of any leader: asks for a state transfer
@@ -164,6 +169,7 @@ class LfrAfter(object):
         self.notified = 0
         self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
+        self.late_since = None  # leader: when the follower's first late Join came (None: none since admitted)
         self.transfer = None    # leader: the Transfer waiting for its ack
         self.join_seq = join_seq
         self.accepted = 0       # follower: the seq of the last state transfer it accepted
@@ -293,15 +299,26 @@ class LfrAfter(object):
         return withheld
 
     # -- joins (leader) ----------------------------------------------------------------------
-    def on_join(self, join):
-        """A Join (site, after, incarnation, last_seq) arrived."""
+    def on_join(self, join, now=None):
+        """A Join (site, after, incarnation, last_seq) arrived (at ``now``, monotonic, if given).
+
+        From the follower, naming another transfer than the one it joined with, it is late: sent before it
+        accepted ours. But a follower's After started again in the same site incarnation (an adaptation's
+        replacement) asks with 0 too, every join period, and holds nothing: such "late" Joins still coming
+        LATE_JOINS_FOR after the first are a follower that lost its state, excluded (review of session 36:
+        ignored for ever, with no alarm, and the follower could not take over)."""
         if join.site == self.site or self.role == Role.BACKUP or self.state == State.DEPOSED:
             return JoinDecision.IGNORE
         if self.state == State.LEADING:
             follower = self.follower
             if follower is not None and (join.after, join.incarnation) == follower[:2] \
                     and join.last_seq != follower[2]:
-                return JoinDecision.IGNORE   # sent before it accepted our transfer: late
+                if now is None:
+                    return JoinDecision.IGNORE
+                if self.late_since is None:
+                    self.late_since = now
+                if now - self.late_since < LATE_JOINS_FOR:
+                    return JoinDecision.IGNORE   # sent before it accepted our transfer: late
             return JoinDecision.EXCLUDE
         return JoinDecision.TRANSFER
 
@@ -324,6 +341,7 @@ class LfrAfter(object):
         self._change(State.LEADING, 'the witness admitted %s at epoch %d' % (after, epoch))
         self.epoch = max(self.epoch, epoch)
         self.follower = (after, incarnation, seq)
+        self.late_since = None
 
     # -- joins (follower) --------------------------------------------------------------------
     def join_step(self, now):

@@ -434,10 +434,11 @@ class LfrAfterNode(AfterNode):
     # -- joins (leader side) -----------------------------------------------------------
     def _on_join(self, join):
         with self.lock:
-            decision = self.core.on_join(join)
+            decision = self.core.on_join(join, time.monotonic())
         # One decision at a time: a follower asking while another is under way asks again later.
         if decision == JoinDecision.EXCLUDE:
-            self.side.alone(self._exclude, '%s asks to join again: it restarted' % join.site)
+            self.side.alone(self._exclude, '%s asks to join again (its After %s holds transfer %d, not ours): it '
+                            'restarted or lost its state' % (join.site, join.after, join.last_seq))
         elif decision == JoinDecision.TRANSFER:
             # Only a site that runs gets the state: not heard yet, it asks again.
             if not self.side.join_waits(self.admission, self.lock, join):
