@@ -1299,6 +1299,10 @@ class ProxyModel(Process):
             if entry is not None:
                 self.env.alarm(self, 'ids_behind', '%d sent again as %d' % (reply.id, entry.id))
                 self.publish(entry)
+                return
+            why = self.table.unrenumbered(reply.id, reply.oldest_pending)   # (as the node: never silent)
+            if why is not None:
+                self.env.alarm(self, 'ids_refused', why)
             return
         entry = self.table.close(reply.id, reply)
         self.env.checker.accepted(self, reply, entry is not None)
