@@ -194,8 +194,15 @@ def test_late_joins_still_coming_after_two_seconds_are_a_follower_that_lost_its_
     lead.end_transfer()
     lead.admitted(FOLLOWER, 'i1', transfer.seq, epoch=2)
     assert lead.on_join(join(last_seq=0), now=10.0) == JoinDecision.IGNORE     # sent before it accepted
-    assert lead.on_join(join(last_seq=0), now=11.9) == JoinDecision.IGNORE
-    assert lead.on_join(join(last_seq=0), now=12.0) == JoinDecision.EXCLUDE    # still asking: it lost its state
+    assert lead.on_join(join(last_seq=0), now=10.1) == JoinDecision.IGNORE
+    assert lead.on_join(join(last_seq=0), now=13.2) == JoinDecision.IGNORE     # retransmitted after a pause: late
+    t = 13.2
+    while t < 15.1:                                                            # one every join period (0.5 s)
+        t += 0.5
+        decision = lead.on_join(join(last_seq=0), now=t)
+        if decision == JoinDecision.EXCLUDE:
+            break
+    assert decision == JoinDecision.EXCLUDE and t >= 15.2 - 1e-9              # still asking: it lost its state
     lead.admitted(FOLLOWER, 'i1', transfer.seq + 1, epoch=4)                   # joined again: a fresh window
     assert lead.on_join(join(last_seq=transfer.seq), now=20.0) == JoinDecision.IGNORE
 

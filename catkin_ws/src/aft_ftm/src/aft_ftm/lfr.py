@@ -169,7 +169,8 @@ class LfrAfter(object):
         self.notified = 0
         self.recent = DuplicateCache(0, cache_bytes)   # replies a state transfer carries: never evicted
         self.follower = None    # leader: the follower admitted: (After, site incarnation, transfer seq)
-        self.late_since = None  # leader: when the follower's first late Join came (None: none since admitted)
+        self.late_since = None  # leader: when the follower's first late Join of a run came (None: none yet)
+        self.late_last = None   # leader: when its last late Join came
         self.transfer = None    # leader: the Transfer waiting for its ack
         self.join_seq = join_seq
         self.accepted = 0       # follower: the seq of the last state transfer it accepted
@@ -305,8 +306,9 @@ class LfrAfter(object):
         From the follower, naming another transfer than the one it joined with, it is late: sent before it
         accepted ours. But a follower's After started again in the same site incarnation (an adaptation's
         replacement) asks with 0 too, every join period, and holds nothing: such "late" Joins still coming
-        LATE_JOINS_FOR after the first are a follower that lost its state, excluded (review of session 36:
-        ignored for ever, with no alarm, and the follower could not take over)."""
+        LATE_JOINS_FOR (or 4 join periods) after the first, with no pause of 3 join periods between two, are
+        a follower that lost its state, excluded (review of session 36: ignored for ever, with no alarm,
+        and the follower could not take over)."""
         if join.site == self.site or self.role == Role.BACKUP or self.state == State.DEPOSED:
             return JoinDecision.IGNORE
         if self.state == State.LEADING:
@@ -315,9 +317,12 @@ class LfrAfter(object):
                     and join.last_seq != follower[2]:
                 if now is None:
                     return JoinDecision.IGNORE
-                if self.late_since is None:
+                if self.late_since is None or now - self.late_last > 3 * self.join_period:
+                    # (a new run: a follower still asking sends one every join period; a backlog of
+                    # late ones, retransmitted after a loss, comes after a pause)
                     self.late_since = now
-                if now - self.late_since < LATE_JOINS_FOR:
+                self.late_last = now
+                if now - self.late_since < max(LATE_JOINS_FOR, 4 * self.join_period):
                     return JoinDecision.IGNORE   # sent before it accepted our transfer: late
             return JoinDecision.EXCLUDE
         return JoinDecision.TRANSFER

@@ -304,7 +304,8 @@ class CrashDetectorNode(object):
             # the peer: counted as its, they kept a dead peer alive (review of session 36). Told once per site.
             with self.lock:
                 first = beat.site not in self.wrong_sites and len(self.wrong_sites) < 16
-                self.wrong_sites.add(beat.site)
+                if first:   # (bounded: a forger naming ever new sites grows nothing)
+                    self.wrong_sites.add(beat.site)
             if first:
                 alarm(self.ports, 'pbr', 'wrong_site', 'a heartbeat of site %r (pid %d on %s) on the topic of peer %s '
                       '(%s): ignored; it says nothing of %s' % (beat.site, beat.pid, beat.host, self.peer,
