@@ -220,7 +220,7 @@ try:
         def why():
             return [d for source, kind, d in list(alarms) if source == '/slave/recovery' and kind == 'fence_refused'
                     and d.startswith('pid %d, named as the launcher of master' % victim)]
-        if not any('pid %d, named as the launcher' % victim in d or 'launcher %d also runs this replica' % victim in d
+        if not any('pid %d, named as the launcher' % victim in d or 'launcher %d also runs this process' % victim in d
                    for d in silenced):
             sys.exit('seed %d: fail-silence did not refuse the tree of pid %d: %s' % (seed, victim, silenced))
         above = victim in [p.pid for p in psutil.Process(pid_of('/slave/recovery')).parents()]
