@@ -153,7 +153,7 @@ class CycleReplica(object):
         if silence <= self.cycle_timeout or wall - self.node_cycle_wall < HANG_WALL_MIN:
             return None, []
         what = 'its node ended no cycle for %.2f s (timeout %.2f s): it hangs' % (silence, self.cycle_timeout)
-        role, notes = self.role, []
+        role = self.role
         if role == Role.PRIMARY and self._backup_ready():
             self.stopped = what
             self.node_hung = True
@@ -169,8 +169,7 @@ class CycleReplica(object):
                              'not fail-stop while the backup cannot take over',
                Role.ALONE: 'no backup can take over: its outputs stop until it resumes'}.get(
             role, 'this backup holds no state and cannot take over')
-        notes.append(Note('node_hung', '%s: %s; %s' % (self.name, what, why), alarm=True))
-        return None, notes
+        return None, [Note('node_hung', '%s: %s; %s' % (self.name, what, why), alarm=True)]
 
     # -- every replica ---------------------------------------------------------------------------
     def cycle_end(self, state, now):
@@ -267,8 +266,9 @@ class CycleReplica(object):
         """The node took the state of checkpoint seq (ok), or refused it (error); ``first_seq``: the number
         its sender numbers from (a sender started again numbering below is then a gap, not copies).
         Returns notes."""
-        if ok and self.refusal(seq):
-            ok, error = False, self.refusal(seq)
+        refusal = self.refusal(seq) if ok else None
+        if refusal:
+            ok, error = False, refusal
         self.applying.pop(seq, None)
         if not ok:
             return self._invalid(seq, error)
