@@ -1,14 +1,18 @@
 """TR's Before and After wired together without a master: a repeat that cannot run (the saved state
 refused by the server's state manager) is never told as "failed, nothing changed". No ROS master."""
 import collections
+import os
+import random
 import threading
 
 import pytest
 
 from aft_examples.history import classify_error
+from aft_ftm.once import RecentKeys
 from aft_ftm.voting import TimeRedundancyVote
 
 tr = pytest.importorskip('aft_ftm.ros.tr_nodes')
+import rospy  # noqa: E402
 from aft_ftm.ros.deadline import Deadline  # noqa: E402
 from aft_msgs.msg import Reply, Request  # noqa: E402
 from aft_msgs.srv import GetStateResponse, Repeat, SetStateResponse  # noqa: E402
@@ -52,10 +56,11 @@ def wired(monkeypatch):
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
     before.__dict__.update(server_timeout=1.0, site='', get_state=server.get_state, set_state=server.set_state,
-                           held={}, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
+                           held={}, executed=RecentKeys(), copies=0, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
-    after.__dict__.update(voter=TimeRedundancyVote(3), site='', failed=None, masked=0, ports=Ports())
+    after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), site='', failed=None, masked=0, ports=Ports(),
+                          name='/after')
     after.repeat = lambda **kw: before._on_repeat(Repeat._request_class(**kw))
 
     def call(rid):
@@ -88,3 +93,62 @@ def test_a_repeat_whose_state_cannot_be_restored_is_an_unknown_outcome_with_an_a
     assert answer.status == Reply.ERROR and server.balance == 90   # one execution applied
     assert classify_error('service [/account] responded with an error: ' + answer.error) == 'indeterminate'
     assert alarms == ['restore_failed'] and before.held == {} and after.voter.pending() == 0
+
+
+@pytest.mark.parametrize('seed', [int(os.environ.get('AFT_SEED', 0)) or s for s in range(3801, 3831)])
+def test_a_second_copy_of_a_request_is_never_executed_again(wired, seed):
+    """Review of session 36 (Limits): a second copy of a request heard in the middle of its vote saved
+    the state again, over the one saved before the first execution, and the repeat restored a state
+    that held the first execution (the request applied twice); a copy heard after its vote ran it
+    again. Copies (the Protocol sends each request once; a rebind or anyone on the graph sends more)
+    come here at random points: mid-vote, after the vote, many requests later. Each request is
+    answered once, with the balance it left; the server applies each once; each copy is alarmed."""
+    server, before, after, _call, alarms = wired
+    rng = random.Random(seed)
+    sent, answers, copies = [], collections.defaultdict(list), 0
+    for rid in range(1, 21):
+        server.corrupt_next = rng.random() < 0.5       # a value fault in the first execution, or none
+        request = Request(id=rid, origin='/proxy')
+        sent.append(request)
+        executions = collections.deque([before.handle(request)])
+        while executions:   # bounded: each request has at most 3 executions, copies add none
+            result = server.execute(executions.popleft())
+            again = Reply(id=result.id, origin=result.origin, attempt=result.attempt, payload=result.payload)
+            answer = after.handle(result)
+            if answer is not None:
+                answers[answer.id].append(answer)
+            if rng.random() < 0.2:   # the result heard twice (mid-vote or once decided): counted once
+                assert after.handle(again) is None, 'seed %d: a copy of a result answered' % seed
+            while rng.random() < 0.4:   # a copy of this request (mid-vote or after) or of an older one
+                copy = rng.choice(sent[-3:] if rng.random() < 0.7 else sent)
+                assert before.handle(Request(id=copy.id, origin=copy.origin, attempt=copy.attempt)) is None, \
+                    'seed %d: a copy of %d was executed again' % (seed, copy.id)
+                copies += 1
+            executions.extend(before.ports.out)
+            before.ports.out.clear()
+    assert sorted(answers) == list(range(1, 21)) and all(len(a) == 1 for a in answers.values()), 'seed %d' % seed
+    balances = [int(bytes(answers[rid][0].payload)) for rid in range(1, 21)]
+    assert balances == list(range(90, -110, -10)) and server.balance == -100, 'seed %d: %s' % (seed, balances)
+    assert alarms.count('duplicate_request') == copies and before.copies == copies, 'seed %d' % seed
+    assert 'restore_failed' not in alarms, 'seed %d' % seed
+    assert before.held == {} and after.voter.pending() == 0, 'seed %d' % seed
+
+
+def test_a_request_not_executed_may_be_executed_by_a_later_copy(wired):
+    """A request whose state could not be saved ran nowhere (answered "not executed"): it is not
+    remembered as executed, so a copy of it is not refused."""
+    server, before, _after, call, alarms = wired
+
+    class Refused(object):   # the server's state manager fails (its server died)
+        def __call__(self):
+            raise rospy.ServiceException('service [/get_state] unavailable')
+
+        def fresh(self):
+            return self
+    errors = []
+    before.ports.publish = lambda port, msg: errors.append((port, msg.status))
+    before.get_state = Refused()
+    assert before.handle(Request(id=5, origin='/proxy')) is None
+    assert errors == [('errors', Reply.ERROR)] and server.balance == 100
+    before.get_state, before.ports = server.get_state, Ports()
+    assert call(5).status == Reply.OK and server.balance == 90 and 'duplicate_request' not in alarms

@@ -34,10 +34,10 @@ Invariants the After keeps (:class:`LfrAfter`):
 Every change of state goes through ``_change`` along :data:`EDGES`; the replica's role is derived
 from the state (:data:`ROLE_OF`), so that each node has exactly one owner of its role.
 """
-import collections
 import enum
 
 from .errors import RoleError
+from .once import RecentKeys
 from .protocol import DuplicateCache, Role, check_role_change, key as request_key
 
 
@@ -483,8 +483,7 @@ class LfrForwarder(object):
 
     def __init__(self, role, remember=65536):
         self.role = role
-        self.remember = remember
-        self.recent = collections.OrderedDict()   # follower: (origin, id) of the requests passed on, oldest first
+        self.recent = RecentKeys(remember)   # follower: (origin, id) of the requests passed on
         self.duplicates = 0  # second copies of a forward refused
         self.epoch = 0       # the witness's epoch of the last role given (a late, older order changes nothing)
         self.transfer = 0    # leader: the stamp of its forwards; follower: forwards stamped below are stale
@@ -509,13 +508,9 @@ class LfrForwarder(object):
             # clock step numbers lower; a follower that followed no transfer has nothing to refuse by)
             self.stale += 1
             return Forwarded.STALE
-        if key is not None:
-            if key in self.recent:
-                self.duplicates += 1
-                return Forwarded.DUPLICATE
-            self.recent[key] = True
-            while len(self.recent) > self.remember:
-                self.recent.popitem(last=False)
+        if key is not None and not self.recent.add(key):
+            self.duplicates += 1
+            return Forwarded.DUPLICATE
         self.passed += 1
         return Forwarded.PASS
 

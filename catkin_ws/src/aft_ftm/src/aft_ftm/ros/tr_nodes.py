@@ -9,6 +9,7 @@ from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config, health
 from ..errors import ConfigError
+from ..once import RecentKeys
 from ..recovery import OnHang
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
@@ -55,6 +56,14 @@ class TrBeforeNode(BeforeNode):
     or ``restore_failed`` if the server refused it: the state then holds one execution of a request
     answered as an error).
 
+    Each request (origin, id, attempt) is executed once: the Protocol sends it once, but a second copy
+    can come (a publisher heard on two connections across a rebind, or a message published again by
+    anyone on the graph). In the middle of its vote it would have saved the state again, over the one
+    saved before the first execution, and a repeat would restore a state holding that execution (the
+    request applied twice); after its vote it would have run again. Before remembers the last 65 536
+    requests it executed and refuses a second copy with the alarm ``duplicate_request``: the first
+    copy's vote answers it.
+
     Parameters:
         ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
             execution again, may take (a set_state past it: no execution again, the same alarm or
@@ -82,6 +91,8 @@ class TrBeforeNode(BeforeNode):
         self.get_state = PersistentService('get_state', GetState)
         self.set_state = PersistentService('set_state', SetState)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
+        self.executed = RecentKeys()   # (origin, id, attempt) of the requests executed (a copy is refused)
+        self.copies = 0                # second copies refused
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
         self._restore_deadline = Deadline('state-restore')
@@ -148,6 +159,29 @@ class TrBeforeNode(BeforeNode):
     def handle(self, request):
         if self.failed:
             return None   # fail-stopped: the next primary executes it
+        once = (request.origin, request.id, request.attempt)
+        with self.lock:
+            # Reserved here, before the state is saved: two copies heard at once do not both pass.
+            copy = (request.origin, request.id) in self.held or not self.executed.add(once)
+            if copy:
+                self.copies += 1
+                copies = self.copies
+        if copy:
+            alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed by this Before '
+                  'already; a second copy is not executed (%d refused so far)' % (once + (copies,)), request)
+            return None
+        executes = None
+        try:
+            executes = self._capture(request)
+        finally:
+            if executes is None:
+                with self.lock:
+                    self.executed.discard(once)   # nothing ran: a copy may execute it
+        return executes
+
+    def _capture(self, request):
+        """Save the state before request and return its first execution, or None (not executed:
+        answered so, or fail-stopped)."""
         pending = self._restore_pending()
         if pending:
             alarm(self.ports, 'tr', 'server_hangs', '%s: %s/%d not executed' % (pending, request.origin, request.id))
@@ -274,6 +308,7 @@ class TrAfterNode(AfterNode):
                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
         self.failed = None   # why this replica fail-stopped (TR Before out of reach): nothing more answered
         self.repeat = PersistentService('repeat', Repeat)
+        self.voted = RecentKeys()   # (origin, id, attempt) of the votes ended: a result heard later is refused
         self.masked = 0
 
     def setup(self, timeout):
@@ -307,12 +342,20 @@ class TrAfterNode(AfterNode):
             return None   # fail-stopped: the peer answers
         execution = reply.attempt % SPAN
         reply.attempt //= SPAN   # back to the attempt the request came with
-        vote = self.voter.add((reply.origin, reply.id, reply.attempt), (reply.status, reply.error, bytes(reply.payload)),
-                              execution)
+        voting = (reply.origin, reply.id, reply.attempt)
+        if voting in self.voted:
+            # A copy of a result heard after its vote ended: as a vote of its own it would ask Before to
+            # execute again a request Before no longer holds (a false restore_failed), and answer twice.
+            rospy.logwarn('%s: execution %d of %s/%d heard after its vote ended: ignored', self.name, execution,
+                          reply.origin, reply.id)
+            return None
+        vote = self.voter.add(voting, (reply.status, reply.error, bytes(reply.payload)), execution)
         if vote is None:
             rospy.logwarn('%s: execution %d of %s/%d heard twice: counted once' % (self.name, execution, reply.origin,
                                                                                 reply.id))
             return None
+        if vote.outcome != Outcome.REPEAT:
+            self.voted.add(voting)
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
             if ok or why.startswith(FAIL_STOPPED):   # fail-stopped: the peer answers it
@@ -320,7 +363,8 @@ class TrAfterNode(AfterNode):
             # Not executed again, and the state saved before the request not (or not surely) set back:
             # the server holds an execution the vote never confirmed. Never told as "failed, nothing
             # changed" (a retry would apply it twice); the saved state and the votes are let go.
-            self.voter.forget((reply.origin, reply.id, reply.attempt))
+            self.voter.forget(voting)
+            self.voted.add(voting)
             self._tell_before(reply, Repeat._request_class.FORGET)
             detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
                       'not confirm' % (reply.origin, reply.id, why))
