@@ -159,6 +159,7 @@ def test_the_manager_reports_a_spawn_failure_as_a_fault_and_holds_its_retry(tmp_
     node.config = config('  a: {command: x}\n', '  state_dir: %s\n' % tmp_path)
     node.supervisor, node.closing, node.children, node.spares = Supervisor(node.config), False, {}, {}
     node.published_safe, node.published_also, node.recorded = None, 0, node.supervisor.record()
+    node.record_file, node.own = str(tmp_path / 'm.record'), {}
     events = []
     node._event = lambda event, name, detail, now, **extra: events.append(dict(extra, event=event, service=name))
 
@@ -168,6 +169,9 @@ def test_the_manager_reports_a_spawn_failure_as_a_fault_and_holds_its_retry(tmp_
     node._spawn('a', 5.0)
     assert [(e['event'], e.get('kind')) for e in events] == [('fault', 'spawn')]
     assert node.supervisor['a'].state == State.RESTARTING and node.supervisor.next_due() >= 6.0
+    # Recorded at once, for a manager started again: the fault counts against its restart limit too.
+    from aft_service_manager import trust
+    assert trust.read_private_json(node.record_file)['counts']['a']['errors'] == {'spawn': 1}
 
 
 # -- 6: memory while starting ----------------------------------------------------------------------
@@ -311,3 +315,60 @@ def test_a_service_down_after_a_fault_is_degraded_an_operator_s_stop_is_not():
     sup.fault('a', 'exit', 'status 1', 1.0)
     sup.stop('b', 1.0)
     assert list(sup.degraded()) == ['a'] and 'terminate' in sup.degraded()['a'], sup.degraded()
+
+
+# -- review of session 36: counts kept across the manager's own restarts ---------------------------
+@pytest.mark.parametrize('seed', [int(os.environ.get('AFT_SEED', 0)) or s for s in range(3901, 3921)])
+def test_a_manager_started_again_keeps_each_service_s_restart_allowance_errors_and_back_off(seed):
+    """A service that fails at every start, its manager killed and started again after some of its
+    faults (drawn from the seed: a manager crashing with its service, or killed by it). Before, each
+    new manager gave the service a fresh restart allowance, fresh error counts and no back-off: a
+    crash loop never reached FAILED and never the safe state. Now it is FAILED at the same fault as
+    under one manager, with the same counts and the same back-off delays."""
+    import json
+    import random
+    rng = random.Random(seed)
+    c = config('  a: {command: x, critical: true, restart_limit: %d, restart_window: 60, restart_delay: 0.5, '
+               'restart_delay_factor: 2, restart_delay_max: 4, stable_after: 100}\n' % rng.randint(1, 5))
+    runs = [rng.uniform(0.1, 2.0) for _ in range(12)]   # how long each start runs before it fails
+
+    def crash_loop(kill_after):
+        sup, now, delays = Supervisor(c), 1000.0, []
+        for fault, run in enumerate(runs):
+            running(sup, 'a', now)
+            now += run
+            sup.check('a', DEAD, now, GB)
+            if sup['a'].state == State.FAILED:
+                return fault + 1, dict(sup['a'].errors), delays, sup.safe_state
+            delays.append(round(sup.next_due() - now, 6))
+            now = sup.next_due()
+            assert sup.due(now) == [('spawn', 'a')], 'seed %d' % seed
+            if fault in kill_after:   # the manager dies; the next one reads its record (as a file would hold it)
+                record = json.loads(json.dumps(sup.record()))
+                sup = Supervisor(c)
+                assert sup.restore(record, now) == [], 'seed %d: nothing was down' % seed
+        return None, dict(sup['a'].errors), delays, sup.safe_state
+
+    alone = crash_loop(kill_after=())
+    killed = crash_loop(kill_after={f for f in range(12) if rng.random() < 0.6} | {0})
+    assert alone[0] == c['services']['a']['restart_limit'] + 1 and alone[3], 'seed %d: %r' % (seed, alone)
+    assert killed == alone, 'seed %d: one manager %r, managers started again %r' % (seed, alone, killed)
+
+
+@pytest.mark.parametrize('counts', [[], {'a': 3}, {'a': {'errors': {'exit': -1}}}, {'a': {'errors': {'exit': True}}},
+                                    {'a': {'restarts': ['soon']}}, {'a': {'restarts': [float('nan')]}},
+                                    {'a': {'consecutive': 1.5}}, {'a': {'errors': []}}])
+def test_a_record_with_malformed_counts_is_refused_and_changes_nothing(counts):
+    sup = Supervisor(config('  a: {command: x}\n'))
+    with pytest.raises(ServiceConfigError, match='record is malformed.*counts'):
+        sup.restore({'safe_state': None, 'down': {}, 'counts': counts}, 0.0)
+    assert sup['a'].errors == {} and not sup['a'].restarts and sup['a'].consecutive == 0 and sup.safe_state is None
+
+
+def test_restarts_recorded_on_a_clock_since_started_again_count_as_now():
+    """A record from before a reboot holds times ahead of the new monotonic clock: they count as
+    restarts of now, within the window, never forgotten early."""
+    sup = Supervisor(config('  a: {command: x, restart_limit: 1, restart_window: 60}\n'))
+    sup.restore({'safe_state': None, 'down': {}, 'counts': {'a': {'errors': {'exit': 1}, 'restarts': [5e6]}}}, 10.0)
+    running(sup, 'a', 10.0)
+    assert sup.check('a', DEAD, 69.0, GB).escalate and sup['a'].state == State.FAILED

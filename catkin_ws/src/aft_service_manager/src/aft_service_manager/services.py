@@ -884,10 +884,36 @@ class Supervisor(object):
     def record(self):
         """What a manager started again (killed, crashed, restarted) must not forget: the safe state,
         and the services an operator, a failure action or an exhausted restart limit left down. Its
-        successor lifted the safe state and restarted them all at once (review of stop 39)."""
+        successor lifted the safe state and restarted them all at once (review of stop 39). And each
+        service's counts: its errors by kind, the run of consecutive faults the back-off follows, and
+        the restarts its restart_limit counts, each at the latest time on the system's monotonic clock
+        (shared by every process until a reboot) it may have happened. A manager crashing with its
+        service, or killed by it, gave a service that fails at every start a fresh allowance and no
+        back-off each time: never FAILED, never the safe state (review of session 36). Only what
+        changes at a fault is recorded, so the record is written again only then."""
         down = {n: {'state': s.state.name, 'reason': s.reason} for n, s in self.services.items()
                 if s.state == State.FAILED or (s.state == State.STOPPED and (s.starts or s.held_down))}
-        return {'safe_state': self.safe_state, 'down': down}
+        counts = {n: {'errors': dict(s.errors), 'consecutive': s.consecutive,
+                      'restarts': [r + s.held for r in s.restarts]}   # on the clock, a restart was at r + held at the latest
+                  for n, s in self.services.items() if s.errors or s.restarts or s.consecutive}
+        return {'safe_state': self.safe_state, 'down': down, 'counts': counts}
+
+    @staticmethod
+    def _check_counts(counts):
+        """Raise ServiceConfigError unless counts is what record() writes."""
+        def number(v):
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v and abs(v) != float('inf')
+        if not isinstance(counts, dict):
+            raise ServiceConfigError('the manager\'s record is malformed: its counts %r are not a mapping' % (counts,))
+        for name, entry in counts.items():
+            ok = isinstance(entry, dict) and isinstance(entry.get('errors', {}), dict) and all(
+                isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                for k, v in entry.get('errors', {}).items()) and isinstance(entry.get('restarts', []), list) and all(
+                number(r) for r in entry.get('restarts', [])) and isinstance(entry.get('consecutive', 0), int) and \
+                not isinstance(entry.get('consecutive', 0), bool) and entry.get('consecutive', 0) >= 0
+            if not ok:
+                raise ServiceConfigError('the manager\'s record is malformed: counts.%s is %r, not {errors: {kind: '
+                                         'count}, consecutive: count, restarts: [times]}' % (name, entry))
 
     def restore(self, record, now):
         """Take a record of an earlier run (:meth:`record`) before anything starts. Returns the names of
@@ -903,6 +929,16 @@ class Supervisor(object):
             if not isinstance(entry, dict) or not isinstance(entry.get('reason', ''), str):
                 raise ServiceConfigError('the manager\'s record is malformed: down.%s is %r, not {reason: text}'
                                          % (name, entry))
+        self._check_counts(record.get('counts', {}))
+        for name, entry in record.get('counts', {}).items():
+            s = self.services.get(name)
+            if s is None:
+                continue
+            s.errors.update(entry.get('errors', {}))
+            s.consecutive = entry.get('consecutive', 0)
+            # This service's clock is the system's until its first hold; a time ahead of now (the
+            # clock started again at a reboot) counts as now: within the window, never forgotten early.
+            s.restarts.extend(sorted(min(r, now) for r in entry.get('restarts', [])))
         held = []
         for name, entry in sorted(record.get('down', {}).items()):
             s = self.services.get(name)
