@@ -193,3 +193,29 @@ def test_a_spawned_instance_s_pid_is_dropped_from_every_service_s_replaced_pids(
     finally:
         os.close(node.wake_r)
         os.close(node.wake_w)
+
+
+# -- review of session 36: an alerted silence woke the loop every period ---------------------------
+def test_a_silence_alerted_once_does_not_wake_the_loop_every_period_and_its_end_is_seen():
+    """A service under on_failure alert that falls silent is alerted once and runs on; its heartbeat
+    deadline stayed in the past, so the loop woke every manager period (100 times a second) for as
+    long as the silence lasted. Now the next deadline is the next tick; a beat clears the alert."""
+    node = _node('  a: {command: x, heartbeat_timeout: 0.2, on_failure: alert}\n')
+    try:
+        node.children['a'] = types.SimpleNamespace(watchdog=None, slot=None, beats=0)
+        node.programs, node.spare_retry = None, {}
+        s = node.supervisor['a']
+        s.spawned(0.0)
+        s.heard(0.1, 'ok')
+        assert min(node._deadlines(5.0, 5.0)) == pytest.approx(0.3)   # the heartbeat deadline
+        decision = node.supervisor.check('a', ALIVE, 0.5, GB)
+        assert decision.kind == 'heartbeat_timeout' and decision.actions == [('alert', 'a')]
+        assert s.state == State.RUNNING and 'heartbeat_timeout' in s.alerted
+        assert min(node._deadlines(5.0, 5.0)) == 5.0   # (before: 0.3, in the past: every period)
+        assert node.supervisor.check('a', ALIVE, 1.0, GB) is None   # said once
+        s.heard(2.0, 'ok')
+        node.supervisor.check('a', ALIVE, 2.05, GB)   # the next tick sees it beat again
+        assert 'heartbeat_timeout' not in s.alerted and min(node._deadlines(5.0, 5.0)) == pytest.approx(2.2)
+    finally:
+        os.close(node.wake_r)
+        os.close(node.wake_w)

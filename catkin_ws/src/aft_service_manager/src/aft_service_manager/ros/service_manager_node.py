@@ -909,7 +909,9 @@ class ServiceManagerNode(object):
                 if self.children[name].slot is not None and self.children[name].beats:
                     yield time.monotonic() + 0.01   # adopted, beating already: its next beat shows it running
             elif s.state == State.RUNNING and c['heartbeat_timeout'] is not None and s.last_heard is not None \
-                    and not self._watched_by_kernel(self.children[name]):
+                    and not self._watched_by_kernel(self.children[name]) and 'heartbeat_timeout' not in s.alerted:
+                # (a silence alerted already, on_failure alert, is not due again: its deadline stayed in the
+                # past and woke the loop every period while it lasted; its end is seen at the next tick)
                 yield s.last_heard + c['heartbeat_timeout']
 
     @staticmethod
