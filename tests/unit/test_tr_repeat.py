@@ -4,6 +4,7 @@ import collections
 import os
 import random
 import threading
+import time
 
 import pytest
 
@@ -60,7 +61,7 @@ def wired(monkeypatch):
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
     after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), site='', failed=None, masked=0, ports=Ports(),
-                          name='/after')
+                          name='/after', repeat_timeout=5.0, _repeat_deadline=Deadline('repeat'))
     after.repeat = lambda **kw: before._on_repeat(Repeat._request_class(**kw))
 
     def call(rid):
@@ -152,3 +153,53 @@ def test_a_request_not_executed_may_be_executed_by_a_later_copy(wired):
     assert errors == [('errors', Reply.ERROR)] and server.balance == 100
     before.get_state, before.ports = server.get_state, Ports()
     assert call(5).status == Reply.OK and server.balance == 90 and 'duplicate_request' not in alarms
+
+
+class HungBefore(object):
+    """TR Before's repeat service, stopped until ``go`` is set (SIGSTOP, a deadlock)."""
+
+    def __init__(self, before):
+        self.before, self.go, self.calls = before, threading.Event(), []
+
+    def __call__(self, **kw):
+        self.calls.append(kw['action'])
+        self.go.wait(10.0)
+        return self.before._on_repeat(Repeat._request_class(**kw))
+
+    def fresh(self):
+        return self
+
+
+def test_a_hung_before_is_not_waited_for_ever_the_request_s_outcome_is_unknown(wired):
+    """Review of session 36 (Limits): After called Before's repeat with no bound of its own, and a
+    stopped Before stopped every TR answer for ever. Now a repeat unanswered within ~repeat_timeout
+    is "outcome unknown" (with an alarm), Before is not asked again, and the execution it runs once
+    resumed is ignored (the vote ended)."""
+    server, before, after, _call, alarms = wired
+    hung = HungBefore(before)
+    after.repeat, after.repeat_timeout = hung, 0.2
+    first = before.handle(Request(id=7, origin='/proxy'))   # a value fault: the vote asks for a repeat
+    started = time.monotonic()
+    answer = after.handle(server.execute(first))
+    assert time.monotonic() - started < 2.0 and answer.status == Reply.ERROR
+    assert classify_error('service [/account] responded with an error: ' + answer.error) == 'indeterminate'
+    assert 'no answer within 0.200 s' in answer.error and alarms == ['restore_failed']
+    assert hung.calls == [Repeat._request_class.REPEAT]   # not asked to forget: that would wait again
+    hung.go.set()   # Before resumes: it restores and executes again; After ignores that result
+    deadline = time.monotonic() + 5.0
+    while not before.ports.out and time.monotonic() < deadline:
+        time.sleep(0.01)
+    late = server.execute(before.ports.out.popleft())
+    assert after.handle(late) is None and after.voter.pending() == 0 and alarms == ['restore_failed']
+
+
+def test_a_hung_before_in_a_replica_fail_stops_it(wired, monkeypatch):
+    _server, before, after, _call, _alarms = wired
+    stops = []
+    monkeypatch.setattr(tr, 'fail_stop', lambda ports, site, why, mechanism=None: stops.append(why))
+    hung = HungBefore(before)
+    after.repeat, after.repeat_timeout, after.site = hung, 0.2, '/master'
+    ok, why = after._tell_before(Reply(origin='/proxy', id=1), Repeat._request_class.REPEAT)
+    hung.go.set()
+    assert not ok and why.startswith(tr.FAIL_STOPPED) and 'no answer within 0.200 s' in why
+    assert len(stops) == 1 and after.failed

@@ -28,6 +28,8 @@ from .witness_client import follow_site_role
 SPAN = 100
 # How Before's ~repeat says that this replica fail-stopped: After then answers nothing (the peer does).
 FAIL_STOPPED = 'this replica fail-stopped: '
+# How After says that Before's ~repeat did not answer within ~repeat_timeout.
+NO_ANSWER = 'no answer within'
 
 
 def execution(request, k):
@@ -287,8 +289,14 @@ class TrAfterNode(AfterNode):
     whole, executes the request (an LFR follower already has). The replica fail-stops and answers
     nothing; outside a replica the request gets TR's error.
 
+    TR Before that does not answer within ``~repeat_timeout`` (stopped, deadlocked: its own calls
+    of the server are bounded by its ``~server_timeout``) is out of reach as well: in a replica the
+    replica fail-stops; outside one the request is answered "outcome unknown" (Before may still
+    execute it again later: its result is then ignored, the vote having ended).
+
     Parameters: ~executions (int >= 2, default 3); ~site (str, default ''): the replica site this
-        mechanism belongs to ('' : none).
+        mechanism belongs to ('' : none); ~repeat_timeout (float, 12 s): the longest Before's repeat
+        may take; keep it above TR Before's ~server_timeout (a repeat restores the state first).
     Services called: repeat (aft_msgs/Repeat): remap to TR Before's ~repeat.
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``.
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``;
@@ -308,6 +316,8 @@ class TrAfterNode(AfterNode):
                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
         self.failed = None   # why this replica fail-stopped (TR Before out of reach): nothing more answered
         self.repeat = PersistentService('repeat', Repeat)
+        self.repeat_timeout = param('repeat_timeout', config.positive_float, 12.0)
+        self._repeat_deadline = Deadline('repeat')
         self.voted = RecentKeys()   # (origin, id, attempt) of the votes ended: a result heard later is refused
         self.masked = 0
 
@@ -327,10 +337,13 @@ class TrAfterNode(AfterNode):
 
     def _tell_before(self, reply, action):
         try:
-            result = self.repeat(origin=reply.origin, id=reply.id, action=action)
+            result = self._repeat_deadline.call(self.repeat, self.repeat_timeout, origin=reply.origin, id=reply.id,
+                                                action=action)
             return result.success, result.message
-        except (rospy.ServiceException, rospy.ROSException) as e:
+        except (rospy.ServiceException, rospy.ROSException, CallTimeout) as e:
             self.repeat = self.repeat.fresh()
+            if isinstance(e, CallTimeout):
+                e = '%s %.3f s (it hangs)' % (NO_ANSWER, self.repeat_timeout)
             if self.site:   # this replica's TR is broken: its peer executes the request
                 self.failed = 'TR Before (%s) out of reach: %s' % (rospy.resolve_name('repeat'), e)
                 fail_stop(self.ports, self.site, self.failed, mechanism='tr')
@@ -365,7 +378,8 @@ class TrAfterNode(AfterNode):
             # changed" (a retry would apply it twice); the saved state and the votes are let go.
             self.voter.forget(voting)
             self.voted.add(voting)
-            self._tell_before(reply, Repeat._request_class.FORGET)
+            if not why.startswith(NO_ANSWER):   # (a hung Before is not asked again: another timeout)
+                self._tell_before(reply, Repeat._request_class.FORGET)
             detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
                       'not confirm' % (reply.origin, reply.id, why))
             alarm(self.ports, 'tr', 'restore_failed', detail, reply)
