@@ -51,7 +51,11 @@ def test_defaults_are_filled_in():
      'a board_hang of board_b needs the pbr mechanism'),
     ('faults: [{kind: board_hang, at: 1}]\n', 'missing key board'),
     ('faults: [{kind: board_hang, board: board_a, at: 4, until: 2}]\n', 'until 2 must come after at 4'),
-    ('faults: [{kind: board_hang, board: board_a, at: 4, node: x}]\n', 'unknown key node'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, node: x}]\n', 'node must be one of controller_pid, cycle_after'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, proc: x}]\n', 'unknown key proc'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, until: 5, pause: 1}]\n', 'give until or pause, not both'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, pause: 0}]\n', 'pause must be > 0'),
+    ('faults: [{kind: board_hang, board: board_a, at: 4, pause: [2, 1]}]\n', 'pause: low 2 is after high 1'),
     ('events: [{kind: parade, at: 1}]\n', 'kind must be pedestrian or adapt'),
     ('events: [{kind: pedestrian, at: 5, leaves: 3}]\n', 'leaves 3 must come after at 5'),
     ('events: [{kind: adapt, script: laser_vote}]\n', 'either at a time .* not neither'),
@@ -82,6 +86,15 @@ def test_a_random_fault_time_comes_from_the_seed():
     text = BASE + 'seed: %d\nfaults: [{kind: power_loss, board: primary, at: [5, 15]}]\n'
     times = [scenarios.parse(text % seed)['faults'][0]['at'] for seed in (1, 1, 2)]
     assert times[0] == times[1] != times[2] and all(5 <= t <= 15 for t in times)
+
+
+def test_a_hang_s_pause_is_drawn_from_the_seed_and_resumes_it_that_long_after():
+    text = BASE + 'seed: %d\nfaults: [{kind: board_hang, board: backup, node: cycle_after, at: [5, 15], pause: [0.1, 0.3]}]\n'
+    faults = [scenarios.parse(text % seed)['faults'][0] for seed in (1, 1, 2)]
+    pauses = [f['until'] - f['at'] for f in faults]
+    assert faults[0] == faults[1] != faults[2] and all(0.1 <= p <= 0.3 for p in pauses)
+    assert 'pause' not in faults[0] and (faults[0]['board'], faults[0]['node']) == ('board_b', 'cycle_after')
+    assert parse('faults: [{kind: board_hang, board: primary, at: 4}]\n')['faults'][0]['node'] == 'controller_pid'
 
 
 def test_a_board_lost_and_brought_back_is_named_by_its_board_and_may_fail_again_once_back():

@@ -15,8 +15,9 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   a backup: it re-joins the primary) name a ``board``, board_a or board_b (or ``primary`` and
   ``backup``, the boards' roles at the start: board_a and board_b); a board's power losses and
   returns alternate, a power loss first; ``board_hang`` (a ``board``, and an ``until`` if the node
-  resumes) stops that board's controllerPid without killing it (SIGSTOP, then SIGCONT): its
-  board, and its crash detector, live on;
+  resumes, or a ``pause``: resumed that long after, a number or [low, high]) stops that board's
+  controllerPid (or the ``node`` of :data:`BOARD_NODES` named) without killing it (SIGSTOP, then
+  SIGCONT): its board, and its crash detector, live on;
   ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
   (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`; ``intrusion`` takes nothing more:
   an intruder on the car's network (aft_ftm's ``intruder``, once in clear and, under TLS, once with
@@ -55,6 +56,7 @@ SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
 BOARDS = {'board_a': 'board_a', 'board_b': 'board_b', 'primary': 'board_a', 'backup': 'board_b'}
 PROCESS_FAULTS = ('power_loss', 'board_back', 'board_hang', 'simulator_crash', 'master_crash', 'node_crash',
                   'node_hang', 'intrusion')
+BOARD_NODES = ('controller_pid', 'cycle_after')   # what a board_hang may stop
 MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {
@@ -112,7 +114,7 @@ def _fault(where, item, duration, rng):
         raise ScenarioError('%s: kind must be one of %s, got %r' % (where, ', '.join(extra), kind))
     sensor = kind in VALUE_KINDS or kind == 'crash'
     required = ['kind', 'at'] + extra[kind] + (['sensor'] if sensor else []) + (['until'] if kind in VALUE_KINDS else [])
-    _keys(where, item, required, {'spikes': ['direction'], 'board_hang': ['until']}.get(kind, []))
+    _keys(where, item, required, {'spikes': ['direction'], 'board_hang': ['until', 'pause', 'node']}.get(kind, []))
     if item.get('direction', 'both') not in ('both', 'up', 'down'):
         raise ScenarioError('%s: direction must be both, up or down, got %r' % (where, item['direction']))
     fault = dict(item, at=_time(where + '.at', item['at'], duration, rng))
@@ -120,6 +122,14 @@ def _fault(where, item, duration, rng):
         raise ScenarioError('%s: sensor must be one of %s, got %r' % (where, ', '.join(SENSORS), item['sensor']))
     if kind == 'false_detection' and item['sensor'] != 'ultrasonic':
         raise ScenarioError('%s: a false detection is a fault of the ultrasonic sensor, not %s' % (where, item['sensor']))
+    if 'pause' in item:   # board_hang: resumed this long after (a number, or [low, high] drawn from the seed)
+        if 'until' in item:
+            raise ScenarioError('%s: give until or pause, not both' % where)
+        pause = _time(where + '.pause', item['pause'], duration, rng)
+        if not pause > 0:
+            raise ScenarioError('%s.pause must be > 0, got %r' % (where, item['pause']))
+        del fault['pause']
+        fault['until'] = min(duration, fault['at'] + pause)
     if 'until' in item:
         fault['until'] = _number(where + '.until', item['until'], 0, duration)
         if fault['until'] <= fault['at']:
@@ -138,6 +148,10 @@ def _fault(where, item, duration, rng):
         if not isinstance(item['board'], str) or item['board'] not in BOARDS:
             raise ScenarioError('%s: board must be one of %s, got %r' % (where, ', '.join(BOARDS), item['board']))
         fault['board'] = BOARDS[item['board']]
+    if kind == 'board_hang':
+        fault['node'] = item.get('node', 'controller_pid')
+        if fault['node'] not in BOARD_NODES:
+            raise ScenarioError('%s: node must be one of %s, got %r' % (where, ', '.join(BOARD_NODES), fault['node']))
     return fault
 
 

@@ -31,6 +31,7 @@ import rospy
 import roslib.message
 from aft_msgs.msg import Alarm, Checkpoint, CheckpointAck, CycleEnd, Join
 from aft_msgs.srv import SetRole, SetRoleResponse, SetState
+from std_msgs.msg import Empty
 
 from .. import config, health
 from ..checkpoint import Decision
@@ -98,6 +99,10 @@ class CycleAfterNode(object):
         acks (aft_msgs/CheckpointAck), port ``acks``
         join (aft_msgs/Join), port ``join``: this backup asking to join, while it holds no state
         fail_stop (aft_msgs/Failure), port ``fail_stop``: to the site's crash detector (a hung node)
+        alive (std_msgs/Empty), port ``alive``: a sign of life every tick of the watch (a tenth of
+            ~cycle_timeout, at most 1 s), sent once the tick has taken and left the After's lock: the
+            site's crash detector (``~alive_timeout``) fail-stops the site when it stops, so that an
+            After that hangs (stopped, or deadlocked on its lock) is failed over like a hung node
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
             goes on alone), ``backup_invalid`` (a backup no longer mirrors its primary), ``node_hung``
             and ``fail_stop``
@@ -138,6 +143,7 @@ class CycleAfterNode(object):
                             PortSpec('join', PUBLISH, 'aft_msgs/Join'),
                             PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
                             PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
+                            PortSpec('alive', PUBLISH, 'std_msgs/Empty'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'raw': self._on_output, 'cycle_end': self._on_cycle_end,
                             'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack,
@@ -147,8 +153,8 @@ class CycleAfterNode(object):
         self.diagnostics = None
 
     def setup(self, timeout):
-        for name in ('out', 'checkpoints', 'acks', 'join', 'fail_stop', 'alarms', 'peer_checkpoints', 'peer_acks',
-                     'join_requests', 'raw', 'cycle_end'):
+        for name in ('out', 'checkpoints', 'acks', 'join', 'fail_stop', 'alive', 'alarms', 'peer_checkpoints',
+                     'peer_acks', 'join_requests', 'raw', 'cycle_end'):
             self.ports.bind(name)
         role = self.replica.role
         if role == Role.BACKUP:
@@ -234,6 +240,7 @@ class CycleAfterNode(object):
                 ask, more = self.replica.check(time.monotonic())
                 notes += more
                 last_seq = self.replica.receiver.last_seq if ask else 0
+            self.ports.publish('alive', Empty())   # the lock was taken and left: this After works
             self._report(notes)
             if stop:
                 fail_stop(self.ports, self.site, '%s: %s' % (self.name, stop))

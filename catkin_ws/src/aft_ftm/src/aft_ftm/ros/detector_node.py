@@ -65,6 +65,11 @@ class CrashDetectorNode(object):
             an adaptation marked it retired first (aft_ftm.site_watch.mark_retired); only those of this
             node's name space, and only with ~watch_required. Without it, a crashed stage of an
             adaptable site left requests waiting for the Protocol's timeouts.
+        ~alive_timeout (float, default 0 = off): once a sign of life was heard on ``alive`` (the
+            pub/sub After's, aft_ftm.ros.cycle_nodes), none for this long (s, wall clock; this
+            detector's own stalls excused, as in its peer's verdict) fail-stops this site: the node
+            that gives them hangs (stopped, deadlocked), and a death is seen by ~watch_required. A
+            backup site fail-stopped so stays silent until it is started again.
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``; when this site fail-stops, one last one
             whose ``stopping`` says why, so that the peer declares it failed at once
@@ -77,6 +82,7 @@ class CrashDetectorNode(object):
             peer failed at the next check (it announced its fail-stop)
         fail_stop (aft_msgs/Failure), port ``fail_stop``: a node of this site cannot serve correctly any
             more: the heartbeats stop for good, so that the peer fences this site and takes over.
+        alive (std_msgs/Empty), port ``alive``, with ~alive_timeout: a node of this site still works.
     Services:
         ~rebind (aft_msgs/Rebind)
         ~peer_status (aft_msgs/PeerStatus): may the peer take over now (heard within ~timeout, not
@@ -124,6 +130,10 @@ class CrashDetectorNode(object):
                     rospy.resolve_name('~phi_min_samples'), self.phi['min_samples'],
                     rospy.resolve_name('~phi_window'), self.phi['window']))
         self.monitor = self._new_monitor(time.monotonic())
+        alive_timeout = param('alive_timeout', config.non_negative_float, 0.0)
+        # (a fixed timeout: the signs of life come from this site's own host, never over a slow link)
+        self.alive = HeartbeatMonitor(alive_timeout, 0.0, time.monotonic(), stall_after=self.period) \
+            if alive_timeout else None
         self.watched_since = 0   # the witness's epoch that made this detector watch its peer afresh (0: at start)
         self.lock = threading.Lock()
         self.beat_lock = threading.Lock()   # one heartbeat at a time: none after the last (stopping) one
@@ -132,8 +142,10 @@ class CrashDetectorNode(object):
                             PortSpec('failures', PUBLISH, 'aft_msgs/Failure'),
                             PortSpec('peer_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
                             PortSpec('fail_stop', SUBSCRIBE, 'aft_msgs/Failure'),
+                            PortSpec('alive', SUBSCRIBE, 'std_msgs/Empty'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
-                           {'peer_heartbeat': self._on_heartbeat, 'fail_stop': self._on_fail_stop}, queue_size=10)
+                           {'peer_heartbeat': self._on_heartbeat, 'fail_stop': self._on_fail_stop,
+                            'alive': self._on_alive}, queue_size=10)
         self.seq = 0
         self.stopped = None        # why this site fail-stopped: no heartbeat is sent any more
         self.peer_back_told = False
@@ -158,7 +170,7 @@ class CrashDetectorNode(object):
         except OSError as e:
             rospy.logwarn('%s: cannot set niceness %d (%s): heartbeats may be late under load',
                           rospy.get_name(), self.niceness, e)
-        for name in ('heartbeat', 'failures', 'peer_heartbeat', 'fail_stop'):
+        for name in ('heartbeat', 'failures', 'peer_heartbeat', 'fail_stop') + (('alive',) if self.alive else ()):
             self.ports.bind(name)
         self.ports.bind('alarms', '/aft/alarms')
         self.ports.advertise_service()
@@ -352,6 +364,21 @@ class CrashDetectorNode(object):
                                   e)
             alarm(self.ports, 'pbr', 'fail_stop', 'site %s stops heartbeating: %s' % (self.site, failure.reason))
 
+    def _on_alive(self, _msg):
+        with self.lock:
+            self.alive.beat(time.monotonic())
+
+    def _check_alive(self, now):
+        """Fail-stop this site if the node giving signs of life on ``alive`` stopped giving them."""
+        with self.lock:
+            verdict = self.alive.check(now)
+        if verdict is not None and self.stopped is None:
+            reason = ('no sign of life on %s: %s; the node that gives them hangs (stopped or deadlocked), this site '
+                      'fail-stops' % (self.ports.topic('alive'), verdict.reason.replace('heartbeat', 'sign of life')))
+            rospy.logerr('%s: %s', rospy.get_name(), reason)
+            self._on_fail_stop(Failure(site=self.site, host=self.host, pid=self.site_pid, reason=reason,
+                                       silence=verdict.silence, detected=rospy.Time.now()))
+
     def _on_configuration(self, conf):
         """The peer is in the witness's configuration again (it re-joined): watch it afresh."""
         if self.peer not in (conf.primary, conf.backup):
@@ -394,6 +421,8 @@ class CrashDetectorNode(object):
                                 return   # the node is going down: its topics are closed
                             raise
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
+            if self.alive is not None:
+                self._check_alive(now)
             with self.lock:
                 verdict = self.monitor.check(now)
             if verdict is not None and self.stopped is None:   # a fail-stopped site takes nothing over

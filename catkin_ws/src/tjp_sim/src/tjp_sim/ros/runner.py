@@ -49,6 +49,7 @@ RECORDER = '/tjp_record'
 HAZARD_MARGIN_S = 1.0   # road time a control experiment runs on after its hazard has shown
 RUNNER = '/tjp_scenario_runner'
 ADAPT_GRACE = 8.0   # s of wall time an adaptation is given to report before the run ends
+AFTER_TIMEOUT = 0.5   # road time (s) a board's After may give no sign of life before its board fail-stops
 
 
 class RunError(Exception):
@@ -218,7 +219,9 @@ class ScenarioRun(object):
         if not self.pbr:
             return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'pbr:=false']
         peer = 'board_b' if board == 'board_a' else 'board_a'
-        return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'peer:=%s' % peer, 'role:=%s' % role]
+        # The After's signs of life are judged on the wall clock: 0.5 s of road time, as cycle_timeout.
+        return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'peer:=%s' % peer, 'role:=%s' % role,
+                'after_timeout:=%g' % (AFTER_TIMEOUT / self.scenario['rate'])]
 
     @staticmethod
     def _answers(master):
@@ -347,14 +350,15 @@ class ScenarioRun(object):
             self._site(board, self._board_argv(board, 'backup'))
             self.log('    board %s started again (as a backup)' % board)
         elif kind == 'board_hang':
-            # controllerPid stops without exiting: its board, crash detector and After live on.
-            board = item['board']
-            procs = self._board_nodes(board, 'controller_pid')
-            self.event('fault', fault='board_hang', target=board, processes=len(procs), until=item.get('until'))
+            # controllerPid (or the board's After) stops without exiting: the rest of its board lives on.
+            board, node = item['board'], item.get('node', 'controller_pid')
+            procs = self._board_nodes(board, node)
+            self.event('fault', fault='board_hang', target=board, node=node, processes=len(procs),
+                       until=item.get('until'))
             for proc in procs:
                 proc.send_signal(signal.SIGSTOP)
             if item.get('until') is not None:
-                thread = threading.Thread(target=self._resume, args=(procs, item['until']), daemon=True)
+                thread = threading.Thread(target=self._resume, args=(procs, item['until'], node), daemon=True)
                 self.threads.append(thread)
                 thread.start()
         elif kind == 'simulator_crash':
@@ -402,7 +406,7 @@ class ScenarioRun(object):
                 pass
         return found
 
-    def _resume(self, procs, until):
+    def _resume(self, procs, until, node):
         """SIGCONT to ``procs`` once the simulated time reaches ``until``, or the run ended first (its clock
         stopped short of it, the simulator crashed): a node is never left stopped."""
         while rospy.get_time() < until and not self.finished.wait(0.005) and not rospy.is_shutdown():
@@ -414,7 +418,7 @@ class ScenarioRun(object):
                 alive.append(proc.pid)
             except psutil.Error:   # fenced meanwhile: killed
                 pass
-        self.event('fault', fault='board_resumed', target='controller_pid', resumed=len(alive))
+        self.event('fault', fault='board_resumed', target=node, resumed=len(alive))
 
     def _intrude(self):
         """The intruder (aft_ftm's ``intruder``) in clear, and under TLS with the certificate of
