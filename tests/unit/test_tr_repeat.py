@@ -56,11 +56,11 @@ def wired(monkeypatch):
     monkeypatch.setattr(tr, 'alarm', lambda ports, mechanism, kind, detail, request=None: alarms.append(kind))
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
-    before.__dict__.update(server_timeout=1.0, site='', get_state=server.get_state, set_state=server.set_state,
+    before.__dict__.update(server_timeout=1.0, site='', name='/before', get_state=server.get_state, set_state=server.set_state,
                            held={}, executed=RecentKeys(), copies=0, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
-    after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), site='', failed=None, masked=0, ports=Ports(),
+    after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),
                           name='/after', repeat_timeout=5.0, _repeat_deadline=Deadline('repeat'))
     after.repeat = lambda **kw: before._on_repeat(Repeat._request_class(**kw))
 
@@ -135,10 +135,12 @@ def test_a_second_copy_of_a_request_is_never_executed_again(wired, seed):
     assert before.held == {} and after.voter.pending() == 0, 'seed %d' % seed
 
 
-def test_a_request_not_executed_may_be_executed_by_a_later_copy(wired):
-    """A request whose state could not be saved ran nowhere (answered "not executed"): it is not
-    remembered as executed, so a copy of it is not refused."""
-    server, before, _after, call, alarms = wired
+def test_a_copy_of_a_request_answered_not_executed_is_not_executed_either(wired):
+    """A request whose state could not be saved ran nowhere and was answered "not executed" (the
+    Protocol keeps that answer; its client may retry under a new id). A copy of it heard later must
+    not execute it: the client would hold "not executed" for a request the server applied, and its
+    retry would apply it twice (review of session 38: the first version let the copy run)."""
+    server, before, _after, _call, alarms = wired
 
     class Refused(object):   # the server's state manager fails (its server died)
         def __call__(self):
@@ -151,8 +153,9 @@ def test_a_request_not_executed_may_be_executed_by_a_later_copy(wired):
     before.get_state = Refused()
     assert before.handle(Request(id=5, origin='/proxy')) is None
     assert errors == [('errors', Reply.ERROR)] and server.balance == 100
-    before.get_state, before.ports = server.get_state, Ports()
-    assert call(5).status == Reply.OK and server.balance == 90 and 'duplicate_request' not in alarms
+    before.get_state, before.ports = server.get_state, Ports()   # the server is back; a copy comes
+    assert before.handle(Request(id=5, origin='/proxy')) is None
+    assert not before.ports.out and server.balance == 100 and alarms == ['duplicate_request']
 
 
 class HungBefore(object):
@@ -203,3 +206,15 @@ def test_a_hung_before_in_a_replica_fail_stops_it(wired, monkeypatch):
     hung.go.set()
     assert not ok and why.startswith(tr.FAIL_STOPPED) and 'no answer within 0.200 s' in why
     assert len(stops) == 1 and after.failed
+
+
+def test_another_attempt_of_a_request_executes_even_if_an_earlier_attempt_s_vote_never_ended(wired):
+    """An outer mechanism executing a request again numbers the execution (attempt): it is not a copy.
+    An earlier attempt's saved state left behind (its After restarted mid-vote) does not refuse it
+    (review of session 38: the first version refused every attempt of a held (origin, id))."""
+    server, before, _after, _call, alarms = wired
+    server.corrupt_next = False
+    assert before.handle(Request(id=9, origin='/proxy', attempt=0)) is not None   # its vote never ends
+    again = before.handle(Request(id=9, origin='/proxy', attempt=1))
+    assert again is not None and again.attempt == 1 * tr.SPAN and alarms == []
+    assert before.handle(Request(id=9, origin='/proxy', attempt=1)) is None and alarms == ['duplicate_request']

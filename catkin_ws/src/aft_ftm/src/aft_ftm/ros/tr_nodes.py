@@ -63,8 +63,8 @@ class TrBeforeNode(BeforeNode):
     anyone on the graph). In the middle of its vote it would have saved the state again, over the one
     saved before the first execution, and a repeat would restore a state holding that execution (the
     request applied twice); after its vote it would have run again. Before remembers the last 65 536
-    requests it executed and refuses a second copy with the alarm ``duplicate_request``: the first
-    copy's vote answers it.
+    requests it executed or answered and refuses a second copy with the alarm ``duplicate_request``
+    (the Protocol sends each request once: its first copy's outcome is the one its client gets).
 
     Parameters:
         ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
@@ -163,23 +163,21 @@ class TrBeforeNode(BeforeNode):
             return None   # fail-stopped: the next primary executes it
         once = (request.origin, request.id, request.attempt)
         with self.lock:
-            # Reserved here, before the state is saved: two copies heard at once do not both pass.
-            copy = (request.origin, request.id) in self.held or not self.executed.add(once)
+            # Taken here, before the state is saved: two copies heard at once do not both pass. Kept
+            # whatever follows: a copy of a request answered "not executed" must not execute it (its
+            # client was told it did not happen: a retry under a new id would apply it twice).
+            copy = not self.executed.add(once)
             if copy:
                 self.copies += 1
                 copies = self.copies
+            elif (request.origin, request.id) in self.held:   # another attempt's vote never ended
+                rospy.logwarn('%s: %s/%d attempt %d replaces the saved state of an earlier attempt whose vote never '
+                              'ended', self.name, request.origin, request.id, request.attempt)
         if copy:
-            alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed by this Before '
-                  'already; a second copy is not executed (%d refused so far)' % (once + (copies,)), request)
+            alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed (or answered) by this '
+                  'Before already; a second copy is not executed (%d refused so far)' % (once + (copies,)), request)
             return None
-        executes = None
-        try:
-            executes = self._capture(request)
-        finally:
-            if executes is None:
-                with self.lock:
-                    self.executed.discard(once)   # nothing ran: a copy may execute it
-        return executes
+        return self._capture(request)
 
     def _capture(self, request):
         """Save the state before request and return its first execution, or None (not executed:
@@ -318,7 +316,8 @@ class TrAfterNode(AfterNode):
         self.repeat = PersistentService('repeat', Repeat)
         self.repeat_timeout = param('repeat_timeout', config.positive_float, 12.0)
         self._repeat_deadline = Deadline('repeat')
-        self.voted = RecentKeys()   # (origin, id, attempt) of the votes ended: a result heard later is refused
+        self.voted = RecentKeys()
+        self.vote_lock = threading.Lock()   # the vote's records, for results heard on several threads   # (origin, id, attempt) of the votes ended: a result heard later is refused
         self.masked = 0
 
     def setup(self, timeout):
@@ -356,19 +355,22 @@ class TrAfterNode(AfterNode):
         execution = reply.attempt % SPAN
         reply.attempt //= SPAN   # back to the attempt the request came with
         voting = (reply.origin, reply.id, reply.attempt)
-        if voting in self.voted:
+        with self.vote_lock:   # (copies heard on two connections come on two threads)
+            ended = voting in self.voted
+            vote = None if ended else self.voter.add(voting, (reply.status, reply.error, bytes(reply.payload)),
+                                                     execution)
+            if vote is not None and vote.outcome != Outcome.REPEAT:
+                self.voted.add(voting)
+        if ended:
             # A copy of a result heard after its vote ended: as a vote of its own it would ask Before to
             # execute again a request Before no longer holds (a false restore_failed), and answer twice.
             rospy.logwarn('%s: execution %d of %s/%d heard after its vote ended: ignored', self.name, execution,
                           reply.origin, reply.id)
             return None
-        vote = self.voter.add(voting, (reply.status, reply.error, bytes(reply.payload)), execution)
         if vote is None:
             rospy.logwarn('%s: execution %d of %s/%d heard twice: counted once' % (self.name, execution, reply.origin,
                                                                                 reply.id))
             return None
-        if vote.outcome != Outcome.REPEAT:
-            self.voted.add(voting)
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
             if ok or why.startswith(FAIL_STOPPED):   # fail-stopped: the peer answers it
@@ -376,8 +378,9 @@ class TrAfterNode(AfterNode):
             # Not executed again, and the state saved before the request not (or not surely) set back:
             # the server holds an execution the vote never confirmed. Never told as "failed, nothing
             # changed" (a retry would apply it twice); the saved state and the votes are let go.
-            self.voter.forget(voting)
-            self.voted.add(voting)
+            with self.vote_lock:
+                self.voter.forget(voting)
+                self.voted.add(voting)
             if not why.startswith(NO_ANSWER):   # (a hung Before is not asked again: another timeout)
                 self._tell_before(reply, Repeat._request_class.FORGET)
             detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
