@@ -481,3 +481,43 @@ def test_a_cycle_end_stamped_0_is_no_time_to_count_a_hang_from():
     assert primary.check_node(30.0, 5.2) == (None, [])
     last, _ = cycling(primary, 32.0, start=31.0, backup=backup)
     assert primary.check_node(last + 0.6, last + 0.6)[0]
+
+
+# -- session 38: a hung After, told by its crash detector ----------------------------------------
+def test_only_a_primary_whose_backup_is_ready_says_a_backup_could_take_over_from_it():
+    """Its signs of life say it (``alive``): its crash detector fail-stops the board on their silence
+    only then. A backup, a primary alone or with an unacknowledged checkpoint is not replaceable: a
+    hung After there is alarmed, and it serves again once it resumes."""
+    primary, backup = pair()
+    assert primary.replaceable() and not backup.replaceable()
+    out, _ = primary.cycle_end(b'unacknowledged', now=1.0)
+    assert not primary.replaceable()
+    primary.on_ack(out.seq, True, '', A)
+    assert primary.replaceable()
+    primary.set_role(Role.ALONE, first_seq=0)
+    assert not primary.replaceable() and not replica(A, Role.ALONE).replaceable()
+
+
+def test_a_backup_whose_site_fail_stopped_refuses_checkpoints_and_never_asks_to_join():
+    """Its board's crash detector fail-stopped the board (its After gave no sign of life, say) and
+    beats no more: the watchdog will never promote it. Before, its After, resumed, went on
+    acknowledging, and the primary counted on a backup that could not take over. Now the primary
+    hears a refusal at its next checkpoint and goes on alone, said."""
+    primary, backup = pair()
+    notes = backup.site_stopped('no sign of life on /board_b/after_alive: it hangs')
+    assert alarms(notes) == ['site_stopped'] and backup.site_stopped('again') == []   # said once
+    out, _ = primary.cycle_end(b's1', now=1.0)
+    ok, _ = deliver(backup, out, A, now=1.0)
+    assert not ok and backup.on_checkpoint(out.seq, A, out.first_seq, True)[0] == Decision.FENCED
+    assert alarms(primary.on_ack(out.seq, ok, 'site fail-stopped', A)) == ['backup_lost']
+    assert not primary.replaceable()
+    assert not any(backup.check(t)[0] for t in (2.0, 5.0, 60.0))   # never asks to join again
+    assert 'fail-stopped' in backup.refusal(out.seq)
+    assert not backup.passes_outputs()
+
+
+def test_a_primary_whose_site_fail_stopped_passes_nothing_on_and_takes_no_joiner():
+    primary, _backup = pair()
+    primary.site_stopped('the After hung')
+    assert not primary.passes_outputs() and primary.cycle_end(b'late', now=2.0) == (None, [])
+    assert [n.kind for n in primary.on_join(B)] == ['join_ignored'] and primary.joiner is None

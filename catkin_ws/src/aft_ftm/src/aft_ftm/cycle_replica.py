@@ -171,6 +171,18 @@ class CycleReplica(object):
             role, 'this backup holds no state and cannot take over')
         return None, [Note('node_hung', '%s: %s; %s' % (self.name, what, why), alarm=True)]
 
+    def site_stopped(self, reason):
+        """This replica's site fail-stopped (its crash detector's last heartbeat says why: this After
+        hung past the detector's ~alive_timeout, say). Nothing more is passed on, asked or taken: a
+        backup's next checkpoints are refused (its primary goes on alone at once), and it never asks to
+        join again. Before, a backup After resumed after its board fell silent for good re-joined, and
+        its primary counted on a backup the watchdog would never promote. Returns notes."""
+        if self.stopped is not None:
+            return []
+        self.stopped = 'its site fail-stopped: %s' % reason
+        return [Note('site_stopped', '%s: %s; it passes nothing on, refuses checkpoints and does not join until '
+                     'its site is started again' % (self.name, self.stopped), alarm=True)]
+
     # -- every replica ---------------------------------------------------------------------------
     def cycle_end(self, state, now):
         """The node ended a cycle with ``state`` (bytes). Returns (the Outgoing checkpoint or None, notes)."""
@@ -201,7 +213,7 @@ class CycleReplica(object):
             return False, []
         # (A backup whose node hangs does not ask: it could not take the state transfer.)
         if self.receiver.role == Role.BACKUP and self.receiver.state == Follow.JOINING and not self.node_hung and \
-                (self.last_ask is None or now - self.last_ask >= self.join_period):
+                self.stopped is None and (self.last_ask is None or now - self.last_ask >= self.join_period):
             self.last_ask = now
             return True, []
         return False, []
@@ -226,6 +238,8 @@ class CycleReplica(object):
         """A backup After asks for a state transfer. Returns notes."""
         if self.sender is None:
             return [Note('join_ignored', '%s asks to join, but %s is a backup' % (after, self.name))]
+        if self.stopped is not None:
+            return [Note('join_ignored', '%s asks to join, but %s fail-stopped' % (after, self.name))]
         if self.sender.join_seq is not None and self.sender.joiner == after:
             return []   # its state transfer is on its way
         self.joiner = after
@@ -251,7 +265,7 @@ class CycleReplica(object):
     def on_checkpoint(self, seq, sender, first_seq, full):
         """A checkpoint arrived. Returns (Decision, notes). On APPLY and APPLY_FULL the caller sets the
         state into its node, then calls :meth:`applied`."""
-        if self.receiver is None:
+        if self.receiver is None or self.stopped is not None:
             return Decision.FENCED, []
         decision = self.receiver.decide(seq, sender, first_seq, full=full)
         if decision == Decision.GAP:
@@ -280,6 +294,12 @@ class CycleReplica(object):
             return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]
         return []
 
+    def replaceable(self):
+        """Whether a backup could take over from this replica now: a PRIMARY whose backup is ready
+        (:meth:`_backup_ready`), not fail-stopped."""
+        return self.stopped is None and self.sender is not None and self.sender.role == Role.PRIMARY and \
+            self._backup_ready()
+
     def _backup_ready(self):
         """A primary's backup can take over: admitted, no state transfer under way or asked for, and every
         checkpoint acknowledged (a backup that lost power leaves the last one unacknowledged; a joiner
@@ -293,6 +313,8 @@ class CycleReplica(object):
         while its cycle is stuck); one decided before this backup last stopped mirroring its primary (its
         node hung in the set_state call, and the hang watch invalidated it meanwhile) holds an old state
         (review of session 37)."""
+        if self.stopped is not None:
+            return self.stopped
         if self.node_hung:
             return 'its node hangs: this backup could not take over'
         if self.applying.get(seq, self.follow_round) != self.follow_round:

@@ -31,7 +31,7 @@ import rospy
 import roslib.message
 from aft_msgs.msg import Alarm, Checkpoint, CheckpointAck, CycleEnd, Join
 from aft_msgs.srv import SetRole, SetRoleResponse, SetState
-from std_msgs.msg import Empty
+from std_msgs.msg import Bool
 
 from .. import config, health
 from ..checkpoint import Decision
@@ -93,15 +93,20 @@ class CycleAfterNode(object):
         peer_checkpoints (aft_msgs/Checkpoint), port ``peer_checkpoints``: the primary's checkpoints
         peer_acks (aft_msgs/CheckpointAck), port ``peer_acks``: the backup's acknowledgments
         join_requests (aft_msgs/Join), port ``join_requests``: the peer backup asking to join
+        site_heartbeat (aft_msgs/Heartbeat), port ``site_heartbeat``: this site's own heartbeats (its
+            crash detector's): the last one, saying the site fail-stops (``stopping``, ``site`` equal
+            to ~site), stops this After for good (aft_ftm.cycle_replica.CycleReplica.site_stopped)
     Publishes:
         out (~msg_type), port ``out``: the replicated node's outputs, for the rest of the system
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
         acks (aft_msgs/CheckpointAck), port ``acks``
         join (aft_msgs/Join), port ``join``: this backup asking to join, while it holds no state
         fail_stop (aft_msgs/Failure), port ``fail_stop``: to the site's crash detector (a hung node)
-        alive (std_msgs/Empty), port ``alive``: a sign of life every tick of the watch (a tenth of
-            ~cycle_timeout, at most 1 s), sent once the tick has taken and left the After's lock: the
-            site's crash detector (``~alive_timeout``) fail-stops the site when it stops, so that an
+        alive (std_msgs/Bool), port ``alive``: a sign of life every tick of the watch (a tenth of
+            ~cycle_timeout, at most 1 s, and 0.125 s at most with the defaults), sent once the tick has
+            taken and left the After's lock; ``data``: whether a backup could take over now (a primary
+            whose backup is admitted and acknowledged every checkpoint). The site's crash detector
+            (``~alive_timeout``) fail-stops the site when they stop after one that said so, so that an
             After that hangs (stopped, or deadlocked on its lock) is failed over like a hung node
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
             goes on alone), ``backup_invalid`` (a backup no longer mirrors its primary), ``node_hung``
@@ -143,18 +148,19 @@ class CycleAfterNode(object):
                             PortSpec('join', PUBLISH, 'aft_msgs/Join'),
                             PortSpec('join_requests', SUBSCRIBE, 'aft_msgs/Join'),
                             PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
-                            PortSpec('alive', PUBLISH, 'std_msgs/Empty'),
+                            PortSpec('alive', PUBLISH, 'std_msgs/Bool'),
+                            PortSpec('site_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'raw': self._on_output, 'cycle_end': self._on_cycle_end,
                             'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack,
-                            'join_requests': self._on_join})
+                            'join_requests': self._on_join, 'site_heartbeat': self._on_site_beat})
         self.ports.suspension(['raw', 'cycle_end'])
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
         self.diagnostics = None
 
     def setup(self, timeout):
         for name in ('out', 'checkpoints', 'acks', 'join', 'fail_stop', 'alive', 'alarms', 'peer_checkpoints',
-                     'peer_acks', 'join_requests', 'raw', 'cycle_end'):
+                     'peer_acks', 'join_requests', 'site_heartbeat', 'raw', 'cycle_end'):
             self.ports.bind(name)
         role = self.replica.role
         if role == Role.BACKUP:
@@ -240,13 +246,22 @@ class CycleAfterNode(object):
                 ask, more = self.replica.check(time.monotonic())
                 notes += more
                 last_seq = self.replica.receiver.last_seq if ask else 0
-            self.ports.publish('alive', Empty())   # the lock was taken and left: this After works
+                replaceable = self.replica.replaceable()
+            self.ports.publish('alive', Bool(data=replaceable))   # the lock was taken and left: this After works
             self._report(notes)
             if stop:
                 fail_stop(self.ports, self.site, '%s: %s' % (self.name, stop))
             if ask:
                 self.ports.publish('join', Join(site=self.site, after=self.name, incarnation=str(self.first_seq),
                                                 last_seq=last_seq, stamp=rospy.Time.now()))
+
+    def _on_site_beat(self, beat):
+        """This site's own heartbeats: its last one, saying the site fail-stops, stops this After."""
+        if not beat.stopping or beat.site != self.site:
+            return
+        with self.lock:
+            notes = self.replica.site_stopped(beat.stopping)
+        self._report(notes)
 
     # -- backup ----------------------------------------------------------------------------------
     def _on_checkpoint(self, cp):

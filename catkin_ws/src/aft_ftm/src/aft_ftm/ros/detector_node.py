@@ -67,9 +67,14 @@ class CrashDetectorNode(object):
             adaptable site left requests waiting for the Protocol's timeouts.
         ~alive_timeout (float, default 0 = off): once a sign of life was heard on ``alive`` (the
             pub/sub After's, aft_ftm.ros.cycle_nodes), none for this long (s, wall clock; this
-            detector's own stalls excused, as in its peer's verdict) fail-stops this site: the node
-            that gives them hangs (stopped, deadlocked), and a death is seen by ~watch_required. A
-            backup site fail-stopped so stays silent until it is started again.
+            detector's own stalls excused, as in its peer's verdict; keep it several of the After's
+            ticks) means the node that gives them hangs (stopped, deadlocked; a death is seen by
+            ~watch_required). If its last sign said a backup could take over, this site fail-stops
+            (its peer is promoted); otherwise (a backup, or a primary alone) the hang is alarmed
+            (``node_hung``), the site beats on, and the node serves again if it resumes.
+        ~alive_from (str, default '' = any): the node whose signs of life count (its caller id);
+            another publisher's are ignored (counted in the diagnostics' log), as a forged one would
+            hide a hang.
     Publishes:
         heartbeat (aft_msgs/Heartbeat), port ``heartbeat``; when this site fail-stops, one last one
             whose ``stopping`` says why, so that the peer declares it failed at once
@@ -82,7 +87,8 @@ class CrashDetectorNode(object):
             peer failed at the next check (it announced its fail-stop)
         fail_stop (aft_msgs/Failure), port ``fail_stop``: a node of this site cannot serve correctly any
             more: the heartbeats stop for good, so that the peer fences this site and takes over.
-        alive (std_msgs/Empty), port ``alive``, with ~alive_timeout: a node of this site still works.
+        alive (std_msgs/Bool), port ``alive``, with ~alive_timeout: a node of this site still works
+            (``data``: a backup could take over from it now).
     Services:
         ~rebind (aft_msgs/Rebind)
         ~peer_status (aft_msgs/PeerStatus): may the peer take over now (heard within ~timeout, not
@@ -130,10 +136,12 @@ class CrashDetectorNode(object):
                     rospy.resolve_name('~phi_min_samples'), self.phi['min_samples'],
                     rospy.resolve_name('~phi_window'), self.phi['window']))
         self.monitor = self._new_monitor(time.monotonic())
-        alive_timeout = param('alive_timeout', config.non_negative_float, 0.0)
+        self.alive_timeout = param('alive_timeout', config.non_negative_float, 0.0)
+        self.alive_from = param('alive_from', config.optional_name, '')
         # (a fixed timeout: the signs of life come from this site's own host, never over a slow link)
-        self.alive = HeartbeatMonitor(alive_timeout, 0.0, time.monotonic(), stall_after=self.period) \
-            if alive_timeout else None
+        self.alive = self._alive_monitor() if self.alive_timeout else None
+        self.alive_replaceable = False   # the last sign of life said a backup could take over
+        self.alive_strangers = 0         # signs of life from another node than ~alive_from: ignored
         self.watched_since = 0   # the witness's epoch that made this detector watch its peer afresh (0: at start)
         self.lock = threading.Lock()
         self.beat_lock = threading.Lock()   # one heartbeat at a time: none after the last (stopping) one
@@ -142,7 +150,7 @@ class CrashDetectorNode(object):
                             PortSpec('failures', PUBLISH, 'aft_msgs/Failure'),
                             PortSpec('peer_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
                             PortSpec('fail_stop', SUBSCRIBE, 'aft_msgs/Failure'),
-                            PortSpec('alive', SUBSCRIBE, 'std_msgs/Empty'),
+                            PortSpec('alive', SUBSCRIBE, 'std_msgs/Bool'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'peer_heartbeat': self._on_heartbeat, 'fail_stop': self._on_fail_stop,
                             'alive': self._on_alive}, queue_size=10)
@@ -364,20 +372,49 @@ class CrashDetectorNode(object):
                                   e)
             alarm(self.ports, 'pbr', 'fail_stop', 'site %s stops heartbeating: %s' % (self.site, failure.reason))
 
-    def _on_alive(self, _msg):
+    def _alive_monitor(self):
+        return HeartbeatMonitor(self.alive_timeout, 0.0, time.monotonic(), stall_after=self.period)
+
+    def _on_alive(self, msg):
+        sender = getattr(msg, '_connection_header', {}).get('callerid', '')
         with self.lock:
-            self.alive.beat(time.monotonic())
+            if self.alive_from and sender != self.alive_from:
+                self.alive_strangers += 1
+                first = self.alive_strangers == 1
+            else:
+                first = None
+                self.alive_replaceable = msg.data
+                if self.alive.beat(time.monotonic()):   # it resumes after a hang alarmed: watched afresh
+                    self.alive = self._alive_monitor()
+                    self.alive.beat(time.monotonic())
+                    resumed = True
+                else:
+                    resumed = False
+        if first:
+            rospy.logwarn('%s: a sign of life on %s from %s, not %s: ignored (it would hide a hang)',
+                          rospy.get_name(), self.ports.topic('alive'), sender or 'an unnamed node', self.alive_from)
+        elif first is None and resumed:
+            alarm(self.ports, 'pbr', 'node_resumed', 'site %s: signs of life on %s again' % (
+                self.site, self.ports.topic('alive')))
 
     def _check_alive(self, now):
-        """Fail-stop this site if the node giving signs of life on ``alive`` stopped giving them."""
+        """Fail-stop this site if the node giving signs of life on ``alive`` stopped giving them and
+        its last one said a backup could take over; else say so."""
         with self.lock:
             verdict = self.alive.check(now)
-        if verdict is not None and self.stopped is None:
-            reason = ('no sign of life on %s: %s; the node that gives them hangs (stopped or deadlocked), this site '
-                      'fail-stops' % (self.ports.topic('alive'), verdict.reason.replace('heartbeat', 'sign of life')))
-            rospy.logerr('%s: %s', rospy.get_name(), reason)
-            self._on_fail_stop(Failure(site=self.site, host=self.host, pid=self.site_pid, reason=reason,
-                                       silence=verdict.silence, detected=rospy.Time.now()))
+            replaceable = self.alive_replaceable
+        if verdict is None or self.stopped is not None:
+            return
+        what = 'no sign of life on %s: %s; the node that gives them hangs (stopped or deadlocked)' % (
+            self.ports.topic('alive'), verdict.reason.replace('heartbeat', 'sign of life'))
+        if not replaceable:
+            alarm(self.ports, 'pbr', 'node_hung', 'site %s: %s; its last sign said no backup could take over: this '
+                  'site beats on, and it serves again if it resumes' % (self.site, what))
+            return
+        reason = '%s; this site fail-stops so that the backup takes over' % what
+        rospy.logerr('%s: %s', rospy.get_name(), reason)
+        self._on_fail_stop(Failure(site=self.site, host=self.host, pid=self.site_pid, reason=reason,
+                                   silence=verdict.silence, detected=rospy.Time.now()))
 
     def _on_configuration(self, conf):
         """The peer is in the witness's configuration again (it re-joined): watch it afresh."""

@@ -219,9 +219,10 @@ class ScenarioRun(object):
         if not self.pbr:
             return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'pbr:=false']
         peer = 'board_b' if board == 'board_a' else 'board_a'
-        # The After's signs of life are judged on the wall clock: 0.5 s of road time, as cycle_timeout.
+        # The After's signs of life are judged on the wall clock: 0.5 s of road time, as cycle_timeout, but
+        # never under five of its ticks (0.05 s of wall clock each, whatever the rate).
         return ['roslaunch', 'tjp_sim', 'board.launch', 'board:=%s' % board, 'peer:=%s' % peer, 'role:=%s' % role,
-                'after_timeout:=%g' % (AFTER_TIMEOUT / self.scenario['rate'])]
+                'after_timeout:=%g' % max(AFTER_TIMEOUT / self.scenario['rate'], 0.25)]
 
     @staticmethod
     def _answers(master):
