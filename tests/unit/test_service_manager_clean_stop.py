@@ -64,3 +64,18 @@ def test_a_clean_stop_holding_nothing_leaves_no_record_and_the_next_start_is_afr
     again = Supervisor(config())
     assert again.restore({}, 0.0) == [] and again.safe_state is None
     assert again['a'].state == State.STOPPED and not again['a'].held_down
+
+
+def test_a_clean_stop_keeps_the_fault_counts_for_the_next_start(tmp_path):
+    """A SIGTERM (rosnode kill, systemctl restart, a service killing its manager) is a clean stop:
+    the record went with it unless something was held, and a service failing at every start got a
+    fresh allowance and no back-off at each (review of session 38). Its counts are kept now."""
+    sup = Supervisor(config())
+    sup['a'].spawned(0.0)
+    sup['a'].heard(0.1, 'ok')
+    sup.fault('a', 'exit', 'status 1', 1.0)
+    node = _node(tmp_path, sup)
+    _stop(node)
+    again = Supervisor(config())
+    assert again.restore(trust.read_private_json(node.record_file), 2.0) == []
+    assert again['a'].errors == {'exit': 1} and len(again['a'].restarts) == 1 and again.safe_state is None

@@ -372,3 +372,38 @@ def test_restarts_recorded_on_a_clock_since_started_again_count_as_now():
     sup.restore({'safe_state': None, 'down': {}, 'counts': {'a': {'errors': {'exit': 1}, 'restarts': [5e6]}}}, 10.0)
     running(sup, 'a', 10.0)
     assert sup.check('a', DEAD, 69.0, GB).escalate and sup['a'].state == State.FAILED
+
+
+def test_a_service_failed_in_the_previous_run_gets_a_fresh_allowance_when_an_operator_starts_it():
+    """Review of session 38: restored as held down (STOPPED) with its restarts, it was not FAILED, so
+    an operator's start kept them, and its first fault failed it again (the safe state, if critical),
+    where one manager would have restarted it."""
+    import json
+    c = config('  a: {command: x, critical: true, restart_limit: 1, restart_window: 60}\n')
+    sup = Supervisor(c)
+    for t in (0.0, 2.0):
+        running(sup, 'a', t)
+        sup.check('a', DEAD, t + 1.0, GB)
+        if sup['a'].state == State.RESTARTING:
+            sup.due(sup.next_due())
+    assert sup['a'].state == State.FAILED and sup.safe_state
+    record = json.loads(json.dumps(sup.record()))
+    for _ in range(2):   # the manager started again twice before an operator comes
+        again = Supervisor(c)
+        assert again.restore(record, 5.0) == ['a']
+        record = json.loads(json.dumps(again.record()))
+    assert again.start('a', 6.0)[0] and not again['a'].restarts
+    assert again.clear_safe_state(6.5)[0] is False   # (a is not running yet)
+    running(again, 'a', 6.0)
+    assert again.clear_safe_state(6.5)[0]
+    assert again.check('a', DEAD, 7.0, GB).escalate is None and again['a'].state == State.RESTARTING
+
+
+def test_counts_beyond_a_float_or_a_fault_run_past_any_delay_are_refused_or_capped():
+    sup = Supervisor(config('  a: {command: x}\n'))
+    for counts in ({'a': {'restarts': [-10 ** 400]}}, {'a': {'consecutive': 10 ** 9}}):
+        with pytest.raises(ServiceConfigError, match='counts'):
+            sup.restore({'counts': counts}, 0.0)
+    slow = Supervisor(config('  a: {command: x, restart_delay: 1, restart_delay_factor: 10, restart_delay_max: 30}\n'))
+    slow['a'].consecutive = 10 ** 6   # (a float overflow raised in fault(), the service stuck in ERROR)
+    assert slow['a'].restart_delay() == 30

@@ -503,6 +503,7 @@ class Service(object):
         self.held_from = None                  # when that hold began
         self.held = 0.0                        # the holds' time so far (s): not counted in restart_window
         self.held_down = False                 # down in a manager's earlier run, kept down until started
+        self.failed_before = False             # FAILED in that run: an operator's start renews its allowance
         self.stamped_here = False              # its last beat is stamped when the manager handled it (ROS)
         self.stall_end = None                  # the end of the manager's last stall since its spawn
 
@@ -582,7 +583,11 @@ class Service(object):
         c = self.config
         if not c['restart_delay'] or self.consecutive < 1:
             return 0.0
-        return min(c['restart_delay_max'], c['restart_delay'] * c['restart_delay_factor'] ** (self.consecutive - 1))
+        try:
+            delay = c['restart_delay'] * c['restart_delay_factor'] ** (self.consecutive - 1)
+        except OverflowError:   # (a long run of faults: the cap long reached)
+            delay = float('inf')
+        return min(c['restart_delay_max'], delay)
 
     def restarts_in_window(self, now):
         clock = self.clock(now)   # the restarts are recorded on this clock
@@ -850,8 +855,11 @@ class Supervisor(object):
         """An operator's start. Returns (accepted, actions, message); refused changes nothing."""
         s = self.services[name]
         if s.state in (State.STOPPED, State.FAILED):
-            if s.state == State.FAILED:
-                s.restarts.clear()   # the operator takes it back: a fresh restart allowance
+            if s.state == State.FAILED or s.failed_before:
+                # the operator takes it back: a fresh restart allowance (also for one FAILED in the
+                # manager's previous run, held down since: its restarts came with the record)
+                s.restarts.clear()
+                s.failed_before = False
             return True, [('spawn', name)], 'starting %s' % name
         if s.state in (State.STARTING, State.RUNNING):
             return False, [], '%s is already %s' % (name, s.state.name.lower())
@@ -891,10 +899,14 @@ class Supervisor(object):
         service, or killed by it, gave a service that fails at every start a fresh allowance and no
         back-off each time: never FAILED, never the safe state (review of session 36). Only what
         changes at a fault is recorded, so the record is written again only then."""
-        down = {n: {'state': s.state.name, 'reason': s.reason} for n, s in self.services.items()
+        down = {n: dict({'state': s.state.name, 'reason': s.reason}, **({'failed': True} if s.failed_before else {}))
+                for n, s in self.services.items()
                 if s.state == State.FAILED or (s.state == State.STOPPED and (s.starts or s.held_down))}
+        # On the system's clock, a restart r of the service's clock was at r + its holds at the latest (a
+        # hold under way counted from its start: the record stays the same while it lasts).
         counts = {n: {'errors': dict(s.errors), 'consecutive': s.consecutive,
-                      'restarts': [r + s.held for r in s.restarts]}   # on the clock, a restart was at r + held at the latest
+                      'restarts': [r + s.held + (0.0 if s.held_from is None else s.spawn_at - s.held_from)
+                                   for r in s.restarts]}
                   for n, s in self.services.items() if s.errors or s.restarts or s.consecutive}
         return {'safe_state': self.safe_state, 'down': down, 'counts': counts}
 
@@ -902,7 +914,7 @@ class Supervisor(object):
     def _check_counts(counts):
         """Raise ServiceConfigError unless counts is what record() writes."""
         def number(v):
-            return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v and abs(v) != float('inf')
+            return isinstance(v, (int, float)) and not isinstance(v, bool) and -1e18 < v < 1e18   # (NaN fails too)
         if not isinstance(counts, dict):
             raise ServiceConfigError('the manager\'s record is malformed: its counts %r are not a mapping' % (counts,))
         for name, entry in counts.items():
@@ -910,7 +922,7 @@ class Supervisor(object):
                 isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0
                 for k, v in entry.get('errors', {}).items()) and isinstance(entry.get('restarts', []), list) and all(
                 number(r) for r in entry.get('restarts', [])) and isinstance(entry.get('consecutive', 0), int) and \
-                not isinstance(entry.get('consecutive', 0), bool) and entry.get('consecutive', 0) >= 0
+                not isinstance(entry.get('consecutive', 0), bool) and 0 <= entry.get('consecutive', 0) <= 10 ** 6
             if not ok:
                 raise ServiceConfigError('the manager\'s record is malformed: counts.%s is %r, not {errors: {kind: '
                                          'count}, consecutive: count, restarts: [times]}' % (name, entry))
@@ -948,6 +960,7 @@ class Supervisor(object):
             s.reason = reason if reason.startswith(HELD_DOWN) else '%s (%s): start it to run it again' % (HELD_DOWN,
                                                                                                           reason)
             s.held_down = True   # recorded again, whatever number of restarts of the manager
+            s.failed_before = entry.get('state') == State.FAILED.name or bool(entry.get('failed'))
             held.append(name)
         reason = record.get('safe_state')
         if reason:

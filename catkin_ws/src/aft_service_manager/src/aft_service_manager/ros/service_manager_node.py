@@ -1223,7 +1223,7 @@ class ServiceManagerNode(object):
             with self.lock:
                 held = self.supervisor.record()
             own = self.own.get(self.record_file)
-            if not held['safe_state'] and not held['down']:
+            if not held['safe_state'] and not held['down'] and not held['counts']:
                 trust.unlink_own(self.record_file, own)
                 return
             if trust.identity(self.record_file) not in (None, own):
@@ -1232,7 +1232,9 @@ class ServiceManagerNode(object):
             rospy.logwarn('%s: stopped cleanly while holding %s: kept in %s for the next start (an operator clears '
                           'it there)', rospy.get_name(), '; '.join(
                               (['the safe state (%s)' % held['safe_state']] if held['safe_state'] else []) +
-                              (['%s down' % ', '.join(sorted(held['down']))] if held['down'] else [])),
+                              (['%s down' % ', '.join(sorted(held['down']))] if held['down'] else []) +
+                              (['the fault counts of %s' % ', '.join(sorted(held['counts']))]
+                               if held['counts'] else [])),
                           self.record_file)
         except Exception as e:   # shutdown paths never raise
             rospy.logerr('%s: the record %s could not be kept at the stop: %s', rospy.get_name(), self.record_file, e)
