@@ -484,18 +484,24 @@ def test_a_cycle_end_stamped_0_is_no_time_to_count_a_hang_from():
 
 
 # -- session 38: a hung After, told by its crash detector ----------------------------------------
-def test_only_a_primary_whose_backup_is_ready_says_a_backup_could_take_over_from_it():
+def test_only_a_primary_whose_backup_is_admitted_and_answers_says_a_backup_could_take_over_from_it():
     """Its signs of life say it (``alive``): its crash detector fail-stops the board on their silence
-    only then. A backup, a primary alone or with an unacknowledged checkpoint is not replaceable: a
-    hung After there is alarmed, and it serves again once it resumes."""
+    only then. A backup, a primary alone, or one whose backup let a checkpoint wait past ack_timeout
+    is not replaceable: a hung After there is alarmed, and it serves again once it resumes. A
+    checkpoint in flight (a round trip at every cycle) does not make it unreplaceable: a sign taken
+    then said no, and a hang right after it was never failed over (review of session 38)."""
     primary, backup = pair()
-    assert primary.replaceable() and not backup.replaceable()
-    out, _ = primary.cycle_end(b'unacknowledged', now=1.0)
-    assert not primary.replaceable()
+    assert primary.replaceable(0.1) and not backup.replaceable(0.1)
+    out, _ = primary.cycle_end(b'in flight', now=1.0)
+    assert primary.replaceable(1.01) and primary.replaceable(1.5)        # (ack_timeout 0.5 s)
+    assert not primary.replaceable(1.51)                                  # its backup may be gone
     primary.on_ack(out.seq, True, '', A)
-    assert primary.replaceable()
+    assert primary.replaceable(1.6)
+    primary.on_join(B)                                                    # a state transfer asked for
+    assert not primary.replaceable(1.6)
+    primary, _ = pair()
     primary.set_role(Role.ALONE, first_seq=0)
-    assert not primary.replaceable() and not replica(A, Role.ALONE).replaceable()
+    assert not primary.replaceable(2.0) and not replica(A, Role.ALONE).replaceable(2.0)
 
 
 def test_a_backup_whose_site_fail_stopped_refuses_checkpoints_and_never_asks_to_join():
@@ -510,14 +516,16 @@ def test_a_backup_whose_site_fail_stopped_refuses_checkpoints_and_never_asks_to_
     ok, _ = deliver(backup, out, A, now=1.0)
     assert not ok and backup.on_checkpoint(out.seq, A, out.first_seq, True)[0] == Decision.FENCED
     assert alarms(primary.on_ack(out.seq, ok, 'site fail-stopped', A)) == ['backup_lost']
-    assert not primary.replaceable()
+    assert not primary.replaceable(1.1)
     assert not any(backup.check(t)[0] for t in (2.0, 5.0, 60.0))   # never asks to join again
-    assert 'fail-stopped' in backup.refusal(out.seq)
-    assert not backup.passes_outputs()
+    assert 'fail-stopped' in backup.refusal(out.seq) and not backup.passes_outputs()
 
 
-def test_a_primary_whose_site_fail_stopped_passes_nothing_on_and_takes_no_joiner():
-    primary, _backup = pair()
-    primary.site_stopped('the After hung')
-    assert not primary.passes_outputs() and primary.cycle_end(b'late', now=2.0) == (None, [])
-    assert [n.kind for n in primary.on_join(B)] == ['join_ignored'] and primary.joiner is None
+def test_a_primary_whose_site_fail_stopped_serves_on_until_it_is_fenced():
+    """A primary's site fail-stops so that its backup takes over, and the watchdog then fences it.
+    If no backup can (it failed meanwhile), the watchdog leaves the silent primary running: made
+    inert, nobody would drive (review of session 38). It says so and serves on."""
+    primary, backup = pair()
+    notes = primary.site_stopped('the After hung')
+    assert alarms(notes) == ['site_stopped'] and 'serves on' in notes[0].detail
+    assert primary.passes_outputs() and primary.cycle_end(b's1', now=2.0)[0] is not None

@@ -407,3 +407,38 @@ def test_counts_beyond_a_float_or_a_fault_run_past_any_delay_are_refused_or_capp
     slow = Supervisor(config('  a: {command: x, restart_delay: 1, restart_delay_factor: 10, restart_delay_max: 30}\n'))
     slow['a'].consecutive = 10 ** 6   # (a float overflow raised in fault(), the service stuck in ERROR)
     assert slow['a'].restart_delay() == 30
+
+
+def test_a_service_failed_in_the_previous_run_is_restarted_only_by_a_start_and_only_once_renewed():
+    """Review of session 38: `restart` of it was accepted (one manager refuses a FAILED one's: start
+    it instead) without renewing its allowance; and the flag outlived its spawn, so a later stop
+    and start of a service that had not failed since renewed it wrongly."""
+    import json
+    c = config('  a: {command: x, restart_limit: 1, restart_window: 60}\n')
+    sup = Supervisor(c)
+    for t in (0.0, 2.0):
+        running(sup, 'a', t)
+        sup.check('a', DEAD, t + 1.0, GB)
+        if sup['a'].state == State.RESTARTING:
+            sup.due(sup.next_due())
+    again = Supervisor(c)
+    again.restore(json.loads(json.dumps(sup.record())), 5.0)
+    ok, _, why = again.restart('a', 5.5)
+    assert not ok and 'start it instead' in why
+    assert again.start('a', 6.0)[0]
+    running(again, 'a', 6.0)
+    again.check('a', DEAD, 7.0, GB)                    # one restart within the renewed allowance
+    again.due(again.next_due())
+    running(again, 'a', 8.0)
+    again.stop('a', 9.0)
+    assert again.start('a', 9.5)[0] and len(again['a'].restarts) == 1   # not renewed again
+
+
+def test_a_long_run_of_faults_is_recorded_capped_and_taken_back():
+    import json
+    sup = Supervisor(config('  a: {command: x, on_failure: alert}\n'))
+    sup['a'].consecutive = 5 * 10 ** 6
+    record = json.loads(json.dumps(sup.record()))
+    again = Supervisor(config('  a: {command: x, on_failure: alert}\n'))
+    again.restore(record, 0.0)
+    assert again['a'].consecutive == 10 ** 6

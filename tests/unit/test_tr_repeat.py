@@ -57,7 +57,7 @@ def wired(monkeypatch):
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
     before.__dict__.update(server_timeout=1.0, site='', name='/before', get_state=server.get_state, set_state=server.set_state,
-                           held={}, executed=RecentKeys(), copies=0, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
+                           held={}, executed=RecentKeys(), answered=collections.OrderedDict(), copies=0, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
     after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),
@@ -139,7 +139,8 @@ def test_a_copy_of_a_request_answered_not_executed_is_not_executed_either(wired)
     """A request whose state could not be saved ran nowhere and was answered "not executed" (the
     Protocol keeps that answer; its client may retry under a new id). A copy of it heard later must
     not execute it: the client would hold "not executed" for a request the server applied, and its
-    retry would apply it twice (review of session 38: the first version let the copy run)."""
+    retry would apply it twice (review of session 38: the first version let the copy run). It gets
+    the same answer again: its first may have been lost with a Protocol that restarted."""
     server, before, _after, _call, alarms = wired
 
     class Refused(object):   # the server's state manager fails (its server died)
@@ -153,21 +154,23 @@ def test_a_copy_of_a_request_answered_not_executed_is_not_executed_either(wired)
     before.get_state = Refused()
     assert before.handle(Request(id=5, origin='/proxy')) is None
     assert errors == [('errors', Reply.ERROR)] and server.balance == 100
-    before.get_state, before.ports = server.get_state, Ports()   # the server is back; a copy comes
+    before.get_state = server.get_state   # the server is back; a copy comes (its Protocol restarted, say)
     assert before.handle(Request(id=5, origin='/proxy')) is None
-    assert not before.ports.out and server.balance == 100 and alarms == ['duplicate_request']
+    assert errors == [('errors', Reply.ERROR)] * 2 and server.balance == 100 and alarms == ['duplicate_request']
 
 
 class HungBefore(object):
     """TR Before's repeat service, stopped until ``go`` is set (SIGSTOP, a deadlock)."""
 
     def __init__(self, before):
-        self.before, self.go, self.calls = before, threading.Event(), []
+        self.before, self.go, self.done, self.calls, self.answer = before, threading.Event(), threading.Event(), [], None
 
     def __call__(self, **kw):
         self.calls.append(kw['action'])
         self.go.wait(10.0)
-        return self.before._on_repeat(Repeat._request_class(**kw))
+        self.answer = self.before._on_repeat(Repeat._request_class(**kw))
+        self.done.set()
+        return self.answer
 
     def fresh(self):
         return self
@@ -218,3 +221,25 @@ def test_another_attempt_of_a_request_executes_even_if_an_earlier_attempt_s_vote
     again = before.handle(Request(id=9, origin='/proxy', attempt=1))
     assert again is not None and again.attempt == 1 * tr.SPAN and alarms == []
     assert before.handle(Request(id=9, origin='/proxy', attempt=1)) is None and alarms == ['duplicate_request']
+
+
+def test_a_repeat_that_lands_after_its_vote_gave_up_rewinds_nothing(wired):
+    """Review of session 38: outside a replica, a repeat unanswered in time ends its vote as "outcome
+    unknown", and the Protocol sends the next request. Before, stopped meanwhile, then handled both
+    in any order: the late repeat restored the state saved before the first request, rewinding the
+    second, whose client was told it succeeded. Now a new capture drops the older saved state, and
+    the late repeat is refused."""
+    server, before, after, _call, alarms = wired
+    hung, direct = HungBefore(before), after.repeat
+    after.repeat, after.repeat_timeout = hung, 0.2
+    first = before.handle(Request(id=1, origin='/proxy'))       # a value fault: its vote asks for a repeat
+    assert 'no answer within' in after.handle(server.execute(first)).error and server.balance == 90
+    server.corrupt_next, after.repeat = False, direct
+    second = before.handle(Request(id=2, origin='/proxy'))      # the next request, executed and decided
+    assert before.held.keys() == {('/proxy', 2)}
+    answer = after.handle(server.execute(second))
+    answer = answer or after.handle(server.execute(before.ports.out.popleft()))
+    assert bytes(answer.payload) == b'80' and server.balance == 80
+    hung.go.set()                                               # Before resumes: the late repeat of 1
+    assert hung.done.wait(5.0) and not hung.answer.success and 'no saved state' in hung.answer.message
+    assert server.balance == 80 and not before.ports.out        # (before: restored to 100, 1 run again: 90)

@@ -173,15 +173,20 @@ class CycleReplica(object):
 
     def site_stopped(self, reason):
         """This replica's site fail-stopped (its crash detector's last heartbeat says why: this After
-        hung past the detector's ~alive_timeout, say). Nothing more is passed on, asked or taken: a
-        backup's next checkpoints are refused (its primary goes on alone at once), and it never asks to
-        join again. Before, a backup After resumed after its board fell silent for good re-joined, and
-        its primary counted on a backup the watchdog would never promote. Returns notes."""
+        hung past the detector's ~alive_timeout, say). A BACKUP stops for good: its next checkpoints
+        are refused (its primary goes on alone at once) and it never asks to join again. Before, a
+        backup After resumed after its board fell silent for good re-joined, and its primary counted
+        on a backup the watchdog would never promote. A primary serves on: the watchdog fences it
+        if its backup takes over, and if none can, it is all the car has (review of session 38).
+        Returns notes."""
         if self.stopped is not None:
             return []
+        if self.role != Role.BACKUP:
+            return [Note('site_stopped', '%s: its site fail-stopped (%s); as %s it serves on until it is fenced'
+                         % (self.name, reason, self.role.name), alarm=True)]
         self.stopped = 'its site fail-stopped: %s' % reason
-        return [Note('site_stopped', '%s: %s; it passes nothing on, refuses checkpoints and does not join until '
-                     'its site is started again' % (self.name, self.stopped), alarm=True)]
+        return [Note('site_stopped', '%s: %s; it refuses checkpoints and does not join until its site is started '
+                     'again' % (self.name, self.stopped), alarm=True)]
 
     # -- every replica ---------------------------------------------------------------------------
     def cycle_end(self, state, now):
@@ -294,11 +299,15 @@ class CycleReplica(object):
             return [Note('following', '%s follows %s from checkpoint %d' % (self.name, sender, seq))]
         return []
 
-    def replaceable(self):
-        """Whether a backup could take over from this replica now: a PRIMARY whose backup is ready
-        (:meth:`_backup_ready`), not fail-stopped."""
-        return self.stopped is None and self.sender is not None and self.sender.role == Role.PRIMARY and \
-            self._backup_ready()
+    def replaceable(self, now):
+        """Whether a backup could take over from this replica now: a PRIMARY, not fail-stopped, whose
+        backup is admitted, with no state transfer under way or asked for, and no checkpoint waiting
+        for its acknowledgment past ack_timeout. (Not "every checkpoint acknowledged": one is in
+        flight for a round trip at every cycle, and a sign of life taken then said no; review of
+        session 38.)"""
+        sender = self.sender
+        return self.stopped is None and sender is not None and sender.role == Role.PRIMARY and sender.admitted and \
+            sender.join_seq is None and self.joiner is None and not sender.overdue(now, self.ack_timeout)
 
     def _backup_ready(self):
         """A primary's backup can take over: admitted, no state transfer under way or asked for, and every

@@ -535,7 +535,7 @@ class Service(object):
     def spawned(self, now):
         """Its process was (re)started."""
         self.end_hold(now)
-        self.held_down = False
+        self.held_down = self.failed_before = False
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
         self.stamped_here, self.stall_end = False, None
@@ -600,6 +600,10 @@ class Service(object):
 # its lock held by a long command): see stall_threshold().
 STALL_MIN = 0.1
 STALL_PERIODS = 10
+
+
+# The run of consecutive faults a record carries at most (the back-off reached its cap long before).
+MAX_CONSECUTIVE = 10 ** 6
 
 
 def stall_threshold(period):
@@ -880,7 +884,7 @@ class Supervisor(object):
 
     def restart(self, name, now):
         s = self.services[name]
-        if s.state == State.FAILED:
+        if s.state == State.FAILED or s.failed_before:   # (FAILED in the previous run: as now, start it)
             return False, [], '%s has failed: start it instead' % name
         if s.state == State.ERROR or (s.state == State.RESTARTING and s.spawn_at is None):
             return False, [], '%s is %s: wait until it settles' % (name, s.state.name.lower())
@@ -904,7 +908,7 @@ class Supervisor(object):
                 if s.state == State.FAILED or (s.state == State.STOPPED and (s.starts or s.held_down))}
         # On the system's clock, a restart r of the service's clock was at r + its holds at the latest (a
         # hold under way counted from its start: the record stays the same while it lasts).
-        counts = {n: {'errors': dict(s.errors), 'consecutive': s.consecutive,
+        counts = {n: {'errors': dict(s.errors), 'consecutive': min(s.consecutive, MAX_CONSECUTIVE),
                       'restarts': [r + s.held + (0.0 if s.held_from is None else s.spawn_at - s.held_from)
                                    for r in s.restarts]}
                   for n, s in self.services.items() if s.errors or s.restarts or s.consecutive}
@@ -922,7 +926,7 @@ class Supervisor(object):
                 isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0
                 for k, v in entry.get('errors', {}).items()) and isinstance(entry.get('restarts', []), list) and all(
                 number(r) for r in entry.get('restarts', [])) and isinstance(entry.get('consecutive', 0), int) and \
-                not isinstance(entry.get('consecutive', 0), bool) and 0 <= entry.get('consecutive', 0) <= 10 ** 6
+                not isinstance(entry.get('consecutive', 0), bool) and 0 <= entry.get('consecutive', 0) <= MAX_CONSECUTIVE
             if not ok:
                 raise ServiceConfigError('the manager\'s record is malformed: counts.%s is %r, not {errors: {kind: '
                                          'count}, consecutive: count, restarts: [times]}' % (name, entry))

@@ -24,6 +24,7 @@ If the primary dies between a cycle's output and that cycle's checkpoint, the ba
 the previous cycle's state: one cycle is computed again, which for a controller means one more
 integration step of its error, not a lost or duplicated command.
 """
+import os
 import threading
 import time
 
@@ -80,6 +81,8 @@ class CycleAfterNode(object):
             over this long without a checkpoint no longer mirrors its primary: it joins again
             (alarm ``backup_invalid``).
         ~site (str, default: the node's name): the replica's site, in join requests and fail-stops.
+        ~site_detector (str, default '' = any of this launcher's): the site's crash detector, whose
+            last heartbeat alone stops this After.
         ~cycle_timeout (float, 0 = off): a node that ended a cycle and then none for this long on
             its own clock (ROS time: simulated time stops with the simulator) hangs: a primary
             fail-stops its site (``fail_stop``, alarm ``node_hung``), so that the watchdog promotes
@@ -94,8 +97,9 @@ class CycleAfterNode(object):
         peer_acks (aft_msgs/CheckpointAck), port ``peer_acks``: the backup's acknowledgments
         join_requests (aft_msgs/Join), port ``join_requests``: the peer backup asking to join
         site_heartbeat (aft_msgs/Heartbeat), port ``site_heartbeat``: this site's own heartbeats (its
-            crash detector's): the last one, saying the site fail-stops (``stopping``, ``site`` equal
-            to ~site), stops this After for good (aft_ftm.cycle_replica.CycleReplica.site_stopped)
+            crash detector's, ~site_detector, from this node's own launcher): the last one, saying the
+            site fail-stops (``stopping``, ``site`` equal to ~site), stops a backup After for good
+            (aft_ftm.cycle_replica.CycleReplica.site_stopped)
     Publishes:
         out (~msg_type), port ``out``: the replicated node's outputs, for the rest of the system
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
@@ -128,6 +132,7 @@ class CycleAfterNode(object):
         self.site = param('site', config.non_empty_str, self.name)
         self.first_seq = int(time.time() * 1e6)   # numbered from the clock, as PBR's After
         self.peer_after = param('peer_after', config.optional_name, '')
+        self.site_detector = param('site_detector', config.optional_name, '')
         self.replica = CycleReplica(
             self.name, role, self.first_seq, expect=self.peer_after,
             ack_timeout=param('ack_timeout', config.positive_float, 0.5),
@@ -246,7 +251,7 @@ class CycleAfterNode(object):
                 ask, more = self.replica.check(time.monotonic())
                 notes += more
                 last_seq = self.replica.receiver.last_seq if ask else 0
-                replaceable = self.replica.replaceable()
+                replaceable = self.replica.replaceable(time.monotonic())
             self.ports.publish('alive', Bool(data=replaceable))   # the lock was taken and left: this After works
             self._report(notes)
             if stop:
@@ -256,8 +261,16 @@ class CycleAfterNode(object):
                                                 last_seq=last_seq, stamp=rospy.Time.now()))
 
     def _on_site_beat(self, beat):
-        """This site's own heartbeats: its last one, saying the site fail-stops, stops this After."""
+        """This site's own heartbeats: its last one, saying the site fail-stops, stops this After if
+        a backup (CycleReplica.site_stopped). Only one of its own launcher's (the beat's pid is this
+        node's parent), from ~site_detector where set: another's would stop it for nothing."""
         if not beat.stopping or beat.site != self.site:
+            return
+        sender = getattr(beat, '_connection_header', {}).get('callerid', '')
+        if beat.pid != os.getppid() or (self.site_detector and sender != self.site_detector):
+            rospy.logwarn_throttle(10.0, '%s: a heartbeat of site %s saying it fail-stops from %s (launcher pid %d; '
+                                   'ours is %d): not our own detector\'s, ignored' % (
+                                       self.name, beat.site, sender or 'an unnamed node', beat.pid, os.getppid()))
             return
         with self.lock:
             notes = self.replica.site_stopped(beat.stopping)

@@ -69,8 +69,8 @@ class CrashDetectorNode(object):
             pub/sub After's, aft_ftm.ros.cycle_nodes), none for this long (s, wall clock; this
             detector's own stalls excused, as in its peer's verdict; keep it several of the After's
             ticks) means the node that gives them hangs (stopped, deadlocked; a death is seen by
-            ~watch_required). If its last sign said a backup could take over, this site fail-stops
-            (its peer is promoted); otherwise (a backup, or a primary alone) the hang is alarmed
+            ~watch_required). If its last sign said a backup could take over, and the peer is heard
+            (as ~peer_status says), this site fail-stops (its peer is promoted); otherwise (a backup, or a primary alone) the hang is alarmed
             (``node_hung``), the site beats on, and the node serves again if it resumes.
         ~alive_from (str, default '' = any): the node whose signs of life count (its caller id);
             another publisher's are ignored (counted in the diagnostics' log), as a forged one would
@@ -403,13 +403,16 @@ class CrashDetectorNode(object):
         with self.lock:
             verdict = self.alive.check(now)
             replaceable = self.alive_replaceable
+            peer_runs, peer_why = self.monitor.can_take_over(now, self.timeout)
         if verdict is None or self.stopped is not None:
             return
         what = 'no sign of life on %s: %s; the node that gives them hangs (stopped or deadlocked)' % (
             self.ports.topic('alive'), verdict.reason.replace('heartbeat', 'sign of life'))
-        if not replaceable:
-            alarm(self.ports, 'pbr', 'node_hung', 'site %s: %s; its last sign said no backup could take over: this '
-                  'site beats on, and it serves again if it resumes' % (self.site, what))
+        if not replaceable or not peer_runs:
+            why = ('its last sign said no backup could take over' if not replaceable else
+                   'its peer %s cannot take over (%s)' % (self.peer, peer_why))
+            alarm(self.ports, 'pbr', 'node_hung', 'site %s: %s; %s: this site beats on, and it serves again if it '
+                  'resumes' % (self.site, what, why))
             return
         reason = '%s; this site fail-stops so that the backup takes over' % what
         rospy.logerr('%s: %s', rospy.get_name(), reason)

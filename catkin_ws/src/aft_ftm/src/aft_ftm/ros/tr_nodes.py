@@ -1,5 +1,6 @@
 """Time Redundancy (paper Table II): Before saves and restores the server's state, Proceed
 computes, After compares the results and a majority decides."""
+import collections
 import threading
 import time
 
@@ -94,6 +95,7 @@ class TrBeforeNode(BeforeNode):
         self.set_state = PersistentService('set_state', SetState)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.executed = RecentKeys()   # (origin, id, attempt) of the requests executed (a copy is refused)
+        self.answered = collections.OrderedDict()   # those of them answered "not executed": the answer
         self.copies = 0                # second copies refused
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
@@ -174,8 +176,12 @@ class TrBeforeNode(BeforeNode):
                 rospy.logwarn('%s: %s/%d attempt %d replaces the saved state of an earlier attempt whose vote never '
                               'ended', self.name, request.origin, request.id, request.attempt)
         if copy:
+            answer = self.answered.get(once)
             alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed (or answered) by this '
-                  'Before already; a second copy is not executed (%d refused so far)' % (once + (copies,)), request)
+                  'Before already; a second copy is not executed (%d refused so far)%s' % (
+                      once + (copies, '; answered "not executed" again' if answer else '')), request)
+            if answer is not None:
+                self.ports.publish('errors', answer)
             return None
         return self._capture(request)
 
@@ -212,7 +218,17 @@ class TrBeforeNode(BeforeNode):
         finally:
             self.capturing_since = None
         with self.lock:
+            # The one request of its vote: its Protocol sends the next only once this one is answered. An
+            # older saved state (its vote answered "outcome unknown" when this Before did not answer in
+            # time) goes: a repeat of it landing now would rewind this request (review of session 38).
+            stale = [k for k in self.held if k != (request.origin, request.id)]
+            for k in stale:
+                del self.held[k]
             self.held[(request.origin, request.id)] = [request, state, 1]
+        if stale:
+            rospy.logwarn('%s: the saved states of %s dropped: their votes ended without a word to this Before '
+                          '(a repeat of theirs coming late is refused)', self.name,
+                          ', '.join('%s/%d' % k for k in stale))
         return execution(request, 0)
 
     def _alone(self):
@@ -224,12 +240,17 @@ class TrBeforeNode(BeforeNode):
         fail_stop(self.ports, self.site, problem, mechanism='tr')
 
     def _not_executed(self, request, why):
-        """Answer request "not executed" (its state could not be saved, nothing ran): the client may retry."""
-        self.ports.publish('errors', Reply(id=request.id, origin=request.origin, client=request.client,
-                                           oldest_pending=request.oldest_pending, attempt=request.attempt,
-                                           batch=request.batch, status=Reply.ERROR,
-                                           error='not executed: time redundancy cannot save the server state: %s'
-                                           % why))
+        """Answer request "not executed" (its state could not be saved, nothing ran): the client may retry.
+        The answer is kept: a copy of the request gets it again (its first may have been lost with a
+        Protocol that restarted), never an execution."""
+        reply = Reply(id=request.id, origin=request.origin, client=request.client,
+                      oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
+                      status=Reply.ERROR, error='not executed: time redundancy cannot save the server state: %s' % why)
+        with self.lock:
+            self.answered[(request.origin, request.id, request.attempt)] = reply
+            while len(self.answered) > 4096:
+                self.answered.popitem(last=False)
+        self.ports.publish('errors', reply)
         return None
 
     def _on_repeat(self, req):
@@ -293,8 +314,9 @@ class TrAfterNode(AfterNode):
     execute it again later: its result is then ignored, the vote having ended).
 
     Parameters: ~executions (int >= 2, default 3); ~site (str, default ''): the replica site this
-        mechanism belongs to ('' : none); ~repeat_timeout (float, 12 s): the longest Before's repeat
-        may take; keep it above TR Before's ~server_timeout (a repeat restores the state first).
+        mechanism belongs to ('' : none); ~server_timeout (float, 5 s): TR Before's; ~repeat_timeout
+        (float, default twice ~server_timeout + 2 s): the longest Before's repeat may take (it
+        restores the state first: it must exceed ~server_timeout, or the node refuses to start).
     Services called: repeat (aft_msgs/Repeat): remap to TR Before's ~repeat.
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``.
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``;
@@ -314,7 +336,12 @@ class TrAfterNode(AfterNode):
                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
         self.failed = None   # why this replica fail-stopped (TR Before out of reach): nothing more answered
         self.repeat = PersistentService('repeat', Repeat)
-        self.repeat_timeout = param('repeat_timeout', config.positive_float, 12.0)
+        server_timeout = param('server_timeout', config.positive_float, 5.0)   # (TR Before's: the same launch arg)
+        self.repeat_timeout = param('repeat_timeout', config.positive_float, 2 * server_timeout + 2.0)
+        if self.repeat_timeout <= server_timeout:
+            raise ConfigError('parameter %s (%g s) must exceed ~server_timeout (%g s): a repeat restores the state '
+                              'first, which may take that long' % (rospy.resolve_name('~repeat_timeout'),
+                                                                    self.repeat_timeout, server_timeout))
         self._repeat_deadline = Deadline('repeat')
         self.voted = RecentKeys()
         self.vote_lock = threading.Lock()   # the vote's records, for results heard on several threads   # (origin, id, attempt) of the votes ended: a result heard later is refused
