@@ -57,7 +57,7 @@ def wired(monkeypatch):
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
     before.__dict__.update(server_timeout=1.0, site='', name='/before', get_state=server.get_state, set_state=server.set_state,
-                           held={}, executed=RecentKeys(), answered=collections.OrderedDict(), copies=0, lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
+                           held={}, executed=RecentKeys(), answered=collections.OrderedDict(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
     after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),

@@ -70,7 +70,8 @@ class CrashDetectorNode(object):
             detector's own stalls excused, as in its peer's verdict; keep it several of the After's
             ticks) means the node that gives them hangs (stopped, deadlocked; a death is seen by
             ~watch_required). If its last sign said a backup could take over, and the peer is heard
-            (as ~peer_status says), this site fail-stops (its peer is promoted); otherwise (a backup, or a primary alone) the hang is alarmed
+            (within ten periods, 0.1 s at least; judged again at every check while the hang lasts),
+            this site fail-stops (its peer is promoted); otherwise (a backup, or a primary alone) the hang is alarmed
             (``node_hung``), the site beats on, and the node serves again if it resumes.
         ~alive_from (str, default '' = any): the node whose signs of life count (its caller id);
             another publisher's are ignored (counted in the diagnostics' log), as a forged one would
@@ -141,6 +142,9 @@ class CrashDetectorNode(object):
         # (a fixed timeout: the signs of life come from this site's own host, never over a slow link)
         self.alive = self._alive_monitor() if self.alive_timeout else None
         self.alive_replaceable = False   # the last sign of life said a backup could take over
+        self.alive_hang = None           # the verdict of a hang that lasts (no sign of life since)
+        # A peer that beats every period is heard within this (a beat late by ten periods is not now).
+        self.peer_heard_within = max(10 * self.period, 0.1)
         self.alive_strangers = 0         # signs of life from another node than ~alive_from: ignored
         self.watched_since = 0   # the witness's epoch that made this detector watch its peer afresh (0: at start)
         self.lock = threading.Lock()
@@ -383,7 +387,7 @@ class CrashDetectorNode(object):
                 first = self.alive_strangers == 1
             else:
                 first = None
-                self.alive_replaceable = msg.data
+                self.alive_replaceable, self.alive_hang = msg.data, None
                 if self.alive.beat(time.monotonic()):   # it resumes after a hang alarmed: watched afresh
                     self.alive = self._alive_monitor()
                     self.alive.beat(time.monotonic())
@@ -398,26 +402,30 @@ class CrashDetectorNode(object):
                 self.site, self.ports.topic('alive')))
 
     def _check_alive(self, now):
-        """Fail-stop this site if the node giving signs of life on ``alive`` stopped giving them and
-        its last one said a backup could take over; else say so."""
+        """Fail-stop this site if the node giving signs of life on ``alive`` stopped giving them, its
+        last one said a backup could take over, and the peer is heard; else say the hang, and judge
+        it again at every check while it lasts (the peer may be heard again: a board that failed and
+        re-joined is heard, though its verdict stands; review of session 38)."""
         with self.lock:
             verdict = self.alive.check(now)
-            replaceable = self.alive_replaceable
-            peer_runs, peer_why = self.monitor.can_take_over(now, self.timeout)
-        if verdict is None or self.stopped is not None:
+            if verdict is not None:
+                self.alive_hang = verdict   # until a sign of life comes (_on_alive)
+            hang, replaceable = self.alive_hang, self.alive_replaceable
+            peer_heard = self.monitor.heard_within(now, self.peer_heard_within)
+        if hang is None or self.stopped is not None:
             return
         what = 'no sign of life on %s: %s; the node that gives them hangs (stopped or deadlocked)' % (
-            self.ports.topic('alive'), verdict.reason.replace('heartbeat', 'sign of life'))
-        if not replaceable or not peer_runs:
+            self.ports.topic('alive'), hang.reason.replace('heartbeat', 'sign of life'))
+        if replaceable and peer_heard:
+            reason = '%s; this site fail-stops so that the backup takes over' % what
+            rospy.logerr('%s: %s', rospy.get_name(), reason)
+            self._on_fail_stop(Failure(site=self.site, host=self.host, pid=self.site_pid, reason=reason,
+                                       silence=hang.silence, detected=rospy.Time.now()))
+        elif verdict is not None:   # said once per hang
             why = ('its last sign said no backup could take over' if not replaceable else
-                   'its peer %s cannot take over (%s)' % (self.peer, peer_why))
-            alarm(self.ports, 'pbr', 'node_hung', 'site %s: %s; %s: this site beats on, and it serves again if it '
-                  'resumes' % (self.site, what, why))
-            return
-        reason = '%s; this site fail-stops so that the backup takes over' % what
-        rospy.logerr('%s: %s', rospy.get_name(), reason)
-        self._on_fail_stop(Failure(site=self.site, host=self.host, pid=self.site_pid, reason=reason,
-                                   silence=verdict.silence, detected=rospy.Time.now()))
+                   'its peer %s is not heard now' % self.peer)
+            alarm(self.ports, 'pbr', 'node_hung', 'site %s: %s; %s: this site beats on (it fail-stops if its peer '
+                  'is heard while the hang lasts), and it serves again if it resumes' % (self.site, what, why))
 
     def _on_configuration(self, conf):
         """The peer is in the witness's configuration again (it re-joined): watch it afresh."""

@@ -96,6 +96,9 @@ class TrBeforeNode(BeforeNode):
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.executed = RecentKeys()   # (origin, id, attempt) of the requests executed (a copy is refused)
         self.answered = collections.OrderedDict()   # those of them answered "not executed": the answer
+        # One state operation of the server at a time (a capture, or a repeat's restore and execution):
+        # each is bounded by ~server_timeout.
+        self.server_lock = threading.Lock()
         self.copies = 0                # second copies refused
         self.lock = threading.Lock()
         self._deadline = Deadline('state-capture')
@@ -183,7 +186,8 @@ class TrBeforeNode(BeforeNode):
             if answer is not None:
                 self.ports.publish('errors', answer)
             return None
-        return self._capture(request)
+        with self.server_lock:
+            return self._capture(request)
 
     def _capture(self, request):
         """Save the state before request and return its first execution, or None (not executed:
@@ -248,12 +252,19 @@ class TrBeforeNode(BeforeNode):
                       status=Reply.ERROR, error='not executed: time redundancy cannot save the server state: %s' % why)
         with self.lock:
             self.answered[(request.origin, request.id, request.attempt)] = reply
-            while len(self.answered) > 4096:
+            while len(self.answered) > self.executed.remember:   # (as many as copies are refused for)
                 self.answered.popitem(last=False)
         self.ports.publish('errors', reply)
         return None
 
     def _on_repeat(self, req):
+        # Under server_lock: a repeat of a vote that gave up, held back while this Before was stopped,
+        # must not take its saved state while a new capture drops it, then restore it over the new
+        # request (review of session 38).
+        with self.server_lock:
+            return self._repeat(req)
+
+    def _repeat(self, req):
         key = (req.origin, req.id)
         with self.lock:
             held = self.held.get(key) if req.action == req.REPEAT else self.held.pop(key, None)
@@ -343,8 +354,8 @@ class TrAfterNode(AfterNode):
                               'first, which may take that long' % (rospy.resolve_name('~repeat_timeout'),
                                                                     self.repeat_timeout, server_timeout))
         self._repeat_deadline = Deadline('repeat')
-        self.voted = RecentKeys()
-        self.vote_lock = threading.Lock()   # the vote's records, for results heard on several threads   # (origin, id, attempt) of the votes ended: a result heard later is refused
+        self.voted = RecentKeys()   # (origin, id, attempt) of the votes ended: a result heard later is refused
+        self.vote_lock = threading.Lock()   # the vote's records, for results heard on several threads
         self.masked = 0
 
     def setup(self, timeout):
