@@ -374,18 +374,24 @@ def test_restarts_recorded_on_a_clock_since_started_again_count_as_now():
     assert sup.check('a', DEAD, 69.0, GB).escalate and sup['a'].state == State.FAILED
 
 
-def test_a_service_failed_in_the_previous_run_gets_a_fresh_allowance_when_an_operator_starts_it():
-    """Review of session 38: restored as held down (STOPPED) with its restarts, it was not FAILED, so
-    an operator's start kept them, and its first fault failed it again (the safe state, if critical),
-    where one manager would have restarted it."""
-    import json
-    c = config('  a: {command: x, critical: true, restart_limit: 1, restart_window: 60}\n')
+def _failed_twice(c):
+    """A supervisor whose service a (restart_limit 1) failed twice: FAILED."""
     sup = Supervisor(c)
     for t in (0.0, 2.0):
         running(sup, 'a', t)
         sup.check('a', DEAD, t + 1.0, GB)
         if sup['a'].state == State.RESTARTING:
             sup.due(sup.next_due())
+    return sup
+
+
+def test_a_service_failed_in_the_previous_run_gets_a_fresh_allowance_when_an_operator_starts_it():
+    """Review of session 38: restored as held down (STOPPED) with its restarts, it was not FAILED, so
+    an operator's start kept them, and its first fault failed it again (the safe state, if critical),
+    where one manager would have restarted it."""
+    import json
+    c = config('  a: {command: x, critical: true, restart_limit: 1, restart_window: 60}\n')
+    sup = _failed_twice(c)
     assert sup['a'].state == State.FAILED and sup.safe_state
     record = json.loads(json.dumps(sup.record()))
     for _ in range(2):   # the manager started again twice before an operator comes
@@ -415,12 +421,7 @@ def test_a_service_failed_in_the_previous_run_is_restarted_only_by_a_start_and_o
     and start of a service that had not failed since renewed it wrongly."""
     import json
     c = config('  a: {command: x, restart_limit: 1, restart_window: 60}\n')
-    sup = Supervisor(c)
-    for t in (0.0, 2.0):
-        running(sup, 'a', t)
-        sup.check('a', DEAD, t + 1.0, GB)
-        if sup['a'].state == State.RESTARTING:
-            sup.due(sup.next_due())
+    sup = _failed_twice(c)
     again = Supervisor(c)
     again.restore(json.loads(json.dumps(sup.record())), 5.0)
     ok, _, why = again.restart('a', 5.5)
