@@ -7,11 +7,24 @@ It passes by returning True or None (or anything true, such as numpy.True_); it 
 returning a string (the detail) or anything false (False, numpy.False_, 0, an empty list), or by
 raising AssertionError; a value whose truth cannot be told (a numpy array) is a violation. Any other exception is a violation too (a safety check
 that cannot be evaluated must not let a reply through).
+
+An assertion that does not return is a violation too: ``check`` takes a ``run`` that calls each
+assertion with a bound (A&D's nodes: ``~assertion_timeout``), and :class:`Hung` is how ``run`` says
+that an assertion did not return in time, or that its abandoned call has not returned yet.
 """
 import importlib
 import numbers
 
-from .errors import ConfigError
+from .errors import AftError, ConfigError
+
+
+class Hung(AftError):
+    """An assertion did not return within its bound, or an earlier call of it, abandoned, has not
+    returned yet (it is not called again until it has): the check cannot be evaluated."""
+
+
+def _unbounded(_name, fn, args):
+    return fn(*args)
 
 
 def load(spec):
@@ -39,12 +52,18 @@ def load_all(specs, parameter):
     return [load(s) for s in specs]
 
 
-def check(assertions, *args):
-    """Evaluate assertions on args; returns a list of (name, detail) for those violated."""
+def check(assertions, *args, run=_unbounded):
+    """Evaluate assertions on args; returns a list of (name, detail) for those violated.
+
+    run(name, fn, args) calls one assertion (default: in this thread, unbounded); it raises
+    :class:`Hung` for an assertion that hangs, a violation whose detail starts with ``hangs:``."""
     violations = []
     for name, fn in assertions:
         try:
-            verdict = fn(*args)
+            verdict = run(name, fn, args)
+        except Hung as e:
+            violations.append((name, 'hangs: %s' % e))
+            continue
         except AssertionError as e:
             violations.append((name, str(e) or 'assertion failed'))
             continue

@@ -11,12 +11,57 @@ from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import key
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
+from .deadline import CallPending, CallTimeout, Deadline
 from .envelope import deserialize, service_class
 from .params import param
 
 
 def _app_request(request):
     return deserialize(service_class(request.service_type)._request_class, request.payload)
+
+
+class BoundedRun(object):
+    """Calls each assertion on a worker thread of its own and waits for it at most ``timeout`` seconds
+    (``~assertion_timeout``; 0: in the caller's thread, unbounded).
+
+    An assertion that hangs (a deadlock, a blocking call in the user's code) hung the node's thread
+    with it: A&D's Before or After stopped, and every request behind it waited until the Protocol's
+    timeout. Past the bound the check is a violation (assertions.Hung: the request is refused, the
+    reply is not passed on) and ``on_hang(name, detail)`` is told once; the abandoned call is not
+    made again while it has not returned (every check of that assertion is a violation at once,
+    no thread piles up), and when it returns, the next check calls the assertion again."""
+
+    def __init__(self, timeout, on_hang):
+        self.timeout = timeout
+        self.on_hang = on_hang
+        self.deadlines = {}
+        self.lock = threading.Lock()
+
+    def __call__(self, name, fn, args):
+        if not self.timeout:
+            return fn(*args)
+        with self.lock:
+            deadline = self.deadlines.get(name)
+            if deadline is None:
+                deadline = self.deadlines[name] = Deadline('assertion %s' % name, exclusive=True)
+        try:
+            return deadline.call(fn, self.timeout, *args)
+        except CallPending:
+            raise assertions.Hung('an earlier call of it, abandoned past ~assertion_timeout (%.3f s), has not '
+                                  'returned yet: not called again until it has' % self.timeout)
+        except CallTimeout:
+            detail = 'did not return within ~assertion_timeout (%.3f s): the check cannot be evaluated' % self.timeout
+            self.on_hang(name, detail)
+            raise assertions.Hung(detail)
+
+
+def _bounded_run(node, mechanism):
+    """The node's BoundedRun: ~assertion_timeout (float >= 0, default 1 s), its hangs alarmed
+    ``assertion_hangs``."""
+    def on_hang(name, detail):
+        alarm(node.ports, mechanism, 'assertion_hangs', 'assertion %s %s; it is not called again until that call '
+              'returns, and every check of it meanwhile is a violation' % (name, detail))
+    return BoundedRun(param('assertion_timeout', config.non_negative_float, 1.0), on_hang)
 
 
 def _error(msg, detail):
@@ -30,7 +75,9 @@ class AdBeforeNode(BeforeNode):
 
     Parameters: ~request_assertions (list of package.module:function, default none); ~reply_assertions
         (the After's, read here only to refuse an A&D that checks nothing: both lists empty is a
-        ConfigError, not a mechanism that passes everything; review of session 34)
+        ConfigError, not a mechanism that passes everything; review of session 34);
+        ~assertion_timeout (float >= 0, default 1 s; 0: unbounded): the longest one assertion may
+        take; past it the request is refused (BoundedRun, alarm ``assertion_hangs``)
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; bfr2aft (aft_msgs/Request), port ``to_after``;
         aft2pro (aft_msgs/Reply), port ``errors``: refused requests; alarms (aft_msgs/Alarm), port ``alarms``.
@@ -49,6 +96,7 @@ class AdBeforeNode(BeforeNode):
         super(AdBeforeNode, self).__init__(extra_ports=[PortSpec('to_after', PUBLISH, 'aft_msgs/Request'),
                                                         PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
                                                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
+        self.run = _bounded_run(self, 'ad')
 
     def setup(self, timeout):
         self.ports.bind('to_after', 'bfr2aft')
@@ -59,7 +107,7 @@ class AdBeforeNode(BeforeNode):
     def handle(self, request):
         if self.checks:
             try:
-                violations = assertions.check(self.checks, _app_request(request))
+                violations = assertions.check(self.checks, _app_request(request), run=self.run)
             except Exception as e:   # undecodable request: refused, not executed
                 violations = [('decoding', str(e))]
             if violations:
@@ -84,7 +132,9 @@ class AdAfterNode(AfterNode):
     reply, if it comes, is then answered as above) (assertions.Pairing).
 
     Parameters: ~reply_assertions (list of package.module:function, default none);
-        ~request_wait (float, 5 s); ~max_waiting (int, 10000)
+        ~request_wait (float, 5 s); ~max_waiting (int, 10000); ~assertion_timeout (float >= 0, default
+        1 s; 0: unbounded): the longest one assertion may take; past it the reply is answered as a
+        violation (BoundedRun, alarm ``assertion_hangs``)
     Subscribes: prd2aft (aft_msgs/Reply), port ``inp``; bfr2aft (aft_msgs/Request), port ``requests``.
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; alarms (aft_msgs/Alarm), port ``alarms``.
     Services: ~rebind (aft_msgs/Rebind)
@@ -100,6 +150,7 @@ class AdAfterNode(AfterNode):
         self.lock = threading.Lock()
         self.pairing = assertions.Pairing(param('request_wait', config.positive_float, 5.0),
                                           param('max_waiting', config.positive_int, 10000))
+        self.run = _bounded_run(self, 'ad')
 
     def setup(self, timeout):
         self.ports.bind('requests', 'bfr2aft')
@@ -141,7 +192,7 @@ class AdAfterNode(AfterNode):
         try:
             cls = service_class(request.service_type)
             args = (deserialize(cls._request_class, request.payload), deserialize(cls._response_class, reply.payload))
-            violations = assertions.check(self.checks, *args)
+            violations = assertions.check(self.checks, *args, run=self.run)
         except Exception as e:   # an undecodable reply cannot be shown safe
             violations = [('decoding', str(e))]
         if not violations:
