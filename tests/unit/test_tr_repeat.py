@@ -9,7 +9,7 @@ import time
 import pytest
 
 from aft_examples.history import classify_error
-from aft_ftm.once import RecentKeys
+from aft_ftm.once import KeptAnswers, RecentKeys
 from aft_ftm.voting import TimeRedundancyVote
 
 tr = pytest.importorskip('aft_ftm.ros.tr_nodes')
@@ -22,10 +22,13 @@ from aft_msgs.srv import GetStateResponse, Repeat, SetStateResponse  # noqa: E40
 class Ports(object):
     def __init__(self):
         self.out = collections.deque()
+        self.errors = []   # what Before answers itself: "not executed", or a copy's answer again
 
     def publish(self, port, msg):
         if port == 'out':
             self.out.append(msg)
+        elif port == 'errors':
+            self.errors.append(msg)
 
 
 class Account(object):
@@ -57,7 +60,7 @@ def wired(monkeypatch):
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
     before.__dict__.update(server_timeout=1.0, site='', name='/before', get_state=server.get_state, set_state=server.set_state,
-                           held={}, executed=RecentKeys(), answered=collections.OrderedDict(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
+                           held={}, executed=RecentKeys(), answered=KeptAnswers(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
     after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),
@@ -103,7 +106,11 @@ def test_a_second_copy_of_a_request_is_never_executed_again(wired, seed):
     that held the first execution (the request applied twice); a copy heard after its vote ran it
     again. Copies (the Protocol sends each request once; a rebind or anyone on the graph sends more)
     come here at random points: mid-vote, after the vote, many requests later. Each request is
-    answered once, with the balance it left; the server applies each once; each copy is alarmed."""
+    answered once, with the balance it left; the server applies each once; each copy is alarmed.
+
+    A copy of a request whose vote ended gets that vote's answer again from Before (its Protocol
+    started again may have lost the first); a copy mid-vote gets none (the vote answers it). Before
+    session 39 a copy of an executed request got no answer at all (Limits)."""
     server, before, after, _call, alarms = wired
     rng = random.Random(seed)
     sent, answers, copies = [], collections.defaultdict(list), 0
@@ -125,6 +132,14 @@ def test_a_second_copy_of_a_request_is_never_executed_again(wired, seed):
                 assert before.handle(Request(id=copy.id, origin=copy.origin, attempt=copy.attempt)) is None, \
                     'seed %d: a copy of %d was executed again' % (seed, copy.id)
                 copies += 1
+                again = [(a.id, a.status, bytes(a.payload)) for a in before.ports.errors]
+                before.ports.errors.clear()
+                if copy.id in answers:   # its vote ended: the same answer again
+                    first = answers[copy.id][0]
+                    assert again == [(first.id, first.status, bytes(first.payload))], \
+                        'seed %d: a copy of %d (answered %r) got %r' % (seed, copy.id, bytes(first.payload), again)
+                else:                    # mid-vote: none (the vote answers it)
+                    assert again == [], 'seed %d: a copy of %d mid-vote got %r' % (seed, copy.id, again)
             executions.extend(before.ports.out)
             before.ports.out.clear()
     assert sorted(answers) == list(range(1, 21)) and all(len(a) == 1 for a in answers.values()), 'seed %d' % seed
@@ -243,3 +258,66 @@ def test_a_repeat_that_lands_after_its_vote_gave_up_rewinds_nothing(wired):
     hung.go.set()                                               # Before resumes: the late repeat of 1
     assert hung.done.wait(5.0) and not hung.answer.success and 'no saved state' in hung.answer.message
     assert server.balance == 80 and not before.ports.out        # (before: restored to 100, 1 run again: 90)
+
+
+def _copy_of(before, rid):
+    """What Before answers a copy of request rid with (published on its ``errors`` port)."""
+    before.ports.errors.clear()
+    assert before.handle(Request(id=rid, origin='/proxy')) is None   # never executed again
+    return list(before.ports.errors)
+
+
+def test_a_copy_of_a_request_whose_vote_ended_gets_the_votes_answer_again(wired):
+    """Limits of session 38: a refused copy of a request that was executed got no answer from TR, so a
+    Protocol started again, which lost the first answer, waited until its timeout. Each outcome of a
+    vote is given again: decided, restore refused (outcome unknown), no majority (set back)."""
+    server, before, after, call, alarms = wired
+    decided = call(1)
+    assert [(a.id, a.status, bytes(a.payload)) for a in _copy_of(before, 1)] == [(1, Reply.OK, bytes(decided.payload))]
+    assert server.balance == 90 and alarms.count('duplicate_request') == 1
+
+    server.refuse_restore, server.corrupt_next = True, True   # a repeat is needed and cannot run
+    unknown = call(2)
+    assert unknown.status == Reply.ERROR and 'outcome unknown' in unknown.error
+    assert [(a.id, a.status, a.error) for a in _copy_of(before, 2)] == [(2, Reply.ERROR, unknown.error)]
+
+    server.refuse_restore = False
+    payloads = iter([b'1', b'2', b'3'])   # three executions, three results: no majority, set back
+
+    def disagreeing(request):
+        server.balance -= 10
+        return Reply(id=request.id, origin=request.origin, attempt=request.attempt, payload=next(payloads))
+    server.execute = disagreeing
+    balance = server.balance
+    none = call(3)
+    assert none.status == Reply.ERROR and 'no majority' in none.error and server.balance == balance   # set back
+    assert [(a.id, a.error) for a in _copy_of(before, 3)] == [(3, none.error)]
+
+
+def test_a_no_majority_whose_state_was_not_set_back_keeps_no_wrong_answer(wired):
+    """RESTORE refused by the server: After answers "outcome unknown", not the "no majority" it gave
+    Before with RESTORE; Before keeps that one only once the state is set back, so a copy gets no
+    answer rather than a wrong one (said in its alarm)."""
+    server, before, after, call, alarms = wired
+    payloads = iter([b'1', b'2', b'3'])
+
+    def disagreeing(request):
+        server.balance -= 10
+        if request.attempt % tr.SPAN == 2:
+            server.refuse_restore = True   # the last restore (no majority) is refused
+        return Reply(id=request.id, origin=request.origin, attempt=request.attempt, payload=next(payloads))
+    server.execute = disagreeing
+    answer = call(4)
+    assert answer.status == Reply.ERROR and 'outcome unknown' in answer.error
+    assert _copy_of(before, 4) == []
+
+
+def test_the_kept_answers_are_bounded_in_number_and_bytes():
+    kept = KeptAnswers(remember=3, max_bytes=1000)
+    for rid in range(5):
+        kept.keep(('/p', rid, 1), Reply(id=rid, payload=b'x' * 10))
+    assert len(kept) == 3 and kept.get(('/p', 0, 1)) is None and kept.get(('/p', 4, 1)).id == 4
+    kept.keep(('/p', 9, 1), Reply(id=9, payload=b'x' * 900))   # the older ones go to make room
+    assert [k for k in range(10) if kept.get(('/p', k, 1))] == [9] and kept.bytes <= 1000
+    kept.keep(('/p', 10, 1), Reply(id=10, payload=b'x' * 2000))   # larger than the bound: kept by none
+    assert len(kept) == 0 and kept.bytes == 0

@@ -3,7 +3,8 @@
 A request is sent on once by the stage before, but a copy can come again: a publisher heard on two
 connections across a rebind, or a message published again by anyone on the graph. Where acting on
 it twice would run it twice (an LFR follower computing a forward, TR's Before saving a state and
-executing), the node remembers the keys it acted on, the last ``remember`` of them.
+executing), the node remembers the keys it acted on, the last ``remember`` of them; TR's Before also
+keeps the answers it can give such a copy again (KeptAnswers).
 """
 import collections
 
@@ -33,3 +34,35 @@ class RecentKeys(object):
     def discard(self, key):
         """Forget key (what it stood for did not happen: a copy may act on it)."""
         self._keys.pop(key, None)
+
+
+def answer_size(reply):
+    """What a kept answer costs, counted against KeptAnswers' byte bound: its payload and error text."""
+    return len(reply.payload) + len(reply.error) + 64
+
+
+class KeptAnswers(object):
+    """The answers given to the last keys, so that a second copy of a request gets its answer again
+    (a Protocol started again lost the first): at most ``remember`` of them, and at most ``max_bytes``
+    of payload and error text, the oldest forgotten first (a copy of a forgotten one gets none)."""
+
+    def __init__(self, remember=65536, max_bytes=8 * 2 ** 20):
+        self.remember, self.max_bytes = remember, max_bytes
+        self.bytes = 0
+        self._answers = collections.OrderedDict()
+
+    def __len__(self):
+        return len(self._answers)
+
+    def get(self, key):
+        return self._answers.get(key)
+
+    def keep(self, key, reply):
+        old = self._answers.pop(key, None)
+        if old is not None:
+            self.bytes -= answer_size(old)
+        self._answers[key] = reply
+        self.bytes += answer_size(reply)
+        while self._answers and (len(self._answers) > self.remember or self.bytes > self.max_bytes):
+            _, gone = self._answers.popitem(last=False)
+            self.bytes -= answer_size(gone)

@@ -1,6 +1,5 @@
 """Time Redundancy (paper Table II): Before saves and restores the server's state, Proceed
 computes, After compares the results and a majority decides."""
-import collections
 import threading
 import time
 
@@ -10,7 +9,7 @@ from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config, health
 from ..errors import ConfigError
-from ..once import RecentKeys
+from ..once import KeptAnswers, RecentKeys
 from ..recovery import OnHang
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
@@ -66,6 +65,9 @@ class TrBeforeNode(BeforeNode):
     request applied twice); after its vote it would have run again. Before remembers the last 65 536
     requests it executed or answered and refuses a second copy with the alarm ``duplicate_request``
     (the Protocol sends each request once: its first copy's outcome is the one its client gets).
+    A copy of a request whose vote ended gets that vote's answer again (After gives it with its
+    FORGET or RESTORE): a Protocol started again, which lost the first answer, is answered, not left
+    to its timeout. Answers are kept as long as ``~answers_bytes`` (8 MiB) of their payloads allow.
 
     Parameters:
         ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
@@ -74,11 +76,12 @@ class TrBeforeNode(BeforeNode):
         ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before a
             hang fail-stops the site (as Proceed's).
+        ~answers_bytes (int, 8 MiB): the answers kept for copies, at most this many bytes of payload.
     Services called: get_state, set_state (the server's state manager); <detector>/peer_status.
     Subscribes: pro2bfr (aft_msgs/Request), port ``inp``; /aft/witness/configuration
         (aft_msgs/Configuration), in a replica: whether its site serves alone.
     Publishes: bfr2prd (aft_msgs/Request), port ``out``; aft2pro (aft_msgs/Reply), port ``errors``:
-        an error reply (not executed) when the state cannot be saved; alarms (aft_msgs/Alarm), port
+        an error reply (not executed) when the state cannot be saved, and a copy's answer; alarms (aft_msgs/Alarm), port
         ``alarms``; fail_stop (aft_msgs/Failure), port ``fail_stop`` (in a replica).
     Services: ~repeat (aft_msgs/Repeat), ~rebind (aft_msgs/Rebind)
     """
@@ -95,7 +98,8 @@ class TrBeforeNode(BeforeNode):
         self.set_state = PersistentService('set_state', SetState)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.executed = RecentKeys()   # (origin, id, attempt) of the requests executed (a copy is refused)
-        self.answered = collections.OrderedDict()   # those of them answered "not executed": the answer
+        # Their answers ("not executed", or the vote's, told by After): a copy gets its answer again.
+        self.answered = KeptAnswers(max_bytes=param('answers_bytes', config.positive_int, 8 * 2 ** 20))
         # One state operation of the server at a time (a capture, or a repeat's restore and execution):
         # each is bounded by ~server_timeout.
         self.server_lock = threading.Lock()
@@ -179,10 +183,12 @@ class TrBeforeNode(BeforeNode):
                 rospy.logwarn('%s: %s/%d attempt %d replaces the saved state of an earlier attempt whose vote never '
                               'ended', self.name, request.origin, request.id, request.attempt)
         if copy:
-            answer = self.answered.get(once)
+            with self.lock:
+                answer = self.answered.get(once)
             alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed (or answered) by this '
                   'Before already; a second copy is not executed (%d refused so far)%s' % (
-                      once + (copies, '; answered "not executed" again' if answer else '')), request)
+                      once + (copies, '; its answer given again' if answer else
+                              '; no answer kept for it (its vote runs, or its answer was forgotten)')), request)
             if answer is not None:
                 self.ports.publish('errors', answer)
             return None
@@ -251,9 +257,7 @@ class TrBeforeNode(BeforeNode):
                       oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
                       status=Reply.ERROR, error='not executed: time redundancy cannot save the server state: %s' % why)
         with self.lock:
-            self.answered[(request.origin, request.id, request.attempt)] = reply
-            while len(self.answered) > self.executed.remember:   # (as many as copies are refused for)
-                self.answered.popitem(last=False)
+            self.answered.keep((request.origin, request.id, request.attempt), reply)
         self.ports.publish('errors', reply)
         return None
 
@@ -306,7 +310,17 @@ class TrBeforeNode(BeforeNode):
         if req.action == req.REPEAT:
             held[2] += 1
             self.ports.publish('out', execution(request, sent))
+        else:
+            self._keep_answer(request, req.answer)
         return RepeatResponse(success=True, message='')
+
+    def _keep_answer(self, request, answer):
+        """Keep the answer After gives request's vote (with FORGET, or with a RESTORE that set the state
+        back): a copy of the request gets it again."""
+        if (answer.origin, answer.id, answer.attempt) != (request.origin, request.id, request.attempt):
+            return   # none given (or not this request's)
+        with self.lock:
+            self.answered.keep((request.origin, request.id, request.attempt), answer)
 
 
 class TrAfterNode(AfterNode):
@@ -372,10 +386,12 @@ class TrAfterNode(AfterNode):
         self._tell_before(Reply(origin='', id=0), Repeat._request_class.FORGET)
         return super(TrAfterNode, self).setup(timeout)
 
-    def _tell_before(self, reply, action):
+    def _tell_before(self, reply, action, answer=None):
+        """Call Before's repeat with action for reply's request (answer: the vote's answer, which
+        Before keeps for a copy of the request); returns (success, message)."""
         try:
             result = self._repeat_deadline.call(self.repeat, self.repeat_timeout, origin=reply.origin, id=reply.id,
-                                                action=action)
+                                                action=action, answer=answer or Reply())
             return result.success, result.message
         except (rospy.ServiceException, rospy.ROSException, CallTimeout) as e:
             self.repeat = self.repeat.fresh()
@@ -419,14 +435,15 @@ class TrAfterNode(AfterNode):
             with self.vote_lock:
                 self.voter.forget(voting)
                 self.voted.add(voting)
-            if not why.startswith(NO_ANSWER):   # (a hung Before is not asked again: another timeout)
-                self._tell_before(reply, Repeat._request_class.FORGET)
             detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
                       'not confirm' % (reply.origin, reply.id, why))
+            answer = self._error(reply, 'outcome unknown: ' + detail)
+            if not why.startswith(NO_ANSWER):   # (a hung Before is not asked again: another timeout)
+                self._tell_before(reply, Repeat._request_class.FORGET, answer)
             alarm(self.ports, 'tr', 'restore_failed', detail, reply)
-            return self._error(reply, 'outcome unknown: ' + detail)
+            return answer
         if vote.outcome == Outcome.DECIDED:
-            ok, why = self._tell_before(reply, Repeat._request_class.FORGET)
+            ok, why = self._tell_before(reply, Repeat._request_class.FORGET, reply)
             if not ok and why.startswith(FAIL_STOPPED):
                 return None   # fail-stopped: the peer answers it (it answered all the same; review of session 34)
             if vote.masked:
@@ -434,7 +451,9 @@ class TrAfterNode(AfterNode):
                 alarm(self.ports, 'tr', 'value_fault_masked', '%d of %d executions disagreed with the majority'
                       % (vote.masked, vote.executions), reply)
             return reply
-        ok, why = self._tell_before(reply, Repeat._request_class.RESTORE)
+        # Before keeps this answer only if it set the state back (success): otherwise the answer differs.
+        ok, why = self._tell_before(reply, Repeat._request_class.RESTORE,
+                                    self._error(reply, 'no majority among %d executions' % vote.executions))
         if not ok and why.startswith(FAIL_STOPPED):
             return None
         detail = 'no majority among %d executions%s' % (vote.executions, '' if ok else
