@@ -694,6 +694,13 @@ class Supervisor(object):
                 s.stalled(now)
         return now - meant
 
+    def ended_unwatched(self, name, detail, now):
+        """An instance of name an earlier manager left running ended while no manager watched it: an
+        exit whose status nobody saw, counted and decided as one (it was started again as if nothing
+        had happened: a fresh allowance for a service dying with its manager each time)."""
+        self.services[name]._change(State.STARTING, now, 'left running by an earlier manager')
+        return self.fault(name, 'exit', detail, now)
+
     def fault(self, name, kind, detail, now):
         """A fault of service name: count it, decide and return what to do."""
         s = self.services[name]

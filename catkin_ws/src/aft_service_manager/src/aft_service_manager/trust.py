@@ -147,6 +147,16 @@ def hold_lock(path, wait=0.0, poll=0.05):
     return fd
 
 
+def boot_id(path='/proc/sys/kernel/random/boot_id'):
+    """This boot of the machine (Linux gives each boot a new random id), or '' where it cannot be read:
+    a process recorded under another boot ended with that boot, not on its own."""
+    try:
+        with open(path) as f:
+            return f.read().strip()
+    except OSError:
+        return ''
+
+
 def describe(proc):
     """What names a process across a pid's reuse: {'pid', 'create_time', 'cmdline'} (proc: psutil); the
     start on the boot clock (aft_ftm.process_start), so that a manager started after a wall-clock step

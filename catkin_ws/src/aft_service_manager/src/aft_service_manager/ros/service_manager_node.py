@@ -379,6 +379,8 @@ class ServiceManagerNode(object):
         self.closing = False          # shutting down: nothing more is spawned
         self.instances = 0            # a number per process spawned (a spare's {n})
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
+        self.boot = trust.boot_id()   # this boot: what the pid file recorded under another ended with it
+        self.lost = {}                # name -> how its instance, left by an earlier manager, was found ended
         self.programs = programs.Programs()   # the on_failure programs running, watched to their end
         self.local = None             # the manager's end of the local channel
         self.tree = tree.make(self.prefix.replace('/', '_'))   # a cgroup per instance, or a tag
@@ -414,7 +416,9 @@ class ServiceManagerNode(object):
         with self.lock:
             self._record_pids()
             for name, service in self.supervisor.services.items():
-                if service.config['autostart'] and name not in self.children and name not in held:
+                if name in self.lost and name not in self.children and name not in held:
+                    self._lost_fault(name, now)
+                elif service.config['autostart'] and name not in self.children and name not in held:
                     self._spawn(name, now)
                 elif name in self.children:
                     self._ensure_spare(name)
@@ -473,6 +477,16 @@ class ServiceManagerNode(object):
         service.spawned(now)
         self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
         self._ensure_spare(name)
+
+    def _lost_fault(self, name, now):
+        """name's instance ended while no manager watched it: counted as its exit, and acted on as one
+        (restarted after its back-off, within its restart limit; escalated as its policy says)."""
+        decision = self.supervisor.ended_unwatched(name, self.lost[name], now)
+        rospy.logwarn('%s: %s: exit: %s; %s', rospy.get_name(), name, decision.detail,
+                      ', '.join('%s %s' % a for a in decision.actions) or 'nothing done')
+        self._event('fault', name, decision.detail, now, kind=decision.kind, actions=decision.actions,
+                    escalate=decision.escalate)
+        self._act(decision, now)
 
     def _spawn_failed(self, decision, now):
         """A spawn that failed is a fault: reported and acted on as any other (it is retried, and an
@@ -582,7 +596,8 @@ class ServiceManagerNode(object):
         0600, in the private state directory."""
         def record(name, child):
             return dict(trust.describe(child.proc), service=name, spare=child.spare, ready=child.ready,
-                        tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance)
+                        tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance,
+                        boot=self.boot)
         try:
             records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
             records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
@@ -639,8 +654,13 @@ class ServiceManagerNode(object):
                 if not started and self._adopt(name, entry, proc, now):
                     adopted.append(entry['tree'])
                     continue
+                if started:   # another process under its pid now: the recorded one ended
+                    self._found_ended(entry, 'pid %s is another process now (%s)' % (entry.get('pid'), started))
                 why = started or trust.same_process(entry, proc) or (
                     None if os.getpgid(proc.pid) == proc.pid else 'pid %d leads no process group' % proc.pid)
+            except psutil.NoSuchProcess:
+                self._found_ended(entry, 'pid %s is gone' % entry.get('pid'))
+                continue   # nothing to stop
             except (psutil.Error, OSError, KeyError, TypeError, ValueError, AttributeError):
                 continue   # gone: nothing to stop
             if why:
@@ -653,6 +673,19 @@ class ServiceManagerNode(object):
             except OSError:
                 pass
         return adopted
+
+    def _found_ended(self, entry, how):
+        """An active instance an earlier manager recorded ended while no manager watched it (with its
+        manager, or in between): a fault of the service, counted as an exit at the start (self.lost).
+        It was started again as if nothing had happened, its restart allowance and back-off untouched
+        (Limits of session 38). Not a spare (never the service's work), nor one recorded under another
+        boot of the machine, or none (the machine stopped, not the service)."""
+        if not isinstance(entry, dict) or entry.get('spare') or not self.boot or entry.get('boot') != self.boot:
+            return
+        service = entry.get('service')
+        if service in self.supervisor.services:
+            self.lost[service] = ('%s: it ended while no manager watched it (with the manager, or while none ran; '
+                                  'exit status unknown)' % how)
 
     def _kill(self, name):
         """Kill name's active process (and its spare too if the service is not to run)."""
