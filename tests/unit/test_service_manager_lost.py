@@ -13,11 +13,13 @@ import threading
 import pytest
 
 from aft_service_manager import trust
-from aft_service_manager.services import State, Supervisor, parse_config
+from aft_service_manager.services import Sample, State, Supervisor, parse_config
 
 node_module = pytest.importorskip('aft_service_manager.ros.service_manager_node')
 
 BOOT = 'this-boot'
+DEAD = Sample(alive=False, exit_code=1, stopped=False, cpu_percent=0.0, rss=50e6)
+GB = 1e9
 
 
 def ended_process():
@@ -84,3 +86,65 @@ def test_the_lost_instance_is_acted_on_as_an_exit_within_the_restart_limit(node,
     s.restarts.append(s.clock(10.5))   # a second restart within the window (from the record, say)
     node._lost_fault('a', 11.0)
     assert s.state == State.FAILED and 'restart limit exhausted' in acted[-1].escalate
+
+
+@pytest.mark.parametrize('seed', [int(os.environ.get('AFT_SEED', 0)) or s for s in range(3901, 3911)])
+def test_a_back_off_hold_under_way_when_the_manager_dies_is_resumed_to_its_end(seed):
+    """A service in its back-off hold (restarted after a delay) when its manager dies: the next
+    manager started it at once (Limits of session 38), so a crash loop that kills its manager ran
+    without back-off. Now the record carries the hold's end, and the restart comes when it would
+    have under one manager. Faults and the moment of the manager's death are drawn from the seed."""
+    import json
+    import random
+    rng = random.Random(seed)
+    c = parse_config('services:\n  a: {command: x, restart_limit: 10, restart_window: 60, restart_delay: 0.5, '
+                     'restart_delay_factor: 2, restart_delay_max: 4, stable_after: 100}\n', source='test.yaml')
+    sup, now = Supervisor(c), 1000.0
+    faults = rng.randint(1, 4)
+    for fault in range(faults):
+        sup['a'].spawned(now)
+        sup['a'].heard(now + 0.01, 'ok')
+        now += rng.uniform(0.1, 1.0)
+        sup.check('a', DEAD, now, GB)
+        due_at = sup.next_due()
+        assert due_at is not None and due_at > now, 'seed %d: no back-off hold' % seed
+        died = now + rng.uniform(0.0, 0.99) * (due_at - now)   # the manager dies during the hold
+        if fault == faults - 1:
+            break
+        now = due_at
+        assert sup.due(now) == [('spawn', 'a')]
+    record = json.loads(json.dumps(sup.record()))
+    again = Supervisor(c)
+    assert again.restore(record, died) == [], 'seed %d' % seed
+    assert again['a'].state == State.RESTARTING, 'seed %d: %s' % (seed, again['a'].state)
+    assert again.next_due() == pytest.approx(due_at), 'seed %d: the hold did not resume to its end' % seed
+    assert again.due(died) == [] and again.due(due_at) == [('spawn', 'a')], 'seed %d' % seed
+
+
+def test_a_resumed_hold_never_exceeds_the_longest_back_off():
+    """A hold's end far ahead (the monotonic clock started again at a reboot) holds at most
+    restart_delay_max; one already past resumes nothing (the service starts at once)."""
+    c = parse_config('services:\n  a: {command: x, restart_delay: 1, restart_delay_max: 4}\n', source='test.yaml')
+    far = {'safe_state': None, 'down': {}, 'counts': {'a': {'errors': {'exit': 1}, 'consecutive': 1,
+                                                            'restarts': [5.0], 'hold_until': 1e9}}}
+    sup = Supervisor(c)
+    sup.restore(far, 10.0)
+    assert sup.next_due() == pytest.approx(14.0)
+    past = json_copy(far)
+    past['counts']['a']['hold_until'] = 9.0
+    sup = Supervisor(c)
+    sup.restore(past, 10.0)
+    assert sup.next_due() is None and sup['a'].state == State.STOPPED
+
+
+def json_copy(data):
+    import json
+    return json.loads(json.dumps(data))
+
+
+@pytest.mark.parametrize('bad', ['soon', float('nan'), True, [1.0]])
+def test_a_malformed_hold_in_the_record_is_refused(bad):
+    from aft_service_manager.services import ServiceConfigError
+    c = parse_config('services:\n  a: {command: x}\n', source='test.yaml')
+    with pytest.raises(ServiceConfigError, match='counts.a'):
+        Supervisor(c).restore({'down': {}, 'counts': {'a': {'hold_until': bad}}}, 10.0)

@@ -908,16 +908,21 @@ class Supervisor(object):
         the restarts its restart_limit counts, each at the latest time on the system's monotonic clock
         (shared by every process until a reboot) it may have happened. A manager crashing with its
         service, or killed by it, gave a service that fails at every start a fresh allowance and no
-        back-off each time: never FAILED, never the safe state (review of session 36). Only what
-        changes at a fault is recorded, so the record is written again only then."""
+        back-off each time: never FAILED, never the safe state (review of session 36). And the end of
+        a back-off hold under way, which the next manager resumes (session 39). Only what changes at a
+        fault (and at the held spawn) is recorded, so the record is written again only then."""
         down = {n: dict({'state': s.state.name, 'reason': s.reason}, **({'failed': True} if s.failed_before else {}))
                 for n, s in self.services.items()
                 if s.state == State.FAILED or (s.state == State.STOPPED and (s.starts or s.held_down))}
         # On the system's clock, a restart r of the service's clock was at r + its holds at the latest (a
         # hold under way counted from its start: the record stays the same while it lasts).
-        counts = {n: {'errors': dict(s.errors), 'consecutive': min(s.consecutive, MAX_CONSECUTIVE),
-                      'restarts': [r + s.held + (0.0 if s.held_from is None else s.spawn_at - s.held_from)
-                                   for r in s.restarts]}
+        counts = {n: dict({'errors': dict(s.errors), 'consecutive': min(s.consecutive, MAX_CONSECUTIVE),
+                           'restarts': [r + s.held + (0.0 if s.held_from is None else s.spawn_at - s.held_from)
+                                        for r in s.restarts]},
+                          # A back-off hold under way: the next manager holds the restart until then too
+                          # (it started the service at once; Limits of session 38).
+                          **({'hold_until': s.spawn_at} if s.spawn_at is not None and s.state == State.RESTARTING
+                             else {}))
                   for n, s in self.services.items() if s.errors or s.restarts or s.consecutive}
         return {'safe_state': self.safe_state, 'down': down, 'counts': counts}
 
@@ -932,7 +937,8 @@ class Supervisor(object):
             ok = isinstance(entry, dict) and isinstance(entry.get('errors', {}), dict) and all(
                 isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0
                 for k, v in entry.get('errors', {}).items()) and isinstance(entry.get('restarts', []), list) and all(
-                number(r) for r in entry.get('restarts', [])) and isinstance(entry.get('consecutive', 0), int) and \
+                number(r) for r in entry.get('restarts', [])) and number(entry.get('hold_until', 0.0)) and \
+                isinstance(entry.get('consecutive', 0), int) and \
                 not isinstance(entry.get('consecutive', 0), bool) and 0 <= entry.get('consecutive', 0) <= MAX_CONSECUTIVE
             if not ok:
                 raise ServiceConfigError('the manager\'s record is malformed: counts.%s is %r, not {errors: {kind: '
@@ -962,6 +968,13 @@ class Supervisor(object):
             # This service's clock is the system's until its first hold; a time ahead of now (the
             # clock started again at a reboot) counts as now: within the window, never forgotten early.
             s.restarts.extend(sorted(min(r, now) for r in entry.get('restarts', [])))
+            # The back-off hold the earlier manager had under way: resumed until its end, never longer
+            # than the longest back-off (a time far ahead: the clock started again at a reboot).
+            delay = min(entry.get('hold_until', now) - now, s.config['restart_delay_max'])
+            if delay > 0 and name not in record.get('down', {}) and s.state == State.STOPPED:
+                s._change(State.RESTARTING, now, 'the back-off hold of the previous manager resumed (%.2f s left)'
+                          % delay)
+                s.hold(now, delay)
         held = []
         for name, entry in sorted(record.get('down', {}).items()):
             s = self.services.get(name)

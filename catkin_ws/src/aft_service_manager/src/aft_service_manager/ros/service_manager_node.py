@@ -418,6 +418,8 @@ class ServiceManagerNode(object):
             for name, service in self.supervisor.services.items():
                 if name in self.lost and name not in self.children and name not in held:
                     self._lost_fault(name, now)
+                elif service.spawn_at is not None:   # a back-off hold resumed from the record: due() spawns it
+                    rospy.logwarn('%s: %s: %s', rospy.get_name(), name, service.reason)
                 elif service.config['autostart'] and name not in self.children and name not in held:
                     self._spawn(name, now)
                 elif name in self.children:
