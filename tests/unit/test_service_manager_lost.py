@@ -78,13 +78,14 @@ def test_the_lost_instance_is_acted_on_as_an_exit_within_the_restart_limit(node,
     acted = []
     monkeypatch.setattr(node, '_act', lambda decision, now: acted.append(decision), raising=False)
     monkeypatch.setattr(node, '_event', lambda *a, **k: None, raising=False)
-    node.lost = {'a': 'pid 1 is gone: it ended while no manager watched it'}
-    node._lost_fault('a', 10.0)
+    [decision] = node.supervisor.ended_unwatched({'a': 'pid 1 is gone: it ended while no manager watched it'}, 10.0)
+    node._lost_fault(decision, 10.0)
     s = node.supervisor['a']
     assert dict(s.errors) == {'exit': 1} and s.state == State.RESTARTING and len(s.restarts) == 1
     assert acted[-1].escalate is None
     s.restarts.append(s.clock(10.5))   # a second restart within the window (from the record, say)
-    node._lost_fault('a', 11.0)
+    s.spawned(10.6)
+    node._lost_fault(node.supervisor.fault('a', 'exit', 'again', 11.0), 11.0)
     assert s.state == State.FAILED and 'restart limit exhausted' in acted[-1].escalate
 
 
@@ -148,3 +149,81 @@ def test_a_malformed_hold_in_the_record_is_refused(bad):
     c = parse_config('services:\n  a: {command: x}\n', source='test.yaml')
     with pytest.raises(ServiceConfigError, match='counts.a'):
         Supervisor(c).restore({'down': {}, 'counts': {'a': {'hold_until': bad}}}, 10.0)
+
+
+def test_a_lost_service_its_policy_leaves_stopped_stays_down_in_the_record(node):
+    """Review of session 39: its start was not counted, so record() left the stopped service out and
+    the next manager autostarted it, undoing the policy."""
+    node.supervisor = Supervisor(parse_config('services:\n  a: {command: x, on_failure: terminate}\n',
+                                              source='test.yaml'))
+    [decision] = node.supervisor.ended_unwatched({'a': 'pid 7 is gone'}, 1.0)
+    assert node.supervisor['a'].state == State.STOPPED and ('kill', 'a') in decision.actions
+    assert 'a' in node.supervisor.record()['down']
+
+
+def test_entries_a_clean_stop_marked_malformed_or_odd_ones_are_not_counted(node):
+    write_pids(node, a=dict(ended_process(), spare=False, boot=BOOT, stopping=True))   # its manager stopped it
+    node._kill_orphans()
+    broken = {'a': {'pid': 999999, 'service': 'a', 'boot': BOOT},                       # no start time
+              'b': dict(ended_process(), service=['b'], boot=BOOT)}                     # not a name
+    trust.write_private_json(node.pid_file, broken)
+    node._kill_orphans()
+    assert node.lost == {}
+
+
+def test_a_clean_stop_marks_the_instances_it_stops_before_any_signal(node):
+    import psutil
+
+    class Child(object):
+        proc, spare, ready, handle, slot, instance = psutil.Process(os.getpid()), False, True, 't-a', None, 1
+
+        def alive(self):
+            return True
+    node.children, node.own = {'a': Child()}, {}
+    node._record_pids(stopping=True)
+    entry = trust.read_private_json(node.pid_file)['a']
+    assert entry['stopping'] is True and entry['boot'] == BOOT and trust.well_formed(entry)
+
+
+@pytest.mark.parametrize('order', ['a first', 'b first'])
+def test_two_lost_services_one_terminated_with_the_other_end_the_same_whatever_the_order(order):
+    """Review of session 39: A lists B in terminate_with, both found ended. Decided one by one, B's
+    fault restarted it after A's (B still in its initial STOPPED) had skipped it, and B ran without
+    A, depending on the order of the configuration. Now both are taken as started first: B is
+    stopped with A, in either order, and A's policy alone decides."""
+    a = '  a: {command: x, terminate_with: [b], restart_limit: 0}\n'
+    b = '  b: {command: y}\n'
+    sup = Supervisor(parse_config('services:\n' + (a + b if order == 'a first' else b + a), source='test.yaml'))
+    sup.ended_unwatched({'a': 'pid 1 is gone', 'b': 'pid 2 is gone'}, 5.0)
+    assert sup['a'].state == State.FAILED and sup['b'].state == State.STOPPED, order
+
+
+def test_a_service_that_must_not_run_without_a_lost_one_now_down_is_not_started():
+    """Review of session 39: it was autostarted, ran without the lost service, then was killed."""
+    sup = Supervisor(parse_config('services:\n  l: {command: x, terminate_with: [d], restart_limit: 0}\n'
+                                  '  d: {command: y, terminate_with: [e]}\n  e: {command: z}\n'
+                                  '  r: {command: w, restart_delay: 2, restart_with: [q]}\n  q: {command: v}\n'
+                                  '  free: {command: u}\n', source='test.yaml'))
+    lost = {'l': 'pid 1 is gone', 'r': 'pid 3 is gone'}
+    sup['r'].consecutive = 1   # its back-off holds its restart
+    sup.ended_unwatched(lost, 5.0)
+    assert sup['l'].state == State.FAILED and sup['r'].state == State.RESTARTING and sup['r'].spawn_at > 5.0
+    verbs = {n: sup.starts_after_lost(n, lost, 5.0)[0] for n in ('d', 'e', 'q', 'free')}
+    assert verbs == {'d': 'skip', 'e': 'skip', 'q': 'held', 'free': 'spawn'}, verbs
+    assert sup['d'].held_down and 'terminated with l' in sup['d'].reason
+    assert 'd' in sup.record()['down'] and sup.due(sup['r'].spawn_at + 1.0) == [('spawn', 'r'), ('spawn', 'q')]
+
+
+def test_an_instance_a_clean_stop_was_ending_is_killed_not_adopted_nor_counted(node):
+    """Review of session 39: its manager killed in the middle of its stop, the next one adopted the
+    instance still handling its SIGTERM, then counted its exit as a fault."""
+    import psutil
+    proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], start_new_session=True)
+    try:
+        entry = dict(trust.describe(psutil.Process(proc.pid)), spare=False, boot=BOOT, stopping=True)
+        write_pids(node, a=entry)
+        assert node._kill_orphans() == [] and node.lost == {} and node.children == {}
+        assert proc.wait(10) is not None   # killed
+    finally:
+        proc.kill()
+        proc.wait(10)

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from aft_examples.history import classify_error
-from aft_ftm.once import KeptAnswers, RecentKeys
+from aft_ftm.once import KeptAnswers, RecentKeys, answer_size
 from aft_ftm.voting import TimeRedundancyVote
 
 tr = pytest.importorskip('aft_ftm.ros.tr_nodes')
@@ -60,7 +60,7 @@ def wired(monkeypatch):
     server = Account()
     before = object.__new__(tr.TrBeforeNode)   # the node's state, without its ROS set-up
     before.__dict__.update(server_timeout=1.0, site='', name='/before', get_state=server.get_state, set_state=server.set_state,
-                           held={}, executed=RecentKeys(), answered=KeptAnswers(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
+                           held={}, executed=RecentKeys(), answered=KeptAnswers(), refused=KeptAnswers(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
     after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),
@@ -319,5 +319,41 @@ def test_the_kept_answers_are_bounded_in_number_and_bytes():
     assert len(kept) == 3 and kept.get(('/p', 0, 1)) is None and kept.get(('/p', 4, 1)).id == 4
     kept.keep(('/p', 9, 1), Reply(id=9, payload=b'x' * 900))   # the older ones go to make room
     assert [k for k in range(10) if kept.get(('/p', k, 1))] == [9] and kept.bytes <= 1000
-    kept.keep(('/p', 10, 1), Reply(id=10, payload=b'x' * 2000))   # larger than the bound: kept by none
-    assert len(kept) == 0 and kept.bytes == 0
+    # Larger than the bound: not kept, and pushes nothing out (review of session 39: it emptied the store).
+    assert not kept.keep(('/p', 10, 1), Reply(id=10, payload=b'x' * 2000))
+    assert [k for k in range(11) if kept.get(('/p', k, 1))] == [9] and kept.bytes == answer_size(kept.get(('/p', 9, 1)))
+
+
+def test_large_answers_never_push_out_a_not_executed_one_and_the_largest_are_not_sent(wired):
+    """Review of session 39: "not executed" answers shared the byte bound with every vote's answer,
+    so a few large replies pushed them out, and a copy of a request that never ran got no answer."""
+    server, before, after, call, alarms = wired
+
+    class Refused(object):
+        def __call__(self):
+            raise rospy.ServiceException('service [/get_state] unavailable')
+
+        def fresh(self):
+            return self
+    get_state, before.get_state = before.get_state, Refused()
+    before.handle(Request(id=1, origin='/proxy'))              # answered "not executed"
+    before.get_state = get_state
+    before.answered = KeptAnswers(max_bytes=3000)
+    big = iter([b'y' * 2000] * 100)
+
+    def large(request):
+        server.balance -= 10
+        return Reply(id=request.id, origin=request.origin, attempt=request.attempt, payload=next(big))
+    server.execute = large
+    server.corrupt_next = False
+    for rid in range(2, 6):
+        call(rid)
+    assert [a.error for a in _copy_of(before, 1)][0].startswith('not executed')
+    assert [bytes(a.payload) for a in _copy_of(before, 5)] == [b'y' * 2000]   # the last one fits
+    assert _copy_of(before, 3) == []                                          # pushed out by 4 and 5
+    huge = iter([b'z' * (tr.ANSWER_SENT_MAX + 1)] * 3)
+    server.execute = lambda request: Reply(id=request.id, origin=request.origin, attempt=request.attempt,
+                                           payload=next(huge))
+    before.answered = KeptAnswers()
+    assert bytes(call(6).payload)[:1] == b'z'
+    assert _copy_of(before, 6) == []   # not sent to Before: each FORGET would have carried it

@@ -44,7 +44,9 @@ def answer_size(reply):
 class KeptAnswers(object):
     """The answers given to the last keys, so that a second copy of a request gets its answer again
     (a Protocol started again lost the first): at most ``remember`` of them, and at most ``max_bytes``
-    of payload and error text, the oldest forgotten first (a copy of a forgotten one gets none)."""
+    of payload and error text (None: no byte bound), the oldest forgotten first (a copy of a
+    forgotten one gets none). An answer larger than ``max_bytes`` is not kept: it would have pushed
+    out every other (review of session 39)."""
 
     def __init__(self, remember=65536, max_bytes=8 * 2 ** 20):
         self.remember, self.max_bytes = remember, max_bytes
@@ -58,11 +60,16 @@ class KeptAnswers(object):
         return self._answers.get(key)
 
     def keep(self, key, reply):
+        """Keep reply as key's answer; False if it is too large to be kept."""
         old = self._answers.pop(key, None)
         if old is not None:
             self.bytes -= answer_size(old)
+        if self.max_bytes is not None and answer_size(reply) > self.max_bytes:
+            return False
         self._answers[key] = reply
         self.bytes += answer_size(reply)
-        while self._answers and (len(self._answers) > self.remember or self.bytes > self.max_bytes):
+        while self._answers and (len(self._answers) > self.remember or
+                                 self.max_bytes is not None and self.bytes > self.max_bytes):
             _, gone = self._answers.popitem(last=False)
             self.bytes -= answer_size(gone)
+        return True

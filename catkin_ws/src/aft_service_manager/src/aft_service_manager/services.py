@@ -41,7 +41,7 @@ class State(enum.Enum):
 
 EDGES = {
     (State.STOPPED, State.STARTING): 'started (by the manager at start, an operator, or with a dependency; or its '
-                                     'spawn asked, and failed)',
+                                     'spawn asked, and failed; or found ended at start, left by an earlier manager)',
     (State.FAILED, State.STARTING): 'an operator starts it again (error counts kept, restart allowance renewed)',
     (State.STARTING, State.RUNNING): 'heard from (or alive past its start grace, without heartbeats)',
     (State.STARTING, State.ERROR): 'a fault before it was running (exit, start timeout, ...)',
@@ -694,12 +694,57 @@ class Supervisor(object):
                 s.stalled(now)
         return now - meant
 
-    def ended_unwatched(self, name, detail, now):
-        """An instance of name an earlier manager left running ended while no manager watched it: an
-        exit whose status nobody saw, counted and decided as one (it was started again as if nothing
-        had happened: a fresh allowance for a service dying with its manager each time)."""
-        self.services[name]._change(State.STARTING, now, 'left running by an earlier manager')
-        return self.fault(name, 'exit', detail, now)
+    def ended_unwatched(self, lost, now):
+        """The instances an earlier manager left running that ended while no manager watched it (lost:
+        {name: detail}): exits whose status nobody saw, counted and decided as such (before session 39
+        they were started again as if nothing had happened: a fresh allowance for a service dying with
+        its manager each time). Returns their Decisions, in configuration order, for the caller to act
+        on once the other services are started (starts_after_lost).
+
+        All are taken as started first (their starts counted: a policy that leaves one stopped is kept
+        in the record), then each fault is decided: one stopped or restarted by an earlier one's
+        (terminate_with, restart_with) is not counted again, as one manager would not have counted its
+        kill, whatever the order of the configuration (reviews of session 39)."""
+        names = [n for n in self.order if n in lost]
+        for name in names:
+            s = self.services[name]
+            s._change(State.STARTING, now, 'left running by an earlier manager, found ended')
+            s.starts += 1
+        decisions = []
+        for name in names:
+            if self.services[name].state == State.STARTING:   # (not stopped or restarted with another)
+                decisions.append(self.fault(name, 'exit', lost[name], now))
+        return decisions
+
+    def starts_after_lost(self, name, lost, now):
+        """How service name, not found ended, starts once the lost ones' faults are decided: (verb, why),
+        verb 'spawn'; 'skip' (it must not run without a lost one now down: terminate_with, followed
+        transitively; left stopped, recorded as terminated with it); or 'held' (restarted with a lost
+        one being restarted: restart_with, followed transitively; spawned after it by due()). It was
+        autostarted first, running for a moment without what it must not run without (review)."""
+        s = self.services[name]
+        down = [l for l in lost if self.services[l].state in (State.STOPPED, State.FAILED, State.ERROR)]
+        blockers = [l for l in down if name in self._closure(l, 'terminate_with')]
+        if blockers:
+            s.reason = '%s (terminated with %s, found ended): start it to run it again' % (HELD_DOWN, ', '.join(blockers))
+            s.held_down = True
+            return 'skip', s.reason
+        restarting = [l for l in lost if self.services[l].state == State.RESTARTING and
+                      name in self._closure(l, 'restart_with')]
+        if restarting:
+            s._change(State.RESTARTING, now, 'restarted with %s, found ended' % ', '.join(restarting))
+            return ('spawn' if self.may_spawn(name, now) else 'held'), s.reason
+        return 'spawn', ''
+
+    def _closure(self, name, key):
+        """The services reached from name through config[key] (terminate_with, restart_with), transitively."""
+        seen, todo = set(), [name]
+        while todo:
+            for other in self.services[todo.pop()].config[key]:
+                if other not in seen and other != name:
+                    seen.add(other)
+                    todo.append(other)
+        return seen
 
     def fault(self, name, kind, detail, now):
         """A fault of service name: count it, decide and return what to do."""

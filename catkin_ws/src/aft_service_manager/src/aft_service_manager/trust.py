@@ -164,6 +164,15 @@ def describe(proc):
     return {'pid': proc.pid, 'create_time': process_started(proc.pid, zombie=True), 'cmdline': proc.cmdline()}
 
 
+def well_formed(entry):
+    """Whether a pid file's entry describes a process as describe() does (pid, start time, command line)."""
+    try:
+        int(entry['pid']), float(entry['create_time']), list(entry['cmdline'])
+        return True
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
 def same_process(entry, proc, command_line=True):
     """None if psutil process proc is the one entry describes; else why not. Without
     ``command_line``, by its pid and start time only (a service started through a wrapper that

@@ -1,5 +1,6 @@
 """Assertion & Duplex (paper Table II: Before, Compute, Assert): user safety assertions on each
 request (before it is executed) and on each reply; a violation is an error reply and an alarm."""
+import math
 import threading
 import time
 
@@ -29,30 +30,56 @@ class BoundedRun(object):
     timeout. Past the bound the check is a violation (assertions.Hung: the request is refused, the
     reply is not passed on) and ``on_hang(name, detail)`` is told once; the abandoned call is not
     made again while it has not returned (every check of that assertion is a violation at once,
-    no thread piles up), and when it returns, the next check calls the assertion again."""
+    with the same detail, so that TR around A&D sees the same result; no thread piles up), and
+    when it returns, the next check calls the assertion again.
+
+    Checks of one assertion run one at a time, each with the whole bound: the wait for the one
+    before does not count against it (review of session 39). What the assertion raises, a
+    TimeoutError too, is its own verdict, never taken for the bound's."""
 
     def __init__(self, timeout, on_hang):
+        if not (timeout >= 0 and math.isfinite(timeout) and timeout <= threading.TIMEOUT_MAX):
+            raise config.ConfigError('~assertion_timeout must be a finite number of seconds >= 0 (0: unbounded), '
+                                     'got %r' % (timeout,))
         self.timeout = timeout
         self.on_hang = on_hang
-        self.deadlines = {}
+        self.deadlines = {}   # name -> (Deadline, the lock its checks take in turn)
         self.lock = threading.Lock()
 
     def __call__(self, name, fn, args):
         if not self.timeout:
             return fn(*args)
         with self.lock:
-            deadline = self.deadlines.get(name)
-            if deadline is None:
-                deadline = self.deadlines[name] = Deadline('assertion %s' % name, exclusive=True)
-        try:
-            return deadline.call(fn, self.timeout, *args)
-        except CallPending:
-            raise assertions.Hung('an earlier call of it, abandoned past ~assertion_timeout (%.3f s), has not '
-                                  'returned yet: not called again until it has' % self.timeout)
-        except CallTimeout:
-            detail = 'did not return within ~assertion_timeout (%.3f s): the check cannot be evaluated' % self.timeout
+            if name not in self.deadlines:
+                self.deadlines[name] = (Deadline('assertion %s' % name, exclusive=True), threading.Lock())
+            deadline, turn = self.deadlines[name]
+        detail = 'did not return within ~assertion_timeout (%.3f s): the check cannot be evaluated' % self.timeout
+        with turn:
+            try:
+                outcome = deadline.call(_outcome, self.timeout, fn, args)
+            except CallPending:
+                raise assertions.Hung(detail)   # (its earlier call, abandoned, has not returned yet)
+            except CallTimeout:
+                outcome = None
+        if outcome is None:   # told outside the turn: a slow alarm never delays the next check
             self.on_hang(name, detail)
             raise assertions.Hung(detail)
+        raised, value = outcome
+        if raised:
+            raise value
+        return value
+
+
+def _outcome(fn, args):
+    """(False, what fn(*args) returned) or (True, what it raised): an assertion's own exception, a
+    TimeoutError too, is handed back as a value, not taken by Deadline for its own timeout. A
+    SystemExit or other BaseException is a RuntimeError naming it: a violation, as any exception."""
+    try:
+        return False, fn(*args)
+    except Exception as e:
+        return True, e
+    except BaseException as e:
+        return True, RuntimeError('raised %s: %s' % (type(e).__name__, e))
 
 
 def _bounded_run(node, mechanism):

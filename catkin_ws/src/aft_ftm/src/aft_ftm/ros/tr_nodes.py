@@ -9,7 +9,7 @@ from aft_msgs.srv import GetState, Repeat, RepeatResponse, SetState
 
 from .. import config, health
 from ..errors import ConfigError
-from ..once import KeptAnswers, RecentKeys
+from ..once import KeptAnswers, RecentKeys, answer_size
 from ..recovery import OnHang
 from ..ports import PUBLISH, PortSpec
 from ..voting import Outcome, TimeRedundancyVote
@@ -30,6 +30,11 @@ SPAN = 100
 FAIL_STOPPED = 'this replica fail-stopped: '
 # How After says that Before's ~repeat did not answer within ~repeat_timeout.
 NO_ANSWER = 'no answer within'
+# Before keeps the answers of the last this many votes, for copies of their requests.
+ANSWERS_KEPT = 4096
+# After gives Before no answer larger than this (bytes of payload and error): each would cost a copy on
+# every request's FORGET.
+ANSWER_SENT_MAX = 64 * 1024
 
 
 def execution(request, k):
@@ -67,7 +72,12 @@ class TrBeforeNode(BeforeNode):
     (the Protocol sends each request once: its first copy's outcome is the one its client gets).
     A copy of a request whose vote ended gets that vote's answer again (After gives it with its
     FORGET or RESTORE): a Protocol started again, which lost the first answer, is answered, not left
-    to its timeout. Answers are kept as long as ``~answers_bytes`` (8 MiB) of their payloads allow.
+    to its timeout. The last ANSWERS_KEPT answers are kept, as far as ``~answers_bytes`` (8 MiB) of
+    their payloads allow; After gives none larger than ANSWER_SENT_MAX (a copy of that request gets
+    no answer). "Not executed" answers are kept apart (as many as copies are refused for, at most
+    16 MiB of error text): a flood of large answers never pushes them out. The answer kept is the request's
+    true outcome: where After could not learn it (its RESTORE call timed out, but the restore
+    went through), the client may have been told "outcome unknown" and a copy "no majority".
 
     Parameters:
         ~server_timeout (float, 5 s): the longest the server's get_state, or set_state before an
@@ -98,8 +108,9 @@ class TrBeforeNode(BeforeNode):
         self.set_state = PersistentService('set_state', SetState)
         self.held = {}     # (origin, id) -> [request, state saved before it, executions sent]
         self.executed = RecentKeys()   # (origin, id, attempt) of the requests executed (a copy is refused)
-        # Their answers ("not executed", or the vote's, told by After): a copy gets its answer again.
-        self.answered = KeptAnswers(max_bytes=param('answers_bytes', config.positive_int, 8 * 2 ** 20))
+        # Their answers (the vote's, told by After; "not executed", kept apart): a copy gets its answer again.
+        self.answered = KeptAnswers(ANSWERS_KEPT, param('answers_bytes', config.positive_int, 8 * 2 ** 20))
+        self.refused = KeptAnswers(self.executed.remember, max_bytes=16 * 2 ** 20)   # (error texts only)
         # One state operation of the server at a time (a capture, or a repeat's restore and execution):
         # each is bounded by ~server_timeout.
         self.server_lock = threading.Lock()
@@ -184,11 +195,12 @@ class TrBeforeNode(BeforeNode):
                               'ended', self.name, request.origin, request.id, request.attempt)
         if copy:
             with self.lock:
-                answer = self.answered.get(once)
+                answer = self.refused.get(once) or self.answered.get(once)
             alarm(self.ports, 'tr', 'duplicate_request', '%s/%d (attempt %d) refused: executed (or answered) by this '
                   'Before already; a second copy is not executed (%d refused so far)%s' % (
                       once + (copies, '; its answer given again' if answer else
-                              '; no answer kept for it (its vote runs, or its answer was forgotten)')), request)
+                              '; no answer kept for it (its vote runs, its vote gave no answer to keep, or its '
+                              'answer was too large or forgotten)')), request)
             if answer is not None:
                 self.ports.publish('errors', answer)
             return None
@@ -257,7 +269,7 @@ class TrBeforeNode(BeforeNode):
                       oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
                       status=Reply.ERROR, error='not executed: time redundancy cannot save the server state: %s' % why)
         with self.lock:
-            self.answered.keep((request.origin, request.id, request.attempt), reply)
+            self.refused.keep((request.origin, request.id, request.attempt), reply)
         self.ports.publish('errors', reply)
         return None
 
@@ -389,6 +401,8 @@ class TrAfterNode(AfterNode):
     def _tell_before(self, reply, action, answer=None):
         """Call Before's repeat with action for reply's request (answer: the vote's answer, which
         Before keeps for a copy of the request); returns (success, message)."""
+        if answer is not None and answer_size(answer) > ANSWER_SENT_MAX:
+            answer = None   # (a copy of this request gets no answer)
         try:
             result = self._repeat_deadline.call(self.repeat, self.repeat_timeout, origin=reply.origin, id=reply.id,
                                                 action=action, answer=answer or Reply())

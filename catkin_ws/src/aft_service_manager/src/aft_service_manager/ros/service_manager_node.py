@@ -415,15 +415,26 @@ class ServiceManagerNode(object):
         now = time.monotonic()
         with self.lock:
             self._record_pids()
+            # The instances found ended: their faults decided first (they stop or restart what must
+            # not run without them, or restart with them), acted on once the others are started
+            # (reviews of session 39).
+            lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
+            decisions = self.supervisor.ended_unwatched(lost, now)
             for name, service in self.supervisor.services.items():
-                if name in self.lost and name not in self.children and name not in held:
-                    self._lost_fault(name, now)
+                if name in lost:
+                    continue
                 elif service.spawn_at is not None:   # a back-off hold resumed from the record: due() spawns it
                     rospy.logwarn('%s: %s: %s', rospy.get_name(), name, service.reason)
                 elif service.config['autostart'] and name not in self.children and name not in held:
-                    self._spawn(name, now)
+                    verb, why = self.supervisor.starts_after_lost(name, lost, now)
+                    if verb == 'spawn':
+                        self._spawn(name, now)
+                    else:
+                        rospy.logwarn('%s: %s not started: %s', rospy.get_name(), name, why)
                 elif name in self.children:
                     self._ensure_spare(name)
+            for decision in decisions:
+                self._lost_fault(decision, now)
             self._sync_safe_state()
         if self.closing:   # a shutdown ran during those spawns, on this thread: what it could not see goes too
             self._stop_left_by_shutdown()
@@ -480,10 +491,11 @@ class ServiceManagerNode(object):
         self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
         self._ensure_spare(name)
 
-    def _lost_fault(self, name, now):
-        """name's instance ended while no manager watched it: counted as its exit, and acted on as one
-        (restarted after its back-off, within its restart limit; escalated as its policy says)."""
-        decision = self.supervisor.ended_unwatched(name, self.lost[name], now)
+    def _lost_fault(self, decision, now):
+        """A service's instance ended while no manager watched it: counted as its exit
+        (Supervisor.ended_unwatched), acted on as one (restarted after its back-off, within its
+        restart limit; escalated as its policy says)."""
+        name = decision.service
         rospy.logwarn('%s: %s: exit: %s; %s', rospy.get_name(), name, decision.detail,
                       ', '.join('%s %s' % a for a in decision.actions) or 'nothing done')
         self._event('fault', name, decision.detail, now, kind=decision.kind, actions=decision.actions,
@@ -592,14 +604,15 @@ class ServiceManagerNode(object):
                           'meanwhile are cold)', rospy.get_name(), name, spare.pid, timeout)
             self._event('spare_start_timeout', name, 'pid %d not ready within %.1f s' % (spare.pid, timeout), now)
 
-    def _record_pids(self):
+    def _record_pids(self, stopping=False):
         """The process groups of the running services (pid, start time, command line), so that a
         manager started after this one was killed can stop what it left behind; written atomically,
-        0600, in the private state directory."""
+        0600, in the private state directory. ``stopping``: this manager stops them (a clean stop):
+        their end is not a fault."""
         def record(name, child):
             return dict(trust.describe(child.proc), service=name, spare=child.spare, ready=child.ready,
                         tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance,
-                        boot=self.boot)
+                        boot=self.boot, **({'stopping': True} if stopping else {}))
         try:
             records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
             records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
@@ -640,7 +653,8 @@ class ServiceManagerNode(object):
         """Adopt the service instances an earlier manager of the same name left running (it was
         killed), each only if it is still the process recorded (pid and start time) and still in the
         recorded tree; kill any other it left (process group checked by pid, start time and command
-        line). Returns the trees adopted."""
+        line). Returns the trees adopted. An active instance found ended (its pid gone, or another
+        process's now) is put in self.lost, to be counted as an exit (_found_ended)."""
         adopted = []
         try:
             recorded = trust.read_private_json(self.pid_file)
@@ -653,7 +667,8 @@ class ServiceManagerNode(object):
             try:
                 proc = psutil.Process(int(entry['pid']))
                 started = trust.same_process(entry, proc, command_line=False)
-                if not started and self._adopt(name, entry, proc, now):
+                # One a clean stop was ending (its manager killed meanwhile) is not adopted: it goes.
+                if not started and not entry.get('stopping') and self._adopt(name, entry, proc, now):
                     adopted.append(entry['tree'])
                     continue
                 if started:   # another process under its pid now: the recorded one ended
@@ -679,13 +694,14 @@ class ServiceManagerNode(object):
     def _found_ended(self, entry, how):
         """An active instance an earlier manager recorded ended while no manager watched it (with its
         manager, or in between): a fault of the service, counted as an exit at the start (self.lost).
-        It was started again as if nothing had happened, its restart allowance and back-off untouched
-        (Limits of session 38). Not a spare (never the service's work), nor one recorded under another
+        Before session 39 it was started again as if nothing had happened, its restart allowance and
+        back-off untouched. Not a spare (never the service's work), nor one recorded under another
         boot of the machine, or none (the machine stopped, not the service)."""
-        if not isinstance(entry, dict) or entry.get('spare') or not self.boot or entry.get('boot') != self.boot:
-            return
+        if not trust.well_formed(entry) or entry.get('spare') or entry.get('stopping') or not self.boot or \
+                entry.get('boot') != self.boot:
+            return   # (a malformed entry: nothing is known of it, not even that it ended)
         service = entry.get('service')
-        if service in self.supervisor.services:
+        if isinstance(service, str) and service in self.supervisor.services:
             self.lost[service] = ('%s: it ended while no manager watched it (with the manager, or while none ran; '
                                   'exit status unknown)' % how)
 
@@ -1201,6 +1217,14 @@ class ServiceManagerNode(object):
         to those still running after kill_timeout. Never raises."""
         with self.lock:
             self.closing = True   # nothing is spawned from now on
+            # Killed in the middle of this stop (roslaunch's SIGKILL after its SIGTERM), the pid file
+            # would name instances this stop ended: the next manager must not count them as faults.
+            try:
+                own = self.own.get(self.pid_file)
+                if own is not None and trust.identity(self.pid_file) == own:   # never a successor's (session 34)
+                    self._record_pids(stopping=True)
+            except Exception as e:   # shutdown paths never raise
+                rospy.logerr('%s: the pid file could not be marked stopping: %s', rospy.get_name(), e)
             spares = list(self.spares.values())
             children = list(self.children.values()) + list(self.stopping.values())
             self.children, self.stopping, self.spares = {}, {}, {}
