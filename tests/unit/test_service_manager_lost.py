@@ -72,13 +72,24 @@ def test_a_machine_whose_boot_cannot_be_told_counts_nothing(node):
     assert node.lost == {}
 
 
+def decide(sup, lost, now, act=lambda decision: None):
+    """What the node's set-up does: every lost one taken as started, then each decided and acted on."""
+    decisions = []
+    for name in sup.take_as_started(lost, now):
+        decision = sup.ended_unwatched(name, lost[name], now)
+        if decision is not None:
+            decisions.append(decision)
+            act(decision)
+    return decisions
+
+
 def test_the_lost_instance_is_acted_on_as_an_exit_within_the_restart_limit(node, monkeypatch):
     """Counted as an exit, the service is restarted by its policy; once the restart limit (restored
     from the record) is exhausted, it is FAILED and the safe state is escalated, as under one manager."""
     acted = []
     monkeypatch.setattr(node, '_act', lambda decision, now: acted.append(decision), raising=False)
     monkeypatch.setattr(node, '_event', lambda *a, **k: None, raising=False)
-    [decision] = node.supervisor.ended_unwatched({'a': 'pid 1 is gone: it ended while no manager watched it'}, 10.0)
+    [decision] = decide(node.supervisor, {'a': 'pid 1 is gone: it ended while no manager watched it'}, 10.0)
     node._lost_fault(decision, 10.0)
     s = node.supervisor['a']
     assert dict(s.errors) == {'exit': 1} and s.state == State.RESTARTING and len(s.restarts) == 1
@@ -156,7 +167,7 @@ def test_a_lost_service_its_policy_leaves_stopped_stays_down_in_the_record(node)
     the next manager autostarted it, undoing the policy."""
     node.supervisor = Supervisor(parse_config('services:\n  a: {command: x, on_failure: terminate}\n',
                                               source='test.yaml'))
-    [decision] = node.supervisor.ended_unwatched({'a': 'pid 7 is gone'}, 1.0)
+    [decision] = decide(node.supervisor, {'a': 'pid 7 is gone'}, 1.0)
     assert node.supervisor['a'].state == State.STOPPED and ('kill', 'a') in decision.actions
     assert 'a' in node.supervisor.record()['down']
 
@@ -185,17 +196,38 @@ def test_a_clean_stop_marks_the_instances_it_stops_before_any_signal(node):
     assert entry['stopping'] is True and entry['boot'] == BOOT and trust.well_formed(entry)
 
 
+class Acts(object):
+    """The node's actions on the children, faked: who runs after each decision is acted on."""
+
+    def __init__(self, sup):
+        self.sup, self.running = sup, set()
+
+    def __call__(self, decision):
+        for verb, name in decision.actions:
+            if verb == 'kill':
+                self.running.discard(name)
+            elif verb == 'spawn' and self.sup.may_spawn(name, 0.0):
+                self.sup[name].spawned(5.0)
+                self.running.add(name)
+
+
 @pytest.mark.parametrize('order', ['a first', 'b first'])
-def test_two_lost_services_one_terminated_with_the_other_end_the_same_whatever_the_order(order):
-    """Review of session 39: A lists B in terminate_with, both found ended. Decided one by one, B's
+@pytest.mark.parametrize('limit', [0, 3])
+def test_two_lost_services_one_terminated_with_the_other_end_the_same_whatever_the_order(order, limit):
+    """Reviews of session 39: A lists B in terminate_with, both found ended. Decided one by one, B's
     fault restarted it after A's (B still in its initial STOPPED) had skipped it, and B ran without
-    A, depending on the order of the configuration. Now both are taken as started first: B is
-    stopped with A, in either order, and A's policy alone decides."""
-    a = '  a: {command: x, terminate_with: [b], restart_limit: 0}\n'
+    A, depending on the order of the configuration; decided all first, then acted on, B was spawned
+    from a stale decision, killed by A's, and left STARTING with no process for ever. Now all are
+    taken as started, then each is decided and acted on in turn: B ends stopped with A, with no
+    process and a state that says so, in either order; A's policy decides A."""
+    a = '  a: {command: x, terminate_with: [b], restart_limit: %d}\n' % limit
     b = '  b: {command: y}\n'
     sup = Supervisor(parse_config('services:\n' + (a + b if order == 'a first' else b + a), source='test.yaml'))
-    sup.ended_unwatched({'a': 'pid 1 is gone', 'b': 'pid 2 is gone'}, 5.0)
-    assert sup['a'].state == State.FAILED and sup['b'].state == State.STOPPED, order
+    acts = Acts(sup)
+    decide(sup, {'a': 'pid 1 is gone', 'b': 'pid 2 is gone'}, 5.0, acts)
+    assert sup['b'].state == State.STOPPED and 'b' not in acts.running, (order, sup['b'].state, acts.running)
+    assert sup['a'].state == (State.FAILED if limit == 0 else State.STARTING), order
+    assert ('a' in acts.running) == (limit > 0)
 
 
 def test_a_service_that_must_not_run_without_a_lost_one_now_down_is_not_started():
@@ -206,9 +238,9 @@ def test_a_service_that_must_not_run_without_a_lost_one_now_down_is_not_started(
                                   '  free: {command: u}\n', source='test.yaml'))
     lost = {'l': 'pid 1 is gone', 'r': 'pid 3 is gone'}
     sup['r'].consecutive = 1   # its back-off holds its restart
-    sup.ended_unwatched(lost, 5.0)
+    decide(sup, lost, 5.0)
     assert sup['l'].state == State.FAILED and sup['r'].state == State.RESTARTING and sup['r'].spawn_at > 5.0
-    verbs = {n: sup.starts_after_lost(n, lost, 5.0)[0] for n in ('d', 'e', 'q', 'free')}
+    verbs = {n: sup.starts_after_lost(n, lost, 5.0)[0] for n in sup.order if n not in lost}
     assert verbs == {'d': 'skip', 'e': 'skip', 'q': 'held', 'free': 'spawn'}, verbs
     assert sup['d'].held_down and 'terminated with l' in sup['d'].reason
     assert 'd' in sup.record()['down'] and sup.due(sup['r'].spawn_at + 1.0) == [('spawn', 'r'), ('spawn', 'q')]
@@ -227,3 +259,26 @@ def test_an_instance_a_clean_stop_was_ending_is_killed_not_adopted_nor_counted(n
     finally:
         proc.kill()
         proc.wait(10)
+
+
+def test_a_critical_service_not_started_for_a_lost_one_escalates():
+    """Review of session 39: skipped, it stayed down with no safe state (one manager escalates)."""
+    sup = Supervisor(parse_config('services:\n  l: {command: x, terminate_with: [c], on_failure: terminate}\n'
+                                  '  c: {command: y, critical: true}\n', source='test.yaml'))
+    decide(sup, {'l': 'pid 1 is gone'}, 5.0)
+    assert sup.starts_after_lost('c', {'l': 'pid 1 is gone'}, 5.0)[0] == 'skip'
+    assert sup.safe_state and 'c (critical)' in sup.safe_state
+
+
+def test_a_chain_restarted_with_a_lost_service_is_held_in_dependency_order():
+    """Review of session 39: l restart_with [m], m restart_with [q], configured q, m, l, l lost with a
+    back-off: q was spawned before m and l, running against services not there."""
+    sup = Supervisor(parse_config('services:\n  q: {command: a}\n  m: {command: b, restart_with: [q]}\n'
+                                  '  l: {command: c, restart_with: [m], restart_delay: 1}\n', source='test.yaml'))
+    sup['l'].consecutive = 1
+    lost = {'l': 'pid 1 is gone'}
+    decide(sup, lost, 5.0)
+    verbs = [(n, sup.starts_after_lost(n, lost, 5.0)[0]) for n in sup.order if n not in lost]
+    assert verbs == [('m', 'held'), ('q', 'held')], verbs
+    at = sup['l'].spawn_at
+    assert sup.due(at - 0.01) == [] and sup.due(at) == [('spawn', 'l'), ('spawn', 'm'), ('spawn', 'q')]

@@ -694,45 +694,49 @@ class Supervisor(object):
                 s.stalled(now)
         return now - meant
 
-    def ended_unwatched(self, lost, now):
-        """The instances an earlier manager left running that ended while no manager watched it (lost:
-        {name: detail}): exits whose status nobody saw, counted and decided as such (before session 39
-        they were started again as if nothing had happened: a fresh allowance for a service dying with
-        its manager each time). Returns their Decisions, in configuration order, for the caller to act
-        on once the other services are started (starts_after_lost).
-
-        All are taken as started first (their starts counted: a policy that leaves one stopped is kept
-        in the record), then each fault is decided: one stopped or restarted by an earlier one's
-        (terminate_with, restart_with) is not counted again, as one manager would not have counted its
-        kill, whatever the order of the configuration (reviews of session 39)."""
+    def take_as_started(self, lost, now):
+        """The instances an earlier manager left running that ended while no manager watched (lost:
+        {name: detail}) are taken as started (their starts counted: a policy that leaves one stopped is
+        kept in the record), all of them before any fault is decided, so that one stopped or restarted
+        with another (terminate_with, restart_with) is seen running, as one manager would have seen it.
+        Returns their names in dependency order, for ended_unwatched one by one."""
         names = [n for n in self.order if n in lost]
         for name in names:
             s = self.services[name]
+            s.end_hold(now)   # (a back-off hold resumed from the record: this fault decides anew)
             s._change(State.STARTING, now, 'left running by an earlier manager, found ended')
             s.starts += 1
-        decisions = []
-        for name in names:
-            if self.services[name].state == State.STARTING:   # (not stopped or restarted with another)
-                decisions.append(self.fault(name, 'exit', lost[name], now))
-        return decisions
+        return names
+
+    def ended_unwatched(self, name, detail, now):
+        """name's instance ended while no manager watched it: an exit whose status nobody saw, counted
+        and decided as one (before session 39 it was started again as if nothing had happened: a fresh
+        allowance for a service dying with its manager each time). None if an earlier one's fault
+        already stopped or restarted it (its kill, under one manager, is not counted). The caller
+        acts on each Decision before the next is decided (reviews of session 39)."""
+        if self.services[name].state != State.STARTING:
+            return None
+        return self.fault(name, 'exit', detail, now)
 
     def starts_after_lost(self, name, lost, now):
-        """How service name, not found ended, starts once the lost ones' faults are decided: (verb, why),
-        verb 'spawn'; 'skip' (it must not run without a lost one now down: terminate_with, followed
-        transitively; left stopped, recorded as terminated with it); or 'held' (restarted with a lost
-        one being restarted: restart_with, followed transitively; spawned after it by due()). It was
-        autostarted first, running for a moment without what it must not run without (review)."""
+        """How service name, not found ended, starts once the lost ones' faults are decided and acted
+        on (called in dependency order): (verb, why), verb 'spawn'; 'skip' (it must not run without a
+        lost one, whose fault stopped it under one manager: terminate_with, followed transitively;
+        left stopped, recorded so, the safe state escalated if it is critical); or 'held' (restarted
+        with a lost one, or with one held so, being restarted: restart_with; spawned after it by
+        due()). It was autostarted first, running for a moment without what it must not run without
+        (review of session 39)."""
         s = self.services[name]
-        down = [l for l in lost if self.services[l].state in (State.STOPPED, State.FAILED, State.ERROR)]
-        blockers = [l for l in down if name in self._closure(l, 'terminate_with')]
+        blockers = [l for l in lost if name in self._closure(l, 'terminate_with')]
         if blockers:
-            s.reason = '%s (terminated with %s, found ended): start it to run it again' % (HELD_DOWN, ', '.join(blockers))
+            s.reason = ('terminated with %s, found ended at the manager\'s start: start it to run it again'
+                        % ', '.join(blockers))
             s.held_down = True
+            if s.config['critical']:
+                self._escalate('%s (critical) %s' % (name, s.reason), now)
             return 'skip', s.reason
-        restarting = [l for l in lost if self.services[l].state == State.RESTARTING and
-                      name in self._closure(l, 'restart_with')]
-        if restarting:
-            s._change(State.RESTARTING, now, 'restarted with %s, found ended' % ', '.join(restarting))
+        if self.waits_for(name):
+            s._change(State.RESTARTING, now, 'restarted with %s, found ended' % ', '.join(self.waits_for(name)))
             return ('spawn' if self.may_spawn(name, now) else 'held'), s.reason
         return 'spawn', ''
 

@@ -415,12 +415,17 @@ class ServiceManagerNode(object):
         now = time.monotonic()
         with self.lock:
             self._record_pids()
-            # The instances found ended: their faults decided first (they stop or restart what must
-            # not run without them, or restart with them), acted on once the others are started
+            # The instances found ended first: all taken as started, then each fault decided and acted
+            # on in turn (one stops or restarts what must not run without it, or restarts with it);
+            # then the others, in dependency order, each told what those faults mean for it
             # (reviews of session 39).
             lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
-            decisions = self.supervisor.ended_unwatched(lost, now)
-            for name, service in self.supervisor.services.items():
+            for name in self.supervisor.take_as_started(lost, now):
+                decision = self.supervisor.ended_unwatched(name, lost[name], now)
+                if decision is not None:
+                    self._lost_fault(decision, now)
+            for name in self.supervisor.order:
+                service = self.supervisor[name]
                 if name in lost:
                     continue
                 elif service.spawn_at is not None:   # a back-off hold resumed from the record: due() spawns it
@@ -431,10 +436,9 @@ class ServiceManagerNode(object):
                         self._spawn(name, now)
                     else:
                         rospy.logwarn('%s: %s not started: %s', rospy.get_name(), name, why)
+                        self._event('not_started' if verb == 'skip' else 'held', name, why, now)
                 elif name in self.children:
                     self._ensure_spare(name)
-            for decision in decisions:
-                self._lost_fault(decision, now)
             self._sync_safe_state()
         if self.closing:   # a shutdown ran during those spawns, on this thread: what it could not see goes too
             self._stop_left_by_shutdown()
