@@ -282,3 +282,15 @@ def test_a_chain_restarted_with_a_lost_service_is_held_in_dependency_order():
     assert verbs == [('m', 'held'), ('q', 'held')], verbs
     at = sup['l'].spawn_at
     assert sup.due(at - 0.01) == [] and sup.due(at) == [('spawn', 'l'), ('spawn', 'm'), ('spawn', 'q')]
+
+
+def test_a_lost_service_restarted_with_another_lost_one_is_not_faulted_again():
+    """Review of session 39: lost a restart_with [b], b lost too, no delay: a's restart restarted and
+    spawned b, and b's own decision then took the fresh instance for the one found ended: a second
+    exit counted, the new instance killed and restarted."""
+    sup = Supervisor(parse_config('services:\n  a: {command: x, restart_with: [b]}\n  b: {command: y}\n',
+                                  source='test.yaml'))
+    acts = Acts(sup)
+    decisions = decide(sup, {'a': 'pid 1 is gone', 'b': 'pid 2 is gone'}, 5.0, acts)
+    assert [d.service for d in decisions] == ['a'] and acts.running == {'a', 'b'}
+    assert dict(sup['b'].errors) == {} and sup['b'].starts == 2 and sup['b'].state == State.STARTING

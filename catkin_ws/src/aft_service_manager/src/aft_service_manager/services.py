@@ -632,6 +632,7 @@ class Supervisor(object):
         self.config = config
         self.services = collections.OrderedDict((n, Service(n, c)) for n, c in config['services'].items())
         self.order = dependency_order(config['services'])
+        self._taken = {}   # lost instances taken as started (take_as_started): name -> its starts then
         self.safe_state = None      # the reason the system is in the safe state, None while it is not
         self.also_unsafe = []       # the reasons to enter it that came while it was in it already
         self.safe_since = None
@@ -701,11 +702,13 @@ class Supervisor(object):
         with another (terminate_with, restart_with) is seen running, as one manager would have seen it.
         Returns their names in dependency order, for ended_unwatched one by one."""
         names = [n for n in self.order if n in lost]
+        self._taken = {}
         for name in names:
             s = self.services[name]
             s.end_hold(now)   # (a back-off hold resumed from the record: this fault decides anew)
             s._change(State.STARTING, now, 'left running by an earlier manager, found ended')
             s.starts += 1
+            self._taken[name] = s.starts
         return names
 
     def ended_unwatched(self, name, detail, now):
@@ -714,7 +717,10 @@ class Supervisor(object):
         allowance for a service dying with its manager each time). None if an earlier one's fault
         already stopped or restarted it (its kill, under one manager, is not counted). The caller
         acts on each Decision before the next is decided (reviews of session 39)."""
-        if self.services[name].state != State.STARTING:
+        s = self.services[name]
+        # Not the instance taken as started any more: stopped, or restarted (and spawned again) with
+        # an earlier one (review of session 39: a fresh instance was faulted a second time).
+        if s.state != State.STARTING or self._taken.get(name) != s.starts:
             return None
         return self.fault(name, 'exit', detail, now)
 

@@ -420,17 +420,21 @@ class ServiceManagerNode(object):
             # then the others, in dependency order, each told what those faults mean for it
             # (reviews of session 39).
             lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
+            # Only these are started below: not adopted, not held, not lost, not yet started. One the
+            # lost ones' faults stopped, failed or restarted is theirs to run (review of session 39).
+            untouched = {n for n, s in self.supervisor.services.items() if n not in lost and n not in held and
+                         n not in self.children and s.state == State.STOPPED}
             for name in self.supervisor.take_as_started(lost, now):
                 decision = self.supervisor.ended_unwatched(name, lost[name], now)
                 if decision is not None:
                     self._lost_fault(decision, now)
             for name in self.supervisor.order:
                 service = self.supervisor[name]
-                if name in lost:
+                if name in lost or (name not in untouched and name not in self.children):
+                    if name not in lost and service.spawn_at is not None:   # a hold resumed: due() spawns it
+                        rospy.logwarn('%s: %s: %s', rospy.get_name(), name, service.reason)
                     continue
-                elif service.spawn_at is not None:   # a back-off hold resumed from the record: due() spawns it
-                    rospy.logwarn('%s: %s: %s', rospy.get_name(), name, service.reason)
-                elif service.config['autostart'] and name not in self.children and name not in held:
+                elif service.config['autostart'] and name not in self.children:
                     verb, why = self.supervisor.starts_after_lost(name, lost, now)
                     if verb == 'spawn':
                         self._spawn(name, now)
