@@ -29,3 +29,21 @@ class FakePublisher(object):
 
     def publish(self, msg):
         self.published.append(msg)
+
+
+class FakePorts(object):
+    """A node's ports (aft_ftm.ports) without ROS: what it published, in order."""
+
+    def __init__(self):
+        self.sent = []
+
+    def publish(self, port, msg):
+        self.sent.append((port, msg))
+
+    def kinds(self):
+        """(port, alarm kind or None) of each message published."""
+        return [(port, getattr(msg, 'kind', None)) for port, msg in self.sent]
+
+    def alarms(self):
+        """The kinds of the alarms published."""
+        return [msg.kind for port, msg in self.sent if port == 'alarms']

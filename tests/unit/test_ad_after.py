@@ -9,20 +9,13 @@ from aft_msgs.msg import Reply
 
 from aft_ftm import assertions
 from aft_ftm.ros import ad_nodes
-
-
-class Ports(object):
-    def __init__(self):
-        self.sent = []
-
-    def publish(self, port, msg):
-        self.sent.append((port, msg))
+from fakes import FakePorts
 
 
 def test_a_reply_whose_request_never_comes_is_answered_outcome_unknown_with_an_alarm(monkeypatch):
     monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
     node = ad_nodes.AdAfterNode.__new__(ad_nodes.AdAfterNode)
-    node.ports, node.lock, node.checks = Ports(), threading.Lock(), []
+    node.ports, node.lock, node.checks = FakePorts(), threading.Lock(), []
     node.pairing = assertions.Pairing(wait=0.05, max_requests=10)
     reply = Reply(id=7, origin='/client/proxy', client='c', attempt=1, status=Reply.OK, payload=b'x')
     assert node.handle(reply) is None            # parked: its request has not come

@@ -17,21 +17,11 @@ from aft_msgs.msg import Reply, Request
 
 from aft_ftm import assertions
 from aft_ftm.ros import ad_nodes
+from fakes import FakePorts
 from aft_ftm.ros.envelope import serialize
 from aft_msgs.srv import AccountRequest, AccountResponse
 
 BOUND = 0.2
-
-
-class Ports(object):
-    def __init__(self):
-        self.sent = []
-
-    def publish(self, port, msg):
-        self.sent.append((port, msg))
-
-    def kinds(self):
-        return [(port, getattr(msg, 'kind', None)) for port, msg in self.sent]
 
 
 class Gate(object):
@@ -118,7 +108,7 @@ def _request():
 
 def test_a_before_whose_request_assertion_hangs_refuses_the_request_within_the_bound(no_clock):
     node = ad_nodes.AdBeforeNode.__new__(ad_nodes.AdBeforeNode)
-    node.ports = Ports()
+    node.ports = FakePorts()
     node.run = ad_nodes.BoundedRun(BOUND, lambda name, detail: ad_nodes.alarm(node.ports, 'ad', 'assertion_hangs',
                                                                               detail))
     gate = Gate()
@@ -139,7 +129,7 @@ def test_a_before_whose_request_assertion_hangs_refuses_the_request_within_the_b
 
 def test_an_after_whose_reply_assertion_hangs_answers_an_error_within_the_bound(no_clock):
     node = ad_nodes.AdAfterNode.__new__(ad_nodes.AdAfterNode)
-    node.ports, node.lock = Ports(), threading.Lock()
+    node.ports, node.lock = FakePorts(), threading.Lock()
     node.pairing = assertions.Pairing(wait=5.0, max_requests=10)
     node.run = ad_nodes.BoundedRun(BOUND, lambda name, detail: None)
     gate = Gate()

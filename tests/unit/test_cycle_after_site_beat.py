@@ -14,19 +14,9 @@ from aft_msgs.msg import Heartbeat
 from aft_ftm.cycle_replica import CycleReplica
 from aft_ftm.protocol import Role
 from aft_ftm.ros import cycle_nodes
+from fakes import FakePorts
 
 DETECTOR = '/board_b/crash_detector'
-
-
-class Ports(object):
-    def __init__(self):
-        self.sent = []
-
-    def publish(self, port, msg):
-        self.sent.append((port, msg))
-
-    def alarms(self):
-        return [msg.kind for port, msg in self.sent if port == 'alarms']
 
 
 @pytest.fixture
@@ -34,7 +24,7 @@ def backup(monkeypatch):
     monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
     node = cycle_nodes.CycleAfterNode.__new__(cycle_nodes.CycleAfterNode)
     node.name, node.site, node.site_detector = '/board_b/cycle_after', 'board_b', DETECTOR
-    node.lock, node.ports = threading.Lock(), Ports()
+    node.lock, node.ports = threading.Lock(), FakePorts()
     node.replica = CycleReplica(node.name, Role.BACKUP, 1000, expect='/board_a/')
     return node
 

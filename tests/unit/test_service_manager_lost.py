@@ -90,13 +90,13 @@ def test_the_lost_instance_is_acted_on_as_an_exit_within_the_restart_limit(node,
     monkeypatch.setattr(node, '_act', lambda decision, now: acted.append(decision), raising=False)
     monkeypatch.setattr(node, '_event', lambda *a, **k: None, raising=False)
     [decision] = decide(node.supervisor, {'a': 'pid 1 is gone: it ended while no manager watched it'}, 10.0)
-    node._lost_fault(decision, 10.0)
+    node._fault(decision, 10.0)
     s = node.supervisor['a']
     assert dict(s.errors) == {'exit': 1} and s.state == State.RESTARTING and len(s.restarts) == 1
     assert acted[-1].escalate is None
     s.restarts.append(s.clock(10.5))   # a second restart within the window (from the record, say)
     s.spawned(10.6)
-    node._lost_fault(node.supervisor.fault('a', 'exit', 'again', 11.0), 11.0)
+    node._fault(node.supervisor.fault('a', 'exit', 'again', 11.0), 11.0)
     assert s.state == State.FAILED and 'restart limit exhausted' in acted[-1].escalate
 
 

@@ -427,7 +427,7 @@ class ServiceManagerNode(object):
             for name in self.supervisor.take_as_started(lost, now):
                 decision = self.supervisor.ended_unwatched(name, lost[name], now)
                 if decision is not None:
-                    self._lost_fault(decision, now)
+                    self._fault(decision, now)
             for name in self.supervisor.order:
                 service = self.supervisor[name]
                 if name in lost or (name not in untouched and name not in self.children):
@@ -499,16 +499,16 @@ class ServiceManagerNode(object):
         self._event('spawned', name, 'pid %d' % child.pid, now, starts=service.starts, pid=child.pid)
         self._ensure_spare(name)
 
-    def _lost_fault(self, decision, now):
-        """A service's instance ended while no manager watched it: counted as its exit
-        (Supervisor.ended_unwatched), acted on as one (restarted after its back-off, within its
-        restart limit; escalated as its policy says)."""
-        name = decision.service
-        rospy.logwarn('%s: %s: exit: %s; %s', rospy.get_name(), name, decision.detail,
+    def _fault(self, decision, now, act_now=None):
+        """A fault decided (a check's, or an instance found ended at the start): said on rosout too,
+        whatever the policy does about it (a service restarted for ever more slowly than its limit, or
+        left stopped by its policy, showed only on ~events; review of session 36), on ~events, then
+        acted on (at act_now, default now)."""
+        rospy.logwarn('%s: %s: %s: %s; %s', rospy.get_name(), decision.service, decision.kind, decision.detail,
                       ', '.join('%s %s' % a for a in decision.actions) or 'nothing done')
-        self._event('fault', name, decision.detail, now, kind=decision.kind, actions=decision.actions,
-                    escalate=decision.escalate)
-        self._act(decision, now)
+        self._event('fault', decision.service, decision.detail, now, kind=decision.kind,
+                    actions=decision.actions, escalate=decision.escalate)
+        self._act(decision, now if act_now is None else act_now)
 
     def _spawn_failed(self, decision, now):
         """A spawn that failed is a fault: reported and acted on as any other (it is retried, and an
@@ -990,14 +990,7 @@ class ServiceManagerNode(object):
             if was == State.STARTING and self.supervisor[name].state == State.RUNNING:
                 child.cpu_marks = []   # its CPU is judged from now on, not its start-up
             if decision is not None:
-                # Said on rosout too, whatever the policy does about it: a service restarted for ever more
-                # slowly than its limit, or left stopped by its policy, showed only on ~events (review of
-                # session 36).
-                rospy.logwarn('%s: %s: %s: %s; %s', rospy.get_name(), name, decision.kind, decision.detail,
-                              ', '.join('%s %s' % a for a in decision.actions) or 'nothing done')
-                self._event('fault', name, decision.detail, now, kind=decision.kind,
-                            actions=decision.actions, escalate=decision.escalate)
-                self._act(decision, time.monotonic())
+                self._fault(decision, now, time.monotonic())
         except Exception as e:   # the manager must outlive any one service's trouble
             rospy.logerr('%s: while checking %s: %s: %s', rospy.get_name(), name, type(e).__name__, e)
 
