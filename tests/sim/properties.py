@@ -27,6 +27,7 @@ from .world import Violation
 # transition -> the alarm kinds that report it
 REPORTED_BY = {
     'alone': ('alone',),
+    'promoted_alone': ('took_over',),
     'gap': ('backup_invalid',),
     'stray': ('stray_checkpoint',),
     'stale': ('stale_checkpoint',),

@@ -63,6 +63,9 @@ class Params(object):
         # tests/unit/test_replication_sim.py, which replays each finding with its flag off):
         # PbrAfterNode._on_set_role, PRIMARY -> ALONE (Recovery's AFTER_ALONE): raise the 'alone' alarm.
         self.fix_alone_alarm = True
+        # ... and BACKUP -> ALONE (a promotion after the primary failed, not the first primary's): raise
+        # 'took_over' (session 40: a promoted backup served with no backup silently, a log line only).
+        self.fix_promoted_alone_alarm = True
         # ProceedNode and ProtocolNode (hung server, request overdue) in a site that serves alone: wait for
         # the late answer with an alarm rather than fail-stop the only replica holding the state.
         self.fix_wait_alone = True
@@ -480,6 +483,12 @@ class ObservedReceiver(CheckpointReceiver):
         if decision in (Decision.GAP, Decision.STRAY, Decision.STALE, Decision.FENCED):
             self.observer.transition(self.owner, decision.name.lower(), args[1])
         return decision
+
+    def promote(self, initial=False):
+        last_seq = super(ObservedReceiver, self).promote(initial=initial)
+        if not initial:   # it serves from now on with no backup
+            self.observer.transition(self.owner, 'promoted_alone', None)
+        return last_seq
 
     def failed(self, seq, reason):
         was = self.state
@@ -940,13 +949,14 @@ class AfterModel(Node):
 
     def srv_set_role(self, respond, kwargs):
         role, epoch, p = kwargs['role'], kwargs.get('epoch', 0), self.env.params
-        went_alone = False
+        went_alone, promoted = False, None
         try:
             if self.role == Role.BACKUP and role == Role.ALONE:
                 self.apply_locked()
                 last_seq = self.receiver.promote(initial=kwargs.get('initial', False))
                 self.sender = self._observed(
                     ObservedSender(Role.ALONE, self.first_seq, max(epoch, self.receiver.epoch)))
+                promoted = None if kwargs.get('initial', False) else self.sender.epoch
             elif self.role == Role.PRIMARY and role == Role.ALONE:
                 if p.fix_stale_exclusion and (self.sender.joiner is not None or epoch < self.sender.epoch):
                     # Proposed fix: the exclusion Recovery obtained is older than a join under way (or
@@ -971,6 +981,9 @@ class AfterModel(Node):
         self.role = role
         if went_alone and p.fix_alone_alarm and not self.sender.deposed:
             self.tell('alone', '%s goes on ALONE at epoch %d (Recovery: the backup failed)' % (self.site.name, epoch))
+        elif promoted is not None and p.fix_promoted_alone_alarm:
+            self.tell('took_over', '%s is promoted at epoch %d and goes on ALONE: its primary failed' % (
+                self.site.name, promoted))
         self.world.log('%s role %s epoch %d last_seq %d', self.name, role.name, epoch, last_seq)
         respond(Answer(True, 'role %s' % role.name, last_seq))
 

@@ -57,3 +57,14 @@ def test_number_map():
     for bad in ([1], {'imu': 0}, {'imu': 'x'}):
         with pytest.raises(ConfigError, match='~watch'):
             config.number_map('~watch', bad)
+
+
+def test_a_witness_is_none_or_a_service_a_witness_offers():
+    assert config.witness_service('~witness', '') == '' and config.witness_service('~witness', ' none ') == ''
+    assert config.witness_service('~witness', 'None') == ''
+    assert config.witness_service('~witness', ' /nav/witness/request ') == '/nav/witness/request'
+    assert config.witness_service('~witness', 'witness/request') == 'witness/request'
+    # its configurations are published beside ~request: any other name would follow a topic nobody publishes
+    for bad in ('/nav/witness', '/nav/witness/configuration', 'true', 3, None, '   '):
+        with pytest.raises(ConfigError, match='~witness'):
+            config.witness_service('~witness', bad)

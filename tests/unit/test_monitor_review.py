@@ -269,6 +269,7 @@ def monitor_node(core, engine):
     node = MonitorNode.__new__(MonitorNode)
     node.core, node.lock, node.suffix, node.script_args, node.mode = core, threading.Lock(), '', {}, 'prepared'
     node.engine, node.forged, node.work = engine, 0, queue.Queue()
+    node.witness = '/aft/witness/request'
     node.alarms, node.events, node.model_pub = FakePublisher(), FakePublisher(), FakePublisher()
     return node
 
@@ -372,3 +373,44 @@ def test_a_site_never_heard_is_said_once_past_its_grace():
     assert [a.kind for a in node.alarms] == ['site_never_heard'] and 'slave' in node.alarms[0].detail
     node.run(60.0, sites=['master'])
     assert len(node.alarms) == 1
+
+
+class RecordingEngine(FakeEngine):
+    def __init__(self):
+        super(RecordingEngine, self).__init__({'ok': True, 'error': '', 'state': 'DONE', 'alarm': ''})
+        self.scripts = []
+
+    def run(self, script, mode):
+        self.scripts.append(script)
+        return super(RecordingEngine, self).run(script, mode)
+
+
+@pytest.mark.parametrize('witness, given', [('/nav/witness/request', '/nav/witness/request'), ('', 'none')])
+def test_every_script_the_monitor_runs_is_given_the_replicas_witness_first(no_ros, monkeypatch, witness, given):
+    """Session 40: the monitor ran its scripts with their default witness (/aft/witness/request), so the
+    nodes a switch or a composition started followed another service's witness on a shared master. The
+    operator's script_args come after, and may still say otherwise."""
+    core, clock = monitor(('lfr',), application=Application(deterministic=False, state_access=True))
+    engine = RecordingEngine()
+    node = monitor_node(core, engine)
+    node.witness, node.script_args = witness, {'switch': ['state_manager:=planner']}
+    node.work.put((core.decide(clock.now), SITES))
+    running = iter([False, True])
+    monkeypatch.setattr(rospy, 'is_shutdown', lambda: next(running))
+    node._adapter()
+    [(spec, overrides)] = engine.scripts
+    assert spec == 'switch' and overrides[:2] == ['witness:=' + given, 'state_manager:=planner'], overrides
+
+
+def test_every_shipped_adaptation_script_takes_the_witness():
+    import glob
+    import os
+    from aft_ftm import adaptation
+    folder = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                          'catkin_ws', 'src', 'aft_ftm', 'adaptations')
+    paths = sorted(glob.glob(os.path.join(folder, '*.yaml')))
+    assert len(paths) >= 4
+    for path in paths:
+        with open(path) as f:
+            script = adaptation.load(f.read(), {'witness': '/nav/witness/request'}, source=path)
+        assert script.args['witness'] == '/nav/witness/request', path

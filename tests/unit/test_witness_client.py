@@ -15,6 +15,7 @@ def test_every_older_configuration_is_told_to_the_witness_not_once_per_epoch_num
     told = []
     client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
     client.known, client.seen, client._seen_lock = 0, {}, threading.Lock()
+    client.service = witness_client.DEFAULT_WITNESS
     client._tell_behind = lambda epoch: told.append(epoch)
     monkeypatch.setattr(witness_client.threading, 'Thread',
                         lambda target, args, **kw: types.SimpleNamespace(start=lambda: target(*args)))
@@ -90,6 +91,7 @@ def test_one_epoch_naming_two_configurations_makes_the_site_tell_the_witness_it_
     told = []
     client = witness_client.WitnessClient.__new__(witness_client.WitnessClient)
     client.known, client.seen, client._seen_lock = 0, {}, threading.Lock()
+    client.service = witness_client.DEFAULT_WITNESS
     client._tell_behind = lambda epoch: told.append((epoch, client.known))
     client.subscribe(lambda conf: None)
     conf = lambda epoch, primary, backup='': types.SimpleNamespace(epoch=epoch, primary=primary, backup=backup)  # noqa

@@ -294,6 +294,9 @@ SERVICES_CALLED = {
     ('cycle_after', None): ('set_state',),
     ('sec_gate', None): ('certificate',),
 }
+# The executables that call their ~witness (aft_msgs/Witness); the Protocol, Before, Proceed and crash
+# detector given one only hear its configurations.
+WITNESS_CALLERS = ('after', 'recovery')
 
 
 def services_called(node, node_type, mechanism, remaps, witness=''):
@@ -308,7 +311,7 @@ def services_called(node, node_type, mechanism, remaps, witness=''):
     for name in called:
         target = remaps.get(name, name)
         names.append(target if target.startswith('/') else '%s/%s' % (namespace.rstrip('/'), target))
-    if witness:
+    if witness and node_type in WITNESS_CALLERS:   # the others only hear its configurations
         names.append(witness)
     return names
 

@@ -72,6 +72,18 @@ def optional_name(name, value):
     return '' if value == '' else non_empty_str(name, value)
 
 
+def witness_service(name, value):
+    """Return '' (no witness: '' or none) or the service of a witness, which aft_ftm/witness offers as
+    its node's ~request (its configurations are published beside it, as ~configuration)."""
+    if value == '' or (isinstance(value, str) and value.strip().lower() == 'none'):
+        return ''
+    service = non_empty_str(name, value)
+    if service.rsplit('/', 1)[-1] != 'request':
+        raise ConfigError('parameter %s must name a witness\'s service (NS/witness/request, as witness.launch offers '
+                          'it) or none, got %r' % (name, value))
+    return service
+
+
 def non_negative_float(name, value):
     """Return value as a float >= 0 (0 usually meaning 'off')."""
     return 0.0 if value == 0 else positive_float(name, value)

@@ -73,7 +73,7 @@ class PbrDeployment(object):
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
                  cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None, incremental=True,
                  max_batch=None, ca_validity=None, chunk_bytes=None, catch_up=True,
-                 state_changes=True, power_switch=None):
+                 state_changes=True, power_switch=None, witness_ns='aft'):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -116,9 +116,16 @@ class PbrDeployment(object):
                 client['ca_validity'] = ca_validity   # a certificate's life (s; the CA's default: 24 h)
         if mechanism != 'pbr':
             replica['mechanism'] = mechanism
+        # The witness's service (its configurations beside it, /NS/witness/configuration).
+        self.witness_service = '/%s/witness/request' % witness_ns
         if not self.witness:
             replica['witness'] = 'none'   # roslaunch drops an empty name:= value
             client['witness'] = 'false'
+        elif witness_ns != 'aft':
+            if one_host:
+                raise ValueError('the one-host demo runs the default witness (/aft/witness): no witness_ns')
+            replica['witness'] = self.witness_service
+            client['witness_ns'] = witness_ns
         self.replica_args = dict(replica)
         if adaptable:
             replica['adaptable'] = 'true'   # Before, Proceed and After replaceable without stopping a site
@@ -209,11 +216,11 @@ class PbrDeployment(object):
         entry = '/master/%s' % ('sec_gate' if self.sec else 'protocol')
         if not wait_until(lambda: wired(entry), max(5.0, timeout - (time.monotonic() - started)), 0.05):
             raise RuntimeError('%s is not connected to its subscribers (logs in %s)' % (entry, self.log_dir))
-        if self.witness and not wait_until(lambda: (witness_status() or _NoPair).backup, max(5.0, timeout - (
-                time.monotonic() - started)), 0.05):
+        if self.witness and not wait_until(lambda: (witness_status(self.witness_service) or _NoPair).backup,
+                                           max(5.0, timeout - (time.monotonic() - started)), 0.05):
             raise RuntimeError('the backup did not join the primary: witness %s (logs in %s)'
-                               % (witness_status(), self.log_dir))
-        status = witness_status() if self.witness else None
+                               % (witness_status(self.witness_service), self.log_dir))
+        status = witness_status(self.witness_service) if self.witness else None
         if status is not None and (status.epoch, status.primary, status.backup) != (2, 'master', 'slave'):
             # A detector timed out while the sites were starting (a loaded machine): not the pair asked for.
             raise RuntimeError('the pair did not hold through the start: epoch %d, primary %r, backup %r (logs in %s)'

@@ -25,7 +25,7 @@ from .params import param
 from .persistent_service import PersistentService
 from .peer_check import HangRule
 from .ports import Ports, wait_for_connections
-from .witness_client import follow_site_role
+from .witness_client import DEFAULT_WITNESS, follow_site_role
 
 
 class StageNode(object):
@@ -150,12 +150,14 @@ class ProceedNode(StageNode):
     Parameters:
         ~server_timeout (float, 5 s): the longest a call of the server may take.
         ~site (str, default ''): the replica site this Proceed belongs to ('' : none).
+        ~witness (str, default /aft/witness/request): the service of the witness whose configurations it
+            follows in a replica ('' : none); its node's ~configuration beside it.
         ~detector (str, default /<site>/crash_detector): the site's crash detector, asked whether the
             peer may take over (aft_msgs/PeerStatus ``peer_status``).
     Services called:
         server (the application's type): remap to the server replica's service (paper: prd2srv);
         <detector>/peer_status, in a replica, when the server hangs.
-    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``; /aft/witness/configuration
+    Subscribes: bfr2prd (aft_msgs/Request), port ``inp``; <witness>'s configuration
         (aft_msgs/Configuration), in a replica: whether its site serves alone.  Publishes: prd2aft (aft_msgs/Reply), port ``out``;
         fail_stop (aft_msgs/Failure), port ``fail_stop`` (to the site's crash detector); alarms
         (aft_msgs/Alarm), port ``alarms`` (/aft/alarms).
@@ -167,6 +169,7 @@ class ProceedNode(StageNode):
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
         self.site = param('site', config.optional_name, '')
+        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
         super(ProceedNode, self).__init__(extra_ports=[PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.server_name = rospy.resolve_name('server')
@@ -188,7 +191,7 @@ class ProceedNode(StageNode):
     def setup(self, timeout):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.hang.site_role)
+        self.configuration = follow_site_role(self.hang.site_role, self.witness)
         self.hang.start()
         if not super(ProceedNode, self).setup(timeout):
             return False

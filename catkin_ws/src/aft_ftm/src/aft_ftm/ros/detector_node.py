@@ -19,7 +19,7 @@ from .diagnostics import Diagnostics
 from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
-from .witness_client import CONFIGURATION_TOPIC
+from .witness_client import DEFAULT_WITNESS, configuration_topic
 
 
 def _sent(beat):
@@ -53,7 +53,9 @@ class CrashDetectorNode(object):
             anybody. Without the privilege it warns, raises an alarm (``detector_priority``) and runs
             at its niceness.
         ~follow_witness (bool, default false): watch the peer again when the witness's configuration
-            (/aft/witness/configuration) names it once more (it re-joined after a failure).
+            names it once more (it re-joined after a failure).
+        ~witness (str, default /aft/witness/request): the service of that witness; its configurations
+            are its node's ~configuration beside it (one witness per replicated service).
         ~watch_required (bool, default true): watch the required nodes of this site's roslaunch (the
             process ~site_pid; read from its launch file) through pidfds, and fail-stop the moment one
             dies, rather than heartbeat until roslaunch's shutdown reaches this node (about 200 ms:
@@ -111,6 +113,7 @@ class CrashDetectorNode(object):
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
+        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
         self.watch_required = param('watch_required', config.flag, True)
         self.watch_replaceable = param('watch_replaceable', config.flag, False)
         self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)
@@ -189,8 +192,8 @@ class CrashDetectorNode(object):
         rospy.Service('~peer_status', PeerStatus, self._on_peer_status)
         rospy.on_shutdown(self._leave_realtime)   # the first thing done when the node stops
         self._realtime()
-        if self.follow_witness:
-            self.configuration = rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration,
+        if self.follow_witness and self.witness:
+            self.configuration = rospy.Subscriber(configuration_topic(self.witness), Configuration, self._on_configuration,
                                                   tcp_nodelay=True)
         self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
         self.thread.start()

@@ -161,7 +161,7 @@ class LfrAfterNode(AfterNode):
         peer_notify (aft_msgs/Notify), port ``notifications``; peer_refusals (aft_msgs/Reply), port
         ``peer_refusals``; peer_transfers (aft_msgs/Checkpoint), port ``transfers``: state transfers
         from the leader; join_requests (aft_msgs/Join), port ``join_requests``;
-        /aft/witness/configuration (aft_msgs/Configuration).
+        <witness>'s configuration (aft_msgs/Configuration; its node's ~configuration).
     Publishes: aft2pro (aft_msgs/Reply), port ``out``; peer_acks (aft_msgs/Notify), port ``peer_acks``;
         notify (aft_msgs/Notify), port ``notify``; aft2pro_s (aft_msgs/Checkpoint), port ``stored``;
         refusals (aft_msgs/Reply), port ``refusals``; transfers (aft_msgs/Checkpoint), port
@@ -182,7 +182,7 @@ class LfrAfterNode(AfterNode):
         self.ack_timeout = param('ack_timeout', config.positive_float, 1.0)
         self.admission = AdmissionGate(self.ack_timeout)   # a joiner given the state only while its site is heard
         self.connect_timeout = param('connect_timeout', config.positive_float, 10.0)
-        witness = param('witness', config.optional_name, '')
+        witness = param('witness', config.witness_service, '')
         self.site = param('site', config.non_empty_str, required=bool(witness)) or ''
         self.peer = param('peer', config.non_empty_str, required=bool(witness)) or ''
         site_pid = param('site_pid', config.non_negative_int, site_launcher_pid())
@@ -711,6 +711,7 @@ class LfrAfterNode(AfterNode):
                     return SetRoleResponse(success=False, message='computed %d of the %d forwarded requests'
                                            % (core.computed, req.last_seq))
                 leading = core.role == Role.PRIMARY
+                took_over = core.role == Role.BACKUP and role == Role.ALONE and not req.initial
                 released, kept = core.set_role(role, req.epoch, req.initial)
             except RoleError as e:
                 return SetRoleResponse(success=False, message=str(e))
@@ -722,5 +723,8 @@ class LfrAfterNode(AfterNode):
         if leading and role == Role.ALONE:   # Recovery's order after the follower failed: never silent
             self.side.tell('alone', '%s goes on ALONE at epoch %d: its follower failed%s' % (
                 self.site or self.name, req.epoch, ' and the witness excluded it' if self.witness else ''))
+        elif took_over:   # its leader failed: it serves with no follower until a site joins, never silently
+            self.side.tell('took_over', '%s is promoted at epoch %d and goes on ALONE: its leader failed; no follower until '
+                           'a site joins' % (self.site or self.name, req.epoch))
         rospy.loginfo('%s: role is now %s (epoch %d)', self.name, role.name, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)

@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from ..monitor import ForgedAlarm, MonitorCore, transition
 from .alarms import alarm
 from .params import param
-from .witness_client import CONFIGURATION_TOPIC
+from .witness_client import DEFAULT_WITNESS, configuration_topic
 
 
 def _names(name, value):
@@ -51,6 +51,9 @@ class MonitorNode(object):
         ~faults (list, default [crash]): F as declared by the operator (fault kinds of aft_ftm.mechanisms).
         ~deterministic, ~state_access (bool, default true): A as declared at start.
         ~sites (list, default [master, slave]): the replica sites, primary first.
+        ~witness (str, default /aft/witness/request; none: no witness): the service of the sites'
+            witness, whose configurations (its node's ~configuration) say a site re-joined; given to
+            every adaptation script it runs (witness:=), so that the nodes they start follow it too.
         ~running (str, default pbr): the composition running at start, e.g. pbr or pbr+tr.
         ~lost_after (float, 2 s): a site heard, then silent this long while the monitor ran, is lost for
             good (R: CPUs); a site never heard waits for its first beat; a gap between the monitor's own
@@ -98,6 +101,7 @@ class MonitorNode(object):
         self.script_args = param('script_args', _script_args, {})
         self.period = param('period', config.positive_float, 0.1)
         self.ftm_ns = param('ftm_ns', config.non_empty_str, '/ftm')
+        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
         try:
             for name in running:
                 mechanisms.mechanism(name)
@@ -125,7 +129,8 @@ class MonitorNode(object):
         rospy.Subscriber('~declare_faults', String, self._on_faults)
         rospy.Subscriber('~application', Application, self._on_application)
         rospy.Subscriber('~bandwidth', Float64, self._on_bandwidth)
-        rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, self._on_configuration)
+        if self.witness:
+            rospy.Subscriber(configuration_topic(self.witness), Configuration, self._on_configuration)
         threading.Thread(target=self._adapter, name='adapter', daemon=True).start()
         self.timer = rospy.Timer(rospy.Duration(self.period), self._tick)
         rospy.on_shutdown(self.engine.shutdown)   # what its adaptations put in place runs on
@@ -230,7 +235,10 @@ class MonitorNode(object):
                 raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
                                   % decision.selection.reason)
             move = transition(decision.from_, decision.to, alive, self.suffix)
-            move = move._replace(overrides=list(self.script_args.get(move.script, [])) + list(move.overrides))
+            # Every shipped script takes the replicas' witness (the nodes it starts follow it), then the
+            # operator's arguments for it, then the move's own.
+            move = move._replace(overrides=['witness:=%s' % (self.witness or 'none')] + list(
+                self.script_args.get(move.script, [])) + list(move.overrides))
             record['script'], record['args'] = move.script, move.overrides
             self._event(record)
             from .adapt_command import load_script

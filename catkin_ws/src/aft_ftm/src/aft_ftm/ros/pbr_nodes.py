@@ -137,7 +137,7 @@ class PbrAfterNode(AfterNode):
         acks (aft_msgs/CheckpointAck), port ``acks``: the backup's acknowledgments
         peer_checkpoints (aft_msgs/Checkpoint), port ``peer_checkpoints``: the primary's checkpoints
         join_requests (aft_msgs/Join), port ``join_requests``: a backup asking for a state transfer
-        /aft/witness/configuration (aft_msgs/Configuration): deposed or excluded by the witness
+        <witness>'s configuration (aft_msgs/Configuration; its node's ~configuration): deposed or excluded by the witness
     Publishes:
         aft2pro (aft_msgs/Reply), port ``out``
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``: to the backup's After
@@ -166,7 +166,7 @@ class PbrAfterNode(AfterNode):
         self.apply_period = param('apply_period', config.non_negative_float,
                                   0.01)
         self.replaces = param('replaces', config.non_empty_str, '')
-        self.witness_service = param('witness', config.optional_name, '')
+        self.witness_service = param('witness', config.witness_service, '')
         with_witness = bool(self.witness_service)
         self.site = param('site', config.non_empty_str, required=with_witness) or ''
         self.peer = param('peer', config.non_empty_str, required=with_witness) or ''
@@ -994,7 +994,7 @@ class PbrAfterNode(AfterNode):
     # -- role changes -----------------------------------------------------------
     def _on_set_role(self, req):
         role = Role(req.role)
-        told_alone = False
+        told_alone, took_over = False, None
         with self.lock:
             promotion = self.role == Role.BACKUP and role == Role.ALONE
             self.promoting += promotion   # (a count: another set_role meanwhile leaves it as it is)
@@ -1004,6 +1004,7 @@ class PbrAfterNode(AfterNode):
                     self._apply_locked(patient=True)
                     last_seq = self.receiver.promote(initial=req.initial)
                     self.sender = CheckpointSender(Role.ALONE, self.first_seq, max(req.epoch, self.receiver.epoch))
+                    took_over = None if req.initial else self.sender.epoch   # (read under the lock)
                 elif self.role == Role.PRIMARY and role == Role.ALONE:
                     last_seq = self.sender.seq
                     if (req.epoch and req.epoch < self.sender.epoch) or self.sender.joiner is not None:
@@ -1027,5 +1028,8 @@ class PbrAfterNode(AfterNode):
         if told_alone:
             self.side.tell('alone', '%s goes on ALONE at epoch %d: its backup failed and the witness excluded it'
                        % (self.site or self.name, req.epoch))
+        elif took_over is not None:   # its primary failed: no backup until a site joins, never silently
+            self.side.tell('took_over', '%s is promoted at epoch %d and goes on ALONE: its primary failed; no backup until '
+                           'a site joins' % (self.site or self.name, took_over))
         rospy.loginfo('%s: role is now %s (last checkpoint %d, epoch %d)', self.name, role.name, last_seq, req.epoch)
         return SetRoleResponse(success=True, message='role %s' % role.name, last_seq=last_seq)

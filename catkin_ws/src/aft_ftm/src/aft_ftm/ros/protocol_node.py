@@ -20,7 +20,7 @@ from .params import param
 from .ports import Ports, wait_for_connections
 from .peer_check import HangRule
 from .persistent_service import PersistentService
-from .witness_client import follow_site_role
+from .witness_client import DEFAULT_WITNESS, follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
 STORED_REPLIES_SEARCH = 60.0   # s a backup looks for its After's ~stored_replies after set-up
@@ -44,6 +44,8 @@ class ProtocolNode(object):
             the request stays unanswered until its result comes. A backstop: Proceed's
             ~server_timeout normally acts first.
         ~site (str, default ''): the replica site this Protocol belongs to.
+        ~witness (str, default /aft/witness/request): the service of the witness whose configurations it
+            follows in a replica ('' : none); its node's ~configuration beside it.
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before
             the processing timeout fail-stops the site: a peer that cannot (failed a moment ago, the
             witness not told yet) leaves the request waiting, with the alarm (aft_ftm.recovery.SiteRole).
@@ -69,7 +71,7 @@ class ProtocolNode(object):
         pxy2pro (aft_msgs/Request), port ``requests``: from the Proxies.
         aft2pro (aft_msgs/Reply), port ``from_after``: results of executed requests (and refusals).
         aft2pro_s (aft_msgs/Checkpoint), port ``stored``: replies carried by checkpoints (backup).
-        /aft/witness/configuration (aft_msgs/Configuration), in a replica: whether its site serves alone.
+        <witness>'s configuration (aft_msgs/Configuration), in a replica: whether its site serves alone.
     Publishes:
         pro2pxy (aft_msgs/Reply), port ``replies``: to the Proxies.
         pro2bfr (aft_msgs/Request), port ``to_before``.
@@ -89,6 +91,7 @@ class ProtocolNode(object):
         role_name = param('role', config.choice(*ROLES), 'primary')
         self.processing_timeout = param('processing_timeout', config.positive_float, 30.0)
         self.site = param('site', config.optional_name, '')
+        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
         capacity = param('cache_capacity', config.non_negative_int, 100000)
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         self.listen_as_backup = param('listen_as_backup', config.flag, False)
@@ -144,7 +147,7 @@ class ProtocolNode(object):
         self.ports.bind('stored', 'aft2pro_s')
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.hang.site_role)
+        self.configuration = follow_site_role(self.hang.site_role, self.witness)
         self.hang.start()
         linked = ['to_before', 'from_after']
         if self.replicate_refusals:

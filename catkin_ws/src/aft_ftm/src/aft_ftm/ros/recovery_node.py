@@ -98,7 +98,7 @@ class RecoveryNode(object):
             fails over at the usual priority.
     Subscribes:
         failures (aft_msgs/Failure), port ``failures``: from this site's crash detector.
-        /aft/witness/configuration (aft_msgs/Configuration): this site's role.
+        <witness>'s configuration (aft_msgs/Configuration; its node's ~configuration): this site's role.
         /aft/alarms (aft_msgs/Alarm): the alarms of this site's nodes, recorded on ~events too.
         fail_stop (aft_msgs/Failure): this site's own fail-stop (its nodes publish it to the crash
             detector). A site that fail-stopped takes nothing over: a verdict about the peer that reaches
@@ -127,7 +127,7 @@ class RecoveryNode(object):
         promote = param('promote', config.some_names, ['after'])
         self.promote = [rospy.resolve_name(n) for n in promote]
         self.peer_ns = rospy.resolve_name(param('peer_namespace', config.non_empty_str, required=True))
-        witness = param('witness', config.optional_name, '')
+        witness = param('witness', config.witness_service, '')
         required = self.role == Role.BACKUP or bool(witness)
         self.client_requests = param('client_requests', config.non_empty_str, required=required)
         self.client_replies = param('client_replies', config.non_empty_str, required=required)

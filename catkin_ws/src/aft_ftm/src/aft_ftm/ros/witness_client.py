@@ -14,7 +14,18 @@ from ..witness import Grant, Op
 from .deadline import CallTimeout, Deadline
 from .persistent_service import open_service
 
-CONFIGURATION_TOPIC = '/aft/witness/configuration'
+DEFAULT_WITNESS = '/aft/witness/request'
+
+
+def configuration_topic(service):
+    """The topic of the configurations the witness serving ``service`` publishes: its node's
+    ``~configuration`` beside its ``~request`` (``/aft/witness/configuration`` for the default witness).
+    Each replicated service on one ROS master has a witness of its own, and its nodes must hear that
+    witness's configurations only: another service's name other sites, and would depose this one's."""
+    return service.rsplit('/', 1)[0] + '/configuration' if '/' in service else 'configuration'
+
+
+CONFIGURATION_TOPIC = configuration_topic(DEFAULT_WITNESS)
 
 
 class WitnessUnreachable(AftError):
@@ -131,7 +142,7 @@ class WitnessClient(object):
                                  name='witness-behind').start()
             self.known = max(self.known, conf.epoch)
             callback(conf)
-        return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration, on_configuration, tcp_nodelay=True)
+        return rospy.Subscriber(configuration_topic(self.service), Configuration, on_configuration, tcp_nodelay=True)
 
     def _tell_behind(self, epoch):
         # (A configuration overtaken by a newer grant's answer comes older too: the witness then answers.)
@@ -149,13 +160,15 @@ class WitnessClient(object):
                 time.sleep(0.2)
 
 
-def follow_site_role(site_role):
-    """Keep an aft_ftm.recovery.SiteRole up to date with the witness's configurations (a replica's
-    node, ``site_role.site`` set); returns the subscriber, or None outside a replica."""
-    if not site_role.site:
+def follow_site_role(site_role, witness):
+    """Keep an aft_ftm.recovery.SiteRole up to date with the configurations of the witness serving
+    ``witness`` (a replica's node, ``site_role.site`` set); returns the subscriber, or None outside a
+    replica or without a witness ('')."""
+    if not site_role.site or not witness:
         return None
-    return rospy.Subscriber(CONFIGURATION_TOPIC, Configuration,
+    return rospy.Subscriber(configuration_topic(witness), Configuration,
                             lambda c: site_role.on_configuration(c.epoch, c.primary, c.backup), tcp_nodelay=True)
 
 
-__all__ = ['Op', 'WitnessClient', 'follow_site_role', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid', 'CONFIGURATION_TOPIC']
+__all__ = ['Op', 'WitnessClient', 'follow_site_role', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid',
+           'CONFIGURATION_TOPIC', 'DEFAULT_WITNESS', 'configuration_topic']

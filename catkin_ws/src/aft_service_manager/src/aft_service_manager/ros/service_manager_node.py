@@ -297,6 +297,24 @@ def publisher_endpoints(topic, header):
     return None
 
 
+def _lost_identity(entry):
+    """A lost instance as the record names it: (service, pid, start on the boot clock)."""
+    return (str(entry.get('service')), int(entry['pid']), round(float(entry['create_time']), 6))
+
+
+def _counted_lost(record):
+    """The lost instances a record says were counted ((service, pid, start) tuples); malformed: none."""
+    counted = set()
+    items = record.get('lost_counted', []) if isinstance(record, dict) else []
+    for item in items if isinstance(items, list) else ():
+        try:
+            service, pid, start = item
+            counted.add((str(service), int(pid), round(float(start), 6)))
+        except (TypeError, ValueError):
+            continue
+    return counted
+
+
 class ServiceManagerNode(object):
     """Spawns, watches, restarts, terminates and escalates (see aft_service_manager.services).
 
@@ -381,6 +399,10 @@ class ServiceManagerNode(object):
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
         self.boot = trust.boot_id()   # this boot: what the pid file recorded under another ended with it
         self.lost = {}                # name -> how its instance, left by an earlier manager, was found ended
+        self.lost_entries = {}        # name -> that instance's pid-file entry (kept there until it is counted)
+        self.unacted = {}             # the entries of lost instances not yet counted in the record
+        self.counted = set()          # (service, pid, start) of lost instances counted in the record this set-up
+        self.already_counted = set()  # ... those the record of the previous manager says it counted
         self.programs = programs.Programs()   # the on_failure programs running, watched to their end
         self.local = None             # the manager's end of the local channel
         self.tree = tree.make(self.prefix.replace('/', '_'))   # a cgroup per instance, or a tag
@@ -414,20 +436,18 @@ class ServiceManagerNode(object):
         rospy.loginfo('%s: every process of a service is tracked by %s', rospy.get_name(), self.tree.describe())
         now = time.monotonic()
         with self.lock:
-            self._record_pids()
-            # The instances found ended first: all taken as started, then each fault decided and acted
-            # on in turn (one stops or restarts what must not run without it, or restarts with it);
-            # then the others, in dependency order, each told what those faults mean for it
-            # (reviews of session 39).
+            # The instances found ended first: all taken as started, then each fault decided, counted in
+            # the record, and acted on in turn (one stops or restarts what must not run without it, or
+            # restarts with it); then the others, in dependency order, each told what those faults mean
+            # for it (reviews of session 39).
             lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
+            self.unacted = {n: self.lost_entries[n] for n in lost if n in self.lost_entries}
+            self._record_pids()
             # Only these are started below: not adopted, not held, not lost, not yet started. One the
             # lost ones' faults stopped, failed or restarted is theirs to run (review of session 39).
             untouched = {n for n, s in self.supervisor.services.items() if n not in lost and n not in held and
                          n not in self.children and s.state == State.STOPPED}
-            for name in self.supervisor.take_as_started(lost, now):
-                decision = self.supervisor.ended_unwatched(name, lost[name], now)
-                if decision is not None:
-                    self._fault(decision, now)
+            self._act_on_lost(lost, now)
             for name in self.supervisor.order:
                 service = self.supervisor[name]
                 if name in lost or (name not in untouched and name not in self.children):
@@ -453,6 +473,25 @@ class ServiceManagerNode(object):
             rospy.Service('~' + verb, ServiceCommand, lambda req, verb=verb: self._on_command(verb, req))
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         return True
+
+    def _act_on_lost(self, lost, now):
+        """The instances found ended ({name: how}): all taken as started; then each fault decided,
+        counted in the record before its entry leaves the pid file, and acted on. A manager dying in
+        between leaves the next one each loss exactly once: in the pid file, or counted in the record
+        (whose ``lost_counted`` it then skips)."""
+        for name in self.supervisor.take_as_started(lost, now):
+            decision = self.supervisor.ended_unwatched(name, lost[name], now)
+            entry = self.unacted.pop(name, None)
+            if entry is not None:
+                self.counted.add(_lost_identity(entry))
+                self._sync_safe_state()
+            if decision is not None:
+                self._fault(decision, now)
+        if lost:
+            self.unacted = {}
+            self._record_pids()      # none of them named any more: the record may forget them
+            self.counted = set()
+            self._sync_safe_state()
 
     # -- processes -------------------------------------------------------------------------------
     def _spawn(self, name, now):
@@ -624,6 +663,9 @@ class ServiceManagerNode(object):
         try:
             records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
             records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
+            # A lost instance stays named until the record counts it: a manager dying in its set-up
+            # meanwhile leaves it for the next one to count (it was forgotten; Limits of session 39).
+            records.update((n, e) for n, e in self.unacted.items() if n not in records)
             self.own[self.pid_file] = trust.write_private_json(self.pid_file, records)
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
@@ -710,8 +752,14 @@ class ServiceManagerNode(object):
             return   # (a malformed entry: nothing is known of it, not even that it ended)
         service = entry.get('service')
         if isinstance(service, str) and service in self.supervisor.services:
+            if _lost_identity(entry) in self.already_counted:
+                # The previous manager counted it, and died in its set-up before the pid file forgot it.
+                rospy.logwarn('%s: %s (pid %s) ended while no manager watched it: already counted by the previous '
+                              'manager', rospy.get_name(), service, entry.get('pid'))
+                return
             self.lost[service] = ('%s: it ended while no manager watched it (with the manager, or while none ran; '
                                   'exit status unknown)' % how)
+            self.lost_entries[service] = entry
 
     def _kill(self, name):
         """Kill name's active process (and its spare too if the service is not to run)."""
@@ -823,6 +871,8 @@ class ServiceManagerNode(object):
             self.published_also = len(also)
             self._publish_diagnostics()
         record = self.supervisor.record()
+        if self.counted:   # the lost instances counted while their entries may still be in the pid file
+            record['lost_counted'] = sorted([list(c) for c in self.counted])
         if record != self.recorded:
             try:
                 self.own[self.record_file] = trust.write_private_json(self.record_file, record)
@@ -848,6 +898,7 @@ class ServiceManagerNode(object):
                                       'checks the services and clears the safe state' % e, time.monotonic())
             return []
         self.recorded = record
+        self.already_counted = _counted_lost(record)
         for name in held:
             rospy.logwarn('%s: %s stays down: %s', rospy.get_name(), name, self.supervisor[name].reason)
         return held
