@@ -61,6 +61,7 @@ def _node(tmp_path):
     config = parse_config('manager: {state_dir: %s}\nservices:\n  a: {command: [%s, -c, "import time; time.sleep(60)"], '
                           'heartbeat_channel: ros}\n' % (tmp_path, sys.executable))
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.config, node.supervisor, node.closing, node.instances = config, Supervisor(config), False, 0
     node.heartbeat_topic, node.local, node.lock = '/aft/service_heartbeat', None, threading.RLock()
     node.children, node.spares, node.own_trees = {}, {}, []

@@ -24,6 +24,7 @@ class _Trees(object):
 def _node(tmp_path, supervisor):
     from aft_service_manager.ros.service_manager_node import ServiceManagerNode
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.lock, node.children, node.spares, node.stopping = threading.RLock(), {}, {}, {}
     node.config = {'manager': {'kill_timeout': 0.1}}
     node.wake_r, node.wake_w = os.pipe()

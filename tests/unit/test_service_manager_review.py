@@ -72,6 +72,7 @@ def test_a_shutdown_after_a_successor_started_leaves_the_successor_s_files_and_t
     from aft_service_manager import trust
     from aft_service_manager.ros.service_manager_node import ServiceManagerNode
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.lock, node.children, node.spares, node.stopping = threading.RLock(), {}, {}, {}
     node.config = {'manager': {'kill_timeout': 0.1}}
     node.wake_r, node.wake_w = os.pipe()
@@ -156,6 +157,7 @@ def test_a_spawn_failing_for_good_exhausts_the_limit_and_escalates_a_service_tha
 def test_the_manager_reports_a_spawn_failure_as_a_fault_and_holds_its_retry(tmp_path):
     from aft_service_manager.ros.service_manager_node import ServiceManagerNode
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.config = config('  a: {command: x}\n', '  state_dir: %s\n' % tmp_path)
     node.supervisor, node.closing, node.children, node.spares = Supervisor(node.config), False, {}, {}
     node.published_safe, node.published_also, node.recorded = None, 0, node.supervisor.record()
@@ -228,6 +230,7 @@ def test_a_manager_whose_record_is_malformed_starts_in_the_safe_state(tmp_path):
     from aft_service_manager import trust
     from aft_service_manager.ros.service_manager_node import ServiceManagerNode
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.supervisor = Supervisor(config('  a: {command: x}\n'))
     node.record_file, node.own = str(tmp_path / 'm.record'), {}
     trust.write_private_json(node.record_file, {'safe_state': 1, 'down': {}})

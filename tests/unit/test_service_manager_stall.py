@@ -88,6 +88,7 @@ def test_only_a_wake_far_later_than_meant_is_a_stall(period, meant, woke, stall)
 def _node(services=SERVICES):
     from aft_service_manager.ros.service_manager_node import ServiceManagerNode
     node = ServiceManagerNode.__new__(ServiceManagerNode)
+    node.unacted, node.counted, node.already_counted = {}, set(), set()   # (the set-up's lost instances)
     node.config = config(services)
     node.supervisor, node.children, node.spares, node.replaced = Supervisor(node.config), {}, {}, {}
     node.lock, node.period, node.resource_period = threading.RLock(), 0.01, 0.1

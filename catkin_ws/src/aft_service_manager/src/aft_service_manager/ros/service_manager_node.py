@@ -399,8 +399,7 @@ class ServiceManagerNode(object):
         self.spare_retry = {}         # name -> when to try again to start its spare (it died)
         self.boot = trust.boot_id()   # this boot: what the pid file recorded under another ended with it
         self.lost = {}                # name -> how its instance, left by an earlier manager, was found ended
-        self.lost_entries = {}        # name -> that instance's pid-file entry (kept there until it is counted)
-        self.unacted = {}             # the entries of lost instances not yet counted in the record
+        self.unacted = {}             # name -> the pid-file entry of its lost instance, kept there until counted
         self.counted = set()          # (service, pid, start) of lost instances counted in the record this set-up
         self.already_counted = set()  # ... those the record of the previous manager says it counted
         self.programs = programs.Programs()   # the on_failure programs running, watched to their end
@@ -440,9 +439,7 @@ class ServiceManagerNode(object):
             # the record, and acted on in turn (one stops or restarts what must not run without it, or
             # restarts with it); then the others, in dependency order, each told what those faults mean
             # for it (reviews of session 39).
-            lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
-            self.unacted = {n: self.lost_entries[n] for n in lost if n in self.lost_entries}
-            self._record_pids()
+            lost = self._take_lost(held)
             # Only these are started below: not adopted, not held, not lost, not yet started. One the
             # lost ones' faults stopped, failed or restarted is theirs to run (review of session 39).
             untouched = {n for n, s in self.supervisor.services.items() if n not in lost and n not in held and
@@ -474,23 +471,34 @@ class ServiceManagerNode(object):
         rospy.Service('~clear_safe_state', Trigger, self._on_clear)
         return True
 
+    def _take_lost(self, held):
+        """The set-up's first step with the instances found ended (self.lost): {name: how} of those to
+        count (not held down by the record, not adopted); the pid file written again, still naming
+        them (self.unacted) until the record counts them."""
+        lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
+        self.unacted = {n: e for n, e in self.unacted.items() if n in lost}
+        if self._record_pids():
+            # What the previous manager counted is no longer named in the pid file: its record may forget it.
+            self.counted -= self.already_counted
+        return lost
+
     def _act_on_lost(self, lost, now):
         """The instances found ended ({name: how}): all taken as started; then each fault decided,
-        counted in the record before its entry leaves the pid file, and acted on. A manager dying in
-        between leaves the next one each loss exactly once: in the pid file, or counted in the record
-        (whose ``lost_counted`` it then skips)."""
+        counted in the record before its entry leaves the pid file, and acted on. A manager killed in
+        between leaves the next one each loss once: named in the pid file, or counted in the record
+        (whose ``lost_counted`` the next one skips). A write that fails keeps the entry in both (the
+        record, when written, says it was counted)."""
         for name in self.supervisor.take_as_started(lost, now):
             decision = self.supervisor.ended_unwatched(name, lost[name], now)
-            entry = self.unacted.pop(name, None)
+            entry = self.unacted.get(name)
             if entry is not None:
                 self.counted.add(_lost_identity(entry))
-                self._sync_safe_state()
+                if self._sync_safe_state():
+                    del self.unacted[name]
             if decision is not None:
                 self._fault(decision, now)
-        if lost:
-            self.unacted = {}
-            self._record_pids()      # none of them named any more: the record may forget them
-            self.counted = set()
+        if lost and self._record_pids():   # only those whose count is not on disk yet still named
+            self.counted = {_lost_identity(e) for e in self.unacted.values()}
             self._sync_safe_state()
 
     # -- processes -------------------------------------------------------------------------------
@@ -655,7 +663,8 @@ class ServiceManagerNode(object):
         """The process groups of the running services (pid, start time, command line), so that a
         manager started after this one was killed can stop what it left behind; written atomically,
         0600, in the private state directory. ``stopping``: this manager stops them (a clean stop):
-        their end is not a fault."""
+        their end is not a fault. The lost instances not yet counted stay named, unmarked. Returns
+        whether it was written."""
         def record(name, child):
             return dict(trust.describe(child.proc), service=name, spare=child.spare, ready=child.ready,
                         tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance,
@@ -667,9 +676,11 @@ class ServiceManagerNode(object):
             # meanwhile leaves it for the next one to count (it was forgotten; Limits of session 39).
             records.update((n, e) for n, e in self.unacted.items() if n not in records)
             self.own[self.pid_file] = trust.write_private_json(self.pid_file, records)
+            return True
         except (OSError, psutil.Error) as e:
             rospy.logwarn_throttle(10.0, '%s: cannot record the services\' pids in %s: %s'
                                    % (rospy.get_name(), self.pid_file, e))
+            return False
 
     def _adopt(self, name, entry, proc, now):
         """Take over a service instance an earlier manager of this name left running (it was killed
@@ -759,7 +770,7 @@ class ServiceManagerNode(object):
                 return
             self.lost[service] = ('%s: it ended while no manager watched it (with the manager, or while none ran; '
                                   'exit status unknown)' % how)
-            self.lost_entries[service] = entry
+            self.unacted[service] = entry   # named in every pid file written from now on, until counted
 
     def _kill(self, name):
         """Kill name's active process (and its spare too if the service is not to run)."""
@@ -859,7 +870,8 @@ class ServiceManagerNode(object):
 
     def _sync_safe_state(self):
         """Publish the safe state whenever the supervisor's has changed (whatever changed it), and keep
-        the record a manager started again reads (:meth:`_restore`)."""
+        the record a manager started again reads (:meth:`_restore`). Returns whether the record on disk
+        is the current one."""
         if self.supervisor.safe_state != self.published_safe:
             self.published_safe = self.supervisor.safe_state
             self.published_also = 0
@@ -870,9 +882,7 @@ class ServiceManagerNode(object):
                 rospy.logerr('%s: SAFE STATE, also: %s', rospy.get_name(), reason)
             self.published_also = len(also)
             self._publish_diagnostics()
-        record = self.supervisor.record()
-        if self.counted:   # the lost instances counted while their entries may still be in the pid file
-            record['lost_counted'] = sorted([list(c) for c in self.counted])
+        record = self._record_now()
         if record != self.recorded:
             try:
                 self.own[self.record_file] = trust.write_private_json(self.record_file, record)
@@ -881,6 +891,16 @@ class ServiceManagerNode(object):
                 rospy.logerr_throttle(10.0, '%s: cannot keep the safe state and the services down in %s: %s; '
                                       'a manager started again would not know them' % (rospy.get_name(),
                                                                                       self.record_file, e))
+                return False
+        return True
+
+    def _record_now(self):
+        """The record: the supervisor's, and the lost instances counted in it while the pid file may
+        still name them (``lost_counted``)."""
+        record = self.supervisor.record()
+        if self.counted:
+            record['lost_counted'] = sorted([list(c) for c in self.counted])
+        return record
 
     def _restore(self):
         """Read what an earlier manager of this name recorded, if it did not stop cleanly (killed,
@@ -899,6 +919,7 @@ class ServiceManagerNode(object):
             return []
         self.recorded = record
         self.already_counted = _counted_lost(record)
+        self.counted = set(self.already_counted)   # said again until the pid file no longer names them
         for name in held:
             rospy.logwarn('%s: %s stays down: %s', rospy.get_name(), name, self.supervisor[name].reason)
         return held
@@ -1323,7 +1344,12 @@ class ServiceManagerNode(object):
         # Removing a held record lifted the safe state at the next start (review of session 34).
         # A killed or crashed manager leaves both, and the next one adopts its services. A file is
         # removed or written only if it is still the one this manager wrote (review of session 34).
-        trust.unlink_own(self.pid_file, self.own.get(self.pid_file))
+        own = self.own.get(self.pid_file)
+        if self.unacted and own is not None and trust.identity(self.pid_file) == own:
+            with self.lock:   # stopped in its set-up: the losses not yet counted stay for the next manager
+                self._record_pids()
+        else:
+            trust.unlink_own(self.pid_file, own)
         self._keep_or_remove_record()
 
     def _keep_or_remove_record(self):
@@ -1332,9 +1358,9 @@ class ServiceManagerNode(object):
         touches a successor's record. Never raises."""
         try:
             with self.lock:
-                held = self.supervisor.record()
+                held = self._record_now()
             own = self.own.get(self.record_file)
-            if not held['safe_state'] and not held['down'] and not held['counts']:
+            if not held['safe_state'] and not held['down'] and not held['counts'] and not held.get('lost_counted'):
                 trust.unlink_own(self.record_file, own)
                 return
             if trust.identity(self.record_file) not in (None, own):
