@@ -269,7 +269,7 @@ def monitor_node(core, engine):
     node = MonitorNode.__new__(MonitorNode)
     node.core, node.lock, node.suffix, node.script_args, node.mode = core, threading.Lock(), '', {}, 'prepared'
     node.engine, node.forged, node.work = engine, 0, queue.Queue()
-    node.witness = '/aft/witness/request'
+    node.witness, node.ftm_ns = '/aft/witness/request', '/ftm'
     node.alarms, node.events, node.model_pub = FakePublisher(), FakePublisher(), FakePublisher()
     return node
 
@@ -279,6 +279,8 @@ def no_ros(monkeypatch):
     monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time(0)))
     from aft_ftm.ros import adapt_command
     monkeypatch.setattr(adapt_command, 'load_script', lambda spec, overrides=(): (spec, overrides))
+    monkeypatch.setattr(adapt_command, 'declared_args', lambda spec: {'witness'} | (
+        {'ftm_ns'} if spec in ('switch', 'update_after') else set()))
 
 
 @pytest.mark.parametrize('outcome,kind', [
@@ -393,13 +395,20 @@ def test_every_script_the_monitor_runs_is_given_the_replicas_witness_first(no_ro
     core, clock = monitor(('lfr',), application=Application(deterministic=False, state_access=True))
     engine = RecordingEngine()
     node = monitor_node(core, engine)
-    node.witness, node.script_args = witness, {'switch': ['state_manager:=planner']}
+    node.witness, node.ftm_ns, node.script_args = witness, '/nav_ftm', {'switch': ['state_manager:=planner']}
     node.work.put((core.decide(clock.now), SITES))
     running = iter([False, True])
     monkeypatch.setattr(rospy, 'is_shutdown', lambda: next(running))
     node._adapter()
     [(spec, overrides)] = engine.scripts
-    assert spec == 'switch' and overrides[:2] == ['witness:=' + given, 'state_manager:=planner'], overrides
+    assert spec == 'switch' and overrides[:3] == ['witness:=' + given, 'ftm_ns:=/nav_ftm', 'state_manager:=planner'], \
+        overrides
+
+
+def test_only_the_arguments_a_script_declares_are_given_to_it():
+    from aft_ftm.ros import adapt_command
+    assert {'witness', 'ftm_ns'} <= adapt_command.declared_args('switch')
+    assert 'witness' in adapt_command.declared_args('compose') and 'ftm_ns' not in adapt_command.declared_args('compose')
 
 
 def test_every_shipped_adaptation_script_takes_the_witness():

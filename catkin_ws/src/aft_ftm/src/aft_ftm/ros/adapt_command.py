@@ -38,6 +38,11 @@ def load_script(spec, overrides=()):
         return adaptation.load(f.read(), adaptation.parse_overrides(overrides), source=path)
 
 
+def declared_args(spec):
+    """The names of the arguments a script declares (ScriptError if it cannot be loaded)."""
+    return set(load_script(spec).args)
+
+
 def _on_signal(engine, signum, _frame):
     """First signal: interrupt the engine (it rolls back). Later ones: say the rollback goes on.
     Writes with os.write: print is not safe in a signal handler (the main thread may be printing)."""

@@ -52,8 +52,9 @@ class MonitorNode(object):
         ~deterministic, ~state_access (bool, default true): A as declared at start.
         ~sites (list, default [master, slave]): the replica sites, primary first.
         ~witness (str, default /aft/witness/request; none: no witness): the service of the sites'
-            witness, whose configurations (its node's ~configuration) say a site re-joined; given to
-            every adaptation script it runs (witness:=), so that the nodes they start follow it too.
+            witness, whose configurations (its node's ~configuration) say a site re-joined. It and
+            ~ftm_ns are given to every adaptation script it runs that takes them (witness:=, ftm_ns:=),
+            so that the nodes they start follow that witness on those topics.
         ~running (str, default pbr): the composition running at start, e.g. pbr or pbr+tr.
         ~lost_after (float, 2 s): a site heard, then silent this long while the monitor ran, is lost for
             good (R: CPUs); a site never heard waits for its first beat; a gap between the monitor's own
@@ -235,13 +236,16 @@ class MonitorNode(object):
                 raise ConfigError('the selection keeps nothing (%s): the running mechanism is kept'
                                   % decision.selection.reason)
             move = transition(decision.from_, decision.to, alive, self.suffix)
-            # Every shipped script takes the replicas' witness (the nodes it starts follow it), then the
-            # operator's arguments for it, then the move's own.
-            move = move._replace(overrides=['witness:=%s' % (self.witness or 'none')] + list(
-                self.script_args.get(move.script, [])) + list(move.overrides))
+            # The replicas' witness and topics' namespace, to a script that takes them (the nodes it starts
+            # follow that witness, on those topics), then the operator's arguments for it, then the move's own.
+            from .adapt_command import declared_args, load_script
+            declared = declared_args(move.script)
+            deployment = [a for a in ('witness:=%s' % (self.witness or 'none'), 'ftm_ns:=%s' % self.ftm_ns)
+                          if a.split(':=')[0] in declared]
+            move = move._replace(overrides=deployment + list(self.script_args.get(move.script, [])) + list(
+                move.overrides))
             record['script'], record['args'] = move.script, move.overrides
             self._event(record)
-            from .adapt_command import load_script
             report = self.engine.run(load_script(move.script, move.overrides), self.mode)
             ok = report['ok']
             error = report['error']

@@ -71,13 +71,17 @@ def test_a_replica_without_a_witness_follows_none():
     assert config.params['/nav_a/crash_detector/follow_witness'].value is False
 
 
-def test_the_witness_the_proxy_and_pbr_launch_name_one_namespace():
+def test_a_second_pbr_launch_takes_its_own_witness_proxy_and_sites():
     config = load('pbr.launch', 'service:=/plan', 'service_type:=nav_msgs/GetPlan', 'primary_server:=/a/plan',
                   'primary_get_state:=/a/get', 'primary_set_state:=/a/set', 'backup_server:=/b/plan',
                   'backup_get_state:=/b/get', 'backup_set_state:=/b/set', 'witness_ns:=nav', 'primary_site:=nav_a',
-                  'backup_site:=nav_b', 'ftm_ns:=/nav_ftm')
+                  'backup_site:=nav_b', 'ftm_ns:=/nav_ftm', 'proxy_name:=nav_proxy')
     witnesses = [n for n in config.nodes if n.type == 'witness']
     assert [(w.namespace, w.name) for w in witnesses] == [('/nav/', 'witness')]
+    # nothing of it under the names of the default service's nodes (a node started under a taken name
+    # makes the ROS master shut the other down)
+    names = {n.namespace.rstrip('/') + '/' + n.name for n in config.nodes}
+    assert names.isdisjoint({'/proxy', '/aft/witness', '/master/protocol', '/slave/protocol'}), sorted(names)
     found = followers(config)
     assert {n.split('/')[1] for n in found} == {'nav_a', 'nav_b'}, found
     assert set(found.values()) == {'/nav/witness/request'}, found
