@@ -309,7 +309,7 @@ def _counted_lost(record):
     for item in items if isinstance(items, list) else ():
         try:
             service, pid, start = item
-            counted.add((str(service), int(pid), round(float(start), 6)))
+            counted.add(_lost_identity({'service': service, 'pid': pid, 'create_time': start}))
         except (TypeError, ValueError):
             continue
     return counted
@@ -486,8 +486,8 @@ class ServiceManagerNode(object):
         """The instances found ended ({name: how}): all taken as started; then each fault decided,
         counted in the record before its entry leaves the pid file, and acted on. A manager killed in
         between leaves the next one each loss once: named in the pid file, or counted in the record
-        (whose ``lost_counted`` the next one skips). A write that fails keeps the entry in both (the
-        record, when written, says it was counted)."""
+        (whose ``lost_counted`` the next one skips). A failed write of the record keeps the entry in
+        the pid file; a failed write of the pid file keeps it in ``lost_counted``."""
         for name in self.supervisor.take_as_started(lost, now):
             decision = self.supervisor.ended_unwatched(name, lost[name], now)
             entry = self.unacted.get(name)
