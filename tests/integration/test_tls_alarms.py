@@ -67,7 +67,7 @@ procs = []
 try:
     procs.append(subprocess.Popen(
         ['rosrun', 'aft_ftm', 'monitor', '__name:=monitor', '__ns:=/aft', 'alarms:=/aft/alarms',
-         '_running:=pbr+tr', '_lost_after:=600'],
+         '_running:=pbr+tr', '_lost_after:=600', '_alarms_from:=[/site]'],   # the nodes below are this service's
         stdout=open(log_dir + '/monitor.out', 'w'), stderr=subprocess.STDOUT, env=env('monitor')))
     os.environ.update(env('checker'))
     secure_from_environment()

@@ -264,6 +264,13 @@ def test_the_services_a_launched_node_will_call_follow_its_remaps_and_mechanism(
     assert adaptation.services_called('/master/after_lfr', 'after', 'lfr', remaps) == []
     assert adaptation.services_called('/master/after_lfr', 'after', 'lfr', remaps, '/aft/witness/request') == [
         '/master/planner/get_state', '/master/planner/set_state', '/aft/witness/request']
+    # A node that only hears its witness's configurations needs that witness running all the same.
+    assert adaptation.services_called('/nav_a/tr/before', 'before', 'tr', {}, '/nav/witness/request') == [
+        '/nav_a/tr/get_state', '/nav_a/tr/set_state', '/nav/witness/request']
+    assert '/nav/witness/request' in adaptation.services_called('/nav_a/tr/proceed', 'proceed', '', {},
+                                                                '/nav/witness/request')
+    assert adaptation.services_called('/nav_a/crash_detector', 'crash_detector', '', {}, '/nav/witness/request') == [
+        '/nav/witness/request']
 
 
 def test_a_launch_whose_nodes_would_call_a_service_nobody_offers_is_refused_naming_it():
@@ -275,6 +282,31 @@ def test_a_launch_whose_nodes_would_call_a_service_nobody_offers_is_refused_nami
                                           r'offers /master/account \(name your service'):
         adaptation.check_fit(script, RUNNING, SERVICES, NEW, calls)
     adaptation.check_fit(script, RUNNING, SERVICES | {'/master/account'}, NEW, calls)
+
+
+def test_a_launch_whose_nodes_would_follow_a_witness_nobody_runs_is_refused_naming_it():
+    """Review of session 40: a compose on a second service, run without witness:=, started a TR Before
+    and Proceed following the bank's witness (the scripts' default) or one that does not run; they
+    never learned their site served alone, and nothing said so."""
+    script = adaptation.load(COMPOSE, {'site': 'master'})
+    entry = next(iter(NEW))
+    calls = {entry: {'/master/tr/proceed': ['/master/account', '/nav/witness/request']}}
+    with pytest.raises(ScriptError, match=r'would start /master/tr/proceed, which follows the witness '
+                                          r'/nav/witness/request: no node offers it'):
+        adaptation.check_fit(script, RUNNING, SERVICES | {'/master/account'}, NEW, calls,
+                             {'/master/tr/proceed': ('/nav/witness/request', 'master')})
+    offered = SERVICES | {'/master/account', '/nav/witness/request', '/aft/witness/request'}
+    adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('/nav/witness/request', 'master')})
+    # Running, but not the one the site's Recovery follows: another service's.
+    for recovery_follows in ('/aft/witness/request', ''):
+        with pytest.raises(ScriptError, match=r'/master/tr/proceed would follow the witness /nav/witness/request, '
+                                              r'and site master\'s Recovery follows %s: give the replica\'s own'
+                                              % (recovery_follows or 'none')):
+            adaptation.check_fit(script, RUNNING, offered, NEW, calls,
+                                 {'/master/tr/proceed': ('/nav/witness/request', 'master')},
+                                 {'master': recovery_follows})
+    adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('/nav/witness/request', 'master')},
+                         {'master': '/nav/witness/request', 'slave': ''})
 
 
 REFERRING = """

@@ -423,3 +423,56 @@ def test_every_shipped_adaptation_script_takes_the_witness():
         with open(path) as f:
             script = adaptation.load(f.read(), {'witness': '/nav/witness/request'}, source=path)
         assert script.args['witness'] == '/nav/witness/request', path
+
+
+def test_another_service_s_alarms_on_the_shared_topic_do_not_choose_this_service_s_mechanisms():
+    """Review of session 40: /aft/alarms is shared by every service on a ROS master; a navigation
+    service's A&D alarm added safety_violation to the bank's F, and the monitor composed A&D onto the
+    bank. Only the alarms of the service's own nodes (its sites', and those ~alarms_from names) count."""
+    clock = FakeClock(100.0)
+    core = MonitorCore(frozenset([CRASH]), DET_STATE, SITES, ('pbr',), clock.now, lost_after=LOST_AFTER,
+                       alarms_from=['/proxy', '/sec_gate'])
+    for source, mechanism, kind in (('/nav_a/ad/after', 'ad', 'assertion_violated'),
+                                    ('/masterx/tr/after', 'tr', 'no_majority'),   # a prefix is no namespace
+                                    ('/nav_proxy', 'sec', 'bad_signature'),
+                                    ('/nav_a/ad/after', 'ad', 'assertion_violated')):
+        assert core.alarm(mechanism, kind, clock.now, source=source, sender=source) is None
+    assert core.model().faults == frozenset([CRASH])
+    assert core.foreign == {'/nav_a/ad/after': 2, '/masterx/tr/after': 1, '/nav_proxy': 1}
+    assert core.alarm('sec', 'bad_signature', clock.now, source='/sec_gate', sender='/sec_gate') == TAMPERING
+    assert core.alarm('ad', 'assertion_violated', clock.now, source='/slave/ad/after',
+                      sender='/slave/ad/after') == SAFETY_VIOLATION
+    assert core.alarm('tr', 'no_majority', clock.now, source='/master', sender='/master') == TRANSIENT_VALUE
+    assert core.model().faults == frozenset([CRASH, TAMPERING, SAFETY_VIOLATION, TRANSIENT_VALUE])
+    for bad in (['proxy'], ['/'], ['/proxy/'], [3]):
+        with pytest.raises(ConfigError, match='alarms_from'):
+            MonitorCore(frozenset([CRASH]), DET_STATE, SITES, ('pbr',), clock.now, alarms_from=bad)
+
+
+def test_a_witness_never_heard_naming_the_sites_is_said_once_and_a_late_one_is_noted():
+    """Review of session 40: a monitor following a witness that does not run (or another service's)
+    never saw a lost site re-join, and said nothing: R stayed low for good."""
+    clock = FakeClock(100.0)
+    core = MonitorCore(frozenset([CRASH]), DET_STATE, SITES, ('pbr',), clock.now, lost_after=LOST_AFTER,
+                       follows_witness=True)
+    node = Node(core, clock, alarms=True)
+    node.run(29.0)
+    assert [a for a in node.alarms if a[0] == 'witness_unheard'] == []
+    node.run(2.0)
+    unheard = [a for a in node.alarms if a[0] == 'witness_unheard']
+    assert len(unheard) == 1 and 'master, slave' in unheard[0][1], node.alarms
+    node.run(40.0)
+    assert len([a for a in node.alarms if a[0] == 'witness_unheard']) == 1   # once
+    core.witness_heard(clock.now)
+    assert 'the witness heard at last' in core.history[-1][1]
+    # Heard in time: never said; without a witness followed: never said.
+    for follows, heard in ((True, True), (False, False)):
+        clock = FakeClock(100.0)
+        core = MonitorCore(frozenset([CRASH]), DET_STATE, SITES, ('pbr',), clock.now, lost_after=LOST_AFTER,
+                           follows_witness=follows)
+        node = Node(core, clock, alarms=True)
+        if heard:
+            clock.advance(1.0)
+            core.witness_heard(clock.now)
+        node.run(60.0)
+        assert [a for a in node.alarms if a[0] == 'witness_unheard'] == []

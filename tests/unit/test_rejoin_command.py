@@ -1,7 +1,17 @@
 """rosrun aft_ftm rejoin, with the witness faked: no ROS master."""
 import types
 
+import pytest
+
 from aft_ftm.ros import rejoin_command
+
+
+@pytest.fixture(autouse=True)
+def site_params(monkeypatch):
+    """The parameter server: each site's Recovery's ~witness (rejoin's default witness)."""
+    params = {'/master/recovery/witness': '/aft/witness/request'}
+    monkeypatch.setattr(rejoin_command.rospy, 'get_param', lambda name, default=None: params.get(name, default))
+    return params
 
 
 def test_a_launch_asked_for_the_witnesss_primary_is_refused_as_a_failure_not_an_exit_0(monkeypatch, capsys):
@@ -42,3 +52,29 @@ def test_with_takeover_a_launch_waits_for_the_backup_to_take_over_and_never_laun
     monkeypatch.setattr(rejoin_command.time, 'monotonic', lambda: next(clock))
     assert rejoin_command.main(['master', '--launch', 'roslaunch x y.launch', '--takeover', '30']) == 1
     assert started == [] and 'not launched' in capsys.readouterr().err
+
+
+def test_the_witness_asked_is_the_one_the_site_s_recovery_follows(monkeypatch, site_params, capsys):
+    """Review of session 40: with two services on one master, `rejoin nav_a --launch` asked the default
+    witness (the bank's), which never names nav_a primary: a site still serving was launched over."""
+    monkeypatch.setattr(rejoin_command.rospy, 'wait_for_service', lambda service, timeout: None)
+    asked = []
+
+    def status(service):
+        asked.append(service)
+        return types.SimpleNamespace(epoch=3, primary='nav_a', backup='nav_b')
+    monkeypatch.setattr(rejoin_command, 'status', status)
+    started = []
+    monkeypatch.setattr(rejoin_command.subprocess, 'Popen', lambda *a, **k: started.append(a))
+    site_params['/nav_a/recovery/witness'] = '/nav/witness/request'
+    assert rejoin_command.main(['nav_a', '--launch', 'roslaunch x y.launch']) == 1   # still its primary
+    assert set(asked) == {'/nav/witness/request'} and started == []
+    asked.clear()
+    assert rejoin_command.main(['nav_a', '--witness', '/other/witness/request']) == 0 and asked == ['/other/witness/request']
+    asked.clear()
+    monkeypatch.setattr(rejoin_command.time, 'sleep', lambda s: None)
+    assert rejoin_command.main(['ghost', '--timeout', '0']) == 1 and asked == ['/aft/witness/request']   # the default
+    site_params['/lone/recovery/witness'] = ''
+    asked.clear()
+    assert rejoin_command.main(['lone', '--launch', 'x']) == 2 and asked == [] and started == []
+    assert 'follows no witness' in capsys.readouterr().err

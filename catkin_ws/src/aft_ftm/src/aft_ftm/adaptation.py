@@ -294,15 +294,14 @@ SERVICES_CALLED = {
     ('cycle_after', None): ('set_state',),
     ('sec_gate', None): ('certificate',),
 }
-# The executables that call their ~witness (aft_msgs/Witness); the Protocol, Before, Proceed and crash
-# detector given one only hear its configurations.
-WITNESS_CALLERS = ('after', 'recovery')
-
-
 def services_called(node, node_type, mechanism, remaps, witness=''):
     """The resolved names of the services a launched aft_ftm node will call: ``node`` its absolute
     name, ``remaps`` {from: to} of its launch file, ``witness`` its ~witness parameter. LFR's After
-    calls the state services only with a witness (a join is a state transfer)."""
+    calls the state services only with a witness (a join is a state transfer). The After and Recovery
+    call their witness; the Protocol, Before, Proceed and crash detector only hear its configurations,
+    which the same witness node publishes: its service must be offered for them too, or the node
+    follows a witness that does not run (review of session 40: a compose without witness:= on
+    another service followed the bank's)."""
     called = list(SERVICES_CALLED.get((node_type, None), ()) or SERVICES_CALLED.get((node_type, mechanism), ()))
     if node_type == 'after' and mechanism == 'lfr' and witness:
         called += ['get_state', 'set_state']
@@ -311,12 +310,12 @@ def services_called(node, node_type, mechanism, remaps, witness=''):
     for name in called:
         target = remaps.get(name, name)
         names.append(target if target.startswith('/') else '%s/%s' % (namespace.rstrip('/'), target))
-    if witness and node_type in WITNESS_CALLERS:   # the others only hear its configurations
+    if witness:   # called, or its configurations heard: offered by the same node
         names.append(witness)
     return names
 
 
-def check_fit(script, nodes, services, launched, calls=None):
+def check_fit(script, nodes, services, launched, calls=None, witnesses=None, site_witnesses=None):
     """Check script against a view of the live graph; raises ScriptError naming the first problem.
 
     ``nodes``: the running nodes; ``services``: the services offered; ``launched``: for each of
@@ -325,7 +324,16 @@ def check_fit(script, nodes, services, launched, calls=None):
     wait for it and the adaptation roll back long after (the script's defaults name the bank demo's
     services: another service needs its own names, server:= or state_manager:=). What only the nodes
     can answer (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
+    ``witnesses``: {node: (its ~witness, its ~site)} for the new nodes given a witness;
+    ``site_witnesses``: {site: the witness its Recovery follows}: a new node of a site must follow the
+    same one (review of session 40: a script's default witness is the bank demo's; on a second service
+    the new nodes followed the bank's witness, a running one, and never heard their own site's role).
     """
+    for node, (witness, site) in sorted((witnesses or {}).items()):
+        ours = (site_witnesses or {}).get(site)
+        if ours is not None and witness != ours:
+            raise ScriptError('%s would follow the witness %s, and site %s\'s Recovery follows %s: give the '
+                              'replica\'s own (witness:=%s)' % (node, witness, site, ours or 'none', ours or 'none'))
     started = {}   # node -> the launch file that starts it
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))
@@ -363,6 +371,11 @@ def check_fit(script, nodes, services, launched, calls=None):
     for entry, called in sorted((calls or {}).items(), key=lambda item: item[0].file):
         for node, names in sorted(called.items()):
             missing = [n for n in names if n not in services]
+            witness = (witnesses or {}).get(node, (None, None))[0]
+            if witness in missing:
+                raise ScriptError('launch file %s would start %s, which follows the witness %s: no node offers it '
+                                  '(give the running replica\'s witness, witness:=/NS/witness/request)'
+                                  % (entry.file, node, witness))
             if missing:
                 raise ScriptError('launch file %s would start %s, which calls %s: no node offers %s (name '
                                   'your service in the script\'s arguments, e.g. server:= or state_manager:=)'

@@ -3,6 +3,8 @@
 The ROS adapters read parameters once, at the edge, and pass them through these
 converters; library code never reads parameters itself.
 """
+import re
+
 from .errors import ConfigError
 
 
@@ -73,15 +75,20 @@ def optional_name(name, value):
 
 
 def witness_service(name, value):
-    """Return '' (no witness: '' or none) or the service of a witness, which aft_ftm/witness offers as
-    its node's ~request (its configurations are published beside it, as ~configuration)."""
-    if value == '' or (isinstance(value, str) and value.strip().lower() == 'none'):
+    """Return '' (no witness: '' or none, as the launch files spell it) or the service of a witness,
+    which aft_ftm/witness offers as its node's ~request (its configurations are published beside it,
+    as ~configuration): an absolute graph name ending in /request. A relative name resolved
+    differently in each node's namespace, and "None" meant no witness to some nodes and a witness to
+    the launch files (review of session 40): both are refused."""
+    if value in ('', 'none'):
         return ''
-    service = non_empty_str(name, value)
-    if service.rsplit('/', 1)[-1] != 'request':
-        raise ConfigError('parameter %s must name a witness\'s service (NS/witness/request, as witness.launch offers '
-                          'it) or none, got %r' % (name, value))
-    return service
+    if not isinstance(value, str) or not _WITNESS_NAME.match(value.strip()):
+        raise ConfigError('parameter %s must name a witness\'s service by its absolute name (/NS/witness/request, '
+                          'as witness.launch offers it) or be none, got %r' % (name, value))
+    return value.strip()
+
+
+_WITNESS_NAME = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*/request$')
 
 
 def non_negative_float(name, value):

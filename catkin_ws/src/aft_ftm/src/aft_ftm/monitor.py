@@ -63,6 +63,7 @@ DEGRADED = 'degraded'                            # inconsistent, but kept: nothi
 NO_MECHANISM_FITS = 'no_mechanism_fits'          # nothing reachable (the running one too) covers any of F or runs
 BANDWIDTH_STALE = 'bandwidth_stale'              # no bandwidth measured for bandwidth_stale_after: R's figure is old
 SITE_NEVER_HEARD = 'site_never_heard'            # a site not heard since the start, past never_heard_after
+WITNESS_UNHEARD = 'witness_unheard'              # no configuration naming the sites, past never_heard_after
 
 
 class MonitorAlarm(collections.namedtuple('MonitorAlarm', ['kind', 'detail'])):
@@ -93,6 +94,24 @@ def _time(now):
     return now
 
 
+def _alarm_scope(sites, alarms_from):
+    """The nodes whose alarms count for this service: every node of its sites (/SITE/...) and the
+    nodes or namespaces ``alarms_from`` names (its Proxies, a client's SEC gate). None: every alarm
+    counts (``alarms_from`` None, a unit's own calls)."""
+    if alarms_from is None:
+        return None
+    names = list(alarms_from) if not isinstance(alarms_from, str) else [alarms_from]
+    for name in names:
+        if not isinstance(name, str) or not name.startswith('/') or name == '/' or name.endswith('/'):
+            raise ConfigError('alarms_from must name nodes or namespaces by absolute names '
+                              '(e.g. /proxy), got %r' % (name,))
+    return tuple(['/' + s for s in sites] + [n for n in names if n not in ['/' + s for s in sites]])
+
+
+def _in_scope(source, scope):
+    return any(source == name or source.startswith(name + '/') for name in scope)
+
+
 class MonitorCore(object):
     """The change model of one replicated server and the adaptation state machine.
 
@@ -109,7 +128,8 @@ class MonitorCore(object):
 
     def __init__(self, declared_faults, application, sites, running, now, lost_after=2.0,
                  high=change_model.DEFAULT_HIGH, low=change_model.DEFAULT_LOW, stall_after=None,
-                 bandwidth_stale_after=30.0, never_heard_after=30.0, retry_hold=2.0, retry_hold_max=120.0):
+                 bandwidth_stale_after=30.0, never_heard_after=30.0, retry_hold=2.0, retry_hold_max=120.0,
+                 alarms_from=None, follows_witness=False):
         sites = list(sites) if not isinstance(sites, str) else [sites]
         for name, value in (('retry_hold', retry_hold), ('retry_hold_max', retry_hold_max)):
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value >= 0:
@@ -130,6 +150,8 @@ class MonitorCore(object):
         self.lost_after = lost_after
         self.stall_after = stall_after
         self.sites = sites
+        self.alarm_scope = _alarm_scope(sites, alarms_from)
+        self.foreign = {}           # alarms of nodes outside this service, by source: F unchanged
         self.started_at = now
         self.last_tick = now
         self.deferred = False       # the last tick ended a stall of the monitor and judged no site
@@ -143,6 +165,12 @@ class MonitorCore(object):
         self.bandwidth_stale_told = False
         self.never_heard_after = never_heard_after
         self.never_heard_told = set()
+        # A witness followed: its configurations say a lost site re-joined. One never heard naming the
+        # sites (a witness that does not run, another service's) left R low for good, silently (review
+        # of session 40); said once, past never_heard_after.
+        self.follows_witness = follows_witness
+        self.witness_heard_at = None
+        self.witness_unheard_told = False
         self.last_heard = dict((s, None) for s in sites)
         self.excused = dict((s, 0.0) for s in sites)   # the monitor's own stalls since the site was heard
         self.lost = set()
@@ -230,6 +258,13 @@ class MonitorCore(object):
         self._note(now, 'site %s re-joined: %d sites alive again' % (site, len(self.alive_sites())))
         return True
 
+    def witness_heard(self, now):
+        """A configuration of the witness naming one of the sites came."""
+        now = _time(now)
+        if self.witness_heard_at is None and self.witness_unheard_told:
+            self._note(now, 'the witness heard at last')
+        self.witness_heard_at = now
+
     def bandwidth(self, bytes_per_s, now):
         """A measurement of the bandwidth available between sites (None: unknown)."""
         now = _time(now)
@@ -251,6 +286,16 @@ class MonitorCore(object):
             self._note(now, 'alarm %s/%s in the name of %s came from %s: refused, F unchanged'
                        % (mechanism, kind, source, sender))
             raise ForgedAlarm('an alarm %s/%s in the name of %s came from %s' % (mechanism, kind, source, sender))
+        if source is not None and self.alarm_scope is not None and not _in_scope(source, self.alarm_scope):
+            # Another service's node on the same ROS master (/aft/alarms is shared): its faults are
+            # not this service's, and must not choose this service's mechanisms (review of session 40:
+            # a navigation service's A&D alarm composed A&D onto the bank).
+            if source in self.foreign or len(self.foreign) < 1024:   # bounded: one count per node
+                self.foreign[source] = self.foreign.get(source, 0) + 1
+            if self.foreign.get(source) == 1:
+                self._note(now, 'alarm %s/%s of %s, a node outside this service (%s): F unchanged'
+                           % (mechanism, kind, source, ', '.join(self.alarm_scope)))
+            return None
         fault = change_model.observed_fault(mechanism, kind)
         if fault is None:
             self._note(now, 'alarm %s/%s shows no fault kind: F unchanged' % (mechanism, kind))
@@ -277,6 +322,12 @@ class MonitorCore(object):
                      'monitor silent, or a link too slow for its probe to finish)' % (
                          now - self.bandwidth_at, change_model.bandwidth_text(self.bytes_per_s))
             self._say(now, BANDWIDTH_STALE, detail)
+        if self.follows_witness and self.witness_heard_at is None and not self.witness_unheard_told and \
+                now - self.started_at > self.never_heard_after:
+            self.witness_unheard_told = True
+            self._say(now, WITNESS_UNHEARD, 'no configuration of the witness naming %s in the %.0f s since the monitor '
+                      'started: a lost site that re-joins is not seen, R stays without it (the witness not '
+                      'running, or ~witness naming another service\'s)' % (', '.join(self.sites), now - self.started_at))
         newly = []
         for site in self.alive_sites():
             since = self.last_heard[site]

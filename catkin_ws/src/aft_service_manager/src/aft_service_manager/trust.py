@@ -169,7 +169,7 @@ def well_formed(entry):
     try:
         int(entry['pid']), float(entry['create_time']), list(entry['cmdline'])
         return True
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, ArithmeticError):   # Infinity, 1e999: int() overflows
         return False
 
 
@@ -179,7 +179,7 @@ def same_process(entry, proc, command_line=True):
     execs it may have been recorded before the exec)."""
     try:
         pid, started, cmdline = int(entry['pid']), float(entry['create_time']), list(entry['cmdline'])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, ArithmeticError):   # Infinity, 1e999: int() overflows
         return 'the record %r is malformed' % (entry,)
     if proc.pid != pid:
         return 'pid %d is not %d' % (proc.pid, pid)

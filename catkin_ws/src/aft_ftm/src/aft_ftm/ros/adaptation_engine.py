@@ -53,20 +53,24 @@ from .launch_files import launch_nodes, resolve_launch_file, stopped_with
 
 
 def services_called_by(config):
-    """{node: the services it will call} for the aft_ftm nodes of a loaded launch configuration."""
+    """({node: the services it will call or needs offered}, {node: (its ~witness, its ~site)}) for the
+    aft_ftm nodes of a loaded launch configuration."""
     def value(name):
         param = config.params.get(name)
         return param.value if param is not None else ''
-    calls = {}
+    calls, witnesses = {}, {}
     for node in config.nodes:
         if node.package != 'aft_ftm':
             continue
         name = rosgraph.names.ns_join(node.namespace, node.name)
+        witness = value(name + '/witness')
         called = adaptation.services_called(name, node.type, value(name + '/mechanism'), dict(node.remap_args),
-                                            value(name + '/witness'))
+                                            witness)
         if called:
             calls[name] = called
-    return calls
+        if witness:
+            witnesses[name] = (witness, value(name + '/site'))
+    return calls, witnesses
 
 
 def owners_of_process(pid):
@@ -391,6 +395,17 @@ class Engine(object):
         nodes = {n for _, names in list(pubs) + list(subs) + list(srvs) for n in names}
         return nodes, {name for name, _ in srvs}
 
+    def _site_witnesses(self, sites):
+        """{site: the witness its Recovery follows (its ~witness on the parameter server)} for the sites
+        whose Recovery's parameter is there."""
+        found = {}
+        for site in set(s for s in sites if s):
+            try:
+                found[site] = self.master.getParam('/%s/recovery/witness' % site.strip('/'))
+            except Exception:   # no such parameter (no Recovery there), or the master not answering
+                continue
+        return found
+
     def _graph_nodes(self):
         when = self._nodes_seen[0]
         if when is None or time.monotonic() - when > 0.5:
@@ -407,13 +422,15 @@ class Engine(object):
         self._launches, self._launched_names = {}, []
         nodes, services = self._graph()
         loaded = collections.OrderedDict()
-        calls = {}
+        calls, witnesses = {}, {}
         for entry in script.launch:
             path = resolve_launch_file(entry.file)
             names, config = launch_nodes(path, entry.args)
             loaded[entry] = (path, names)
-            calls[entry] = services_called_by(config)
-        adaptation.check_fit(script, nodes, services, {entry: names for entry, (_, names) in loaded.items()}, calls)
+            calls[entry], followed = services_called_by(config)
+            witnesses.update(followed)
+        adaptation.check_fit(script, nodes, services, {entry: names for entry, (_, names) in loaded.items()}, calls,
+                             witnesses, self._site_witnesses(site for _, site in witnesses.values()))
         launches = {}
         for entry, (path, names) in loaded.items():
             owners = self._site_owners(names, nodes)

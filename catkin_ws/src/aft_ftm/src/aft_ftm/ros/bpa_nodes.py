@@ -25,7 +25,7 @@ from .params import param
 from .persistent_service import PersistentService
 from .peer_check import HangRule
 from .ports import Ports, wait_for_connections
-from .witness_client import DEFAULT_WITNESS, follow_site_role
+from .witness_client import follow_site_role
 
 
 class StageNode(object):
@@ -150,7 +150,7 @@ class ProceedNode(StageNode):
     Parameters:
         ~server_timeout (float, 5 s): the longest a call of the server may take.
         ~site (str, default ''): the replica site this Proceed belongs to ('' : none).
-        ~witness (str, default /aft/witness/request): the service of the witness whose configurations it
+        ~witness (str, default '' : none; the launch files give the replica's, one for all its nodes): the service of the witness whose configurations it
             follows in a replica ('' : none); its node's ~configuration beside it.
         ~detector (str, default /<site>/crash_detector): the site's crash detector, asked whether the
             peer may take over (aft_msgs/PeerStatus ``peer_status``).
@@ -169,7 +169,7 @@ class ProceedNode(StageNode):
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
         self.site = param('site', config.optional_name, '')
-        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
+        self.witness = param('witness', config.witness_service, '')
         super(ProceedNode, self).__init__(extra_ports=[PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
                                                        PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.server_name = rospy.resolve_name('server')

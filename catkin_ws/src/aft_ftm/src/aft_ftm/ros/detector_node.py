@@ -19,7 +19,7 @@ from .diagnostics import Diagnostics
 from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
-from .witness_client import DEFAULT_WITNESS, configuration_topic
+from .witness_client import configuration_topic
 
 
 def _sent(beat):
@@ -54,7 +54,7 @@ class CrashDetectorNode(object):
             at its niceness.
         ~follow_witness (bool, default false): watch the peer again when the witness's configuration
             names it once more (it re-joined after a failure).
-        ~witness (str, default /aft/witness/request): the service of that witness; its configurations
+        ~witness (str, default '' : none; the launch files give the replica's, one for all its nodes): the service of that witness; its configurations
             are its node's ~configuration beside it (one witness per replicated service).
         ~watch_required (bool, default true): watch the required nodes of this site's roslaunch (the
             process ~site_pid; read from its launch file) through pidfds, and fail-stop the moment one
@@ -113,7 +113,7 @@ class CrashDetectorNode(object):
         self.site_pid = param('site_pid', config.non_negative_int, os.getppid())
         self.niceness = param('niceness', config.niceness, -5)
         self.follow_witness = param('follow_witness', config.flag, False)
-        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
+        self.witness = param('witness', config.witness_service, '')
         self.watch_required = param('watch_required', config.flag, True)
         self.watch_replaceable = param('watch_replaceable', config.flag, False)
         self.realtime_priority = param('realtime_priority', config.non_negative_int, DEFAULT_REALTIME_PRIORITY)

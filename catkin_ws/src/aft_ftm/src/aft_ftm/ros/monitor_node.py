@@ -64,6 +64,10 @@ class MonitorNode(object):
         ~mode (prepared | paper, default prepared): the order adaptations run in.
         ~script_args (dict, default {}): arguments given to each shipped script, before the monitor's
             own, e.g. {compose: [server:=plan, state_manager:=planner], switch: [state_manager:=planner]}.
+        ~alarms_from (list of absolute names, default [/proxy, /sec_gate]): the nodes or namespaces
+            outside the sites whose alarms count (the service's Proxies, its clients' SEC gates). The
+            alarms of every node of the sites (/SITE/...) count; any other node's (another service's
+            on the same ROS master: /aft/alarms is shared) are logged once per node and change nothing.
         ~period (float, 0.1 s): how often the model is checked.
         ~retry_hold (float, 2 s), ~retry_hold_max (float, 120 s): an adaptation that failed on a model is
             tried again on that model (it came back: a bandwidth flapping across a threshold) only after
@@ -109,7 +113,9 @@ class MonitorNode(object):
             self.core = MonitorCore(faults, AppModel(deterministic, state_access), self.sites, running,
                                     time.monotonic(), lost_after, high, low,
                                     retry_hold=param('retry_hold', config.non_negative_float, 2.0),
-                                    retry_hold_max=param('retry_hold_max', config.non_negative_float, 120.0))
+                                    retry_hold_max=param('retry_hold_max', config.non_negative_float, 120.0),
+                                    alarms_from=param('alarms_from', _names, ['/proxy', '/sec_gate']),
+                                    follows_witness=bool(self.witness))
         except ConfigError as e:
             raise ConfigError('%s: %s' % (rospy.get_name(), e))
         self.lock = threading.Lock()
@@ -144,6 +150,9 @@ class MonitorNode(object):
 
     def _on_configuration(self, conf):
         """A lost site the witness admits again (it re-joined): R changes back."""
+        if conf.primary in self.sites or conf.backup in self.sites:
+            with self.lock:
+                self.core.witness_heard(time.monotonic())
         for site in (conf.primary, conf.backup):
             if site in self.sites:
                 with self.lock:

@@ -20,7 +20,7 @@ from .params import param
 from .ports import Ports, wait_for_connections
 from .peer_check import HangRule
 from .persistent_service import PersistentService
-from .witness_client import DEFAULT_WITNESS, follow_site_role
+from .witness_client import follow_site_role
 
 ROLES = {'primary': Role.PRIMARY, 'backup': Role.BACKUP, 'alone': Role.ALONE}
 STORED_REPLIES_SEARCH = 60.0   # s a backup looks for its After's ~stored_replies after set-up
@@ -44,7 +44,7 @@ class ProtocolNode(object):
             the request stays unanswered until its result comes. A backstop: Proceed's
             ~server_timeout normally acts first.
         ~site (str, default ''): the replica site this Protocol belongs to.
-        ~witness (str, default /aft/witness/request): the service of the witness whose configurations it
+        ~witness (str, default '' : none; the launch files give the replica's, one for all its nodes): the service of the witness whose configurations it
             follows in a replica ('' : none); its node's ~configuration beside it.
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before
             the processing timeout fail-stops the site: a peer that cannot (failed a moment ago, the
@@ -91,7 +91,7 @@ class ProtocolNode(object):
         role_name = param('role', config.choice(*ROLES), 'primary')
         self.processing_timeout = param('processing_timeout', config.positive_float, 30.0)
         self.site = param('site', config.optional_name, '')
-        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
+        self.witness = param('witness', config.witness_service, '')
         capacity = param('cache_capacity', config.non_negative_int, 100000)
         cache_bytes = param('cache_bytes', config.non_negative_int, 64 << 20)
         self.listen_as_backup = param('listen_as_backup', config.flag, False)

@@ -19,6 +19,7 @@ import rospy
 from aft_msgs.srv import Witness
 
 from ..witness import Op
+from .witness_client import DEFAULT_WITNESS
 
 
 def status(service):
@@ -30,10 +31,26 @@ def main(argv):
     parser.add_argument('site')
     parser.add_argument('--launch', default='', help='command that starts the site (e.g. its roslaunch)')
     parser.add_argument('--timeout', type=float, default=60.0, help='seconds to wait for the join (60)')
-    parser.add_argument('--witness', default='/aft/witness/request', help='the witness service')
+    parser.add_argument('--witness', default=None,
+                        help="the witness service (default: the one the site's Recovery follows, its parameter "
+                             "/SITE/recovery/witness, else /aft/witness/request)")
     parser.add_argument('--takeover', type=float, default=0.0,
                         help='with --launch, seconds to wait for another site to become the primary (0)')
     args = parser.parse_args(rospy.myargv(argv))
+    if args.witness is None:
+        # The site's own witness: with several services on one master, the default one is another's,
+        # which never names this site primary, so a site still serving was launched over (review of
+        # session 40). The parameter outlives the Recovery node.
+        try:
+            args.witness = rospy.get_param('/%s/recovery/witness' % args.site.strip('/'), DEFAULT_WITNESS)
+        except (rospy.ROSException, OSError) as e:
+            print('rejoin: the ROS master cannot be asked for the witness of %s: %s' % (args.site, e), file=sys.stderr)
+            return 2
+        if not args.witness or args.witness == 'none':
+            print('rejoin: %s\'s Recovery follows no witness (its ~witness is empty): nothing tells a re-join; '
+                  'give --witness' % args.site, file=sys.stderr)
+            return 2
+        print('rejoin: the witness of %s: %s' % (args.site, args.witness))
     try:
         rospy.wait_for_service(args.witness, 5.0)
         before = status(args.witness)
@@ -66,6 +83,7 @@ def main(argv):
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         print('rejoin: started %s' % args.launch)
     print('rejoin: waiting for %s to join %s (epoch %d)' % (args.site, before.primary, before.epoch))
+    now = None
     while time.monotonic() - started < args.timeout:
         try:
             now = status(args.witness)

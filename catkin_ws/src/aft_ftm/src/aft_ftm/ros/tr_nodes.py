@@ -20,7 +20,7 @@ from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import PersistentService
 from .peer_check import HangRule
-from .witness_client import DEFAULT_WITNESS, follow_site_role
+from .witness_client import follow_site_role
 
 
 # Execution k (0, 1, ...) of a request that came with attempt a goes out with attempt a * SPAN + k:
@@ -84,7 +84,7 @@ class TrBeforeNode(BeforeNode):
             execution again, may take (a set_state past it: no execution again, the same alarm or
             fail-stop; the request is answered with TR's error).
         ~site (str, default ''): the replica site this mechanism belongs to ('' : none).
-        ~witness (str, default /aft/witness/request): the service of the witness whose configurations it
+        ~witness (str, default '' : none; the launch files give the replica's, one for all its nodes): the service of the witness whose configurations it
             follows in a replica ('' : none); its node's ~configuration beside it.
         ~detector (str, default /<site>/crash_detector): asked whether the peer may take over before a
             hang fail-stops the site (as Proceed's).
@@ -103,7 +103,7 @@ class TrBeforeNode(BeforeNode):
     def __init__(self):
         self.server_timeout = param('server_timeout', config.positive_float, 5.0)
         self.site = param('site', config.optional_name, '')
-        self.witness = param('witness', config.witness_service, DEFAULT_WITNESS)
+        self.witness = param('witness', config.witness_service, '')
         super(TrBeforeNode, self).__init__(extra_ports=[PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
                                                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                                                         PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])

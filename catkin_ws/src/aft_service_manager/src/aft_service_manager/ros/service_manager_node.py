@@ -19,6 +19,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger, TriggerResponse
 
 from aft_ftm import config as params
+from aft_ftm.process_start import started as process_started
 from aft_service_manager import channel, programs, tree, trust
 from aft_service_manager.services import Sample, ServiceConfigError, State, Supervisor, parse_config
 from aft_ftm.ros.params import param
@@ -85,6 +86,7 @@ class Child(object):
         self.tree, self.handle = tree, handle   # every process of it, wherever they went (aft_service_manager.tree)
         self.proc = psutil.Process(popen.pid)
         self.pidfd = os.pidfd_open(popen.pid)   # readable once it exits: its end is seen at once
+        self.start = process_started(popen.pid, zombie=True)   # as the pid file names it (None: gone already)
         self.cpu_window = cpu_window
         self.cpu_marks = []   # (wall time, cpu seconds)
         self.others = {}      # pid -> psutil.Process: the service's processes beside its leader
@@ -310,7 +312,7 @@ def _counted_lost(record):
         try:
             service, pid, start = item
             counted.add(_lost_identity({'service': service, 'pid': pid, 'create_time': start}))
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, ArithmeticError):   # Infinity, 1e999: int() overflows
             continue
     return counted
 
@@ -458,6 +460,10 @@ class ServiceManagerNode(object):
                     else:
                         rospy.logwarn('%s: %s not started: %s', rospy.get_name(), name, why)
                         self._event('not_started' if verb == 'skip' else 'held', name, why, now)
+                        # Kept in the record at once: the losses that decided it are counted already,
+                        # and a manager killed during the spawns below would start it (review of
+                        # session 40), or forget a critical one's escalation.
+                        self._sync_safe_state()
                 elif name in self.children:
                     self._ensure_spare(name)
             self._sync_safe_state()
@@ -717,6 +723,11 @@ class ServiceManagerNode(object):
         line). Returns the trees adopted. An active instance found ended (its pid gone, or another
         process's now) is put in self.lost, to be counted as an exit (_found_ended)."""
         adopted = []
+        # The predecessor's pid file is this manager's own from now on (as its record is, _restore): a
+        # clean stop before this manager first wrote it marks the instances it adopted as stopping,
+        # and keeps the losses found. Left unmarked, the next manager counted every adopted instance
+        # this stop ended as a fault (review of session 40).
+        self.own[self.pid_file] = trust.identity(self.pid_file)
         try:
             recorded = trust.read_private_json(self.pid_file)
         except (OSError, ValueError) as e:
@@ -739,8 +750,8 @@ class ServiceManagerNode(object):
             except psutil.NoSuchProcess:
                 self._found_ended(entry, 'pid %s is gone' % entry.get('pid'))
                 continue   # nothing to stop
-            except (psutil.Error, OSError, KeyError, TypeError, ValueError, AttributeError):
-                continue   # gone: nothing to stop
+            except (psutil.Error, OSError, KeyError, TypeError, ValueError, AttributeError, ArithmeticError):
+                continue   # gone, or a malformed number (Infinity: int() overflows): nothing to stop
             if why:
                 rospy.logwarn('%s: %s left by an earlier manager is not signalled: %s', rospy.get_name(), name, why)
                 continue
@@ -846,9 +857,27 @@ class ServiceManagerNode(object):
                 rospy.loginfo('%s: %s', rospy.get_name(), outcome.detail)
 
     def _act(self, decision, now):
+        """Carry a fault's decision out: counted in the record first, then acted on. The actions write
+        the pid file (the ended instance gone, a new one named); a manager killed between those writes
+        and the record's left the fault counted nowhere and an escalation's safe state unsaid (review of
+        session 40). The ended instance is named in the record's ``lost_counted`` until the pid file
+        no longer names it, so that the next manager does not count it again either."""
+        ended = self._ended_identity(decision.service)
+        if ended is not None:
+            self.counted.add(ended)
+        self._sync_safe_state()
         for verb, name in decision.actions:
             self._act_one(verb, name, decision, now)
+        if ended is not None and ended in self.counted and self._record_pids():
+            self.counted.discard(ended)
         self._sync_safe_state()
+
+    def _ended_identity(self, name):
+        """(service, pid, start) of name's active instance if it ended (its fault is being acted on), else None."""
+        child = self.children.get(name)
+        if child is None or child.start is None or child.alive():
+            return None
+        return _lost_identity({'service': name, 'pid': child.popen.pid, 'create_time': child.start})
 
     def _act_one(self, verb, name, decision, now):
         try:
