@@ -476,3 +476,23 @@ def test_a_witness_never_heard_naming_the_sites_is_said_once_and_a_late_one_is_n
             core.witness_heard(clock.now)
         node.run(60.0)
         assert [a for a in node.alarms if a[0] == 'witness_unheard'] == []
+
+
+def test_a_switch_after_a_failover_names_the_witness_s_primary_its_primary():
+    """Review of session 40: transition() names alive[0] the primary, and alive was in the configured
+    order: after a failover to slave and master's re-join, a switch named master (the backup) primary."""
+    clock = FakeClock(100.0)
+    core = MonitorCore(frozenset([CRASH]), DET_STATE, SITES, ('pbr',), clock.now, lost_after=LOST_AFTER,
+                       follows_witness=True)
+    assert core.alive_sites() == ['master', 'slave']
+    core.witness_heard(clock.now, 'slave', 3)
+    assert core.alive_sites() == ['slave', 'master']
+    assert 'primary:=slave' in transition(('pbr',), ('lfr',), core.alive_sites()).overrides
+    core.witness_heard(clock.now, 'master', 2)   # an older epoch's, late: nothing changes
+    assert core.alive_sites() == ['slave', 'master']
+    core.witness_heard(clock.now, 'elsewhere', 4)   # not one of the sites: the configured order
+    assert core.alive_sites() == ['master', 'slave']
+    core.witness_heard(clock.now, 'slave', 5)
+    core.heartbeat('slave', clock.now)
+    Node(core, clock).run(LOST_AFTER + 1.0, sites=['master'])   # slave silent: lost
+    assert core.alive_sites() == ['master']

@@ -171,6 +171,7 @@ class MonitorCore(object):
         self.follows_witness = follows_witness
         self.witness_heard_at = None
         self.witness_unheard_told = False
+        self.witness_primary, self.witness_epoch = None, -1   # whom its newest configuration names primary
         self.last_heard = dict((s, None) for s in sites)
         self.excused = dict((s, 0.0) for s in sites)   # the monitor's own stalls since the site was heard
         self.lost = set()
@@ -206,7 +207,13 @@ class MonitorCore(object):
 
     # -- the model ----------------------------------------------------------------------------------
     def alive_sites(self):
-        return [s for s in self.sites if s not in self.lost]
+        """The sites not lost, the witness's primary first (a transition names alive[0] its primary),
+        then in the configured order."""
+        alive = [s for s in self.sites if s not in self.lost]
+        if self.witness_primary in alive:
+            alive.remove(self.witness_primary)
+            alive.insert(0, self.witness_primary)
+        return alive
 
     def model(self):
         return ChangeModel(self.declared | self.observed, self.application,
@@ -258,12 +265,19 @@ class MonitorCore(object):
         self._note(now, 'site %s re-joined: %d sites alive again' % (site, len(self.alive_sites())))
         return True
 
-    def witness_heard(self, now):
-        """A configuration of the witness naming one of the sites came."""
+    def witness_heard(self, now, primary=None, epoch=None):
+        """A configuration of the witness naming one of the sites came: ``primary`` serves from
+        ``epoch`` on (an older epoch's, late, changes nothing). A switch after a failover named the
+        configured first site its primary, the backup by then (review of session 40)."""
         now = _time(now)
         if self.witness_heard_at is None and self.witness_unheard_told:
             self._note(now, 'the witness heard at last')
         self.witness_heard_at = now
+        if epoch is not None and epoch > self.witness_epoch:
+            self.witness_epoch = epoch
+            if primary != self.witness_primary:
+                self._note(now, 'the witness names %s the primary (epoch %d)' % (primary or 'no site', epoch))
+            self.witness_primary = primary if primary in self.sites else None
 
     def bandwidth(self, bytes_per_s, now):
         """A measurement of the bandwidth available between sites (None: unknown)."""

@@ -152,7 +152,7 @@ class MonitorNode(object):
         """A lost site the witness admits again (it re-joined): R changes back."""
         if conf.primary in self.sites or conf.backup in self.sites:
             with self.lock:
-                self.core.witness_heard(time.monotonic())
+                self.core.witness_heard(time.monotonic(), conf.primary, conf.epoch)
         for site in (conf.primary, conf.backup):
             if site in self.sites:
                 with self.lock:
