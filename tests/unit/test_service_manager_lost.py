@@ -572,3 +572,28 @@ def test_a_clean_stop_before_the_first_pid_file_write_marks_what_it_adopted_and_
         if live.poll() is None:
             live.kill()
         live.wait(10)
+
+
+def test_an_operator_s_stop_under_way_when_the_manager_dies_is_finished_by_the_next_one(node, monkeypatch):
+    """Review of session 40: an instance an operator was stopping was named in the pid file as active:
+    a manager killed before it ended left the next one to adopt it (the stop undone), and to count
+    its later end as a fault. It is marked stopping now: the next manager ends it, counts nothing."""
+    import psutil
+    live = subprocess.Popen([sys.executable, '-c', 'import signal, sys; signal.signal(signal.SIGTERM, signal.SIG_IGN); '
+                             'sys.stdin.read()'], stdin=subprocess.PIPE, start_new_session=True)
+    try:
+        node.stopping = {'a': node_module.Child(live, 10.0)}   # its SIGTERM ignored; the SIGKILL thread died
+        node.supervisor['a'].spawned(1.0)
+        assert node._record_pids()
+        entry = trust.read_private_json(node.pid_file)['a (stopping)']
+        assert entry['stopping'] is True and entry['pid'] == live.pid
+        monkeypatch.setattr(node_module.ServiceManagerNode, '_adopt',
+                            lambda *a: pytest.fail('an instance being stopped was adopted'))
+        after = successor(node)
+        assert after.lost == {} and after.children == {}
+        live.wait(10)   # ended by the next manager (SIGKILL to its process group)
+        assert not psutil.pid_exists(live.pid) or psutil.Process(live.pid).status() == psutil.STATUS_ZOMBIE
+    finally:
+        if live.poll() is None:
+            live.kill()
+        live.wait(10)

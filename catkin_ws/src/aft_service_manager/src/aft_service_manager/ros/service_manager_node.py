@@ -671,13 +671,17 @@ class ServiceManagerNode(object):
         0600, in the private state directory. ``stopping``: this manager stops them (a clean stop):
         their end is not a fault. The lost instances not yet counted stay named, unmarked. Returns
         whether it was written."""
-        def record(name, child):
+        def record(name, child, ending=False):
             return dict(trust.describe(child.proc), service=name, spare=child.spare, ready=child.ready,
                         tree=child.handle, slot=child.slot.path if child.slot else None, instance=child.instance,
-                        boot=self.boot, **({'stopping': True} if stopping else {}))
+                        boot=self.boot, **({'stopping': True} if stopping or ending else {}))
         try:
             records = {n: record(n, c) for n, c in self.children.items() if c.alive()}
             records.update(('%s (spare)' % n, record(n, c)) for n, c in self.spares.items() if c.alive())
+            # An operator's stop under way: marked, so that a manager started meanwhile ends it rather
+            # than adopting it, and does not count its end (the stop was undone; review of session 40).
+            records.update(('%s (stopping)' % n, record(n, c, ending=True)) for n, c in
+                           getattr(self, 'stopping', {}).items() if c.alive())
             # A lost instance stays named until the record counts it: a manager dying in its set-up
             # meanwhile leaves it for the next one to count (it was forgotten; Limits of session 39).
             records.update((n, e) for n, e in self.unacted.items() if n not in records)
@@ -1282,6 +1286,7 @@ class ServiceManagerNode(object):
                     if child is not None:
                         self._replaced(name, child)
                         self.stopping[name] = child
+                        self._record_pids()   # marked stopping before it is signalled
                         threading.Thread(target=child.terminate, args=(self.config['manager']['kill_timeout'],),
                                          daemon=True).start()
                     self._kill_from(self.spares, name)   # a service that does not run keeps no spare
