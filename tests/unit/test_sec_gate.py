@@ -433,3 +433,63 @@ def test_a_party_at_its_quota_is_told_again_only_after_it_had_room_and_some_seco
             told.append(now[0])
         assert quota.at_quota() == ['p']
     assert told == [12.0, 24.0]
+
+
+def test_a_request_too_large_to_seal_is_answered_not_executed_by_the_clients_gate(monkeypatch):
+    """Review of session 41: a call whose sealed request exceeded what a server gate takes (64 MiB) went
+    on, was refused unread there with no reply, and its Proxy sent it again every half second for ever,
+    refusing every other call meanwhile. The client's gate answers it NOT_EXECUTED at once, alarmed."""
+    from aft_msgs.msg import Reply, Request
+    from aft_ftm import change_model
+    client = gate(side='client')
+    client.me, client.server_party = CLIENT, 'server'
+    client._peer = lambda party: (SERVER.box_public, SERVER.verify_public)
+    monkeypatch.setattr(security, 'MAX_SEALED_BYTES', 4096)   # the bound, small: the same path
+    small = Request(id=1, origin='/proxy', client='/c', service_type='aft_msgs/Account', oldest_pending=1, epoch=3,
+                    payload=b'x' * 1000)
+    client._on_request(small)
+    assert [name for name, _ in client.ports.published] == ['requests_out']
+    client.ports.published.clear()
+    big = Request(id=2, origin='/proxy', client='/c', service_type='aft_msgs/Account', oldest_pending=1, epoch=3,
+                  attempt=4, payload=b'x' * 4096)
+    client._on_request(big)
+    (_, raised), (port, told) = client.ports.published
+    assert (raised.mechanism, raised.kind, port) == ('proxy', 'request_too_large', 'replies_out')
+    assert (told.id, told.origin, told.status, told.epoch, told.attempt) == (2, '/proxy', Reply.NOT_EXECUTED, 3, 4)
+    assert 'more than a SEC message may be (4096): not sent, nothing executed' in told.error
+    assert ('/proxy', 2) not in client.sent and change_model.observed_fault(raised.mechanism, raised.kind) is None
+
+
+def test_a_forged_message_does_not_evict_a_held_certificate_while_the_ca_is_unreachable(monkeypatch):
+    """Review of session 41: a message with a bad signature claiming a party dropped the certificate held
+    for it before anything was verified; with the CA unreachable, every genuine message of that party
+    was then refused ca_unreachable. The held certificate stays; the forgery alone is refused."""
+    from aft_msgs.msg import Request
+    issuer = security.Issuer(CA, validity=1000.0)
+    issuer.set_keys('client', CLIENT.box_public, CLIENT.verify_public)
+    server = gate()
+    server.previous_me, server.refetched, server.ca_verify = None, {}, CA.verify_public
+    server.book.on_status(*issuer.status(0.0), now=0.0)
+    cert, signature = issuer.certificate('client', 0.0)
+    server.book.add('client', security.check_certificate(CA.verify_public, 'client', cert.box_public,
+                                                         cert.verify_public, cert.serial, cert.not_after,
+                                                         signature), 0.0)
+    monkeypatch.setattr(sec_nodes.time, 'monotonic', lambda: 1.0)
+    asked = []
+
+    def unreachable(party):
+        asked.append(party)
+        raise Rejected('ca_unreachable', 'the CA did not answer')
+    server._ask_ca = unreachable
+
+    def sealed(signer, rid):
+        msg = Request(id=rid, origin='/proxy', client='/c', service_type='aft_msgs/Account', oldest_pending=rid)
+        header = security.header_of(msg, security.REQUEST_FIELDS, 'server', '/ftm/pxy2pro')
+        return security.seal(signer, SERVER.box_public, header, b'deposit'), header
+    forger = Party.generate('client')   # claims to be client, with a key of its own
+    blob, header = sealed(forger, 1)
+    with pytest.raises(Rejected) as refused:
+        server._open('client', blob, header)
+    assert refused.value.kind == 'bad_signature' and asked == ['client']   # asked again; the CA silent
+    blob, header = sealed(CLIENT, 2)
+    assert server._open('client', blob, header) == b'deposit' and asked == ['client']   # the held one serves

@@ -314,3 +314,20 @@ def test_the_witness_node_answers_an_unknown_operation_with_a_whole_configuratio
     assert node._on_request(WitnessRequest(op=Op.REGISTER.value, site='master', incarnation='1@1', claim=True)).granted
     assert node.unsaved is None and node._health().level.name != 'ERROR'
 
+
+
+def test_under_tls_only_a_site_s_own_node_speaks_for_it_to_the_witness():
+    """Review of session 41: the witness took req.site and req.known_epoch as sent, from any caller the
+    policy allowed: a STATUS with known epoch 2^64-1 left it behind for good, a PROMOTE of the backup
+    forced a failover. A STATUS telling no later epoch stays anyone's (operators, rejoin)."""
+    from aft_ftm.witness import Op, speaks_for
+    assert speaks_for(Op.STATUS, 'rejoin', '/operator', 0, 5) is None
+    assert speaks_for(Op.STATUS.value, 'checker', '/checker', 5, 5) is None
+    assert 'only a node of that site' in speaks_for(Op.STATUS, 'x', '/operator', 2 ** 64 - 1, 5)
+    assert speaks_for(Op.STATUS, 'master', '/master/after', 9, 5) is None        # a site telling it is behind
+    for op in (Op.PROMOTE, Op.EXCLUDE, Op.ADMIT, Op.REGISTER):
+        assert speaks_for(op, 'slave', '/slave/recovery', 0, 5) is None
+        assert speaks_for(op, 'slave', '/slave_evil/recovery', 0, 5) is not None   # a prefix is no namespace
+        assert speaks_for(op, 'slave', '/master/recovery', 0, 5) is not None
+        assert speaks_for(op, 'slave', '/operator', 0, 5) is not None
+        assert speaks_for(op, '', '/x/y', 0, 5) is not None and speaks_for(op, 'a/b', '/a/b/c', 0, 5) is not None

@@ -136,3 +136,25 @@ def test_an_lfr_follower_is_not_admitted_if_the_protocol_resumed_while_the_witne
             assert told and told[-1][0] == 'join_failed', told
         else:
             assert len(admitted) == 1 and excluded == [], (admitted, excluded)
+
+
+def test_a_configuration_from_another_node_than_the_witness_is_refused_and_reported_once():
+    """Review of session 41: anyone could publish on a witness's configuration topic; one forged
+    configuration with a higher epoch deposed the serving primary and made Recovery claim it as its
+    known epoch, after which the witness granted nothing. Only the witness's own node is heard."""
+    import types
+    from aft_ftm.ros.witness_client import from_witness_only, witness_node
+    assert witness_node('/bank/witness/request') == '/bank/witness' and witness_node('/request') == '/'
+    heard, reports = [], []
+    guarded = from_witness_only('/bank/witness/request', heard.append, reports.append)
+
+    def conf(sender, epoch):
+        msg = types.SimpleNamespace(epoch=epoch, primary='slave', backup='', _connection_header={'callerid': sender})
+        if sender is None:
+            del msg._connection_header
+        return msg
+    for sender, epoch in (('/bank/witness', 3), ('/bank_client_x', 99), ('/bank_client_x', 100), ('/aft/witness', 7),
+                          ('/bank/witness/x', 8), (None, 4)):
+        guarded(conf(sender, epoch))
+    assert [c.epoch for c in heard] == [3, 4]
+    assert len(reports) == 3 and 'came from /bank_client_x, not from the witness /bank/witness' in reports[0]

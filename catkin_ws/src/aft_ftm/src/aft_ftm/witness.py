@@ -60,6 +60,23 @@ class Op(enum.Enum):
     REGISTER = 4
 
 
+def speaks_for(op, site, caller, known_epoch, epoch):
+    """None if the node ``caller`` may ask ``op`` on behalf of ``site``, else why not. A STATUS that
+    tells the witness no later epoch than its own is anyone's to ask; every other request (a
+    registration, a promotion, an exclusion, an admission, or a STATUS saying the witness is behind)
+    only a node of the site itself (/SITE/...) may make. Otherwise any party allowed to call the
+    witness spoke for any site: a STATUS with an epoch of 2^64-1 left the witness behind for good,
+    a PROMOTE of the backup forced a failover (review of session 41). Meaningful where a node's name
+    is bound to its sender (mutual TLS binds each party to its nodes' names)."""
+    op = Op(op)
+    if op == Op.STATUS and known_epoch <= epoch:
+        return None
+    if not site or '/' in site.strip('/') or not caller.startswith('/%s/' % site.strip('/')):
+        return '%s may not ask %s for site %r (known epoch %d, the witness\'s %d): only a node of that site may' % (
+            caller, op.name, site, known_epoch, epoch)
+    return None
+
+
 class Grant(object):
     """A witness's answer: granted or not, why, and the configuration after it."""
     __slots__ = ('granted', 'message', 'epoch', 'primary', 'backup')

@@ -149,6 +149,8 @@ class PbrDeployment(object):
             for party in ('master', 'slave', 'client', 'witness', 'operator', 'client2'):
                 tls.issue(authority, party)
                 tls.export_party(authority, party, os.path.join(self.tls_dir, party))
+            if not one_host and self.witness:
+                client['witness_tls_dir'] = os.path.join(self.tls_dir, 'witness')   # a party of its own
 
         def site(name, launch_file, **args):
             self.launch_args[name] = (launch_file, args)

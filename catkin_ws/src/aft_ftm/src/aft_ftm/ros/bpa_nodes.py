@@ -191,7 +191,7 @@ class ProceedNode(StageNode):
     def setup(self, timeout):
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.hang.site_role, self.witness)
+        self.configuration = follow_site_role(self.hang.site_role, self.witness, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         self.hang.start()
         if not super(ProceedNode, self).setup(timeout):
             return False

@@ -19,7 +19,7 @@ from .diagnostics import Diagnostics
 from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
-from .witness_client import configuration_topic
+from .witness_client import configuration_topic, from_witness_only
 
 
 def _sent(beat):
@@ -193,8 +193,8 @@ class CrashDetectorNode(object):
         rospy.on_shutdown(self._leave_realtime)   # the first thing done when the node stops
         self._realtime()
         if self.follow_witness and self.witness:
-            self.configuration = rospy.Subscriber(configuration_topic(self.witness), Configuration, self._on_configuration,
-                                                  tcp_nodelay=True)
+            self.configuration = rospy.Subscriber(configuration_topic(self.witness), Configuration, from_witness_only(
+                self.witness, self._on_configuration, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail)), tcp_nodelay=True)
         self.thread = threading.Thread(target=self._loop, name='heartbeat', daemon=True)
         self.thread.start()
         if self.watch_required and self.site_pid:

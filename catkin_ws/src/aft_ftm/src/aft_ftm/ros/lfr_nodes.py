@@ -274,7 +274,7 @@ class LfrAfterNode(AfterNode):
         self.timer = rospy.Timer(rospy.Duration(min(0.1, self.ack_timeout / 4)), self._check_acks)
         if self.witness is not None:
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
-            self.configuration = self.witness.subscribe(self._on_configuration)
+            self.configuration = self.witness.subscribe(self._on_configuration, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         rospy.Service('~set_role', SetRole, self._on_set_role)
         if self.witness is not None:
             threading.Thread(target=self._write_parts, name='transfer-writer', daemon=True).start()

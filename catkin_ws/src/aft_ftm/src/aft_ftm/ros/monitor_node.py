@@ -16,7 +16,7 @@ from ..errors import ConfigError
 from ..monitor import ForgedAlarm, MonitorCore, transition
 from .alarms import alarm
 from .params import param
-from .witness_client import DEFAULT_WITNESS, configuration_topic
+from .witness_client import DEFAULT_WITNESS, configuration_topic, from_witness_only
 
 
 def _names(name, value):
@@ -137,7 +137,9 @@ class MonitorNode(object):
         rospy.Subscriber('~application', Application, self._on_application)
         rospy.Subscriber('~bandwidth', Float64, self._on_bandwidth)
         if self.witness:
-            rospy.Subscriber(configuration_topic(self.witness), Configuration, self._on_configuration)
+            rospy.Subscriber(configuration_topic(self.witness), Configuration, from_witness_only(
+                self.witness, self._on_configuration,
+                report=lambda detail: alarm(self, 'monitor', 'forged_configuration', detail)))
         threading.Thread(target=self._adapter, name='adapter', daemon=True).start()
         self.timer = rospy.Timer(rospy.Duration(self.period), self._tick)
         rospy.on_shutdown(self.engine.shutdown)   # what its adaptations put in place runs on

@@ -276,7 +276,7 @@ class PbrAfterNode(AfterNode):
             self.applier = rospy.Timer(rospy.Duration(self.apply_period), self._apply_pending)
         if self.witness is not None:
             self.joiner_timer = rospy.Timer(rospy.Duration(self.join_period), self._ask_to_join)
-            self.configuration = self.witness.subscribe(self._on_configuration)
+            self.configuration = self.witness.subscribe(self._on_configuration, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         self.events = rospy.Publisher('~events', String, queue_size=10, latch=True)
         rospy.Service('~set_role', SetRole, self._on_set_role)
         rospy.Service('~stored_replies', StoredReplies, self._on_stored_replies)

@@ -147,7 +147,7 @@ class ProtocolNode(object):
         self.ports.bind('stored', 'aft2pro_s')
         self.ports.bind('fail_stop')
         self.ports.bind('alarms', '/aft/alarms')
-        self.configuration = follow_site_role(self.hang.site_role, self.witness)
+        self.configuration = follow_site_role(self.hang.site_role, self.witness, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         self.hang.start()
         linked = ['to_before', 'from_after']
         if self.replicate_refusals:

@@ -224,7 +224,7 @@ class RecoveryNode(object):
         self.ports.advertise_service()
         rospy.Service('~set_promote', SetNodes, self._on_set_promote)
         if self.witness is not None:
-            self.configuration = self.witness.subscribe(self._on_configuration)
+            self.configuration = self.witness.subscribe(self._on_configuration, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         self.alarm_log = rospy.Subscriber('/aft/alarms', Alarm, self._on_alarm, tcp_nodelay=True)
         self.own_fail_stop = rospy.Subscriber('fail_stop', Failure, self._on_own_fail_stop, tcp_nodelay=True)
         self.diagnostics = Diagnostics(self._health, self.site)

@@ -328,14 +328,7 @@ class SecGateNode(object):
         if not heard:   # nothing to judge a certificate by: the CA is not asked for one it could not take
             raise security.Rejected('ca_unreachable', 'no status from the CA has come yet: the certificate of %s '
                                     'cannot be judged' % party)
-        answer = self._ask_ca(party)
-        if not answer.found:
-            kind = 'revoked' if answer.message.startswith('revoked') else 'unknown_party'
-            raise security.Rejected(kind, answer.message)
-        cert = security.check_certificate(self.ca_verify, party, answer.box_public, answer.verify_public,
-                                          answer.serial, answer.not_after, answer.signature)
-        with self.lock:
-            self.book.add(party, cert, time.monotonic())
+        cert = self._refetch(party)
         return cert.box_public, cert.verify_public
 
     def _ask_ca(self, party):
@@ -387,9 +380,27 @@ class SecGateNode(object):
             if attempt or error.kind != 'bad_signature' or now - self.refetched.get(party, -1e9) < 1.0:
                 raise error
             self.refetched[party] = now
-            with self.lock:
-                self.book.fetch_again(party)
+            try:
+                self._refetch(party)
+            except security.Rejected as e:
+                if e.kind == 'ca_unreachable':
+                    raise error   # the certificates held stay: an unsigned message evicts none (below)
+                raise
         raise error
+
+    def _refetch(self, party):
+        """Ask the CA again for party's certificate (its key may have rotated), keeping the ones held:
+        added, a new one holds the old as the previous. Dropping the held one first let a forged message
+        (a bad signature, claiming party) evict it, so that while the CA was unreachable every genuine
+        message of that party was refused ca_unreachable (review of session 41)."""
+        answer = self._ask_ca(party)
+        if not answer.found:
+            kind = 'revoked' if answer.message.startswith('revoked') else 'unknown_party'
+            raise security.Rejected(kind, answer.message)
+        cert = security.check_certificate(self.ca_verify, party, answer.box_public, answer.verify_public,
+                                          answer.serial, answer.not_after, answer.signature)
+        with self.lock:
+            return self.book.add(party, cert, time.monotonic())
 
     def _key_file_id(self):
         try:
@@ -465,6 +476,9 @@ class SecGateNode(object):
                 with self.lock:
                     header['nonce'] = self.runs.nonce_for(request.origin, request.id, request.oldest_pending)
                 payload = security.seal(self.me, box, header, request.payload)
+                if len(payload) > security.MAX_SEALED_BYTES:
+                    self._too_large(request, len(payload))
+                    return
             else:
                 party, nonce = security.sender_of(request.payload), security.nonce_of(request.payload)
                 header = security.header_of(request, security.REQUEST_FIELDS, self.me.name, self.destination)
@@ -501,6 +515,18 @@ class SecGateNode(object):
                 for key in [k for k in self.sent if k[0] == request.origin and k[1] < request.oldest_pending]:
                     del self.sent[key]   # answered: the Proxy will not ask again
         self.ports.publish('requests_out', out)
+
+    def _too_large(self, request, size):
+        """A client's request larger sealed than a server gate takes: answered here, not executed. Sent
+        on, it was refused unread there with no reply, and its Proxy sent it again every half second for
+        ever, every other call of that Proxy refused meanwhile (review of session 41)."""
+        detail = ('request %s/%d is %d bytes sealed, more than a SEC message may be (%d): not sent, nothing '
+                  'executed' % (request.origin, request.id, size, security.MAX_SEALED_BYTES))
+        alarm(self.ports, 'proxy', 'request_too_large', detail, request)
+        self.ports.publish('replies_out', Reply(id=request.id, origin=request.origin, client=request.client,
+                                                oldest_pending=request.oldest_pending, attempt=request.attempt,
+                                                batch=request.batch, status=Reply.NOT_EXECUTED, error=detail,
+                                                epoch=request.epoch))
 
     def _renumber(self, request, nonce):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock

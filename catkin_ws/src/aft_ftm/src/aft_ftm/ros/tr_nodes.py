@@ -131,7 +131,7 @@ class TrBeforeNode(BeforeNode):
         self.ports.bind('alarms')
         if self.site:
             self.ports.bind('fail_stop')
-        self.configuration = follow_site_role(self.hang.site_role, self.witness)
+        self.configuration = follow_site_role(self.hang.site_role, self.witness, report=lambda detail: alarm(self.ports, 'witness', 'forged_configuration', detail))
         self.hang.start()
         try:
             for name in ('get_state', 'set_state'):

@@ -119,8 +119,9 @@ class WitnessClient(object):
         return self.proxy(op=op.value, site=self.site, peer=peer, incarnation=self.incarnation,
                           peer_incarnation=peer_incarnation, claim=claim, epoch=epoch, known_epoch=self.known)
 
-    def subscribe(self, callback):
-        """callback(aft_msgs/Configuration) on every configuration (the latest at once: latched). A
+    def subscribe(self, callback, report=None):
+        """callback(aft_msgs/Configuration) on every configuration of the witness's own node (the latest
+        at once: latched; another sender's are refused, see :func:`from_witness_only`). A
         configuration older than one heard before means the witness lost or rolled back its record
         (restarted without its state file): it is told at once, with a STATUS saying the epoch heard,
         so that it grants nothing from then on (witness_behind), before a site that restarts claims it."""
@@ -142,7 +143,8 @@ class WitnessClient(object):
                                  name='witness-behind').start()
             self.known = max(self.known, conf.epoch)
             callback(conf)
-        return rospy.Subscriber(configuration_topic(self.service), Configuration, on_configuration, tcp_nodelay=True)
+        return rospy.Subscriber(configuration_topic(self.service), Configuration,
+                                from_witness_only(self.service, on_configuration, report), tcp_nodelay=True)
 
     def _tell_behind(self, epoch):
         # (A configuration overtaken by a newer grant's answer comes older too: the witness then answers.)
@@ -160,15 +162,49 @@ class WitnessClient(object):
                 time.sleep(0.2)
 
 
-def follow_site_role(site_role, witness):
+def witness_node(service):
+    """The node that offers a witness's service and publishes its configurations beside it:
+    /NS/witness/request -> /NS/witness."""
+    return service.rsplit('/', 1)[0] or '/'
+
+
+def from_witness_only(service, callback, report=None):
+    """callback wrapped so that it sees only the configurations the witness's own node published (the
+    connection's caller id; a message handed over without one, as a unit test does, passes). Anyone
+    may publish on the topic: one forged configuration with a higher epoch deposed a serving primary
+    and made Recovery ask for a promotion with it as its known epoch, after which the witness took
+    its record for behind and granted nothing (review of session 41). Under TLS a node's name is
+    bound to its party, so the caller id is the sender's; without it this keeps out a misconfigured
+    or careless publisher, not a determined one. A refused sender is reported once (``report``:
+    detail -> None, e.g. an alarm; else logged)."""
+    expected = witness_node(service)
+    told = set()
+
+    def guarded(conf):
+        sender = (getattr(conf, '_connection_header', None) or {}).get('callerid')
+        if sender is None or sender == expected:
+            callback(conf)
+            return
+        if sender not in told and len(told) < 64:
+            told.add(sender)
+            detail = ('a configuration of epoch %d (primary %r, backup %r) came from %s, not from the witness %s: '
+                      'refused' % (conf.epoch, conf.primary, conf.backup, sender, expected))
+            if report is not None:
+                report(detail)
+            else:
+                rospy.logerr('%s: %s', rospy.get_name(), detail)
+    return guarded
+
+
+def follow_site_role(site_role, witness, report=None):
     """Keep an aft_ftm.recovery.SiteRole up to date with the configurations of the witness serving
     ``witness`` (a replica's node, ``site_role.site`` set); returns the subscriber, or None outside a
     replica or without a witness ('')."""
     if not site_role.site or not witness:
         return None
-    return rospy.Subscriber(configuration_topic(witness), Configuration,
-                            lambda c: site_role.on_configuration(c.epoch, c.primary, c.backup), tcp_nodelay=True)
+    return rospy.Subscriber(configuration_topic(witness), Configuration, from_witness_only(
+        witness, lambda c: site_role.on_configuration(c.epoch, c.primary, c.backup), report), tcp_nodelay=True)
 
 
-__all__ = ['Op', 'WitnessClient', 'follow_site_role', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid',
+__all__ = ['Op', 'WitnessClient', 'follow_site_role', 'from_witness_only', 'witness_node', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid',
            'CONFIGURATION_TOPIC', 'DEFAULT_WITNESS', 'configuration_topic']

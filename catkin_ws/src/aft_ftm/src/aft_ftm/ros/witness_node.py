@@ -1,5 +1,6 @@
 """The witness node: the configuration record of aft_ftm.witness, offered as a service."""
 import threading
+import time
 
 import rospy
 from aft_msgs.msg import Alarm, Configuration
@@ -8,7 +9,8 @@ from aft_msgs.srv import Witness as WitnessSrv, WitnessResponse
 from .. import config, health
 from ..errors import ConfigError
 from ..state_store import StateStore
-from ..witness import Op, Witness, WitnessBehind
+from ..witness import Op, Witness, WitnessBehind, speaks_for
+from . import tls_transport
 from .diagnostics import Diagnostics
 
 
@@ -45,6 +47,7 @@ class WitnessNode(object):
         self.lock = threading.Lock()
         self.diagnostics = None
         self.told_behind = 0
+        self.forged_at = {}   # caller -> when its last refused request was alarmed
         self.unsaved = None   # why the record could not be saved at the last request that changed it
 
     @staticmethod
@@ -62,6 +65,18 @@ class WitnessNode(object):
         rospy.Service('~request', WitnessSrv, self._on_request)
         self.diagnostics = Diagnostics(self._health)
         rospy.loginfo('%s: ready at epoch %d (%s)', rospy.get_name(), self.witness.epoch, self.witness.reason)
+        return True
+
+    def _forged_told(self, caller):
+        """Whether a refused request of caller is to be alarmed now: once per caller every 10 s (a
+        flood of them is one alarm), at most 256 callers remembered."""
+        told = self.forged_at
+        now = time.monotonic()
+        if now - told.get(caller, -1e9) < 10.0:
+            return False
+        if len(told) >= 256:
+            told.clear()
+        told[caller] = now
         return True
 
     def _health(self):
@@ -82,6 +97,17 @@ class WitnessNode(object):
                 return WitnessResponse(granted=False, message='unknown operation %d' % req.op,
                                        epoch=self.witness.epoch, primary=self.witness.primary,
                                        backup=self.witness.backup)
+        caller = (getattr(req, '_connection_header', None) or {}).get('callerid')
+        if caller is not None and tls_transport.active():   # (a caller id is its sender's only under TLS)
+            with self.lock:
+                refused = speaks_for(op, req.site, caller, req.known_epoch, self.witness.epoch)
+                if refused and self._forged_told(caller):
+                    rospy.logerr('%s: %s', rospy.get_name(), refused)
+                    self.alarms.publish(Alarm(source=rospy.get_name(), mechanism='witness', kind='forged_request',
+                                              detail=refused + ': refused, nothing changed', stamp=rospy.Time.now()))
+                if refused:
+                    return WitnessResponse(granted=False, message=refused, epoch=self.witness.epoch,
+                                           primary=self.witness.primary, backup=self.witness.backup)
         with self.lock:
             before, saves = self.witness.epoch, self.witness.saves
             try:
