@@ -55,3 +55,10 @@ if (cd catkin_ws && catkin_make "${force[@]}" -DPYTHON_EXECUTABLE="$ROOT/.venv/b
 else
   tail -40 "$log"; echo "setup: catkin_make failed (full log: $log)"; exit 1
 fi
+
+# The project's modules compiled once: the processes a run starts (a few thousand in `make test`)
+# then load bytecode instead of compiling each import from source (PYTHONDONTWRITEBYTECODE=1, set on
+# this project's machines, keeps Python from caching it itself; a .pyc is checked against its source
+# at every import, so an edit is never missed). Measured: 0.09 s of CPU less per node started.
+.venv/bin/python -m compileall -q -j 0 catkin_ws/src/*/src catkin_ws/devel/lib/python3/dist-packages tests \
+  > /dev/null 2>&1 || echo "setup: compiling the project's bytecode failed (it runs from source)"

@@ -74,6 +74,18 @@ def launch_files():
     return paths
 
 
+def _rospack():
+    """One package index for every lookup (each new one walks the whole ROS_PACKAGE_PATH again)."""
+    import rospkg
+    global _ROSPACK
+    if _ROSPACK is None:
+        _ROSPACK = rospkg.RosPack()
+    return _ROSPACK
+
+
+_ROSPACK = None
+
+
 @pytest.mark.parametrize('path', launch_files(), ids=os.path.basename)
 def test_launch_file_loads_and_every_node_exists(path):
     import roslaunch.config
@@ -85,7 +97,7 @@ def test_launch_file_loads_and_every_node_exists(path):
     nodes = list(config.nodes) + list(config.tests)
     assert nodes, 'no node in %s' % path
     for node in nodes:
-        assert roslib.packages.find_node(node.package, node.type), \
+        assert roslib.packages.find_node(node.package, node.type, rospack=_rospack()), \
             '%s: node %s/%s has no executable' % (os.path.basename(path), node.package, node.type)
 
 

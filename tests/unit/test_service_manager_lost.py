@@ -439,22 +439,27 @@ def test_a_malformed_list_of_counted_losses_in_the_record_counts_nothing_as_coun
 
 
 class Writes(object):
-    """trust.write_private_json, the manager killed (Died) in place of its die_at-th write (None: never)."""
+    """trust.write_private_json, the manager killed (Died) in place of its die_at-th write (None: never),
+    or right after it (``after``)."""
 
-    def __init__(self, monkeypatch, die_at=None):
-        self.real, self.die_at, self.paths = trust.write_private_json, die_at, []
+    def __init__(self, monkeypatch, die_at=None, after=False):
+        self.real, self.die_at, self.after, self.paths = trust.write_private_json, die_at, after, []
         monkeypatch.setattr(trust, 'write_private_json', self)
 
     def __call__(self, path, data):
-        if self.die_at is not None and len(self.paths) + 1 == self.die_at:
+        if self.die_at is not None and len(self.paths) + 1 == self.die_at and not self.after:
             raise Died()
         self.paths.append(path)
-        return self.real(path, data)
+        written = self.real(path, data)
+        if self.after and len(self.paths) == self.die_at:
+            raise Died()
+        return written
 
 
-def running(node, monkeypatch, config):
+def running(node, monkeypatch, config, ends=True):
     """node running service a (a real process, its Child), its pid file and record on disk; a's process
-    then exits. The kill and spawn actions as the node's, without signals: the pid file written."""
+    then exits (unless not ``ends``: it hangs). The kill and spawn actions as the node's, without
+    signals: the pid file written."""
     node.supervisor = Supervisor(parse_config(config, source='test.yaml'))
     for name in ('logerr_throttle', 'logwarn_throttle', 'logwarn', 'logerr', 'loginfo'):
         monkeypatch.setattr(node_module.rospy, name, lambda *a, **k: None)
@@ -464,13 +469,17 @@ def running(node, monkeypatch, config):
     started = []
 
     def start():
-        proc = subprocess.Popen([sys.executable, '-c', 'import sys; sys.stdin.read()'], stdin=subprocess.PIPE)
+        proc = subprocess.Popen([sys.executable, '-c', 'import sys; sys.stdin.read()'], stdin=subprocess.PIPE,
+                                start_new_session=True)
         started.append(proc)
         return node_module.Child(proc, 10.0)
 
     def act_one(verb, name, decision, now):
         if verb == 'kill':
-            node.children.pop(name, None)
+            child = node.children.pop(name, None)
+            if child is not None and child.alive():
+                child.popen.kill()
+                child.popen.wait(10)
             node._record_pids()
         elif verb == 'spawn':
             node.children[name] = start()
@@ -481,8 +490,9 @@ def running(node, monkeypatch, config):
     node.supervisor['a'].spawned(1.0)
     node._record_pids()
     node._sync_safe_state()
-    started[0].stdin.close()
-    started[0].wait(10)
+    if ends:
+        started[0].stdin.close()
+        started[0].wait(10)
     return started
 
 
@@ -597,3 +607,46 @@ def test_an_operator_s_stop_under_way_when_the_manager_dies_is_finished_by_the_n
         if live.poll() is None:
             live.kill()
         live.wait(10)
+
+
+def test_a_hung_instance_whose_fault_was_counted_is_ended_by_the_next_manager_not_adopted(node, monkeypatch):
+    """Review of session 40: a hung instance whose fault the record counted, its manager killed before
+    the kill, was adopted by the next manager and counted again once its hang was seen again. The
+    record names it (lost_counted) until it is killed: the next manager ends it instead."""
+    config = 'services:\n  a: {command: x, restart_limit: 5, restart_delay: 0}\n'
+    started = running(node, monkeypatch, config, ends=False)
+    try:
+        writes = Writes(monkeypatch)
+        node._fault(node.supervisor.fault('a', 'heartbeat', 'no beat for 1 s', 5.0), 5.0)
+        count = len(writes.paths)
+        monkeypatch.setattr(trust, 'write_private_json', writes.real)
+        for die_at, at_end in [(k, a) for k in range(1, count + 2) for a in (False, True)]:
+            fresh = node_module.ServiceManagerNode.__new__(node_module.ServiceManagerNode)
+            fresh.__dict__.update(node.__dict__)
+            fresh.children, fresh.counted, fresh.recorded = {}, set(), None
+            started.extend(running(fresh, monkeypatch, config, ends=False))
+            hung = fresh.children['a'].popen
+            writes = Writes(monkeypatch, die_at, at_end)
+            try:
+                fresh._fault(fresh.supervisor.fault('a', 'heartbeat', 'no beat for 1 s', 5.0), 5.0)
+            except Died:
+                pass
+            monkeypatch.setattr(trust, 'write_private_json', writes.real)
+            adopted = []
+            monkeypatch.setattr(node_module.ServiceManagerNode, '_adopt',
+                                lambda self, name, entry, proc, now: adopted.append(entry['pid']) or True)
+            after = successor(fresh)
+            counted = after.supervisor['a'].errors.get('heartbeat', 0)
+            if hung.pid in adopted:   # not counted yet: adopted, its hang to be seen again
+                assert counted == 0, (die_at, at_end, writes.paths)
+            else:                     # counted: ended, by its manager or the next one
+                assert counted == 1, (die_at, at_end, writes.paths, adopted)
+                hung.wait(10)
+            monkeypatch.undo()
+            for name in ('logerr_throttle', 'logwarn_throttle', 'logwarn', 'logerr', 'loginfo'):
+                monkeypatch.setattr(node_module.rospy, name, lambda *a, **k: None)
+    finally:
+        for proc in started:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)

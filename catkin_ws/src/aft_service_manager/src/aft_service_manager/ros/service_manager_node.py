@@ -743,8 +743,10 @@ class ServiceManagerNode(object):
             try:
                 proc = psutil.Process(int(entry['pid']))
                 started = trust.same_process(entry, proc, command_line=False)
-                # One a clean stop was ending (its manager killed meanwhile) is not adopted: it goes.
-                if not started and not entry.get('stopping') and self._adopt(name, entry, proc, now):
+                # One a clean stop was ending (its manager killed meanwhile) is not adopted: it goes. So
+                # does one whose fault the record counted (lost_counted) and whose kill did not happen.
+                counted = trust.well_formed(entry) and _lost_identity(entry) in self.already_counted
+                if not started and not entry.get('stopping') and not counted and self._adopt(name, entry, proc, now):
                     adopted.append(entry['tree'])
                     continue
                 if started:   # another process under its pid now: the recorded one ended
@@ -866,7 +868,7 @@ class ServiceManagerNode(object):
         and the record's left the fault counted nowhere and an escalation's safe state unsaid (review of
         session 40). The ended instance is named in the record's ``lost_counted`` until the pid file
         no longer names it, so that the next manager does not count it again either."""
-        ended = self._ended_identity(decision.service)
+        ended = self._ended_identity(decision.service, ('kill', decision.service) in decision.actions)
         if ended is not None:
             self.counted.add(ended)
         self._sync_safe_state()
@@ -876,10 +878,12 @@ class ServiceManagerNode(object):
             self.counted.discard(ended)
         self._sync_safe_state()
 
-    def _ended_identity(self, name):
-        """(service, pid, start) of name's active instance if it ended (its fault is being acted on), else None."""
+    def _ended_identity(self, name, killed=False):
+        """(service, pid, start) of name's active instance if it ended, or is to be killed (``killed``)
+        for the fault being acted on; else None. One to be killed (a hang, a limit) and still named when
+        the manager dies is ended by the next manager, not adopted and counted again."""
         child = self.children.get(name)
-        if child is None or child.start is None or child.alive():
+        if child is None or child.start is None or (child.alive() and not killed):
             return None
         return _lost_identity({'service': name, 'pid': child.popen.pid, 'create_time': child.start})
 
