@@ -650,3 +650,40 @@ def test_a_hung_instance_whose_fault_was_counted_is_ended_by_the_next_manager_no
             if proc.poll() is None:
                 proc.kill()
                 proc.wait(10)
+
+
+def test_a_loss_whose_record_write_failed_stays_named_when_its_service_is_restarted(node, monkeypatch):
+    """Review of session 40: a lost instance stayed in the pid file under its service's name until the
+    record counted it; the record's write failed, the service was restarted by its policy, and the new
+    instance, under the same name, hid the loss in every pid file written after: a manager killed then
+    left it counted nowhere. It has a key of its own now."""
+    two_lost(node)
+    started = []
+    writes = trust.write_private_json
+
+    def write(path, data):
+        if path == node.record_file:
+            raise OSError(28, 'No space left on device')
+        return writes(path, data)
+    monkeypatch.setattr(trust, 'write_private_json', write)
+    for name in ('logerr_throttle', 'logwarn_throttle'):
+        monkeypatch.setattr(node_module.rospy, name, lambda *a, **k: None)
+
+    def fault(decision, now):   # the policy restarts it: a new instance under its name, the pid file written
+        proc = subprocess.Popen([sys.executable, '-c', 'import sys; sys.stdin.read()'], stdin=subprocess.PIPE)
+        started.append(proc)
+        node.children[decision.service] = node_module.Child(proc, 10.0)
+        node._record_pids()
+    monkeypatch.setattr(node, '_fault', fault)
+    try:
+        node._act_on_lost(node._take_lost([]), 10.0)
+        monkeypatch.setattr(trust, 'write_private_json', writes)
+        named = trust.read_private_json(node.pid_file)
+        assert sorted(named) == ['a', 'a (lost)', 'b', 'b (lost)'], sorted(named)
+        monkeypatch.setattr(node_module.ServiceManagerNode, '_adopt', lambda *a: True)   # the new ones: adopted
+        after = successor(node)
+        assert sorted(after.lost) == ['a', 'b'] and counted(after) == {'a': {}, 'b': {}}   # each counted once, there
+    finally:
+        for proc in started:
+            proc.kill()
+            proc.wait(10)

@@ -684,7 +684,9 @@ class ServiceManagerNode(object):
                            getattr(self, 'stopping', {}).items() if c.alive())
             # A lost instance stays named until the record counts it: a manager dying in its set-up
             # meanwhile leaves it for the next one to count (it was forgotten; Limits of session 39).
-            records.update((n, e) for n, e in self.unacted.items() if n not in records)
+            # Under a key of its own: under the service's, the service restarted meanwhile (a record
+            # write failed, the loss still unacted) hid it, and it was counted nowhere (session 41).
+            records.update(('%s (lost)' % n, e) for n, e in self.unacted.items())
             self.own[self.pid_file] = trust.write_private_json(self.pid_file, records)
             return True
         except (OSError, psutil.Error) as e:
