@@ -297,6 +297,10 @@ def test_a_launch_whose_nodes_would_follow_a_witness_nobody_runs_is_refused_nami
                              {'/master/tr/proceed': ('/nav/witness/request', 'master')})
     offered = SERVICES | {'/master/account', '/nav/witness/request', '/aft/witness/request'}
     adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('/nav/witness/request', 'master')})
+    # Its server missing, the witness running: what it calls is named, the witness it only hears is not.
+    with pytest.raises(ScriptError, match=r'which calls /master/account: no node offers /master/account \('):
+        adaptation.check_fit(script, RUNNING, offered - {'/master/account'}, NEW, calls,
+                             {'/master/tr/proceed': ('/nav/witness/request', 'master')})
     # Running, but not the one the site's Recovery follows: another service's.
     for recovery_follows in ('/aft/witness/request', ''):
         with pytest.raises(ScriptError, match=r'/master/tr/proceed would follow the witness /nav/witness/request, '

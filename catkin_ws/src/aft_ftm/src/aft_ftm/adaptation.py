@@ -376,10 +376,11 @@ def check_fit(script, nodes, services, launched, calls=None, witnesses=None, sit
                 raise ScriptError('launch file %s would start %s, which follows the witness %s: no node offers it '
                                   '(give the running replica\'s witness, witness:=/NS/witness/request)'
                                   % (entry.file, node, witness))
-            if missing:
+            if missing:   # (its witness, offered, is not named among what it calls: a follower only hears it)
                 raise ScriptError('launch file %s would start %s, which calls %s: no node offers %s (name '
                                   'your service in the script\'s arguments, e.g. server:= or state_manager:=)'
-                                  % (entry.file, node, ', '.join(names), ', '.join(missing)))
+                                  % (entry.file, node, ', '.join(n for n in names if n != witness),
+                                     ', '.join(missing)))
 
 
 def unconnected_binds(script, publishers, subscribers, only=None):
