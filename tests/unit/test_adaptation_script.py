@@ -311,6 +311,26 @@ def test_a_launch_whose_nodes_would_follow_a_witness_nobody_runs_is_refused_nami
                                  {'master': recovery_follows})
     adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('/nav/witness/request', 'master')},
                          {'master': '/nav/witness/request', 'slave': ''})
+    # The other way round: a new node of a replica following no witness where its Recovery follows one
+    # (a compose run with witness:=none on a witnessed pair) never learns its site serves alone.
+    with pytest.raises(ScriptError, match=r'/master/tr/proceed would follow the witness none, and site master\'s '
+                                          r'Recovery follows /aft/witness/request'):
+        adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('', 'master')},
+                             {'master': '/aft/witness/request'})
+    adaptation.check_fit(script, RUNNING, offered, NEW, calls, {'/master/tr/proceed': ('', 'master')}, {'master': ''})
+
+
+def test_only_a_replica_s_nodes_follow_a_witness():
+    """Review of session 41: a Before or Proceed outside a replica (no site; mechanism.launch gives it the
+    default witness all the same) was refused when no witness ran, though it follows none."""
+    follows = adaptation.follows_witness
+    for node_type in ('protocol', 'before', 'proceed', 'recovery'):
+        assert follows(node_type, 'tr', 'master') and not follows(node_type, 'tr', '')
+    assert follows('after', 'pbr', 'master') and follows('after', 'lfr', 'm') and not follows('after', 'tr', 'm')
+    assert not follows('after', 'ad', 'master') and not follows('after', 'pbr', '')
+    assert follows('crash_detector', '', 'master', True) and follows('crash_detector', '', 'master', 'true')
+    assert not follows('crash_detector', '', 'master', False) and not follows('crash_detector', '', 'master')
+    assert not follows('bank_server', '', 'master') and not follows('sec_gate', '', 'master')
 
 
 REFERRING = """

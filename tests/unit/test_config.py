@@ -63,6 +63,7 @@ def test_a_witness_is_none_or_a_service_a_witness_offers():
     assert config.witness_service('~witness', '') == '' and config.witness_service('~witness', 'none') == ''
     assert config.witness_service('~witness', ' /nav/witness/request ') == '/nav/witness/request'
     assert config.witness_service('~witness', '/request') == '/request'
+    assert config.witness_service('~witness', '/nav/_w2/9/witness/request') == '/nav/_w2/9/witness/request'
     # its configurations are published beside ~request: any other name would follow a topic nobody publishes.
     # "None" and " none " are a witness to the launch files (their test is exact) and were none to the
     # nodes: the primary's Protocol waited as a backup for ever (review of session 40). A relative name

@@ -493,3 +493,29 @@ def test_a_forged_message_does_not_evict_a_held_certificate_while_the_ca_is_unre
     assert refused.value.kind == 'bad_signature' and asked == ['client']   # asked again; the CA silent
     blob, header = sealed(CLIENT, 2)
     assert server._open('client', blob, header) == b'deposit' and asked == ['client']   # the held one serves
+
+
+def test_a_reply_too_large_to_seal_becomes_a_sealed_error_saying_the_request_was_executed(monkeypatch):
+    """Review of session 41: a reply larger sealed than a client's gate takes was refused there unread;
+    its Proxy asked again every half second for ever, the Protocol's cache answering the same. The
+    server's gate seals an ERROR instead, saying the request was executed, and alarms."""
+    from aft_msgs.msg import Reply
+    from aft_ftm import change_model
+    server = gate()
+    server.origins = security.OriginBinding(None)
+    server.origins.bind('client', '/proxy')
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    client = gate(side='client')
+    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    server.nonces.note('/proxy', 7, client.runs.nonce_for('/proxy', 7, 7), 7)
+    client.sent[('/proxy', 7)] = None
+    monkeypatch.setattr(security, 'MAX_SEALED_BYTES', 4096)
+    server._on_reply(Reply(id=7, origin='/proxy', client='/c', status=Reply.OK, payload=b'x' * 4096, epoch=2))
+    (_, raised), (port, wire) = server.ports.published
+    assert (raised.mechanism, raised.kind, port, wire.status) == ('server', 'reply_too_large', 'replies_out', Reply.ERROR)
+    assert len(bytes(wire.payload)) < 4096 and change_model.observed_fault(raised.mechanism, raised.kind) is None
+    client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
+    client._on_reply(wire)
+    (port, told), = client.ports.published
+    assert (port, told.status, told.id, told.epoch) == ('replies_out', Reply.ERROR, 7, 2)
+    assert 'the request was executed; its answer cannot be carried' in told.error

@@ -680,9 +680,20 @@ def test_a_loss_whose_record_write_failed_stays_named_when_its_service_is_restar
         monkeypatch.setattr(trust, 'write_private_json', writes)
         named = trust.read_private_json(node.pid_file)
         assert sorted(named) == ['a', 'a (lost)', 'b', 'b (lost)'], sorted(named)
-        monkeypatch.setattr(node_module.ServiceManagerNode, '_adopt', lambda *a: True)   # the new ones: adopted
+        by_pid = {proc.pid: proc for proc in started}
+
+        def adopt(self, name, entry, proc, now):   # the running ones: adopted, as _adopt does
+            self.children[entry['service']] = node_module.Child(by_pid[proc.pid], 10.0)
+            self.supervisor[entry['service']].spawned(now)
+            return True
+        monkeypatch.setattr(node_module.ServiceManagerNode, '_adopt', adopt)
         after = successor(node)
-        assert sorted(after.lost) == ['a', 'b'] and counted(after) == {'a': {}, 'b': {}}   # each counted once, there
+        assert sorted(after.lost) == ['a', 'b'] and sorted(after.children) == ['a', 'b']
+        assert after._take_lost([]) == {}                       # nothing to start: both run
+        assert counted(after) == {'a': {'exit': 1}, 'b': {'exit': 1}}   # each loss counted, once, here
+        assert all(len(after.supervisor[n].restarts) == 1 for n in ('a', 'b'))   # with the restart it had
+        third = successor(after)                                # and not again by the next one
+        assert third.lost == {} and counted(third) == {'a': {'exit': 1}, 'b': {'exit': 1}}
     finally:
         for proc in started:
             proc.kill()

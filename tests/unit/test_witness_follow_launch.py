@@ -100,3 +100,17 @@ def test_the_compose_adaptation_gives_its_nested_mechanism_the_sites_witness():
             config = load('mechanism.launch', *('%s:=%s' % kv for kv in launch.args))
             found = followers(config)
             assert len(found) == 2 and set(found.values()) == {expected}, found   # its Before and Proceed
+
+
+def test_the_engine_reads_each_new_node_s_witness_and_site_from_the_launch_files_it_would_start():
+    """What the adaptation engine checks before anything changes (review of session 41): every follower
+    of a replica, with its witness and site; a mechanism outside a replica (no site) follows none, and
+    is not asked for the witness it is given by default."""
+    from aft_ftm.ros.adaptation_engine import services_called_by
+    base = ['ns:=/master/tr', 'mechanism:=tr', 'inp:=/i', 'out:=/o', 'server:=/master/account']
+    calls, witnesses = services_called_by(load('mechanism.launch', *(base + ['site:=master',
+                                                                           'witness:=/nav/witness/request'])))
+    assert witnesses and set(witnesses.values()) == {('/nav/witness/request', 'master')}, witnesses
+    assert all('/nav/witness/request' in calls[node] for node in witnesses if node in calls)
+    calls, witnesses = services_called_by(load('mechanism.launch', *base))   # no site: outside a replica
+    assert witnesses == {} and not any('/aft/witness/request' in names for names in calls.values()), calls

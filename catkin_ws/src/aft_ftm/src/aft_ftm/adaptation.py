@@ -294,6 +294,19 @@ SERVICES_CALLED = {
     ('cycle_after', None): ('set_state',),
     ('sec_gate', None): ('certificate',),
 }
+def follows_witness(node_type, mechanism, site, follow_witness=''):
+    """Whether an aft_ftm node of a replica (``site`` set) follows its ~witness: Recovery and the PBR or
+    LFR After call it; the Protocol, Before, Proceed, and a crash detector told to (``follow_witness``),
+    hear its configurations. A node outside a replica follows none."""
+    if not site:
+        return False
+    if node_type == 'after':
+        return mechanism in ('pbr', 'lfr')
+    if node_type == 'crash_detector':
+        return follow_witness is True or str(follow_witness).lower() == 'true'
+    return node_type in ('protocol', 'before', 'proceed', 'recovery')
+
+
 def services_called(node, node_type, mechanism, remaps, witness=''):
     """The resolved names of the services a launched aft_ftm node will call: ``node`` its absolute
     name, ``remaps`` {from: to} of its launch file, ``witness`` its ~witness parameter. LFR's After
@@ -324,7 +337,8 @@ def check_fit(script, nodes, services, launched, calls=None, witnesses=None, sit
     wait for it and the adaptation roll back long after (the script's defaults name the bank demo's
     services: another service needs its own names, server:= or state_manager:=). What only the nodes
     can answer (a dry run of each rebind, where a retired node runs) the engine asks them afterwards.
-    ``witnesses``: {node: (its ~witness, its ~site)} for the new nodes given a witness;
+    ``witnesses``: {node: (its ~witness, '' for none; its ~site)} for the new nodes that follow a
+    witness in a replica (:func:`follows_witness`);
     ``site_witnesses``: {site: the witness its Recovery follows}: a new node of a site must follow the
     same one (review of session 40: a script's default witness is the bank demo's; on a second service
     the new nodes followed the bank's witness, a running one, and never heard their own site's role).
@@ -333,7 +347,8 @@ def check_fit(script, nodes, services, launched, calls=None, witnesses=None, sit
         ours = (site_witnesses or {}).get(site)
         if ours is not None and witness != ours:
             raise ScriptError('%s would follow the witness %s, and site %s\'s Recovery follows %s: give the '
-                              'replica\'s own (witness:=%s)' % (node, witness, site, ours or 'none', ours or 'none'))
+                              'replica\'s own (witness:=%s)' % (node, witness or 'none', site, ours or 'none',
+                                                                 ours or 'none'))
     started = {}   # node -> the launch file that starts it
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))

@@ -88,7 +88,7 @@ def witness_service(name, value):
     return value.strip()
 
 
-_WITNESS_NAME = re.compile(r'^(/[A-Za-z][A-Za-z0-9_]*)*/request$')
+_WITNESS_NAME = re.compile(r'^(/[A-Za-z]\w*(/\w+)*)?/request$')   # rosgraph's legal names, absolute
 
 
 def non_negative_float(name, value):

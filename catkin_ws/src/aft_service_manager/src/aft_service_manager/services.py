@@ -724,6 +724,18 @@ class Supervisor(object):
             return None
         return self.fault(name, 'exit', detail, now)
 
+    def replaced_unwatched(self, name, detail, now):
+        """An instance of name ended while no manager watched it, and a newer one runs (adopted): its
+        predecessor restarted it after the fault and died before the record counted either. Counted as
+        that exit and that restart, nothing done (the running instance is the restart's); the newer
+        one's own faults are judged as they come. It was forgotten (review of session 41)."""
+        s = self.services[name]
+        s.errors['exit'] += 1
+        s.consecutive += 1
+        s.restarts.append(s.clock(now))
+        s.reason = 'exit: %s; restarted then (the instance running was adopted)' % detail
+        return s
+
     def starts_after_lost(self, name, lost, now):
         """How service name, not found ended, starts once the lost ones' faults are decided and acted
         on (called in dependency order): (verb, why), verb 'spawn'; 'skip' (it must not run without a

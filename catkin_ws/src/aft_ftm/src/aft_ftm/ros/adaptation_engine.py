@@ -63,13 +63,15 @@ def services_called_by(config):
         if node.package != 'aft_ftm':
             continue
         name = rosgraph.names.ns_join(node.namespace, node.name)
-        witness = value(name + '/witness')
-        called = adaptation.services_called(name, node.type, value(name + '/mechanism'), dict(node.remap_args),
-                                            witness)
+        witness, site, mechanism = value(name + '/witness'), value(name + '/site'), value(name + '/mechanism')
+        follows = adaptation.follows_witness(node.type, mechanism, site, value(name + '/follow_witness'))
+        # A node outside a replica (no site) follows no witness, whatever its parameter says.
+        called = adaptation.services_called(name, node.type, mechanism, dict(node.remap_args),
+                                            witness if follows else '')
         if called:
             calls[name] = called
-        if witness:
-            witnesses[name] = (witness, value(name + '/site'))
+        if follows:
+            witnesses[name] = (witness, site)
     return calls, witnesses
 
 

@@ -528,6 +528,23 @@ class SecGateNode(object):
                                                 batch=request.batch, status=Reply.NOT_EXECUTED, error=detail,
                                                 epoch=request.epoch))
 
+    def _reply_too_large(self, reply, size, box, party, nonce):
+        """A reply larger sealed than a client's gate takes: replaced by a sealed ERROR saying the request
+        was executed and its answer cannot be carried. Sent as it was, the client's gate refused it
+        unread, its Proxy asked again every half second for ever, and the cache answered the same
+        (review of session 41). Returns (the reply as it goes on the wire, its payload)."""
+        error = ('the reply to request %s/%d is %d bytes sealed, more than a SEC message may be (%d): the request '
+                 'was executed; its answer cannot be carried' % (reply.origin, reply.id, size,
+                                                                security.MAX_SEALED_BYTES))
+        alarm(self.ports, 'server', 'reply_too_large', error, reply)
+        wire = Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
+                     attempt=reply.attempt, batch=reply.batch, status=Reply.ERROR, error=SEALED_ERROR,
+                     epoch=reply.epoch)
+        header = security.header_of(wire, security.REPLY_FIELDS, party, self.destination)
+        if nonce is not None:
+            header['nonce'] = nonce
+        return wire, security.seal(self.me, box, header, security.frame_error(error, b''))
+
     def _renumber(self, request, nonce):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock
         behind (numbering below its predecessor: refused here for ever, it hung). Its party is told, sealed,
@@ -564,6 +581,8 @@ class SecGateNode(object):
                 if nonce is not None:
                     header['nonce'] = nonce
                 payload = security.seal(self.me, box, header, security.frame_error(error, reply.payload))
+                if len(payload) > security.MAX_SEALED_BYTES:
+                    reply, payload = self._reply_too_large(reply, len(payload), box, party, nonce)
             else:
                 if security.addressee_of(reply.payload) not in (self.me.name, None):
                     with self.lock:   # for another client's gate, which checks it: not an attack on this one

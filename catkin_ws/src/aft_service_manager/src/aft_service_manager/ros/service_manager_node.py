@@ -482,7 +482,17 @@ class ServiceManagerNode(object):
         count (not held down by the record, not adopted); the pid file written again, still naming
         them (self.unacted) until the record counts them."""
         lost = {n: why for n, why in self.lost.items() if n not in self.children and n not in held}
-        self.unacted = {n: e for n, e in self.unacted.items() if n in lost}
+        # Lost, but a newer instance of it runs (adopted): counted, nothing done; named in the pid file
+        # until the record holds the count (review of session 41: it was dropped here, counted nowhere).
+        replaced = {n: why for n, why in self.lost.items() if n in self.children and n not in held}
+        for name, why in sorted(replaced.items()):
+            self.supervisor.replaced_unwatched(name, why, time.monotonic())
+            rospy.logwarn('%s: %s: an instance ended while no manager watched it, already replaced: counted',
+                          rospy.get_name(), name)
+            if name in self.unacted:
+                self.counted.add(_lost_identity(self.unacted[name]))
+        counted_now = bool(replaced) and self._sync_safe_state()
+        self.unacted = {n: e for n, e in self.unacted.items() if n in lost or (n in replaced and not counted_now)}
         if self._record_pids():
             # What the previous manager counted is no longer named in the pid file: its record may forget it.
             self.counted -= self.already_counted
