@@ -343,12 +343,6 @@ def check_fit(script, nodes, services, launched, calls=None, witnesses=None, sit
     same one (review of session 40: a script's default witness is the bank demo's; on a second service
     the new nodes followed the bank's witness, a running one, and never heard their own site's role).
     """
-    for node, (witness, site) in sorted((witnesses or {}).items()):
-        ours = (site_witnesses or {}).get(site)
-        if ours is not None and witness != ours:
-            raise ScriptError('%s would follow the witness %s, and site %s\'s Recovery follows %s: give the '
-                              'replica\'s own (witness:=%s)' % (node, witness or 'none', site, ours or 'none',
-                                                                 ours or 'none'))
     started = {}   # node -> the launch file that starts it
     for entry in script.launch:
         clash = sorted(set(launched[entry]) & set(nodes))
@@ -363,6 +357,12 @@ def check_fit(script, nodes, services, launched, calls=None, witnesses=None, sit
                               'stops the first)' % (entry.file, ', '.join(twice), started[twice[0]]))
         started.update((n, entry.file) for n in launched[entry])
     new = {name for names in launched.values() for name in names}
+    for node, (witness, site) in sorted((witnesses or {}).items()):
+        ours = (site_witnesses or {}).get(site)
+        if ours is not None and witness != ours:
+            raise ScriptError('%s would follow the witness %s, and site %s\'s Recovery follows %s: give the '
+                              'replica\'s own (witness:=%s)' % (node, witness or 'none', site, ours or 'none',
+                                                                 ours or 'none'))
 
     def need(node, service, why):
         if node in new:
