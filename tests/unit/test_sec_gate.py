@@ -102,17 +102,23 @@ def test_a_proxy_started_again_with_its_clock_behind_is_told_sealed_where_to_num
         told, security.REPLY_FIELDS, 'client', '/ftm/pxy2pro'))   # sealed for its party, signed by the server
 
 
-def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clients_gate():
-    """Review of SEC (session 33): the error of a reply went in clear beside its ciphered payload, and
-    a server's error names the client's data ("cannot withdraw 999999 from a balance of 4342"): any
-    subscriber read other clients' balances."""
-    from aft_msgs.msg import Reply
+def reply_gates():
+    """A server's gate that verified a request of /proxy (party client), and that client's gate."""
     server = gate()
     server.origins = security.OriginBinding(None)
     server.origins.bind('client', '/proxy')
     server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
     client = gate(side='client')
     client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    return server, client
+
+
+def test_a_replys_error_text_is_sealed_with_its_payload_and_restored_by_its_clients_gate():
+    """Review of SEC (session 33): the error of a reply went in clear beside its ciphered payload, and
+    a server's error names the client's data ("cannot withdraw 999999 from a balance of 4342"): any
+    subscriber read other clients' balances."""
+    from aft_msgs.msg import Reply
+    server, client = reply_gates()
     server.nonces.note('/proxy', 7, client.runs.nonce_for('/proxy', 7, 7), 7)   # request 7 came through the gate
     client.sent[('/proxy', 7)] = None
     error = 'service cannot process request: cannot withdraw 999999 from a balance of 4342'
@@ -501,12 +507,7 @@ def test_a_reply_too_large_to_seal_becomes_a_sealed_error_saying_the_request_was
     server's gate seals an ERROR instead, saying the request was executed, and alarms."""
     from aft_msgs.msg import Reply
     from aft_ftm import change_model
-    server = gate()
-    server.origins = security.OriginBinding(None)
-    server.origins.bind('client', '/proxy')
-    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
-    client = gate(side='client')
-    client.me, client.server_party, client.not_for_me = CLIENT, 'server', 0
+    server, client = reply_gates()
     server.nonces.note('/proxy', 7, client.runs.nonce_for('/proxy', 7, 7), 7)
     client.sent[('/proxy', 7)] = None
     monkeypatch.setattr(security, 'MAX_SEALED_BYTES', 4096)

@@ -540,10 +540,15 @@ class SecGateNode(object):
         wire = Reply(id=reply.id, origin=reply.origin, client=reply.client, oldest_pending=reply.oldest_pending,
                      attempt=reply.attempt, batch=reply.batch, status=Reply.ERROR, error=SEALED_ERROR,
                      epoch=reply.epoch)
-        header = security.header_of(wire, security.REPLY_FIELDS, party, self.destination)
+        return wire, self._seal_reply(wire, box, party, nonce, error, b'')
+
+    def _seal_reply(self, reply, box, party, nonce, error, payload):
+        """payload and the error text sealed for party, with reply's header (and the nonce its request
+        came with, when it named one) signed."""
+        header = security.header_of(reply, security.REPLY_FIELDS, party, self.destination)
         if nonce is not None:
             header['nonce'] = nonce
-        return wire, security.seal(self.me, box, header, security.frame_error(error, b''))
+        return security.seal(self.me, box, header, security.frame_error(error, payload))
 
     def _renumber(self, request, nonce):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock
@@ -577,10 +582,7 @@ class SecGateNode(object):
                 # The error text is sealed with the payload (a server's error names the client's data: "cannot
                 # withdraw 999 from a balance of 4342"); the reply on the wire says only that there is one.
                 error, reply = reply.error, _with_error(reply, SEALED_ERROR if reply.error else '')
-                header = security.header_of(reply, security.REPLY_FIELDS, party, self.destination)
-                if nonce is not None:
-                    header['nonce'] = nonce
-                payload = security.seal(self.me, box, header, security.frame_error(error, reply.payload))
+                payload = self._seal_reply(reply, box, party, nonce, error, reply.payload)
                 if len(payload) > security.MAX_SEALED_BYTES:
                     reply, payload = self._reply_too_large(reply, len(payload), box, party, nonce)
             else:
