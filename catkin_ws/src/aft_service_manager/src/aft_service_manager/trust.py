@@ -161,7 +161,25 @@ def describe(proc):
     """What names a process across a pid's reuse: {'pid', 'create_time', 'cmdline'} (proc: psutil); the
     start on the boot clock (aft_ftm.process_start), so that a manager started after a wall-clock step
     still knows the services its predecessor left (psutil's create_time moves with the clock)."""
-    return {'pid': proc.pid, 'create_time': process_started(proc.pid, zombie=True), 'cmdline': proc.cmdline()}
+    return {'pid': proc.pid, 'create_time': process_started(proc.pid, zombie=True), 'cmdline': command_line(proc)}
+
+
+EXEC_WAIT = 0.2   # s: the longest describe() waits for an exec under way to give its process a command line
+
+
+def command_line(proc, wait=EXEC_WAIT, poll=0.001):
+    """proc's command line, once its exec is done. Popen returns as soon as the exec closes the
+    child's descriptors, before the kernel has set up the new program's arguments: read then,
+    /proc/PID/cmdline is empty. Recorded so, the next manager took the process for another one
+    (its command line differed) and left a hung instance running unsignalled (seen in
+    test_service_manager_lost, about one run in two on a loaded machine). Read again for up to
+    ``wait`` seconds; a process that has none by then (a zombie) is recorded with none."""
+    deadline = time.monotonic() + wait
+    while True:
+        cmdline = proc.cmdline()
+        if cmdline or time.monotonic() >= deadline:
+            return cmdline
+        time.sleep(poll)
 
 
 def well_formed(entry):
