@@ -1,8 +1,11 @@
 """Test set-up: the libraries of every package importable from the source tree, and the shared fakes."""
+import fcntl
+import glob
 import os
 import shutil
 import sys
 import tempfile
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -16,9 +19,32 @@ sys.path.insert(0, HERE)
 SCRATCH = tempfile.mkdtemp(prefix='aft_tests_')
 os.environ['TMPDIR'] = SCRATCH
 tempfile.tempdir = SCRATCH
+STARTED = time.time()
+
+
+def remove_free_turns(since):
+    """The adaptation turns' lock files (aft_ftm.turns, one per ROS master, in /tmp whatever TMPDIR says)
+    that this run's masters made: each master's port is new, so a run left dozens. One still held
+    (an engine alive) is kept."""
+    from aft_ftm.turns import Turn
+    for path in glob.glob(os.path.join(Turn.DIRECTORY, 'aft_adaptation_*.lock')):
+        try:
+            if os.stat(path).st_mtime < since:
+                continue
+            fd = os.open(path, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.unlink(path)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
 
 
 def pytest_sessionfinish(session, exitstatus):
+    remove_free_turns(STARTED - 1.0)
     if (exitstatus == 0 or not os.listdir(SCRATCH)) and not os.environ.get('AFT_KEEP_TMP'):
         shutil.rmtree(SCRATCH, ignore_errors=True)
     else:

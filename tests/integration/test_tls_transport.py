@@ -90,6 +90,19 @@ print('HEARD %d, the last at %.3f' % (len(heard), heard[-1] if heard else 0), fl
 listen = os.path.join(log_dir, 'listen.py')
 with open(listen, 'w') as f:
     f.write(LISTEN)
+# An application's own rospy client, unmodified (no AFT import): rosrun aft_ftm with_tls gives it TLS
+UNMODIFIED = r"""
+import sys, rospy
+from aft_msgs.srv import Witness
+rospy.init_node(sys.argv[1])
+try:
+    print('UNMODIFIED served: epoch %d' % rospy.ServiceProxy('/witness/request', Witness)(op=0, site='app').epoch)
+except Exception as e:
+    print('UNMODIFIED refused: %s' % str(e)[:200])
+"""
+unmodified = os.path.join(log_dir, 'unmodified.py')
+with open(unmodified, 'w') as f:
+    f.write(UNMODIFIED)
 
 core = start_master(log_dir)
 procs = []
@@ -144,6 +157,13 @@ try:
     if commands:
         sys.exit('a forged command reached the checker: %s' % commands)
     print('FORGED commands refused')
+    for name, argv, party in (('with_tls', ['rosrun', 'aft_ftm', 'with_tls', unmodified, 'app_tls'], 'master'),
+                              ('in_clear', [sys.executable, unmodified, 'app_clear'], 'master'),
+                              ('no_tls_dir', ['rosrun', 'aft_ftm', 'with_tls', unmodified, 'app_none'], None)):
+        done = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env(party), timeout=60,
+                              universal_newlines=True)
+        said = [l for l in done.stdout.splitlines() if l.startswith(('UNMODIFIED', 'with_tls:'))]
+        print('APP %s exit %d: %s' % (name, done.returncode, ' | '.join(said)))
     out = open(log_dir + '/witness.out').read()
     print('WITNESS refusals: %d' % out.count('tls connection_refused'))
 
@@ -204,6 +224,12 @@ def test_only_certified_parties_the_policy_allows_reach_a_tls_node():
     assert 'CALL refused' in lines['plain_attacker'] and 'SUBSCRIPTION nothing' in lines['plain_attacker'], lines
     assert 'CALL refused' in lines['client_attacker'] and 'SUBSCRIPTION served' in lines['client_attacker'], lines
     assert 'FORGED commands refused' in output
+    # an unmodified rospy client: served under with_tls, refused in clear; with_tls without a TLS directory
+    # refuses to start it in clear
+    apps = dict(line[4:].split(' exit ', 1) for line in output.splitlines() if line.startswith('APP '))
+    assert apps['with_tls'].startswith('0: UNMODIFIED served: epoch'), apps
+    assert apps['in_clear'].startswith('0: UNMODIFIED refused'), apps
+    assert apps['no_tls_dir'].startswith('2: with_tls: AFT_TLS_DIR is not set'), apps
     refusals = [line for line in output.splitlines() if line.startswith('WITNESS refusals')]
     assert refusals and int(refusals[0].split(': ')[1]) >= 2, output[-3000:]
     served = [line for line in output.splitlines() if line.startswith('STALLED 20')][0]

@@ -149,3 +149,20 @@ def test_a_slow_fault_still_has_calls_after_it():
         assert longest_wait(records, injected['wall']) is not None, 'seed %d' % seed
     with pytest.raises(ValueError, match='fault_after=41'):
         drive_through_fault(lambda op, amount: None, 40, ReplyChecker(), 41, fault, rng)
+
+
+def test_a_failed_calls_text_stays_off_rosout(monkeypatch, capsys):
+    """/rosout is in clear: the kind of a failed call goes there, its text (what SEC sealed on the wire,
+    a server's error about the account) only to the client's own stderr."""
+    import rospy
+    from aft_examples.ros import bank_nodes
+    logged = []
+    monkeypatch.setattr(rospy, 'logerr', lambda fmt, *args: logged.append(fmt % args))
+    calls = iter([rospy.ServiceException('balance 1234 below 5000 for account alice')])
+
+    def call(op, amount):
+        raise next(calls)
+    records = bank_nodes.drive(call, 1, ReplyChecker())
+    assert [ok for *_, ok in records] == [False]
+    assert logged == ['request 0 failed (ServiceException; its text on the client\'s stderr)']
+    assert 'balance 1234 below 5000 for account alice' in capsys.readouterr().err

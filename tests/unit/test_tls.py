@@ -1,5 +1,6 @@
 """Mutual TLS's pure parts (aft_ftm.tls): the policy, the first bytes, certificates and contexts
 (two parties shaking hands over a socket pair, a stranger's certificate refused). No ROS."""
+import os
 import socket
 import ssl
 import struct
@@ -287,3 +288,41 @@ def test_revoking_a_party_revokes_the_certificates_a_re_issue_replaced_too(tmp_p
     with pytest.raises(ConfigError) as error:
         tls.revoke(home, ['client'])
     assert tls.ISSUED in str(error.value) and "party 'client'" in str(error.value)
+
+
+BANK_POLICY = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                           'catkin_ws', 'src', 'aft_examples', 'config', 'tls_policy.yaml')
+
+
+@pytest.mark.parametrize('party,name,allowed', [
+    # what each party's nodes read in the demo (the ROS master's lists of a running SEC + TLS pair)
+    ('client', '/ftm/pro2pxy', True), ('client', '/sec_plain/pro2pxy', True), ('client', '/aft/ca/status', True),
+    ('master', '/ftm/checkpoints/slave', True), ('master', '/slave/fail_stop', True),
+    ('master', '/aft/witness/configuration', True), ('slave', '/master/failures', True),
+    ('operator', '/aft/alarms', True), ('operator', '/master/recovery/events', True),
+    ('operator', '/aft/monitor/model', True), ('operator', '/ftm/heartbeat/master', True),
+    # ... and never a site's checkpoints (the state and every client's replies), the requests on their
+    # way, nor a site's plain side (deciphered requests and replies): the client and operator parties
+    # read every topic before (review of session 41)
+    ('client', '/ftm/checkpoints/master', False), ('client', '/ftm/pxy2pro', False),
+    ('client', '/master/sec_plain/pro2bfr', False), ('client', '/master/pro2bfr', False),
+    ('client', '/slave/aft2pro', False), ('client', '/ftm/join/master', False),
+    ('operator', '/ftm/checkpoints/slave', False), ('operator', '/ftm/pxy2pro', False),
+    ('operator', '/ftm/pro2pxy', False), ('operator', '/master/sec_plain/prd2aft', False),
+    ('operator', '/sec_plain/pxy2pro', False), ('master', '/sec_plain/pro2pxy', False),
+])
+def test_the_bank_policy_lets_each_party_read_what_it_needs_and_no_other_clients_data(party, name, allowed):
+    why = tls.Permissions.load(BANK_POLICY).allows(party, 'subscribe', name)
+    assert (why is None) == allowed, why
+
+
+@pytest.mark.parametrize('party,action,allowed', [
+    ('client', 'serve', True), ('client', 'call', True), ('operator', 'call', True),
+    # /account is not in clear: a process without a certificate can neither call it nor answer it (it
+    # registered /account at the master and the client called it), nor can a party trusted with nothing
+    (None, 'call', False), (None, 'serve', False), ('client2', 'serve', False), ('client2', 'call', False),
+    ('master', 'serve', False), ('operator', 'serve', False),
+])
+def test_the_banks_own_interface_is_served_by_the_client_site_to_certified_callers_only(party, action, allowed):
+    why = tls.Permissions.load(BANK_POLICY).allows(party, action, '/account')
+    assert (why is None) == allowed, why

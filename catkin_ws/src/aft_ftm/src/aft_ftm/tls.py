@@ -83,9 +83,9 @@ def make_authority(directory, days=3650):
             .not_valid_after(now + datetime.timedelta(days=days))
             .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
             .sign(key, hashes.SHA256()))
-    _write(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+    write_file(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()), 0o600)
-    _write(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+    write_file(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
     return crt_path
 
 
@@ -118,9 +118,9 @@ def issue(directory, party, days=30, lifetime=None):
         serials.append(serial_of(directory, party))
     serials.append(cert.serial_number)
     _write_issued(directory, issued)   # recorded before the certificate is written: never one unrecorded
-    _write(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+    write_file(key_path, key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()), 0o600)
-    _write(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
+    write_file(crt_path, cert.public_bytes(serialization.Encoding.PEM), 0o644)
     return crt_path
 
 
@@ -197,7 +197,7 @@ def issued_serials(directory):
 def _write_issued(directory, issued):
     import json
     data = dict((party, ['%x' % s for s in dict.fromkeys(serials)]) for party, serials in issued.items())
-    _write(os.path.join(directory, ISSUED), json.dumps(data, indent=1, sort_keys=True).encode(), 0o600)
+    write_file(os.path.join(directory, ISSUED), json.dumps(data, indent=1, sort_keys=True).encode(), 0o600)
 
 
 def revoke(directory, parties=(), serials=(), days=7, replaced_only=False):
@@ -229,7 +229,7 @@ def revoke(directory, parties=(), serials=(), days=7, replaced_only=False):
         builder = builder.add_revoked_certificate(
             x509.RevokedCertificateBuilder().serial_number(serial).revocation_date(now).build())
     crl = builder.sign(ca_key, hashes.SHA256())
-    _write(path, crl.public_bytes(serialization.Encoding.PEM), 0o644)
+    write_file(path, crl.public_bytes(serialization.Encoding.PEM), 0o644)
     return path, number
 
 
@@ -257,7 +257,7 @@ def remember_number(directory, number):
     import json
     held = held_number(directory)
     if held is None or number > held:
-        _write(os.path.join(directory, HELD), json.dumps({'number': number}).encode(), 0o600)
+        write_file(os.path.join(directory, HELD), json.dumps({'number': number}).encode(), 0o600)
 
 
 def _serial(value):
@@ -325,7 +325,8 @@ class Revocations(object):
         return serial in self.serials
 
 
-def _write(path, data, mode):
+def write_file(path, data, mode):
+    """path replaced whole by data (a reader sees the old file or the new one, never a part)."""
     temporary = '%s.tmp-%d' % (path, os.getpid())
     fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
     with os.fdopen(fd, 'wb') as f:
