@@ -1,4 +1,4 @@
-"""The Proxy's pending table: ids, watermark, re-sends. No ROS."""
+"""The Proxy's pending table: ids, watermark, re-sends; and what it logs of a failed call. No ROS master."""
 from aft_ftm.proxy import PendingTable
 
 
@@ -77,3 +77,23 @@ def test_a_refusal_that_cannot_be_renumbered_says_why_while_the_call_waits():
     assert 'request %d waits' % a.id in why and 'past 2**63' in why and 'forged' in why
     assert 'not above it' in table.unrenumbered(a.id, a.id)
     assert table.unrenumbered(a.id + 7, 1 << 64) is None   # no such call: a late message, nothing to say
+
+
+def test_a_servers_error_text_goes_to_the_caller_and_not_to_rosout(monkeypatch):
+    """rospy logs an exception a service handler raises, text and traceback, on /rosout (in clear); the
+    Proxy's own log of a server's failure names no text (the caller gets it; SEC seals it on the wire),
+    and a fault of the Proxy itself is logged whole (review of session 42)."""
+    import sys
+    import rospy
+    from aft_ftm.ros import proxy_node
+    logged = []
+    monkeypatch.setattr(rospy, 'logerr', logged.append)
+    node = proxy_node.ProxyNode.__new__(proxy_node.ProxyNode)
+    node.name = '/proxy'
+    for error in (proxy_node.ServerError('cannot withdraw 5000 from a balance of 1234'), KeyError('its own bug')):
+        try:
+            raise error
+        except Exception as e:
+            node._on_error(e, *sys.exc_info())
+    assert logged[0] == '/proxy: a call failed in the server (its error went to the caller only)'
+    assert '1234' not in ' '.join(logged) and "'its own bug'" in logged[1] and 'Traceback' in logged[1]

@@ -82,12 +82,36 @@ def test_a_party_one_layer_does_not_know_is_revoked_in_the_other_and_said(layers
     ('bad name', 'is not a party name'),
     ('not an authority', 'is not a TLS authority directory'),
     ('copy without tls', 'name the TLS authority'),
+    ('the ca', 'ca is the certification authority itself'),
+    ('another ca', "its CA certificate is another authority's"),
+    ('newer held', 'took list number 5 already'),
+    ('corrupt list', "the authority's revocation list"),
+    ('certificate gone', 'recorded as issued, but its current one'),
 ])
 def test_bad_input_is_named_and_changes_nothing(layers, tmp_path, case, words):
     sec, authority, given = layers
     with open(os.path.join(sec, 'revoked.yaml'), 'w') as f:
         f.write('revoked: [client2]\n' if case != 'malformed' else 'revoked: client2\n')
+    if case == 'another ca':
+        other = str(tmp_path / 'other')
+        tls.make_authority(other)
+        tls.issue(other, 'master')
+        given['other'] = tls.export_party(other, 'master', str(tmp_path / 'other_master'))
+    if case == 'newer held':
+        tls.remember_number(given['master'], 5)
+    if case == 'corrupt list':
+        tls.revoke(authority, ['master'])
+        with open(os.path.join(authority, tls.CRL), 'r+b') as f:
+            f.seek(60)
+            f.write(b'XXXX')
+    if case == 'certificate gone':
+        os.remove(os.path.join(authority, 'client.tls.crt'))
     args = {'unknown': (['client', 'mallory'], sec, authority, [given['master']]),
+            'the ca': (['client', 'ca'], sec, authority, []),
+            'another ca': (['client'], sec, authority, [given['master'], given.get('other')]),
+            'newer held': (['client'], sec, authority, [given['client'], given['master']]),
+            'corrupt list': (['client'], sec, authority, []),
+            'certificate gone': (['client'], sec, authority, []),
             'malformed': (['client'], sec, authority, [given['master']]),
             'no copy dir': (['client'], sec, authority, [str(tmp_path / 'nowhere')]),
             'no layer': (['client'], None, None, []),
@@ -111,3 +135,39 @@ def test_the_command_says_what_it_did_and_refuses_bad_input_with_exit_2(layers):
     assert run.returncode == 0, run.stdout
     assert 'SEC: client revoked' in run.stdout and 'copied into %s' % given['master'] in run.stdout
     assert tls_revoked(authority, given['master'], 'client')
+
+
+def test_a_write_failing_part_way_says_what_was_done(layers, monkeypatch):
+    sec, authority, given = layers
+    with open(os.path.join(sec, 'revoked.yaml'), 'w') as f:
+        f.write('revoked: []\n')
+    os.chmod(os.path.join(sec, 'revoked.yaml'), 0o600)
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, 'No space left on device')
+    monkeypatch.setattr(tls, 'revoke', disk_full)
+    with pytest.raises(revocation.Incomplete) as raised:
+        revocation.revoke(['client'], sec, authority, copy_to=[given['master']])
+    assert raised.value.done == ['SEC: client revoked in %s (the CA refuses the certificates within its status '
+                                 'period, 0.5 s)' % os.path.join(sec, 'revoked.yaml')]
+    assert 'No space left on device' in str(raised.value)
+    assert oct(os.stat(os.path.join(sec, 'revoked.yaml')).st_mode & 0o777) == oct(0o600)   # its mode kept
+
+
+def test_revocations_at_once_lose_none(layers):
+    import threading
+    sec, authority, _ = layers
+    parties = ['p%d' % i for i in range(8)]
+    for party in parties:
+        security.write_party(sec, security.Party.generate(party))
+        tls.issue(authority, party)
+    threads = [threading.Thread(target=revocation.revoke, args=([p], sec, authority)) for p in parties]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert sorted(sec_policy.load_revocations(os.path.join(sec, 'revoked.yaml'))) == parties
+    held = tls.Revocations.of_directory(authority)
+    with open(os.path.join(authority, tls.CRL), 'rb') as f:
+        held.take(f.read())
+    assert held.number == 8 and all(held.revoked(tls.serial_of(authority, p)) for p in parties)

@@ -3,6 +3,7 @@ named by pid, start time and command line, and heartbeats judged by who sent the
 import json
 import os
 import subprocess
+import time
 
 import psutil
 import pytest
@@ -86,6 +87,13 @@ def test_a_process_described_in_the_middle_of_its_exec_is_recorded_with_its_comm
     entry = trust.describe(proc)
     assert entry['cmdline'] == psutil.Process(os.getpid()).cmdline() and proc.reads == 3
     assert trust.same_process(entry, psutil.Process(os.getpid())) is None
+    zombie = subprocess.Popen(['true'])   # ended, not reaped: no command line to wait for
+    deadline = time.monotonic() + 10
+    while psutil.Process(zombie.pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.01)
+    began = time.monotonic()
+    assert trust.describe(psutil.Process(zombie.pid))['cmdline'] == [] and time.monotonic() - began < trust.EXEC_WAIT
+    zombie.wait()
     for _ in range(50):   # and for real: described as soon as Popen returns
         child = subprocess.Popen(['sleep', '30'], start_new_session=True)
         try:

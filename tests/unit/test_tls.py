@@ -305,10 +305,12 @@ BANK_POLICY = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.pa
     # way, nor a site's plain side (deciphered requests and replies): the client and operator parties
     # read every topic before (review of session 41)
     ('client', '/ftm/checkpoints/master', False), ('client', '/ftm/pxy2pro', False),
-    ('client', '/master/sec_plain/pro2bfr', False), ('client', '/master/pro2bfr', False),
+    ('client', '/master/sec2pro', False), ('client', '/slave/pro2sec', False), ('client', '/master/pro2bfr', False),
     ('client', '/slave/aft2pro', False), ('client', '/ftm/join/master', False),
     ('operator', '/ftm/checkpoints/slave', False), ('operator', '/ftm/pxy2pro', False),
-    ('operator', '/ftm/pro2pxy', False), ('operator', '/master/sec_plain/prd2aft', False),
+    ('operator', '/ftm/pro2pxy', False), ('operator', '/master/pro2sec', False),
+    # an application client reads nothing: not the replies of its Proxy's other callers
+    ('app', '/sec_plain/pro2pxy', False), ('app', '/ftm/pro2pxy', False), ('app', '/aft/alarms', False),
     ('operator', '/sec_plain/pxy2pro', False), ('master', '/sec_plain/pro2pxy', False),
 ])
 def test_the_bank_policy_lets_each_party_read_what_it_needs_and_no_other_clients_data(party, name, allowed):
@@ -317,7 +319,9 @@ def test_the_bank_policy_lets_each_party_read_what_it_needs_and_no_other_clients
 
 
 @pytest.mark.parametrize('party,action,allowed', [
-    ('client', 'serve', True), ('client', 'call', True), ('operator', 'call', True),
+    ('client', 'serve', True), ('app', 'call', True), ('operator', 'call', True),
+    # an application client only calls it: registered at the master as /account, it answers nobody
+    ('app', 'serve', False), ('client', 'call', False),
     # /account is not in clear: a process without a certificate can neither call it nor answer it (it
     # registered /account at the master and the client called it), nor can a party trusted with nothing
     (None, 'call', False), (None, 'serve', False), ('client2', 'serve', False), ('client2', 'call', False),

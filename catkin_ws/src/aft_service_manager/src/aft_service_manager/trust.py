@@ -22,6 +22,7 @@ import stat
 import tempfile
 import time
 
+import psutil
 from aft_ftm.process_start import started as process_started
 
 from .services import ServiceConfigError
@@ -177,9 +178,17 @@ def command_line(proc, wait=EXEC_WAIT, poll=0.001):
     deadline = time.monotonic() + wait
     while True:
         cmdline = proc.cmdline()
-        if cmdline or time.monotonic() >= deadline:
+        if cmdline or time.monotonic() >= deadline or _zombie(proc):
             return cmdline
         time.sleep(poll)
+
+
+def _zombie(proc):
+    """Whether proc has ended, unreaped: its command line stays empty, nothing to wait for."""
+    try:
+        return proc.status() == psutil.STATUS_ZOMBIE
+    except (AttributeError, psutil.Error):
+        return False
 
 
 def well_formed(entry):

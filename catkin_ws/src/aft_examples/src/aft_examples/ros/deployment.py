@@ -146,11 +146,13 @@ class PbrDeployment(object):
             from aft_ftm import tls
             authority = os.path.join(self.tls_dir, 'authority')   # the CA's key stays here, given to nobody
             tls.make_authority(authority)
-            for party in ('master', 'slave', 'client', 'witness', 'operator', 'client2'):
+            for party in ('master', 'slave', 'client', 'app', 'witness', 'operator', 'client2'):
                 tls.issue(authority, party)
                 tls.export_party(authority, party, os.path.join(self.tls_dir, party))
             if not one_host and self.witness:
                 client['witness_tls_dir'] = os.path.join(self.tls_dir, 'witness')   # a party of its own
+            if not one_host:
+                client['app_tls_dir'] = os.path.join(self.tls_dir, 'app')   # the bank_client's, where it runs
 
         def site(name, launch_file, **args):
             self.launch_args[name] = (launch_file, args)

@@ -2,6 +2,7 @@
 import collections
 import threading
 import time
+import traceback
 
 import rospy
 from aft_msgs.msg import Reply, Request
@@ -94,7 +95,7 @@ class ProxyNode(object):
             rospy.logwarn('%s: no Protocol subscribed to %s yet; requests will be re-sent when one does',
                           self.name, self.ports.topic('requests'))
         self.timer = rospy.Timer(rospy.Duration(self.resend_period / 2.0), lambda _: self._resend_on_timer())
-        self.service = rospy.Service('service', self.cls, self._on_call)
+        self.service = rospy.Service('service', self.cls, self._on_call, error_handler=self._on_error)
         self.diagnostics = Diagnostics(self._health)
         rospy.loginfo('%s: offering %s (%s)', self.name, self.service.resolved_name, self.service_type)
         return True
@@ -127,6 +128,18 @@ class ProxyNode(object):
             kind, text = service_errors.to_raise(reply.error or 'the request failed')
             raise rospy.ServiceException(text) if kind == 'service' else ServerError(text)
         return deserialize(self.cls._response_class, reply.payload)
+
+    def _on_error(self, e, exc_type, exc_value, tb):
+        """rospy's log of an exception a call raised, which goes to /rosout, in clear. A server's failure
+        (ServerError) carries the server's words about the request, which SEC seals on the wire: the
+        caller gets them (rospy answers it "error processing request: ..."), the log says only that it
+        failed (review of session 42: rospy logged the text with a traceback). Anything else raised
+        here is this node's fault, logged whole."""
+        if isinstance(e, ServerError):
+            rospy.logerr('%s: a call failed in the server (its error went to the caller only)' % self.name)
+        else:
+            rospy.logerr('%s: error processing a call: %s\n%s' % (
+                self.name, e, ''.join(traceback.format_exception(exc_type, exc_value, tb))))
 
     def _on_reply(self, reply):
         if reply.origin != self.name:
