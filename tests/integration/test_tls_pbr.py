@@ -120,7 +120,7 @@ rospy.init_node(sys.argv[1])
 try:
     print('ACCOUNT answered %r' % (rospy.ServiceProxy('/account', Account)(op='inspect', amount=0),))
 except rospy.ServiceException as e:
-    print('ACCOUNT error %s' % str(e)[:300].replace('\\n', ' '))
+    print('ACCOUNT error %s' % str(e)[:300].replace('\n', ' '))
 """
 
 log_dir = tempfile.mkdtemp(prefix='aft_tls_pbr_')
@@ -275,7 +275,8 @@ def check_under_tls(mechanism, variant=''):
     # the application's client (party app, under with_tls) reaches the bank (its own error for an unknown
     # operation); a certified party the policy does not allow on /account does not
     assert 'ACCOUNT error' in line('APP bank_client_app') and "unknown operation 'inspect'" in line('APP bank_client_app')
-    assert 'ACCOUNT' in line('APP client2_app') and 'unknown operation' not in line('APP client2_app')
+    assert 'ACCOUNT error' in line('APP client2_app') and 'unknown operation' not in line('APP client2_app')
+    assert 'may not call /account' in line('APP client2_app'), line('APP client2_app')
     assert line('AFTER ATTACKS') == 'AFTER ATTACKS epoch 2 primary master backup slave'
     assert line('STATE master') == 'STATE master equal' and line('STATE slave') == 'STATE slave equal'
     assert not line('REFUSALS').startswith('REFUSALS 0 '), line('REFUSALS')

@@ -27,7 +27,7 @@ from aft_ftm.sites import wait_until
 log_dir = tempfile.mkdtemp(prefix='aft_tls_')
 keys = os.path.join(log_dir, 'tls')
 tls.make_authority(keys)
-for party in ('witness', 'master', 'client'):
+for party in ('witness', 'master', 'client', 'rotating'):
     tls.issue(keys, party)
 policy = os.path.join(log_dir, 'policy.yaml')
 with open(policy, 'w') as f:
@@ -39,6 +39,7 @@ with open(policy, 'w') as f:
                    publish: [/rosout, /aft_test/ticks, /aft/alarms]}
           client: {subscribe: [/witness/configuration, /aft_test/ticks], publish: [/rosout, /aft/alarms]}
           brief: {subscribe: [/aft_test/ticks], publish: [/rosout, /aft/alarms]}
+          rotating: {subscribe: [/aft_test/ticks], publish: [/rosout, /aft/alarms]}
         """))
 
 def env(party=None, directory=keys):
@@ -81,11 +82,15 @@ import sys, time, rospy
 from std_msgs.msg import String
 from aft_ftm.ros.params import secure_from_environment
 secure_from_environment()
+if sys.argv[3:] == ['keep']:   # the subscription keeper, as run_node gives every AFT node: a cut subscription
+    from aft_ftm.ros.subscription_keeper import keep_subscriptions   # is made again (rospy gives it up)
+    keep_subscriptions(period=0.5)
 rospy.init_node(sys.argv[1])
 heard = []
 rospy.Subscriber('/aft_test/ticks', String, lambda m: heard.append(time.time()))
 time.sleep(float(sys.argv[2]))
-print('HEARD %d, the last at %.3f' % (len(heard), heard[-1] if heard else 0), flush=True)
+gap = max([b - a for a, b in zip(heard, heard[1:])] or [0.0])
+print('HEARD %d, the last at %.3f, the longest gap %.3f s' % (len(heard), heard[-1] if heard else 0, gap), flush=True)
 """
 listen = os.path.join(log_dir, 'listen.py')
 with open(listen, 'w') as f:
@@ -200,6 +205,28 @@ try:
     print('EXPIRED cut %.3f s after the certificate ended' % (time.time() - brief_end))
     back = wait_until(lambda: peers() & {'/listener', '/brief_listener'}, 2.0, 0.01)
     print('RECONNECTED %s' % (sorted(back) or 'none'))
+    # -- a rotation without a restart: the listener's key and certificate issued again in its directory,
+    # then the replaced certificate revoked: its connection is cut, and it comes back with the new one
+    from aft_ftm.ros import tls_transport
+    def rotating_serials():
+        with tls_transport._LOCK:
+            return set(serial for party, serial, _ in tls_transport._LIVE.values() if party == 'rotating')
+    rotating = subprocess.Popen([sys.executable, listen, 'rotating_listener', '20', 'keep'], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, env=env('rotating'), universal_newlines=True)
+    procs.append(rotating)
+    if not wait_until(lambda: '/rotating_listener' in peers() and rotating_serials(), 10.0, 0.01):
+        sys.exit('the rotating listener did not connect')
+    old_serials = rotating_serials()
+    tls.issue(keys, 'rotating')
+    new_serial = tls.serial_of(keys, 'rotating')
+    revoked_at = time.time()
+    tls.revoke(keys, ['rotating'], replaced_only=True)
+    back = wait_until(lambda: rotating_serials() == {new_serial}, 15.0, 0.005)
+    print('ROTATION old %s cut, %s' % ('not' if rotating_serials() & old_serials else 'all',
+                                       'back with the new certificate %.3f s after the revocation'
+                                       % (time.time() - revoked_at) if back else 'not back with the new one in 15 s'))
+    out, _ = rotating.communicate(timeout=40)
+    print('rotating_listener %s, revoked at %.3f' % ([l for l in out.splitlines() if l.startswith('HEARD')], revoked_at))
     done.set()
     for p in listeners:
         out, _ = p.communicate(timeout=40)
@@ -245,5 +272,13 @@ def test_only_certified_parties_the_policy_allows_reach_a_tls_node():
     heard = [line for line in output.splitlines() if line.startswith('ALARMS')][0].split()
     for alarm in ('/witness:connection_refused', '/checker:certificate_revoked', '/checker:certificate_expired'):
         assert alarm in heard, (alarm, heard)     # raised on /aft/alarms, not only logged
+    # a rotation without a restart: cut, back with the new certificate, and ticks heard after it
+    rotation = [line for line in output.splitlines() if line.startswith('ROTATION')]
+    assert rotation and rotation[0].startswith('ROTATION old all cut, back with the new certificate'), output[-3000:]
+    listened = [line for line in output.splitlines() if line.startswith('rotating_listener')]
+    assert listened and 'HEARD' in listened[0], output[-3000:]
+    listened = listened[0]
+    last, revoked_at = float(listened.split('the last at ')[1].split(',')[0]), float(listened.split()[-1])
+    assert last > revoked_at + 1.0, listened
     revoked_refusals = [line for line in output.splitlines() if line.startswith('WITNESS revoked refusals')]
     assert int(revoked_refusals[0].split(': ')[1]) >= 1, output[-3000:]

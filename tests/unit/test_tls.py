@@ -330,3 +330,52 @@ def test_the_bank_policy_lets_each_party_read_what_it_needs_and_no_other_clients
 def test_the_banks_own_interface_is_served_by_the_client_site_to_certified_callers_only(party, action, allowed):
     why = tls.Permissions.load(BANK_POLICY).allows(party, action, '/account')
     assert (why is None) == allowed, why
+
+
+def test_a_node_takes_its_partys_new_key_and_certificate_once_they_load_and_says_if_they_never_do(tmp_path,
+                                                                                                    monkeypatch):
+    """A rotation without a restart (aft_ftm.ros.tls_transport._rotate): a key and a certificate of
+    different issues (one copied, the other not yet) change nothing and are tried again, said only
+    past ROTATION_GRACE; once the pair loads, new connections use it. A pair of another CA or of
+    another party is refused at once (review of session 42: loading checks neither)."""
+    import shutil
+    from aft_ftm.ros import tls_transport
+    home = str(tmp_path / 'home')
+    tls.make_authority(home)
+    tls.issue(home, 'master')
+    given = tls.export_party(home, 'master', str(tmp_path / 'master'))
+    server, client = tls.contexts(given, 'master')
+    first = tls.serial_of(given, 'master')
+    state = dict(server=server, client=client, party='master', directory=given, own_serial=first,
+                 revocations=tls.Revocations.of_directory(home),
+                 files_seen=tls_transport._files_stat(given, 'master'))
+    monkeypatch.setattr(tls_transport, '_STATE', state)
+    raised = []
+    monkeypatch.setattr(tls_transport, '_alarm', lambda kind, detail: raised.append((kind, detail)))
+    tls.issue(home, 'master')   # issued again: its new key copied first, the certificate not yet
+    key, crt = tls.certificate_files(home, 'master')
+    shutil.copyfile(key, os.path.join(given, os.path.basename(key)))
+    files = tls_transport._files_stat(given, 'master')
+    assert files != state['files_seen']
+    tls_transport._rotate(files, 100.0)
+    assert state['server'] is server and state['own_serial'] == first and raised == []
+    tls_transport._rotate(files, 100.0 + tls_transport.ROTATION_GRACE + 0.1)
+    assert [k for k, _ in raised] == ['rotation_failed'] and state['server'] is server
+    shutil.copyfile(crt, os.path.join(given, os.path.basename(crt)))   # the certificate follows
+    files = tls_transport._files_stat(given, 'master')
+    tls_transport._rotate(files, 200.0)
+    assert state['server'] is not server and state['own_serial'] == tls.serial_of(home, 'master') != first
+    assert state['files_seen'] == files and len(raised) == 1 and 'rotation_failing_since' not in state
+    # whole pairs that load but are wrong: refused at once, the pair in use kept
+    rotated = state['server']
+    other = str(tmp_path / 'other')
+    tls.make_authority(other)
+    tls.issue(other, 'master')
+    tls.issue(home, 'client')
+    for source, party, words in ((other, 'master', 'not signed by this CA'), (home, 'client', 'not party master')):
+        for mine, theirs in zip(tls.certificate_files(given, 'master'), tls.certificate_files(source, party)):
+            shutil.copyfile(theirs, mine)
+        files = tls_transport._files_stat(given, 'master')
+        tls_transport._rotate(files, 300.0)
+        assert raised[-1][0] == 'rotation_refused' and words in raised[-1][1], raised[-1]
+        assert state['server'] is rotated and state['files_seen'] == files

@@ -157,7 +157,7 @@ def revoke(parties, sec_dir=None, tls_dir=None, copy_to=()):
                             % (number, directory))
             if not copy_to:
                 said.append('TLS: copy %s into every party\'s TLS directory' % path)
-    except (OSError, ConfigError) as e:
+    except Exception as e:   # the disk, or anything else once writing began: what was done is said
         raise Incomplete(said, e)
     for party, layers in sorted(todo['unknown'].items()):
         said.append('%s: not a %s party, not revoked there' % (party, ' or '.join(layers)))

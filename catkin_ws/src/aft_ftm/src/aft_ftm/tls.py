@@ -66,6 +66,11 @@ def _names(directory, party):
     return os.path.join(directory, party + '.tls.key'), os.path.join(directory, party + '.tls.crt')
 
 
+def certificate_files(directory, party):
+    """(key, certificate) paths of party in directory."""
+    return _names(directory, _check_party(party))
+
+
 def make_authority(directory, days=3650):
     """ca.tls.key (0600) and ca.tls.crt in directory, unless there; returns the certificate's path."""
     from cryptography import x509
@@ -379,6 +384,42 @@ def contexts(directory, party):
             raise ConfigError('TLS files of party %s in %s cannot be used: %s' % (party, directory, e))
         made.append(context)
     return tuple(made)
+
+
+def check_party_certificate(directory, party, ca_public_key, now):
+    """The serial of party's certificate in directory if the CA of ca_public_key signed it for party
+    and it is valid at now (seconds since the epoch); else ConfigError naming why. What a node checks
+    before it takes a rotated certificate: loading a key and certificate checks neither (review of
+    session 42: a pair of another CA, an ended one or another party's would have replaced a working
+    one, and every peer refused the node from then on)."""
+    from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives.asymmetric import ec, padding, rsa
+    path = certificate_files(directory, party)[1]
+    try:
+        with open(path, 'rb') as f:
+            cert = x509.load_pem_x509_certificate(f.read())
+    except (OSError, ValueError) as e:
+        raise ConfigError('the certificate %s cannot be read: %s' % (path, e))
+    try:
+        if isinstance(ca_public_key, ec.EllipticCurvePublicKey):
+            ca_public_key.verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
+        elif isinstance(ca_public_key, rsa.RSAPublicKey):
+            ca_public_key.verify(cert.signature, cert.tbs_certificate_bytes, padding.PKCS1v15(),
+                                 cert.signature_hash_algorithm)
+        else:
+            raise ConfigError('the CA\'s key is of a kind not checked here: %s' % type(ca_public_key).__name__)
+    except (InvalidSignature, ValueError, TypeError):
+        raise ConfigError('the certificate %s is not signed by this CA' % path)
+    names = [a.value for a in cert.subject.get_attributes_for_oid(x509.oid.NameOID.COMMON_NAME)]
+    if names != [party]:
+        raise ConfigError('the certificate %s names %s, not party %s' % (path, names or 'nobody', party))
+    begins = cert.not_valid_before.replace(tzinfo=datetime.timezone.utc).timestamp()
+    ends = cert.not_valid_after.replace(tzinfo=datetime.timezone.utc).timestamp()
+    if not begins <= now < ends:
+        raise ConfigError('the certificate %s is valid from %s to %s, not now' % (
+            path, cert.not_valid_before.isoformat(), cert.not_valid_after.isoformat()))
+    return cert.serial_number
 
 
 def serial_and_end(peer_certificate):

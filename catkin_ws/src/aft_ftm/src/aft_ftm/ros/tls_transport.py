@@ -21,7 +21,16 @@ handshake (no session is resumed). A list not signed by the CA, or older than th
 refused (``tls bad_crl``) and changes nothing; the highest list number taken is kept in the
 directory (``ca.tls.crl.held``), so a restarted node refuses an older or missing list; a list past
 its next update raises ``tls stale_crl``; this node's own certificate revoked raises
-``tls own_certificate_revoked``."""
+``tls own_certificate_revoked``.
+
+A rotation without a restart: the same watcher sees the party's key and certificate change in its
+directory (``tls_keygen DIR PARTY`` again, or the new pair copied there) and, once the pair loads,
+makes every new connection with it; live connections keep the old certificate until they are cut
+(``tls_keygen DIR --revoke-replaced PARTY``: the peers cut them, and each reconnects with the new
+one) or it ends. A certificate the node's CA did not sign for its party, not valid now, or revoked
+is refused at once (``tls rotation_refused``), the old one kept. A pair that does not load (a key
+and a certificate of different issues: one copied, the other not yet) is tried again each round,
+the old one kept, and after ROTATION_GRACE said (``tls rotation_failed``)."""
 import collections
 import os
 import socket
@@ -41,6 +50,7 @@ _PROOF_SLOTS = threading.BoundedSemaphore(PROOF_SLOTS)
 _PROOFS = set()            # the nonces of this process's proofs under way
 _REGISTERING = {'running': False, 'again': False}
 CRL_PERIOD = 0.25   # s between two looks at the revocation list and the live connections' expiry
+ROTATION_GRACE = 5.0   # s a changed key and certificate may fail to load (half copied) before it is said
 _STATE = {}
 _PEERS = weakref.WeakKeyDictionary()   # inbound socket -> its peer's party (None: in clear)
 _LIVE = weakref.WeakKeyDictionary()    # TLS socket -> (peer party, certificate serial, not-after s)
@@ -55,6 +65,7 @@ def install(directory, party, permissions):
     import rospy.impl.tcpros_base as base
     from . import handshake
     handshake.bound_handshakes()   # the inbound hook runs in the per-connection threads it makes
+    files = _files_stat(directory, party)   # before the load: a rotation meanwhile is seen by the watcher
     server, client = tls.contexts(directory, party)
     revocations = tls.Revocations.of_directory(directory)
     crl = os.path.join(directory, tls.CRL)
@@ -77,7 +88,7 @@ def install(directory, party, permissions):
         raise ConfigError('the TLS certificate of party %s in %s is revoked (%s)' % (party, directory, crl))
     started = bool(_STATE)
     _STATE.update(server=server, client=client, permissions=permissions, party=party, revocations=revocations,
-                  crl=crl, crl_seen=seen, own_serial=own, directory=directory)
+                  crl=crl, crl_seen=seen, own_serial=own, directory=directory, files_seen=files)
     if not started:
         threading.Thread(target=_follow_revocations, name='tls_revocations', daemon=True).start()
     if not getattr(base.TCPROSTransport.write_header, 'tls', False):
@@ -497,7 +508,63 @@ def _publish_pending(now):
         _PENDING.popleft()   # only once published
 
 
+def _files_stat(directory, party):
+    return tuple(_crl_stat(path) for path in tls.certificate_files(directory, party))
+
+
+def _rotate(files, monotonic):
+    """The party's key or certificate changed (module docstring). A certificate that this node's CA
+    did not sign for its party, or that is not valid now, or revoked, is refused at once (alarm
+    ``rotation_refused``), the old pair kept; a pair that does not load (half copied) is tried again
+    each round and said once past ROTATION_GRACE; a pair that loads and passes is used by every new
+    connection."""
+    import rospy
+    directory, party = _STATE['directory'], _STATE['party']
+    try:
+        serial = tls.check_party_certificate(directory, party, _STATE['revocations'].key, time.time())
+        if _STATE['revocations'].revoked(serial):
+            raise ConfigError('its serial %x is revoked' % serial)
+    except ConfigError as e:
+        if _loads(directory, party):   # whole, and wrong: said at once, not tried again until it changes
+            _STATE['files_seen'] = files
+            _alarm('rotation_refused', 'the new TLS certificate of party %s in %s is refused: %s (the certificate '
+                   'in use stays)' % (party, directory, e))
+            return
+        serial = None   # half copied: below
+    try:
+        if serial is None:
+            raise ConfigError('the key and certificate do not load as a pair yet')
+        server, client = tls.contexts(directory, party)
+    except ConfigError as e:
+        if _STATE.get('rotation_failing_files') != files:   # another half-copied pair: its own grace
+            _STATE.update(rotation_failing_files=files, rotation_failing_since=monotonic, rotation_told=False)
+        if monotonic - _STATE['rotation_failing_since'] > ROTATION_GRACE and not _STATE['rotation_told']:
+            _STATE['rotation_told'] = True
+            _alarm('rotation_failed', 'the changed TLS files of party %s in %s cannot be used: %s (the certificate '
+                   'in use stays)' % (party, directory, e))
+        return
+    old = _STATE['own_serial']
+    _STATE.update(server=server, client=client, own_serial=serial, files_seen=files)
+    for key in ('rotation_failing_files', 'rotation_failing_since', 'rotation_told'):
+        _STATE.pop(key, None)
+    if serial != old:
+        rospy.loginfo('%s: tls: party %s rotated: new connections use certificate %x (live ones keep %x until cut)',
+                      rospy.get_name(), party, serial, old)
+
+
+def _loads(directory, party):
+    """Whether party's key and certificate in directory load as a pair (else: half copied)."""
+    try:
+        tls.contexts(directory, party)
+        return True
+    except ConfigError:
+        return False
+
+
 def _look_once(now):
+    files = _files_stat(_STATE['directory'], _STATE['party'])
+    if files != _STATE['files_seen']:
+        _rotate(files, time.monotonic())
     crl = _STATE['crl']
     seen = _crl_stat(crl)
     if seen is not None and seen != _STATE['crl_seen']:
