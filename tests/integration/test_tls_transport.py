@@ -11,6 +11,7 @@ and new calls refused; a certificate that expires has its live connection cut. R
 its own; 20 connections stalled in their handshake (half after a ClientHello's first bytes) hold up
 no allowed call and are closed by the node. Every process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_tagged
+from reporting import report
 
 SCRIPT = r'''
 import datetime, os, socket, subprocess, sys, tempfile, textwrap, threading, time
@@ -280,5 +281,6 @@ def test_only_certified_parties_the_policy_allows_reach_a_tls_node():
     listened = listened[0]
     last, revoked_at = float(listened.split('the last at ')[1].split(',')[0]), float(listened.split()[-1])
     assert last > revoked_at + 1.0, listened
+    report('TLS rotation under 100 messages/s: %s; the listener %s' % (rotation[0][len('ROTATION '):], listened.split("'")[1]))
     revoked_refusals = [line for line in output.splitlines() if line.startswith('WITNESS revoked refusals')]
     assert int(revoked_refusals[0].split(': ')[1]) >= 1, output[-3000:]
