@@ -210,9 +210,12 @@ def _nodes_in(d, host, name):
 def test_a_bandwidth_drop_between_the_replica_hosts_makes_the_monitor_switch_pbr_to_lfr(deployment, seed):
     """R measured for real: the link monitors' probes cross the replicas' links; a token bucket on the
     slave host's link (800 kbit/s, below what PBR's checkpoints need) makes the monitor switch PBR to
-    LFR by itself, the new nodes start on their sites' hosts, and no request is lost or run twice."""
+    LFR by itself, the new nodes start on their sites' hosts, and no request is lost or run twice.
+    Under mutual TLS (issue 16): the Monitoring Engine runs as the party engine, the only one that may
+    suspend and rebind, and the nodes it starts speak as their sites' parties; nothing of the
+    deployment's own is refused by the policy."""
     rng = random.Random(seed)
-    d = deployment(adaptable=True, link_monitor=True, monitor=True, timeout=0.5)
+    d = deployment(adaptable=True, link_monitor=True, monitor=True, timeout=0.5, tls_policy=demo_tls_policy())
     d.strings('/aft/monitor/events')            # subscribed from now on
 
     def measured():
@@ -251,6 +254,11 @@ def test_a_bandwidth_drop_between_the_replica_hosts_makes_the_monitor_switch_pbr
     # The new nodes run on the hosts of the sites they joined, not on the monitor's.
     assert _nodes_in(d, 'master', 'after_lfr') and _nodes_in(d, 'slave', 'after_lfr')
     assert not _nodes_in(d, 'witness', 'after_lfr')
+    for host in ('master', 'slave'):   # ... as the parties of those sites, not the engine's
+        parties = {psutil.Process(pid).environ().get('AFT_TLS_PARTY') for pid in _nodes_in(d, host, 'after_lfr')}
+        assert parties == {host}, (host, parties)
+    refused = [a for a in d.alarms() if a.get('mechanism') == 'tls' and 'may not' in a['detail']]
+    assert refused == [], refused
     low = measured()
     report('hosts PBR -> LFR: link measured %.0f kB/s, then %.0f kB/s under an 800 kbit/s limit on the slave host; '
            'the monitor switched to LFR %.1f s after the limit (engine pause %.1f ms), %d requests exactly once'

@@ -11,6 +11,9 @@ def site_params(monkeypatch):
     """The parameter server: each site's Recovery's ~witness (rejoin's default witness)."""
     params = {'/master/recovery/witness': '/aft/witness/request'}
     monkeypatch.setattr(rejoin_command.rospy, 'get_param', lambda name, default=None: params.get(name, default))
+    monkeypatch.setattr(rejoin_command.rospy, 'init_node', lambda *a, **k: None)
+    for name in ('AFT_TLS_DIR', 'AFT_TLS_PARTY', 'AFT_TLS_POLICY'):
+        monkeypatch.delenv(name, raising=False)
     return params
 
 
@@ -78,3 +81,60 @@ def test_the_witness_asked_is_the_one_the_site_s_recovery_follows(monkeypatch, s
     asked.clear()
     assert rejoin_command.main(['lone', '--launch', 'x']) == 2 and asked == [] and started == []
     assert 'follows no witness' in capsys.readouterr().err
+
+
+POLICY = """
+parties:
+  master: {nodes: ['/master/*'], serve: ['/master/*']}
+  operator: {nodes: ['/rejoin*'], call: [/aft/witness/request]}
+  client2: {nodes: ['/client2*']}
+"""
+
+
+@pytest.fixture
+def tls_tree(tmp_path):
+    """A CA and the directories of parties master, operator and client2, and the policy above."""
+    from aft_ftm import tls
+    authority = str(tmp_path / 'authority')
+    tls.make_authority(authority)
+    for party in ('master', 'operator', 'client2'):
+        tls.issue(authority, party)
+        tls.export_party(authority, party, str(tmp_path / party))
+    (tmp_path / 'policy.yaml').write_text(POLICY)
+    return tmp_path
+
+
+def test_under_tls_a_launch_runs_as_the_site_s_party_never_as_the_caller_s(tls_tree):
+    """Issue 16: rejoin --launch started the site with the caller's environment, so under TLS the site
+    ran as the operator's party, whose nodes every peer refuses. The launched command now takes the
+    party of --launch-tls-dir, which the policy must let run the site's nodes."""
+    caller = {'AFT_TLS_DIR': str(tls_tree / 'operator'), 'AFT_TLS_PARTY': 'operator',
+              'AFT_TLS_POLICY': str(tls_tree / 'policy.yaml'), 'OTHER': 'kept'}
+    env = rejoin_command.launch_environment('master', 'roslaunch x y.launch', str(tls_tree / 'master'), caller)
+    assert (env['AFT_TLS_DIR'], env['AFT_TLS_PARTY']) == (str(tls_tree / 'master'), 'master')
+    assert env['AFT_TLS_POLICY'] == caller['AFT_TLS_POLICY'] and env['OTHER'] == 'kept'
+    refusals = [
+        (('master', 'roslaunch x', '', caller), 'would run as this command\'s party'),
+        (('master', 'roslaunch x', str(tls_tree / 'client2'), caller), 'party client2 may not run a node named /master/'),
+        (('master', 'roslaunch x', str(tls_tree), caller), 'no party'),       # the directories' parent
+        (('master', 'roslaunch x', str(tls_tree / 'nowhere'), caller), 'cannot be read'),
+        (('master', '', str(tls_tree / 'master'), caller), 'none is given'),
+        (('master', 'roslaunch x', str(tls_tree / 'master'), {}), 'without TLS here'),
+    ]
+    for args, said in refusals:
+        with pytest.raises(rejoin_command.ConfigError) as e:
+            rejoin_command.launch_environment(*args)
+        assert said in str(e.value), (args, str(e.value))
+    # without TLS, and without a directory: the caller's environment, as before
+    assert rejoin_command.launch_environment('master', 'x', '', {'A': '1'}) == {'A': '1'}
+
+
+def test_a_refused_tls_launch_exits_2_having_started_and_asked_nothing(monkeypatch, tls_tree, capsys):
+    monkeypatch.setenv('AFT_TLS_DIR', str(tls_tree / 'operator'))
+    monkeypatch.setenv('AFT_TLS_PARTY', 'operator')
+    monkeypatch.setenv('AFT_TLS_POLICY', str(tls_tree / 'policy.yaml'))
+    asked, started = [], []
+    monkeypatch.setattr(rejoin_command, 'status', lambda service: asked.append(service))
+    monkeypatch.setattr(rejoin_command.subprocess, 'Popen', lambda *a, **k: started.append(a))
+    assert rejoin_command.main(['master', '--launch', 'roslaunch x y.launch']) == 2
+    assert asked == [] and started == [] and 'nothing started' in capsys.readouterr().err

@@ -21,6 +21,24 @@ def test_a_publisher_missing_for_the_grace_is_connected_again_then_after_a_doubl
     assert due[5] == [('/gap', A, 5.0, 1)]
 
 
+def test_hurried_a_cut_publisher_is_connected_again_at_the_first_look_then_the_grace_is_back():
+    """Issue 16, a key rotation: the TLS layer knows the connections it sees cut were cut on purpose
+    (a revoked certificate) and that rospy will not make them again; waiting the grace was each
+    subscription's 5.5 s pause. Hurried, a missing publisher is due at once, one already missing
+    within its grace too; one already tried keeps its backoff; after the window the grace is back."""
+    keeper = Keeper(grace=5.0, backoff_first=4.0)
+    assert keeper.step(10.0, {'/a': {A}}, {}) == []           # missing since 10, in its grace
+    keeper.hurry(until=20.0)
+    assert keeper.hurrying(10.5) and not keeper.hurrying(20.0)
+    assert keeper.step(10.5, {'/a': {A}, '/b': {B}}, {}) == [('/a', A, 0.5, 1), ('/b', B, 0.0, 1)]
+    assert keeper.step(11.0, {'/a': {A}, '/b': {B}}, {}) == []   # tried: its backoff still holds
+    assert keeper.step(14.6, {'/a': {A}, '/b': {B}}, {}) == [('/a', A, 4.6, 2), ('/b', B, 4.1, 2)]
+    keeper.hurry(until=15.0)                                   # a shorter window does not shorten it
+    assert keeper.hurry_until == 20.0
+    assert keeper.step(21.0, {'/c': {A}}, {}) == [] and keeper.step(25.9, {'/c': {A}}, {}) == []
+    assert keeper.step(26.0, {'/c': {A}}, {}) == [('/c', A, 5.0, 1)]   # past the window: the grace again
+
+
 def test_a_publisher_connected_within_the_grace_is_left_to_rospy():
     keeper = Keeper(grace=5.0)
     assert keeper.step(0.0, {'/gap': {A}}, {}) == []

@@ -332,6 +332,44 @@ def test_the_banks_own_interface_is_served_by_the_client_site_to_certified_calle
     assert (why is None) == allowed, why
 
 
+@pytest.mark.parametrize('party,action,name,allowed', [
+    # the engine (adapt, the Monitoring Engine) suspends, rebinds, resumes and promotes the sites' nodes,
+    # those it launched included ...
+    ('engine', 'call', '/master/protocol/suspend', True), ('engine', 'call', '/slave/tr/protocol/rebind', True),
+    ('engine', 'call', '/master/after/resume', True), ('engine', 'call', '/slave/recovery/set_promote', True),
+    ('engine', 'subscribe', '/aft/monitor/bandwidth', True), ('engine', 'subscribe', '/ftm/heartbeat/slave', True),
+    ('engine', 'publish', '/aft/monitor/events', True),
+    # ... and nothing else: no state written, no checkpoint read, no replies, no Proxy rebound
+    ('engine', 'call', '/master/bank_server/set_state', False), ('engine', 'call', '/account', False),
+    ('engine', 'subscribe', '/ftm/checkpoints/master', False), ('engine', 'subscribe', '/ftm/pro2pxy', False),
+    ('engine', 'call', '/proxy/rebind', False), ('engine', 'call', '/aft/witness/request', False),
+    # nobody else suspends or rebinds: not the operator who drives the demo, not a site's peer
+    ('operator', 'call', '/master/protocol/suspend', False), ('operator', 'call', '/slave/proceed/rebind', False),
+    ('client2', 'call', '/master/protocol/suspend', False), ('client', 'call', '/slave/protocol/resume', False),
+    ('slave', 'call', '/master/protocol/suspend', False),
+    # what the Monitoring Engine is told: the bandwidth by the sites' link monitors, the declared faults
+    # and the application's characteristics by the operator; its decisions by nobody else
+    ('master', 'publish', '/aft/monitor/bandwidth', True), ('master', 'publish', '/aft/monitor/declare_faults', False),
+    ('operator', 'publish', '/aft/monitor/declare_faults', True), ('operator', 'publish', '/aft/monitor/application', True),
+    ('operator', 'publish', '/aft/monitor/events', False), ('slave', 'publish', '/aft/monitor/model', False),
+])
+def test_the_bank_policy_lets_the_engine_alone_change_the_mechanisms(party, action, name, allowed):
+    """Issue 16: adaptations under TLS were not supported: no party could suspend or rebind a node, so
+    every adapt was refused. The party engine now may, and no other."""
+    why = tls.Permissions.load(BANK_POLICY).allows(party, action, name)
+    assert (why is None) == allowed, why
+
+
+def test_the_engine_s_nodes_are_its_own_and_a_guard_s_fail_stop_is_its_site_s():
+    """The engine's party runs the adapt command and the Monitoring Engine; a launched node's guard
+    tells its site to fail-stop as a node of that site (/SITE/fail_site_*), with the site's party."""
+    policy = tls.Permissions.load(BANK_POLICY)
+    assert policy.names_node('engine', '/aft_adapt_123_456') is None and policy.names_node('engine', '/aft/monitor') is None
+    assert policy.names_node('operator', '/aft_adapt_123_456') is not None
+    assert policy.names_node('master', '/master/fail_site_1_2') is None
+    assert policy.allows('master', 'publish', '/master/fail_stop') is None
+
+
 def test_a_node_takes_its_partys_new_key_and_certificate_once_they_load_and_says_if_they_never_do(tmp_path,
                                                                                                     monkeypatch):
     """A rotation without a restart (aft_ftm.ros.tls_transport._rotate): a key and a certificate of

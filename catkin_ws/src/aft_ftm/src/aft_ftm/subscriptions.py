@@ -21,6 +21,12 @@ with the subscription's live connections. A publisher missing for ``grace`` seco
 again, then again after a backoff that doubles up to ``backoff_max`` while it stays missing (a
 powered-off host's publishers stay registered until someone cleans the master); one found connected
 is forgotten. The ROS side (aft_ftm.ros.subscription_keeper) does the looking and the connecting.
+
+The grace is for what nobody explains: rospy may still be connecting. A connection this node's TLS
+layer knows was cut on purpose (a peer's certificate revoked, this node's own replaced certificate
+revoked: a key rotation) has no such doubt, and waiting the grace was each subscription's pause in a
+rotation (5.5 s measured). :meth:`Keeper.hurry` opens a window in which a publisher found missing is
+connected again at the first look.
 """
 GRACE = 5.0          # s: rospy connects a new publisher in milliseconds; its own retries start at 1 s
 BACKOFF_FIRST = 4.0  # s between two attempts for one publisher, doubled up to BACKOFF_MAX
@@ -42,6 +48,15 @@ class Keeper(object):
                              % (grace, backoff_first, backoff_max))
         self.grace, self.backoff_first, self.backoff_max = grace, backoff_first, backoff_max
         self.missing = {}   # (topic, uri) -> Missing
+        self.hurry_until = float('-inf')   # monotonic s: until then, no grace (connections cut on purpose)
+
+    def hurry(self, until):
+        """Until ``until`` (monotonic s), a publisher missing is connected again at once, without the
+        grace; a publisher already tried waits its backoff still."""
+        self.hurry_until = max(self.hurry_until, until)
+
+    def hurrying(self, now):
+        return now < self.hurry_until
 
     def step(self, now, wanted, have):
         """``wanted``: {topic: publisher URIs the master knows}; ``have``: {topic: URIs the
@@ -53,10 +68,13 @@ class Keeper(object):
             if key not in lacking:
                 del self.missing[key]   # connected again, or no longer a publisher: forgotten
         due = []
+        hurried = self.hurrying(now)
         for key in sorted(lacking):
             entry = self.missing.get(key)
             if entry is None:
-                entry = self.missing[key] = Missing(now, self.grace, self.backoff_first)
+                entry = self.missing[key] = Missing(now, 0.0 if hurried else self.grace, self.backoff_first)
+            elif hurried and entry.attempts == 0:
+                entry.next_try = min(entry.next_try, now)
             if now >= entry.next_try:
                 entry.attempts += 1
                 entry.next_try = now + entry.backoff

@@ -130,6 +130,21 @@ def issue(directory, party, days=30, lifetime=None):
     return crt_path
 
 
+def party_of_directory(directory):
+    """The party a directory of export_party's is for: the one party (not ca) whose key and certificate
+    are both there. ConfigError naming the directory if none or several are."""
+    try:
+        names = os.listdir(directory)
+    except OSError as e:
+        raise ConfigError('TLS directory %s cannot be read: %s' % (directory, e))
+    parties = sorted(n[:-len('.tls.key')] for n in names
+                     if n.endswith('.tls.key') and n != 'ca.tls.key' and n[:-len('.tls.key')] + '.tls.crt' in names)
+    if len(parties) != 1:
+        raise ConfigError('TLS directory %s holds the key and certificate of %s: one party\'s are needed'
+                          % (directory, ', '.join(parties) if parties else 'no party'))
+    return _check_party(parties[0])
+
+
 def export_party(directory, party, destination):
     """A directory of party's own (made 0700): its key and certificate and the CA's certificate, never
     the CA's key nor another party's: what one machine of that party is given. Returns it."""

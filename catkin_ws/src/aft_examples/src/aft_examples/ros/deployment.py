@@ -138,15 +138,16 @@ class PbrDeployment(object):
 
         self.env = env
         # Mutual TLS on every TCPROS connection (issue 16): each site's nodes are its party; 'operator'
-        # (the process that drives and checks) and 'client2' (a certified party the policy trusts
-        # with nothing) are made too. tls_env(party) is the environment a process of that party needs.
+        # (the process that drives and checks), 'engine' (adapt, the Monitoring Engine) and 'client2'
+        # (a certified party the policy trusts with nothing) are made too. tls_env(party) is the
+        # environment a process of that party needs.
         self.tls_dir = os.path.join(log_dir, 'tls') if tls_policy else None
         self.tls_policy = tls_policy
         if tls_policy:
             from aft_ftm import tls
             authority = os.path.join(self.tls_dir, 'authority')   # the CA's key stays here, given to nobody
             tls.make_authority(authority)
-            for party in ('master', 'slave', 'client', 'app', 'witness', 'operator', 'client2'):
+            for party in ('master', 'slave', 'client', 'app', 'witness', 'operator', 'engine', 'client2'):
                 tls.issue(authority, party)
                 tls.export_party(authority, party, os.path.join(self.tls_dir, party))
             if not one_host and self.witness:

@@ -114,9 +114,6 @@ class HostedDeployment(object):
     def __init__(self, log_dir, hosts=None, power_switch=True, monitor=False, **pbr_args):
         plan = PbrDeployment(log_dir, **pbr_args)   # its launch arguments, not started
         self.tls = plan if plan.tls_policy else None   # its TLS files: each host's processes get its party's
-        if self.tls and monitor:
-            raise ValueError('mutual TLS with the Monitoring Engine on emulated hosts is not supported: the '
-                             'nodes it starts on each site\'s host would need that site\'s party')
         self.monitor = monitor    # the Monitoring Engine (monitor.launch, running pbr) in the witness host
         self.log_dir = log_dir
         self.launch_args = dict(plan.launch_args)
@@ -142,11 +139,11 @@ class HostedDeployment(object):
             env = self.tls.tls_env(party, env)
         return env
 
-    def _site(self, name, host, argv):
+    def _site(self, name, host, argv, party=None):
         if self.hosts.state(host) == 'off':   # review of session 34: it lived on in the old namespace
             raise RuntimeError('site %s cannot start on host %s: it is off (relaunch powers it on)' % (name, host))
         host_ns = self.hosts.topology.host(host).namespace
-        site = Site(name, ['ip', 'netns', 'exec', host_ns] + argv, self._env(host),
+        site = Site(name, ['ip', 'netns', 'exec', host_ns] + argv, self._env(host, party),
                     os.path.join(self.log_dir, '%s.%d.log' % (name, int(time.time() * 1000))))
         self.sites[name] = site
         return site.start()
@@ -186,7 +183,8 @@ class HostedDeployment(object):
                 self._site('witness', 'witness', roslaunch('aft_ftm', 'witness.launch'))
             if self.monitor:
                 # A third machine's: the engine starts each site's new nodes on that site's host.
-                self._site('monitor', 'witness', roslaunch('aft_ftm', 'monitor.launch', running='pbr'))
+                # Under TLS as the party engine: the nodes it starts take their site's party (aft_ftm.where).
+                self._site('monitor', 'witness', roslaunch('aft_ftm', 'monitor.launch', running='pbr'), party='engine')
             for name in ('client', 'slave', 'master'):
                 launch_file, args = self._site_args(name)
                 self._site(name, name, roslaunch('aft_examples', launch_file, **args))

@@ -45,7 +45,7 @@ from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, 
 from ..turns import Busy, Turn
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, wait_dead, wait_until
-from ..where import run_where
+from ..where import WhereError, run_where
 from .graph import roslaunch, unwired
 from .fencing import NotTheNode, node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
@@ -868,8 +868,13 @@ class Engine(object):
                        fail_site=site_of_launch(args) if required else '')
         env = None
         if plan.owners:
-            # On the host of the site the nodes join (an emulated host: its network namespace).
-            argv, env = run_where(plan.owners[0].pid, argv)
+            # On the host of the site the nodes join (an emulated host: its network namespace), as its
+            # TLS party under mutual TLS.
+            argv, env = self._where(plan.owners[0].pid, argv, None, plan.nodes)
+        elif os.environ.get('AFT_TLS_DIR'):
+            raise StepError('%s join no site found on this host: under TLS they would run as this engine\'s party '
+                            '(%s), which may not run them; not launched' % (', '.join(plan.nodes),
+                                                                          os.environ.get('AFT_TLS_PARTY')))
         # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
         # must not starve the running replicas. Not much lower: under full load a niceness of 10
         # left a new node unable to finish its set-up in 30 s.
@@ -878,6 +883,14 @@ class Engine(object):
         self.sites.append(site)
         self._run_sites.append(site)
         return site
+
+    @staticmethod
+    def _where(owner, argv, env, nodes):
+        """run_where for nodes of the site whose launcher is owner; StepError if its party is unknown."""
+        try:
+            return run_where(owner, argv, env)
+        except WhereError as e:
+            raise StepError('%s not started: %s' % (', '.join(nodes), e))
 
     def _wait_launched(self):
         """Wait until every launched node is set up (its ~rebind offered, or registered if it has
@@ -1016,8 +1029,8 @@ class Engine(object):
             argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace,
                            fail_site=step.target.strip('/').split('/')[0] if record.owners else '')
             env = record.env
-            if record.owners:
-                argv, env = run_where(record.owners[0].pid, argv, env)   # on its site's host, as it was
+            if record.owners:   # on its site's host, as its party, as it was
+                argv, env = self._where(record.owners[0].pid, argv, env, [step.target])
             os.makedirs(self.log_dir, exist_ok=True)
             # The node's own working directory, given to its process (never this one's: it has threads).
             site = Site('respawn', argv, env=env, cwd=record.cwd,

@@ -1,4 +1,4 @@
-"""rosrun aft_ftm rejoin SITE [--launch 'COMMAND'] [--takeover S] [--timeout S] [--witness SERVICE]
+"""rosrun aft_ftm rejoin SITE [--launch 'COMMAND' [--launch-tls-dir DIR]] [--takeover S] [--timeout S] [--witness SERVICE]
 
 Brings a replica site back into its PBR pair: optionally starts it (COMMAND, e.g. its roslaunch,
 detached in a session of its own so that it outlives this command), then waits until the witness
@@ -6,10 +6,14 @@ names SITE the backup of the serving primary, which happens once its state trans
 acknowledged. A site re-joins by itself when it starts; this command tells when it has. A site the
 witness still names the primary is never launched: with --takeover S it waits up to S seconds for
 its backup to take over (right after the primary failed, before its peer's verdict), then launches.
+Under mutual TLS (AFT_TLS_DIR, the caller's party: the witness answers TLS only) the command
+launched must run as the site's party, never as the caller's: --launch-tls-dir names the site's TLS
+directory (its party is the one whose key is there), required with --launch under TLS.
 Exit status: 0 re-joined (or, without --launch, SITE is the primary), 1 not within the timeout or
 SITE still the primary with --launch (nothing started), 2 bad use or no witness.
 """
 import argparse
+import os
 import shlex
 import subprocess
 import sys
@@ -18,12 +22,40 @@ import time
 import rospy
 from aft_msgs.srv import Witness
 
+from .. import tls
+from ..errors import ConfigError
 from ..witness import Op
 from .witness_client import DEFAULT_WITNESS
 
 
 def status(service):
     return rospy.ServiceProxy(service, Witness)(op=Op.STATUS.value, site='rejoin')
+
+
+def launch_environment(site, launch, tls_dir, environ):
+    """The environment of the launched command: environ, with the site's TLS party (from tls_dir) under
+    TLS. ConfigError when the command would run as the caller's party (under TLS without tls_dir), or
+    tls_dir is given without TLS, without --launch, is no party's directory, or its party may not run
+    the site's nodes (/SITE/*) under the policy."""
+    env = dict(environ)
+    if tls_dir and not launch:
+        raise ConfigError('--launch-tls-dir is for the command --launch starts: none is given')
+    if not tls_dir:
+        if launch and env.get('AFT_TLS_DIR'):
+            raise ConfigError('under TLS (AFT_TLS_DIR=%s, party %s) the site launched would run as this command\'s '
+                              'party: give its own TLS directory with --launch-tls-dir; nothing started'
+                              % (env['AFT_TLS_DIR'], env.get('AFT_TLS_PARTY')))
+        return env
+    if not env.get('AFT_TLS_POLICY'):
+        raise ConfigError('--launch-tls-dir %s without TLS here (AFT_TLS_DIR and AFT_TLS_POLICY unset): the witness '
+                          'of a TLS deployment answers TLS only' % tls_dir)
+    party = tls.party_of_directory(tls_dir)
+    why = tls.Permissions.load(env['AFT_TLS_POLICY']).names_node(party, '/%s/recovery' % site.strip('/'))
+    if why:
+        raise ConfigError('--launch-tls-dir %s: %s (the site\'s nodes are /%s/*); nothing started'
+                          % (tls_dir, why, site.strip('/')))
+    env.update(AFT_TLS_DIR=os.path.abspath(tls_dir), AFT_TLS_PARTY=party)
+    return env
 
 
 def main(argv):
@@ -36,7 +68,17 @@ def main(argv):
                              "/SITE/recovery/witness, else /aft/witness/request)")
     parser.add_argument('--takeover', type=float, default=0.0,
                         help='with --launch, seconds to wait for another site to become the primary (0)')
+    parser.add_argument('--launch-tls-dir', default='',
+                        help="under TLS: the site's TLS directory, whose party the launched command runs as")
     args = parser.parse_args(rospy.myargv(argv))
+    try:
+        launch_env = launch_environment(args.site, args.launch, args.launch_tls_dir, os.environ)
+        from .params import secure_from_environment
+        secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so: the witness answers TLS only then
+    except ConfigError as e:
+        print('rejoin: %s' % e, file=sys.stderr)
+        return 2
+    rospy.init_node('rejoin', anonymous=True, disable_signals=True)   # a name its party's nodes allow
     if args.witness is None:
         # The site's own witness: with several services on one master, the default one is another's,
         # which never names this site primary, so a site still serving was launched over (review of
@@ -80,7 +122,7 @@ def main(argv):
     started = time.monotonic()
     if args.launch:
         subprocess.Popen(shlex.split(args.launch), start_new_session=True, stdin=subprocess.DEVNULL,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=launch_env)
         print('rejoin: started %s' % args.launch)
     print('rejoin: waiting for %s to join %s (epoch %d)' % (args.site, before.primary, before.epoch))
     now = None

@@ -27,6 +27,8 @@ from .rejoin import period_from_env
 
 DEFAULT_PERIOD = 2.0
 PROBE_TIMEOUT = 1.0   # s for a publisher's getPublications before it is connected to again
+HURRY_PERIOD = 0.1    # s between two looks while hurried (hurry())
+_RUNNING = {}         # 'keeper': the thread's Keeper; 'wake': an Event that ends its wait
 
 
 def subscribed():
@@ -267,7 +269,19 @@ def connect_again(topic, uri, impl):
     return removed
 
 
-def _loop(period, keeper):
+def hurry(seconds):
+    """For the next ``seconds``, look every HURRY_PERIOD and connect a missing publisher again at
+    once (aft_ftm.subscriptions.Keeper.hurry): this node's TLS layer knows its connections were cut on
+    purpose and that no rospy retry is coming. Returns whether a keeper runs in this process."""
+    keeper = _RUNNING.get('keeper')
+    if keeper is None:
+        return False
+    keeper.hurry(time.monotonic() + seconds)
+    _RUNNING['wake'].set()
+    return True
+
+
+def _loop(period, keeper, wake):
     while not rospy.core.is_initialized():   # started before init_node
         if rospy.core.is_shutdown():
             return
@@ -276,7 +290,8 @@ def _loop(period, keeper):
     silent = set()   # (topic, uri) already said not to answer
     names = {}       # publisher URI -> its node name, from the header of a transport it had (for the log)
     while not rospy.core.is_shutdown():
-        time.sleep(period)
+        wake.wait(HURRY_PERIOD if keeper.hurrying(time.monotonic()) else period)
+        wake.clear()
         if rospy.core.is_shutdown() or rospy.core.is_shutdown_requested():
             break
         try:
@@ -336,7 +351,9 @@ def keep_subscriptions(period=None, keeper=None):
     record_publisher_lists()   # (rospy's race mended, with the keeper or without)
     if period <= 0 or getattr(keep_subscriptions, 'thread', None) is not None:
         return getattr(keep_subscriptions, 'thread', None)
-    thread = threading.Thread(target=_loop, args=(period, keeper or Keeper()), daemon=True,
+    keeper = keeper or Keeper()
+    _RUNNING.update(keeper=keeper, wake=threading.Event())
+    thread = threading.Thread(target=_loop, args=(period, keeper, _RUNNING['wake']), daemon=True,
                               name='aft-subscription-keeper')
     thread.start()
     keep_subscriptions.thread = thread

@@ -27,7 +27,8 @@ A rotation without a restart: the same watcher sees the party's key and certific
 directory (``tls_keygen DIR PARTY`` again, or the new pair copied there) and, once the pair loads,
 makes every new connection with it; live connections keep the old certificate until they are cut
 (``tls_keygen DIR --revoke-replaced PARTY``: the peers cut them, and each reconnects with the new
-one) or it ends. A certificate the node's CA did not sign for its party, not valid now, or revoked
+one: the node sees its old certificate revoked, and its subscription keeper makes the cut
+subscriptions again at once, HURRY_WINDOW, where it waited its grace otherwise) or it ends. A certificate the node's CA did not sign for its party, not valid now, or revoked
 is refused at once (``tls rotation_refused``), the old one kept. A pair that does not load (a key
 and a certificate of different issues: one copied, the other not yet) is tried again each round,
 the old one kept, and after ROTATION_GRACE said (``tls rotation_failed``)."""
@@ -51,6 +52,7 @@ _PROOFS = set()            # the nonces of this process's proofs under way
 _REGISTERING = {'running': False, 'again': False}
 CRL_PERIOD = 0.25   # s between two looks at the revocation list and the live connections' expiry
 ROTATION_GRACE = 5.0   # s a changed key and certificate may fail to load (half copied) before it is said
+HURRY_WINDOW = 5.0     # s the subscription keeper reconnects at once after a cut on purpose (a rotation)
 _STATE = {}
 _PEERS = weakref.WeakKeyDictionary()   # inbound socket -> its peer's party (None: in clear)
 _LIVE = weakref.WeakKeyDictionary()    # TLS socket -> (peer party, certificate serial, not-after s)
@@ -58,6 +60,11 @@ _TOLD = {}
 _LOCK = threading.Lock()
 _PENDING = collections.deque(maxlen=200)   # alarms not yet published (the watcher publishes them)
 PUBLISHER_SETTLE = 0.5   # s a new publisher is given to be heard before the first alarm goes out
+
+
+def installed():
+    """Whether mutual TLS is installed in this process."""
+    return bool(_STATE)
 
 
 def install(directory, party, permissions):
@@ -545,6 +552,9 @@ def _rotate(files, monotonic):
         return
     old = _STATE['own_serial']
     _STATE.update(server=server, client=client, own_serial=serial, files_seen=files)
+    if serial != old:   # its revocation (revoke-replaced) cuts the live connections made with it
+        replaced = _STATE.setdefault('replaced_serials', collections.deque(maxlen=16))
+        replaced.append(old)
     for key in ('rotation_failing_files', 'rotation_failing_since', 'rotation_told'):
         _STATE.pop(key, None)
     if serial != old:
@@ -584,6 +594,10 @@ def _look_once(now):
         if _STATE['own_serial'] in new:
             _alarm('own_certificate_revoked', 'this node\'s certificate (party %s) is revoked by %s: its peers '
                    'refuse it' % (_STATE['party'], crl))
+        elif set(new) & set(_STATE.get('replaced_serials', ())):
+            # a rotation's old certificate revoked: the peers cut the connections made with it, and
+            # this node makes them again with its new one at once, not after the keeper's grace
+            _hurry_subscriptions()
     revocations = _STATE['revocations']
     if revocations.next_update is not None and now > revocations.next_update \
             and _STATE.get('stale_told') != revocations.number:
@@ -603,6 +617,12 @@ def _look_once(now):
         except OSError:
             pass
         _alarm(judged[0], 'cut the connection: %s' % judged[1])
+        _hurry_subscriptions()   # a subscription cut here is made again at once (a rotated peer's new certificate)
+
+
+def _hurry_subscriptions():
+    from .subscription_keeper import hurry
+    hurry(HURRY_WINDOW)
 
 
 def _first_in_a_while(key, period=10.0):
