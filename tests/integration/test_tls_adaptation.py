@@ -151,6 +151,20 @@ finally:
         terminate_tree(pid, grace=2.0)
     d.teardown()
     core.stop()
+
+    def ours():   # what this test started, still running (this process apart)
+        found = []
+        for proc in psutil.process_iter():
+            try:
+                if proc.pid != os.getpid() and proc.environ().get('AFT_TEST_TAG') == os.environ.get('AFT_TEST_TAG'):
+                    found.append(proc)
+            except psutil.Error:
+                pass
+        return found
+    # The nodes the adaptation launched stop with their site: their guard sees its launcher gone within
+    # its poll, then gives their roslaunch its grace (5 s). Waited for, bounded: what is left after
+    # fails the test (run_tagged).
+    wait_until(lambda: not ours(), 20.0, 0.1)
 print('ok')
 '''
 

@@ -100,6 +100,10 @@ def tls_tree(tmp_path):
     for party in ('master', 'operator', 'client2'):
         tls.issue(authority, party)
         tls.export_party(authority, party, str(tmp_path / party))
+    other = str(tmp_path / 'other_authority')   # another CA's certificate for master
+    tls.make_authority(other)
+    tls.issue(other, 'master')
+    tls.export_party(other, 'master', str(tmp_path / 'forged_master'))
     (tmp_path / 'policy.yaml').write_text(POLICY)
     return tmp_path
 
@@ -117,6 +121,9 @@ def test_under_tls_a_launch_runs_as_the_site_s_party_never_as_the_caller_s(tls_t
         (('master', 'roslaunch x', '', caller), 'would run as this command\'s party'),
         (('master', 'roslaunch x', str(tls_tree / 'client2'), caller), 'party client2 may not run a node named /master/'),
         (('master', 'roslaunch x', str(tls_tree), caller), 'no party'),       # the directories' parent
+        (('master', 'roslaunch x', str(tls_tree / 'authority'), caller), 'holds the CA\'s private key'),
+        (('master', 'roslaunch x', str(tls_tree / 'forged_master'), caller), 'not signed by this CA'),
+        (('ma*', 'roslaunch x', str(tls_tree / 'master'), caller), 'a site name is'),
         (('master', 'roslaunch x', str(tls_tree / 'nowhere'), caller), 'cannot be read'),
         (('master', '', str(tls_tree / 'master'), caller), 'none is given'),
         (('master', 'roslaunch x', str(tls_tree / 'master'), {}), 'without TLS here'),

@@ -1,58 +1,102 @@
-"""aft_ftm.where.run_where: a node started for a site takes that site's TLS party (no ROS master)."""
+"""aft_ftm.where.site_tls: the TLS party of the nodes the Adaptation Engine starts for a site (no ROS
+master). Issue 16: the engine launched a site's new nodes with its own environment, so under TLS they
+spoke as the engine's party, which may not run a site's nodes, and every peer refused them. Taken
+from a running node of the site, the party is checked against the engine's own policy and CA: that
+node's process is whoever registered the name at the master (review of session 43)."""
 import os
-import subprocess
-import sys
 
-import psutil
 import pytest
 
-from aft_ftm import where
-from aft_ftm.sites import wait_until
+from aft_ftm import tls, where
 
-TLS = {'AFT_TLS_DIR': '/tls/master', 'AFT_TLS_PARTY': 'master', 'AFT_TLS_POLICY': '/tls/policy.yaml'}
-ENGINE = {'AFT_TLS_DIR': '/tls/engine', 'AFT_TLS_PARTY': 'engine', 'AFT_TLS_POLICY': '/tls/policy.yaml', 'KEEP': '1'}
+POLICY = """
+parties:
+  master: {nodes: ['/master/*'], serve: ['/master/*']}
+  slave: {nodes: ['/slave/*'], serve: ['/slave/*']}
+  engine: {nodes: ['/aft_adapt_*'], call: ['/master/*/rebind']}
+  unbound: {serve: ['/x']}
+"""
+OPEN = "plaintext: ['*']\nparties: {master: {nodes: ['*']}}\n"
 
 
 @pytest.fixture
-def site_process():
-    """A process standing for a site's launcher, started with the given environment."""
-    started = []
-
-    def start(env):
-        proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], env=dict(env, PATH=os.environ['PATH']))
-        started.append(proc)
-        # Popen returns before the kernel shows the new program's environment (aft_ftm.trust.command_line)
-        assert wait_until(lambda: psutil.Process(proc.pid).environ().get('PATH'), 5.0, 0.005)
-        return proc
-    yield start
-    for proc in started:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-
-
-def test_the_nodes_of_a_tls_site_take_its_party_not_the_engine_s(site_process):
-    """Issue 16: the engine launched a site's new nodes with its own environment, so under TLS they
-    spoke as the engine's party, which may not run a site's nodes: every peer refused them."""
-    argv, env = where.run_where(site_process(TLS).pid, ['roslaunch', 'x'], ENGINE)
-    assert argv == ['roslaunch', 'x']   # the same network namespace: started here
-    assert {k: env[k] for k in TLS} == TLS and env['KEEP'] == '1'
+def tree(tmp_path):
+    """A CA, the directories of master, slave, engine and unbound, a policy; another CA's master."""
+    authority = str(tmp_path / 'authority')
+    tls.make_authority(authority)
+    for party in ('master', 'slave', 'engine', 'unbound'):
+        tls.issue(authority, party)
+        tls.export_party(authority, party, str(tmp_path / party))
+    other = str(tmp_path / 'other_authority')
+    tls.make_authority(other)
+    tls.issue(other, 'master')
+    tls.export_party(other, 'master', str(tmp_path / 'forged_master'))
+    (tmp_path / 'policy.yaml').write_text(POLICY)
+    (tmp_path / 'open.yaml').write_text(OPEN)
+    engine = {'AFT_TLS_DIR': str(tmp_path / 'engine'), 'AFT_TLS_PARTY': 'engine',
+              'AFT_TLS_POLICY': str(tmp_path / 'policy.yaml')}
+    return tmp_path, engine
 
 
-def test_a_site_without_tls_gets_nodes_without_tls(site_process):
-    """The site's setting, whichever it is: its nodes in clear are not given the engine's certificate."""
-    _, env = where.run_where(site_process({}).pid, ['x'], ENGINE)
-    assert not any(k in env for k in TLS) and env['KEEP'] == '1'
+def site(tmp_path, party, directory=None, policy='policy.yaml'):
+    return {'AFT_TLS_DIR': str(tmp_path / (directory or party)), 'AFT_TLS_PARTY': party,
+            'AFT_TLS_POLICY': str(tmp_path / policy)}
 
 
-def test_an_unreadable_site_under_tls_is_an_error_not_the_engine_s_party(site_process):
-    proc = site_process({})
-    proc.kill()
-    proc.wait()
-    pid = proc.pid
+def test_the_new_nodes_take_the_party_of_their_site_with_the_engine_s_own_policy(tree):
+    tmp_path, engine = tree
+    got = where.site_tls(site(tmp_path, 'master', policy='open.yaml'), '/', ['/master/tr/protocol'], engine)
+    # a policy of the other process's choosing is never taken (one that opens everything, here)
+    assert got == {'AFT_TLS_DIR': str(tmp_path / 'master'), 'AFT_TLS_PARTY': 'master',
+                   'AFT_TLS_POLICY': str(tmp_path / 'policy.yaml')}
+    assert where.with_tls({'KEEP': '1', 'AFT_TLS_PARTY': 'engine'}, got)['AFT_TLS_PARTY'] == 'master'
+    # a directory relative to that process's working directory, resolved
+    relative = dict(site(tmp_path, 'master'), AFT_TLS_DIR='master')
+    assert where.site_tls(relative, str(tmp_path), ['/master/x'], engine)['AFT_TLS_DIR'] == str(tmp_path / 'master')
+
+
+@pytest.mark.parametrize('case,words', [
+    ('no tls', 'runs without TLS'),
+    ('another site', 'party slave may not run a node named /master/tr/protocol'),
+    ('unbound party', 'bound to no node names'),
+    ('another CA', 'not signed by this CA'),
+    ('another party\'s certificate', "names ['slave'], not party master"),
+    ('no directory', 'cannot be read'),
+])
+def test_a_party_that_cannot_run_the_nodes_is_refused_naming_why(tree, case, words):
+    """Each started so would be refused by every peer, or would speak as a party it is not: a process
+    registered at the master under a site's name (anyone's) with an environment of its choosing."""
+    import shutil
+    tmp_path, engine = tree
+    their = {
+        'no tls': {},
+        'another site': site(tmp_path, 'slave'),
+        'unbound party': site(tmp_path, 'unbound'),
+        'another CA': site(tmp_path, 'master', 'forged_master'),
+        'no directory': site(tmp_path, 'master', 'nowhere'),
+    }.get(case)
+    if case == 'another party\'s certificate':   # slave's pair under master's names
+        os.makedirs(str(tmp_path / 'swapped'))
+        for mine, theirs in zip(tls.certificate_files(str(tmp_path / 'swapped'), 'master'),
+                                tls.certificate_files(str(tmp_path / 'slave'), 'slave')):
+            shutil.copyfile(theirs, mine)
+        their = site(tmp_path, 'master', 'swapped')
     with pytest.raises(where.WhereError) as e:
-        where.run_where(pid, ['x'], ENGINE)
-    assert 'TLS party is unknown' in str(e.value) and str(pid) in str(e.value)
-    # without TLS nothing is at stake: argv and env as given
-    assert where.run_where(pid, ['x'], {'KEEP': '1'}) == (['x'], {'KEEP': '1'})
+        where.site_tls(their, '/', ['/master/tr/protocol'], engine)
+    assert words in str(e.value), str(e.value)
 
+
+def test_without_tls_here_nothing_is_taken(tree):
+    tmp_path, _ = tree
+    assert where.site_tls(site(tmp_path, 'master'), '/', ['/master/x'], {'KEEP': '1'}) is None
+    assert where.with_tls({'KEEP': '1'}, None) == {'KEEP': '1'}
+
+
+def test_a_process_that_cannot_be_read_is_an_error_naming_it():
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, '-c', 'pass'])
+    proc.wait()
+    with pytest.raises(where.WhereError) as e:
+        where.process_setting(proc.pid)
+    assert str(proc.pid) in str(e.value)

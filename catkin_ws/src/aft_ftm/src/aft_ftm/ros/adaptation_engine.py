@@ -45,7 +45,7 @@ from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, 
 from ..turns import Busy, Turn
 from ..site_watch import mark_retired
 from ..sites import Site, launch_failure, wait_dead, wait_until
-from ..where import WhereError, run_where
+from ..where import WhereError, process_setting, run_where, site_tls, with_tls
 from .graph import roslaunch, unwired
 from .fencing import NotTheNode, node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
@@ -275,7 +275,7 @@ def _never_raises(log):
     return write
 
 
-LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners')
+LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners tls')
 LaunchPlan.__doc__ = """A launch entry as validated: its file, the nodes it starts, the launchers
 of the sites they join (their guard stops them with those)."""
 
@@ -435,11 +435,11 @@ class Engine(object):
                              witnesses, self._site_witnesses(site for _, site in witnesses.values()))
         launches = {}
         for entry, (path, names) in loaded.items():
-            owners = self._site_owners(names, nodes)
+            owners, neighbours = self._site_owners(names, nodes)
             if not owners:
                 self.log('warning: no site launcher on this host runs nodes of the namespace of %s: they will '
                          'not stop with a site (stop them by hand)' % ', '.join(names))
-            launches[entry] = LaunchPlan(path, names, owners)
+            launches[entry] = LaunchPlan(path, names, owners, self._launch_tls(names, neighbours))
         launched = [name for entry in script.launch for name in launches[entry].nodes]
         for node in script.retire:
             try:
@@ -487,17 +487,22 @@ class Engine(object):
 
     # -- sites ----------------------------------------------------------------------------------
     def _site_owners(self, names, running):
-        """The launchers of the sites new nodes join: of the running nodes nearest in the name
-        space (:func:`aft_ftm.site_guard.neighbours`), on this host. Empty if none is found."""
-        owners, found = [], {}
+        """(the launchers of the sites new nodes join, {new node: the pid of the running node those
+        were found from}): of the running nodes nearest in the name space
+        (:func:`aft_ftm.site_guard.neighbours`), on this host. Empty if none is found."""
+        owners, found, neighbours = [], {}, {}
         for name in names:
             candidates = tuple(site_guard.neighbours(name, running, exclude=names))
             if candidates not in found:
                 found[candidates] = self._owners_of_nodes(candidates)
-            owners += [o for o in found[candidates] if o not in owners]
-        return owners
+            its_owners, pid = found[candidates]
+            owners += [o for o in its_owners if o not in owners]
+            if pid is not None:
+                neighbours[name] = pid
+        return owners, neighbours
 
     def _owners_of_nodes(self, nodes, tries=3):
+        """(the site launchers of the first of nodes found on this host, that node's pid)."""
         for node in nodes[:tries]:
             try:
                 pid = visible_pid(self.master.lookupNode(node), rospy.get_name(), node)
@@ -507,8 +512,31 @@ class Engine(object):
                 continue
             owners = owners_of_process(pid)
             if owners:
-                return owners
-        return []
+                return owners, pid
+        return [], None
+
+    @staticmethod
+    def _launch_tls(names, neighbours):
+        """The TLS variables of a launch's nodes (None without TLS here): the party of the running
+        nodes of their site, each checked against this engine's policy and CA (aft_ftm.where.site_tls).
+        ScriptError, nothing changed, if a node's site is not found, or its party cannot run them all."""
+        if not os.environ.get('AFT_TLS_DIR'):
+            return None
+        chosen = {}
+        for name in names:
+            if name not in neighbours:
+                raise ScriptError('%s joins no site found on this host: under TLS it would run as this engine\'s '
+                                  'party (%s), which may not run a site\'s nodes' % (name, os.environ.get('AFT_TLS_PARTY')))
+            try:
+                their_env, their_cwd = process_setting(neighbours[name])
+                chosen[name] = site_tls(their_env, their_cwd, [name], os.environ)
+            except WhereError as e:
+                raise ScriptError('%s: %s' % (name, e))
+        settings = {tuple(sorted(v.items())) for v in chosen.values()}
+        if len(settings) > 1:   # one roslaunch, one environment
+            raise ScriptError('the nodes of one launch, %s, join sites of different TLS parties (%s): give each '
+                              'site its own launch' % (', '.join(names), ', '.join(sorted(v['AFT_TLS_PARTY'] for v in chosen.values()))))
+        return dict(settings.pop()) if settings else None
 
     # -- running --------------------------------------------------------------------------------
     def run(self, script, mode='prepared'):
@@ -866,15 +894,10 @@ class Engine(object):
         required = str(args.get('required', '')).lower() == 'true'
         argv = guarded(argv, plan.owners, self.guard_poll, self.guard_grace,
                        fail_site=site_of_launch(args) if required else '')
-        env = None
+        env = with_tls(os.environ, plan.tls)   # as the party of their site (checked in validate)
         if plan.owners:
-            # On the host of the site the nodes join (an emulated host: its network namespace), as its
-            # TLS party under mutual TLS.
-            argv, env = self._where(plan.owners[0].pid, argv, None, plan.nodes)
-        elif os.environ.get('AFT_TLS_DIR'):
-            raise StepError('%s join no site found on this host: under TLS they would run as this engine\'s party '
-                            '(%s), which may not run them; not launched' % (', '.join(plan.nodes),
-                                                                          os.environ.get('AFT_TLS_PARTY')))
+            # On the host of the site the nodes join (an emulated host: its network namespace).
+            argv, env = run_where(plan.owners[0].pid, argv, env)
         # Started at a lower priority: the imports and set-up of new nodes (a second of CPU each)
         # must not starve the running replicas. Not much lower: under full load a niceness of 10
         # left a new node unable to finish its set-up in 30 s.
@@ -883,14 +906,6 @@ class Engine(object):
         self.sites.append(site)
         self._run_sites.append(site)
         return site
-
-    @staticmethod
-    def _where(owner, argv, env, nodes):
-        """run_where for nodes of the site whose launcher is owner; StepError if its party is unknown."""
-        try:
-            return run_where(owner, argv, env)
-        except WhereError as e:
-            raise StepError('%s not started: %s' % (', '.join(nodes), e))
 
     def _wait_launched(self):
         """Wait until every launched node is set up (its ~rebind offered, or registered if it has
@@ -1029,8 +1044,8 @@ class Engine(object):
             argv = guarded(record.cmdline, record.owners, self.guard_poll, self.guard_grace,
                            fail_site=step.target.strip('/').split('/')[0] if record.owners else '')
             env = record.env
-            if record.owners:   # on its site's host, as its party, as it was
-                argv, env = self._where(record.owners[0].pid, argv, env, [step.target])
+            if record.owners:   # on its site's host, as it was (its party in its recorded environment)
+                argv, env = run_where(record.owners[0].pid, argv, env)
             os.makedirs(self.log_dir, exist_ok=True)
             # The node's own working directory, given to its process (never this one's: it has threads).
             site = Site('respawn', argv, env=env, cwd=record.cwd,

@@ -13,7 +13,6 @@ alarm says what happened on /aft/alarms. Exit status 0 if a subscriber was there
 none was (the site is down already, or it has no crash detector: the alarm says so).
 """
 import argparse
-import os
 import sys
 import time
 
@@ -71,14 +70,13 @@ def main(argv=None):
     options = parser.parse_args(argv)
     if not options.site.strip('/') or '/' in options.site.strip('/'):
         parser.error('--site must be a site name such as master, got %r' % options.site)
-    # A node of the site it stops (/SITE/fail_site_...): under TLS it speaks as that site's party (the
-    # guard runs with the environment of the site's nodes), whose nodes are named /SITE/*. Set before
-    # rospy is imported: rospy reads its namespace then.
-    os.environ['ROS_NAMESPACE'] = '/' + options.site.strip('/')
     import rospy
     from aft_ftm.ros.params import secure_from_environment
     secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
-    rospy.init_node('fail_site', anonymous=True, disable_signals=True)
+    # Under TLS as the party of the site it stops (the guard runs with its nodes' environment), whose
+    # policy names it /fail_site_SITE_*: outside /SITE/, whose nodes the peer's fence stops at once,
+    # before this node's alarm would be out (review of session 43).
+    rospy.init_node('fail_site_%s' % options.site.strip('/'), anonymous=True, disable_signals=True)
     return 0 if fail_site(options.site.strip('/'), options.reason, options.timeout) else 1
 
 

@@ -24,6 +24,7 @@ from aft_msgs.srv import Witness
 
 from .. import tls
 from ..errors import ConfigError
+from ..where import WhereError, site_tls
 from ..witness import Op
 from .witness_client import DEFAULT_WITNESS
 
@@ -35,26 +36,33 @@ def status(service):
 def launch_environment(site, launch, tls_dir, environ):
     """The environment of the launched command: environ, with the site's TLS party (from tls_dir) under
     TLS. ConfigError when the command would run as the caller's party (under TLS without tls_dir), or
-    tls_dir is given without TLS, without --launch, is no party's directory, or its party may not run
-    the site's nodes (/SITE/*) under the policy."""
+    tls_dir is given without TLS or without --launch, holds the CA's key or no one party's pair, or its
+    party may not run the site's nodes (/SITE/*) under this command's policy, or its certificate is not
+    one this command's CA signed for that party, valid now (aft_ftm.where.site_tls)."""
     env = dict(environ)
     if tls_dir and not launch:
         raise ConfigError('--launch-tls-dir is for the command --launch starts: none is given')
     if not tls_dir:
         if launch and env.get('AFT_TLS_DIR'):
             raise ConfigError('under TLS (AFT_TLS_DIR=%s, party %s) the site launched would run as this command\'s '
-                              'party: give its own TLS directory with --launch-tls-dir; nothing started'
-                              % (env['AFT_TLS_DIR'], env.get('AFT_TLS_PARTY')))
+                              'party: give its own TLS directory with --launch-tls-dir (also when the command\'s '
+                              'own arguments set its TLS); nothing started' % (env['AFT_TLS_DIR'], env.get('AFT_TLS_PARTY')))
         return env
-    if not env.get('AFT_TLS_POLICY'):
+    if not env.get('AFT_TLS_DIR') or not env.get('AFT_TLS_POLICY'):
         raise ConfigError('--launch-tls-dir %s without TLS here (AFT_TLS_DIR and AFT_TLS_POLICY unset): the witness '
                           'of a TLS deployment answers TLS only' % tls_dir)
+    name = site.strip('/')
+    if not name or not all(c.isalnum() or c in '_-' for c in name):
+        raise ConfigError('site %r: a site name is letters, digits, - or _' % site)
+    if os.path.exists(os.path.join(tls_dir, 'ca.tls.key')):
+        raise ConfigError('--launch-tls-dir %s holds the CA\'s private key: give the site party\'s own directory '
+                          '(tls_keygen\'s export), never the authority\'s; nothing started' % tls_dir)
     party = tls.party_of_directory(tls_dir)
-    why = tls.Permissions.load(env['AFT_TLS_POLICY']).names_node(party, '/%s/recovery' % site.strip('/'))
-    if why:
-        raise ConfigError('--launch-tls-dir %s: %s (the site\'s nodes are /%s/*); nothing started'
-                          % (tls_dir, why, site.strip('/')))
-    env.update(AFT_TLS_DIR=os.path.abspath(tls_dir), AFT_TLS_PARTY=party)
+    try:
+        chosen = site_tls({'AFT_TLS_DIR': tls_dir, 'AFT_TLS_PARTY': party}, os.getcwd(), ['/%s/recovery' % name], env)
+    except WhereError as e:
+        raise ConfigError('--launch-tls-dir %s: %s (the site\'s nodes are /%s/*); nothing started' % (tls_dir, e, name))
+    env.update(chosen)
     return env
 
 
