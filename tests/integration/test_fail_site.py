@@ -11,7 +11,7 @@ its own; every process it starts carries the test's AFT_TEST_TAG and is killed a
 from leftovers import run_tagged
 
 SCRIPT = r'''
-import subprocess, sys, tempfile, time
+import os, subprocess, sys, tempfile, time
 import psutil, rospy
 from aft_msgs.msg import Alarm, Failure
 from aft_ftm.ros.graph import start_master
@@ -28,10 +28,10 @@ try:
     detector = rospy.Subscriber('/master/fail_stop', Failure, failures.append)
     rospy.Subscriber('/aft/alarms', Alarm, alarms.append)
 
-    def run_guard(seconds, site_name):
+    def run_guard(seconds, site_name, env=None):
         guard = subprocess.Popen(guarded([sys.executable, '-c', 'import time; time.sleep(%s)' % seconds], [owner],
                                          poll=0.05, grace=1.0, fail_site=site_name),
-                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         started.append(guard)
         return guard
 
@@ -49,8 +49,10 @@ try:
     out = ''.join(said) + guard.stdout.read()
     if failures or ' fails: ' in out:
         sys.exit('a retired launch failed its site: %s %s' % (failures, out))
-    # 2. The replacement dies by itself: the site is told, once, and its launcher runs on.
-    guard = run_guard(0.5, 'master')
+    # 2. The replacement dies by itself: the site is told, once, and its launcher runs on. The guard
+    # started by a process roslaunch put in a namespace (the Monitoring Engine's /aft): the fail-stop's
+    # node is named /fail_site_SITE_* all the same, the name the TLS policy binds to the site's party.
+    guard = run_guard(0.5, 'master', env=dict(os.environ, ROS_NAMESPACE='/aft'))
     code = guard.wait(60)
     out = guard.stdout.read()
     if not wait_until(lambda: failures, 10, 0.02):
@@ -62,6 +64,9 @@ try:
         sys.exit('guard output or site wrong (site exit %s): %s' % (site.poll(), out))
     if not wait_until(lambda: any(a.kind == 'fail_stop' and 'told to stop' in a.detail for a in alarms), 5, 0.02):
         sys.exit('no fail_stop alarm: %s' % [(a.kind, a.detail) for a in alarms])
+    source = [a.source for a in alarms if a.kind == 'fail_stop' and 'told to stop' in a.detail][0]
+    if not source.startswith('/fail_site_master_'):
+        sys.exit('the fail-stop came from %s, not a node named /fail_site_master_*' % source)
     print('told: %s' % failures[0].reason)
     # 3. Nobody listens on the site's topic (it is down): the alarm says the site could not be told.
     guard = run_guard(0.2, 'gone')

@@ -78,6 +78,10 @@ def site_tls(their_env, their_cwd, nodes, own_env, now=None):
     own_dir, policy = own_env.get('AFT_TLS_DIR'), own_env.get('AFT_TLS_POLICY')
     if not own_dir:
         return None
+    if not policy:
+        raise WhereError('AFT_TLS_DIR is set here (%s) but not AFT_TLS_POLICY: no policy to check the site\'s party '
+                         'against' % own_dir)
+    policy = os.path.abspath(policy)   # the new nodes run elsewhere (roslaunch's ROS_HOME)
     directory, party = their_env.get('AFT_TLS_DIR'), their_env.get('AFT_TLS_PARTY')
     if not directory or not party:
         raise WhereError('the site runs without TLS (its node has no AFT_TLS_DIR and AFT_TLS_PARTY) while this '

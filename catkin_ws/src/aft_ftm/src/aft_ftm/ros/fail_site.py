@@ -13,6 +13,7 @@ alarm says what happened on /aft/alarms. Exit status 0 if a subscriber was there
 none was (the site is down already, or it has no crash detector: the alarm says so).
 """
 import argparse
+import os
 import sys
 import time
 
@@ -70,12 +71,15 @@ def main(argv=None):
     options = parser.parse_args(argv)
     if not options.site.strip('/') or '/' in options.site.strip('/'):
         parser.error('--site must be a site name such as master, got %r' % options.site)
+    # Under TLS as the party of the site it stops (the guard runs with its nodes' environment), whose
+    # policy names it /fail_site_SITE_*: outside /SITE/, whose nodes the peer's fence stops at once,
+    # before this node's alarm would be out (review of session 43). Always that name: the namespace
+    # roslaunch gave the process that started the guard (the Monitoring Engine's /aft, a retired
+    # node's /SITE) is not this node's. Before rospy is imported: it reads its namespace then.
+    os.environ.pop('ROS_NAMESPACE', None)
     import rospy
     from aft_ftm.ros.params import secure_from_environment
     secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
-    # Under TLS as the party of the site it stops (the guard runs with its nodes' environment), whose
-    # policy names it /fail_site_SITE_*: outside /SITE/, whose nodes the peer's fence stops at once,
-    # before this node's alarm would be out (review of session 43).
     rospy.init_node('fail_site_%s' % options.site.strip('/'), anonymous=True, disable_signals=True)
     return 0 if fail_site(options.site.strip('/'), options.reason, options.timeout) else 1
 
