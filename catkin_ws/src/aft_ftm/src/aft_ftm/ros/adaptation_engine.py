@@ -522,20 +522,24 @@ class Engine(object):
         ScriptError, nothing changed, if a node's site is not found, or its party cannot run them all."""
         if not os.environ.get('AFT_TLS_DIR'):
             return None
-        chosen = {}
+        missing = [name for name in names if name not in neighbours]
+        if missing:
+            raise ScriptError('%s joins no site found on this host: under TLS it would run as this engine\'s '
+                              'party (%s), which may not run a site\'s nodes' % (missing[0], os.environ.get('AFT_TLS_PARTY')))
+        by_process = collections.OrderedDict()   # each running node's process read and checked once
         for name in names:
-            if name not in neighbours:
-                raise ScriptError('%s joins no site found on this host: under TLS it would run as this engine\'s '
-                                  'party (%s), which may not run a site\'s nodes' % (name, os.environ.get('AFT_TLS_PARTY')))
+            by_process.setdefault(neighbours[name], []).append(name)
+        chosen = []
+        for pid, group in by_process.items():
             try:
-                their_env, their_cwd = process_setting(neighbours[name])
-                chosen[name] = site_tls(their_env, their_cwd, [name], os.environ)
+                their_env, their_cwd = process_setting(pid)
+                chosen.append(site_tls(their_env, their_cwd, group, os.environ))
             except WhereError as e:
-                raise ScriptError('%s: %s' % (name, e))
-        settings = {tuple(sorted(v.items())) for v in chosen.values()}
+                raise ScriptError('%s: %s' % (', '.join(group), e))
+        settings = {tuple(sorted(v.items())) for v in chosen}
         if len(settings) > 1:   # one roslaunch, one environment
             raise ScriptError('the nodes of one launch, %s, join sites of different TLS parties (%s): give each '
-                              'site its own launch' % (', '.join(names), ', '.join(sorted(v['AFT_TLS_PARTY'] for v in chosen.values()))))
+                              'site its own launch' % (', '.join(names), ', '.join(sorted(v['AFT_TLS_PARTY'] for v in chosen))))
         return dict(settings.pop()) if settings else None
 
     # -- running --------------------------------------------------------------------------------
