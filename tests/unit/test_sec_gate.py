@@ -1,5 +1,6 @@
 """The SEC gate's own decisions (aft_ftm.ros.sec_nodes.SecGateNode), on a gate built without ROS: its
 ports, the CA and the clock are fakes. No ROS master."""
+import collections
 import threading
 
 import pytest
@@ -32,6 +33,11 @@ class FakePorts(object):
         return True
 
 
+class KeptLog(object):
+    """A replay log that works (aft_ftm.replay_log.ReplayLog's face to the diagnostics)."""
+    path, broken = '/var/aft/replay.log', None
+
+
 def gate(side='server', tls=False):
     """A SecGateNode as __init__ leaves it, without reading parameters or key files."""
     node = sec_nodes.SecGateNode.__new__(sec_nodes.SecGateNode)
@@ -41,6 +47,7 @@ def gate(side='server', tls=False):
     node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
     node.runs, node.nonces = security.ProxyRuns(), security.ReplyNonces()
     node.quota = security.PartyQuota()
+    node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
     return node
 
 
@@ -65,6 +72,7 @@ def test_a_gate_without_tls_says_its_plaintext_side_is_open_in_an_alarm_and_its_
     client = gate(side='client', tls=False)
     assert '(/ftm/pxy2pro, /ftm/pro2pxy)' in client._health().message   # the Proxy's side
     closed = gate(tls=True)
+    closed.replay_log = KeptLog()
     assert closed._health().level == health.Level.OK and closed._health().value('tls') == 'on'
 
 
@@ -520,3 +528,82 @@ def test_a_reply_too_large_to_seal_becomes_a_sealed_error_saying_the_request_was
     (port, told), = client.ports.published
     assert (port, told.status, told.id, told.epoch) == ('replies_out', Reply.ERROR, 7, 2)
     assert 'the request was executed; its answer cannot be carried' in told.error
+
+
+def logged_gate(path):
+    """A server gate whose replay floors are in the log at path, started as a gate starts (setup reads it)."""
+    from aft_ftm import replay_log
+    server = gate()
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: security.open_sealed(SERVER, CLIENT.verify_public, blob, header)
+    server.replay_log = replay_log.ReplayLog(str(path))
+    server.replays.restore(server.replay_log.open())
+    return server
+
+
+def sealed_request(rid, oldest, origin='/proxy'):
+    from aft_msgs.msg import Request
+    msg = Request(id=rid, origin=origin, client='/c', service_type='aft_msgs/Account', oldest_pending=oldest)
+    header = security.header_of(msg, security.REQUEST_FIELDS, 'server', '/ftm/pxy2pro')
+    msg.payload = security.seal(CLIENT, SERVER.box_public, header, b'deposit 50')
+    return msg
+
+
+def test_a_gate_started_again_refuses_every_request_an_earlier_run_let_through_and_serves_the_next(tmp_path):
+    """Issue 16: replay protection lived in the gate's memory; a deployment started again (a lone primary,
+    both sites) executed every captured request again. The floors are on disk before a request goes on."""
+    from aft_msgs.msg import Reply
+    path = tmp_path / 'replay' / 'master.sec_gate.log'
+    first = logged_gate(path)
+    captured = [sealed_request(7000 + i, 7000 + i) for i in range(5)]   # a client calling one at a time
+    for request in captured:
+        first._on_request(request)
+    assert [name for name, _ in first.ports.published] == ['requests_out'] * 5
+    first.replay_log.close()                                            # the whole site powered off
+
+    again = logged_gate(path)
+    for request in captured:                                            # the attacker replays all of them
+        again._on_request(request)
+    published = again.ports.published
+    assert [m for name, m in published if name == 'requests_out'] == [], 'a replay went on to the Protocol'
+    raised = [m for name, m in published if name == 'alarms']
+    assert [a.kind for a in raised] == ['replay'] * 4 + ['earlier_run']
+    told = [m for name, m in published if name == 'replies_out']
+    assert [t.status for t in told] == [Reply.STALE_ID] * 4             # answered ids: told to renumber
+    assert all(t.oldest_pending == 7005 for t in told)
+    # 7004 was the last call: only the next request's watermark would have confirmed its reply. It may
+    # have executed: refused, never told to renumber, alarmed once however often it is sent again.
+    again.ports.published.clear()
+    again._on_request(captured[-1])
+    assert again.ports.published == [] and again.rejected == 6
+    again._on_request(sealed_request(7005, 7005))                       # the client's next call goes on
+    (port, plain), = again.ports.published
+    assert (port, plain.id, bytes(plain.payload)) == ('requests_out', 7005, b'deposit 50')
+    assert again._health().value('replay_log') == str(path)
+
+
+def test_a_request_whose_floors_cannot_be_written_is_not_let_through_and_the_gate_says_so(tmp_path, monkeypatch):
+    import os
+    server = logged_gate(tmp_path / 'r.log')
+    server._on_request(sealed_request(10, 10))
+    monkeypatch.setattr(os, 'fdatasync', lambda fd: (_ for _ in ()).throw(OSError(28, 'No space left on device')))
+    server.ports.published.clear()
+    server._on_request(sealed_request(11, 11))
+    (port, raised), = server.ports.published
+    assert (port, raised.kind) == ('alarms', 'replay_log') and 'No space left' in raised.detail
+    from aft_ftm import change_model
+    assert change_model.observed_fault('sec', 'replay_log') is None     # the disk's fault, not an attack
+    report = server._health()
+    assert report.level == health.Level.ERROR and 'every request is refused' in report.message
+    server.ports.published.clear()
+    server._on_request(sealed_request(12, 12))                          # and every one after it
+    assert [m.kind for _, m in server.ports.published] == ['replay_log']
+
+
+def test_a_gate_without_a_replay_log_says_its_floors_are_in_memory_only():
+    server = gate(tls=True)
+    report = server._health()
+    assert report.level == health.Level.WARN and 'replay floors in memory only' in report.message
+    assert report.value('replay_log') == 'none'
+    assert gate(side='client', tls=True)._health().level == health.Level.OK

@@ -47,14 +47,19 @@ ALARM_FAULTS = {
 
 
 SEC_UNAVAILABLE = ('ca_silent', 'ca_unreachable')
+# A request an earlier run of a gate let through, sent after the gate started again: an honest Proxy's
+# re-send of a call in flight at the restart looks the same as a replay of it. Refused either way. A
+# replay log that cannot be written is a fault of this host's disk.
+SEC_NOT_ATTACKS = SEC_UNAVAILABLE + ('earlier_run', 'replay_log')
 
 
 def observed_fault(mechanism, kind):
     """The fault kind an alarm (mechanism, kind) shows has happened, or None if it shows none.
     Every alarm raised by SEC is an attack on the messages (tampering), but those that say the
-    certification authority is silent or does not answer: an unavailable CA is no attack."""
+    certification authority is silent or does not answer (an unavailable CA is no attack), and a
+    request refused as let through before the gate started again (SEC_NOT_ATTACKS)."""
     if mechanism == 'sec':
-        return None if kind in SEC_UNAVAILABLE else TAMPERING
+        return None if kind in SEC_NOT_ATTACKS else TAMPERING
     return ALARM_FAULTS.get(kind)
 
 

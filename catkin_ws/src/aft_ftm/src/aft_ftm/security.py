@@ -33,7 +33,9 @@ class Rejected(AftError):
     for another destination, or a request presented as a reply or the reverse), spoofed_origin (a
     party sending as a Proxy that is not its own), revoked, expired, bad_certificate, stale_status,
     ca_unreachable (the CA did not answer about a certificate in time, or no status of the CA has come
-    yet to judge it by), party_quota (a party with as many requests outstanding as it may have)."""
+    yet to judge it by), party_quota (a party with as many requests outstanding as it may have),
+    earlier_run (a request an earlier run of the gate let through, after a restart: ReplayGuard),
+    replay_log (a request not let through because the replay log could not record it)."""
 
     def __init__(self, kind, detail):
         super(Rejected, self).__init__('%s: %s' % (kind, detail))
@@ -688,21 +690,44 @@ class ReplyNonces(object):
 
 class ReplayGuard(object):
     """Per origin, every id below the newest watermark a verified request carried has been answered:
-    a request with such an id is a replay. Re-sends of pending requests are not replays."""
+    a request with such an id is a replay. Re-sends of pending requests are not replays.
+
+    ``restore()`` takes what an earlier run of the gate let through (aft_ftm.replay_log): its
+    watermarks, and per origin the highest id it forwarded. An id at or below that one and not below
+    the watermark was in flight when that run ended (or was the last its Proxy sent: only the next
+    request's watermark confirms a reply): it may have executed, in a history this run cannot see.
+    It is refused (``earlier_run``), never executed and never told to renumber (its outcome is
+    unknown, not "not executed"). Its honest Proxy's call ends at its timeout, outcome unknown."""
 
     def __init__(self):
         self.watermarks = {}
         self.highest = {}     # origin -> the highest id of a verified request
+        self.earlier = {}     # origin -> the highest id an earlier run of the gate let through
+
+    def restore(self, floors):
+        """floors: {origin: (watermark, highest)} of an earlier run."""
+        for origin, (watermark, highest) in floors.items():
+            self.watermarks[origin] = max(self.watermarks.get(origin, 0), watermark)
+            self.highest[origin] = max(self.highest.get(origin, 0), highest)
+            self.earlier[origin] = max(self.earlier.get(origin, 0), highest)
 
     def check(self, origin, request_id):
         if request_id < self.watermarks.get(origin, 0):
             raise Rejected('replay', 'request %s/%d was already answered (or its Proxy started again with a '
                                      'clock behind: it is told to number from %d on)'
                            % (origin, request_id, self.first_free(origin)))
+        if origin in self.earlier and request_id <= self.earlier[origin]:
+            raise Rejected('earlier_run', 'request %s/%d was let through by an earlier run of this gate (before '
+                                          'it started again): it may have executed then; refused, not executed '
+                                          'now, its outcome unknown' % (origin, request_id))
 
     def advance(self, origin, oldest_pending, request_id=0):
         self.watermarks[origin] = max(self.watermarks.get(origin, 0), oldest_pending)
         self.highest[origin] = max(self.highest.get(origin, 0), request_id)
+
+    def floors(self, origin):
+        """(watermark, highest) of origin now: what the replay log must hold before its request goes on."""
+        return self.watermarks.get(origin, 0), self.highest.get(origin, 0)
 
     def first_free(self, origin):
         """The lowest id of origin above every one verified here: where a Proxy started again with its

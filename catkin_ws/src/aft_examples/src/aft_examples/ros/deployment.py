@@ -73,7 +73,8 @@ class PbrDeployment(object):
                  mechanism='pbr', sec=False, adaptable=False, witness=True, server_timeout=None, ballast_bytes=0,
                  cache_bytes=None, link_monitor=False, watch_required=True, tls_policy=None, incremental=True,
                  max_batch=None, ca_validity=None, chunk_bytes=None, catch_up=True,
-                 state_changes=True, power_switch=None, witness_ns='aft'):
+                 state_changes=True, power_switch=None, witness_ns='aft', keys_from=None,
+                 replay_log=None):
         self.log_dir = log_dir
         self.one_host = one_host
         self.witness = witness
@@ -103,14 +104,18 @@ class PbrDeployment(object):
         if link_monitor:
             replica['link_monitor'] = 'true'   # the bandwidth between the sites, measured, for the monitor
         client = {}
-        self.keys_dir = os.path.join(log_dir, 'keys') if sec else None
+        # keys_from: the SEC keys directory of an earlier deployment (its CA's state and the gates' replay
+        # logs with them): this one is that deployment started again.
+        self.keys_dir = (keys_from or os.path.join(log_dir, 'keys')) if sec else None
         if sec:
             keys = self.keys_dir
             # client2: a second certified party (the policy gives it no Proxy of the demo): what an
             # attacker holding a valid certificate of its own can try
-            for party in ('ca', 'client', 'client2', 'server'):
+            for party in ('ca', 'client', 'client2', 'server') if not keys_from else ():
                 security.write_party(keys, security.Party.generate(party))
             replica.update(sec='true', keys_dir=keys)
+            if replay_log is not None:
+                replica['sec_replay_log'] = replay_log   # 'none': the gates' floors in memory only
             client = dict(sec='true', keys_dir=keys, sec_parties='[client, client2, server]')
             if ca_validity is not None:
                 client['ca_validity'] = ca_validity   # a certificate's life (s; the CA's default: 24 h)

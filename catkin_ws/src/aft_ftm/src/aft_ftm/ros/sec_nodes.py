@@ -1,5 +1,6 @@
 """SEC (paper section 5.3.2): a certification authority, and gates that cipher and sign requests
 and replies between the client's Proxy and the server's FTM (SEC_C and SEC_S)."""
+import collections
 import json
 import os
 import threading
@@ -9,7 +10,7 @@ import rospy
 from aft_msgs.msg import CertificateStatus, Reply, Request
 from aft_msgs.srv import Certificate, CertificateResponse
 
-from .. import config, health, sec_policy, security
+from .. import config, health, replay_log, sec_policy, security
 from ..health import Level, Report
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
@@ -174,6 +175,16 @@ class SecGateNode(object):
             and replies are signed for (``dest``); a message signed for another is refused
             (``misaddressed``). The client's and the server's gates must name the same. A message
             signed with no destination (a signer that names none) is taken, and counted.
+        ~replay_log (str, server side, default <keys_dir>/replay/<this node's name, / as .>.log; 'none':
+            none): the replay floors on stable storage (aft_ftm.replay_log). Each verified request's
+            watermark and id are there before it goes on; a gate started again (its site re-launched,
+            the whole deployment started again) refuses every request the earlier runs let through:
+            below a watermark as a replay (told to renumber), the others as ``earlier_run`` (in flight
+            then: outcome unknown, never executed again). A corrupt log stops the gate at set-up,
+            naming the line; 'none' keeps the floors in memory only (a WARN in the diagnostics); a
+            write that fails refuses every request after it (``replay_log``, diagnostics ERROR).
+        ~replay_sync (bool, true): each write group flushed to the device (fdatasync) before its
+            requests go on, so a power loss keeps it too; false: a crash of the process only.
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
@@ -214,6 +225,14 @@ class SecGateNode(object):
         self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
         self.not_for_me = 0       # client side: replies signed for another party, passed over
         self.replays = security.ReplayGuard()
+        self.replay_log = None
+        if self.side == 'server':
+            path = param('replay_log', config.non_empty_str, os.path.join(
+                keys_dir, 'replay', '%s.log' % rospy.get_name().strip('/').replace('/', '.')))
+            if path != 'none':
+                self.replay_log = replay_log.ReplayLog(path, sync=param('replay_sync', config.flag, True))
+        self.restored = 0         # origins whose floors an earlier run left (server side)
+        self.earlier_told = collections.OrderedDict()   # (origin, id) refused as earlier_run, alarmed once
         # Client side: per origin (a Proxy), the nonce of its run, signed into each request and named by its
         # reply, and the highest oldest_pending it sent: one lower is a new run of the Proxy (started again,
         # its clock behind: it uses ids again), which gets a new nonce. Server side: the nonce each pending
@@ -229,6 +248,20 @@ class SecGateNode(object):
         self.diagnostics = None
 
     def setup(self, timeout):
+        if self.replay_log is not None:
+            try:   # before any request: one an earlier run let through must not pass now
+                floors = self.replay_log.open()
+            except (replay_log.CorruptReplayLog, OSError) as e:
+                rospy.logerr('%s: the replay log (~replay_log) cannot be used: %s', rospy.get_name(), e)
+                return False
+            self.replays.restore(floors)
+            self.restored = len(floors)
+            rospy.loginfo('%s: replay floors of %d origin(s) restored from %s%s', rospy.get_name(), len(floors),
+                          self.replay_log.path, ' (%d torn line(s) at its end dropped)' % self.replay_log.dropped
+                          if self.replay_log.dropped else '')
+        elif self.side == 'server':
+            rospy.logwarn('%s: ~replay_log is none: the replay floors are in memory only; started again, this gate '
+                          'takes requests an earlier run let through', rospy.get_name())
         try:   # opened now: a certificate asked later (a failover, a new client) needs no master
             self.certificate = open_service('certificate', Certificate, timeout)
         except (rospy.ROSException, rospy.ServiceException) as e:
@@ -283,6 +316,15 @@ class SecGateNode(object):
                                      at_quota=self.quota.at_quota() if self.side == 'server' else ())
         values = list(report.values) + [('destination', self.destination),
                                         ('tls', 'on' if self.tls else 'off')]
+        if self.side == 'server':
+            log = self.replay_log
+            values += [('replay_log', log.path if log else 'none'), ('replay_origins_restored', self.restored)]
+            if log is not None and log.broken:
+                report = Report(Level.ERROR, '%s: every request is refused' % log.broken, values)
+            elif log is None:
+                told = 'replay floors in memory only (~replay_log none)'
+                report = Report(max(report.level, Level.WARN), told if report.level == Level.OK
+                                else '%s; %s' % (report.message, told), values)
         if self.tls:
             return Report(report.level, report.message, values)
         told = 'no TLS: its plaintext side is open to every node of the graph (%s)' % ', '.join(self._plaintext_side())
@@ -493,14 +535,17 @@ class SecGateNode(object):
                     self.origins.bind(party, request.origin)
                     self.replays.advance(request.origin, request.oldest_pending, request.id)
                     self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
+                    floors = self.replays.floors(request.origin)
+                self._make_durable(request.origin, floors)
         except security.Rejected as e:
-            if e.kind == 'party_quota' and not e.first:
+            if (e.kind == 'party_quota' and not e.first) or (e.kind == 'earlier_run' and not self._first_earlier(
+                    request)):
                 with self.lock:
-                    self.rejected += 1   # told once while the party stays at its quota (diagnostics say it)
+                    self.rejected += 1   # told once (diagnostics count the others)
                 return
             self._reject(e, request)
             if e.kind == 'replay':
-                self._renumber(request, nonce)
+                self._renumber(request, nonce, party)
             return
         # batch is PBR's group commit, numbered by the Protocol behind the server's gate: a client's
         # request carries none. One a client set (signed: it is its own) made PBR's After wait for batch
@@ -515,6 +560,28 @@ class SecGateNode(object):
                 for key in [k for k in self.sent if k[0] == request.origin and k[1] < request.oldest_pending]:
                     del self.sent[key]   # answered: the Proxy will not ask again
         self.ports.publish('requests_out', out)
+
+    def _make_durable(self, origin, floors):
+        """The origin's floors on disk before its request goes on (a run started later refuses it)."""
+        if self.replay_log is None:
+            return
+        try:
+            self.replay_log.record(origin, *floors)
+        except OSError as e:
+            raise security.Rejected('replay_log', 'request not let through: its replay floors could not be made '
+                                                  'durable (%s); its Proxy sends it again' % e)
+
+    def _first_earlier(self, request):
+        """Whether request is the first refusal of its id as let through by an earlier run: a Proxy whose
+        call was in flight at the restart sends it again every half second (at most 256 ids remembered)."""
+        key = (request.origin, request.id)
+        with self.lock:
+            if key in self.earlier_told:
+                return False
+            self.earlier_told[key] = True
+            while len(self.earlier_told) > 256:
+                self.earlier_told.popitem(last=False)
+            return True
 
     def _too_large(self, request, size):
         """A client's request larger sealed than a server gate takes: answered here, not executed. Sent
@@ -550,16 +617,18 @@ class SecGateNode(object):
             header['nonce'] = nonce
         return security.seal(self.me, box, header, security.frame_error(error, payload))
 
-    def _renumber(self, request, nonce):
+    def _renumber(self, request, nonce, party):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock
         behind (numbering below its predecessor: refused here for ever, it hung). Its party is told, sealed,
         the ids to use (STALE_ID, as the Protocol would): a Proxy waiting for that id sends it again
-        under a new one; one that is not (the replay's) ignores it. Nothing is executed."""
+        under a new one; one that is not (the replay's) ignores it. Nothing is executed. Sealed for the
+        party that signed it (which may send as its origin): a gate started again knows the floors of an
+        origin from its replay log, not yet the party bound to it."""
         with self.lock:
             first_id = self.replays.first_free(request.origin)
         self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client, oldest_pending=first_id,
                              attempt=request.attempt, batch=request.batch, status=Reply.STALE_ID,
-                             error='id below those answered already: renumber'), nonce)
+                             error='id below those answered already: renumber'), nonce, party)
 
     def resend(self):
         """A new server gate subscribed (a backup took over): send it what is not answered yet, at
@@ -570,11 +639,11 @@ class SecGateNode(object):
             self.ports.publish('requests_out', request)
 
     # -- replies ------------------------------------------------------------------------------
-    def _on_reply(self, reply, nonce=None):
+    def _on_reply(self, reply, nonce=None, party=None):
         try:
             if self.side == 'server':
                 with self.lock:
-                    party = self.origins.party_of(reply.origin)
+                    party = party or self.origins.party_of(reply.origin)
                     nonce = nonce if nonce is not None else self.nonces.of(reply.origin, reply.id)
                 if party is None:
                     raise security.Rejected('unknown_party', 'no verified request came from %s' % reply.origin)
