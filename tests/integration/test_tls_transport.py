@@ -9,7 +9,9 @@ Every refusal is logged by the node that refused it. Then, on the running graph:
 certificate revoked (the CA's list re-signed) has its live connection cut and its reconnections
 and new calls refused; a certificate that expires has its live connection cut. Runs in a process of its own with a master of
 its own; 20 connections stalled in their handshake (half after a ClientHello's first bytes) hold up
-no allowed call and are closed by the node. Every process it starts carries the test's AFT_TEST_TAG and is killed at the end."""
+no allowed call and are closed by the node. A party's key is rotated twice: with its listener running,
+and with it frozen (SIGSTOP) through the rotation and past its keeper's 5 s hurry. Every process it
+starts carries the test's AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_tagged
 from reporting import report
 
@@ -92,6 +94,7 @@ rospy.Subscriber('/aft_test/ticks', String, lambda m: heard.append(time.time()))
 time.sleep(float(sys.argv[2]))
 gap = max([b - a for a, b in zip(heard, heard[1:])] or [0.0])
 print('HEARD %d, the last at %.3f, the longest gap %.3f s' % (len(heard), heard[-1] if heard else 0, gap), flush=True)
+print('TIMES %s' % ' '.join('%.3f' % t for t in heard), flush=True)
 """
 listen = os.path.join(log_dir, 'listen.py')
 with open(listen, 'w') as f:
@@ -212,7 +215,7 @@ try:
     def rotating_serials():
         with tls_transport._LOCK:
             return set(serial for party, serial, _ in tls_transport._LIVE.values() if party == 'rotating')
-    rotating = subprocess.Popen([sys.executable, listen, 'rotating_listener', '20', 'keep'], stdout=subprocess.PIPE,
+    rotating = subprocess.Popen([sys.executable, listen, 'rotating_listener', '30', 'keep'], stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, env=env('rotating'), universal_newlines=True)
     procs.append(rotating)
     if not wait_until(lambda: '/rotating_listener' in peers() and rotating_serials(), 10.0, 0.01):
@@ -226,8 +229,30 @@ try:
     print('ROTATION old %s cut, %s' % ('not' if rotating_serials() & old_serials else 'all',
                                        'back with the new certificate %.3f s after the revocation'
                                        % (time.time() - revoked_at) if back else 'not back with the new one in 15 s'))
-    out, _ = rotating.communicate(timeout=40)
-    print('rotating_listener %s, revoked at %.3f' % ([l for l in out.splitlines() if l.startswith('HEARD')], revoked_at))
+    # -- the same, with the listener frozen (SIGSTOP) through the rotation and for longer than the keeper's
+    # hurry (5 s): resumed, it sees its new pair and the list that revokes the pair before in one round
+    time.sleep(1.0)
+    import signal
+    frozen_at = time.time()
+    os.kill(rotating.pid, signal.SIGSTOP)
+    before = rotating_serials()
+    tls.issue(keys, 'rotating')
+    second = tls.serial_of(keys, 'rotating')
+    tls.revoke(keys, ['rotating'], replaced_only=True)
+    cut = wait_until(lambda: not (rotating_serials() & before), 5.0, 0.005)
+    time.sleep(max(0.0, frozen_at + 6.5 - time.time()))
+    resumed_at = time.time()
+    os.kill(rotating.pid, signal.SIGCONT)
+    back = wait_until(lambda: rotating_serials() == {second}, 15.0, 0.005)
+    print('FROZEN ROTATION old %s while frozen, %s' % ('cut' if cut else 'not cut',
+          'back with the new certificate %.3f s after SIGCONT' % (time.time() - resumed_at) if back
+          else 'not back with the new one 15 s after SIGCONT'))
+    out, _ = rotating.communicate(timeout=60)
+    heard = [float(t) for l in out.splitlines() if l.startswith('TIMES ') for t in l.split()[1:]]
+    around = [t for t in heard if revoked_at - 0.5 <= t <= frozen_at]
+    print('rotating_listener %s, revoked at %.3f, the longest gap around the first rotation %.3f s, '
+          'the last tick %.3f s after SIGCONT' % ([l for l in out.splitlines() if l.startswith('HEARD')], revoked_at,
+          max([b - a for a, b in zip(around, around[1:])] or [99.0]), (heard[-1] if heard else 0) - resumed_at))
     done.set()
     for p in listeners:
         out, _ = p.communicate(timeout=40)
@@ -279,13 +304,21 @@ def test_only_certified_parties_the_policy_allows_reach_a_tls_node():
     listened = [line for line in output.splitlines() if line.startswith('rotating_listener')]
     assert listened and 'HEARD' in listened[0], output[-3000:]
     listened = listened[0]
-    last, revoked_at = float(listened.split('the last at ')[1].split(',')[0]), float(listened.split()[-1])
+    last, revoked_at = float(listened.split('the last at ')[1].split(',')[0]), float(listened.split('revoked at ')[1].split(',')[0])
     assert last > revoked_at + 1.0, listened
     # back at once, not after the subscription keeper's grace: the listener saw its old certificate
     # revoked, and its keeper made the cut subscription again at its next look (5.4 s before: the grace)
     from aft_ftm.subscriptions import GRACE
-    gap = float(listened.split('the longest gap ')[1].split(' s')[0])
+    gap = float(listened.split('the longest gap around the first rotation ')[1].split(' s')[0])
     assert gap < GRACE / 2, listened
-    report('TLS rotation under 100 messages/s: %s; the listener %s' % (rotation[0][len('ROTATION '):], listened.split("'")[1]))
+    # frozen through a second rotation, past the hurry window: cut while frozen, back with the new
+    # certificate at once once resumed, and ticks heard after it
+    frozen = [line for line in output.splitlines() if line.startswith('FROZEN ROTATION')]
+    assert frozen and frozen[0].startswith('FROZEN ROTATION old cut while frozen, back with the new certificate'), \
+        output[-3000:]
+    assert float(frozen[0].split('certificate ')[1].split(' s')[0]) < GRACE / 2, frozen[0]
+    assert float(listened.split('the last tick ')[1].split(' s')[0]) > 3.0, listened
+    report('TLS rotation under 100 messages/s: %s; the listener\'s longest gap around it %.3f s; %s'
+           % (rotation[0][len('ROTATION '):], gap, frozen[0]))
     revoked_refusals = [line for line in output.splitlines() if line.startswith('WITNESS revoked refusals')]
     assert int(revoked_refusals[0].split(': ')[1]) >= 1, output[-3000:]
