@@ -5,6 +5,10 @@ A TLS bank (the demo's policy) with adaptable sites, under client load:
   * ``rosrun aft_ftm adapt compose`` run as a party the policy does not let suspend or rebind (the
     operator, who drives the demo, and client2, certified and trusted with nothing): rejected in its
     dry run, naming the refusal, nothing changed (no node launched, the pair as it was);
+  * run as ``engine`` in the paper's order and interrupted (SIGINT) at a step drawn from the seed
+    (kill, launch, wait_launched, rebind), under load: it rolls back as the engine, every call
+    exactly once, the graph as before with each node (the Proceeds started again too) its site's
+    party, nothing it launched left;
   * run as the party ``engine``: PBR becomes PBR+TR on both sites while the client goes on, every
     call exactly once; each node the engine launched speaks as the party of the site it joined (its
     process's AFT_TLS_PARTY), and nothing of the deployment's own is refused by the policy;
@@ -19,7 +23,7 @@ AFT_TEST_TAG and is killed at the end."""
 from leftovers import run_seeded
 
 SCRIPT = r'''
-import os, random, shlex, subprocess, sys, tempfile, time
+import os, random, shlex, signal, subprocess, sys, tempfile, threading, time
 import psutil, rosgraph, rospkg, rospy, xmlrpc.client
 from aft_msgs.msg import Alarm
 from aft_msgs.srv import Account, GetState
@@ -59,6 +63,27 @@ def adapt(party, script='compose'):
     return ran.returncode, ran.stdout
 
 
+def interrupted(step, delay):
+    """adapt compose in the paper's order as the engine, SIGINT delay s after it says step: (exit, output)."""
+    proc = subprocess.Popen(['rosrun', 'aft_ftm', 'adapt', 'compose', '--mode', 'paper'], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=d.tls_env('engine'),
+                            universal_newlines=True, start_new_session=True)
+    limit = threading.Timer(180.0, proc.kill)   # (a hung command fails the test, it does not hang it)
+    limit.start()
+    lines = []
+    try:
+        for line in proc.stdout:   # ends when the command does
+            lines.append(line)
+            if line.startswith('step %s:' % step) or (' step %s:' % step) in line:
+                time.sleep(delay)
+                proc.send_signal(signal.SIGINT)
+                break
+        lines.append(proc.communicate(timeout=170)[0])
+    finally:
+        limit.cancel()
+    return proc.returncode, ''.join(lines)
+
+
 def rejoin(*options):
     ran = subprocess.run(['rosrun', 'aft_ftm', 'rejoin', 'master'] + list(options), stdout=subprocess.PIPE,
                          stderr=subprocess.STDOUT, env=d.tls_env('operator'), timeout=120, universal_newlines=True)
@@ -88,6 +113,25 @@ try:
         sent += 5
     unchanged = sorted(set(nodes()) ^ set(before))
     print('NODES CHANGED BY REFUSED ADAPTATIONS %s' % unchanged)
+
+    # As the engine, interrupted at a drawn step of the paper's order, under load: rolled back.
+    step, delay = rng.choice(['kill', 'launch', 'wait_launched', 'rebind']), rng.choice([0.0, 0.05, 0.2])
+    stopped = {}
+
+    def stop_it():
+        stopped['code'], stopped['output'] = interrupted(step, delay)
+        return 0, time.time()
+    count = rng.randint(40, 80)
+    drive_through_fault(call, count, checker, rng.randint(1, 20), stop_it, rng, first=sent)
+    sent += count
+    print('INTERRUPTED at %s +%.2f s exit %d: %s' % (step, delay, stopped['code'], ' | '.join(
+        l for l in stopped['output'].splitlines() if 'interrupted' in l or 'Traceback' in l)[:400]))
+    settled = wait_until(lambda: set(nodes()) == set(before), 20.0, 0.2)   # its launches stop within their grace
+    now = nodes()
+    print('NODES AFTER THE ROLLBACK %s' % ('as before' if settled else sorted(set(now) ^ set(before))))
+    print('ROLLBACK PARTIES WRONG %s' % {n: p for n, (_, p) in now.items()
+                                         if n.startswith(('/master/', '/slave/')) and p != n.split('/')[1]})
+    print('SUMMARY interrupted %s' % checker.summary())
 
     # As the engine, under load: the adaptation lands anywhere in the calls.
     outcome = {}
@@ -182,10 +226,14 @@ def test_adaptation_and_rejoin_under_tls_only_as_the_parties_allowed_and_nothing
         refused = line(output, 'ADAPT AS %s ' % party)
         assert refused.startswith('ADAPT AS %s exit 2 refused' % party) and 'nothing changed' in refused, refused
     assert line(output, 'NODES CHANGED BY REFUSED ADAPTATIONS') == 'NODES CHANGED BY REFUSED ADAPTATIONS []'
+    interrupted = line(output, 'INTERRUPTED')
+    assert ' exit 1: ' in interrupted and 'interrupted (SIGINT): rolled back' in interrupted, interrupted
+    assert line(output, 'NODES AFTER THE ROLLBACK') == 'NODES AFTER THE ROLLBACK as before'
+    assert line(output, 'ROLLBACK PARTIES WRONG') == 'ROLLBACK PARTIES WRONG {}'
     assert line(output, 'ADAPT AS engine').startswith('ADAPT AS engine exit 0: adaptation compose done')
     launched = line(output, 'LAUNCHED')
     assert launched.startswith('LAUNCHED 8 ') and launched.endswith('WRONG PARTY {}'), launched
-    for what in ('adaptation', 'end'):
+    for what in ('interrupted', 'adaptation', 'end'):
         summary = eval(line(output, 'SUMMARY %s' % what).split(' ', 2)[2].split(' sent ')[0])
         assert {k: summary[k] for k in clean} == clean, (what, summary)
     assert line(output, 'FAILOVER primary slave epoch 3')

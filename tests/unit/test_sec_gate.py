@@ -8,6 +8,7 @@ import rospy
 
 from aft_ftm import health, security
 from aft_ftm.protocol import Role
+from aft_ftm.recovery import SiteRole
 from aft_ftm.ros import sec_nodes
 from aft_ftm.security import Party, Rejected
 
@@ -48,6 +49,7 @@ def gate(side='server', tls=False):
     node.runs, node.nonces = security.ProxyRuns(), security.ReplyNonces()
     node.quota = security.PartyQuota()
     node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
+    node.site_role, node.witness = SiteRole(''), ''
     return node
 
 
@@ -570,35 +572,68 @@ def test_a_gate_started_again_refuses_every_request_an_earlier_run_let_through_a
     raised = [m for name, m in published if name == 'alarms']
     assert [a.kind for a in raised] == ['replay'] * 4 + ['earlier_run']
     told = [m for name, m in published if name == 'replies_out']
-    assert [t.status for t in told] == [Reply.STALE_ID] * 4             # answered ids: told to renumber
-    assert all(t.oldest_pending == 7005 for t in told)
+    assert [t.status for t in told] == [Reply.STALE_ID] * 4 + [Reply.ERROR]   # answered ids: told to renumber
+    assert all(t.oldest_pending == 7005 for t in told[:4])
     # 7004 was the last call: only the next request's watermark would have confirmed its reply. It may
-    # have executed: refused, never told to renumber, alarmed once however often it is sent again.
+    # have executed: never executed again, never told to renumber; this site serves, so the call ends,
+    # "outcome unknown" (sealed: the wire says only that there is an error), alarmed once however often
+    # it is sent again.
+    header = security.header_of(told[4], security.REPLY_FIELDS, 'client', '/ftm/pxy2pro')
+    assert security.nonce_of(told[4].payload) is None                  # (its request named none)
+    text, _ = security.unframe_error(security.open_sealed(CLIENT, SERVER.verify_public, told[4].payload, header))
+    assert text.startswith('outcome unknown: request /proxy/7004 was let through by an earlier run'), text
     again.ports.published.clear()
     again._on_request(captured[-1])
-    assert again.ports.published == [] and again.rejected == 6
+    assert [(n, m.status) for n, m in again.ports.published] == [('replies_out', Reply.ERROR)]
+    assert again.rejected == 6
+    again.ports.published.clear()
     again._on_request(sealed_request(7005, 7005))                       # the client's next call goes on
     (port, plain), = again.ports.published
     assert (port, plain.id, bytes(plain.payload)) == ('requests_out', 7005, b'deposit 50')
     assert again._health().value('replay_log') == str(path)
+    again.replay_log.close()
 
 
-def test_a_request_whose_floors_cannot_be_written_is_not_let_through_and_the_gate_says_so(tmp_path, monkeypatch):
+def test_a_backup_started_again_refuses_an_earlier_runs_request_without_answering_it(tmp_path):
+    """A site that re-joins meets a call still in flight from before it stopped: its primary answers it. The
+    backup's gate refuses it (alarm) and says nothing, not "outcome unknown" before the primary's answer."""
+    path = tmp_path / 'slave.sec_gate.log'
+    first = logged_gate(path)
+    first._on_request(sealed_request(10, 10))
+    first.replay_log.close()
+    backup = logged_gate(path)
+    backup.site_role, backup.witness = SiteRole('slave'), '/aft/witness/request'
+    backup._on_request(sealed_request(10, 10))
+    assert [(n, m.kind) for n, m in backup.ports.published] == [('alarms', 'earlier_run')]   # no configuration yet
+    backup.site_role.on_configuration(5, 'master', 'slave')
+    backup._on_request(sealed_request(10, 10))
+    assert [n for n, _ in backup.ports.published] == ['alarms']
+    backup.site_role.on_configuration(6, 'slave', '')                  # its primary failed: it serves alone
+    backup._on_request(sealed_request(10, 10))
+    assert [n for n, _ in backup.ports.published] == ['alarms', 'replies_out']
+    backup.replay_log.close()
+
+
+def test_a_request_whose_floors_cannot_be_written_is_not_let_through_and_the_gate_stops(tmp_path, monkeypatch):
     import os
     server = logged_gate(tmp_path / 'r.log')
     server._on_request(sealed_request(10, 10))
     monkeypatch.setattr(os, 'fdatasync', lambda fd: (_ for _ in ()).throw(OSError(28, 'No space left on device')))
+    stops = []
+    monkeypatch.setattr(sec_nodes.rospy, 'signal_shutdown', stops.append)
     server.ports.published.clear()
     server._on_request(sealed_request(11, 11))
     (port, raised), = server.ports.published
     assert (port, raised.kind) == ('alarms', 'replay_log') and 'No space left' in raised.detail
+    assert stops == ['the replay log failed']    # a required node: its site stops, the peer takes over
     from aft_ftm import change_model
     assert change_model.observed_fault('sec', 'replay_log') is None     # the disk's fault, not an attack
     report = server._health()
     assert report.level == health.Level.ERROR and 'every request is refused' in report.message
     server.ports.published.clear()
-    server._on_request(sealed_request(12, 12))                          # and every one after it
+    server._on_request(sealed_request(12, 12))                          # nothing after it goes on either
     assert [m.kind for _, m in server.ports.published] == ['replay_log']
+    server.replay_log.close()
 
 
 def test_a_gate_without_a_replay_log_says_its_floors_are_in_memory_only():

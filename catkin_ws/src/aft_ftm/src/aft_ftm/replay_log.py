@@ -13,10 +13,17 @@ writers). A crash may leave the last lines torn (a power loss with unsynced data
 acknowledged, so nothing was forwarded on them, and bad lines at the end are dropped (counted). A bad
 line followed by good ones is corruption: loading raises CorruptReplayLog naming the file and the
 line, and the gate does not start (it would accept the replays that line recorded). Past
-``compact_after`` lines the log is rewritten as one line per origin (a temporary file renamed over it).
+``compact_after`` lines (and twice the origins) the log is rewritten as one line per origin (a
+temporary file renamed over it). One gate holds a log at a time (an exclusive lock): a second
+one configured with the same path does not start.
+
+Limits: a last line that was synced and then corrupted on the device reads as a torn end, and is
+dropped; unsynced lines reaching the device out of order (a power loss) can read as corruption,
+which stops the gate though nothing acknowledged was lost (the operator decides).
 
 Writers group their syncs: a writer whose line another's sync covered returns without its own.
 """
+import fcntl
 import json
 import os
 import threading
@@ -99,22 +106,33 @@ class ReplayLog(object):
         self.dropped = 0     # torn lines dropped at open
         self.writes = 0
         self.broken = None   # why the log takes no more lines (a failed write): every record() raises
+        self.existed = None  # whether the file was there at open()
+        self._lock_file = None
 
     def open(self):
         """Read the log and open it for appending; returns {origin: (watermark, highest)}. Raises
-        CorruptReplayLog, or OSError when its folder cannot be made or the file opened."""
+        CorruptReplayLog, or OSError when its folder cannot be made, the file opened, or another
+        process holds it."""
         folder = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(folder, mode=0o700, exist_ok=True)
+        self.existed = os.path.exists(self.path)
+        self._lock_file = open(self.path + '.lock', 'a')
+        try:
+            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock_file.close()
+            raise OSError('replay log %s is held by another process (two gates configured with one log?)' % self.path)
         floors, self.dropped = read(self.path)
         self._floors = {o: [w, h, 0] for o, (w, h) in floors.items()}
-        # A torn end is cut off (rewritten whole): a line appended after it would read as corrupt.
-        self._rewrite() if self.dropped else self._append_fd()
+        # A torn end is cut off (rewritten whole): a line appended after it would read as corrupt. A new
+        # log is made durable with its folder's entry (a power loss must not lose the file itself).
+        if self.dropped or not self.existed:
+            self._rewrite()
+        else:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND, 0o600)
+            with open(self.path, 'rb') as f:
+                self._lines = sum(1 for _ in f)
         return floors
-
-    def _append_fd(self):
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-        with open(self.path, 'rb') as f:
-            self._lines = sum(1 for _ in f)
 
     def record(self, origin, watermark, highest):
         """Durable before it returns: the origin's floors at least (watermark, highest). Writes only
@@ -145,15 +163,20 @@ class ReplayLog(object):
                 needed = self._written
                 self._floors[origin] = [watermark, highest, needed]
         self._make_durable(needed)
-        if self._lines > self.compact_after:
+        if self._lines > self._bound():
             with self._sync_lock, self._lock:
-                if self._lines > self.compact_after and not self.broken:
+                if self._lines > self._bound() and not self.broken:
                     try:
                         self._rewrite()
                     except OSError as e:
                         self.broken = 'replay log %s failed its compaction (%s): it takes no more records' % (
                             self.path, e)
                         raise OSError(self.broken)
+
+    def _bound(self):
+        """Lines past which the log is compacted: never less than twice its origins (a compaction at
+        every write past compact_after origins would stall every writer)."""
+        return max(self.compact_after, 2 * len(self._floors))
 
     def _make_durable(self, needed):
         if needed == 0 or not self.sync:
@@ -162,6 +185,8 @@ class ReplayLog(object):
             if self._synced >= needed:
                 return   # another writer's sync covered this line
             with self._lock:
+                if self.broken:   # a failed sync: its pages may be lost, and a second sync says nothing
+                    raise OSError(self.broken)
                 upto = self._written
                 fd = self._fd
             try:
@@ -179,10 +204,18 @@ class ReplayLog(object):
         data = ''.join(_line(o, w, h) for o, (w, h, _) in sorted(self._floors.items())).encode('utf-8')
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:
-            os.write(fd, data)
+            view = memoryview(data)
+            while view:
+                written = os.write(fd, view)
+                if written <= 0:
+                    raise OSError('%s: nothing written' % tmp)
+                view = view[written:]
             os.fsync(fd)
-        finally:
+        except OSError:
             os.close(fd)
+            os.unlink(tmp)
+            raise
+        os.close(fd)
         os.rename(tmp, self.path)
         dir_fd = os.open(folder, os.O_RDONLY)
         try:
@@ -206,3 +239,6 @@ class ReplayLog(object):
             if self._fd is not None:
                 os.close(self._fd)
                 self._fd = None
+            if getattr(self, '_lock_file', None) is not None:
+                self._lock_file.close()   # (closing it releases the lock)
+                self._lock_file = None

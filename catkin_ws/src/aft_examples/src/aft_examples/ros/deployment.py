@@ -114,8 +114,10 @@ class PbrDeployment(object):
             for party in ('ca', 'client', 'client2', 'server') if not keys_from else ():
                 security.write_party(keys, security.Party.generate(party))
             replica.update(sec='true', keys_dir=keys)
-            if replay_log is not None:
-                replica['sec_replay_log'] = replay_log   # 'none': the gates' floors in memory only
+            if replay_log is not None:   # 'none': the gates' floors in memory only (a path would be the
+                if replay_log != 'none':   # two sites' one log, which the second gate refuses)
+                    raise ValueError("replay_log: 'none' or None (each gate's own log), got %r" % replay_log)
+                replica['sec_replay_log'] = replay_log
             client = dict(sec='true', keys_dir=keys, sec_parties='[client, client2, server]')
             if ca_validity is not None:
                 client['ca_validity'] = ca_validity   # a certificate's life (s; the CA's default: 24 h)

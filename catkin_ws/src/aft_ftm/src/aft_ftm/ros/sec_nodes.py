@@ -14,6 +14,7 @@ from .. import config, health, replay_log, sec_policy, security
 from ..health import Level, Report
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
+from ..recovery import SiteRole
 from . import tls_transport
 from .alarms import alarm
 from .diagnostics import Diagnostics
@@ -22,6 +23,7 @@ from .persistent_service import open_service
 from .ports import Ports, wait_for_connections
 from .protocol_node import ROLES
 from .proxy_node import REQUEST_QUEUE as REMOTE_QUEUE
+from .witness_client import follow_site_role
 
 
 class CertificationAuthorityNode(object):
@@ -178,11 +180,17 @@ class SecGateNode(object):
         ~replay_log (str, server side, default <keys_dir>/replay/<this node's name, / as .>.log; 'none':
             none): the replay floors on stable storage (aft_ftm.replay_log). Each verified request's
             watermark and id are there before it goes on; a gate started again (its site re-launched,
-            the whole deployment started again) refuses every request the earlier runs let through:
-            below a watermark as a replay (told to renumber), the others as ``earlier_run`` (in flight
-            then: outcome unknown, never executed again). A corrupt log stops the gate at set-up,
-            naming the line; 'none' keeps the floors in memory only (a WARN in the diagnostics); a
-            write that fails refuses every request after it (``replay_log``, diagnostics ERROR).
+            the whole deployment started again) refuses every request the earlier runs of this gate
+            let through: below a watermark as a replay (told to renumber), the others as
+            ``earlier_run`` (in flight then, or its Proxy's last: it may have executed; never
+            executed again, and, while this site serves, answered ERROR "outcome unknown" so the
+            call ends). A corrupt log, or one another process holds, stops the gate at set-up, naming
+            it; 'none' keeps the floors in memory only (a WARN in the diagnostics); a write that fails
+            fail-stops the gate (``replay_log`` alarm): its site stops, and the peer takes over.
+        ~site (str, server side, default ''), ~witness (str, default ''): this replica's site and its
+            witness's service: whether the site serves now (an ``earlier_run`` is answered only then:
+            a backup that re-joined leaves a call still in flight to the primary, which answers it).
+            Without a witness, ~role says.
         ~replay_sync (bool, true): each write group flushed to the device (fdatasync) before its
             requests go on, so a power loss keeps it too; false: a crash of the process only.
     Services called: certificate (aft_msgs/Certificate): the CA's.
@@ -232,6 +240,8 @@ class SecGateNode(object):
             if path != 'none':
                 self.replay_log = replay_log.ReplayLog(path, sync=param('replay_sync', config.flag, True))
         self.restored = 0         # origins whose floors an earlier run left (server side)
+        self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
+        self.witness = param('witness', config.witness_service, '') if self.side == 'server' else ''
         self.earlier_told = collections.OrderedDict()   # (origin, id) refused as earlier_run, alarmed once
         # Client side: per origin (a Proxy), the nonce of its run, signed into each request and named by its
         # reply, and the highest oldest_pending it sent: one lower is a new run of the Proxy (started again,
@@ -256,9 +266,15 @@ class SecGateNode(object):
                 return False
             self.replays.restore(floors)
             self.restored = len(floors)
+            if not self.replay_log.existed:
+                rospy.logwarn('%s: no replay log at %s: a first start (else the log of an earlier run was lost, moved '
+                              'or renamed, and every request that run took is taken again)', rospy.get_name(),
+                              self.replay_log.path)
             rospy.loginfo('%s: replay floors of %d origin(s) restored from %s%s', rospy.get_name(), len(floors),
                           self.replay_log.path, ' (%d torn line(s) at its end dropped)' % self.replay_log.dropped
                           if self.replay_log.dropped else '')
+            self.configuration = follow_site_role(self.site_role, self.witness, report=lambda detail: alarm(
+                self.ports, 'witness', 'forged_configuration', detail))
         elif self.side == 'server':
             rospy.logwarn('%s: ~replay_log is none: the replay floors are in memory only; started again, this gate '
                           'takes requests an earlier run let through', rospy.get_name())
@@ -538,14 +554,18 @@ class SecGateNode(object):
                     floors = self.replays.floors(request.origin)
                 self._make_durable(request.origin, floors)
         except security.Rejected as e:
-            if (e.kind == 'party_quota' and not e.first) or (e.kind == 'earlier_run' and not self._first_earlier(
-                    request)):
+            if e.kind == 'earlier_run':
+                self._earlier_run(e, request, nonce, party)
+                return
+            if e.kind == 'party_quota' and not e.first:
                 with self.lock:
-                    self.rejected += 1   # told once (diagnostics count the others)
+                    self.rejected += 1   # told once while the party stays at its quota (diagnostics say it)
                 return
             self._reject(e, request)
             if e.kind == 'replay':
                 self._renumber(request, nonce, party)
+            elif e.kind == 'replay_log':
+                self._fail_stop(e.detail)
             return
         # batch is PBR's group commit, numbered by the Protocol behind the server's gate: a client's
         # request carries none. One a client set (signed: it is its own) made PBR's After wait for batch
@@ -571,17 +591,35 @@ class SecGateNode(object):
             raise security.Rejected('replay_log', 'request not let through: its replay floors could not be made '
                                                   'durable (%s); its Proxy sends it again' % e)
 
-    def _first_earlier(self, request):
-        """Whether request is the first refusal of its id as let through by an earlier run: a Proxy whose
-        call was in flight at the restart sends it again every half second (at most 256 ids remembered)."""
+    def _earlier_run(self, error, request, nonce, party):
+        """A request an earlier run of this gate let through: never executed now. Alarmed once per id (its
+        Proxy sends it again every half second; at most 256 ids remembered). While this site serves it is
+        answered, sealed for its signer, ERROR "outcome unknown", so that an honest call in flight at the
+        restart ends (it waited for ever under the Proxy's default of no timeout, its oldest_pending held
+        every later reply of its Proxy in the caches). A backup says nothing: its primary answers."""
         key = (request.origin, request.id)
         with self.lock:
-            if key in self.earlier_told:
-                return False
+            first = key not in self.earlier_told
             self.earlier_told[key] = True
             while len(self.earlier_told) > 256:
                 self.earlier_told.popitem(last=False)
-            return True
+            if not first:
+                self.rejected += 1
+        if first:
+            self._reject(error, request)
+        serving = self.site_role.role in (Role.PRIMARY, Role.ALONE) if self.site_role.epoch is not None \
+            else (not self.witness and self.role != Role.BACKUP)
+        if serving:
+            self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client,
+                                 oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
+                                 status=Reply.ERROR, epoch=0, error='outcome unknown: %s' % error.detail),
+                          nonce, party)   # (epoch 0: taken by a Proxy that saw the epochs of an earlier history)
+
+    def _fail_stop(self, why):
+        """The replay log failed: nothing more can be let through safely. The gate stops (a required node:
+        its site stops with it, and the peer takes over) rather than refuse every request for ever."""
+        rospy.logfatal('%s: %s: stopping', rospy.get_name(), why)
+        rospy.signal_shutdown('the replay log failed')
 
     def _too_large(self, request, size):
         """A client's request larger sealed than a server gate takes: answered here, not executed. Sent
