@@ -104,3 +104,41 @@ def test_the_cgroup_v2_mount_is_found_in_mountinfo(tmp_path):
     assert tree.cgroup2_root(str(info)) == str(tmp_path)
     info.write_text('25 1 0:22 / /sys rw - sysfs sysfs rw\n')
     assert tree.cgroup2_root(str(info)) is None
+
+
+def test_a_process_read_in_the_middle_of_its_exec_is_still_the_services(monkeypatch):
+    """A launcher's child read just after its fork, while the kernel replaces its memory, shows an empty
+    environment: it was taken for no member of the service (CI, session 44: the test above failed so),
+    and a kill could have left it running. It is read again until its exec is done."""
+    t = tree.TaggedTree('test_%s' % uuid.uuid4().hex[:8])
+    _, env, handle = t.prepare('svc-1')
+    proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)'], env=dict(os.environ, **env))
+    try:
+        assert wait_for_tag(proc.pid, handle)
+        real = tree.psutil.Process.environ
+        reads = {}
+
+        def mid_exec(self):   # the first two reads of the child come back empty, as during an exec
+            if self.pid == proc.pid and reads.setdefault('n', 0) < 2:
+                reads['n'] += 1
+                return {}
+            return real(self)
+        monkeypatch.setattr(tree.psutil.Process, 'environ', mid_exec)
+        assert t.owns(handle, proc.pid)
+        reads.clear()
+        assert proc.pid in t.members(handle)
+    finally:
+        proc.kill()
+        proc.wait(5)
+
+
+def wait_for_tag(pid, tag, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if tree.psutil.Process(pid).environ().get(tree.TAG) == tag:
+                return True
+        except tree.psutil.Error:
+            pass
+        time.sleep(0.01)
+    return False

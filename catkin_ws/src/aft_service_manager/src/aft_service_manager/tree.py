@@ -22,6 +22,40 @@ import uuid
 import psutil
 
 TAG = 'AFT_SERVICE_TAG'
+EXEC_WAIT = 0.2   # s: the longest a process whose environment reads empty is read again (an exec under way)
+
+
+def _tags(procs, wait=EXEC_WAIT, poll=0.002):
+    """{pid: its TAG or None} of procs (psutil.Process), readable ones only. A process in the middle of
+    its exec reads with an empty environment (the kernel is replacing its memory): such a process is
+    read again, for at most ``wait`` seconds in all, not taken for untagged (CI, session 44: a child
+    of a launcher, read just after its fork, was not the service's; a kill could have left it). Kernel
+    threads (children of kthreadd) have no environment and are not waited for."""
+    found, unsure = {}, []
+    for proc in procs:
+        try:
+            env = proc.environ()
+        except (psutil.Error, OSError):
+            continue
+        if env or proc.pid == 2 or proc.ppid() in (0, 2):
+            found[proc.pid] = env.get(TAG)
+        else:
+            unsure.append(proc)
+    deadline = time.monotonic() + wait
+    while unsure and time.monotonic() < deadline:
+        time.sleep(poll)
+        still = []
+        for proc in unsure:
+            try:
+                env = proc.environ()
+            except (psutil.Error, OSError):
+                continue
+            if env:
+                found[proc.pid] = env.get(TAG)
+            else:
+                still.append(proc)
+        unsure = still
+    return found
 
 
 def cgroup2_root(mountinfo='/proc/self/mountinfo'):
@@ -187,20 +221,14 @@ class TaggedTree(object):
         return [], {TAG: tag}, tag
 
     def members(self, tag):
-        found = []
-        for proc in psutil.process_iter(['pid']):
-            try:
-                if proc.environ().get(TAG) == tag:
-                    found.append(proc.pid)
-            except (psutil.Error, OSError):
-                continue
-        return found
+        return sorted(pid for pid, found in _tags(psutil.process_iter()).items() if found == tag)
 
     def owns(self, tag, pid):
         try:
-            return psutil.Process(pid).environ().get(TAG) == tag
+            proc = psutil.Process(pid)
         except (psutil.Error, OSError):
             return False
+        return _tags([proc]).get(pid) == tag
 
     def signal(self, tag):
         _kill_passes(lambda: [p for p in self.members(tag) if p != os.getpid()])
