@@ -614,25 +614,29 @@ def test_a_backup_started_again_refuses_an_earlier_runs_request_without_answerin
     backup.replay_log.close()
 
 
-def test_a_request_whose_floors_cannot_be_written_is_not_let_through_and_the_gate_stops(tmp_path, monkeypatch):
+def test_a_request_whose_floors_cannot_be_written_is_not_let_through_and_the_site_fail_stops(tmp_path, monkeypatch):
+    """A log that fails a write refused every request for ever with no failover (review of session 44): the
+    site now fail-stops, once, so that its peer takes over; alone (the only copy of the state) it stays."""
     import os
+    from aft_ftm import change_model
     server = logged_gate(tmp_path / 'r.log')
+    server.site_role, server.fail_stopped = SiteRole('master'), False
+    server.site_role.on_configuration(5, 'master', '')                 # alone first
     server._on_request(sealed_request(10, 10))
     monkeypatch.setattr(os, 'fdatasync', lambda fd: (_ for _ in ()).throw(OSError(28, 'No space left on device')))
-    stops = []
-    monkeypatch.setattr(sec_nodes.rospy, 'signal_shutdown', stops.append)
     server.ports.published.clear()
     server._on_request(sealed_request(11, 11))
     (port, raised), = server.ports.published
     assert (port, raised.kind) == ('alarms', 'replay_log') and 'No space left' in raised.detail
-    assert stops == ['the replay log failed']    # a required node: its site stops, the peer takes over
-    from aft_ftm import change_model
     assert change_model.observed_fault('sec', 'replay_log') is None     # the disk's fault, not an attack
     report = server._health()
     assert report.level == health.Level.ERROR and 'every request is refused' in report.message
-    server.ports.published.clear()
-    server._on_request(sealed_request(12, 12))                          # nothing after it goes on either
-    assert [m.kind for _, m in server.ports.published] == ['replay_log']
+    server.site_role.on_configuration(6, 'master', 'slave')            # a backup joined: it can take over
+    for rid in (12, 13):
+        server._on_request(sealed_request(rid, rid))
+    kinds = [(n, getattr(m, 'kind', None) or getattr(m, 'site', None)) for n, m in server.ports.published[1:]]
+    assert kinds == [('alarms', 'replay_log'), ('fail_stop', 'master'), ('alarms', 'fail_stop'),
+                     ('alarms', 'replay_log')], kinds                   # nothing let through; one fail-stop
     server.replay_log.close()
 
 

@@ -109,36 +109,46 @@ def test_the_cgroup_v2_mount_is_found_in_mountinfo(tmp_path):
 def test_a_process_read_in_the_middle_of_its_exec_is_still_the_services(monkeypatch):
     """A launcher's child read just after its fork, while the kernel replaces its memory, shows an empty
     environment: it was taken for no member of the service (CI, session 44: the test above failed so),
-    and a kill could have left it running. It is read again until its exec is done."""
-    t = tree.TaggedTree('test_%s' % uuid.uuid4().hex[:8])
-    _, env, handle = t.prepare('svc-1')
-    proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(30)'], env=dict(os.environ, **env))
+    and a kill could have left it running. One whose parent carries the tag is read again until its
+    exec is done; one that stays empty (it cleared its environment) is waited for once only."""
+    t, handle, proc, left = start(lambda owner: tree.TaggedTree(owner), LAUNCHER)
     try:
-        assert wait_for_tag(proc.pid, handle)
+        child, other = left[0], left[1]
         real = tree.psutil.Process.environ
         reads = {}
 
-        def mid_exec(self):   # the first two reads of the child come back empty, as during an exec
-            if self.pid == proc.pid and reads.setdefault('n', 0) < 2:
-                reads['n'] += 1
+        def mid_exec(self):   # the child's first two reads come back empty, as during an exec; the
+            reads[self.pid] = reads.get(self.pid, 0) + 1    # other one's always (it ran env -i)
+            if self.pid == child and reads[child] <= 2:
                 return {}
-            return real(self)
+            return {} if self.pid == other else real(self)
         monkeypatch.setattr(tree.psutil.Process, 'environ', mid_exec)
-        assert t.owns(handle, proc.pid)
+        assert t.owns(handle, child) and reads[child] == 3
+        assert not t.owns(handle, other) and reads[other] > 3   # read again for the whole wait, then known bare
         reads.clear()
-        assert proc.pid in t.members(handle)
+        members = t.members(handle)
+        assert child in members and other not in members and proc.pid in members
+        assert reads[other] == 1, 'a process known bare was waited for again: %d reads' % reads[other]
     finally:
-        proc.kill()
-        proc.wait(5)
+        monkeypatch.undo()
+        clean_up(t, proc, left)
 
 
-def wait_for_tag(pid, tag, timeout=5.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            if tree.psutil.Process(pid).environ().get(tree.TAG) == tag:
-                return True
-        except tree.psutil.Error:
-            pass
-        time.sleep(0.01)
-    return False
+def test_a_process_without_an_environment_outside_the_service_costs_no_wait():
+    """Kernel threads, zombies, and processes of others without an environment: not waited for."""
+    t = tree.TaggedTree('test_%s' % uuid.uuid4().hex[:8])
+    _, _, handle = t.prepare('svc-1')
+    bare = subprocess.Popen(['env', '-i', sys.executable, '-c', 'import time; time.sleep(30)'])
+    real = tree.psutil.Process.environ
+    reads = []
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and real(tree.psutil.Process(bare.pid)):
+            time.sleep(0.01)                          # (its exec done: an empty environment)
+        tree.psutil.Process.environ = lambda self: reads.append(self.pid) or real(self)
+        assert t.members(handle) == [] and not t.owns(handle, bare.pid)
+        assert reads.count(bare.pid) == 2, reads.count(bare.pid)   # once by each call: never waited for
+    finally:
+        tree.psutil.Process.environ = real
+        bare.kill()
+        bare.wait(5)

@@ -27,6 +27,7 @@ import fcntl
 import json
 import os
 import threading
+import time
 import zlib
 
 from .errors import AftError
@@ -109,19 +110,26 @@ class ReplayLog(object):
         self.existed = None  # whether the file was there at open()
         self._lock_file = None
 
-    def open(self):
+    def open(self, wait=0.0):
         """Read the log and open it for appending; returns {origin: (watermark, highest)}. Raises
         CorruptReplayLog, or OSError when its folder cannot be made, the file opened, or another
-        process holds it."""
+        process still holds it after ``wait`` seconds (the gate of a site started again may be ending)."""
         folder = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(folder, mode=0o700, exist_ok=True)
-        self.existed = os.path.exists(self.path)
         self._lock_file = open(self.path + '.lock', 'a')
-        try:
-            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self._lock_file.close()
-            raise OSError('replay log %s is held by another process (two gates configured with one log?)' % self.path)
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError:
+                if time.monotonic() >= deadline:
+                    self._lock_file.close()
+                    self._lock_file = None
+                    raise OSError('replay log %s is held by another process (two gates configured with one log?)'
+                                  % self.path)
+                time.sleep(0.05)
+        self.existed = os.path.exists(self.path)
         floors, self.dropped = read(self.path)
         self._floors = {o: [w, h, 0] for o, (w, h) in floors.items()}
         # A torn end is cut off (rewritten whole): a line appended after it would read as corrupt. A new

@@ -25,22 +25,28 @@ TAG = 'AFT_SERVICE_TAG'
 EXEC_WAIT = 0.2   # s: the longest a process whose environment reads empty is read again (an exec under way)
 
 
-def _tags(procs, wait=EXEC_WAIT, poll=0.002):
-    """{pid: its TAG or None} of procs (psutil.Process), readable ones only. A process in the middle of
-    its exec reads with an empty environment (the kernel is replacing its memory): such a process is
-    read again, for at most ``wait`` seconds in all, not taken for untagged (CI, session 44: a child
-    of a launcher, read just after its fork, was not the service's; a kill could have left it). Kernel
-    threads (children of kthreadd) have no environment and are not waited for."""
-    found, unsure = {}, []
+def _members(procs, tag, bare, wait=EXEC_WAIT, poll=0.002):
+    """The pids of procs (psutil.Process) that carry ``tag``. A process in the middle of its exec reads
+    with an empty environment (the kernel is replacing its memory): one whose parent carries the tag
+    is read again, for at most ``wait`` seconds in all, not taken for untagged (CI, session 44: a
+    launcher's child read just after its fork was not the service's; a kill could have left it). Only
+    those are waited for: kernel threads, zombies and other processes without an environment are not
+    (they would slow every call). One still empty after a whole wait is put in ``bare`` (a set of
+    (pid, start time)) and not waited for again: it cleared its environment (this fallback's limit)."""
+    found, unsure = [], []
     for proc in procs:
         try:
             env = proc.environ()
+            if env:
+                if env.get(TAG) == tag:
+                    found.append(proc.pid)
+                continue
+            if (proc.pid, proc.create_time()) in bare or proc.status() == psutil.STATUS_ZOMBIE:
+                continue
+            if psutil.Process(proc.ppid()).environ().get(TAG) == tag:
+                unsure.append(proc)
         except (psutil.Error, OSError):
             continue
-        if env or proc.pid == 2 or proc.ppid() in (0, 2):
-            found[proc.pid] = env.get(TAG)
-        else:
-            unsure.append(proc)
     deadline = time.monotonic() + wait
     while unsure and time.monotonic() < deadline:
         time.sleep(poll)
@@ -50,12 +56,19 @@ def _tags(procs, wait=EXEC_WAIT, poll=0.002):
                 env = proc.environ()
             except (psutil.Error, OSError):
                 continue
-            if env:
-                found[proc.pid] = env.get(TAG)
-            else:
+            if not env:
                 still.append(proc)
+            elif env.get(TAG) == tag:
+                found.append(proc.pid)
         unsure = still
-    return found
+    if len(bare) + len(unsure) > 4096:
+        bare.clear()
+    for proc in unsure:
+        try:
+            bare.add((proc.pid, proc.create_time()))
+        except (psutil.Error, OSError):
+            pass
+    return sorted(found)
 
 
 def cgroup2_root(mountinfo='/proc/self/mountinfo'):
@@ -212,6 +225,7 @@ class TaggedTree(object):
 
     def __init__(self, owner):
         self.owner = owner
+        self.bare = set()   # (pid, start time) of processes seen without an environment past an exec's wait
 
     def describe(self):
         return 'environment tag %s (no writable cgroup v2 here)' % TAG
@@ -221,14 +235,14 @@ class TaggedTree(object):
         return [], {TAG: tag}, tag
 
     def members(self, tag):
-        return sorted(pid for pid, found in _tags(psutil.process_iter()).items() if found == tag)
+        return _members(psutil.process_iter(), tag, self.bare)
 
     def owns(self, tag, pid):
         try:
             proc = psutil.Process(pid)
         except (psutil.Error, OSError):
             return False
-        return _tags([proc]).get(pid) == tag
+        return _members([proc], tag, self.bare) == [pid]
 
     def signal(self, tag):
         _kill_passes(lambda: [p for p in self.members(tag) if p != os.getpid()])

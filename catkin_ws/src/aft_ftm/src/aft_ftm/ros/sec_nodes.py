@@ -18,6 +18,7 @@ from ..recovery import SiteRole
 from . import tls_transport
 from .alarms import alarm
 from .diagnostics import Diagnostics
+from .fail_stop import fail_stop
 from .params import param
 from .persistent_service import open_service
 from .ports import Ports, wait_for_connections
@@ -186,11 +187,12 @@ class SecGateNode(object):
             executed again, and, while this site serves, answered ERROR "outcome unknown" so the
             call ends). A corrupt log, or one another process holds, stops the gate at set-up, naming
             it; 'none' keeps the floors in memory only (a WARN in the diagnostics); a write that fails
-            fail-stops the gate (``replay_log`` alarm): its site stops, and the peer takes over.
+            refuses the request (``replay_log`` alarm) and every one after it, and fail-stops the site
+            (port fail_stop), so that its peer takes over, unless the site serves alone.
         ~site (str, server side, default ''), ~witness (str, default ''): this replica's site and its
             witness's service: whether the site serves now (an ``earlier_run`` is answered only then:
             a backup that re-joined leaves a call still in flight to the primary, which answers it).
-            Without a witness, ~role says.
+            Without a witness it answers (no re-joins then).
         ~replay_sync (bool, true): each write group flushed to the device (fdatasync) before its
             requests go on, so a power loss keeps it too; false: a crash of the process only.
     Services called: certificate (aft_msgs/Certificate): the CA's.
@@ -222,7 +224,8 @@ class SecGateNode(object):
                             PortSpec('requests_out', PUBLISH, 'aft_msgs/Request'),
                             PortSpec('replies_in', SUBSCRIBE, 'aft_msgs/Reply'),
                             PortSpec('replies_out', PUBLISH, 'aft_msgs/Reply'),
-                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
+                            PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
+                            PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')],
                            {'requests_in': self._on_request, 'replies_in': self._on_reply},
                            listeners={'requests_out': _ResendOnConnect(self)})
         self.sent = {}            # client side: (origin, id) -> sealed request not answered yet
@@ -240,6 +243,7 @@ class SecGateNode(object):
             if path != 'none':
                 self.replay_log = replay_log.ReplayLog(path, sync=param('replay_sync', config.flag, True))
         self.restored = 0         # origins whose floors an earlier run left (server side)
+        self.fail_stopped = False
         self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
         self.witness = param('witness', config.witness_service, '') if self.side == 'server' else ''
         self.earlier_told = collections.OrderedDict()   # (origin, id) refused as earlier_run, alarmed once
@@ -259,8 +263,8 @@ class SecGateNode(object):
 
     def setup(self, timeout):
         if self.replay_log is not None:
-            try:   # before any request: one an earlier run let through must not pass now
-                floors = self.replay_log.open()
+            try:   # before any request: one an earlier run let through must not pass now (the gate of a
+                floors = self.replay_log.open(wait=min(timeout, 5.0))   # site started again may still be ending)
             except (replay_log.CorruptReplayLog, OSError) as e:
                 rospy.logerr('%s: the replay log (~replay_log) cannot be used: %s', rospy.get_name(), e)
                 return False
@@ -273,8 +277,7 @@ class SecGateNode(object):
             rospy.loginfo('%s: replay floors of %d origin(s) restored from %s%s', rospy.get_name(), len(floors),
                           self.replay_log.path, ' (%d torn line(s) at its end dropped)' % self.replay_log.dropped
                           if self.replay_log.dropped else '')
-            self.configuration = follow_site_role(self.site_role, self.witness, report=lambda detail: alarm(
-                self.ports, 'witness', 'forged_configuration', detail))
+
         elif self.side == 'server':
             rospy.logwarn('%s: ~replay_log is none: the replay floors are in memory only; started again, this gate '
                           'takes requests an earlier run let through', rospy.get_name())
@@ -286,6 +289,11 @@ class SecGateNode(object):
             return False
         deadline = time.monotonic() + timeout
         self.ports.bind('alarms', queue_size=0)   # a status refused raises an alarm from now on
+        if self.replay_log is not None:   # (after the alarms: a forged configuration is told there)
+            self.configuration = follow_site_role(self.site_role, self.witness, report=lambda detail: alarm(
+                self.ports, 'witness', 'forged_configuration', detail))
+            if self.site_role.site:
+                self.ports.bind('fail_stop')   # bound now: heard by the crash detector when it is needed
         # The CA's status first (latched: it comes at once from a running CA): no certificate is
         # taken before it says which are revoked and what time it is.
         self.status_sub = rospy.Subscriber('certificate_status', CertificateStatus, self._on_status, queue_size=10)
@@ -607,19 +615,24 @@ class SecGateNode(object):
                 self.rejected += 1
         if first:
             self._reject(error, request)
-        serving = self.site_role.role in (Role.PRIMARY, Role.ALONE) if self.site_role.epoch is not None \
-            else (not self.witness and self.role != Role.BACKUP)
-        if serving:
+        # Without a witness there are no re-joins: a gate that restarted restarted with its whole
+        # deployment, and one that receives requests may answer (a promoted backup too).
+        serving = self.site_role.role in (Role.PRIMARY, Role.ALONE) if self.witness else True
+        if serving:   # its epoch: a deposed primary's answer is refused as stale by the Proxy
             self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client,
                                  oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
-                                 status=Reply.ERROR, epoch=0, error='outcome unknown: %s' % error.detail),
-                          nonce, party)   # (epoch 0: taken by a Proxy that saw the epochs of an earlier history)
+                                 status=Reply.ERROR, epoch=self.site_role.epoch or 0,
+                                 error='outcome unknown: %s' % error.detail), nonce, party)
 
     def _fail_stop(self, why):
-        """The replay log failed: nothing more can be let through safely. The gate stops (a required node:
-        its site stops with it, and the peer takes over) rather than refuse every request for ever."""
-        rospy.logfatal('%s: %s: stopping', rospy.get_name(), why)
-        rospy.signal_shutdown('the replay log failed')
+        """The replay log failed: nothing more can be let through safely. A replica with a peer that can
+        take over fail-stops its site (the peer fences it and serves), once, rather than refuse every
+        request for ever. Alone (the only copy of the state) or outside a replica it stays, refusing
+        each request with the alarm, its diagnostics ERROR, for an operator to act."""
+        if not self.site_role.site or self.site_role.alone() or self.fail_stopped:
+            return
+        self.fail_stopped = True
+        fail_stop(self.ports, self.site_role.site, '%s: %s' % (rospy.get_name(), why))
 
     def _too_large(self, request, size):
         """A client's request larger sealed than a server gate takes: answered here, not executed. Sent
