@@ -185,21 +185,26 @@ class SecGateNode(object):
             let through: below a watermark as a replay (told to renumber), the others as
             ``earlier_run`` (in flight then, or its Proxy's last: it may have executed; never
             executed again, and, while this site serves, answered ERROR "outcome unknown" so the
-            call ends). A corrupt log, or one another process holds, stops the gate at set-up, naming
-            it; 'none' keeps the floors in memory only (a WARN in the diagnostics); a write that fails
-            refuses the request (``replay_log`` alarm) and every one after it, and fail-stops the site
-            (port fail_stop), so that its peer takes over, unless the site serves alone.
-        ~site (str, server side, default ''), ~witness (str, default ''): this replica's site and its
-            witness's service: whether the site serves now (an ``earlier_run`` is answered only then:
-            a backup that re-joined leaves a call still in flight to the primary, which answers it).
-            Without a witness it answers (no re-joins then).
+            call ends). A corrupt log, or one another process still holds after up to 5 s (the gate
+            of a site started earlier may be ending), stops the gate at set-up, naming it; 'none'
+            keeps the floors in memory only (a WARN in the diagnostics); a write that fails refuses
+            the request (``replay_log`` alarm) and every one after it, its diagnostics ERROR, and
+            fail-stops its site, once, through its crash detector (port fail_stop, bound with a
+            replay log and ~site), so that its peer takes over; a site serving alone by the witness's
+            configuration, or a gate with no ~site, stays, refusing.
+        ~site (str, server side, default ''), ~witness (str, server side, default '': none): with a
+            replay log, the site this gate fail-stops and the witness whose configurations say
+            whether it serves: an ``earlier_run`` is answered (with the configuration's epoch) only
+            then (a backup that re-joined leaves a call still in flight to the primary, which answers
+            it). Without a witness it answers (no re-joins then).
         ~replay_sync (bool, true): each write group flushed to the device (fdatasync) before its
             requests go on, so a power loss keeps it too; false: a crash of the process only.
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
         dropped at once, and its party's messages refused (``revoked``, ``expired``)
-    Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm)
+    Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm),
+        fail_stop (aft_msgs/Failure; server side: its site's fail-stop when its replay log fails)
     Services: ~rebind (aft_msgs/Rebind)
     """
 
