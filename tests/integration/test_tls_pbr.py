@@ -164,7 +164,9 @@ try:
     for name, party in (('plain_attacker', None), ('client2_attacker', 'client2')):
         env = deployment.tls_env(party) if party and with_tls else dict(
             (k, v) for k, v in os.environ.items() if not k.startswith('AFT_TLS_'))
-        attacker = subprocess.run([sys.executable, attack, name] + ([policy] if with_tls else []), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        # (stderr apart: rospy's log lines on stderr, written while a buffered stdout is flushed, once
+        # cut a NAME line in two in CI)
+        attacker = subprocess.run([sys.executable, attack, name] + ([policy] if with_tls else []), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                   env=env, timeout=90, universal_newlines=True)
         print('%s: %s' % (name, ' | '.join(l for l in attacker.stdout.splitlines() if l.startswith(('CALL', 'SUBSCRIBERS', 'XMLRPC', 'SWEEP', 'NAME')))))
         if with_tls:   # (the control's pair may be left with nobody serving)
