@@ -8,43 +8,58 @@ powered off at once; the deployment is started again with the same keys; the cap
 published again in a random order, some twice. Checked: each is refused by both server gates with an
 alarm (``replay`` below the watermark, ``earlier_run`` for the last call), nothing of them executes
 (the new client's first call finds a blank account), and the client's calls are answered right.
+
+The second test: a site down while a Proxy called through its peer, then re-joined. Its gate recorded
+only what it saw while it ran; at the join it asks the peer's gate for its floors (security.seal_floors).
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail."""
 from leftovers import run_seeded
 
-SCRIPT = r'''
+# Both scripts begin so: the seed, a master of their own, a log directory
+PROLOGUE = r'''
 import os, random, sys, tempfile, time
 import rospy
+from diagnostic_msgs.msg import DiagnosticArray
 from aft_msgs.msg import Alarm, Request
 from aft_msgs.srv import Account
 from aft_examples.bank import ReplyChecker, operation
 from aft_examples.ros.bank_nodes import account_caller
-from aft_examples.ros.deployment import PbrDeployment, start_retrying
+from aft_examples.ros.deployment import PbrDeployment, start_retrying, witness_status
 from aft_ftm.ros.graph import start_master
 from aft_ftm.sites import wait_until
 
 seed = int(sys.argv[1])
 rng = random.Random(seed)
-CALLS = rng.randrange(3, 15)
 log_dir = tempfile.mkdtemp(prefix='aft_sec_restart_')
 core = start_master(log_dir)
-first = PbrDeployment(os.path.join(log_dir, 'first'), timeout=0.15, sec=True)
-again = None
-try:
-    rospy.init_node('attacker', disable_signals=True)
-    start_retrying(first)
+
+
+def calls_captured(count, what):
+    """count calls of the bank's client, every sealed request of /proxy captured on /ftm/pxy2pro: (its
+    persistent proxy, caller, checker, {id: request}); exits naming ``what`` unless all are right."""
     captured = {}
     capture = rospy.Subscriber('/ftm/pxy2pro', Request,
                                lambda m: captured.setdefault(m.id, m) if m.origin == '/proxy' else None)
     proxy = rospy.ServiceProxy('/account', Account, persistent=True)
     proxy.wait_for_service(30)
     call, checker = account_caller(proxy), ReplyChecker()
-    for i in range(CALLS):
+    for i in range(count):
         op = operation(i)
         checker.check(checker.expect(*op), call(*op))
-    if checker.summary()['correct'] != CALLS or not wait_until(lambda: len(captured) == CALLS, 5.0, 0.05):
-        sys.exit('seed %d: the first run: %s, %d requests captured' % (seed, checker.summary(), len(captured)))
+    if checker.summary()['correct'] != count or not wait_until(lambda: len(captured) == count, 5.0, 0.05):
+        sys.exit('seed %d: %s: %s, %d requests captured' % (seed, what, checker.summary(), len(captured)))
     capture.unregister()
+    return proxy, call, checker, captured
+'''
+
+SCRIPT = PROLOGUE + r'''
+CALLS = rng.randrange(3, 15)
+first = PbrDeployment(os.path.join(log_dir, 'first'), timeout=0.15, sec=True)
+again = None
+try:
+    rospy.init_node('attacker', disable_signals=True)
+    start_retrying(first)
+    proxy, _, _, captured = calls_captured(CALLS, 'the first run')
     proxy.close()
     first.teardown()                                   # every site powered off at once
     print('seed %d: %d calls answered and captured; the deployment powered off' % (seed, CALLS), flush=True)
@@ -98,3 +113,72 @@ print('ok')
 
 def test_captured_requests_are_refused_by_a_deployment_started_again_with_the_same_keys():
     run_seeded(SCRIPT, home_prefix='aft_sec_restart_home_')
+
+
+REJOIN = PROLOGUE + r'''
+CALLS = rng.randrange(4, 15)
+d = PbrDeployment(log_dir, timeout=0.15, sec=True)
+try:
+    rospy.init_node('attacker', disable_signals=True)
+    start_retrying(d)
+    alarms, learned = [], {}
+    rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append((m.source, m.kind, m.detail)))
+
+    def on_diagnostics(array):
+        for status in array.status:
+            if status.name.endswith('sec_gate'):
+                learned.update({status.name.split(': ')[-1]: int(v.value) for v in status.values   # ('aft_ftm: NODE')
+                                if v.key == 'replay_floors_learned'})
+    rospy.Subscriber('/diagnostics', DiagnosticArray, on_diagnostics)
+    d.sites['slave'].power_off()                       # SLAVE down; the client calls through MASTER alone
+    if not wait_until(lambda: getattr(witness_status(d.witness_service), 'backup', None) == '', 20.0, 0.05):
+        sys.exit('seed %d: SLAVE was not excluded: %s' % (seed, witness_status(d.witness_service)))
+    proxy, call, checker, captured = calls_captured(CALLS, 'calls through MASTER alone')
+    print('seed %d: %d calls through MASTER alone, captured; SLAVE relaunched' % (seed, CALLS), flush=True)
+    d.relaunch('slave', role='backup')                 # the Proxy stays silent from here on
+    if not wait_until(lambda: getattr(witness_status(d.witness_service), 'backup', None) == 'slave', 60.0, 0.1):
+        sys.exit('seed %d: SLAVE did not re-join: %s' % (seed, witness_status(d.witness_service)))
+    if not wait_until(lambda: learned.get('/slave/sec_gate', 0) >= 1, 20.0, 0.1):
+        sys.exit('seed %d: SLAVE\'s gate learned no floors from MASTER\'s: %s; alarms %s'
+                 % (seed, learned, [a[:2] for a in alarms[-8:]]))
+    replay = rospy.Publisher('/ftm/pxy2pro', Request, queue_size=100)
+    if not wait_until(lambda: replay.get_num_connections() >= 2, 10.0, 0.05):
+        sys.exit('seed %d: the replays reach %d server gates, not both' % (seed, replay.get_num_connections()))
+    time.sleep(0.5)
+    ids = sorted(captured)[:-1]                        # (the last call is not below a watermark yet)
+
+    def refused_by(gate):
+        return {int(dd.split('/proxy/')[1].split()[0]) for s, k, dd in list(alarms)
+                if s == gate and k == 'replay' and '/proxy/' in dd}
+
+    def replay_all(gates):
+        for rid in rng.sample(ids, len(ids)):
+            replay.publish(captured[rid])
+            time.sleep(rng.choice([0.0, 0.01, 0.05]))
+        for gate in gates:
+            if not wait_until(lambda: refused_by(gate) >= set(ids), 10.0, 0.05):
+                sys.exit('seed %d: %s refused %s of the ids %s; alarms %s'
+                         % (seed, gate, sorted(refused_by(gate)), ids, [a[:2] for a in alarms[-10:]]))
+    replay_all(('/master/sec_gate', '/slave/sec_gate'))
+    print('seed %d: both gates refused the %d replays (SLAVE by the floors it learned)' % (seed, len(ids)), flush=True)
+    d.sites['master'].power_off()                      # SLAVE takes over: the replays again, then the client
+    if not wait_until(lambda: getattr(witness_status(d.witness_service), 'primary', None) == 'slave', 20.0, 0.05):
+        sys.exit('seed %d: SLAVE did not take over: %s' % (seed, witness_status(d.witness_service)))
+    alarms[:] = [a for a in alarms if a[0] != '/slave/sec_gate']
+    replay_all(('/slave/sec_gate',))
+    for i in range(CALLS, CALLS + rng.randrange(3, 8)):
+        op = operation(i)
+        checker.check(checker.expect(*op), call(*op))   # a replay executed: the balance is off
+    summary = checker.summary()
+    if summary != dict(summary, lost=0, duplicated=0, reordered=0, errors=0) or summary['correct'] < CALLS + 3:
+        sys.exit('seed %d: after the failover and the replays: %s' % (seed, summary))
+    print('seed %d: SLAVE, primary, refused them again; the client: %s' % (seed, summary), flush=True)
+finally:
+    d.teardown()
+    core.stop()
+print('ok')
+'''
+
+
+def test_a_site_rejoined_after_calls_it_missed_refuses_their_replays_as_a_backup_and_as_primary():
+    run_seeded(REJOIN, home_prefix='aft_sec_rejoin_home_')

@@ -50,6 +50,7 @@ def gate(side='server', tls=False):
     node.quota = security.PartyQuota()
     node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
     node.site_role, node.witness = SiteRole(''), ''
+    node.floors_learned, node.floors_asked, node.floors_missing = 0, set(), None
     return node
 
 
@@ -646,3 +647,143 @@ def test_a_gate_without_a_replay_log_says_its_floors_are_in_memory_only():
     assert report.level == health.Level.WARN and 'replay floors in memory only' in report.message
     assert report.value('replay_log') == 'none'
     assert gate(side='client', tls=True)._health().level == health.Level.OK
+
+
+# -- the peer gate's floors, at a join ----------------------------------------------------------------
+KEYS = {'client': CLIENT, 'server': SERVER}
+
+
+def paired_gate(path, site):
+    """A logged server gate of site that opens what the client and its own party (the peer gate) sealed."""
+    server = logged_gate(path)
+    server._open = lambda party, blob, header: security.open_sealed(SERVER, KEYS[party].verify_public, blob, header)
+    server.site_role, server.fail_stopped = SiteRole(site), False
+    server.FLOOR_RETRY = 0.0
+    return server
+
+
+class Asked(object):
+    """rospy.ServiceProxy's stand-in: each call answered by answer(nonce), the services asked kept."""
+
+    def __init__(self, answer):
+        self.answer, self.services = answer, []
+
+    def __call__(self, service, cls):
+        self.services.append(service)
+        return lambda nonce: self.answer(nonce)
+
+
+def served_by(peer):
+    return lambda nonce: peer._serve_floors(type('Req', (), {'nonce': nonce})())
+
+
+def test_a_site_back_from_down_learns_its_peers_floors_and_refuses_replays_of_what_it_missed(tmp_path, monkeypatch):
+    """Issue 16, "replay protection across a re-integration": a site's gate records what it sees while it runs.
+    SLAVE was down while a Proxy made 20 calls through MASTER, then the Proxy fell silent; an attacker who
+    captured them replays them to SLAVE once paired again. Before, SLAVE's gate let every one through (only
+    the Protocol behind it, within its reply cache, stood in the way); now SLAVE asks MASTER's gate for its
+    floors at the join and refuses them, alarmed, and keeps the floors on its own log."""
+    master = paired_gate(tmp_path / 'master.log', 'master')
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    captured = [sealed_request(100 + i, 100 + i) for i in range(20)]
+    for request in captured:
+        master._on_request(request)
+    control = paired_gate(tmp_path / 'control.log', 'slave')   # the gate as it was: no floors asked
+    control._on_request(captured[3])
+    assert [n for n, _ in control.ports.published] == ['requests_out']   # the gap this closes
+    control.replay_log.close()
+
+    asked = Asked(served_by(master))
+    monkeypatch.setattr(rospy, 'ServiceProxy', asked)
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    slave._pull_floors('master')
+    assert asked.services == ['/master/sec_gate/replay_floors']
+    assert slave.floors_learned == 1 and slave._health().value('replay_floors_learned') == '1'
+    for request in captured[:-1]:
+        slave._on_request(request)
+    published = slave.ports.published
+    assert [m for n, m in published if n == 'requests_out'] == [], 'a replay passed the re-joined gate'
+    assert [m.kind for n, m in published if n == 'alarms'] == ['replay'] * 19
+    # the last call may still be in flight at MASTER: not a replay, it passes (the Protocol drops a copy)
+    slave.ports.published.clear()
+    slave._on_request(captured[-1])
+    assert [n for n, _ in slave.ports.published] == ['requests_out']
+    slave.replay_log.close()
+    from aft_ftm import replay_log
+    again = replay_log.ReplayLog(str(tmp_path / 'slave.log'))
+    assert again.open()['/proxy'][0] == 119                            # on SLAVE's own log: it holds restarted
+    again.close()
+    master.replay_log.close()
+
+
+def test_learned_floors_only_rise_and_never_make_a_call_in_flight_an_earlier_run():
+    guard = security.ReplayGuard()
+    guard.advance('/p', 50, 60)
+    assert guard.learn({'/p': 40, '/q': 7, '/r': 0}) == ['/q']
+    assert guard.floors('/p') == (50, 60) and guard.floors('/q') == (7, 0) and guard.earlier == {}
+    guard.check('/q', 7)                                                # in flight at the peer: passes
+    with pytest.raises(Rejected) as e:
+        guard.check('/q', 6)
+    assert e.value.kind == 'replay'
+
+
+@pytest.mark.parametrize('answer, kind', [
+    ('signed by another party', 'bad_signature'),
+    ('an old answer, another nonce', 'tampered'),
+    ('not a list of pairs', 'malformed'),
+])
+def test_a_forged_or_replayed_floors_answer_is_refused_alarmed_and_changes_nothing(tmp_path, monkeypatch, answer, kind):
+    """An attacker who registers /master/sec_gate/replay_floors (ROS 1 lets any node) answers with floors
+    that would make SLAVE refuse every honest call: refused, with the refusal's alarm, then
+    floors_unavailable once the tries are spent; SLAVE's floors and log unchanged."""
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    slave.FLOOR_TRIES = 2
+    huge = {'/proxy': 2 ** 40}
+    forged = {'signed by another party': lambda nonce: security.seal(CLIENT, SERVER.box_public,
+                                                                     security.floors_header('server', nonce),
+                                                                     b'[["/proxy", 1099511627776]]'),
+              'an old answer, another nonce': lambda nonce: security.seal_floors(SERVER, huge, 'an-old-nonce'),
+              'not a list of pairs': lambda nonce: security.seal(SERVER, SERVER.box_public,
+                                                                 security.floors_header('server', nonce),
+                                                                 b'{"/proxy": 1099511627776}')}[answer]
+    monkeypatch.setattr(rospy, 'ServiceProxy', Asked(lambda nonce: type('R', (), {'sealed': forged(nonce)})()))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    slave._pull_floors('master')
+    kinds = [m.kind for n, m in slave.ports.published if n == 'alarms']
+    assert kinds == [kind, kind, 'floors_unavailable'], kinds
+    assert slave.replays.watermarks == {} and slave.floors_learned == 0
+    slave._on_request(sealed_request(5, 5))                           # an honest call still passes
+    assert [n for n, _ in slave.ports.published][-1] == 'requests_out'
+    slave.replay_log.close()
+
+
+def test_a_peer_gate_that_does_not_answer_raises_floors_unavailable_and_a_warn_not_an_attack(tmp_path, monkeypatch):
+    from aft_ftm import change_model
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    slave.FLOOR_TRIES = 3
+
+    def gone(nonce):
+        raise rospy.ServiceException('unable to connect to service: [Errno 111] Connection refused')
+    monkeypatch.setattr(rospy, 'ServiceProxy', Asked(gone))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    slave._pull_floors('master')
+    (port, raised), = slave.ports.published
+    assert (port, raised.kind) == ('alarms', 'floors_unavailable') and 'Connection refused' in raised.detail
+    assert change_model.observed_fault('sec', 'floors_unavailable') is None
+    report = slave._health()
+    assert report.level == health.Level.WARN and "the replay floors of master's gate not learned" in report.message
+    slave.replay_log.close()
+
+
+def test_each_pairing_of_the_site_asks_its_peer_once_and_nothing_else_asks():
+    server = gate()
+    server.site_role = SiteRole('slave')
+    asked = []
+    done = threading.Event()
+    server._pull_floors = lambda peer: (asked.append(peer), done.set())
+    for configuration in [(3, 'master', ''), (4, 'master', 'other'), (5, 'master', 'slave'), (5, 'master', 'slave'),
+                          (6, 'slave', ''), (7, 'slave', 'master')]:
+        done.clear()
+        server._on_configuration(*configuration)
+        done.wait(0.5 if configuration[0] in (5, 7) else 0.05)
+    assert asked == ['master', 'master']                              # epochs 5 and 7, once each

@@ -49,8 +49,9 @@ ALARM_FAULTS = {
 SEC_UNAVAILABLE = ('ca_silent', 'ca_unreachable')
 # A request an earlier run of a gate let through, sent after the gate started again: an honest Proxy's
 # re-send of a call in flight at the restart looks the same as a replay of it. Refused either way. A
-# replay log that cannot be written is a fault of this host's disk.
-SEC_NOT_ATTACKS = SEC_UNAVAILABLE + ('earlier_run', 'replay_log')
+# replay log that cannot be written is a fault of this host's disk. A peer gate's floors not learned at a
+# join (its site gone, slow) is an availability fault.
+SEC_NOT_ATTACKS = SEC_UNAVAILABLE + ('earlier_run', 'replay_log', 'floors_unavailable')
 
 
 def observed_fault(mechanism, kind):

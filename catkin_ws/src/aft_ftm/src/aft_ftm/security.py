@@ -725,6 +725,18 @@ class ReplayGuard(object):
         self.watermarks[origin] = max(self.watermarks.get(origin, 0), oldest_pending)
         self.highest[origin] = max(self.highest.get(origin, 0), request_id)
 
+    def learn(self, watermarks):
+        """Take the watermarks another gate of this service holds (its peer's, at a join: see
+        seal_floors), {origin: watermark}: every id below one was answered, wherever. Only watermarks
+        are taken, never a highest id (a request in flight there is not a replay here), and only raised.
+        Returns the origins whose watermark rose."""
+        raised = []
+        for origin, watermark in watermarks.items():
+            if watermark > self.watermarks.get(origin, 0):
+                self.watermarks[origin] = watermark
+                raised.append(origin)
+        return raised
+
     def floors(self, origin):
         """(watermark, highest) of origin now: what the replay log must hold before its request goes on."""
         return self.watermarks.get(origin, 0), self.highest.get(origin, 0)
@@ -733,6 +745,42 @@ class ReplayGuard(object):
         """The lowest id of origin above every one verified here: where a Proxy started again with its
         clock behind numbers from (a STALE_ID answer, aft_msgs/Reply)."""
         return max(self.watermarks.get(origin, 0), self.highest.get(origin, 0) + 1)
+
+
+MAX_FLOOR_ORIGINS = 1000000   # a larger floors answer is refused (``malformed``)
+
+
+def floors_header(party, nonce):
+    """The header a server gate's floors answer is signed with: sealed by and for its own party
+    (both sites' gates), naming the asker's nonce."""
+    return {'dir': 'floors', 'nonce': nonce, 'to': party}
+
+
+def seal_floors(me, watermarks, nonce):
+    """A server gate's replay watermarks ({origin: watermark}) for its peer's gate, which asked with
+    nonce: ciphered for this gate's own party and signed by it (a peer's gate is the same party)."""
+    plaintext = json.dumps(sorted([origin, int(mark)] for origin, mark in watermarks.items() if mark > 0),
+                           separators=(',', ':')).encode()
+    return seal(me, me.box_public, floors_header(me.name, nonce), plaintext)
+
+
+def read_floors(plaintext):
+    """{origin: watermark} of an opened floors answer; Rejected ('malformed') if it is not a list of
+    [origin, watermark] pairs (a name, an integer >= 0), at most MAX_FLOOR_ORIGINS of them."""
+    try:
+        pairs = json.loads(bytes(plaintext).decode())
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        pairs = None
+    if not isinstance(pairs, list) or len(pairs) > MAX_FLOOR_ORIGINS:
+        raise Rejected('malformed', 'a floors answer is not a list of at most %d [origin, watermark] pairs'
+                       % MAX_FLOOR_ORIGINS)
+    out = {}
+    for pair in pairs:
+        if not (isinstance(pair, list) and len(pair) == 2 and isinstance(pair[0], str) and pair[0]
+                and isinstance(pair[1], int) and not isinstance(pair[1], bool) and 0 <= pair[1] < 2 ** 64):
+            raise Rejected('malformed', 'a floors answer holds %r: not an [origin, watermark] pair' % (pair,))
+        out[pair[0]] = max(out.get(pair[0], 0), pair[1])
+    return out
 
 
 class PartyQuota(object):

@@ -8,9 +8,10 @@ import time
 
 import rospy
 from aft_msgs.msg import CertificateStatus, Reply, Request
-from aft_msgs.srv import Certificate, CertificateResponse
+from aft_msgs.srv import Certificate, CertificateResponse, ReplayFloors, ReplayFloorsResponse
 
 from .. import config, health, replay_log, sec_policy, security
+from ..change_model import SEC_UNAVAILABLE
 from ..health import Level, Report
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
@@ -199,13 +200,21 @@ class SecGateNode(object):
             it). Without a witness it answers (no re-joins then).
         ~replay_sync (bool, true): each write group flushed to the device (fdatasync) before its
             requests go on, so a power loss keeps it too; false: a crash of the process only.
+        Floors at a join (server side, with ~site and ~witness): each configuration of the witness that
+            pairs this site with a peer makes this gate ask the peer's gate (/PEER/<this node's base
+            name>/replay_floors) for its watermarks, and take the higher ones, on its replay log too
+            (security.ReplayGuard.learn): replays of requests its Proxies sent while this site was down
+            are refused here as well, even from a Proxy silent since. The answer is signed by the
+            gates' party and ciphered for it; a forged or altered one is refused with its alarm, and a
+            peer that does not answer within FLOOR_TRIES tries raises ``floors_unavailable`` (a WARN).
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
         dropped at once, and its party's messages refused (``revoked``, ``expired``)
     Publishes: requests_out (aft_msgs/Request), replies_out (aft_msgs/Reply), alarms (aft_msgs/Alarm),
         fail_stop (aft_msgs/Failure; server side: its site's fail-stop when its replay log fails)
-    Services: ~rebind (aft_msgs/Rebind)
+    Services: ~rebind (aft_msgs/Rebind), ~replay_floors (aft_msgs/ReplayFloors; server side)
+    Services called: the peer gate's ~replay_floors (server side, at a join)
     """
 
     def __init__(self):
@@ -248,6 +257,9 @@ class SecGateNode(object):
             if path != 'none':
                 self.replay_log = replay_log.ReplayLog(path, sync=param('replay_sync', config.flag, True))
         self.restored = 0         # origins whose floors an earlier run left (server side)
+        self.floors_learned = 0   # origins whose watermark a peer gate's floors raised (server side)
+        self.floors_asked = set()   # (epoch, peer) whose floors were asked (server side)
+        self.floors_missing = None  # the peer whose floors could not be had, and why (server side)
         self.fail_stopped = False
         self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
         self.witness = param('witness', config.witness_service, '') if self.side == 'server' else ''
@@ -294,10 +306,11 @@ class SecGateNode(object):
             return False
         deadline = time.monotonic() + timeout
         self.ports.bind('alarms', queue_size=0)   # a status refused raises an alarm from now on
-        if self.replay_log is not None:   # (after the alarms: a forged configuration is told there)
+        if self.side == 'server':   # (after the alarms: a forged configuration is told there)
+            rospy.Service('~replay_floors', ReplayFloors, self._serve_floors)
             self.configuration = follow_site_role(self.site_role, self.witness, report=lambda detail: alarm(
-                self.ports, 'witness', 'forged_configuration', detail))
-            if self.site_role.site:
+                self.ports, 'witness', 'forged_configuration', detail), on_change=self._on_configuration)
+            if self.site_role.site and self.replay_log is not None:
                 self.ports.bind('fail_stop')   # bound now: heard by the crash detector when it is needed
         # The CA's status first (latched: it comes at once from a running CA): no certificate is
         # taken before it says which are revoked and what time it is.
@@ -347,13 +360,15 @@ class SecGateNode(object):
                                         ('tls', 'on' if self.tls else 'off')]
         if self.side == 'server':
             log = self.replay_log
-            values += [('replay_log', log.path if log else 'none'), ('replay_origins_restored', self.restored)]
+            values += [('replay_log', log.path if log else 'none'), ('replay_origins_restored', self.restored),
+                       ('replay_floors_learned', self.floors_learned)]
             if log is not None and log.broken:
                 report = Report(Level.ERROR, '%s: every request is refused' % log.broken, values)
             elif log is None:
-                told = 'replay floors in memory only (~replay_log none)'
-                report = Report(max(report.level, Level.WARN), told if report.level == Level.OK
-                                else '%s; %s' % (report.message, told), values)
+                report = _warn(report, 'replay floors in memory only (~replay_log none)', values)
+            missing = self.floors_missing
+            if missing is not None:
+                report = _warn(report, 'the replay floors of %s\'s gate not learned: %s' % missing, values)
         if self.tls:
             return Report(report.level, report.message, values)
         told = 'no TLS: its plaintext side is open to every node of the graph (%s)' % ', '.join(self._plaintext_side())
@@ -629,6 +644,78 @@ class SecGateNode(object):
                                  status=Reply.ERROR, epoch=self.site_role.epoch or 0,
                                  error='outcome unknown: %s' % error.detail), nonce, party)
 
+    # -- the peer gate's floors, at a join ----------------------------------------------------------
+    FLOOR_TRIES = 5          # asks of the peer's gate per configuration, FLOOR_RETRY s apart
+    FLOOR_RETRY = 1.0
+    FLOOR_TIMEOUT = 2.0      # the longest wait for one answer
+
+    def _serve_floors(self, req):
+        """This gate's watermarks for its peer's gate: sealed by and for the gates' party."""
+        if len(req.nonce) > 128:
+            raise rospy.ServiceException('a nonce of %d characters: at most 128' % len(req.nonce))
+        with self.lock:
+            marks = dict(self.replays.watermarks)
+        return ReplayFloorsResponse(sealed=security.seal_floors(self.me, marks, req.nonce))
+
+    def _on_configuration(self, epoch, primary, backup):
+        """A configuration of the witness: one that pairs this site with a peer has the peer's floors
+        asked for, once per (epoch, peer), in a thread of its own."""
+        site = self.site_role.site
+        if not (primary and backup) or site not in (primary, backup):
+            return
+        peer = backup if site == primary else primary
+        with self.lock:
+            if (epoch, peer) in self.floors_asked:
+                return
+            self.floors_asked.add((epoch, peer))
+        threading.Thread(target=self._pull_floors, args=(peer,), name='floors', daemon=True).start()
+
+    def _pull_floors(self, peer):
+        service = '/%s/%s/replay_floors' % (peer, rospy.get_name().rsplit('/', 1)[-1])
+        why = 'never asked'
+        for attempt in range(self.FLOOR_TRIES):
+            if attempt:
+                time.sleep(self.FLOOR_RETRY)
+            if rospy.is_shutdown():
+                return
+            nonce = os.urandom(12).hex()
+            answer, error = _within(lambda: rospy.ServiceProxy(service, ReplayFloors)(nonce=nonce), self.FLOOR_TIMEOUT)
+            if error is not None:
+                why = 'no answer within %.1f s' % self.FLOOR_TIMEOUT if error is TIMED_OUT else str(error)[:200]
+                continue
+            try:
+                marks = security.read_floors(self._open(self.me.name, answer.sealed,
+                                                        security.floors_header(self.me.name, nonce)))
+            except security.Rejected as e:
+                if e.kind in SEC_UNAVAILABLE:
+                    why = e.detail
+                    continue
+                self._reject(security.Rejected(e.kind, 'the replay floors %s answered: %s' % (service, e.detail)))
+                why = 'its answer was refused (%s)' % e.kind
+                continue
+            self._learn_floors(peer, marks)
+            return
+        self.floors_missing = (peer, why)
+        alarm(self.ports, 'sec', 'floors_unavailable', 'the replay floors of %s could not be had in %d tries (%s): '
+              'requests its Proxies sent while this site was down, replayed now, pass this gate (the Protocol '
+              'still drops those below its own watermarks)' % (service, self.FLOOR_TRIES, why))
+
+    def _learn_floors(self, peer, marks):
+        with self.lock:
+            raised = self.replays.learn(marks)
+            floors = [(origin, self.replays.floors(origin)) for origin in raised]
+        try:
+            for origin, floor in floors:
+                self._make_durable(origin, floor)
+        except security.Rejected as e:   # (the next request meets the broken log too)
+            self._reject(e)
+            self._fail_stop(e.detail)
+            return
+        self.floors_learned += len(raised)
+        self.floors_missing = None
+        rospy.loginfo('%s: the replay floors of %s\'s gate: %d origin(s), %d raised here', rospy.get_name(), peer,
+                      len(marks), len(raised))
+
     def _fail_stop(self, why):
         """The replay log failed: nothing more can be let through safely. A replica with a peer that can
         take over fail-stops its site (the peer fences it and serves), once, rather than refuse every
@@ -749,6 +836,12 @@ class SecGateNode(object):
 
 
 SEALED_ERROR = '(sealed)'   # the error text a reply carries on the wire: the real one is sealed with its payload
+
+
+def _warn(report, told, values):
+    """report at least WARN, told added to its message, with values."""
+    return Report(max(report.level, Level.WARN), told if report.level == Level.OK
+                  else '%s; %s' % (report.message, told), values)
 
 
 def _with_error(reply, error):

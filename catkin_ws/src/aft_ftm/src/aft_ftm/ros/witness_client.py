@@ -196,14 +196,19 @@ def from_witness_only(service, callback, report=None):
     return guarded
 
 
-def follow_site_role(site_role, witness, report=None):
+def follow_site_role(site_role, witness, report=None, on_change=None):
     """Keep an aft_ftm.recovery.SiteRole up to date with the configurations of the witness serving
-    ``witness`` (a replica's node, ``site_role.site`` set); returns the subscriber, or None outside a
-    replica or without a witness ('')."""
+    ``witness`` (a replica's node, ``site_role.site`` set), then call on_change(epoch, primary, backup)
+    if given; returns the subscriber, or None outside a replica or without a witness ('')."""
     if not site_role.site or not witness:
         return None
-    return rospy.Subscriber(configuration_topic(witness), Configuration, from_witness_only(
-        witness, lambda c: site_role.on_configuration(c.epoch, c.primary, c.backup), report), tcp_nodelay=True)
+
+    def heard(c):
+        site_role.on_configuration(c.epoch, c.primary, c.backup)
+        if on_change is not None:
+            on_change(c.epoch, c.primary, c.backup)
+    return rospy.Subscriber(configuration_topic(witness), Configuration, from_witness_only(witness, heard, report),
+                            tcp_nodelay=True)
 
 
 __all__ = ['Op', 'WitnessClient', 'follow_site_role', 'from_witness_only', 'witness_node', 'WitnessUnreachable', 'incarnation', 'site_launcher_pid',
