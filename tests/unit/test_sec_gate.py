@@ -50,7 +50,7 @@ def gate(side='server', tls=False):
     node.quota = security.PartyQuota()
     node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
     node.site_role, node.witness = SiteRole(''), ''
-    node.floors_learned, node.floors_asked, node.floors_missing = 0, set(), None
+    node.floors_learned, node.floors_asked, node.floors_missing = 0, None, None
     return node
 
 

@@ -258,7 +258,7 @@ class SecGateNode(object):
                 self.replay_log = replay_log.ReplayLog(path, sync=param('replay_sync', config.flag, True))
         self.restored = 0         # origins whose floors an earlier run left (server side)
         self.floors_learned = 0   # origins whose watermark a peer gate's floors raised (server side)
-        self.floors_asked = set()   # (epoch, peer) whose floors were asked (server side)
+        self.floors_asked = None    # the last (epoch, peer) whose floors were asked (server side; epochs only grow)
         self.floors_missing = None  # the peer whose floors could not be had, and why (server side)
         self.fail_stopped = False
         self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
@@ -665,9 +665,9 @@ class SecGateNode(object):
             return
         peer = backup if site == primary else primary
         with self.lock:
-            if (epoch, peer) in self.floors_asked:
+            if self.floors_asked == (epoch, peer):
                 return
-            self.floors_asked.add((epoch, peer))
+            self.floors_asked = (epoch, peer)
         threading.Thread(target=self._pull_floors, args=(peer,), name='floors', daemon=True).start()
 
     def _pull_floors(self, peer):
