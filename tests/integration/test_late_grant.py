@@ -32,7 +32,9 @@ AT, COUNT, LIMIT = rng.randrange(50, 300), 800, 90.0
 print('seed %d: MASTER and the witness frozen at reply %d' % (seed, AT), flush=True)
 log_dir = tempfile.mkdtemp(prefix='aft_late_grant_')
 core = start_master(log_dir)
-deployment = PbrDeployment(log_dir)
+# Detection at 300 ms: the point here is not detection speed, and under the suite's load a 30 ms detector
+# has suspected a healthy peer before a test's own fault (issue 15; README, Tests).
+deployment = PbrDeployment(log_dir, timeout=0.3)
 alarms, configurations, attempts, frozen = [], [], [], []
 
 

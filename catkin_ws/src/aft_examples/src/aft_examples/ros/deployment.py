@@ -320,6 +320,25 @@ def witness_status(service='/aft/witness/request', timeout=5.0):
         return None
 
 
+def current_pair(log_dir, service='/aft/witness/request'):
+    """(primary, backup) of the witness's configuration; RuntimeError naming it if there is no pair."""
+    conf = witness_status(service)
+    if conf is None or not conf.primary or not conf.backup:
+        raise RuntimeError('the witness has no pair (%s; logs in %s)' % (
+            'no answer' if conf is None else 'epoch %d: %r/%r' % (conf.epoch, conf.primary, conf.backup), log_dir))
+    return conf.primary, conf.backup
+
+
+def require_same_pair(primary, backup, log_dir, service='/aft/witness/request'):
+    """Raise RuntimeError, naming both pairs, unless the witness still has primary/backup: a benchmark
+    whose pair changed under it (a false suspicion under load) measured something else."""
+    after = witness_status(service)
+    if after is None or (after.primary, after.backup) != (primary, backup):
+        raise RuntimeError('the pair changed during the run (%s/%s, then %s): a false suspicion? (logs in %s)' % (
+            primary, backup, 'no answer from the witness' if after is None else '%s/%s, epoch %d' % (
+                after.primary, after.backup, after.epoch), log_dir))
+
+
 def last_failover(site, timeout=10.0):
     """The last failover record of site's Recovery (its latched ~events: the other records, starts,
     configurations and alarms, carry it as ``last_recovery``). Raises RuntimeError if there is none."""
