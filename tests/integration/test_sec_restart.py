@@ -13,6 +13,7 @@ The second test: a site down while a Proxy called through its peer, then re-join
 only what it saw while it ran; at the join it asks the peer's gate for its floors (security.seal_floors).
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail."""
+import pytest
 from leftovers import run_seeded
 
 # Both scripts begin so: the seed, a master of their own, a log directory
@@ -117,6 +118,7 @@ def test_captured_requests_are_refused_by_a_deployment_started_again_with_the_sa
 
 REJOIN = PROLOGUE + r'''
 CALLS = rng.randrange(4, 15)
+PAUSED = sys.argv[2] == 'paused'
 d = PbrDeployment(log_dir, timeout=0.15, sec=True)
 try:
     rospy.init_node('attacker', disable_signals=True)
@@ -135,10 +137,23 @@ try:
         sys.exit('seed %d: SLAVE was not excluded: %s' % (seed, witness_status(d.witness_service)))
     proxy, call, checker, captured = calls_captured(CALLS, 'calls through MASTER alone')
     print('seed %d: %d calls through MASTER alone, captured; SLAVE relaunched' % (seed, CALLS), flush=True)
+    gate = None
+    if PAUSED:   # MASTER's gate paused through the join, past SLAVE's first tries at its floors
+        import psutil, rosgraph, signal
+        from aft_ftm.ros.fencing import node_api
+        gate = psutil.Process(node_api(rosgraph.Master('/attacker').lookupNode('/master/sec_gate'), 2.0)
+                              .getPid('/attacker')[2])
+        gate.send_signal(signal.SIGSTOP)
     d.relaunch('slave', role='backup')                 # the Proxy stays silent from here on
     if not wait_until(lambda: getattr(witness_status(d.witness_service), 'backup', None) == 'slave', 60.0, 0.1):
         sys.exit('seed %d: SLAVE did not re-join: %s' % (seed, witness_status(d.witness_service)))
-    if not wait_until(lambda: learned.get('/slave/sec_gate', 0) >= 1, 20.0, 0.1):
+    if gate is not None:
+        if not wait_until(lambda: any(a[:2] == ('/slave/sec_gate', 'floors_unavailable') for a in alarms), 40.0, 0.1):
+            sys.exit('seed %d: MASTER\'s gate paused, SLAVE said nothing: alarms %s' % (seed, [a[:2] for a in alarms]))
+        time.sleep(rng.uniform(0.0, 3.0))
+        gate.send_signal(signal.SIGCONT)
+        print('seed %d: MASTER\'s gate resumed after SLAVE\'s floors_unavailable' % seed, flush=True)
+    if not wait_until(lambda: learned.get('/slave/sec_gate', 0) >= 1, 20.0 if gate is None else 40.0, 0.1):
         sys.exit('seed %d: SLAVE\'s gate learned no floors from MASTER\'s: %s; alarms %s'
                  % (seed, learned, [a[:2] for a in alarms[-8:]]))
     replay = rospy.Publisher('/ftm/pxy2pro', Request, queue_size=100)
@@ -180,5 +195,9 @@ print('ok')
 '''
 
 
-def test_a_site_rejoined_after_calls_it_missed_refuses_their_replays_as_a_backup_and_as_primary():
-    run_seeded(REJOIN, home_prefix='aft_sec_rejoin_home_')
+@pytest.mark.parametrize('peer', ['answering', 'paused'])
+def test_a_site_rejoined_after_calls_it_missed_refuses_their_replays_as_a_backup_and_as_primary(peer):
+    """paused: MASTER's gate SIGSTOPped from before SLAVE's relaunch until SLAVE said floors_unavailable
+    (its first tries spent), then a drawn 0-3 s: SLAVE asks again while the pairing lasts, learns the
+    floors, and refuses the replays all the same (before session 46 it never asked again: they passed)."""
+    run_seeded(REJOIN, args=[peer], home_prefix='aft_sec_rejoin_home_')

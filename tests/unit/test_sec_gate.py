@@ -787,3 +787,58 @@ def test_each_pairing_of_the_site_asks_its_peer_once_and_nothing_else_asks():
         server._on_configuration(*configuration)
         done.wait(0.5 if configuration[0] in (5, 7) else 0.05)
     assert asked == ['master', 'master']                              # epochs 5 and 7, once each
+
+
+def test_a_peer_gate_paused_through_the_join_is_asked_again_and_its_floors_learned_once_it_answers(tmp_path,
+                                                                                                    monkeypatch):
+    """Issue 16: MASTER's gate paused (SIGSTOP, a GC pause, a loaded board) for longer than SLAVE's first
+    tries at the join. Before, SLAVE raised floors_unavailable and never asked again in that pairing: every
+    replay of what it missed passed its gate until the next failover. Now it asks again, FLOOR_LATER s apart,
+    learns the floors once MASTER answers, refuses the replays and its WARN clears; one alarm, not one per ask."""
+    master = paired_gate(tmp_path / 'master.log', 'master')
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    slave.FLOOR_TRIES, slave.FLOOR_LATER, slave.FLOOR_LATER_MAX = 2, 0.001, 0.004
+    captured = [sealed_request(100 + i, 100 + i) for i in range(5)]
+    for request in captured:
+        master._on_request(request)
+    paused = {'asks': 0}
+
+    def answer(nonce):
+        paused['asks'] += 1
+        if paused['asks'] <= 6:
+            raise rospy.ROSException('timeout exceeded while waiting for service /master/sec_gate/replay_floors')
+        return served_by(master)(nonce)
+    monkeypatch.setattr(rospy, 'ServiceProxy', Asked(answer))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    slave.floors_asked = (5, 'master')
+    slave._follow_floors(5, 'master')
+    assert paused['asks'] == 7 and slave.floors_learned == 1 and slave.floors_missing is None
+    assert [m.kind for n, m in slave.ports.published if n == 'alarms'] == ['floors_unavailable']
+    assert 'replay floors' not in slave._health().message and slave._health().value('replay_floors_learned') == '1'
+    slave.ports.published.clear()
+    slave._on_request(captured[0])
+    assert [m.kind for n, m in slave.ports.published if n == 'alarms'] == ['replay']
+    slave.replay_log.close()
+    master.replay_log.close()
+
+
+def test_a_silent_peer_is_asked_again_only_while_its_pairing_lasts(tmp_path, monkeypatch):
+    """The asking ends with the pairing (a later configuration asks for itself): bounded, no thread per
+    configuration left asking a peer that is no longer the peer."""
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    slave.FLOOR_TRIES, slave.FLOOR_LATER, slave.FLOOR_LATER_MAX = 1, 0.001, 0.001
+    asks = []
+
+    def gone(nonce):
+        asks.append(nonce)
+        if len(asks) == 4:
+            slave.floors_asked = (6, 'other')   # the witness paired this site with another peer meanwhile
+        raise rospy.ServiceException('unable to connect to service: [Errno 111] Connection refused')
+    monkeypatch.setattr(rospy, 'ServiceProxy', Asked(gone))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    slave.floors_asked = (5, 'master')
+    slave._follow_floors(5, 'master')
+    assert len(asks) == 4 and slave.floors_learned == 0
+    assert [m.kind for n, m in slave.ports.published if n == 'alarms'] == ['floors_unavailable']
+    assert "the replay floors of master's gate not learned" in slave._health().message
+    slave.replay_log.close()

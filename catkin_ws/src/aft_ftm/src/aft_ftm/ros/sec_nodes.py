@@ -206,7 +206,9 @@ class SecGateNode(object):
             (security.ReplayGuard.learn): replays of requests its Proxies sent while this site was down
             are refused here as well, even from a Proxy silent since. The answer is signed by the
             gates' party and ciphered for it; a forged or altered one is refused with its alarm, and a
-            peer that does not answer within FLOOR_TRIES tries raises ``floors_unavailable`` (a WARN).
+            peer that does not answer within FLOOR_TRIES tries raises ``floors_unavailable`` (a WARN)
+            and is asked again, FLOOR_LATER s apart (doubling up to FLOOR_LATER_MAX), for as long as
+            the pairing lasts: a peer gate paused or slow through the join is heard once it answers.
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
@@ -648,6 +650,8 @@ class SecGateNode(object):
     FLOOR_TRIES = 5          # asks of the peer's gate per configuration, FLOOR_RETRY s apart
     FLOOR_RETRY = 1.0
     FLOOR_TIMEOUT = 2.0      # the longest wait for one answer
+    FLOOR_LATER = 5.0        # then one ask this often, doubling up to FLOOR_LATER_MAX, while the pairing lasts
+    FLOOR_LATER_MAX = 60.0
 
     def _serve_floors(self, req):
         """This gate's watermarks for its peer's gate: sealed by and for the gates' party."""
@@ -668,12 +672,34 @@ class SecGateNode(object):
             if self.floors_asked == (epoch, peer):
                 return
             self.floors_asked = (epoch, peer)
-        threading.Thread(target=self._pull_floors, args=(peer,), name='floors', daemon=True).start()
+        threading.Thread(target=self._follow_floors, args=(epoch, peer), name='floors', daemon=True).start()
 
-    def _pull_floors(self, peer):
+    def _follow_floors(self, epoch, peer):
+        """The floors of peer's gate asked in a burst; a peer that did not answer (paused, slow, restarting
+        through the join) is asked again, once every FLOOR_LATER s (doubling up to FLOOR_LATER_MAX), for
+        as long as this pairing is the last one seen (the loop ends with it, or with the node)."""
+        if self._pull_floors(peer):
+            return
+        wait, since = self.FLOOR_LATER, time.monotonic()
+        while not rospy.is_shutdown():
+            time.sleep(wait)
+            with self.lock:
+                if self.floors_asked != (epoch, peer):
+                    return
+            if self._pull_floors(peer, tries=1, alarmed=True):
+                rospy.loginfo('%s: the replay floors of %s learned %.0f s after its first tries failed',
+                              rospy.get_name(), peer, time.monotonic() - since)
+                return
+            wait = min(wait * 2, self.FLOOR_LATER_MAX)
+
+    def _pull_floors(self, peer, tries=None, alarmed=False):
+        """Ask peer's gate for its floors, up to tries (FLOOR_TRIES) times FLOOR_RETRY s apart, and learn
+        them: True once learned. Otherwise the reason is kept (floors_missing, a WARN) and, unless
+        alarmed already, ``floors_unavailable`` raised."""
         service = '/%s/%s/replay_floors' % (peer, rospy.get_name().rsplit('/', 1)[-1])
         why = 'never asked'
-        for attempt in range(self.FLOOR_TRIES):
+        tries = self.FLOOR_TRIES if tries is None else tries
+        for attempt in range(tries):
             if attempt:
                 time.sleep(self.FLOOR_RETRY)
             if rospy.is_shutdown():
@@ -693,12 +719,14 @@ class SecGateNode(object):
                 self._reject(security.Rejected(e.kind, 'the replay floors %s answered: %s' % (service, e.detail)))
                 why = 'its answer was refused (%s)' % e.kind
                 continue
-            self._learn_floors(peer, marks)
-            return
+            return self._learn_floors(peer, marks)
         self.floors_missing = (peer, why)
-        alarm(self.ports, 'sec', 'floors_unavailable', 'the replay floors of %s could not be had in %d tries (%s): '
-              'requests its Proxies sent while this site was down, replayed now, pass this gate (the Protocol '
-              'still drops those below its own watermarks)' % (service, self.FLOOR_TRIES, why))
+        if not alarmed:
+            alarm(self.ports, 'sec', 'floors_unavailable', 'the replay floors of %s could not be had in %d tries '
+                  '(%s): requests its Proxies sent while this site was down, replayed now, pass this gate (the '
+                  'Protocol still drops those below its own watermarks); asked again every %.0f s or more while '
+                  'the pairing lasts' % (service, tries, why, self.FLOOR_LATER))
+        return False
 
     def _learn_floors(self, peer, marks):
         with self.lock:
@@ -710,11 +738,12 @@ class SecGateNode(object):
         except security.Rejected as e:   # (the next request meets the broken log too)
             self._reject(e)
             self._fail_stop(e.detail)
-            return
+            return True   # (not asked again: the site fail-stops)
         self.floors_learned += len(raised)
         self.floors_missing = None
         rospy.loginfo('%s: the replay floors of %s\'s gate: %d origin(s), %d raised here', rospy.get_name(), peer,
                       len(marks), len(raised))
+        return True
 
     def _fail_stop(self, why):
         """The replay log failed: nothing more can be let through safely. A replica with a peer that can
