@@ -33,7 +33,7 @@ from aft_bench import report  # noqa: E402
 
 CAMPAIGN_FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 50))
 BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'state',
-           'clients', 'detection', 'campaign')
+           'clients', 'security', 'detection', 'campaign')
 
 
 @pytest.fixture(scope='module')

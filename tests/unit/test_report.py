@@ -340,3 +340,21 @@ def test_the_latency_ratio_over_runs_is_judged_9_of_10(figures):
     assert row and row[0][2] and row[0][1].startswith('9 of 10')
     figures['pbr']['latency_runs'] = {'ratios': [1.1] * 8 + [1.4] * 2, 'at_most_1_3': 8}
     assert not [t for t in report.targets(figures) if 'in at least 9 runs' in t[0]][0][2]
+
+
+def security_row(config, median_ms, cpu_ms):
+    return {'config': config, 'calls': 300, 'median_ms': median_ms, 'p99_ms': median_ms * 3, 'cpu_ms_per_call': cpu_ms}
+
+
+def test_the_security_section_follows_the_figures_against_its_unsecured_row(figures):
+    figures['security'] = {'calls': 300, 'rows': [security_row('none', 2.0, 2.5), security_row('sec', 5.0, 7.5),
+                                                  security_row('sec+tls', 6.0, 0.0)]}
+    text = report.build(figures)
+    assert '| SEC, replay log (synced) | 5.00 ms | 15.00 ms | 7.50 ms | 2.50x | 3.00x |' in text
+    assert '| SEC + TLS | 6.00 ms | 18.00 ms | 0.00 ms | 3.00x | 0.00x |' in text
+    figures['security']['rows'][0] = security_row('none', 2.0, 0.0)   # a run too short to count a CPU tick
+    assert '| SEC, replay log (synced) | 5.00 ms | 15.00 ms | 7.50 ms | 2.50x | n/a |' in report.build(figures)
+    figures['security']['rows'] = figures['security']['rows'][1:]
+    assert '_Figures of `scripts/bench_security` incomplete' in report.build(figures)
+    del figures['security']
+    assert '_Not measured: `scripts/bench_security`' in report.build(figures)

@@ -26,6 +26,7 @@ SECTIONS = [
     'Healing: the witness, re-joins, state transfer, memory',
     'Large states: bytes between replicas, whole against incremental checkpoints',
     'Concurrent clients: group commit against one request at a time',
+    'What security costs: SEC, its replay log, mutual TLS',
     'Failure detection under load: fixed timeouts against phi accrual',
     'Campaign: seeded faults against the bank, checked by its history',
     'Consistency checks',
@@ -46,6 +47,7 @@ COMMANDS = {
     'healing': 'scripts/bench_healing',
     'state': 'scripts/bench_state',
     'clients': 'scripts/bench_clients',
+    'security': 'scripts/bench_security',
     'detection': 'scripts/bench_detection',
     'campaign': 'scripts/campaign --faults N --seed S',
     'car': 'rosrun tjp_sim scenario NAME [--without MECHANISM] --json',
@@ -847,6 +849,33 @@ def clients_lines(f):
     return lines
 
 
+SECURITY = {'none': 'none', 'sec-memory': 'SEC, floors in memory', 'sec': 'SEC, replay log (synced)',
+            'tls': 'mutual TLS', 'sec+tls': 'SEC + TLS'}
+
+
+def _ratio(row, base, key):
+    return '%.2fx' % (row[key] / base[key]) if base[key] else 'n/a'
+
+
+def security_lines(f):
+    rows = get(f, 'security.rows')
+    if not rows:
+        return [_missing(f, 'security')]
+    base = [r for r in rows if r['config'] == 'none']
+    if not base:
+        raise ValueError('no unsecured row, the baseline of the ratios')
+    base = base[0]
+    lines = ['The PBR bank, %d calls per configuration from one client, each configuration a fresh deployment; '
+             'latency of the calls and the CPU every process of the three sites spent per call, against the same '
+             'deployment with no security (`sec-memory` against `sec`: the cost of the replay log):'
+             % get(f, 'security.calls'), '']
+    lines += table(['security', 'latency median', 'p99', "sites' CPU per call", 'latency', 'CPU'],
+                   [[SECURITY.get(r['config'], r['config']), '%.2f ms' % r['median_ms'], '%.2f ms' % r['p99_ms'],
+                     '%.2f ms' % r['cpu_ms_per_call'], _ratio(r, base, 'median_ms'), _ratio(r, base, 'cpu_ms_per_call')]
+                    for r in rows])
+    return lines
+
+
 def healing_lines(f):
     h = get(f, 'healing')
     if not h or 'failover' not in h:
@@ -1107,7 +1136,7 @@ def build(f):
                 (resources_lines, 'mechanisms'), (failover_lines, 'pbr'), (adaptation_lines, 'adaptation'),
                 (buffering_lines, 'buffering'), (service_manager_lines, 'service_manager'), (car_lines, 'car'),
                 (master_lines, 'master'), (healing_lines, 'healing'), (state_lines, 'state'),
-                (clients_lines, 'clients'), (detection_lines, 'detection'),
+                (clients_lines, 'clients'), (security_lines, 'security'), (detection_lines, 'detection'),
                 (campaign_lines, 'campaign'), (_consistency_lines, None), (_steps_lines, None)]
     for title, (builder, key) in zip(SECTIONS, builders):
         try:
