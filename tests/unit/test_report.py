@@ -354,6 +354,11 @@ def test_the_security_section_follows_the_figures_against_its_unsecured_row(figu
     assert '| SEC + TLS | 6.00 ms | 18.00 ms | 0.00 ms | 3.00x | 0.00x |' in text
     figures['security']['rows'][0] = security_row('none', 2.0, 0.0)   # a run too short to count a CPU tick
     assert '| SEC, replay log (synced) | 5.00 ms | 15.00 ms | 7.50 ms | 2.50x | n/a |' in report.build(figures)
+    assert '`sec-memory` against `sec`' not in report.build(figures)
+    figures['security']['rows'].append({'config': 'sec-memory', 'error': 'exit 1: the deployment did not start'})
+    text = report.build(figures)
+    assert '| SEC, floors in memory | **failed**: exit 1: the deployment did not start |' in text
+    assert '`sec-memory` against `sec`' in text
     figures['security']['rows'] = figures['security']['rows'][1:]
     assert '_Figures of `scripts/bench_security` incomplete' in report.build(figures)
     del figures['security']

@@ -50,7 +50,7 @@ def gate(side='server', tls=False):
     node.quota = security.PartyQuota()
     node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
     node.site_role, node.witness = SiteRole(''), ''
-    node.floors_learned, node.floors_asked, node.floors_missing = 0, None, None
+    node.floors_learned, node.floors_asked, node.floors_missing, node.floor_call = 0, None, None, None
     return node
 
 
@@ -780,7 +780,7 @@ def test_each_pairing_of_the_site_asks_its_peer_once_and_nothing_else_asks():
     server.site_role = SiteRole('slave')
     asked = []
     done = threading.Event()
-    server._pull_floors = lambda peer: (asked.append(peer), done.set())
+    server._pull_floors = lambda peer, **_: (asked.append(peer), done.set())
     for configuration in [(3, 'master', ''), (4, 'master', 'other'), (5, 'master', 'slave'), (5, 'master', 'slave'),
                           (6, 'slave', ''), (7, 'slave', 'master')]:
         done.clear()
@@ -832,13 +832,42 @@ def test_a_silent_peer_is_asked_again_only_while_its_pairing_lasts(tmp_path, mon
     def gone(nonce):
         asks.append(nonce)
         if len(asks) == 4:
-            slave.floors_asked = (6, 'other')   # the witness paired this site with another peer meanwhile
+            slave._on_configuration(*ending)   # the witness's next configuration, meanwhile
         raise rospy.ServiceException('unable to connect to service: [Errno 111] Connection refused')
     monkeypatch.setattr(rospy, 'ServiceProxy', Asked(gone))
     monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
+    for ending in [(6, 'slave', ''), (6, 'master', '')]:   # SLAVE alone, promoted; SLAVE excluded
+        asks.clear()
+        slave.ports.published.clear()
+        slave.floors_asked = (5, 'master')
+        slave._follow_floors(5, 'master')
+        assert len(asks) == 4 and slave.floors_learned == 0 and slave.floors_asked == (6, None), ending
+        assert [m.kind for n, m in slave.ports.published if n == 'alarms'] == ['floors_unavailable']
+        assert "the replay floors of master's gate not learned" in slave._health().message
+    slave.replay_log.close()
+
+
+def test_an_ask_still_unanswered_is_not_doubled_and_an_old_pairings_failure_never_sticks(tmp_path, monkeypatch):
+    """rospy's call has no timeout: each ask of a paused peer leaves its thread blocked until the peer
+    answers. Asking again meanwhile would pile threads up, one per ask for as long as the pairing lasts.
+    And a failure of an older pairing's ask, seen after a later pairing learned its floors, must not put
+    the WARN back."""
+    slave = paired_gate(tmp_path / 'slave.log', 'slave')
+    slave.FLOOR_TRIES, slave.FLOOR_TIMEOUT = 3, 0.05
+    release, calls = threading.Event(), []
+
+    def paused(nonce):
+        calls.append(nonce)
+        release.wait(5.0)
+        raise rospy.ServiceException('unable to connect to service: [Errno 111] Connection refused')
+    monkeypatch.setattr(rospy, 'ServiceProxy', Asked(paused))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/slave/sec_gate')
     slave.floors_asked = (5, 'master')
-    slave._follow_floors(5, 'master')
-    assert len(asks) == 4 and slave.floors_learned == 0
-    assert [m.kind for n, m in slave.ports.published if n == 'alarms'] == ['floors_unavailable']
-    assert "the replay floors of master's gate not learned" in slave._health().message
+    assert slave._pull_floors('master', pairing=(5, 'master')) is False
+    assert len(calls) == 1 and slave.floors_missing == ('master', 'an earlier ask still unanswered')
+    release.set()
+    assert slave.floor_call.wait(2.0)
+    slave.floors_asked, slave.floors_missing = (7, 'other'), None   # a later pairing, its floors learned
+    assert slave._pull_floors('master', pairing=(5, 'master')) is False
+    assert slave.floors_missing is None and "not learned" not in slave._health().message
     slave.replay_log.close()

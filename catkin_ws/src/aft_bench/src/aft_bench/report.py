@@ -861,16 +861,19 @@ def security_lines(f):
     rows = get(f, 'security.rows')
     if not rows:
         return [_missing(f, 'security')]
-    base = [r for r in rows if r['config'] == 'none']
+    base = [r for r in rows if r['config'] == 'none' and 'error' not in r]
     if not base:
         raise ValueError('no unsecured row, the baseline of the ratios')
     base = base[0]
+    configs = {r['config'] for r in rows}
     lines = ['The PBR bank, %d calls per configuration from one client, each configuration a fresh deployment; '
              'latency of the calls and the CPU every process of the three sites spent per call, against the same '
-             'deployment with no security (`sec-memory` against `sec`: the cost of the replay log):'
-             % get(f, 'security.calls'), '']
+             'deployment with no security%s:' % (get(f, 'security.calls'), ' (`sec-memory` against `sec`: the cost '
+                                                  'of the replay log)' if {'sec', 'sec-memory'} <= configs else ''), '']
     lines += table(['security', 'latency median', 'p99', "sites' CPU per call", 'latency', 'CPU'],
-                   [[SECURITY.get(r['config'], r['config']), '%.2f ms' % r['median_ms'], '%.2f ms' % r['p99_ms'],
+                   [[SECURITY.get(r['config'], r['config']), '**failed**: %s' % r['error'][:120], '', '', '', '']
+                    if 'error' in r else
+                    [SECURITY.get(r['config'], r['config']), '%.2f ms' % r['median_ms'], '%.2f ms' % r['p99_ms'],
                      '%.2f ms' % r['cpu_ms_per_call'], _ratio(r, base, 'median_ms'), _ratio(r, base, 'cpu_ms_per_call')]
                     for r in rows])
     return lines

@@ -321,22 +321,23 @@ def witness_status(service='/aft/witness/request', timeout=5.0):
 
 
 def current_pair(log_dir, service='/aft/witness/request'):
-    """(primary, backup) of the witness's configuration; RuntimeError naming it if there is no pair."""
+    """(primary, backup, epoch) of the witness's configuration; RuntimeError naming it if there is no pair."""
     conf = witness_status(service)
     if conf is None or not conf.primary or not conf.backup:
         raise RuntimeError('the witness has no pair (%s; logs in %s)' % (
             'no answer' if conf is None else 'epoch %d: %r/%r' % (conf.epoch, conf.primary, conf.backup), log_dir))
-    return conf.primary, conf.backup
+    return conf.primary, conf.backup, conf.epoch
 
 
-def require_same_pair(primary, backup, log_dir, service='/aft/witness/request'):
-    """Raise RuntimeError, naming both pairs, unless the witness still has primary/backup: a benchmark
-    whose pair changed under it (a false suspicion under load) measured something else."""
+def require_same_pair(pair, log_dir, service='/aft/witness/request'):
+    """Raise RuntimeError, naming both, unless the witness's configuration is still pair (current_pair's):
+    a benchmark whose pair changed under it, or was excluded and admitted again (a false suspicion under
+    load), measured something else."""
     after = witness_status(service)
-    if after is None or (after.primary, after.backup) != (primary, backup):
-        raise RuntimeError('the pair changed during the run (%s/%s, then %s): a false suspicion? (logs in %s)' % (
-            primary, backup, 'no answer from the witness' if after is None else '%s/%s, epoch %d' % (
-                after.primary, after.backup, after.epoch), log_dir))
+    if after is None or (after.primary, after.backup, after.epoch) != tuple(pair):
+        raise RuntimeError('the pair changed during the run (%s/%s, epoch %d, then %s): a false suspicion? (logs in '
+                           '%s)' % (pair[0], pair[1], pair[2], 'no answer from the witness' if after is None else
+                                    '%s/%s, epoch %d' % (after.primary, after.backup, after.epoch), log_dir))
 
 
 def last_failover(site, timeout=10.0):

@@ -262,6 +262,7 @@ class SecGateNode(object):
         self.floors_learned = 0   # origins whose watermark a peer gate's floors raised (server side)
         self.floors_asked = None    # the last (epoch, peer) whose floors were asked (server side; epochs only grow)
         self.floors_missing = None  # the peer whose floors could not be had, and why (server side)
+        self.floor_call = None      # set once the last ask of a peer's floors returned (server side)
         self.fail_stopped = False
         self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
         self.witness = param('witness', config.witness_service, '') if self.side == 'server' else ''
@@ -663,39 +664,48 @@ class SecGateNode(object):
 
     def _on_configuration(self, epoch, primary, backup):
         """A configuration of the witness: one that pairs this site with a peer has the peer's floors
-        asked for, once per (epoch, peer), in a thread of its own."""
+        asked for, once per (epoch, peer), in a thread of its own. Any other ends the last pairing
+        (its asking stops)."""
         site = self.site_role.site
-        if not (primary and backup) or site not in (primary, backup):
-            return
-        peer = backup if site == primary else primary
+        paired = bool(primary and backup) and site in (primary, backup)
+        peer = (backup if site == primary else primary) if paired else None
         with self.lock:
-            if self.floors_asked == (epoch, peer):
+            if self.floors_asked == (epoch, peer) or (not paired and self.floors_asked is None):
                 return
             self.floors_asked = (epoch, peer)
-        threading.Thread(target=self._follow_floors, args=(epoch, peer), name='floors', daemon=True).start()
+        if paired:
+            threading.Thread(target=self._follow_floors, args=(epoch, peer), name='floors', daemon=True).start()
+
+    def _pairing_is(self, pairing):
+        """pairing (epoch, peer) is still the last one seen (None: asked outside a pairing, as the tests do)."""
+        with self.lock:
+            return pairing is None or self.floors_asked == pairing
 
     def _follow_floors(self, epoch, peer):
         """The floors of peer's gate asked in a burst; a peer that did not answer (paused, slow, restarting
         through the join) is asked again, once every FLOOR_LATER s (doubling up to FLOOR_LATER_MAX), for
         as long as this pairing is the last one seen (the loop ends with it, or with the node)."""
-        if self._pull_floors(peer):
+        pairing = (epoch, peer)
+        if self._pull_floors(peer, pairing=pairing):
             return
         wait, since = self.FLOOR_LATER, time.monotonic()
         while not rospy.is_shutdown():
             time.sleep(wait)
-            with self.lock:
-                if self.floors_asked != (epoch, peer):
-                    return
-            if self._pull_floors(peer, tries=1, alarmed=True):
-                rospy.loginfo('%s: the replay floors of %s learned %.0f s after its first tries failed',
-                              rospy.get_name(), peer, time.monotonic() - since)
+            if not self._pairing_is(pairing):
+                return
+            if self._pull_floors(peer, tries=1, alarmed=True, pairing=pairing):
+                if not self.fail_stopped:
+                    rospy.loginfo('%s: the replay floors of %s learned %.0f s after its first tries failed',
+                                  rospy.get_name(), peer, time.monotonic() - since)
                 return
             wait = min(wait * 2, self.FLOOR_LATER_MAX)
 
-    def _pull_floors(self, peer, tries=None, alarmed=False):
+    def _pull_floors(self, peer, tries=None, alarmed=False, pairing=None):
         """Ask peer's gate for its floors, up to tries (FLOOR_TRIES) times FLOOR_RETRY s apart, and learn
-        them: True once learned. Otherwise the reason is kept (floors_missing, a WARN) and, unless
-        alarmed already, ``floors_unavailable`` raised."""
+        them: True once done with (learned, or the site fail-stopped on its log). Otherwise the reason is
+        kept (floors_missing, a WARN, while pairing is the last one seen) and, unless alarmed already,
+        ``floors_unavailable`` raised. An ask still unanswered (a peer gate paused: rospy's call has no
+        timeout of its own) is not doubled: its thread is the only one held."""
         service = '/%s/%s/replay_floors' % (peer, rospy.get_name().rsplit('/', 1)[-1])
         why = 'never asked'
         tries = self.FLOOR_TRIES if tries is None else tries
@@ -703,9 +713,14 @@ class SecGateNode(object):
             if attempt:
                 time.sleep(self.FLOOR_RETRY)
             if rospy.is_shutdown():
-                return
+                return False
+            if self.floor_call is not None and not self.floor_call.is_set():
+                why = 'an earlier ask still unanswered'
+                continue
             nonce = os.urandom(12).hex()
-            answer, error = _within(lambda: rospy.ServiceProxy(service, ReplayFloors)(nonce=nonce), self.FLOOR_TIMEOUT)
+            self.floor_call = threading.Event()
+            answer, error = _within(lambda: rospy.ServiceProxy(service, ReplayFloors)(nonce=nonce), self.FLOOR_TIMEOUT,
+                                    done=self.floor_call)
             if error is not None:
                 why = 'no answer within %.1f s' % self.FLOOR_TIMEOUT if error is TIMED_OUT else str(error)[:200]
                 continue
@@ -719,8 +734,11 @@ class SecGateNode(object):
                 self._reject(security.Rejected(e.kind, 'the replay floors %s answered: %s' % (service, e.detail)))
                 why = 'its answer was refused (%s)' % e.kind
                 continue
-            return self._learn_floors(peer, marks)
-        self.floors_missing = (peer, why)
+            return self._learn_floors(peer, marks, pairing)
+        with self.lock:
+            if pairing is not None and self.floors_asked != pairing:
+                return False   # (a later pairing asks for itself and says so)
+            self.floors_missing = (peer, why)
         if not alarmed:
             alarm(self.ports, 'sec', 'floors_unavailable', 'the replay floors of %s could not be had in %d tries '
                   '(%s): requests its Proxies sent while this site was down, replayed now, pass this gate (the '
@@ -728,7 +746,9 @@ class SecGateNode(object):
                   'the pairing lasts' % (service, tries, why, self.FLOOR_LATER))
         return False
 
-    def _learn_floors(self, peer, marks):
+    def _learn_floors(self, peer, marks, pairing=None):
+        """Take the peer's floors where higher, on the replay log too: True (done), also when the log failed
+        and the site fail-stops (nothing more to ask then)."""
         with self.lock:
             raised = self.replays.learn(marks)
             floors = [(origin, self.replays.floors(origin)) for origin in raised]
@@ -738,9 +758,11 @@ class SecGateNode(object):
         except security.Rejected as e:   # (the next request meets the broken log too)
             self._reject(e)
             self._fail_stop(e.detail)
-            return True   # (not asked again: the site fail-stops)
-        self.floors_learned += len(raised)
-        self.floors_missing = None
+            return True
+        with self.lock:
+            self.floors_learned += len(raised)
+            if pairing is None or self.floors_asked == pairing:
+                self.floors_missing = None
         rospy.loginfo('%s: the replay floors of %s\'s gate: %d origin(s), %d raised here', rospy.get_name(), peer,
                       len(marks), len(raised))
         return True
@@ -900,12 +922,13 @@ def _split(path):
 TIMED_OUT = object()
 
 
-def _within(call, timeout):
+def _within(call, timeout, done=None):
     """(call()'s result, None), (None, its exception), or (None, TIMED_OUT) after timeout seconds.
     call() runs in a daemon thread of its own: a peer that never answers holds that thread only,
-    never the caller, nor the process's exit. (Certificate fetches are rare: a thread each is cheap.)"""
+    never the caller, nor the process's exit. (Certificate fetches are rare: a thread each is cheap.)
+    done (a threading.Event), if given, is set once call() returned or raised, even after the timeout."""
     out = {}
-    done = threading.Event()
+    done = done or threading.Event()
 
     def run():
         try:
