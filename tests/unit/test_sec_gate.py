@@ -50,7 +50,7 @@ def gate(side='server', tls=False):
     node.quota = security.PartyQuota()
     node.replay_log, node.restored, node.earlier_told = None, 0, collections.OrderedDict()
     node.site_role, node.witness = SiteRole(''), ''
-    node.floors_learned, node.floors_asked, node.floors_missing, node.floor_call = 0, None, None, None
+    node.floors_learned, node.floors_asked, node.floors_missing, node.floor_calls = 0, None, None, {}
     return node
 
 
@@ -865,8 +865,10 @@ def test_an_ask_still_unanswered_is_not_doubled_and_an_old_pairings_failure_neve
     slave.floors_asked = (5, 'master')
     assert slave._pull_floors('master', pairing=(5, 'master')) is False
     assert len(calls) == 1 and slave.floors_missing == ('master', 'an earlier ask still unanswered')
+    slave.floors_asked = (6, 'other')     # another peer is asked all the same
+    assert slave._pull_floors('other', tries=1, pairing=(6, 'other')) is False and len(calls) == 2
     release.set()
-    assert slave.floor_call.wait(2.0)
+    assert slave.floor_calls['master'].wait(2.0) and slave.floor_calls['other'].wait(2.0)
     slave.floors_asked, slave.floors_missing = (7, 'other'), None   # a later pairing, its floors learned
     assert slave._pull_floors('master', pairing=(5, 'master')) is False
     assert slave.floors_missing is None and "not learned" not in slave._health().message

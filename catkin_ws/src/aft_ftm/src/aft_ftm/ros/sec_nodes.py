@@ -262,7 +262,7 @@ class SecGateNode(object):
         self.floors_learned = 0   # origins whose watermark a peer gate's floors raised (server side)
         self.floors_asked = None    # the last (epoch, peer) whose floors were asked (server side; epochs only grow)
         self.floors_missing = None  # the peer whose floors could not be had, and why (server side)
-        self.floor_call = None      # set once the last ask of a peer's floors returned (server side)
+        self.floor_calls = {}       # peer: an Event set once the last ask of its floors returned (server side)
         self.fail_stopped = False
         self.site_role = SiteRole(param('site', config.optional_name, '') if self.side == 'server' else '')
         self.witness = param('witness', config.witness_service, '') if self.side == 'server' else ''
@@ -704,8 +704,8 @@ class SecGateNode(object):
         """Ask peer's gate for its floors, up to tries (FLOOR_TRIES) times FLOOR_RETRY s apart, and learn
         them: True once done with (learned, or the site fail-stopped on its log). Otherwise the reason is
         kept (floors_missing, a WARN, while pairing is the last one seen) and, unless alarmed already,
-        ``floors_unavailable`` raised. An ask still unanswered (a peer gate paused: rospy's call has no
-        timeout of its own) is not doubled: its thread is the only one held."""
+        ``floors_unavailable`` raised. An ask of a peer still unanswered (its gate paused: rospy's call has
+        no timeout of its own) is not doubled: its thread is the only one held (another peer is asked)."""
         service = '/%s/%s/replay_floors' % (peer, rospy.get_name().rsplit('/', 1)[-1])
         why = 'never asked'
         tries = self.FLOOR_TRIES if tries is None else tries
@@ -714,13 +714,14 @@ class SecGateNode(object):
                 time.sleep(self.FLOOR_RETRY)
             if rospy.is_shutdown():
                 return False
-            if self.floor_call is not None and not self.floor_call.is_set():
+            pending = self.floor_calls.get(peer)
+            if pending is not None and not pending.is_set():
                 why = 'an earlier ask still unanswered'
                 continue
             nonce = os.urandom(12).hex()
-            self.floor_call = threading.Event()
+            self.floor_calls[peer] = threading.Event()
             answer, error = _within(lambda: rospy.ServiceProxy(service, ReplayFloors)(nonce=nonce), self.FLOOR_TIMEOUT,
-                                    done=self.floor_call)
+                                    done=self.floor_calls[peer])
             if error is not None:
                 why = 'no answer within %.1f s' % self.FLOOR_TIMEOUT if error is TIMED_OUT else str(error)[:200]
                 continue
