@@ -145,7 +145,8 @@ def test_a_joiner_acknowledging_its_catch_up_steadily_is_never_taken_for_silent(
     # A joiner that stops acknowledging is still found silent, one timeout after its last ack.
     sender = CheckpointSender(Role.ALONE, first_seq=1)
     seq = sender.join('/b/after', now=0.0, catch_up=True)
-    first, second = sender.hold('r1', now=0.01), sender.hold('r2', now=0.02)
+    first = sender.hold('r1', now=0.01)
+    sender.hold('r2', now=0.02)   # (outstanding: the joiner never acknowledges it)
     sender.on_ack(seq, True, 0.1)
     sender.on_ack(first, True, 0.5)
     assert not sender.overdue(1.4, 1.0) and sender.overdue(1.6, 1.0)
