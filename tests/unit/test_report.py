@@ -363,3 +363,10 @@ def test_the_security_section_follows_the_figures_against_its_unsecured_row(figu
     assert '_Figures of `scripts/bench_security` incomplete' in report.build(figures)
     del figures['security']
     assert '_Not measured: `scripts/bench_security`' in report.build(figures)
+
+
+def test_the_failover_section_says_how_many_samples_a_false_suspicion_made_draw_again(figures):
+    figures['pbr']['samples_redrawn'] = 2
+    assert '2 sample(s) drawn again in a fresh deployment' in report.build(figures)
+    figures['pbr']['samples_redrawn'] = 0
+    assert 'drawn again' not in report.build(figures)

@@ -657,6 +657,10 @@ def failover_lines(f):
                          ms(r['detection_median_s']), r['wrong_replies']]
                         for label, r in (('on (the default)', on), ('off (roslaunch\'s shutdown)', off))])
         lines += ['', 'Failover with the watch: %.2fx the failover without it.' % on['ratio_to_no_watch']]
+    if get(f, 'pbr.samples_redrawn'):
+        lines += ['', '%d sample(s) drawn again in a fresh deployment: a false suspicion at this timeout had changed '
+                  'the pair before the fault (not injected then: it would have measured something else).'
+                  % get(f, 'pbr.samples_redrawn')]
     board = _car_row(f, 'board_power_loss')
     if board and board.get('with') and board['with'].get('failovers'):
         lines += ['', 'The car\'s controllerPid board (watchdog, pub/sub PBR): ' + '; '.join(

@@ -217,7 +217,7 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
     request): the outage is then measured.
 
     Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
-    was never injected.
+    was never injected (naming what fault() raised, if it did).
     """
     if not 0 < fault_after <= count:
         raise ValueError('fault_after=%d: expected 1 .. count (%d)' % (fault_after, count))
@@ -230,6 +230,8 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
             if reached.wait(300):
                 time.sleep(rng.uniform(0, max_delay))
                 injected['processes'], injected['wall'] = fault()
+        except Exception as e:   # said in the RuntimeError below
+            injected['error'] = e
         finally:
             finished.set()
 
@@ -246,7 +248,9 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
     reached.set()
     thread.join(10)
     if 'wall' not in injected:
-        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))
+        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d%s)' % (
+            fault_after, count, ': %s: %s' % (type(injected['error']).__name__, injected['error'])
+            if 'error' in injected else ''))
     return records, injected
 
 
