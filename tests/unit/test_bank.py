@@ -153,13 +153,13 @@ def test_a_slow_fault_still_has_calls_after_it():
 
 def test_a_fault_that_refuses_to_run_is_named_and_every_call_still_made():
     """A fault that raises (bench_pbr's, when a false suspicion changed the pair before it) is not injected:
-    the calls go on, and the RuntimeError names what it raised instead of a thread's traceback."""
+    the calls go on, and what it raised is raised once they are made (not a thread's traceback)."""
     from aft_examples.ros.bank_nodes import drive_through_fault
     account, checker = Account(), ReplyChecker()
 
     def refused():
         raise LookupError('the pair changed')
-    with pytest.raises(RuntimeError, match='never injected .*LookupError: the pair changed'):
+    with pytest.raises(LookupError, match='the pair changed'):
         drive_through_fault(lambda op, amount: account.apply(op, amount), 30, checker, 5, refused, random.Random(1))
     assert checker.correct == 30
 

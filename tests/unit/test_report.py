@@ -370,3 +370,8 @@ def test_the_failover_section_says_how_many_samples_a_false_suspicion_made_draw_
     assert '2 sample(s) drawn again in a fresh deployment' in report.build(figures)
     figures['pbr']['samples_redrawn'] = 0
     assert 'drawn again' not in report.build(figures)
+    run = {'failover_s': 0.05, 'detection_s': 0.03, 'recovery_s': 0.02, 'vote_s': 0.001, 'exactly_once': True}
+    figures['healing'] = {'failover': {'witness': [run], 'no_witness': [dict(run, vote_s=None)]},
+                          'failover_samples_redrawn': ['the pair changed before the fault']}
+    text = report.build(figures)
+    assert '1 sample(s) with the witness drawn again' in text and '| with the witness | 1 | 50.0 ms |' in text

@@ -902,6 +902,9 @@ def healing_lines(f):
     lines += table(['', 'crashes', 'failover median', 'max', "witness's vote (median)", 'exactly once'], rows)
     if h['failover'].get('hosts_skipped'):
         lines += ['', 'Failover on emulated hosts not measured: %s' % h['failover']['hosts_skipped']]
+    if h.get('failover_samples_redrawn'):
+        lines += ['', '%d sample(s) with the witness drawn again in a fresh deployment: a false suspicion had changed '
+                  'the pair before the fault.' % len(h['failover_samples_redrawn'])]
     joins = get(h, 'joins.joins') or []
     if joins:
         lines += ['', 'Re-joins (the backup powered off, started again, re-joined while the client calls; the pause is '

@@ -216,8 +216,8 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
     is (a loaded machine can take longer to stop a site than the client takes for every remaining
     request): the outage is then measured.
 
-    Returns (records, fault) where fault is {'processes', 'wall'}; raises RuntimeError if the fault
-    was never injected (naming what fault() raised, if it did).
+    Returns (records, fault) where fault is {'processes', 'wall'}; raises what fault() raised, once
+    every call was made, or RuntimeError if the fault was never injected.
     """
     if not 0 < fault_after <= count:
         raise ValueError('fault_after=%d: expected 1 .. count (%d)' % (fault_after, count))
@@ -247,10 +247,10 @@ def drive_through_fault(call, count, checker, fault_after, fault, rng, max_delay
     records = drive(call, count, checker, first=first, on_reply=on_reply)
     reached.set()
     thread.join(10)
+    if 'error' in injected:
+        raise injected['error']
     if 'wall' not in injected:
-        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d%s)' % (
-            fault_after, count, ': %s: %s' % (type(injected['error']).__name__, injected['error'])
-            if 'error' in injected else ''))
+        raise RuntimeError('the fault was never injected (fault_after=%d, count=%d)' % (fault_after, count))
     return records, injected
 
 

@@ -340,6 +340,25 @@ def require_same_pair(pair, log_dir, service='/aft/witness/request'):
                                     '%s/%s, epoch %d' % (after.primary, after.backup, after.epoch), log_dir))
 
 
+class PairChanged(RuntimeError):
+    """The witness's pair changed before a benchmark's fault: a false suspicion at the timeout measured."""
+
+
+def unless_pair_changed(fault, pair, service='/aft/witness/request'):
+    """fault (a drive_through_fault fault()) run only while the witness's configuration is still pair
+    (current_pair's); otherwise PairChanged, naming both, and no fault: with the backup fenced by a
+    false suspicion, powering off the primary leaves nobody to serve, and the benchmark's calls wait
+    for ever (a clean-clone CI, session 46)."""
+    def guarded():
+        now = witness_status(service)
+        if now is None or (now.primary, now.backup, now.epoch) != tuple(pair):
+            raise PairChanged('the pair changed before the fault, %s/%s epoch %d then %s: a false suspicion' % (
+                pair[0], pair[1], pair[2], 'no answer from the witness' if now is None else '%s/%s epoch %d' % (
+                    now.primary, now.backup, now.epoch)))
+        return fault()
+    return guarded
+
+
 def last_failover(site, timeout=10.0):
     """The last failover record of site's Recovery (its latched ~events: the other records, starts,
     configurations and alarms, carry it as ``last_recovery``). Raises RuntimeError if there is none."""
