@@ -323,3 +323,36 @@ def test_a_node_an_adaptation_killed_is_no_failure_of_its_site_but_any_other_dea
     deployment.retire('/master/proceed')
     assert campaign.whole(deployment) is None
     assert deployment.retired == {'master': {'/master/proceed'}, 'slave': {'/slave/proceed'}}
+
+
+def test_a_segment_that_cannot_start_is_started_afresh_up_to_its_tries_each_said(monkeypatch):
+    """A clean-clone CI (session 46): a 30 ms detector suspected MASTER while it started, the witness
+    deposed it before the clients were up, twice in a row, and the quick campaign failed. A segment's
+    start is now tried in START_TRIES fresh deployments, each in a directory of its own, each failure
+    said; the last one's error is raised, and every deployment is torn down."""
+    from aft_examples import schedule
+    from aft_examples.ros import campaign
+    made, said = [], []
+
+    class Deployment(object):
+        def __init__(self, log_dir):
+            self.log_dir, self.torn = log_dir, 0
+
+        def start(self):
+            raise campaign.CampaignError('site master exited (code -9) while starting (%s)' % self.log_dir)
+
+        def teardown(self):
+            self.torn += 1
+
+    class Backend(campaign.ProcessBackend):
+        def deployment(self, log_dir, *args):
+            made.append(Deployment(log_dir))
+            return made[-1]
+    fault = schedule.Fault(index=0, segment=1, mechanism='pbr', kind='kill', target='primary/proceed', duration=0.0,
+                           gap=0.0)
+    segment = campaign.Segment([fault], '/nonexistent/segment1', Backend(), log=said.append)
+    with pytest.raises(campaign.CampaignError, match='segment1.3'):
+        segment._run()
+    assert [d.log_dir for d in made] == ['/nonexistent/segment1', '/nonexistent/segment1.2', '/nonexistent/segment1.3']
+    assert all(d.torn >= 1 for d in made)
+    assert [s.split(' failed')[0] for s in said] == ['segment 1: start 1 of 3', 'segment 1: start 2 of 3']

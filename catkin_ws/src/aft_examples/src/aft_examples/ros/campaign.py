@@ -673,6 +673,7 @@ _STATE_CALLS = Deadline('final-state', exclusive=True)   # a hung server: 'unrea
 
 class Segment(object):
     """One deployment's share of the schedule, run and checked."""
+    START_TRIES = 3   # fresh deployments at most to start a segment
 
     def __init__(self, faults, log_dir, backend, clients=2, seed=0, log=print, progress=None,
                  timeout=DETECTION_TIMEOUT):
@@ -733,14 +734,21 @@ class Segment(object):
         deployment = self.backend.deployment(self.log_dir, mechanism, self.clients, self.seed, self.timeout)
         rng = __import__('random').Random(self.seed * 7919 + self.faults[0].index)
         try:
-            try:
-                deployment.start()
-            except CampaignError as e:
-                self.log('segment %d: start failed, starting afresh: %s' % (self.faults[0].segment, e))
-                deployment.teardown()
-                deployment = self.backend.deployment(self.log_dir + '.2', mechanism, self.clients, self.seed,
-                                                     self.timeout)
-                deployment.start()
+            # A start can fail under load: a 30 ms detector suspects a peer still starting, and the witness
+            # deposes a site before the clients are up (a clean-clone CI, session 46: twice in a row). Each
+            # new start is a fresh deployment, at most START_TRIES in all, each said.
+            for attempt in range(1, self.START_TRIES + 1):
+                try:
+                    deployment.start()
+                    break
+                except CampaignError as e:
+                    if attempt == self.START_TRIES:
+                        raise
+                    self.log('segment %d: start %d of %d failed, starting afresh: %s' % (
+                        self.faults[0].segment, attempt, self.START_TRIES, e))
+                    deployment.teardown()
+                    deployment = self.backend.deployment('%s.%d' % (self.log_dir, attempt + 1), mechanism,
+                                                         self.clients, self.seed, self.timeout)
             self.began = time.time()
             for fault in self.faults:
                 self.records.append(self._one(fault, deployment, rng))
@@ -839,9 +847,9 @@ class Segment(object):
 
 
 def _log_lines(log_dir):
-    """Every line of the sites' logs of a segment (its directory, and the one of a second start)."""
+    """Every line of the sites' logs of a segment (its directory, and those of its later starts: .2, .3)."""
     import glob
-    for path in sorted(glob.glob(os.path.join(log_dir, '*.log')) + glob.glob(os.path.join(log_dir + '.2', '*.log'))):
+    for path in sorted(glob.glob(os.path.join(log_dir, '*.log')) + glob.glob(os.path.join(log_dir + '.[0-9]', '*.log'))):
         with open(path, errors='replace') as f:
             for line in f:
                 yield line
