@@ -723,6 +723,18 @@ class Segment(object):
     def _verdict(self, failure, reporter):
         self.verdicts.append(suspicions.Verdict(failure.detected.to_sec(), reporter, failure.site, failure.reason))
 
+    SETTLE_BUSY, SETTLE_LIMIT = 50.0, 20.0   # CPU % over a second, and the longest wait (s)
+
+    def _settle(self):
+        """Before a new start: wait (at most SETTLE_LIMIT s) until the machine's CPU use over a second falls
+        below SETTLE_BUSY %: a start under the load a teardown (or the step before) leaves is what failed."""
+        import psutil
+        end = time.monotonic() + self.SETTLE_LIMIT
+        busy = psutil.cpu_percent(interval=1.0)
+        while busy >= self.SETTLE_BUSY and time.monotonic() < end:
+            busy = psutil.cpu_percent(interval=1.0)
+        self.log('segment %d: CPU %.0f %% before the new start' % (self.faults[0].segment, busy))
+
     def alarm_counts(self):
         counts = {}
         for kind, _ in self.alarms:
@@ -747,6 +759,7 @@ class Segment(object):
                     self.log('segment %d: start %d of %d failed, starting afresh: %s' % (
                         self.faults[0].segment, attempt, self.START_TRIES, e))
                     deployment.teardown()
+                    self._settle()
                     deployment = self.backend.deployment('%s.%d' % (self.log_dir, attempt + 1), mechanism,
                                                          self.clients, self.seed, self.timeout)
             self.began = time.time()
