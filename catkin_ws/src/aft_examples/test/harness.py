@@ -131,6 +131,10 @@ class Sites(unittest.TestCase):
         self.assertEqual((status.primary, status.backup), ('master', 'slave'),
                          'the pair changed before the fault (a false suspicion?), epoch %d' % status.epoch)
 
+    # True in the classes whose every run_with_crash case handles a preempted fault (processes 0): a pair
+    # changed before the fault is then no failure (at 30 ms under load, it happens); otherwise it fails at once.
+    PREEMPTIBLE = False
+
     def pair_changed(self):
         """True if the witness no longer names MASTER primary and SLAVE backup: a false suspicion (the cases at
         30 ms, under load) came between the test's start and its fault, which would then hit a fenced or
@@ -155,7 +159,8 @@ class Sites(unittest.TestCase):
         injected if pair_changed() then (the returned fault's processes are 0: see
         assert_preempted_exactly_once): with the backup fenced by a false suspicion, powering off the primary
         would leave nobody to serve and the calls would wait for ever."""
-        self.assert_pair_intact()
+        if not self.PREEMPTIBLE:
+            self.assert_pair_intact()
         inject = fault or self.deployment.sites[site].power_off_fault
 
         def unless_preempted():
