@@ -359,6 +359,24 @@ def unless_pair_changed(fault, pair, service='/aft/witness/request'):
     return guarded
 
 
+SAMPLE_TRIES = 3   # deployments per failover sample at most: a false suspicion before the fault draws it again
+
+
+def redrawn_sample(draw, log_dir, tries=SAMPLE_TRIES):
+    """draw(directory) in a fresh deployment each time, until it gives a sample (not None: None says a
+    false suspicion came before the fault, which was then not injected): log_dir, then log_dir_again1,
+    and so on. Returns (the sample, the directories drawn again). RuntimeError after tries."""
+    again = []
+    for attempt in range(tries):
+        directory = log_dir + ('_again%d' % attempt if attempt else '')
+        sample = draw(directory)
+        if sample is not None:
+            return sample, again
+        again.append(directory)
+    raise RuntimeError('%d deployments in a row had a false suspicion before the fault (logs in %s*)' % (
+        tries, log_dir))
+
+
 def last_failover(site, timeout=10.0):
     """The last failover record of site's Recovery (its latched ~events: the other records, starts,
     configurations and alarms, carry it as ``last_recovery``). Raises RuntimeError if there is none."""

@@ -1,0 +1,46 @@
+"""A benchmark's failover sample, drawn again when a false suspicion came before its fault
+(aft_examples.ros.deployment: redrawn_sample, unless_pair_changed). No ROS master needed."""
+import collections
+
+import pytest
+
+from aft_examples.ros import deployment
+
+Pair = collections.namedtuple('Pair', 'primary backup epoch')
+
+
+def test_a_sample_is_drawn_again_in_a_fresh_directory_until_one_is_measured():
+    drawn = []
+
+    def draw(directory):
+        drawn.append(directory)
+        return None if len(drawn) < 3 else {'failover_s': 0.04}
+    sample, again = deployment.redrawn_sample(draw, '/tmp/x/crash00', tries=3)
+    assert sample == {'failover_s': 0.04}
+    assert drawn == ['/tmp/x/crash00', '/tmp/x/crash00_again1', '/tmp/x/crash00_again2']
+    assert again == drawn[:2]
+
+
+def test_a_sample_measured_at_once_is_not_drawn_again():
+    assert deployment.redrawn_sample(lambda d: 0.0, '/tmp/x/a') == (0.0, [])   # 0.0 is a sample, not None
+
+
+def test_too_many_redraws_raise_naming_the_logs():
+    drawn = []
+    with pytest.raises(RuntimeError, match=r'3 deployments in a row .*/tmp/x/k01\*'):
+        deployment.redrawn_sample(lambda d: drawn.append(d), '/tmp/x/k01', tries=3)
+    assert len(drawn) == 3
+
+
+def test_the_fault_runs_only_while_the_witness_names_the_same_pair(monkeypatch):
+    now = {'status': Pair('master', 'slave', 3)}
+    monkeypatch.setattr(deployment, 'witness_status', lambda service: now['status'])
+    injected = []
+    fault = deployment.unless_pair_changed(lambda: injected.append(1) or (1, 0.0), ('master', 'slave', 3))
+    assert fault() == (1, 0.0) and injected == [1]
+    for changed, said in ((Pair('master', '', 4), 'master/ epoch 4'), (Pair('master', 'slave', 5), 'epoch 5'),
+                          (None, 'no answer from the witness')):
+        now['status'] = changed
+        with pytest.raises(deployment.PairChanged, match=said):
+            fault()
+    assert injected == [1]   # never injected on a changed pair
