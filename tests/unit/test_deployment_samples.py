@@ -38,9 +38,16 @@ def test_the_fault_runs_only_while_the_witness_names_the_same_pair(monkeypatch):
     injected = []
     fault = deployment.unless_pair_changed(lambda: injected.append(1) or (1, 0.0), ('master', 'slave', 3))
     assert fault() == (1, 0.0) and injected == [1]
-    for changed, said in ((Pair('master', '', 4), 'master/ epoch 4'), (Pair('master', 'slave', 5), 'epoch 5'),
+    for changed, said in ((Pair('master', '', 4), r'master/slave, epoch 3, then master/, epoch 4'), (Pair('master', 'slave', 5), 'epoch 5'),
                           (None, 'no answer from the witness')):
         now['status'] = changed
         with pytest.raises(deployment.PairChanged, match=said):
             fault()
     assert injected == [1]   # never injected on a changed pair
+
+
+def test_a_benchmark_whose_backup_was_excluded_and_admitted_again_measured_something_else(monkeypatch):
+    monkeypatch.setattr(deployment, 'witness_status', lambda service: Pair('master', 'slave', 5))
+    deployment.require_same_pair(('master', 'slave', 5), '/tmp/logs')   # the same pair: no error
+    with pytest.raises(RuntimeError, match=r'master/slave, epoch 3, then master/slave, epoch 5.*/tmp/logs'):
+        deployment.require_same_pair(('master', 'slave', 3), '/tmp/logs')

@@ -329,15 +329,23 @@ def current_pair(log_dir, service='/aft/witness/request'):
     return conf.primary, conf.backup, conf.epoch
 
 
+def pair_change(pair, service='/aft/witness/request'):
+    """None while the witness's configuration is still pair (current_pair's: a backup excluded and admitted
+    again has a new epoch, so it counts too); otherwise what it is now, said with pair for an error."""
+    now = witness_status(service)
+    if now is not None and (now.primary, now.backup, now.epoch) == tuple(pair):
+        return None
+    return '%s/%s, epoch %d, then %s' % (pair[0], pair[1], pair[2], 'no answer from the witness' if now is None else
+                                        '%s/%s, epoch %d' % (now.primary, now.backup, now.epoch))
+
+
 def require_same_pair(pair, log_dir, service='/aft/witness/request'):
     """Raise RuntimeError, naming both, unless the witness's configuration is still pair (current_pair's):
     a benchmark whose pair changed under it, or was excluded and admitted again (a false suspicion under
     load), measured something else."""
-    after = witness_status(service)
-    if after is None or (after.primary, after.backup, after.epoch) != tuple(pair):
-        raise RuntimeError('the pair changed during the run (%s/%s, epoch %d, then %s): a false suspicion? (logs in '
-                           '%s)' % (pair[0], pair[1], pair[2], 'no answer from the witness' if after is None else
-                                    '%s/%s, epoch %d' % (after.primary, after.backup, after.epoch), log_dir))
+    change = pair_change(pair, service)
+    if change:
+        raise RuntimeError('the pair changed during the run (%s): a false suspicion? (logs in %s)' % (change, log_dir))
 
 
 class PairChanged(RuntimeError):
@@ -350,11 +358,9 @@ def unless_pair_changed(fault, pair, service='/aft/witness/request'):
     false suspicion, powering off the primary leaves nobody to serve, and the benchmark's calls wait
     for ever (a clean-clone CI, session 46)."""
     def guarded():
-        now = witness_status(service)
-        if now is None or (now.primary, now.backup, now.epoch) != tuple(pair):
-            raise PairChanged('the pair changed before the fault, %s/%s epoch %d then %s: a false suspicion' % (
-                pair[0], pair[1], pair[2], 'no answer from the witness' if now is None else '%s/%s epoch %d' % (
-                    now.primary, now.backup, now.epoch)))
+        change = pair_change(pair, service)
+        if change:
+            raise PairChanged('the pair changed before the fault (%s): a false suspicion' % change)
         return fault()
     return guarded
 
