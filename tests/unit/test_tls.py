@@ -471,3 +471,54 @@ def test_a_cut_the_watcher_explains_hurries_the_subscription_keeper(tmp_path, mo
     assert raised == ['certificate_revoked'] and hurried == [tls_transport.HURRY_WINDOW] * 2
     assert theirs.recv(10) == b''   # cut
     mine.close(), theirs.close()
+
+
+def test_a_certificate_ending_soon_is_said_before_it_ends_and_never_from_its_first_second():
+    day = 86400.0
+    month = (0.0, 30 * day)   # tls_keygen's default: 30 days
+    assert tls.ending_notice('master', 0xab, *month, now=day) is None
+    assert tls.ending_notice('master', 0xab, *month, now=30 * day - 6.5 * day) is None   # min(7 days, 6 days)
+    kind, detail = tls.ending_notice('master', 0xab, *month, now=30 * day - 5.5 * day)
+    assert kind == 'own_certificate_ending'
+    assert 'party master, serial ab' in detail and 'ends in 5.5 days' in detail and 'tls_keygen DIR master' in detail
+    kind, detail = tls.ending_notice('master', 0xab, *month, now=30 * day + 1)
+    assert kind == 'own_certificate_expired' and 'every peer refuses it' in detail
+    short = (1000.0, 1100.0)   # a certificate of 100 s: said in its last 20
+    assert tls.ending_notice('m', 1, *short, now=1010.0) is None
+    assert tls.ending_notice('m', 1, *short, now=1085.0)[1].count('ends in 15 s') == 1
+
+
+def test_a_nodes_own_certificate_ending_then_ended_is_an_alarm_once_each_and_a_rotation_is_judged_afresh(
+        tmp_path, monkeypatch):
+    """Certificates are not renewed by themselves: before, the first sign of one ending was every
+    peer refusing the node."""
+    import datetime
+    import time
+    from aft_ftm.ros import tls_transport
+    home = str(tmp_path / 'home')
+    tls.make_authority(home)
+    tls.issue(home, 'master', lifetime=datetime.timedelta(seconds=100))
+    given = tls.export_party(home, 'master', str(tmp_path / 'master'))
+    raised = []
+    monkeypatch.setattr(tls_transport, '_alarm', lambda kind, detail: raised.append(kind))
+    monkeypatch.setattr(tls_transport, '_LIVE', __import__('weakref').WeakKeyDictionary())
+    state = dict(directory=given, party='master', files_seen=tls_transport._files_stat(given, 'master'),
+                 crl=os.path.join(given, tls.CRL), crl_seen=None, revocations=tls.Revocations.of_directory(given),
+                 own_serial=tls.serial_of(given, 'master'), own_span=tls.span_of(given, 'master'))
+    monkeypatch.setattr(tls_transport, '_STATE', state)
+    begins, ends = state['own_span']
+    assert abs(ends - time.time() - 100) < 5 and begins <= time.time()   # (begins backdated: clock skew)
+    tls_transport._look_once(begins + 10)
+    assert raised == []
+    for _ in range(3):
+        tls_transport._look_once(ends - 5)
+    assert raised == ['own_certificate_ending']   # once, not every 0.25 s
+    tls_transport._look_once(ends + 1)
+    tls_transport._look_once(ends + 2)
+    assert raised == ['own_certificate_ending', 'own_certificate_expired']
+    # a rotation: the new certificate (a month) is judged afresh, and says nothing while it is young
+    tls.issue(home, 'master')
+    tls.export_party(home, 'master', given)
+    tls_transport._look_once(time.time())
+    assert state['own_serial'] == tls.serial_of(given, 'master') and state['own_span'][1] - ends > 20 * 86400
+    assert raised == ['own_certificate_ending', 'own_certificate_expired']

@@ -187,6 +187,45 @@ def serial_of(directory, party):
         raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
 
 
+def span_of(directory, party):
+    """(begins, ends): the validity of party's certificate in directory, in seconds since the epoch."""
+    from cryptography import x509
+    path = _names(directory, _check_party(party))[1]
+    try:
+        with open(path, 'rb') as f:
+            cert = x509.load_pem_x509_certificate(f.read())
+    except (OSError, ValueError) as e:
+        raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
+    return tuple(t.replace(tzinfo=datetime.timezone.utc).timestamp()
+                 for t in (cert.not_valid_before, cert.not_valid_after))
+
+
+ENDING_WARN = 7 * 86400.0   # s before its end that a node's own certificate is said to end soon (at most)
+
+
+def _left(seconds):
+    return '%.1f days' % (seconds / 86400.0) if seconds >= 86400 else '%.0f s' % seconds
+
+
+def ending_notice(party, serial, begins, ends, now, warn=ENDING_WARN):
+    """(alarm kind, detail) when a node's own certificate has ended or ends soon, else None. Soon:
+    within warn s of its end, or in the last fifth of its life if that is shorter (a certificate of
+    minutes is not said to end from its first second). Certificates are not renewed by themselves
+    (README): without this, the first sign was every peer refusing the node."""
+    at = datetime.datetime.fromtimestamp(ends, datetime.timezone.utc).isoformat()
+    left = ends - now
+    if left <= 0:
+        return 'own_certificate_expired', (
+            'this node\'s TLS certificate (party %s, serial %x) ended at %s: every peer refuses it; issue a new one '
+            '(tls_keygen DIR %s) and copy it to the node\'s directory' % (party, serial, at, party))
+    if left <= min(warn, (ends - begins) / 5.0):
+        return 'own_certificate_ending', (
+            'this node\'s TLS certificate (party %s, serial %x) ends in %s, at %s: rotate it before then (tls_keygen '
+            'DIR %s, and copy it to the node\'s directory), or every peer refuses the node' % (
+                party, serial, _left(left), at, party))
+    return None
+
+
 ISSUED = 'ca.tls.issued'   # {party: [serials, hexadecimal]}: every certificate the CA issued to it
 
 

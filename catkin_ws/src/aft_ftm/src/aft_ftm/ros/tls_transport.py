@@ -21,7 +21,9 @@ handshake (no session is resumed). A list not signed by the CA, or older than th
 refused (``tls bad_crl``) and changes nothing; the highest list number taken is kept in the
 directory (``ca.tls.crl.held``), so a restarted node refuses an older or missing list; a list past
 its next update raises ``tls stale_crl``; this node's own certificate revoked raises
-``tls own_certificate_revoked``.
+``tls own_certificate_revoked``; its own certificate within a week of its end (or in the last fifth
+of its life, if shorter) raises ``tls own_certificate_ending``, and past it ``tls
+own_certificate_expired``, each once per certificate (tls.ending_notice).
 
 A rotation without a restart: the same watcher sees the party's key and certificate change in its
 directory (``tls_keygen DIR PARTY`` again, or the new pair copied there) and, once the pair loads,
@@ -95,7 +97,8 @@ def install(directory, party, permissions):
         raise ConfigError('the TLS certificate of party %s in %s is revoked (%s)' % (party, directory, crl))
     started = bool(_STATE)
     _STATE.update(server=server, client=client, permissions=permissions, party=party, revocations=revocations,
-                  crl=crl, crl_seen=seen, own_serial=own, directory=directory, files_seen=files)
+                  crl=crl, crl_seen=seen, own_serial=own, own_span=tls.span_of(directory, party), directory=directory,
+                  files_seen=files)
     if not started:
         threading.Thread(target=_follow_revocations, name='tls_revocations', daemon=True).start()
     if not getattr(base.TCPROSTransport.write_header, 'tls', False):
@@ -551,7 +554,8 @@ def _rotate(files, monotonic):
                    'in use stays)' % (party, directory, e))
         return
     old = _STATE['own_serial']
-    _STATE.update(server=server, client=client, own_serial=serial, files_seen=files)
+    _STATE.update(server=server, client=client, own_serial=serial, own_span=tls.span_of(directory, party),
+                  files_seen=files)
     if serial != old:   # its revocation (revoke-replaced) cuts the live connections made with it
         replaced = _STATE.setdefault('replaced_serials', collections.deque(maxlen=16))
         replaced.append(old)
@@ -604,6 +608,7 @@ def _look_once(now):
         _STATE['stale_told'] = revocations.number
         _alarm('stale_crl', 'the revocation list %s (number %d) is past its next update: the CA has not '
                'signed a newer one' % (crl, revocations.number))
+    _tell_ending(now)
     with _LOCK:
         live = list(_LIVE.items())
     for sock, (party, serial, end) in live:
@@ -618,6 +623,19 @@ def _look_once(now):
             pass
         _alarm(judged[0], 'cut the connection: %s' % judged[1])
         _hurry_subscriptions()   # a subscription cut here is made again at once (a rotated peer's new certificate)
+
+
+def _tell_ending(now):
+    """``own_certificate_ending`` once this node's own certificate ends soon, ``own_certificate_expired``
+    once it has ended (tls.ending_notice): each once per certificate (a rotation's new one is judged
+    afresh)."""
+    span = _STATE.get('own_span')
+    if span is None:
+        return
+    notice = tls.ending_notice(_STATE['party'], _STATE['own_serial'], span[0], span[1], now)
+    if notice is not None and _STATE.get('ending_told') != (_STATE['own_serial'], notice[0]):
+        _STATE['ending_told'] = (_STATE['own_serial'], notice[0])
+        _alarm(*notice)
 
 
 def _hurry_subscriptions():
