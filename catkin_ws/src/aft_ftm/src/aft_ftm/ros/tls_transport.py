@@ -532,6 +532,7 @@ def _rotate(files, monotonic):
     directory, party = _STATE['directory'], _STATE['party']
     try:
         serial = tls.check_party_certificate(directory, party, _STATE['revocations'].key, time.time())
+        span = tls.span_of(directory, party)
         if _STATE['revocations'].revoked(serial):
             raise ConfigError('its serial %x is revoked' % serial)
     except ConfigError as e:
@@ -554,8 +555,7 @@ def _rotate(files, monotonic):
                    'in use stays)' % (party, directory, e))
         return
     old = _STATE['own_serial']
-    _STATE.update(server=server, client=client, own_serial=serial, own_span=tls.span_of(directory, party),
-                  files_seen=files)
+    _STATE.update(server=server, client=client, own_serial=serial, own_span=span, files_seen=files)
     if serial != old:   # its revocation (revoke-replaced) cuts the live connections made with it
         replaced = _STATE.setdefault('replaced_serials', collections.deque(maxlen=16))
         replaced.append(old)
