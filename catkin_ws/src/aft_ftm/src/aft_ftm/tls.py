@@ -210,8 +210,11 @@ def _left(seconds):
 def ending_notice(party, serial, begins, ends, now, warn=ENDING_WARN):
     """(alarm kind, detail) when a node's own certificate has ended or ends soon, else None. Soon:
     within warn s of its end, or in the last fifth of its life if that is shorter (a certificate of
-    minutes is not said to end from its first second). Certificates are not renewed by themselves
-    (README): without this, the first sign was every peer refusing the node."""
+    hours is not said to end from its first minute; its life counts from its not-before, which issue()
+    sets 5 minutes back for clock skew, so one of a minute or so is said at once). Certificates are
+    not renewed by themselves (README): without this, the first sign was every peer refusing the
+    node. Once it has ended every peer refuses the node, so the expired alarm reaches the node's own
+    log at least, and /aft/alarms only over a connection still open."""
     at = datetime.datetime.fromtimestamp(ends, datetime.timezone.utc).isoformat()
     left = ends - now
     if left <= 0:

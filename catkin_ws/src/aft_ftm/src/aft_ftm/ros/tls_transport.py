@@ -23,7 +23,8 @@ directory (``ca.tls.crl.held``), so a restarted node refuses an older or missing
 its next update raises ``tls stale_crl``; this node's own certificate revoked raises
 ``tls own_certificate_revoked``; its own certificate within a week of its end (or in the last fifth
 of its life, if shorter) raises ``tls own_certificate_ending``, and past it ``tls
-own_certificate_expired``, each once per certificate (tls.ending_notice).
+own_certificate_expired`` (logged; published only while a connection is open: every peer refuses
+the node then), each once per certificate (tls.ending_notice).
 
 A rotation without a restart: the same watcher sees the party's key and certificate change in its
 directory (``tls_keygen DIR PARTY`` again, or the new pair copied there) and, once the pair loads,
