@@ -17,7 +17,6 @@ from urllib.parse import urlparse
 
 import psutil
 import rosgraph
-import rosnode
 
 from ..process_identity import addresses_of, names_itself, node_process_problem
 from ..sites import this_host
@@ -277,8 +276,9 @@ class NamespaceFence(object):
             except Exception:   # gone, or tearing down while it answered: asked all the same
                 pass
             asked += 1
-        if failed:
-            rosnode.cleanup_master_blacklist(self.master, failed)
+        if failed:   # each registration on its own: one gone meanwhile no longer raises out of the fencing
+            from .graph import unregister
+            unregister(self.master, failed, uris)
         return asked
 
 

@@ -93,7 +93,6 @@ def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
     dead node's XML-RPC port, the master's "new node registered with the same name" shutdown call
     for the dead node reaches that new process and stops it: so clean up after every stop.
     """
-    import rosnode
     from .fencing import node_api
     try:
         master = rosgraph.Master(caller)
@@ -125,11 +124,36 @@ def clean_dead_nodes(caller='/aft_deployment', timeout=0.5):
         dead = [n for n, gone in zip(names, pool.map(lambda n: silent(n, timeout), names)) if gone]
         dead = [n for n, gone in zip(dead, pool.map(lambda n: silent(n, 4 * timeout), dead)) if gone]
     if dead:
-        import contextlib
-        import io
-        with contextlib.redirect_stdout(io.StringIO()):   # rosnode prints each name
-            rosnode.cleanup_master_blacklist(master, dead)
+        unregister(master, dead, uris)
     return dead
+
+
+def unregister(master, dead, uris, master_as=rosgraph.Master):
+    """Every registration of the dead nodes removed from the master (what rosnode's
+    cleanup_master_blacklist does), each one on its own: a registration gone meanwhile (the node's
+    site stopping, another cleanup) is skipped. rosnode's raised out of the whole cleanup at the
+    first service gone between its listing and its lookup ("no provider": a clean-clone CI, the
+    campaign's heal, session 47). uris: each node's XML-RPC URI (None if unknown). Returns the
+    number of registrations removed."""
+    try:
+        pubs, subs, srvs = master.getSystemState()
+    except Exception:   # the master gone: nothing to clean
+        return 0
+    removed = 0
+    for name in dead:
+        api = uris.get(name)
+        as_node = master_as(name)
+        steps = [(as_node.unregisterPublisher, topic, lambda: api) for topic, nodes in pubs if name in nodes]
+        steps += [(as_node.unregisterSubscriber, topic, lambda: api) for topic, nodes in subs if name in nodes]
+        steps += [(as_node.unregisterService, service, lambda s=service: master.lookupService(s))
+                  for service, nodes in srvs if name in nodes]
+        for remove, what, api_of in steps:
+            try:
+                remove(what, api_of())   # the master removes it only if that node holds it with that URI
+                removed += 1
+            except Exception:   # gone meanwhile, or the master's answer: nothing left to remove there
+                pass
+    return removed
 
 
 def roslaunch(pkg, launch_file, **args):
