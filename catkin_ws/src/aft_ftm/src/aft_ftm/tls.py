@@ -176,26 +176,25 @@ def _authority(directory):
         raise ConfigError('no usable TLS CA in %s: %s' % (directory, e))
 
 
-def serial_of(directory, party):
-    """The serial number of party's certificate in directory."""
+def _certificate_of(directory, party):
+    """party's certificate in directory (cryptography's x509), or ConfigError."""
     from cryptography import x509
     path = _names(directory, _check_party(party))[1]
     try:
         with open(path, 'rb') as f:
-            return x509.load_pem_x509_certificate(f.read()).serial_number
+            return x509.load_pem_x509_certificate(f.read())
     except (OSError, ValueError) as e:
         raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
+
+
+def serial_of(directory, party):
+    """The serial number of party's certificate in directory."""
+    return _certificate_of(directory, party).serial_number
 
 
 def span_of(directory, party):
     """(begins, ends): the validity of party's certificate in directory, in seconds since the epoch."""
-    from cryptography import x509
-    path = _names(directory, _check_party(party))[1]
-    try:
-        with open(path, 'rb') as f:
-            cert = x509.load_pem_x509_certificate(f.read())
-    except (OSError, ValueError) as e:
-        raise ConfigError('no usable TLS certificate of party %s: %s' % (party, e))
+    cert = _certificate_of(directory, party)
     return tuple(t.replace(tzinfo=datetime.timezone.utc).timestamp()
                  for t in (cert.not_valid_before, cert.not_valid_after))
 

@@ -134,22 +134,21 @@ def unregister(master, dead, uris, master_as=rosgraph.Master):
     site stopping, another cleanup) is skipped. rosnode's raised out of the whole cleanup at the
     first service gone between its listing and its lookup ("no provider": a clean-clone CI, the
     campaign's heal, session 47). uris: each node's XML-RPC URI (None if unknown). Returns the
-    number of registrations removed."""
+    number of removals the master answered."""
     try:
         pubs, subs, srvs = master.getSystemState()
     except Exception:   # the master gone: nothing to clean
         return 0
     removed = 0
     for name in dead:
-        api = uris.get(name)
         as_node = master_as(name)
-        steps = [(as_node.unregisterPublisher, topic, lambda: api) for topic, nodes in pubs if name in nodes]
-        steps += [(as_node.unregisterSubscriber, topic, lambda: api) for topic, nodes in subs if name in nodes]
-        steps += [(as_node.unregisterService, service, lambda s=service: master.lookupService(s))
-                  for service, nodes in srvs if name in nodes]
-        for remove, what, api_of in steps:
-            try:
-                remove(what, api_of())   # the master removes it only if that node holds it with that URI
+        # (remove, the name, the service whose URI is looked up, or None: the node's own URI)
+        steps = [(as_node.unregisterPublisher, topic, None) for topic, nodes in pubs if name in nodes]
+        steps += [(as_node.unregisterSubscriber, topic, None) for topic, nodes in subs if name in nodes]
+        steps += [(as_node.unregisterService, service, service) for service, nodes in srvs if name in nodes]
+        for remove, what, service in steps:
+            try:   # the master removes it only if that node holds it with that URI
+                remove(what, master.lookupService(service) if service else uris.get(name))
                 removed += 1
             except Exception:   # gone meanwhile, or the master's answer: nothing left to remove there
                 pass
