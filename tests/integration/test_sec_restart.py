@@ -9,7 +9,11 @@ published again in a random order, some twice. Checked: each is refused by both 
 alarm (``replay`` below the watermark, ``earlier_run`` for the last call), nothing of them executes
 (the new client's first call finds a blank account), and the client's calls are answered right.
 
-The second test: a site down while a Proxy called through its peer, then re-joined. Its gate recorded
+The same with both gates' replay logs removed before the start again (lost): nothing says the captured
+requests are replays, and each gate asks the first request of each origin to prove itself fresh
+(security.Freshness); a replay cannot, and each gate says so (``unanswered_challenge``).
+
+The third test: a site down while a Proxy called through its peer, then re-joined. Its gate recorded
 only what it saw while it ran; at the join it asks the peer's gate for its floors (security.seal_floors).
 Runs in a process of its own with a master of its own; every process it starts carries the test's
 AFT_TEST_TAG and is killed at the end, pass or fail."""
@@ -51,21 +55,28 @@ def calls_captured(count, what):
         sys.exit('seed %d: %s: %s, %d requests captured' % (seed, what, checker.summary(), len(captured)))
     capture.unregister()
     return proxy, call, checker, captured
-'''
 
-SCRIPT = PROLOGUE + r'''
-CALLS = rng.randrange(3, 15)
-first = PbrDeployment(os.path.join(log_dir, 'first'), timeout=0.15, sec=True)
-again = None
-try:
-    rospy.init_node('attacker', disable_signals=True)
+
+started = []   # the deployments of the script, torn down at its end
+
+
+def first_run(calls):
+    """A SEC bank deployment: calls answered and captured, then every site powered off at once:
+    (its keys directory, {id: request})."""
+    first = PbrDeployment(os.path.join(log_dir, 'first'), timeout=0.15, sec=True)
+    started.append(first)
     start_retrying(first)
-    proxy, _, _, captured = calls_captured(CALLS, 'the first run')
+    proxy, _, _, captured = calls_captured(calls, 'the first run')
     proxy.close()
-    first.teardown()                                   # every site powered off at once
-    print('seed %d: %d calls answered and captured; the deployment powered off' % (seed, CALLS), flush=True)
+    first.teardown()
+    return first.keys_dir, captured
 
-    again = PbrDeployment(os.path.join(log_dir, 'again'), timeout=0.15, sec=True, keys_from=first.keys_dir)
+
+def started_again(keys_dir):
+    """The deployment started again with the same keys: (the alarms heard from then on, a publisher on the
+    Proxy's request topic both server gates hear)."""
+    again = PbrDeployment(os.path.join(log_dir, 'again'), timeout=0.15, sec=True, keys_from=keys_dir)
+    started.append(again)
     start_retrying(again)
     alarms = []
     rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append((m.source, m.kind, m.detail)))
@@ -73,6 +84,11 @@ try:
     if not wait_until(lambda: replay.get_num_connections() >= 2, 10.0, 0.05):
         sys.exit('seed %d: the replays reach %d server gates, not both' % (seed, replay.get_num_connections()))
     time.sleep(0.5)   # (the alarms' subscription heard by the gates)
+    return alarms, replay
+
+
+def publish_again(replay, captured):
+    """Every captured request published again, in a random order, some twice: the ids, sorted."""
     ids = sorted(captured)
     order = ids + rng.sample(ids, rng.randrange(len(ids)))
     rng.shuffle(order)
@@ -80,6 +96,32 @@ try:
         replay.publish(captured[rid])
         time.sleep(rng.choice([0.0, 0.01, 0.05]))
     print('seed %d: %d captured requests published again (%d copies)' % (seed, len(ids), len(order)), flush=True)
+    return ids
+
+
+def blank_account_calls():
+    """A few calls of a new client: their summary, or exit unless the account was blank (a replay executed:
+    the first reply counts it) and every call right."""
+    proxy = rospy.ServiceProxy('/account', Account, persistent=True)
+    proxy.wait_for_service(30)
+    call, fresh = account_caller(proxy), ReplyChecker()
+    for i in range(rng.randrange(3, 8)):
+        op = operation(i)
+        fresh.check(fresh.expect(*op), call(*op))
+    summary = fresh.summary()
+    if summary['correct'] == 0 or summary != dict(summary, lost=0, duplicated=0, reordered=0, errors=0):
+        sys.exit('seed %d: after the replays the account is not blank: %s' % (seed, summary))
+    return summary
+'''
+
+SCRIPT = PROLOGUE + r'''
+CALLS = rng.randrange(3, 15)
+try:
+    rospy.init_node('attacker', disable_signals=True)
+    keys_dir, captured = first_run(CALLS)
+    print('seed %d: %d calls answered and captured; the deployment powered off' % (seed, CALLS), flush=True)
+    alarms, replay = started_again(keys_dir)
+    ids = publish_again(replay, captured)
 
     def refused_by(gate):
         return {int(d.split('/proxy/')[1].split()[0]): k for s, k, d in list(alarms)
@@ -92,21 +134,12 @@ try:
         if kinds[ids[-1]] != 'earlier_run' or any(kinds[i] != 'replay' for i in ids[:-1]):
             sys.exit('seed %d: %s refused them as %s (expected replay below the last call, earlier_run for it)'
                      % (seed, gate, kinds))
-    proxy = rospy.ServiceProxy('/account', Account, persistent=True)
-    proxy.wait_for_service(30)
-    call, fresh = account_caller(proxy), ReplyChecker()
-    for i in range(rng.randrange(3, 8)):
-        op = operation(i)
-        fresh.check(fresh.expect(*op), call(*op))       # a replay executed: the first reply counts it
-    summary = fresh.summary()
-    if summary['correct'] == 0 or summary != dict(summary, lost=0, duplicated=0, reordered=0, errors=0):
-        sys.exit('seed %d: after the replays the account is not blank: %s' % (seed, summary))
+    summary = blank_account_calls()
     print('seed %d: both gates refused every replay (%d replay, 1 earlier_run); the new calls: %s'
           % (seed, len(ids) - 1, summary), flush=True)
 finally:
-    for deployment in (again, first):
-        if deployment is not None:
-            deployment.teardown()
+    for deployment in reversed(started):
+        deployment.teardown()
     core.stop()
 print('ok')
 '''
@@ -193,6 +226,41 @@ finally:
     core.stop()
 print('ok')
 '''
+
+
+LOST_LOG = PROLOGUE + r'''
+import glob, shutil
+CALLS = rng.randrange(3, 15)
+try:
+    rospy.init_node('attacker', disable_signals=True)
+    keys_dir, captured = first_run(CALLS)
+    logs = glob.glob(os.path.join(keys_dir, 'replay', '*.log'))
+    if len(logs) < 2:
+        sys.exit('seed %d: the first run left %s, not both server gates\' replay logs' % (seed, logs))
+    shutil.rmtree(os.path.join(keys_dir, 'replay'))   # lost: the floors of the first run are gone
+    print('seed %d: %d calls answered and captured; powered off; the replay logs removed' % (seed, CALLS), flush=True)
+    alarms, replay = started_again(keys_dir)
+    publish_again(replay, captured)
+    # Nothing says they are replays (no floors): each gate asks /proxy to prove itself fresh, nobody can,
+    # and after the challenge's wait each gate says so.
+    told = lambda: {s for s, k, d in list(alarms) if k == 'unanswered_challenge' and '/proxy' in d}
+    if not wait_until(lambda: told() >= {'/master/sec_gate', '/slave/sec_gate'}, 15.0, 0.1):
+        sys.exit('seed %d: unanswered_challenge from %s only; alarms %s' % (seed, told(), [a[:2] for a in alarms[-10:]]))
+    summary = blank_account_calls()
+    print('seed %d: with the replay logs lost, no replay executed; both gates said unanswered_challenge; the new '
+          'calls: %s' % (seed, summary), flush=True)
+finally:
+    for deployment in reversed(started):
+        deployment.teardown()
+    core.stop()
+print('ok')
+'''
+
+
+def test_captured_requests_are_refused_by_a_deployment_started_again_that_lost_its_replay_logs():
+    """Before session 48 a lost log looked like a first start: every captured request executed again. Each
+    origin's first request in a gate's run now proves itself fresh (security.Freshness): a replay cannot."""
+    run_seeded(LOST_LOG, home_prefix='aft_sec_lostlog_home_')
 
 
 @pytest.mark.parametrize('peer', ['answering', 'paused'])

@@ -83,6 +83,9 @@ def test_a_launchers_age_agrees_with_the_boot_clock_whatever_the_wall_clock_did(
 @pytest.mark.parametrize('convert,value,ok', [
     (config.positive_float, 0.01, True), (config.positive_float, 0, False),
     (config.positive_float, 'x', False), (config.positive_float, -1, False),
+    (config.positive_float, float('inf'), False), (config.positive_float, 'inf', False),   # (review of session 48:
+    (config.positive_float, 1e10, False), (config.positive_float, float('nan'), False),    # a wait on it raised)
+    (config.positive_float, 86400.0 * 365, True),
     (config.non_negative_int, 3, True), (config.non_negative_int, -3, False),
     (config.non_negative_int, 2.5, False), (config.non_negative_int, True, False),
     (config.service_type, 'aft_msgs/Account', True), (config.service_type, 'Account', False),

@@ -39,12 +39,15 @@ class KeptLog(object):
     path, broken = '/var/aft/replay.log', None
 
 
-def gate(side='server', tls=False):
-    """A SecGateNode as __init__ leaves it, without reading parameters or key files."""
+def gate(side='server', tls=False, ask_fresh=False):
+    """A SecGateNode as __init__ leaves it, without reading parameters or key files. Unless ask_fresh, a
+    server gate takes every origin as having proved fresh already (the tests of other decisions)."""
     node = sec_nodes.SecGateNode.__new__(sec_nodes.SecGateNode)
     node.side, node.me, node.role, node.tls = side, SERVER, Role.PRIMARY, tls
     node.book = security.CertificateBook(CA.verify_public)
     node.lock, node.sent, node.rejected, node.policy = threading.Lock(), {}, 0, 'policy.yaml'
+    node.unsealed, node.challenges, node.not_for_me = {}, {}, 0
+    node.freshness = security.Freshness(ask=ask_fresh)
     node.destination, node.ports = '/ftm/pxy2pro', FakePorts()
     node.runs, node.nonces = security.ProxyRuns(), security.ReplyNonces()
     node.quota = security.PartyQuota()
@@ -873,3 +876,190 @@ def test_an_ask_still_unanswered_is_not_doubled_and_an_old_pairings_failure_neve
     assert slave._pull_floors('master', pairing=(5, 'master')) is False
     assert slave.floors_missing is None and "not learned" not in slave._health().message
     slave.replay_log.close()
+
+
+def freshness_pair(restored=None):
+    """A server gate that asks every origin to prove itself fresh (floors restored from an earlier run,
+    if given), and a client gate of party client: both real, their keys real, their ports fakes."""
+    server = gate(ask_fresh=True)
+    server.origins, server.replays = security.OriginBinding(None), security.ReplayGuard()
+    server.replays.restore(restored or {})
+    server._peer = lambda party: (CLIENT.box_public, CLIENT.verify_public)
+    server._open = lambda party, blob, header: security.open_sealed(SERVER, CLIENT.verify_public, blob, header)
+    client = gate(side='client')
+    client.me, client.server_party = CLIENT, 'server'
+    client._peer = lambda party: (SERVER.box_public, SERVER.verify_public)
+    client._open = lambda party, blob, header: security.open_sealed(CLIENT, SERVER.verify_public, blob, header)
+    return server, client
+
+
+def sealed_by(client, rid, oldest_pending, payload=b'deposit 50'):
+    """What the client gate publishes for the Proxy's request rid."""
+    from aft_msgs.msg import Request
+    client.ports.published.clear()
+    client._on_request(Request(id=rid, origin='/proxy', client='/c', service_type='aft_msgs/Account',
+                               oldest_pending=oldest_pending, payload=payload))
+    (port, sealed), = client.ports.published
+    assert port == 'requests_out'
+    return sealed
+
+
+def test_replays_taken_before_an_origins_next_request_are_now_asked_to_prove_they_are_fresh_and_never_pass():
+    """Issue 16, left since session 44: a server gate whose floors are behind (its replay log lost, or its
+    site down while the peer served and first to serve after the whole service started again) took every
+    replay of what it missed until the origin's next real request raised its watermark. Seeded: a Proxy
+    sent ids 1..n through the peer while this gate knew floors up to k only; the attacker replays ids
+    k..n in a random order before and after the Proxy's next call. None passes; the Proxy's call does, at
+    the cost of one challenge round trip; every replay after it is refused as a replay, with its alarm."""
+    import random
+    from aft_msgs.msg import Reply
+    seed = random.randrange(1 << 30)
+    rng = random.Random(seed)
+    k, n = rng.randint(1, 20), rng.randint(25, 60)
+    server, client = freshness_pair(restored={'/proxy': (k, k)})
+    captured = {rid: sealed_by(client, rid, rid) for rid in range(k + 1, n + 1)}   # sent through the peer's gate
+    client.sent.clear()
+    client.unsealed.clear()
+    control, _ = freshness_pair(restored={'/proxy': (k, k)})   # the code before: nobody asked to prove it
+    control.freshness = security.Freshness(ask=False)
+    control._on_request(captured[n])
+    assert [port for port, _ in control.ports.published] == ['requests_out'], 'the control: the replay passed'
+    before = rng.sample(sorted(captured), rng.randint(0, len(captured)))
+    server.ports.published.clear()
+    for rid in before:
+        server._on_request(captured[rid])
+    assert not [m for port, m in server.ports.published if port == 'requests_out'], 'seed %d: a replay passed' % seed
+    challenges = [m for port, m in server.ports.published if port == 'replies_out']
+    assert len(challenges) == len(before) and all(m.status == Reply.CHALLENGE for m in challenges), seed
+    for challenge in challenges:    # the client gate, which has none of them pending, re-sends nothing
+        client.ports.published.clear()
+        client._on_reply(challenge)
+        assert client.ports.published == [], seed
+
+    # The Proxy's next call (id n + 1, every id below answered). Its gate heard the challenge already if a
+    # replay drew one (sealed for it: only it can read the nonce), and the call names it at once; else the
+    # call is asked once, its gate seals it again naming the challenge (the Proxy sees nothing), and taken.
+    server.ports.published.clear()
+    server._on_request(sealed_by(client, n + 1, n + 1))
+    if not before:
+        (port, asked), = server.ports.published
+        assert (port, asked.status) == ('replies_out', Reply.CHALLENGE), seed
+        client.ports.published.clear()
+        client._on_reply(asked)
+        (port, again), = client.ports.published
+        assert port == 'requests_out' and security.challenge_of(again.payload) is not None, seed
+        server.ports.published.clear()
+        server._on_request(again)
+    (port, passed), = server.ports.published
+    assert (port, passed.id, bytes(passed.payload)) == ('requests_out', n + 1, b'deposit 50'), seed
+    assert server.replays.floors('/proxy')[0] == n + 1 and '/proxy' in server.freshness.confirmed
+
+    # Every replay now: refused as a replay, with its alarm; nothing goes on.
+    after = rng.sample(sorted(captured), rng.randint(1, len(captured)))
+    server.ports.published.clear()
+    for rid in after:
+        server._on_request(captured[rid])
+    assert not [m for port, m in server.ports.published if port == 'requests_out'], 'seed %d' % seed
+    kinds = [m.kind for port, m in server.ports.published if port == 'alarms']
+    assert kinds == ['replay'] * len(after), (seed, kinds)
+    # The origin's later calls pass at once (no challenge), and a replayed challenged copy goes no further.
+    server.ports.published.clear()
+    server._on_request(sealed_by(client, n + 2, n + 2))
+    assert [port for port, _ in server.ports.published] == ['requests_out'], seed
+
+
+def test_a_challenge_is_sealed_for_the_party_that_signed_and_a_forged_or_odd_one_changes_nothing():
+    from aft_msgs.msg import Reply
+    server, client = freshness_pair()
+    server.ports.published.clear()
+    server._on_request(sealed_by(client, 7, 7))
+    (_, asked), = server.ports.published
+    assert asked.status == Reply.CHALLENGE and asked.error == ''
+    # Another party (here the server's own key) cannot read the nonce: sealed for the client.
+    with pytest.raises(Rejected):
+        security.open_sealed(SERVER, SERVER.verify_public, asked.payload, security.header_of(
+            asked, security.REPLY_FIELDS, 'client', '/ftm/pxy2pro'))
+    # A challenge signed by another key than the server's: refused with its alarm, nothing sent again.
+    forger = Party.generate('server')
+    forged = Reply(id=7, origin='/proxy', client='/c', oldest_pending=7, status=Reply.CHALLENGE)
+    header = security.header_of(forged, security.REPLY_FIELDS, 'client', '/ftm/pxy2pro')
+    header['nonce'] = client.runs.current('/proxy')
+    forged.payload = security.seal(forger, CLIENT.box_public, header, security.frame_error('', b'00ff'))
+    client.ports.published.clear()
+    client._on_reply(forged)
+    (port, raised), = client.ports.published
+    assert (port, raised.kind) == ('alarms', 'bad_signature')
+    # A genuine challenge whose nonce is not one: malformed, nothing sent again.
+    odd = Reply(id=7, origin='/proxy', client='/c', oldest_pending=7, status=Reply.CHALLENGE)
+    odd.payload = server._seal_reply(odd, CLIENT.box_public, 'client', client.runs.current('/proxy'), '',
+                                     b'not a nonce!')
+    client.ports.published.clear()
+    client._on_reply(odd)
+    (port, raised), = client.ports.published
+    assert (port, raised.kind) == ('alarms', 'malformed') and client.challenges == {}
+    # A request naming a challenge it was not asked (a guess): asked again, not taken.
+    client.challenges['/proxy'] = '00' * 16
+    server.ports.published.clear()
+    server._on_request(sealed_by(client, 8, 8))
+    (port, asked_again), = server.ports.published
+    assert (port, asked_again.status) == ('replies_out', Reply.CHALLENGE)
+
+
+def test_two_server_gates_each_ask_once_and_both_take_the_origin_after_one_round_each():
+    """PBR and LFR: both sites' gates see a Proxy's requests; each asks with its own nonce. The client gate
+    answers each; every later request passes both without a challenge."""
+    from aft_msgs.msg import Reply
+    first, client = freshness_pair()
+    second, _ = freshness_pair()
+    sealed = sealed_by(client, 100, 100)
+    for server in (first, second):
+        server.ports.published.clear()
+        server._on_request(sealed)
+    resent = []
+    for server in (first, second):
+        (_, asked), = server.ports.published
+        assert asked.status == Reply.CHALLENGE
+        client.ports.published.clear()
+        client._on_reply(asked)
+        resent += [m for _, m in client.ports.published]
+    assert len(resent) == 2
+    # The first gate takes the copy naming its nonce, then the other as a re-send (the Protocol behind
+    # drops a re-send's copy); the second is asked again by the first copy, and takes the one naming its own.
+    for server, taken in ((first, [100, 100]), (second, [100])):
+        server.ports.published.clear()
+        for copy in resent:
+            server._on_request(copy)
+        assert [m.id for port, m in server.ports.published if port == 'requests_out'] == taken
+    for server in (first, second):
+        server.ports.published.clear()
+        server._on_request(sealed_by(client, 101, 101))
+        assert [port for port, _ in server.ports.published] == ['requests_out']
+
+
+def test_an_origin_that_never_proves_fresh_is_said_once_and_is_no_attack_for_the_change_model(monkeypatch):
+    from aft_ftm import change_model
+    fresh = security.Freshness()
+    assert fresh.check('/proxy', None, now=10.0) is not None
+    assert fresh.unanswered(now=14.0, wait=5.0) == []
+    assert fresh.unanswered(now=15.5, wait=5.0) == [('/proxy', 5.5)]
+    assert fresh.unanswered(now=30.0, wait=5.0) == []          # once
+    nonce = fresh.check('/proxy', 'a guess', now=31.0)
+    assert fresh.check('/proxy', nonce, now=31.0) is None and fresh.asked == {}
+    assert fresh.check('/proxy', None, now=32.0) is None        # confirmed for the rest of the run
+    bounded = security.Freshness(limit=3)
+    for i in range(10):
+        bounded.check('/p%d' % i, None, now=0.0)
+    assert list(bounded.asked) == ['/p7', '/p8', '/p9']
+    assert security.Freshness(ask=False).check('/proxy', None, now=0.0) is None
+    assert change_model.observed_fault('sec', 'unanswered_challenge') is None
+
+    server, _ = freshness_pair()
+    server.freshness.check('/proxy', None, now=0.0)
+    ticks = iter([False, True])
+    monkeypatch.setattr(sec_nodes.rospy, 'is_shutdown', lambda: next(ticks))
+    monkeypatch.setattr(sec_nodes.rospy, 'get_name', lambda: '/master/sec_gate')
+    monkeypatch.setattr(sec_nodes.time, 'sleep', lambda s: None)
+    server._watch_challenges()
+    (port, raised), = server.ports.published
+    assert (port, raised.mechanism, raised.kind) == ('alarms', 'sec', 'unanswered_challenge')
+    assert '/proxy' in raised.detail and '/master/sec_gate' in raised.detail

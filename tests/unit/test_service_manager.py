@@ -93,6 +93,7 @@ def test_a_bad_configuration_is_refused_naming_the_problem(services, message):
     ('services: [\n', 'not valid YAML'),
     ('manager: {kill_timeout: .inf}\nservices:\n  a: {command: x}\n', 'manager.kill_timeout must be a finite number'),
     ('manager: {period: .inf}\nservices:\n  a: {command: x}\n', 'manager.period must be a finite number'),
+    ('manager: {period: 3000000}\nservices:\n  a: {command: x}\n', 'manager.period must be at most 3600 s'),
     ('manager: []\nservices:\n  a: {command: x}\n', 'manager must be a mapping'),
     ('manager: {}\nmanager: {period: 1}\nservices:\n  a: {command: x}\n', "key 'manager' given twice"),
 ])

@@ -65,6 +65,15 @@ def test_the_fmeca_ships_every_row_of_the_paper_each_with_a_mechanism_and_a_scen
     ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 1, gravity: 1, mechanism: pbr, scenario: s, x: 1}]',
      'unknown field x'),
     ('rows: [unclosed', 'not valid YAML'),
+    # review of session 48: a field twice (the last won), a name not a string, a scenario not shipped
+    ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 4, gravity: 4, gravity: 1, mechanism: pbr, '
+     'scenario: laser_crash}]', "key 'gravity' given twice"),
+    ('rows: [{entity: [a, b], failure_mode: b, effect: c, frequency: 1, gravity: 1, mechanism: pbr, '
+     'scenario: laser_crash}]', 'entity must be a non-empty string'),
+    ('rows: [{entity: a, failure_mode: null, effect: c, frequency: 1, gravity: 1, mechanism: pbr, '
+     'scenario: laser_crash}]', 'failure_mode must be a non-empty string'),
+    ('rows: [{entity: a, failure_mode: b, effect: c, frequency: 1, gravity: 1, mechanism: pbr, '
+     'scenario: no_such_scenario}]', "scenario 'no_such_scenario' is not one of the shipped"),
 ])
 def test_a_malformed_fmeca_is_refused_naming_the_problem(text, message):
     with pytest.raises(TjpConfigError, match=message):
@@ -200,3 +209,46 @@ def test_readings_replayed_from_seconds_before_are_refused_while_the_clock_goes_
     # clock lags the readings' stamps (they come on other connections) but has not gone back.
     assert voter.add(0, 1, 30.0) == [] and voter.resets == 0 and voter.stale == 41
     assert voter.add(1, 2, 30.0, clock=400) == [] and voter.resets == 0 and voter.stale == 42, seed
+
+
+def test_one_laser_stamped_ahead_of_the_clock_is_refused_and_the_other_two_still_vote():
+    """Review of session 48: one laser's readings stamped 0.8 s ahead made the good lasers' readings
+    late: nothing voted for 0.6 s (500 s ahead: for good). Refused now (``ahead``)."""
+    from tjp_sim.filters import LaserVoter
+    ns = lambda s: int(round(s * 1e9))    # noqa: E731
+
+    def run(ahead_max):
+        voter = LaserVoter(tolerance=0.2, silent_after=5, reset_after=int(1e9), ahead_max=ahead_max)
+        t, decided = 10.0, []
+        for _ in range(3):
+            for i in range(3):
+                decided += voter.add(i, ns(t), 20.0, clock=ns(t))
+            t += 0.04
+        for k in range(3):
+            decided += voter.add(2, ns(t + 500 + k * 0.04), 20.0, clock=ns(t))
+        for _ in range(10):
+            for i in range(2):
+                decided += voter.add(i, ns(t), 20.0, clock=ns(t))
+            t += 0.04
+        return voter, [v for _, v, _ in decided]
+    voter, voted = run(int(0.5e9))
+    assert voter.ahead == 3 and voter.stale == 0
+    assert len(voted) >= 3 + 10 - voter.max_lag and all(v.ok and v.value == 20.0 for v in voted)
+    _, before = run(None)                                       # the code before: nothing voted after them
+    assert [v.ok for v in before[3:]] in ([], [False])
+
+
+def test_an_imu_giving_finite_garbage_for_good_is_given_up_not_masked_for_ever():
+    """Review of session 48: readings all far from the window and from each other were masked for as
+    long as they came, the last mean (2 m/s) passed on while the car reached 10 m/s. After 2 * persist
+    in a row the window is dropped (None, ``given_up``, ``why``) until persist readings agree again."""
+    window = SlidingAverage(size=5, tolerance=1.0, persist=10)
+    for _ in range(20):
+        window.add(2.0)
+    outputs = [window.add(2.0 + (15.0 if k % 2 else -1.9) + k * 0.02) for k in range(40)]
+    assert outputs[:19] == [(2.0, True)] * 19                 # a transient burst: masked, as before
+    assert outputs[19:] == [(None, False)] * 21               # lasting garbage: given up, nothing given
+    assert window.given_up == 1 and 'far from the window' in window.why
+    agreeing = [window.add(9.0 + 0.1 * k) for k in range(10)]
+    assert agreeing[:9] == [(None, False)] * 9
+    assert agreeing[9] == (pytest.approx(9.7), False)          # the window starts from the last of them

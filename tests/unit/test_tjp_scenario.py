@@ -65,6 +65,11 @@ def test_defaults_are_filled_in():
     ('mechanisms: [tr_imu]\ncontrol: {disable: pbr, hazard: collision}\n', "control.disable must be one of the scenario"),
     ('control: {disable: pbr, hazard: boredom}\n', 'control.hazard must be one of'),
     ('expect: {min_gap_fraction: 2}\n', 'min_gap_fraction must be within'),
+    # review of session 48: NaN passed every range check (a gap verdict that passed anything, a fault never
+    # injected), and a key given twice was taken last
+    ('expect: {min_gap_fraction: .nan}\n', 'min_gap_fraction must be a finite number'),
+    ('faults: [{kind: crash, sensor: laser_0, at: .nan}]\n', 'must be a finite number'),
+    ('faults: [{kind: crash, sensor: laser_0, at: 1, at: 2}]\n', "key 'at' given twice"),
 ])
 def test_a_bad_scenario_is_refused_naming_the_problem(extra, message):
     with pytest.raises(scenarios.ScenarioError, match=message):
@@ -76,6 +81,7 @@ def test_a_bad_scenario_is_refused_naming_the_problem(extra, message):
     ('duration: 10\nprofile: [[0, 20]]\n', 'outside 0 .. 9.72'),
     ('duration: 10\nprofile: highway\n', 'profile must be one of'),
     ('duration: [10\n', 'not valid YAML'),
+    ('duration: 10\nprofile: steady\nrate: .nan\n', 'rate must be a finite number'),
 ])
 def test_a_bad_road_is_refused(text, message):
     with pytest.raises(scenarios.ScenarioError, match=message):

@@ -35,6 +35,7 @@ import re
 
 import yaml
 
+from .config import load_yaml
 from .errors import AftError
 
 KINDS = ('update', 'switch', 'compose')
@@ -118,7 +119,7 @@ def load(text, overrides=None, source='script'):
     problem (and where it is) when anything is wrong.
     """
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as e:
         raise ScriptError('%s: not valid YAML: %s' % (source, e))
     _check_keys(source, data, TOP_KEYS)

@@ -50,8 +50,9 @@ SEC_UNAVAILABLE = ('ca_silent', 'ca_unreachable')
 # A request an earlier run of a gate let through, sent after the gate started again: an honest Proxy's
 # re-send of a call in flight at the restart looks the same as a replay of it. Refused either way. A
 # replay log that cannot be written is a fault of this host's disk. A peer gate's floors not learned at a
-# join (its site gone, slow) is an availability fault.
-SEC_NOT_ATTACKS = SEC_UNAVAILABLE + ('earlier_run', 'replay_log', 'floors_unavailable')
+# join (its site gone, slow) is an availability fault. An origin that has not answered a gate's freshness
+# challenge may be an attacker's replays, or an honest client whose request another gate answered first.
+SEC_NOT_ATTACKS = SEC_UNAVAILABLE + ('earlier_run', 'replay_log', 'floors_unavailable', 'unanswered_challenge')
 
 
 def observed_fault(mechanism, kind):

@@ -4,18 +4,29 @@ The ROS adapters read parameters once, at the edge, and pass them through these
 converters; library code never reads parameters itself.
 """
 import re
+import threading
+
+import yaml
 
 from .errors import ConfigError
 
 
+# The largest a positive_float may be: the longest wait Python's threads take (about 292 years). A
+# timeout of .inf or 1e10 meant as "no bound" passed before, and a wait on it raised OverflowError out
+# of the node's handler, the request it held lost with no answer (review of session 48).
+LARGEST = threading.TIMEOUT_MAX
+
+
 def positive_float(name, value):
-    """Return value as a float > 0, or raise ConfigError naming the parameter."""
+    """Return value as a finite float > 0 (at most LARGEST), or raise ConfigError naming the parameter."""
     try:
         result = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError('parameter %s must be a number, got %r' % (name, value))
     if not result > 0.0:
         raise ConfigError('parameter %s must be > 0, got %r' % (name, value))
+    if not result <= LARGEST:
+        raise ConfigError('parameter %s must be a finite number of at most %.0f, got %r' % (name, LARGEST, value))
     return result
 
 
@@ -152,3 +163,29 @@ def positive_int(name, value):
     if value <= 0:
         raise ConfigError('parameter %s must be > 0, got %r' % (name, value))
     return value
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (by default the last one wins,
+    silently: two services of one name, critical: true then critical: false, an FMECA row's gravity
+    written twice, a policy's party listed twice)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                repeated = key in seen
+                seen.add(key)
+            except TypeError:   # an unhashable key: the base class says so
+                continue
+            if repeated:
+                raise yaml.constructor.ConstructorError(
+                    'while reading a mapping', node.start_mark, 'key %r given twice' % (key,), key_node.start_mark)
+        return super(_UniqueKeyLoader, self).construct_mapping(node, deep=deep)
+
+
+def load_yaml(text):
+    """yaml.safe_load, but a key given twice in one mapping raises yaml.YAMLError (a ConstructorError)."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
+

@@ -11,6 +11,7 @@ Every error names the file and what is wrong in it; nothing is half-loaded. No R
 """
 import yaml
 
+from .config import load_yaml
 from .errors import ConfigError
 
 PARTY_KEYS = ('origins',)
@@ -21,7 +22,7 @@ def read_yaml(path, what, missing=False):
     the file and the problem."""
     try:
         with open(path) as f:
-            return yaml.safe_load(f)
+            return load_yaml(f.read())
     except FileNotFoundError as e:
         if missing is not False:
             return missing

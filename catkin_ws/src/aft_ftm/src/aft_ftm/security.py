@@ -519,6 +519,13 @@ def nonce_of(blob):
     return nonce if isinstance(nonce, str) else None
 
 
+def challenge_of(blob):
+    """The freshness challenge a sealed request's header answers (``challenge``; not verified yet), or
+    None: see Freshness."""
+    challenge = _claims(blob)['header'].get('challenge')
+    return challenge if isinstance(challenge, str) else None
+
+
 def new_nonce():
     """A client gate's nonce for one run: 128 random bits, as hex."""
     return secrets.token_hex(16)
@@ -745,6 +752,56 @@ class ReplayGuard(object):
         """The lowest id of origin above every one verified here: where a Proxy started again with its
         clock behind numbers from (a STALE_ID answer, aft_msgs/Reply)."""
         return max(self.watermarks.get(origin, 0), self.highest.get(origin, 0) + 1)
+
+
+class Freshness(object):
+    """Server side: per origin, whether a request signed during this run of the gate has come. Until
+    one has, the gate's floors for that origin are only what its replay log and its peer said, and
+    those can be behind: a log lost (deleted, moved, its gate renamed), or a site that was down while
+    its peer served and is now first to serve again after a restart of the whole service. Every
+    request its Proxy sent meanwhile, replayed, would pass. So the first request of each origin in a
+    run is asked to prove it is fresh: the gate answers it with a challenge (a nonce of this run,
+    sealed for the party that signed it, aft_msgs/Reply CHALLENGE), and only a request whose signed
+    header names that nonce is taken. A client gate answers for a request it has pending (it seals
+    it again with the nonce); a replay, whose signer is not asked, never answers. The first request
+    that answers confirms the origin, and its signed ``oldest_pending`` raises the watermark above
+    every request answered before: every older replay is then refused as ``replay``.
+
+    At most ``limit`` origins are asked and not yet confirmed: beyond, the one asked longest ago is
+    asked again afresh if it comes back (a flood of one-shot origins grows nothing for ever)."""
+
+    def __init__(self, ask=True, limit=100000):
+        self.ask = ask
+        self.limit = limit
+        self.asked = collections.OrderedDict()   # origin -> [nonce, when first asked, told]; unconfirmed only
+        self.confirmed = {}                       # origin -> the nonce it answered
+        self.sent = 0                             # challenges sent
+
+    def check(self, origin, challenge, now):
+        """None if a request of origin naming challenge may go on (the origin confirmed in this run, or
+        the request answers its challenge: confirmed now); otherwise the challenge to answer it with."""
+        if not self.ask or origin in self.confirmed:
+            return None
+        asked = self.asked.get(origin)
+        if asked is not None and challenge == asked[0]:
+            del self.asked[origin]
+            self.confirmed[origin] = challenge
+            return None
+        if asked is None:
+            asked = self.asked[origin] = [new_nonce(), now, False]
+            while len(self.asked) > self.limit:
+                self.asked.popitem(last=False)
+        self.sent += 1
+        return asked[0]
+
+    def unanswered(self, now, wait):
+        """The origins first asked more than wait s ago and not confirmed since, each once: (origin, s)."""
+        late = []
+        for origin, asked in self.asked.items():
+            if not asked[2] and now - asked[1] > wait:
+                asked[2] = True
+                late.append((origin, now - asked[1]))
+        return late
 
 
 MAX_FLOOR_ORIGINS = 1000000   # a larger floors answer is refused (``malformed``)

@@ -23,6 +23,7 @@ import shlex
 
 import yaml
 
+from aft_ftm.config import load_yaml
 from aft_ftm.errors import AftError
 
 
@@ -122,6 +123,15 @@ def _positive(where, value):
     if not _number(value) or not value > 0:
         raise ServiceConfigError('%s must be a finite number > 0, got %r' % (where, value))
     return float(value)
+
+
+def _cycle(where, value):
+    """The manager's period: > 0 and at most an hour. Past about 24.8 days poll() raised OverflowError,
+    outside the loop's handler: supervision ended while the node ran on (review of session 48)."""
+    value = _positive(where, value)
+    if value > 3600.0:
+        raise ServiceConfigError('%s must be at most 3600 s (an hour), got %r' % (where, value))
+    return value
 
 
 def _non_negative(where, value):
@@ -253,7 +263,7 @@ SERVICE_KEYS = collections.OrderedDict([
                                        'next restart is again after restart_delay)')),
 ])
 MANAGER_KEYS = collections.OrderedDict([
-    ('period', (0.01, _positive, "the manager's cycle (s): how often it checks every service")),
+    ('period', (0.01, _cycle, "the manager's cycle (s): how often it checks every service (at most an hour)")),
     ('kill_timeout', (2.0, _positive, 'a service asked to stop (SIGTERM) is killed (SIGKILL) after this long (s)')),
     ('state_dir', (None, _optional(_text), 'directory of the services\' state files and the manager\'s pid file: '
                                            'made 0700, refused unless the manager owns it and no one else may '
@@ -278,29 +288,10 @@ def _fill(where, item, keys):
     return out
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping (by default the last one wins,
-    silently: two services of one name, or critical: true then critical: false)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            try:
-                repeated = key in seen
-                seen.add(key)
-            except TypeError:   # an unhashable key: the base class says so
-                continue
-            if repeated:
-                raise yaml.constructor.ConstructorError(
-                    'while reading a mapping', node.start_mark, 'key %r given twice' % (key,), key_node.start_mark)
-        return super(_UniqueKeyLoader, self).construct_mapping(node, deep=deep)
-
-
 def parse_config(text, source='config'):
     """The configuration of a YAML text: {'manager': {...}, 'services': OrderedDict(name -> {...})}."""
     try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)
+        data = load_yaml(text)
     except yaml.YAMLError as e:
         raise ServiceConfigError('%s: not valid YAML: %s' % (source, e))
     if not isinstance(data, dict) or 'services' not in data:
@@ -539,6 +530,9 @@ class Service(object):
         self._change(State.STARTING, now, 'spawned')
         self.started_at, self.last_heard, self.reported_error = now, None, None
         self.stamped_here, self.stall_end = False, None
+        # A new instance's faults are its own: one alerted on the instance before (on_failure: alert)
+        # was never alerted again when the new one showed it (review of session 48).
+        self.alerted = set()
         self.starts += 1
 
     def heard(self, now, status, detail='', stamped_here=False):

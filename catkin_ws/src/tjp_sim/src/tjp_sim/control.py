@@ -31,6 +31,19 @@ def _non_negative(name, value):
 
 
 MAX_CLOSING = 50.0   # m/s: no two cars below 35 km/h close in or draw apart faster
+# The follower never reverses: an IMU speed below this is a faulty (a sign-inverted) IMU, not a car
+# rolling back a little after a stop. Clamped to 0, one braked for 1 m instead of 10 at 10 m/s, and
+# the safety distance was 2 m instead of 17, with nothing said (review of session 48).
+MIN_SPEED = -0.5
+
+
+def speed_refused(speed):
+    """Why an IMU speed reading (m/s) cannot be used, or None: not a finite number, or below MIN_SPEED."""
+    if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not math.isfinite(speed):
+        return 'not a number'
+    if speed < MIN_SPEED:
+        return 'below %.1f m/s: the car does not reverse (a sign-inverted IMU?)' % MIN_SPEED
+    return None
 
 
 class SafetyDistance(object):
@@ -125,10 +138,12 @@ class EmergencyBraking(object):
 
     It brakes when an obstacle is closer than the stopping distance at full braking (plus a margin
     and the reaction time), and releases once nothing has been in range for ``release_delay``.
-    With time redundancy (``confirm`` > 1) an obstacle must be seen in ``confirm`` readings in a
-    row before it brakes: a single false detection (the FMECA's inconsistent ultrasonic data) is
-    masked, at the price of (confirm - 1) readings of reaction time, which the braking distance
-    includes.
+    With time redundancy (``confirm`` > 1) an obstacle must be seen in ``confirm`` of the last
+    ``confirm + 1`` readings before it brakes: a single false detection (the FMECA's inconsistent
+    ultrasonic data) is masked, at the price of (confirm - 1) readings of reaction time, which the
+    braking distance includes (one reading more if one of them drops out). It was ``confirm`` in a
+    row: an obstacle seen in 2 readings of every 3 (an echo lost now and then) was never braked for
+    (review of session 48). A detection that leaves those readings unconfirmed counts in ``masked``.
 
     Its speed is its own reading of the IMU (:meth:`observe_speed`), not the TJP's filtered one: it
     stays independent of the TJP's nodes. A reading that drops out towards zero must not shrink the
@@ -148,10 +163,15 @@ class EmergencyBraking(object):
     replayed "nothing in range" released the brake before ``release_delay``, and one false detection
     repeated confirmed itself. If the caller's own clock went back too (``clock``, a /clock reset),
     it is a new start: ``resets`` counts it, and the readings are taken afresh (the brake held).
+
+    A reading stamped more than ``ahead_max`` seconds after the caller's own clock (a glitched or
+    forged stamp) is refused and counted in ``ahead``, and the order above ignores it: taken, one
+    reading stamped 1000 s ahead made every later one "late", and Emergency Braking never braked
+    again (review of session 48).
     """
 
     def __init__(self, emergency_distance=1.0, release_delay=1.0, emergency_decel=6.0, confirm=1, period=0.04,
-                 speed_window=0.2, max_accel=3.0, max_speed=35 / 3.6):
+                 speed_window=0.2, max_accel=3.0, max_speed=35 / 3.6, ahead_max=0.5):
         self.emergency_distance = _positive('emergency_distance', emergency_distance)
         self.release_delay = _non_negative('release_delay', release_delay)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
@@ -160,7 +180,8 @@ class EmergencyBraking(object):
         self.confirm = confirm
         self.period = _positive('period', period)
         self.active = False
-        self.seen = 0            # readings in a row with an obstacle inside the braking distance
+        self.recent = collections.deque(maxlen=confirm + 1 if confirm > 1 else 1)   # detected, per reading
+        self.seen = 0            # readings of those with an obstacle inside the braking distance
         self.clear_since = None
         self.masked = 0          # detections not confirmed (masked by time redundancy)
         self.activations = 0
@@ -174,8 +195,10 @@ class EmergencyBraking(object):
         self.last_clock = None      # the caller's clock when it was taken
         self.late = 0               # ultrasonic readings refused: stamped at or before the last one taken
         self.resets = 0             # the clock gone back
-        self.speed_refused = 0   # IMU readings that are not numbers
+        self.speed_refused = 0   # IMU readings refused (speed_refused)
         self.invalid = 0         # ultrasonic readings that are not numbers (REP 117: NaN)
+        self.ahead_max = _positive('ahead_max', ahead_max)
+        self.ahead = 0           # ultrasonic readings refused: stamped more than ahead_max after the clock
 
     def braking_distance(self, speed):
         """How close an obstacle may come before braking must start at this speed: the stopping
@@ -185,8 +208,9 @@ class EmergencyBraking(object):
         return self.emergency_distance + reaction * speed + speed * speed / (2 * self.emergency_decel)
 
     def observe_speed(self, speed, now):
-        """An IMU reading (m/s) at ``now``; False if refused (not a finite number)."""
-        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not math.isfinite(speed):
+        """An IMU reading (m/s) at ``now``; False if refused (speed_refused: not a finite number, or the car
+        reversing)."""
+        if speed_refused(speed):
             self.speed_refused += 1
             return False
         self.speeds.append((now, max(0.0, float(speed))))
@@ -217,7 +241,11 @@ class EmergencyBraking(object):
         """An ultrasonic reading (m; None: nothing in range; NaN: an invalid reading, REP 117) stamped
         ``now`` while driving at ``speed`` (m/s; None: :meth:`speed_at`); ``clock``: the caller's own
         time then, if it has one. Returns whether Emergency Braking is active. An invalid reading, or
-        one out of order (see the class), tells nothing: it neither confirms an obstacle nor clears one."""
+        one out of order or stamped ahead of ``clock`` (see the class), tells nothing: it neither confirms
+        an obstacle nor clears one."""
+        if clock and now > clock + self.ahead_max:
+            self.ahead += 1
+            return self.active
         if self.last_reading is not None and now <= self.last_reading:
             # A reset only if the caller's own clock went back since the last reading taken (its clock
             # and the readings come on separate connections: compared with the reading's stamp, a
@@ -228,6 +256,7 @@ class EmergencyBraking(object):
             self.resets += 1   # the clock went back: afresh, the brake as it was
             self.speeds.clear()
             self.first_reading = self.clear_since = None
+            self.recent.clear()
             self.seen = 0
         self.last_reading = now
         if clock:
@@ -240,15 +269,15 @@ class EmergencyBraking(object):
         if speed is None:
             speed = self.speed_at(now)
         if distance is not None and distance < self.braking_distance(speed):
-            self.seen += 1
+            self._note(True)
             self.clear_since = None
             if not self.active and self.seen >= self.confirm:
                 self.active, self.reason = True, 'obstacle at %.2f m' % distance
                 self.activations += 1
+                self.recent.clear()
+                self.seen = 0
             return self.active
-        if self.seen and not self.active:
-            self.masked += 1     # seen, then gone before it was confirmed: a false detection
-        self.seen = 0
+        self._note(False)
         if distance is not None and self.active:
             self.clear_since = None   # stopped short of it: wait until the obstacle has gone
         elif self.active:
@@ -257,6 +286,15 @@ class EmergencyBraking(object):
             if now - self.clear_since >= self.release_delay:
                 self.active, self.reason = False, 'obstacle gone for %.1f s' % self.release_delay
         return self.active
+
+
+    def _note(self, detected):
+        """One valid reading: whether it saw an obstacle inside the braking distance. A detection that
+        leaves the last readings unconfirmed is masked (a false detection)."""
+        if len(self.recent) == self.recent.maxlen and self.recent[0] and not self.active:
+            self.masked += 1
+        self.recent.append(detected)
+        self.seen = sum(self.recent)
 
 
 # Allowed mode changes and what causes each.

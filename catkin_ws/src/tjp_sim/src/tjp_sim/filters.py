@@ -25,7 +25,14 @@ class SlidingAverage(object):
     Readings that are not finite numbers ``persist`` times in a row are not masked any longer: the
     window, no measure of the speed by then, is dropped, :meth:`add` returns None until a finite
     reading comes, and ``given_up`` counts each such run (a sensor sending NaN for good had the
-    window's last mean passed on as its speed for as long as it lasted; review of session 34)."""
+    window's last mean passed on as its speed for as long as it lasted; review of session 34).
+
+    Finite readings masked ``2 * persist`` times in a row (far from the window and not agreeing with
+    each other: an IMU giving garbage) end the masking the same way: the window is dropped, ``given_up``
+    counts it, and :meth:`add` returns None until ``persist`` readings in a row agree again (the
+    window starts from them). ``why`` says which. Masked for ever, the window's last mean was passed on
+    as the speed while the car sped up (2 m/s at 10: a safety distance of 5 m for 17; review of
+    session 48)."""
 
     def __init__(self, size=5, tolerance=1.0, persist=3):
         if isinstance(size, bool) or not isinstance(size, int) or size < 1:
@@ -41,7 +48,10 @@ class SlidingAverage(object):
         self.followed = 0
         self.jump = None
         self.invalid_run = 0   # readings not finite numbers, in a row
+        self.masked_run = 0    # finite readings masked, in a row
+        self.doubtful = False  # given up on finite garbage: nothing given until persist readings agree
         self.given_up = 0
+        self.why = ''          # why the masking was given up last
 
     def _median(self):
         values = sorted(self.window)
@@ -57,10 +67,20 @@ class SlidingAverage(object):
                 return self.value(), True
             if self.window or self.invalid_run == self.persist:
                 self.given_up += 1
+                self.why = 'not a number %d times in a row' % self.invalid_run
             self.window.clear()
             self.suspects = []
+            self.masked_run, self.doubtful = 0, False
             return None, False
         self.invalid_run = 0
+        if self.doubtful:
+            self.suspects = (self.suspects + [value])[-self.persist:]
+            if len(self.suspects) == self.persist and max(self.suspects) - min(self.suspects) <= 2 * self.tolerance:
+                self.window.clear()
+                self.window.extend(self.suspects)
+                self.suspects, self.doubtful = [], False
+                return self.value(), False
+            return None, False
         if self.window and abs(value - self._median()) > self.tolerance:
             self.suspects = (self.suspects + [value])[-self.persist:]
             if len(self.suspects) == self.persist and max(self.suspects) - min(self.suspects) <= 2 * self.tolerance:
@@ -72,10 +92,20 @@ class SlidingAverage(object):
                 self.window.clear()
                 self.window.extend(self.suspects)
                 self.suspects = []
+                self.masked_run = 0
                 return self.value(), False
             self.masked += 1
+            self.masked_run += 1
+            if self.masked_run >= 2 * self.persist:
+                self.given_up += 1
+                self.why = ('%d readings in a row far from the window and from each other (%.2f to %.2f m/s)'
+                            % (self.masked_run, min(self.suspects), max(self.suspects)))
+                self.window.clear()
+                self.masked_run, self.doubtful = 0, True
+                return None, False
             return self.value(), True
         self.suspects = []
+        self.masked_run = 0
         self.window.append(value)
         return self.value(), False
 
@@ -137,15 +167,21 @@ class LaserVoter(object):
     every switch). The other
     lasers vote without it, as without a crashed one. It was voted as the instant 0 once, then every
     later one was late: nothing was voted again, and only a throttled log said so (review of session 34).
+
+    A reading stamped more than ``ahead_max`` (in the stamps' units; None: no bound) after the reader's
+    own clock is refused and counted in ``ahead``: taken, one laser's readings stamped ahead made the
+    good lasers' readings late, and nothing was voted until the clock caught up (review of session 48).
     """
 
     NOTHING = 1e9   # stands for "nothing in range" in the vote
     INVALID = object()   # an invalid reading of one instant: the laser answered, with no value
     UNSTAMPED = type('Unstamped', (tuple,), {})()   # add's answer to a laser's first unstamped reading (empty)
 
-    def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2, reset_after=None):
+    def __init__(self, count=3, tolerance=0.2, silent_after=5, max_lag=2, reset_after=None, ahead_max=None):
         self.count, self.tolerance, self.silent_after, self.max_lag = count, tolerance, silent_after, max_lag
         self.reset_after = reset_after
+        self.ahead_max = ahead_max
+        self.ahead = 0
         self.resets = 0
         self.stale = 0
         self.clock_seen = None   # the reader's clock at the newest reading taken (a reset: it goes back)
@@ -174,6 +210,9 @@ class LaserVoter(object):
                 return []
             self.unstamped_told[index] = True
             return self.UNSTAMPED
+        if clock and self.ahead_max is not None and stamp > clock + self.ahead_max:
+            self.ahead += 1
+            return []
         self.stamped_run[index] += 1
         if self.stamped_run[index] >= self.silent_after:   # stamped for a while: told again if it relapses
             self.unstamped_told[index] = False

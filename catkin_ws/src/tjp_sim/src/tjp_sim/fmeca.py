@@ -3,6 +3,7 @@ import collections
 import os
 
 import yaml
+from aft_ftm.config import load_yaml
 
 from . import resources
 from .errors import TjpConfigError
@@ -14,9 +15,11 @@ Row = collections.namedtuple('Row', FIELDS + ('risk',))
 
 
 def parse(text, source='fmeca'):
-    """The rows of an FMECA YAML text; TjpConfigError names the row and the field when one is wrong."""
+    """The rows of an FMECA YAML text; TjpConfigError names the row and the field when one is wrong (a
+    field given twice in a row, a name that is not a string, a scenario not shipped included: the
+    last of two gravities won silently; review of session 48)."""
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as e:
         raise TjpConfigError('%s: not valid YAML: %s' % (source, e))
     if not isinstance(data, dict) or set(data) != {'rows'} or not isinstance(data['rows'], list) or not data['rows']:
@@ -31,6 +34,10 @@ def parse(text, source='fmeca'):
             raise TjpConfigError('%s: %s' % (where, '; '.join(
                 (['unknown field %s' % ', '.join(unknown)] if unknown else []) +
                 (['missing field %s' % ', '.join(missing)] if missing else []))))
+        for field in ('entity', 'failure_mode', 'effect', 'scenario'):
+            value = item[field]
+            if not isinstance(value, str) or not value.strip():
+                raise TjpConfigError('%s: %s must be a non-empty string, got %r' % (where, field, value))
         for field in ('frequency', 'gravity'):
             value = item[field]
             if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 4:
@@ -38,6 +45,9 @@ def parse(text, source='fmeca'):
         if item['mechanism'] not in MECHANISMS:
             raise TjpConfigError('%s: mechanism must be one of %s, got %r' % (where, ', '.join(MECHANISMS),
                                                                             item['mechanism']))
+        if not os.path.isfile(resources.path('scenarios', item['scenario'] + '.yaml')):
+            raise TjpConfigError('%s: scenario %r is not one of the shipped scenarios (%s)' % (
+                where, item['scenario'], resources.path('scenarios')))
         key = (item['entity'], item['failure_mode'])
         if key in seen:
             raise TjpConfigError('%s: %s / %s appears twice' % (where, key[0], key[1]))

@@ -34,10 +34,12 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
 
 :func:`parse` raises ScenarioError naming the key and the value at the first problem.
 """
+import math
 import os
 import random
 
 import yaml
+from aft_ftm.config import load_yaml
 
 from . import resources
 from .control import SafetyDistance
@@ -71,8 +73,10 @@ KEYS = {'name', 'description', 'duration', 'seed', 'rate', 'profile', 'initial_s
 
 
 def _number(where, value, low=None, high=None, positive=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ScenarioError('%s must be a number, got %r' % (where, value))
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        # (NaN passed every range check: a fault at .nan never came, a min_gap_fraction of .nan passed any
+        # gap; review of session 48)
+        raise ScenarioError('%s must be a finite number, got %r' % (where, value))
     if positive and not value > 0:
         raise ScenarioError('%s must be > 0, got %r' % (where, value))
     if low is not None and value < low or high is not None and value > high:
@@ -212,7 +216,7 @@ def _event(where, item, duration, rng):
 def parse(text, source='scenario'):
     """The scenario of a YAML text, as a dict with every default filled in."""
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as e:
         raise ScenarioError('%s: not valid YAML: %s' % (source, e))
     _keys(source, data, ['duration', 'profile'], KEYS)

@@ -226,4 +226,6 @@ class AdAfterNode(AfterNode):
             return reply
         detail = '; '.join('reply assertion %s violated: %s' % v for v in violations)
         alarm(self.ports, 'ad', 'assertion_violated', detail, reply)
-        return _error(reply, detail)
+        # The server ran the request (its state may have changed): not "an error, nothing changed", which
+        # a client may retry, applying it twice (review of session 48).
+        return _error(reply, 'executed, its reply withheld (outcome unknown to the client): %s' % detail)

@@ -209,6 +209,10 @@ class SecGateNode(object):
             peer that does not answer within FLOOR_TRIES tries raises ``floors_unavailable`` (a WARN)
             and is asked again, FLOOR_LATER s apart (doubling up to FLOOR_LATER_MAX), for as long as
             the pairing lasts: a peer gate paused or slow through the join is heard once it answers.
+        Freshness (server side): the first request of each origin in this gate's run is not let through;
+            its signer is asked, sealed, to seal it again naming a nonce of this run (Reply CHALLENGE,
+            answered by the client gate, never seen by the Proxy): a replay cannot (security.Freshness).
+            An origin asked and unconfirmed CHALLENGE_WAIT s raises ``unanswered_challenge`` once.
     Services called: certificate (aft_msgs/Certificate): the CA's.
     Subscribes: requests_in (aft_msgs/Request), replies_in (aft_msgs/Reply),
         certificate_status (aft_msgs/CertificateStatus): the CA's; a revoked or expired certificate is
@@ -245,6 +249,8 @@ class SecGateNode(object):
                            {'requests_in': self._on_request, 'replies_in': self._on_reply},
                            listeners={'requests_out': _ResendOnConnect(self)})
         self.sent = {}            # client side: (origin, id) -> sealed request not answered yet
+        self.unsealed = {}        # client side: (origin, id) -> the same request as its Proxy sent it
+        self.challenges = {}      # client side: origin -> the last freshness challenge a server gate asked
         self.book = security.CertificateBook(self.ca_verify, param('ca_silent_after', config.positive_float, 3.0))
         self.ca_silent_told = False
         policy = param('policy', config.optional_name, '')
@@ -252,6 +258,7 @@ class SecGateNode(object):
         self.origins = security.OriginBinding(sec_policy.load(policy) if policy else None)   # server side
         self.not_for_me = 0       # client side: replies signed for another party, passed over
         self.replays = security.ReplayGuard()
+        self.freshness = security.Freshness()   # server side: which origins proved fresh in this run
         self.replay_log = None
         if self.side == 'server':
             path = param('replay_log', config.non_empty_str, os.path.join(
@@ -347,6 +354,8 @@ class SecGateNode(object):
         self.diagnostics = Diagnostics(self._health)
         threading.Thread(target=self._watch_ca, name='ca-watch', daemon=True).start()
         threading.Thread(target=self._watch_own_key, name='key-watch', daemon=True).start()
+        if self.side == 'server':
+            threading.Thread(target=self._watch_challenges, name='challenge-watch', daemon=True).start()
         if not self.tls:
             threading.Thread(target=self._tell_without_tls, args=(timeout,), name='tls-notice', daemon=True).start()
         if self.side == 'server' and self.policy is None:
@@ -363,8 +372,12 @@ class SecGateNode(object):
                                         ('tls', 'on' if self.tls else 'off')]
         if self.side == 'server':
             log = self.replay_log
+            with self.lock:
+                confirmed, asked, sent = (len(self.freshness.confirmed), len(self.freshness.asked),
+                                          self.freshness.sent)
             values += [('replay_log', log.path if log else 'none'), ('replay_origins_restored', self.restored),
-                       ('replay_floors_learned', self.floors_learned)]
+                       ('replay_floors_learned', self.floors_learned), ('origins_fresh', confirmed),
+                       ('origins_asked_fresh', asked), ('freshness_challenges', sent)]
             if log is not None and log.broken:
                 report = Report(Level.ERROR, '%s: every request is refused' % log.broken, values)
             elif log is None:
@@ -564,25 +577,36 @@ class SecGateNode(object):
                 header = security.header_of(request, security.REQUEST_FIELDS, self.server_party, self.destination)
                 with self.lock:
                     header['nonce'] = self.runs.nonce_for(request.origin, request.id, request.oldest_pending)
+                    challenge = self.challenges.get(request.origin)
+                if challenge is not None:   # the server gates that asked it take it at once
+                    header['challenge'] = challenge
                 payload = security.seal(self.me, box, header, request.payload)
                 if len(payload) > security.MAX_SEALED_BYTES:
                     self._too_large(request, len(payload))
                     return
             else:
                 party, nonce = security.sender_of(request.payload), security.nonce_of(request.payload)
+                challenge = security.challenge_of(request.payload)
                 header = security.header_of(request, security.REQUEST_FIELDS, self.me.name, self.destination)
                 if nonce is not None:   # signed, when named (a request that names none: no client gate will
                     header['nonce'] = nonce   # take its reply)
+                if challenge is not None:
+                    header['challenge'] = challenge
                 payload = self._open(party, request.payload, header)
                 with self.lock:
                     self.origins.bind(party, request.origin, keep=False)
                     self.replays.check(request.origin, request.id)
-                    # Past its quota, nothing of it is kept (a flood of one-shot origins grows nothing).
-                    self.quota.admit(party, request.origin, request.id, request.oldest_pending)
-                    self.origins.bind(party, request.origin)
-                    self.replays.advance(request.origin, request.oldest_pending, request.id)
-                    self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
-                    floors = self.replays.floors(request.origin)
+                    ask = self.freshness.check(request.origin, challenge, time.monotonic())
+                    if ask is None:
+                        # Past its quota, nothing of it is kept (a flood of one-shot origins grows nothing).
+                        self.quota.admit(party, request.origin, request.id, request.oldest_pending)
+                        self.origins.bind(party, request.origin)
+                        self.replays.advance(request.origin, request.oldest_pending, request.id)
+                        self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
+                        floors = self.replays.floors(request.origin)
+                if ask is not None:
+                    self._ask_fresh(request, nonce, party, ask)
+                    return
                 self._make_durable(request.origin, floors)
         except security.Rejected as e:
             if e.kind == 'earlier_run':
@@ -608,8 +632,10 @@ class SecGateNode(object):
         if self.side == 'client':
             with self.lock:
                 self.sent[(request.origin, request.id)] = out
+                self.unsealed[(request.origin, request.id)] = request
                 for key in [k for k in self.sent if k[0] == request.origin and k[1] < request.oldest_pending]:
                     del self.sent[key]   # answered: the Proxy will not ask again
+                    self.unsealed.pop(key, None)
         self.ports.publish('requests_out', out)
 
     def _make_durable(self, origin, floors):
@@ -812,6 +838,48 @@ class SecGateNode(object):
             header['nonce'] = nonce
         return security.seal(self.me, box, header, security.frame_error(error, payload))
 
+    def _ask_fresh(self, request, nonce, party, challenge):
+        """A request of an origin that has not proved fresh in this run of the gate (security.Freshness):
+        not let through; the party that signed it is asked, sealed, to sign it again naming challenge.
+        Its client gate does so if the request is pending there; a replay is never answered (and raises
+        ``unanswered_challenge`` once its origin stays unconfirmed CHALLENGE_WAIT s)."""
+        self._on_reply(Reply(id=request.id, origin=request.origin, client=request.client,
+                             oldest_pending=request.oldest_pending, attempt=request.attempt, batch=request.batch,
+                             status=Reply.CHALLENGE, epoch=self.site_role.epoch or 0,
+                             payload=challenge.encode('ascii')), nonce, party)
+
+    def _answer_challenge(self, reply, payload):
+        """Client side: a server gate asks this gate to prove a request fresh (security.Freshness). The
+        request, if still pending here, is sealed again naming the challenge and sent; every later
+        request of its origin names it too. For a request not pending here (a replay's, or one answered
+        meanwhile) nothing is sent."""
+        challenge = bytes(payload).decode('ascii', 'replace')
+        if not challenge or len(challenge) > 128 or not all(c in '0123456789abcdef' for c in challenge):
+            raise security.Rejected('malformed', 'a freshness challenge for %s/%d is not a nonce' % (
+                reply.origin, reply.id))
+        with self.lock:
+            self.challenges[reply.origin] = challenge
+            request = self.unsealed.get((reply.origin, reply.id))
+            if request is None:
+                self.not_for_me += 1
+        if request is not None:
+            self._on_request(request)
+
+    def _watch_challenges(self, period=1.0):
+        """Server side: an origin asked to prove itself fresh that has not, CHALLENGE_WAIT s on, is said
+        once (``unanswered_challenge``): only replays came from it, or its client gate cannot answer."""
+        while not rospy.is_shutdown():
+            time.sleep(period)
+            with self.lock:
+                late = self.freshness.unanswered(time.monotonic(), self.CHALLENGE_WAIT)
+            for origin, waited in late:
+                alarm(self.ports, 'sec', 'unanswered_challenge',
+                      'requests of %s were asked to prove they are fresh (signed again for this run of %s) %.1f s '
+                      'ago and none has: replays of an earlier run (refused, not executed), or its client gate '
+                      'cannot answer (its requests are not let through here)' % (origin, rospy.get_name(), waited))
+
+    CHALLENGE_WAIT = 5.0   # s an origin may stay asked and unconfirmed before it is said
+
     def _renumber(self, request, nonce, party):
         """A verified request below the ids answered: a replay, or its Proxy started again with its clock
         behind (numbering below its predecessor: refused here for ever, it hung). Its party is told, sealed,
@@ -875,12 +943,16 @@ class SecGateNode(object):
                     return
                 error, payload = security.unframe_error(payload)
                 reply = _with_error(reply, error if error is not None else reply.error)
+                if reply.status == Reply.CHALLENGE:
+                    self._answer_challenge(reply, payload)
+                    return
         except security.Rejected as e:
             self._reject(e, reply)
             return
         if self.side == 'client':
             with self.lock:
                 self.sent.pop((reply.origin, reply.id), None)
+                self.unsealed.pop((reply.origin, reply.id), None)
         self.ports.publish('replies_out', Reply(id=reply.id, origin=reply.origin, client=reply.client,
                                                 oldest_pending=reply.oldest_pending, attempt=reply.attempt,
                                                 batch=reply.batch, status=reply.status, error=reply.error, payload=payload,

@@ -810,8 +810,11 @@ class ServiceManagerNode(object):
     def _kill_from(self, processes, name):
         child = processes.pop(name, None)
         if child is not None:
-            child.kill(self.config['manager']['kill_timeout'], wait=False)   # first: its replacement waits on it
+            # Its members read before the kill: read after, a worker (the process that sends its heartbeats,
+            # under a launcher) was gone, and its last heartbeats were refused as forged, a lasting WARN
+            # (review of session 48). The operator's stop reads them first too.
             self._replaced(name, child)
+            child.kill(self.config['manager']['kill_timeout'], wait=False)   # then: its replacement waits on it
             threading.Thread(target=child.end, args=(self.config['manager']['kill_timeout'],), daemon=True,
                              name='end_%s' % name).start()
             self._record_pids()
@@ -1309,7 +1312,13 @@ class ServiceManagerNode(object):
                 elif action == 'kill':
                     self._kill(name)
                 elif action == 'spawn':
-                    self._spawn(name, now)
+                    # held like a restart of the manager's own: never before a service it is restarted with
+                    # that is held (its back-off), else it ran without it and was not restarted after it
+                    # (review of session 48); due() spawns it in its turn
+                    if self.supervisor.may_spawn(name, now):
+                        self._spawn(name, now)
+                    else:
+                        message = '%s; %s held: %s' % (message, name, self.supervisor[name].reason)
             self._event('command', req.name, message, now, verb=verb, accepted=ok)
             self._sync_safe_state()
         self._wake()   # the loop watches the processes as they are now

@@ -60,10 +60,14 @@ class ImuTrNode(PortedNode):
             jump = self.filter.jump if self.filter.followed > followed else None
             gave_up = self.filter.given_up > given_up
         if gave_up:
+            finite = math.isfinite(raw)
             self.ports.publish('alarms', Alarm(source=self.name, mechanism='tr', kind='imu_invalid',
-                                               detail='IMU speed not a number %d times in a row (%r): no longer '
-                                               'masked, passed on as it comes until a valid one'
-                                               % (self.filter.invalid_run, raw), stamp=msg.header.stamp))
+                                               detail='IMU speed %s (last %r): no longer masked; %s' % (
+                                                   self.filter.why, raw,
+                                                   'nothing passed on until %d readings in a row agree (the safety '
+                                                   'distance is not renewed meanwhile)' % self.filter.persist
+                                                   if finite else 'passed on as it comes until a valid one'),
+                                               stamp=msg.header.stamp))
         if jump is not None:
             # A lasting change the window followed: a collision, or a stuck or offset IMU it cannot
             # tell from one. Never silent (a stuck-at-zero IMU was followed after 10 readings, and the
@@ -96,15 +100,19 @@ class LaserVoteNode(PortedNode):
         a laser disagreeing (laser_disagrees), a laser silent (laser_silent), no majority (no_majority,
         nothing is published for that instant: the TJP keeps its last gap), a laser whose readings are
         stamped 0 (unstamped, once: they are not voted), the clock gone back (clock_reset), a reading
-        more than 1 s old while the clock goes on (stale_reading, at most once a second: refused)
+        more than 1 s old while the clock goes on (stale_reading, at most once a second: refused), a
+        reading stamped more than 0.5 s after this node's clock (future_reading, at most once a second:
+        refused)
     Services: ~rebind, ~suspend, ~resume
     """
 
     def __init__(self):
         self.voter = LaserVoter(tolerance=param('tolerance', config.positive_float, 0.2),
                                 silent_after=param('silent_after', config.non_negative_int, 5),
-                                reset_after=int(1e9))   # ns: stamps a second back are a clock gone back, or old
+                                reset_after=int(1e9),   # ns: stamps a second back are a clock gone back, or old
+                                ahead_max=int(0.5e9))   # ns: stamps half a second ahead of the clock are refused
         self.stale_told = -1e9   # when stale_reading was last raised (at most once a second)
+        self.ahead_told = -1e9   # when future_reading was last raised (at most once a second)
         ports = [PortSpec('laser_%d' % i, SUBSCRIBE, 'sensor_msgs/Range') for i in range(3)]
         super(LaserVoteNode, self).__init__(
             ports + [PortSpec('out', PUBLISH, 'sensor_msgs/Range'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
@@ -112,12 +120,21 @@ class LaserVoteNode(PortedNode):
 
     def _on_laser(self, index, msg):
         with self.lock:
-            late, resets, stale = self.voter.late, self.voter.resets, self.voter.stale
-            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg), clock=rospy.get_rostime().to_nsec())
+            late, resets, stale, ahead = self.voter.late, self.voter.resets, self.voter.stale, self.voter.ahead
+            clock = rospy.get_rostime()
+            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg), clock=clock.to_nsec())
             late, reset = self.voter.late - late, self.voter.resets > resets
             first_stale = self.voter.stale > stale and time.monotonic() - self.stale_told > 1.0
             if first_stale:
                 self.stale_told = time.monotonic()
+            first_ahead = self.voter.ahead > ahead and time.monotonic() - self.ahead_told > 1.0
+            if first_ahead:
+                self.ahead_told = time.monotonic()
+        if first_ahead:
+            self._alarm('future_reading', 'laser %d stamped %.3f s, more than 0.5 s after this node\'s clock (%.3f s): '
+                        'refused, a glitched or forged stamp (%d so far)' % (index, msg.header.stamp.to_sec(),
+                                                                             clock.to_sec(), self.voter.ahead),
+                        rospy.Time.now())
         if decided is LaserVoter.UNSTAMPED:
             self._alarm('unstamped', 'laser %d publishes readings stamped 0 (unset): they name no sensing instant and '
                         'are not voted; the other lasers vote without it' % index, rospy.Time.now())
@@ -249,6 +266,8 @@ class AlarmManagerNode(PortedNode):
                 elif now > 0:
                     for port, timeout in sorted(self.watch.items()):
                         since = self.last_heard.setdefault(port, now)   # watched from the first tick on
+                        if since > now:   # the clock went back (a /clock reset): watched afresh from now; the
+                            since = self.last_heard[port] = now   # silence went unseen until it caught up
                         if now - since > timeout:
                             reason = ('%s_silent' % port, 'nothing on %s for %.2f s' % (self.ports.topic(port), now - since))
                             break

@@ -20,7 +20,7 @@ from aft_ftm.ros.cycle_nodes import Terminate
 from aft_ftm.ros.params import param
 from aft_ftm.ros.ports import Ports
 
-from ..control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance
+from ..control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance, speed_refused
 from ..errors import TjpConfigError
 
 
@@ -104,14 +104,15 @@ class MeasureManagerNode(PortedNode):
 
     def _on_imu(self, msg):
         speed = msg.twist.linear.x
-        if math.isnan(speed) or math.isinf(speed):
+        why = speed_refused(speed)
+        if why:
             with self.lock:
                 first = self.refused.bad()
             if first:
                 self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='invalid_speed',
-                                                   detail='IMU speed %r refused: the safety distance is not renewed '
-                                                   'until a valid one (%d refused so far)' % (speed, self.refused.count),
-                                                   stamp=msg.header.stamp))
+                                                   detail='IMU speed %r refused (%s): the safety distance is not '
+                                                   'renewed until a valid one (%d refused so far)'
+                                                   % (speed, why, self.refused.count), stamp=msg.header.stamp))
             return
         with self.lock:
             self.refused.good()
@@ -250,8 +251,8 @@ class ControllerPidNode(PortedNode):
 class EmergencyBrakingNode(PortedNode):
     """Emergency Braking, independent of the TJP: brakes for a close obstacle (ultrasonic sensor).
 
-    Parameters: ~confirm (int, 1): readings in a row that confirm an obstacle (time redundancy
-        when > 1); ~period (float, 0.04 s): the ultrasonic's period; ~emergency_distance (1 m);
+    Parameters: ~confirm (int, 1): readings of the last confirm + 1 that confirm an obstacle (time
+        redundancy when > 1); ~period (float, 0.04 s): the ultrasonic's period; ~emergency_distance (1 m);
         ~release_delay (1 s); ~emergency_decel (6 m/s^2)
     Subscribes: ultrasonic (sensor_msgs/Range), port ``ultrasonic``; imu (geometry_msgs/TwistStamped),
         port ``imu``: its own reading of the speed, not the TJP's
@@ -259,8 +260,9 @@ class EmergencyBrakingNode(PortedNode):
         alarms (aft_msgs/Alarm), port ``alarms``: a false detection masked (false_detection_masked), no
         valid speed (speed_stale, braking for the last one plus what the car may have gained, or for
         the TJP's top speed before any), an invalid reading (invalid_range), ultrasonic readings stamped
-        0 (unstamped: refused) or not after the last one taken (late_reading: refused), the clock
-        gone back (clock_reset); each once per run of them
+        0 (unstamped: refused) or not after the last one taken (late_reading: refused), or more than
+        0.5 s after this node's clock (future_reading: refused), the clock gone back (clock_reset);
+        each once per run of them
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -281,7 +283,7 @@ class EmergencyBrakingNode(PortedNode):
              PortSpec('emergency', PUBLISH, 'std_msgs/Bool'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'ultrasonic': self._on_ultrasonic, 'imu': self._on_imu})
         self.bad_speed, self.stale, self.bad_range = Episodes(), Episodes(), Episodes()
-        self.unstamped, self.late = Episodes(), Episodes()
+        self.unstamped, self.late, self.ahead = Episodes(), Episodes(), Episodes()
 
     def _alarm(self, kind, detail, stamp):
         self.ports.publish('alarms', Alarm(source=self.name, mechanism='emergency_braking', kind=kind, detail=detail,
@@ -310,12 +312,20 @@ class EmergencyBrakingNode(PortedNode):
             return
         with self.lock:
             self.unstamped.good()
-            masked, late, resets = self.braking.masked, self.braking.late, self.braking.resets
-            active = self.braking.update(distance, now, clock=rospy.get_time())
+            masked, late, resets, ahead = (self.braking.masked, self.braking.late, self.braking.resets,
+                                           self.braking.ahead)
+            clock = rospy.get_time()
+            active = self.braking.update(distance, now, clock=clock)
             masked = self.braking.masked > masked
-            was_late = self.braking.late > late
-            first_late = self.late.bad() if was_late else self.late.good()
+            was_ahead = self.braking.ahead > ahead
+            first_ahead = self.ahead.bad() if was_ahead else self.ahead.good()
+            was_late = was_ahead or self.braking.late > late
+            first_late = self.late.bad() if self.braking.late > late else self.late.good()
             reset = self.braking.resets > resets
+        if first_ahead:
+            self._alarm('future_reading', 'ultrasonic reading stamped %.3f s, more than %.1f s after this node\'s clock '
+                        '(%.3f s): refused (a glitched or forged stamp)' % (now, self.braking.ahead_max, clock),
+                        msg.header.stamp)
         if first_late:
             self._alarm('late_reading', 'ultrasonic reading stamped %.3f s, not after the last one taken (%.3f s): '
                         'refused (a duplicate, reordered or replayed reading)' % (now, self.braking.last_reading),
@@ -330,8 +340,8 @@ class EmergencyBrakingNode(PortedNode):
             first_invalid = self.bad_range.bad() if invalid else self.bad_range.good()
             speed = self.braking.speed_at(now)
         if masked:
-            self._alarm('false_detection_masked', 'an obstacle seen in fewer than %d readings in a row'
-                        % self.braking.confirm, msg.header.stamp)
+            self._alarm('false_detection_masked', 'an obstacle seen in fewer than %d of %d readings'
+                        % (self.braking.confirm, self.braking.confirm + 1), msg.header.stamp)
         if first_stale:
             self._alarm('speed_stale', 'no valid IMU speed for %.2f s: braking for %.1f m/s (the last plus what the car '
                         'may have gained since, or the top speed before any)' % (self.braking.speed_window, speed),
