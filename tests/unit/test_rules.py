@@ -163,3 +163,13 @@ def test_a_site_made_primary_without_its_recovery_asking_is_told_from_its_own_pr
     assert not promoted_unasked(Role.PRIMARY, Role.ALONE, 'slave', 'slave', granted=2, epoch=5)  # excluded its backup
     assert not promoted_unasked(Role.BACKUP, None, 'slave', 'master', granted=2, epoch=5)        # excluded itself
 
+
+
+def test_project_yaml_refuses_a_key_given_twice_and_takes_merge_keys():
+    """aft_ftm.config.load_yaml (every YAML file the project reads): a key twice in one mapping is refused
+    (the last won, silently); a merge key (<<: *anchor) and a key overriding what it brings are YAML."""
+    import yaml
+    with pytest.raises(yaml.YAMLError, match="key 'gravity' given twice"):
+        config.load_yaml('{gravity: 4, gravity: 1}')
+    data = config.load_yaml('base: &b {timeout: 1, period: 2}\nsvc: {<<: *b, timeout: 5}\n')
+    assert data['svc'] == {'timeout': 5, 'period': 2}

@@ -1044,7 +1044,9 @@ def test_an_origin_that_never_proves_fresh_is_said_once_and_is_no_attack_for_the
     assert fresh.unanswered(now=15.5, wait=5.0) == [('/proxy', 5.5)]
     assert fresh.unanswered(now=30.0, wait=5.0) == []          # once
     nonce = fresh.check('/proxy', 'a guess', now=31.0)
-    assert fresh.check('/proxy', nonce, now=31.0) is None and fresh.asked == {}
+    assert fresh.check('/proxy', nonce, now=31.0) is None and '/proxy' in fresh.asked   # answered, not yet let through
+    fresh.confirm('/proxy')
+    assert fresh.asked == {} and fresh.confirmed == {'/proxy': nonce}
     assert fresh.check('/proxy', None, now=32.0) is None        # confirmed for the rest of the run
     bounded = security.Freshness(limit=3)
     for i in range(10):
@@ -1063,3 +1065,104 @@ def test_an_origin_that_never_proves_fresh_is_said_once_and_is_no_attack_for_the
     (port, raised), = server.ports.published
     assert (port, raised.mechanism, raised.kind) == ('alarms', 'sec', 'unanswered_challenge')
     assert '/proxy' in raised.detail and '/master/sec_gate' in raised.detail
+
+
+def answered_through(server, client, sealed):
+    """sealed delivered to server; if challenged, the client gate answers and its copy is delivered:
+    what the server published last."""
+    from aft_msgs.msg import Reply
+    server.ports.published.clear()
+    server._on_request(sealed)
+    out = list(server.ports.published)
+    if len(out) == 1 and out[0][1].status == Reply.CHALLENGE:
+        client.ports.published.clear()
+        client._on_reply(out[0][1])
+        (port, again), = client.ports.published
+        assert port == 'requests_out'
+        server.ports.published.clear()
+        server._on_request(again)
+        out = list(server.ports.published)
+    return out
+
+
+def test_an_origin_is_fresh_only_once_its_request_is_let_through_not_when_the_quota_refuses_it():
+    from aft_msgs.msg import Reply
+    """Review of session 48 (of its own change): the origin was confirmed before the party's quota refused
+    the request that answered; its watermark stayed behind, and once the party had room a replay passed
+    without a challenge. A flood of one-shot origins at the quota filled the confirmed set too."""
+    k = 5
+    server, client = freshness_pair(restored={'/proxy': (k, k)})
+    captured = sealed_by(client, 7, 7)                                 # answered through the peer meanwhile
+    client.sent.clear()
+    client.unsealed.clear()
+    server.quota = security.PartyQuota(limit=2)
+    server.quota.admit('client', '/other', 1, 1)                       # the party at its quota
+    server.quota.admit('client', '/other', 2, 1)
+    out = answered_through(server, client, sealed_by(client, 11, 11))
+    assert [getattr(m, 'kind', None) for _, m in out] == ['party_quota'] and server.freshness.confirmed == {}
+    server.quota.admit('client', '/other', 3, 3)                       # room again
+    server.ports.published.clear()
+    server._on_request(captured)                                       # the replay: asked, not let through
+    assert [m.status for port, m in server.ports.published] == [Reply.CHALLENGE]
+    for i in range(50):                                                # one-shot origins at the quota
+        server.quota = security.PartyQuota(limit=1)
+        server.quota.admit('client', '/held', 1, 1)
+        answered_through(server, client, sealed_by_origin(client, '/oneshot%d' % i))
+    assert len(server.freshness.confirmed) == 0
+
+
+def sealed_by_origin(client, origin, rid=1):
+    from aft_msgs.msg import Request
+    client.ports.published.clear()
+    client._on_request(Request(id=rid, origin=origin, client='/c', service_type='aft_msgs/Account',
+                               oldest_pending=rid, payload=b'deposit 1'))
+    (_, sealed), = client.ports.published
+    return sealed
+
+
+def test_a_challenge_for_a_request_answered_meanwhile_is_not_sealed_again_nor_a_new_run():
+    """Review of session 48: the re-seal went through the Proxy's numbering; with the request answered and
+    the Proxy's next call out meanwhile, the older id started a new run, and the reply to the pending call
+    was refused as a replay. Sealed again only if still pending, with its run's nonce."""
+    server, client = freshness_pair()
+    r10 = sealed_by(client, 10, 10)
+    server.ports.published.clear()
+    server._on_request(r10)
+    (_, challenge), = server.ports.published
+    run = client.runs.current('/proxy')
+    real_peer = client._peer
+
+    def peer(party):   # the other threads run here: 10 answered, the Proxy's next call sent
+        client._peer = real_peer
+        client.sent.pop(('/proxy', 10))
+        client.unsealed.pop(('/proxy', 10))
+        sealed_by(client, 11, 11)
+        return real_peer(party)
+    client._peer = peer
+    client.ports.published.clear()
+    client._on_reply(challenge)
+    assert [m.id for _, m in client.ports.published] == [11]        # the next call only; 10 not sealed again
+    assert client.runs.current('/proxy') == run
+    assert ('/proxy', 10) not in client.sent and ('/proxy', 11) in client.sent
+    # The next call names the challenge its gate heard (same run): let through at once.
+    r11 = client.sent[('/proxy', 11)]
+    assert security.nonce_of(r11.payload) == run and security.challenge_of(r11.payload) is not None
+    server.ports.published.clear()
+    server._on_request(r11)
+    assert [(port, m.id) for port, m in server.ports.published] == [('requests_out', 11)]
+
+
+def test_a_request_that_could_not_be_sealed_again_with_a_challenge_is_refused_before_it_goes(monkeypatch):
+    from aft_msgs.msg import Reply
+    """Review of session 48: a request that fit sealed, sealed again with a challenge, did not; the Proxy
+    was told "nothing executed" though a gate that had taken it already let it through. A request now
+    goes only with room for a challenge."""
+    server, client = freshness_pair()
+    size = len(sealed_by(client, 1, 1, payload=b'x' * 3000).payload)
+    monkeypatch.setattr(security, 'MAX_SEALED_BYTES', size + sec_nodes.CHALLENGE_ROOM - 1)
+    client.ports.published.clear()
+    from aft_msgs.msg import Request
+    client._on_request(Request(id=2, origin='/proxy', client='/c', service_type='aft_msgs/Account',
+                               oldest_pending=2, payload=b'x' * 3000))
+    assert [(port, getattr(m, 'status', None)) for port, m in client.ports.published] == \
+        [('alarms', None), ('replies_out', Reply.NOT_EXECUTED)]

@@ -311,3 +311,12 @@ def test_an_imu_speed_below_the_reverse_limit_is_refused_not_taken_for_a_standin
     assert braking.observe_speed(-0.2, 0.02)                     # rolling back a little after a stop
     assert speed_refused(-10.0).startswith('below') and speed_refused(float('nan')) == 'not a number'
     assert speed_refused(MIN_SPEED) is None and speed_refused(True) == 'not a number'
+
+
+def test_detections_before_a_release_confirm_nothing_after_it():
+    """Review of session 48 (of its own change): with release_delay 0 the detections taken while braking
+    stayed in the last readings; one false detection after the release made 3 of 4 and braked again."""
+    braking = EmergencyBraking(confirm=3, period=0.04, release_delay=0.0)
+    assert [braking.update(0.9, t, speed=5.0) for t in (0.0, 0.04, 0.08)] == [False, False, True]
+    assert braking.update(None, 0.12, speed=5.0) is False          # released at once
+    assert braking.update(0.9, 0.16, speed=5.0) is False            # one false detection: not confirmed

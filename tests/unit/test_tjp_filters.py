@@ -252,3 +252,17 @@ def test_an_imu_giving_finite_garbage_for_good_is_given_up_not_masked_for_ever()
     agreeing = [window.add(9.0 + 0.1 * k) for k in range(10)]
     assert agreeing[:9] == [(None, False)] * 9
     assert agreeing[9] == (pytest.approx(9.7), False)          # the window starts from the last of them
+
+
+def test_one_nan_amid_imu_garbage_does_not_seed_the_window_with_the_next_garbage_value():
+    """Review of session 48 (of its own change): a NaN ended the doubt, and the next garbage value was
+    passed on as the speed (1.5 m/s at 10)."""
+    window = SlidingAverage(size=5, tolerance=1.0, persist=3)
+    for _ in range(5):
+        window.add(10.0)
+    for k in range(6):
+        window.add(10.0 + (15.0 if k % 2 else -8.5))
+    assert window.doubtful and window.given_up == 1
+    assert window.add(float('nan')) == (None, False) and window.doubtful
+    assert window.add(1.5) == (None, False)          # garbage still: nothing passed on
+    assert [window.add(10.0 + 0.1 * k)[0] for k in range(3)][-1] == pytest.approx(10.1)

@@ -81,7 +81,7 @@ def check(assertions, *args, run=_unbounded):
             continue
         try:
             passed = bool(verdict)    # numpy.bool_, 0, [] ... (numpy.all() returns numpy.False_, not False)
-        except Exception as e:        # an array's truth is ambiguous: not a verdict
+        except BaseException as e:    # an array's truth is ambiguous (or its __bool__ exits): not a verdict
             violations.append((name, 'returned %s, not a verdict: %s' % (type(verdict).__name__, e)))
             continue
         if not passed:
@@ -100,11 +100,11 @@ def _is_nan(verdict):
         differs = verdict != verdict
     except ArithmeticError:   # decimal.InvalidOperation: a signalling NaN
         return True
-    except Exception:
+    except BaseException:     # (one that exits: bool() below says it is no verdict)
         return False
     try:
         return bool(differs)
-    except Exception:         # an array of comparisons: not NaN, but not a verdict either (bool says so)
+    except BaseException:     # an array of comparisons: not NaN, but not a verdict either (bool says so)
         return False
 
 

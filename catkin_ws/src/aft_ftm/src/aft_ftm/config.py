@@ -173,6 +173,8 @@ class _UniqueKeyLoader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            if key_node.tag == 'tag:yaml.org,2002:merge':   # a merge key (<<: *anchor): what it brings in
+                continue                                     # may be overridden here, as YAML allows
             key = self.construct_object(key_node, deep=deep)
             try:
                 repeated = key in seen

@@ -764,8 +764,10 @@ class Freshness(object):
     sealed for the party that signed it, aft_msgs/Reply CHALLENGE), and only a request whose signed
     header names that nonce is taken. A client gate answers for a request it has pending (it seals
     it again with the nonce); a replay, whose signer is not asked, never answers. The first request
-    that answers confirms the origin, and its signed ``oldest_pending`` raises the watermark above
-    every request answered before: every older replay is then refused as ``replay``.
+    that answers and is let through confirms the origin, and its signed ``oldest_pending`` raises the
+    watermark: every older replay is then refused as ``replay``. (Ids at or above it are taken as in
+    flight, as always: a Proxy with calls outstanding across the restart leaves the ids it had answered
+    above its oldest pending one to the Protocol's reply cache.)
 
     At most ``limit`` origins are asked and not yet confirmed: beyond, the one asked longest ago is
     asked again afresh if it comes back (a flood of one-shot origins grows nothing for ever)."""
@@ -779,13 +781,12 @@ class Freshness(object):
 
     def check(self, origin, challenge, now):
         """None if a request of origin naming challenge may go on (the origin confirmed in this run, or
-        the request answers its challenge: confirmed now); otherwise the challenge to answer it with."""
+        the request answers its challenge: confirm() it once it is let through); otherwise the
+        challenge to answer it with."""
         if not self.ask or origin in self.confirmed:
             return None
         asked = self.asked.get(origin)
         if asked is not None and challenge == asked[0]:
-            del self.asked[origin]
-            self.confirmed[origin] = challenge
             return None
         if asked is None:
             asked = self.asked[origin] = [new_nonce(), now, False]
@@ -793,6 +794,14 @@ class Freshness(object):
                 self.asked.popitem(last=False)
         self.sent += 1
         return asked[0]
+
+    def confirm(self, origin):
+        """origin's request that answered its challenge was let through (its watermark taken): confirmed
+        for the rest of the run. Only then: confirmed before, a request the party's quota then refused
+        left the watermark behind with the origin taken as fresh (review of session 48)."""
+        asked = self.asked.pop(origin, None)
+        if self.ask and asked is not None:
+            self.confirmed[origin] = asked[0]
 
     def unanswered(self, now, wait):
         """The origins first asked more than wait s ago and not confirmed since, each once: (origin, s)."""

@@ -285,6 +285,8 @@ class EmergencyBraking(object):
                 self.clear_since = now
             if now - self.clear_since >= self.release_delay:
                 self.active, self.reason = False, 'obstacle gone for %.1f s' % self.release_delay
+                self.recent.clear()   # the detections before the release confirm nothing after it
+                self.seen = 0
         return self.active
 
 

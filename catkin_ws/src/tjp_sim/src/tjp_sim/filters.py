@@ -70,7 +70,7 @@ class SlidingAverage(object):
                 self.why = 'not a number %d times in a row' % self.invalid_run
             self.window.clear()
             self.suspects = []
-            self.masked_run, self.doubtful = 0, False
+            self.masked_run = 0   # (still doubtful if it was: one NaN amid garbage must not seed the window)
             return None, False
         self.invalid_run = 0
         if self.doubtful:

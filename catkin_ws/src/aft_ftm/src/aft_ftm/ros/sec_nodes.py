@@ -581,8 +581,8 @@ class SecGateNode(object):
                 if challenge is not None:   # the server gates that asked it take it at once
                     header['challenge'] = challenge
                 payload = security.seal(self.me, box, header, request.payload)
-                if len(payload) > security.MAX_SEALED_BYTES:
-                    self._too_large(request, len(payload))
+                if len(payload) + CHALLENGE_ROOM > security.MAX_SEALED_BYTES:   # (sealed again with a challenge,
+                    self._too_large(request, len(payload))                    # it must still fit)
                     return
             else:
                 party, nonce = security.sender_of(request.payload), security.nonce_of(request.payload)
@@ -604,6 +604,7 @@ class SecGateNode(object):
                         self.replays.advance(request.origin, request.oldest_pending, request.id)
                         self.nonces.note(request.origin, request.id, nonce, request.oldest_pending)
                         floors = self.replays.floors(request.origin)
+                        self.freshness.confirm(request.origin)
                 if ask is not None:
                     self._ask_fresh(request, nonce, party, ask)
                     return
@@ -857,13 +858,24 @@ class SecGateNode(object):
         if not challenge or len(challenge) > 128 or not all(c in '0123456789abcdef' for c in challenge):
             raise security.Rejected('malformed', 'a freshness challenge for %s/%d is not a nonce' % (
                 reply.origin, reply.id))
+        key = (reply.origin, reply.id)
         with self.lock:
             self.challenges[reply.origin] = challenge
-            request = self.unsealed.get((reply.origin, reply.id))
+            request = self.unsealed.get(key)
             if request is None:
                 self.not_for_me += 1
-        if request is not None:
-            self._on_request(request)
+                return
+        box, _ = self._peer(self.server_party)
+        header = security.header_of(request, security.REQUEST_FIELDS, self.server_party, self.destination)
+        header['challenge'] = challenge
+        with self.lock:   # still pending, sealed with its run's nonce as it was (its Proxy may have gone on
+            if key not in self.unsealed:   # meanwhile: nonce_for would take the older id for a new run)
+                return
+            header['nonce'] = security.nonce_of(self.sent[key].payload)
+            payload = security.seal(self.me, box, header, request.payload)
+            out = _request_with(self.sent[key], payload)
+            self.sent[key] = out
+        self.ports.publish('requests_out', out)
 
     def _watch_challenges(self, period=1.0):
         """Server side: an origin asked to prove itself fresh that has not, CHALLENGE_WAIT s on, is said
@@ -960,6 +972,14 @@ class SecGateNode(object):
 
 
 SEALED_ERROR = '(sealed)'   # the error text a reply carries on the wire: the real one is sealed with its payload
+CHALLENGE_ROOM = 256   # bytes a request sealed again with a freshness challenge may grow by (about 45 used)
+
+
+def _request_with(request, payload):
+    """request (aft_msgs/Request) with another payload."""
+    return Request(id=request.id, origin=request.origin, client=request.client, service_type=request.service_type,
+                   oldest_pending=request.oldest_pending, attempt=request.attempt, payload=payload,
+                   epoch=request.epoch, transfer=request.transfer, batch=request.batch)
 
 
 def _warn(report, told, values):
