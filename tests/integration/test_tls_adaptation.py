@@ -115,7 +115,10 @@ try:
     print('NODES CHANGED BY REFUSED ADAPTATIONS %s' % unchanged)
 
     # As the engine, interrupted at a drawn step of the paper's order, under load: rolled back.
-    step, delay = rng.choice(['kill', 'launch', 'wait_launched', 'rebind']), rng.choice([0.0, 0.05, 0.2])
+    # (rebind is the last step before the resumes: interrupted 0.2 s into it, a light machine had the
+    # adaptation done and exited 0 before the signal, nothing to roll back; session 48's first CI)
+    step = rng.choice(['kill', 'launch', 'wait_launched', 'rebind'])
+    delay = 0.0 if step == 'rebind' else rng.choice([0.0, 0.05, 0.2])
     stopped = {}
 
     def stop_it():

@@ -268,16 +268,19 @@ class MonitorCore(object):
     def witness_heard(self, now, primary=None, epoch=None):
         """A configuration of the witness naming one of the sites came: ``primary`` serves from
         ``epoch`` on (an older epoch's, late, changes nothing). A switch after a failover named the
-        configured first site its primary, the backup by then (review of session 40)."""
+        configured first site its primary, the backup by then (review of session 40). Returns whether it
+        is the newest configuration heard (an older one re-published brings no lost site back)."""
         now = _time(now)
         if self.witness_heard_at is None and self.witness_unheard_told:
             self._note(now, 'the witness heard at last')
         self.witness_heard_at = now
+        newest = epoch is None or epoch >= self.witness_epoch
         if epoch is not None and epoch > self.witness_epoch:
             self.witness_epoch = epoch
             if primary != self.witness_primary:
                 self._note(now, 'the witness names %s the primary (epoch %d)' % (primary or 'no site', epoch))
             self.witness_primary = primary if primary in self.sites else None
+        return newest
 
     def bandwidth(self, bytes_per_s, now):
         """A measurement of the bandwidth available between sites (None: unknown)."""
@@ -498,7 +501,9 @@ class MonitorCore(object):
         # (review of the monitor, session 33).
         self.failed_model = self.pending_signature or self._signature()
         failures = self.holds.get(self.failed_model, (0, now))[0] + 1
-        hold = min(self.retry_hold_max, self.retry_hold * 2 ** (failures - 1))
+        # (the exponent capped: at the 1025th failure on one model 2 ** 1024 overflowed a float, and the
+        # monitor's adapter thread died with it, ADAPTING for good; review of session 48)
+        hold = min(self.retry_hold_max, self.retry_hold * 2 ** min(failures - 1, 64))
         self.holds[self.failed_model], self.hold_told = (failures, now + hold), None
         retry = 'retried when the model changes, on this model not before %.0f s from now (%d failed in a row)' % (
             hold, failures)

@@ -53,6 +53,13 @@ class Event(enum.Enum):
 
 
 # The allowed state changes of a gate: (state, event) -> (new state, why). Nothing else changes it.
+# The longest lease a suspension may carry (s). Every suspension carries one so that a node whose
+# suspender died resumes by itself; an infinite or huge one (adapt --lease inf, a ~suspend call with
+# lease 1e10) never ran out, and a suspender killed in the pause left the node suspended for good,
+# unsaid (review of session 48).
+MAX_LEASE = 600.0
+
+
 GATE_EDGES = {
     (GateState.OPEN, Event.SUSPEND):
         (GateState.CLOSING, 'suspend asked: the held ports buffer from now on'),

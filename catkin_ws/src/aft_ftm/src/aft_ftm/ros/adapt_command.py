@@ -18,6 +18,7 @@ import rospy
 
 from .. import adaptation
 from ..adaptation import ScriptError
+from ..suspension import MAX_LEASE
 
 
 def find_script(spec):
@@ -91,10 +92,10 @@ def main(argv):
     except ScriptError as e:
         print('adapt: script rejected, nothing changed: %s' % e, file=sys.stderr)
         return 2
-    if not options.lease > 0:
-        parser.error('--lease must be > 0 s, got %r' % options.lease)
-    if not options.quiesce_timeout > 0:
-        parser.error('--quiesce-timeout must be > 0 s, got %r' % options.quiesce_timeout)
+    if not 0 < options.lease <= MAX_LEASE:
+        parser.error('--lease must be > 0 s and at most %g s, got %r' % (MAX_LEASE, options.lease))
+    if not 0 < options.quiesce_timeout <= MAX_LEASE:
+        parser.error('--quiesce-timeout must be > 0 s and at most %g s, got %r' % (MAX_LEASE, options.quiesce_timeout))
     from aft_ftm.ros.params import secure_from_environment
     secure_from_environment()   # mutual TLS where AFT_TLS_DIR says so (issue 16)
     rospy.init_node('aft_adapt', anonymous=True, disable_signals=True)

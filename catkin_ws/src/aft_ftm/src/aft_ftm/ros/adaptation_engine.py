@@ -41,6 +41,7 @@ from aft_msgs.srv import Rebind, RebindRequest, SetNodes, Suspend
 from .. import adaptation, site_guard
 from ..adaptation import ScriptError, StepError
 from ..process_start import started
+from ..suspension import MAX_LEASE
 from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
 from ..turns import Busy, Turn
 from ..site_watch import mark_retired
@@ -335,8 +336,8 @@ class Engine(object):
     def __init__(self, log=None, quiesce_timeout=5.0, launch_timeout=60.0, service_timeout=5.0,
                  connect_timeout=2.0, log_dir=None, launch_niceness=5, lease=5.0, guard_poll=0.2,
                  guard_grace=5.0, turn_timeout=120.0):
-        if not lease > 0:
-            raise ValueError('the lease must be > 0 s, got %r' % (lease,))
+        if not 0 < lease <= MAX_LEASE:
+            raise ValueError('the lease must be > 0 s and at most %g s, got %r' % (MAX_LEASE, lease))
         self.log = _never_raises(log or (lambda text: rospy.loginfo(text)))
         self.lease = lease
         self.guard_poll = guard_poll

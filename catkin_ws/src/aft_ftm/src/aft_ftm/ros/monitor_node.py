@@ -154,7 +154,9 @@ class MonitorNode(object):
         """A lost site the witness admits again (it re-joined): R changes back."""
         if conf.primary in self.sites or conf.backup in self.sites:
             with self.lock:
-                self.core.witness_heard(time.monotonic(), conf.primary, conf.epoch)
+                newest = self.core.witness_heard(time.monotonic(), conf.primary, conf.epoch)
+            if not newest:   # an older configuration (a witness started again from an older record): a lost
+                return       # site it names has not re-joined (review of session 48)
         for site in (conf.primary, conf.backup):
             if site in self.sites:
                 with self.lock:
@@ -236,7 +238,17 @@ class MonitorNode(object):
                 decision, alive = self.work.get(timeout=0.5)
             except queue.Empty:
                 continue
-            self._carry_out(decision, alive)
+            try:
+                self._carry_out(decision, alive)
+            except Exception as e:   # this thread must live on: dead, the monitor never adapted again, unsaid
+                rospy.logerr('%s: carrying out %s failed: %s: %s', rospy.get_name(), decision, type(e).__name__, e)
+                with self.lock:
+                    try:
+                        self.core.adaptation_failed('%s: %s' % (type(e).__name__, e), time.monotonic())
+                    except Exception:   # (not ADAPTING any more: nothing to end)
+                        pass
+                    alarms = self.core.take_alarms()
+                self._raise(alarms)
 
     def _carry_out(self, decision, alive):
         """Run the decision's script; tell the core the outcome, publish the event and the alarms."""

@@ -14,15 +14,15 @@ import roslib.message
 from .. import config
 from .. import ports as rules
 from ..errors import RebindError
-from ..suspension import Gate, GateState, SuspendError
+from ..suspension import MAX_LEASE, Gate, GateState, SuspendError
 from .params import param
 from .spillover import spill_over
 
 # The suspension's parameters, the same for every FTM node: name -> (default, converter, doc).
 SUSPENSION_PARAMS = {
-    'suspend_lease': (10.0, config.positive_float,
-                      'lease of a suspension asked with lease 0 (s): resumes by itself (and raises an alarm) '
-                      'unless resumed or renewed within it'),
+    'suspend_lease': (10.0, config.number_in(0.001, MAX_LEASE),
+                      'lease of a suspension asked with lease 0 (s, at most 600): resumes by itself (and raises an '
+                      'alarm) unless resumed or renewed within it'),
     'suspend_buffer_bytes': (64 * 1024 * 1024, config.positive_int,
                              'bound of the held buffer (bytes, estimated from the messages\' fields): the '
                              'message that would exceed it ends the suspension early (alarm), none is dropped'),
@@ -298,6 +298,9 @@ class Ports(object):
         if req.probe:
             return SuspendResponse(success=True, message=self.gate.state.name, held=self.gate.held)
         lease = req.lease if req.lease > 0 else self.suspend_lease
+        if not lease <= MAX_LEASE:
+            return SuspendResponse(success=False, message='a lease of %r s: at most %g s (a suspension must end by '
+                                   'itself if its suspender dies)' % (lease, MAX_LEASE))
         if req.renew:
             try:
                 held = self.gate.renew(lease, time.monotonic(), req.owner)

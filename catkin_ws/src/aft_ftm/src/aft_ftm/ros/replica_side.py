@@ -8,6 +8,7 @@ from aft_msgs.srv import Suspend
 
 from ..checkpoint import UncheckedAdmission
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
+from ..suspension import MAX_LEASE
 from ..witness import Grant, Op
 from .alarms import alarm
 from .deadline import CallTimeout, Deadline
@@ -123,7 +124,7 @@ class ReplicaSide(object):
             return True
         try:
             if suspend:
-                request = dict(timeout=self.state_timeout, lease=max(2.0, 2 * self.state_timeout))
+                request = dict(timeout=self.state_timeout, lease=min(MAX_LEASE, max(2.0, 2 * self.state_timeout)))
                 answer = self.protocol_calls.call(lambda: self.protocol_suspend(**request), self.state_timeout + 1.0)
             else:
                 answer = self.protocol_calls.call(self.protocol_resume, self.state_timeout)
