@@ -51,3 +51,32 @@ def test_a_benchmark_whose_backup_was_excluded_and_admitted_again_measured_somet
     deployment.require_same_pair(('master', 'slave', 5), '/tmp/logs')   # the same pair: no error
     with pytest.raises(RuntimeError, match=r'master/slave, epoch 3, then master/slave, epoch 5.*/tmp/logs'):
         deployment.require_same_pair(('master', 'slave', 3), '/tmp/logs')
+
+
+def test_without_a_witness_the_fault_runs_only_while_no_crash_detector_suspects_its_peer(monkeypatch):
+    """Session 48's clean-clone CI: both detectors of a no-witness pair declared each other failed while they
+    started (30 ms, a loaded machine); MASTER was then powered off, nobody was promoted, and the healing
+    benchmark's calls waited for ever. The fault is not injected then (PairChanged: drawn again)."""
+    import rospy
+    Status = collections.namedtuple('Status', 'alive state why')
+    views = {'/master/crash_detector/peer_status': Status(True, 'ALIVE', ''),
+             '/slave/crash_detector/peer_status': Status(True, 'ALIVE', '')}
+
+    class Proxy(object):
+        def __init__(self, service, _type):
+            self.service = service
+
+        def __call__(self):
+            if self.service not in views:
+                raise rospy.ServiceException('no provider')
+            return views[self.service]
+    monkeypatch.setattr(rospy, 'ServiceProxy', Proxy)
+    injected = []
+    fault = deployment.unless_peer_suspected(lambda: injected.append(1) or (1, 0.0))
+    assert fault() == (1, 0.0) and injected == [1]
+    views['/slave/crash_detector/peer_status'] = Status(False, 'FAILED', 'master declared failed; heard again')
+    with pytest.raises(deployment.PairChanged, match='slave/crash_detector.*master declared failed'):
+        fault()
+    del views['/master/crash_detector/peer_status']
+    assert 'did not answer' in deployment.peer_suspicion()
+    assert injected == [1]

@@ -365,6 +365,39 @@ def unless_pair_changed(fault, pair, service='/aft/witness/request'):
     return guarded
 
 
+_PEER_CALLS = Deadline('peer-status', exclusive=True)
+
+
+def peer_suspicion(sites=('master', 'slave'), timeout=2.0):
+    """None while each site's crash detector holds its peer alive (aft_msgs/PeerStatus); otherwise what the
+    first that does not says. Without a witness this is how a benchmark knows a false suspicion came
+    before its fault: a pair whose detectors declared each other failed while they started (30 ms, a
+    loaded machine) waits for a re-join that never comes, and powering off the primary then leaves
+    nobody promoted (session 48's clean-clone CI: the healing benchmark's calls waited for ever)."""
+    import rospy
+    from aft_msgs.srv import PeerStatus
+    for site in sites:
+        service = '/%s/crash_detector/peer_status' % site
+        try:
+            status = _PEER_CALLS.call(lambda: rospy.ServiceProxy(service, PeerStatus)(), timeout)
+        except Exception as e:   # not up, gone, or not answering
+            return '%s did not answer: %s' % (service, e)
+        if not status.alive:
+            return '%s: %s' % (service, status.why or status.state)
+    return None
+
+
+def unless_peer_suspected(fault, sites=('master', 'slave')):
+    """fault (a drive_through_fault fault()) run only while no crash detector of sites suspects its peer
+    (peer_suspicion); otherwise PairChanged, naming it, and no fault."""
+    def guarded():
+        said = peer_suspicion(sites)
+        if said:
+            raise PairChanged('a crash detector suspected its peer before the fault (%s): a false suspicion' % said)
+        return fault()
+    return guarded
+
+
 SAMPLE_TRIES = 3   # deployments per failover sample at most: a false suspicion before the fault draws it again
 
 
