@@ -32,10 +32,20 @@ class FakePublisher(object):
 
 
 class FakePorts(object):
-    """A node's ports (aft_ftm.ports) without ROS: what it published, in order."""
+    """A node's ports (aft_ftm.ports) without ROS: what it published, in order. Built with a node's
+    specs and callbacks (it stands for ``aft_ftm.ros.ports.Ports`` then), ``deliver`` hands an input
+    to the node as a subscriber's thread would."""
 
-    def __init__(self):
+    def __init__(self, specs=(), callbacks=None):
         self.sent = []
+        self.specs = {s.name: s for s in specs}
+        self.callbacks = callbacks or {}
+
+    def suspension(self, hold, quiescent=None, before_suspend=None, resumed=None):
+        pass
+
+    def deliver(self, port, msg):
+        self.callbacks[port](msg)
 
     def publish(self, port, msg):
         self.sent.append((port, msg))

@@ -1,7 +1,7 @@
 """The TJP's control logic without a master: safety distance, controllerPid, commandManager."""
 import pytest
 
-from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance
+from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, SafetyDistance
 from tjp_sim.errors import TjpConfigError
 
 
@@ -320,3 +320,35 @@ def test_detections_before_a_release_confirm_nothing_after_it():
     assert [braking.update(0.9, t, speed=5.0) for t in (0.0, 0.04, 0.08)] == [False, False, True]
     assert braking.update(None, 0.12, speed=5.0) is False          # released at once
     assert braking.update(0.9, 0.16, speed=5.0) is False            # one false detection: not confirmed
+
+
+# -- controllerPid's command checked by its stamp (commandManager; the nodes' side: test_tjp_nodes.py) --
+@pytest.mark.parametrize('hold,stamp,now,offer', [
+    (0.3, 10.0, 10.0, Offer.TAKEN),
+    (0.3, 9.75, 10.0, Offer.TAKEN),       # 0.25 s old: a command that came on time is held that long
+    (0.3, 9.6, 10.0, Offer.STALE),        # 0.4 s old: not used even had it come on time
+    (0.1, 9.88, 10.0, Offer.TAKEN),       # a hold shorter than late: a command is used for late (0.15 s)
+    (0.1, 9.8, 10.0, Offer.STALE),
+    (0.3, 10.45, 10.0, Offer.TAKEN),      # a clock lagging the controller's by less than ahead_max
+    (0.3, 10.6, 10.0, Offer.FUTURE),      # a glitched or forged stamp
+    (0.3, 5.0, 0.0, Offer.TAKEN),         # no clock yet (0): no bound ahead
+], ids=['now', 'within hold', 'older than hold', 'within late', 'older than late', 'a little ahead',
+        'too far ahead', 'no clock yet'])
+def test_a_command_of_controllerpid_is_checked_by_its_stamp(hold, stamp, now, offer):
+    arbiter = CommandArbiter(hold=hold, late=0.15, ahead_max=0.5)
+    assert arbiter.offer(stamp, now) is offer
+    assert (arbiter.stale, arbiter.ahead) == (offer is Offer.STALE, offer is Offer.FUTURE)
+    assert arbiter.last_stamp == (stamp if offer is Offer.TAKEN else None)
+
+
+def test_a_command_not_after_the_last_one_taken_is_refused_unless_the_clock_went_back():
+    arbiter = CommandArbiter()
+    assert arbiter.offer(10.0, 10.0) is Offer.TAKEN
+    assert arbiter.offer(10.0, 10.05) is Offer.REORDERED       # a duplicate
+    assert arbiter.offer(9.9, 10.05) is Offer.REORDERED        # reordered, or replayed
+    assert arbiter.offer(10.1, 10.1) is Offer.TAKEN
+    assert arbiter.offer(9.0, 10.15) is Offer.STALE            # older than any command is used for
+    assert (arbiter.reordered, arbiter.stale, arbiter.resets) == (2, 1, 0)
+    # The simulation started again (/clock went back): its commands are taken afresh, not refused for good.
+    assert arbiter.offer(0.2, 0.2) is Offer.TAKEN and arbiter.resets == 1
+    assert arbiter.offer(0.3, 0.3) is Offer.TAKEN and arbiter.offer(0.25, 0.3) is Offer.REORDERED

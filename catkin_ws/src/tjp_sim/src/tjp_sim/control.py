@@ -7,7 +7,8 @@
 - :class:`EmergencyBraking`: independent of the TJP, on the ultrasonic sensor; it brakes when an
   obstacle is inside the stopping distance and holds until the obstacle is gone for a delay.
 - :class:`CommandArbiter`: commandManager, which passes controllerPid's command to the actuator
-  unless Emergency Braking asks to stop (that has priority) or an alarm asked for a safe stop.
+  unless Emergency Braking asks to stop (that has priority) or an alarm asked for a safe stop; a
+  command stamped too long ago, ahead of the clock or out of order is refused (:class:`Offer`).
 
 Units: metres, seconds, m/s, m/s^2. ``now`` is passed in; nothing here sleeps.
 """
@@ -299,6 +300,15 @@ class EmergencyBraking(object):
         self.seen = sum(self.recent)
 
 
+class Offer(enum.Enum):
+    """What commandManager makes of a command of controllerPid (:meth:`CommandArbiter.offer`). A
+    refusal's value is the kind of the alarm that says so."""
+    TAKEN = 'taken'
+    STALE = 'stale_command'           # computed longer ago than a command is used for
+    FUTURE = 'future_command'         # stamped more than ahead_max after the caller's clock
+    REORDERED = 'reordered_command'   # stamped at or before the last one taken
+
+
 # Allowed mode changes and what causes each.
 MODE_EDGES = {
     (Mode.TJP, Mode.EMERGENCY): 'Emergency Braking is active',
@@ -320,9 +330,20 @@ class CommandArbiter(object):
     margin); past that controllerPid is late (HOLD): its last command is held until it is ``hold``
     old (the time a failover to the backup board takes), then the car brakes at ``stop_decel``
     until controllerPid speaks again.
+
+    controllerPid stamps each command with when it computed it. :meth:`offer` checks the stamp
+    before the caller passes the command on; a refused one is as if controllerPid had said nothing
+    (its last good command held, then braking, as above). Refused, each counted:
+    - stamped more than ``max(late, hold)`` before the caller's clock (``stale``): older than any
+      command is used for when it comes on time. A board frozen (SIGSTOP) and resumed after the
+      backup took over published the commands it computed before it froze, and they were applied;
+    - stamped more than ``ahead_max`` after the caller's clock (``ahead``; a glitched or forged stamp,
+      the bound of the sensors' readings), unless the caller has no clock yet (0);
+    - stamped at or before the last one taken (``reordered``: a reordered, duplicated or replayed
+      one), unless the caller's own clock went back since (a /clock reset: taken afresh, ``resets``).
     """
 
-    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15):
+    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15, ahead_max=0.5):
         self.hold = _non_negative('hold', hold)
         self.late = _positive('late', late)   # controllerPid silent this long is late (its period + margin)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
@@ -332,6 +353,13 @@ class CommandArbiter(object):
         self.emergency_active = False
         self.reason = ''
         self.holds = 0      # cycles in which controllerPid's last command was held
+        self.ahead_max = _positive('ahead_max', ahead_max)
+        self.last_stamp = None   # the stamp of the last command taken by offer()
+        self.last_clock = None   # the caller's clock then
+        self.stale = 0           # commands refused: computed too long ago
+        self.ahead = 0           # commands refused: stamped ahead of the clock
+        self.reordered = 0       # commands refused: stamped at or before the last one taken
+        self.resets = 0          # the clock gone back: commands taken afresh
 
     def _change(self, mode, reason):
         if self.mode == mode:
@@ -347,6 +375,29 @@ class CommandArbiter(object):
     def safe_stop(self, reason):
         """A failure the TJP cannot survive: brake to a stop and stay stopped."""
         self._change(Mode.SAFE_STOP, reason)
+
+    def stale_after(self):
+        """How old a command may be when it comes (s): the longest a command that came on time is used."""
+        return max(self.late, self.hold)
+
+    def offer(self, stamp, now):
+        """Whether a command of controllerPid stamped ``stamp`` may be passed on to :meth:`command` at
+        ``now`` (the caller's clock, in the stamps' units; 0: none yet). See the class."""
+        if now and stamp > now + self.ahead_max:
+            self.ahead += 1
+            return Offer.FUTURE
+        if now - stamp > self.stale_after():
+            self.stale += 1
+            return Offer.STALE
+        if self.last_stamp is not None and stamp <= self.last_stamp:
+            # A reset only if the caller's own clock went back since the last command taken (compared
+            # with the stamp, a replayed command in a moment the clock lagged would pass for one).
+            if self.last_clock is None or now >= self.last_clock:
+                self.reordered += 1
+                return Offer.REORDERED
+            self.resets += 1
+        self.last_stamp, self.last_clock = stamp, now
+        return Offer.TAKEN
 
     def command(self, tjp_command, now):
         """The acceleration sent to the actuator this cycle, given controllerPid's latest command

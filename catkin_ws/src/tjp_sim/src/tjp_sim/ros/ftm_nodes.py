@@ -96,7 +96,8 @@ class LaserVoteNode(PortedNode):
     Parameters: ~tolerance (float, 0.2 m): readings this close agree; ~silent_after (int, 5):
         instants missed in a row before a laser is reported silent
     Subscribes: laser_0, laser_1, laser_2 (sensor_msgs/Range), ports of the same names
-    Publishes: out (sensor_msgs/Range): the voted gap, port ``out``; alarms (aft_msgs/Alarm), port ``alarms``:
+    Publishes: out (sensor_msgs/Range): the voted gap, port ``out``, instants in the order decided;
+        alarms (aft_msgs/Alarm), port ``alarms``:
         a laser disagreeing (laser_disagrees), a laser silent (laser_silent), no majority (no_majority,
         nothing is published for that instant: the TJP keeps its last gap), a laser whose readings are
         stamped 0 (unstamped, once: they are not voted), the clock gone back (clock_reset), a reading
@@ -119,17 +120,24 @@ class LaserVoteNode(PortedNode):
             {'laser_%d' % i: (lambda msg, i=i: self._on_laser(i, msg)) for i in range(3)})
 
     def _on_laser(self, index, msg):
+        # One hold of the lock from the vote to the last publication. Each laser has its own subscriber
+        # thread: published after the lock was let go, one thread's decision could leave after a later
+        # one another thread decided meanwhile, and distanceSecurityCalculator took the older gap last.
         with self.lock:
-            late, resets, stale, ahead = self.voter.late, self.voter.resets, self.voter.stale, self.voter.ahead
-            clock = rospy.get_rostime()
-            decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg), clock=clock.to_nsec())
-            late, reset = self.voter.late - late, self.voter.resets > resets
-            first_stale = self.voter.stale > stale and time.monotonic() - self.stale_told > 1.0
-            if first_stale:
-                self.stale_told = time.monotonic()
-            first_ahead = self.voter.ahead > ahead and time.monotonic() - self.ahead_told > 1.0
-            if first_ahead:
-                self.ahead_told = time.monotonic()
+            self._vote(index, msg)
+
+    def _vote(self, index, msg):
+        """One reading: voted, and every instant it decides published, in order. Called under the lock."""
+        late, resets, stale, ahead = self.voter.late, self.voter.resets, self.voter.stale, self.voter.ahead
+        clock = rospy.get_rostime()
+        decided = self.voter.add(index, msg.header.stamp.to_nsec(), _range(msg), clock=clock.to_nsec())
+        late, reset = self.voter.late - late, self.voter.resets > resets
+        first_stale = self.voter.stale > stale and time.monotonic() - self.stale_told > 1.0
+        if first_stale:
+            self.stale_told = time.monotonic()
+        first_ahead = self.voter.ahead > ahead and time.monotonic() - self.ahead_told > 1.0
+        if first_ahead:
+            self.ahead_told = time.monotonic()
         if first_ahead:
             self._alarm('future_reading', 'laser %d stamped %.3f s, more than 0.5 s after this node\'s clock (%.3f s): '
                         'refused, a glitched or forged stamp (%d so far)' % (index, msg.header.stamp.to_sec(),

@@ -20,7 +20,7 @@ from aft_ftm.ros.cycle_nodes import Terminate
 from aft_ftm.ros.params import param
 from aft_ftm.ros.ports import Ports
 
-from ..control import CommandArbiter, EmergencyBraking, Mode, PidController, SafetyDistance, speed_refused
+from ..control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, SafetyDistance, speed_refused
 from ..errors import TjpConfigError
 
 
@@ -357,13 +357,19 @@ class CommandManagerNode(PortedNode):
 
     Emergency Braking has priority over controllerPid; a safe stop (an alarm) over both. Without
     a new command from controllerPid (its board failing over), the last one is held ``~hold``.
+    A command of controllerPid stamped more than ``~hold`` (0.15 s at least) before this node's
+    clock (computed long ago: a board frozen and resumed behind the fence), more than 0.5 s after it,
+    or at or before the last one taken (reordered, duplicated, replayed) is refused: as if
+    controllerPid were silent.
 
     Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2)
     Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; emergency (std_msgs/Bool),
         port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``;
         service_safe_state (aft_msgs/SafeState), port ``service_safe_state``: the service manager's safe
         state, obeyed as a safe stop
-    Publishes: command (aft_msgs/CarCommand), port ``command``
+    Publishes: command (aft_msgs/CarCommand), port ``command``; alarms (aft_msgs/Alarm), port ``alarms``:
+        a command of controllerPid refused, stale_command, future_command or reordered_command, each once
+        per run of them (a command taken ends it)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -378,11 +384,13 @@ class CommandManagerNode(PortedNode):
         super(CommandManagerNode, self).__init__(
             [PortSpec('pid_command', SUBSCRIBE, 'aft_msgs/CarCommand'), PortSpec('emergency', SUBSCRIBE, 'std_msgs/Bool'),
              PortSpec('safe_stop', SUBSCRIBE, 'std_msgs/String'), PortSpec('command', PUBLISH, 'aft_msgs/CarCommand'),
-             PortSpec('service_safe_state', SUBSCRIBE, 'aft_msgs/SafeState')],
+             PortSpec('service_safe_state', SUBSCRIBE, 'aft_msgs/SafeState'),
+             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'pid_command': self._on_pid, 'emergency': self._on_emergency, 'safe_stop': self._on_safe_stop,
              'service_safe_state': self._on_service_safe_state})
         self.pending = None
         self.cycle = 0
+        self.refused = {offer: Episodes() for offer in Offer if offer is not Offer.TAKEN}
 
     def setup(self, timeout):
         self.bind_all()
@@ -390,8 +398,34 @@ class CommandManagerNode(PortedNode):
         return True
 
     def _on_pid(self, msg):
+        stamp = msg.stamp.to_sec()
         with self.lock:
-            self.pending = msg.accel
+            now = rospy.get_time()
+            offer = self.arbiter.offer(stamp, now)
+            if offer is Offer.TAKEN:
+                self.pending = msg.accel
+                for run in self.refused.values():
+                    run.good()
+                return
+            first = self.refused[offer].bad()
+            last = self.arbiter.last_stamp
+            count = {Offer.STALE: self.arbiter.stale, Offer.FUTURE: self.arbiter.ahead,
+                     Offer.REORDERED: self.arbiter.reordered}[offer]
+        if not first:
+            return
+        what = 'controllerPid command %.2f m/s^2 from %s stamped %.3f s' % (msg.accel, msg.source or '?', stamp)
+        if offer is Offer.STALE:
+            detail = ('%s, %.2f s before this node\'s clock (%.3f s): computed longer ago than a command is used '
+                      'for (%.2f s; a board frozen and resumed?): refused, %d so far; as if controllerPid were '
+                      'silent' % (what, now - stamp, now, self.arbiter.stale_after(), count))
+        elif offer is Offer.FUTURE:
+            detail = ('%s, more than %.1f s after this node\'s clock (%.3f s): refused (a glitched or forged '
+                      'stamp), %d so far' % (what, self.arbiter.ahead_max, now, count))
+        else:
+            detail = ('%s, not after the last one taken (%.3f s): refused (a reordered, duplicated or replayed '
+                      'command), %d so far' % (what, last, count))
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind=offer.value,
+                                           detail=detail, stamp=rospy.Time.now()))
 
     def _on_emergency(self, msg):
         with self.lock:

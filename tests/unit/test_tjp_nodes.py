@@ -1,0 +1,145 @@
+"""The car's TJP nodes without a master: commandManager (tjp_sim.ros.tjp_nodes) and the laser voter
+(tjp_sim.ros.ftm_nodes), built by their own constructors with their parameters' defaults, their ports
+faked and ROS time a fake clock. Inputs are handed to them as their subscribers' threads would."""
+import threading
+
+import pytest
+import rospy
+from aft_msgs.msg import CarCommand
+from sensor_msgs.msg import Range
+
+from fakes import FakeClock, FakePorts
+from tjp_sim.ros import ftm_nodes, tjp_nodes
+
+
+def defaults(name, convert, default=None, required=False):
+    """aft_ftm.ros.params.param with no parameter set: every node takes its defaults."""
+    return default
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    """ROS time (the simulator's /clock, as every node reads it), set by the test."""
+    clock = FakeClock(10.0)
+    monkeypatch.setattr(rospy, 'get_time', lambda: clock.now)
+    monkeypatch.setattr(rospy, 'get_rostime', lambda: rospy.Time.from_sec(clock.now))
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time.from_sec(clock.now)))
+    return clock
+
+
+def build(monkeypatch, cls, ports=FakePorts):
+    monkeypatch.setattr(tjp_nodes, 'Ports', ports)
+    monkeypatch.setattr(tjp_nodes, 'param', defaults)
+    monkeypatch.setattr(ftm_nodes, 'param', defaults)
+    return cls()
+
+
+# -- commandManager: controllerPid's command is as old as its stamp ---------------------------------
+def pid(accel, stamp):
+    """A command of controllerPid computed at ``stamp`` (s of ROS time), as its board's After passes it on."""
+    return CarCommand(stamp=rospy.Time.from_sec(stamp), accel=accel, mode=CarCommand.TJP, cycle=1,
+                      source='/board_a/controller_pid')
+
+
+def drive(node, clock, steps):
+    """Each step: (ROS time, [commands of controllerPid arriving then]); commandManager's cycle runs
+    after them. Returns the accelerations the car got."""
+    for now, commands in steps:
+        clock.now = now
+        for msg in commands:
+            node.ports.deliver('pid_command', msg)
+        node._send()
+    return [msg.accel for port, msg in node.ports.sent if port == 'command']
+
+
+def test_a_command_computed_long_ago_by_a_resumed_board_never_reaches_the_car(monkeypatch, clock):
+    """A board frozen (SIGSTOP) and resumed behind the fence, after the backup took over, publishes the
+    commands it computed before it froze. They were applied as they came: 1.5 m/s^2 computed 1 s ago.
+    A command older than ``hold`` is refused; the car gets what it gets from a silent controller, its
+    last good command held, then braking, and one alarm says so."""
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    accels = drive(node, clock, [
+        (10.0, [pid(0.4, 10.0)]),
+        (10.05, [pid(1.5, 9.0)]),                    # computed 1 s ago: the backlog of a frozen board
+        (10.1, [pid(1.5, 9.1), pid(1.5, 9.2)]),
+        (10.2, []),                                  # controllerPid late: its last good command held
+        (10.35, []),                                 # held for hold (0.3 s): then braking
+    ])
+    assert accels == [0.4, 0.4, 0.4, 0.4, -3.0], accels
+    assert node.ports.alarms() == ['stale_command']   # once for the run of them, not once each
+    alarm = [msg for port, msg in node.ports.sent if port == 'alarms'][0]
+    assert '9.000' in alarm.detail and alarm.source == node.name
+
+
+def test_a_command_stamped_ahead_or_before_the_last_one_applied_is_refused(monkeypatch, clock):
+    """A command stamped more than 0.5 s after commandManager's clock (a glitched or forged stamp), and
+    one stamped at or before the last one applied (reordered, duplicated or replayed), change nothing."""
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    accels = drive(node, clock, [
+        (10.0, [pid(0.4, 10.0)]),
+        (10.1, [pid(-1.0, 11.0),                     # 0.9 s ahead of the clock
+                pid(1.0, 9.95),                      # older than the last one applied: reordered
+                pid(1.2, 10.0)]),                    # the same instant again: a duplicate
+        (10.12, [pid(0.5, 10.1), pid(0.7, 10.05)]),  # a fresh one taken; an older one after it is not
+        (10.2, [pid(0.6, 10.6)]),                    # 0.4 s ahead: a clock lagging, taken
+    ])
+    assert accels == [0.4, 0.4, 0.5, 0.6], accels
+    assert node.ports.alarms() == ['future_command', 'reordered_command', 'reordered_command']
+
+
+def test_refused_commands_raise_one_alarm_per_run_of_them(monkeypatch, clock):
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    drive(node, clock, [(10.0, [pid(0.4, 10.0)])])
+    drive(node, clock, [(10.05, [pid(1.0, 8.0 + 0.05 * i) for i in range(20)])])   # a backlog of 20
+    assert node.ports.alarms() == ['stale_command']
+    drive(node, clock, [(10.1, [pid(0.3, 10.1)]), (10.15, [pid(1.0, 9.0)])])   # a good one, then stale again
+    assert node.ports.alarms() == ['stale_command', 'stale_command']
+    assert node.arbiter.stale == 21
+
+
+# -- the laser voter: decisions leave in the order they were decided --------------------------------
+def laser(stamp, value):
+    msg = Range(range=value, min_range=0.1, max_range=40.0)
+    msg.header.stamp = rospy.Time.from_sec(stamp)
+    return msg
+
+
+class OvertakingPorts(FakePorts):
+    """The voter's ports, whose first voted gap takes its time to go out: it waits until a later one has
+    gone out (at most WAIT s). ``first_out`` is set once it waits."""
+
+    WAIT = 0.5
+
+    def __init__(self, specs=(), callbacks=None):
+        super(OvertakingPorts, self).__init__(specs, callbacks)
+        self.first_out, self.second_out = threading.Event(), threading.Event()
+
+    def publish(self, port, msg):
+        if port == 'out' and not self.first_out.is_set():
+            self.first_out.set()
+            self.second_out.wait(self.WAIT)
+        elif port == 'out':
+            self.second_out.set()
+        super(OvertakingPorts, self).publish(port, msg)
+
+
+def test_voted_gaps_leave_in_the_order_they_were_decided(monkeypatch, clock):
+    """Each laser has its own subscriber thread. The voter decided under its lock but published after
+    it: a decision made by one laser's thread could go out after a later one made by another's, and
+    distanceSecurityCalculator took the older gap last. Here laser 0 lost its reading of t1: its reading
+    of t2 decides t1 (laser 0 skipped it), and laser 1's reading of t2, in another thread, decides t2
+    while t1 is still on its way out."""
+    node = build(monkeypatch, ftm_nodes.LaserVoteNode, ports=OvertakingPorts)
+    t1, t2 = 10.0, 10.04
+    for port, msg in (('laser_1', laser(t1, 8.0)), ('laser_2', laser(t1, 8.0)), ('laser_2', laser(t2, 7.9))):
+        node.ports.deliver(port, msg)
+    assert node.ports.sent == []                     # t1 waits for laser 0
+    first = threading.Thread(target=node.ports.deliver, args=('laser_0', laser(t2, 7.9)))
+    second = threading.Thread(target=node.ports.deliver, args=('laser_1', laser(t2, 7.9)))
+    first.start()
+    assert node.ports.first_out.wait(5.0)            # t1 decided, on its way out
+    second.start()
+    first.join(5.0)
+    second.join(5.0)
+    out = [(msg.header.stamp.to_sec(), msg.range) for port, msg in node.ports.sent if port == 'out']
+    assert out == [(pytest.approx(t1), pytest.approx(8.0)), (pytest.approx(t2), pytest.approx(7.9))], out
