@@ -101,14 +101,14 @@ def test_a_timeout_of_zero_calls_the_assertion_in_the_callers_thread_unbounded()
     assert seen == [threading.current_thread()]
 
 
-def _request():
-    return Request(id=3, origin='/client/proxy', client='c', attempt=1, service_type='aft_msgs/Account',
+def _request(rid=3):
+    return Request(id=rid, origin='/client/proxy', client='c', attempt=1, service_type='aft_msgs/Account',
                    payload=serialize(AccountRequest(op='deposit', amount=5)))
 
 
 def test_a_before_whose_request_assertion_hangs_refuses_the_request_within_the_bound(no_clock):
     node = ad_nodes.AdBeforeNode.__new__(ad_nodes.AdBeforeNode)
-    node.ports = FakePorts()
+    node.ports, node.lock, node.copies = FakePorts(), threading.Lock(), assertions.Copies()
     node.run = ad_nodes.BoundedRun(BOUND, lambda name, detail: ad_nodes.alarm(node.ports, 'ad', 'assertion_hangs',
                                                                               detail))
     gate = Gate()
@@ -121,7 +121,7 @@ def test_a_before_whose_request_assertion_hangs_refuses_the_request_within_the_b
         assert (refused.id, refused.origin, refused.status) == (3, '/client/proxy', Reply.ERROR)
         assert 'user:gate violated: hangs' in refused.error
         node.ports.sent = []
-        assert within(5, node.handle, _request()) is None   # still hung: refused at once, not alarmed again
+        assert within(5, node.handle, _request(4)) is None   # still hung: refused at once, not alarmed again
         assert node.ports.kinds() == [('alarms', 'assertion_violated'), ('errors', None)], node.ports.kinds()
     finally:
         gate.open.set()

@@ -10,7 +10,7 @@ import pytest
 
 from aft_examples.history import classify_error
 from aft_ftm.once import KeptAnswers, RecentKeys, answer_size
-from aft_ftm.voting import TimeRedundancyVote
+from aft_ftm.voting import Outcome, Stray, Votes
 
 tr = pytest.importorskip('aft_ftm.ros.tr_nodes')
 import rospy  # noqa: E402
@@ -63,7 +63,7 @@ def wired(monkeypatch):
                            held={}, executed=RecentKeys(), answered=KeptAnswers(), refused=KeptAnswers(), copies=0, server_lock=threading.Lock(), lock=threading.Lock(), _deadline=Deadline('c'), _restore_deadline=Deadline('r'),
                            pending_restore=None, capturing_since=None, failed=None, ports=Ports())
     after = object.__new__(tr.TrAfterNode)
-    after.__dict__.update(voter=TimeRedundancyVote(3), voted=RecentKeys(), vote_lock=threading.Lock(), site='', failed=None, masked=0, ports=Ports(),
+    after.__dict__.update(votes=Votes(3), vote_lock=threading.Lock(), site='', failed=None, masked=0, strays=0, ports=Ports(),
                           name='/after', repeat_timeout=5.0, _repeat_deadline=Deadline('repeat'))
     after.repeat = lambda **kw: before._on_repeat(Repeat._request_class(**kw))
 
@@ -84,7 +84,7 @@ def test_a_value_fault_is_masked_by_the_vote(wired):
     server, before, after, call, alarms = wired
     answer = call(1)
     assert answer.status == Reply.OK and bytes(answer.payload) == b'90' and server.balance == 90
-    assert alarms == ['value_fault_masked'] and before.held == {} and after.voter.pending() == 0
+    assert alarms == ['value_fault_masked'] and before.held == {} and after.votes.pending() == 0
 
 
 def test_a_repeat_whose_state_cannot_be_restored_is_an_unknown_outcome_with_an_alarm(wired):
@@ -96,7 +96,7 @@ def test_a_repeat_whose_state_cannot_be_restored_is_an_unknown_outcome_with_an_a
     answer = call(2)
     assert answer.status == Reply.ERROR and server.balance == 90   # one execution applied
     assert classify_error('service [/account] responded with an error: ' + answer.error) == 'indeterminate'
-    assert alarms == ['restore_failed'] and before.held == {} and after.voter.pending() == 0
+    assert alarms == ['restore_failed'] and before.held == {} and after.votes.pending() == 0
 
 
 @pytest.mark.parametrize('seed', [int(os.environ.get('AFT_SEED', 0)) or s for s in range(3801, 3831)])
@@ -147,7 +147,7 @@ def test_a_second_copy_of_a_request_is_never_executed_again(wired, seed):
     assert balances == list(range(90, -110, -10)) and server.balance == -100, 'seed %d: %s' % (seed, balances)
     assert alarms.count('duplicate_request') == copies and before.copies == copies, 'seed %d' % seed
     assert 'restore_failed' not in alarms, 'seed %d' % seed
-    assert before.held == {} and after.voter.pending() == 0, 'seed %d' % seed
+    assert before.held == {} and after.votes.pending() == 0, 'seed %d' % seed
 
 
 def test_a_copy_of_a_request_answered_not_executed_is_not_executed_either(wired):
@@ -195,7 +195,7 @@ def test_a_hung_before_is_not_waited_for_ever_the_request_s_outcome_is_unknown(w
     """Review of session 36 (Limits): After called Before's repeat with no bound of its own, and a
     stopped Before stopped every TR answer for ever. Now a repeat unanswered within ~repeat_timeout
     is "outcome unknown" (with an alarm), Before is not asked again, and the execution it runs once
-    resumed is ignored (the vote ended)."""
+    resumed is refused (the vote ended: ``stray_execution``)."""
     server, before, after, _call, alarms = wired
     hung = HungBefore(before)
     after.repeat, after.repeat_timeout = hung, 0.2
@@ -211,7 +211,8 @@ def test_a_hung_before_is_not_waited_for_ever_the_request_s_outcome_is_unknown(w
     while not before.ports.out and time.monotonic() < deadline:
         time.sleep(0.01)
     late = server.execute(before.ports.out.popleft())
-    assert after.handle(late) is None and after.voter.pending() == 0 and alarms == ['restore_failed']
+    assert after.handle(late) is None and after.votes.pending() == 0
+    assert alarms == ['restore_failed', 'stray_execution']
 
 
 def test_a_hung_before_in_a_replica_fail_stops_it(wired, monkeypatch):
@@ -357,3 +358,89 @@ def test_large_answers_never_push_out_a_not_executed_one_and_the_largest_are_not
     before.answered = KeptAnswers()
     assert bytes(call(6).payload)[:1] == b'z'
     assert _copy_of(before, 6) == []   # not sent to Before: each FORGET would have carried it
+
+
+def test_only_the_outstanding_execution_of_a_vote_is_counted(wired):
+    """Outside review: After counted the result of any execution number it had not counted yet. Results
+    of executions not asked for (ahead of the one outstanding, past ~executions, of another attempt:
+    forged, or published again by anyone on the graph) decided the vote with a value the server never
+    computed, and the real execution asked for was then dropped as "heard twice". Now only the
+    outstanding execution of the outstanding attempt is counted; every other result is refused with
+    the alarm ``stray_execution``: a copy, a late result after its vote ended, one of an earlier attempt."""
+    server, before, after, _call, alarms = wired
+    server.corrupt_next = False
+
+    def result(k, attempt=0, payload=b'666'):
+        return Reply(id=1, origin='/proxy', attempt=attempt * tr.SPAN + k, payload=payload)
+
+    def refused(*results):
+        for r in results:
+            number = r.attempt   # (After takes the execution's number off)
+            assert after.handle(r) is None, 'attempt field %d counted: %r' % (number, bytes(r.payload))
+        assert not before.ports.out, 'executed again for a result not asked for'
+
+    first = before.handle(Request(id=1, origin='/proxy'))   # execution 0 is outstanding
+    refused(result(1), result(2), result(7))
+    computed = server.execute(first)                         # balance 90
+    assert after.handle(computed) is None                    # counted: After asks for execution 1
+    (again,) = before.ports.out
+    before.ports.out.clear()
+    assert again.attempt == 1
+    # 0 counted already; 2 not asked for yet; attempt 3's while attempt 0's vote runs
+    refused(computed, result(0), result(2), result(0, attempt=3), result(1, attempt=3))
+    answer = after.handle(server.execute(again))
+    assert answer is not None and answer.status == Reply.OK and bytes(answer.payload) == b'90'
+    assert server.balance == 90 and after.masked == 0
+    refused(result(1, payload=b'90'), result(2))             # the vote has ended
+    # Attempt 1 (an outer mechanism executes the request again): a vote of its own; attempt 0's are refused.
+    second = before.handle(Request(id=1, origin='/proxy', attempt=1))
+    refused(result(0), result(1, attempt=1))
+    assert after.handle(server.execute(second)) is None
+    (again,) = before.ports.out
+    before.ports.out.clear()
+    assert bytes(after.handle(server.execute(again)).payload) == b'80' and server.balance == 80
+    assert alarms == ['stray_execution'] * 12, alarms
+
+
+# (attempt, execution, result) heard in order -> the vote's outcome, or why the result is refused
+OUTSTANDING = [
+    ('a vote begins with execution 0 only', [(0, 1, 'x')], [Stray.NOT_ASKED]),
+    ('agreeing executions decide', [(0, 0, 'x'), (0, 1, 'x')], [Outcome.REPEAT, Outcome.DECIDED]),
+    ('a copy is counted once', [(0, 0, 'x'), (0, 0, 'x')], [Outcome.REPEAT, Stray.COUNTED]),
+    ('one not asked for yet', [(0, 0, 'x'), (0, 2, 'y')], [Outcome.REPEAT, Stray.NOT_ASKED]),
+    ('one past ~executions', [(0, 0, 'x'), (0, 1, 'y'), (0, 3, 'y')],
+     [Outcome.REPEAT, Outcome.REPEAT, Stray.NOT_ASKED]),
+    ('another attempt while a vote runs', [(0, 0, 'x'), (1, 0, 'y')], [Outcome.REPEAT, Stray.OTHER_ATTEMPT]),
+    ('after its vote ended', [(0, 0, 'x'), (0, 1, 'x'), (0, 2, 'x')],
+     [Outcome.REPEAT, Outcome.DECIDED, Stray.ENDED]),
+    ('a newer attempt once the vote ended', [(0, 0, 'x'), (0, 1, 'x'), (1, 0, 'y'), (1, 1, 'y')],
+     [Outcome.REPEAT, Outcome.DECIDED, Outcome.REPEAT, Outcome.DECIDED]),
+    ('an earlier attempt, late', [(1, 0, 'x'), (1, 1, 'x'), (0, 0, 'x')],
+     [Outcome.REPEAT, Outcome.DECIDED, Stray.EARLIER]),
+    ('a newer attempt starts with execution 0', [(0, 0, 'x'), (0, 1, 'x'), (1, 1, 'y')],
+     [Outcome.REPEAT, Outcome.DECIDED, Stray.NOT_ASKED]),
+    ('no majority', [(0, 0, 'x'), (0, 1, 'y'), (0, 2, 'z'), (0, 1, 'x')],
+     [Outcome.REPEAT, Outcome.REPEAT, Outcome.NO_MAJORITY, Stray.ENDED]),
+]
+
+
+@pytest.mark.parametrize('case, heard, expected', OUTSTANDING, ids=[c[0] for c in OUTSTANDING])
+def test_the_votes_count_only_the_execution_outstanding(case, heard, expected):
+    votes = Votes(3)
+    got = []
+    for attempt, execution, result in heard:
+        vote, stray = votes.add(('/proxy', 1), attempt, execution, result)
+        assert (vote is None) != (stray is None), case
+        got.append(stray or vote.outcome)
+    assert got == expected, case
+    assert votes.add(('/proxy', 2), 0, 0, 'x')[0].outcome == Outcome.REPEAT   # other requests vote apart
+
+
+def test_a_vote_ended_undecided_refuses_its_results_and_the_memory_is_bounded():
+    votes = Votes(3, remember=2)
+    votes.add(('/p', 1), 0, 0, 'x')
+    votes.end(('/p', 1), 0)   # its repeat could not run
+    assert votes.add(('/p', 1), 0, 1, 'x') == (None, Stray.ENDED) and votes.pending() == 0
+    for rid in (2, 3):
+        votes.add(('/p', rid), 0, 0, 'x')
+    assert votes.pending() == 2 and votes.add(('/p', 1), 0, 1, 'x') == (None, Stray.NOT_ASKED)   # forgotten

@@ -12,10 +12,12 @@ An assertion that does not return is a violation too: ``check`` takes a ``run`` 
 assertion with a bound (A&D's nodes: ``~assertion_timeout``), and :class:`Hung` is how ``run`` says
 that an assertion did not return in time, or that its abandoned call has not returned yet.
 """
+import enum
 import importlib
 import numbers
 
 from .errors import AftError, ConfigError
+from .once import KeptAnswers, RecentKeys
 
 
 class Hung(AftError):
@@ -108,6 +110,50 @@ def _is_nan(verdict):
         return False
 
 
+class Copy(enum.Enum):
+    """What A&D's Before does with a request, by what it did with an earlier copy of it (Copies)."""
+    FIRST = 0      # none came before: checked, and passed on to execute if it passes
+    CHECKING = 1   # the first copy's request assertions run: ignored (the first's outcome answers it)
+    REFUSED = 2    # the first copy was refused: that refusal again (if kept), never an execution
+    PASSED = 3     # the first copy was passed on to execute: given to After only, which answers it with
+    #                that execution's checked reply (again, or once it comes: Pairing.again)
+
+
+class Copies(object):
+    """What A&D's Before remembers so that a second copy of a request (origin, id, attempt: a publisher
+    heard on two connections across a rebind, a message published again on the graph, a Protocol
+    started again) is never executed: the last ``remember`` requests it took, and its refusals, as
+    far as ``max_bytes`` of their text allow (a copy of one forgotten gets no answer). The caller
+    holds its lock around each call: copies heard on two connections come on two threads."""
+
+    def __init__(self, remember=65536, max_bytes=16 * 2 ** 20):
+        self.taken = RecentKeys(remember)
+        self.passed = RecentKeys(remember)
+        self.refusals = KeptAnswers(remember, max_bytes)
+        self.checking = set()   # taken, their request assertions still running
+        self.copies = 0         # second copies taken
+
+    def take(self, k):
+        """A request came: (Copy, the refusal to give it again or None)."""
+        if self.taken.add(k):
+            self.checking.add(k)
+            return Copy.FIRST, None
+        self.copies += 1
+        if k in self.checking:
+            return Copy.CHECKING, None
+        if k in self.passed:
+            return Copy.PASSED, None
+        return Copy.REFUSED, self.refusals.get(k)
+
+    def checked(self, k, refusal=None):
+        """The first copy of k was checked: passed on to execute (``refusal`` None), or refused."""
+        self.checking.discard(k)
+        if refusal is None:
+            self.passed.add(k)
+        else:
+            self.refusals.keep(k, refusal)
+
+
 class Pairing(object):
     """A&D's After checks each reply against its request, which comes on another topic (from Before)
     and so in either order. Each waits here for the other, by key.
@@ -117,12 +163,32 @@ class Pairing(object):
     34). Now it waits ``wait`` seconds, then :meth:`expired` hands it back. The caller raises an
     alarm and drops it: a reply is never passed on unchecked. Requests waiting for their reply (a slow
     server) are kept, at most ``max_requests``. Past that the oldest goes, and :meth:`request` returns
-    it for the caller to say so."""
+    it for the caller to say so.
 
-    def __init__(self, wait=5.0, max_requests=10000):
+    After's answers are kept (:meth:`answer`): the keys of the last ``remember``, the last
+    ``answers_kept`` answers as far as ``answers_bytes`` allow. A copy of a request (Before gives one to
+    After only, never to execute: Copies) gets its answer again (:meth:`again`); a copy of one whose
+    reply has not come pairs with it, one answer for both."""
+
+    def __init__(self, wait=5.0, max_requests=10000, remember=65536, answers_kept=4096,
+                 answers_bytes=8 * 2 ** 20):
         self.wait, self.max_requests = wait, max_requests
         self.requests = {}   # key -> request, in arrival order (dicts keep it)
         self.replies = {}    # key -> (reply, when it came)
+        self.answered = RecentKeys(remember)                      # keys answered
+        self.answers = KeptAnswers(answers_kept, answers_bytes)   # their answers, for a copy
+
+    def answer(self, k, reply):
+        """After answered k with reply."""
+        self.answered.add(k)
+        self.answers.keep(k, reply)
+
+    def again(self, k):
+        """A request came: (True, its answer if kept, else None) if k was answered already (a copy of
+        the request), else (False, None)."""
+        if k not in self.answered:
+            return False, None
+        return True, self.answers.get(k)
 
     def request(self, k, request):
         """A request came: returns (its reply if it came first or None, a request evicted or None)."""

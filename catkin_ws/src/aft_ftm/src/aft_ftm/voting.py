@@ -1,4 +1,5 @@
 """Time Redundancy's decision: repeat, compare, and let a majority decide (paper Table II: TR)."""
+import collections
 import enum
 
 from .errors import ConfigError
@@ -60,3 +61,90 @@ class TimeRedundancyVote(object):
 
     def pending(self):
         return len(self._results)
+
+
+class Stray(enum.Enum):
+    """Why TR's After does not count an execution's result: it is not the one outstanding (Votes).
+    COUNTED: a copy of a result. NOT_ASKED: ahead of the execution outstanding, past ~executions, or
+    not the first execution of an attempt whose vote has not begun. ENDED: a copy, or an execution run
+    after its vote gave up (Before stopped past ~repeat_timeout, then resumed). EARLIER: a late result
+    of an earlier attempt. OTHER_ATTEMPT: a vote runs on another attempt of the request."""
+    COUNTED = 'counted already'
+    NOT_ASKED = 'not asked for'
+    ENDED = 'its vote has ended'
+    EARLIER = 'of an attempt older than the last one voted on'
+    OTHER_ATTEMPT = 'the vote running is on another attempt'
+
+
+class Votes(object):
+    """TR's After's votes: for each request (its origin and id) one vote at a time, on one attempt,
+    and in it one execution outstanding, the only result counted.
+
+    Before numbers the executions of an attempt 0, 1, ... and executes the next only once After,
+    having counted the one before, asks for it (a repeat). So the execution outstanding is the number
+    of results counted in the vote running, or execution 0 of a new vote. A vote begins only when none
+    runs for its request (Before's saved state and its repeat are per request, not per attempt), on an
+    attempt newer than the last one voted on (an outer mechanism numbers its executions upward). Any
+    other result (a copy, one of an earlier attempt or of a vote that ended, a number forged or
+    published again by anyone on the graph) is refused with its reason (Stray): counted, one not
+    asked for decided the vote with a value the server never computed, and the execution asked for,
+    when it came, was dropped as a copy (outside review).
+
+    After hears of an attempt only from its results: the first execution 0 heard begins the vote. A
+    forged one of another attempt heard before the true one takes the vote (the true results are then
+    refused, and the request is left to the Protocol's timeout, whose request is of the true attempt).
+    Telling who may publish on the graph is SEC's work.
+
+    The last ``remember`` requests are remembered (their last attempt, and whether its vote runs);
+    the oldest is forgotten first (a running vote with it)."""
+
+    def __init__(self, executions=3, remember=65536):
+        self.vote = TimeRedundancyVote(executions)
+        self.remember = remember
+        self._requests = collections.OrderedDict()   # request -> [its last attempt, execution outstanding
+        #                                              (None: its vote has ended)]
+
+    def add(self, request, attempt, execution, result):
+        """The result of ``execution`` of ``request``'s ``attempt``: (its Vote, None) if it was the one
+        outstanding, and counted; else (None, the Stray reason) and nothing changes."""
+        stray = self._stray(self._requests.get(request), attempt, execution)
+        if stray is not None:
+            return None, stray
+        vote = self.vote.add(request + (attempt,), result, execution)
+        self._requests[request] = [attempt, execution + 1 if vote.outcome == Outcome.REPEAT else None]
+        self._requests.move_to_end(request)
+        while len(self._requests) > self.remember:
+            old, (old_attempt, _) = self._requests.popitem(last=False)
+            self.vote.forget(old + (old_attempt,))
+        return vote, None
+
+    @staticmethod
+    def _stray(last, attempt, execution):
+        """Why a result is not the one outstanding, or None. ``last``: its request's [last attempt,
+        execution outstanding or None], or None (not seen, or forgotten)."""
+        if last is None:
+            return None if execution == 0 else Stray.NOT_ASKED
+        newest, outstanding = last
+        if outstanding is not None:   # a vote runs
+            if attempt != newest:
+                return Stray.OTHER_ATTEMPT
+            if execution < outstanding:
+                return Stray.COUNTED
+            return None if execution == outstanding else Stray.NOT_ASKED
+        if attempt < newest:
+            return Stray.EARLIER
+        if attempt == newest:
+            return Stray.ENDED
+        return None if execution == 0 else Stray.NOT_ASKED
+
+    def end(self, request, attempt):
+        """The vote on request's attempt ends undecided (it cannot be executed again): its results are
+        dropped, and a result of it heard later is refused (Stray.ENDED)."""
+        self.vote.forget(request + (attempt,))
+        last = self._requests.get(request)
+        if last is not None and last[0] == attempt:
+            last[1] = None
+
+    def pending(self):
+        """How many votes run."""
+        return self.vote.pending()

@@ -8,6 +8,7 @@ import rospy
 from aft_msgs.msg import Reply
 
 from .. import assertions, config
+from ..assertions import Copy
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import key
 from .alarms import alarm
@@ -100,6 +101,14 @@ class AdBeforeNode(BeforeNode):
     """A&D's Before: checks the request assertions before the request is executed, and gives
     After the request so that reply assertions can look at both.
 
+    Each request (origin, id, attempt) is executed once: a second copy (a publisher heard on two
+    connections across a rebind, a message published again on pro2bfr, a Protocol started again) is
+    refused with the alarm ``duplicate_request``, as TR's Before refuses one. A copy of a request
+    refused gets that refusal again; a copy of one passed on is given to After only, which answers it
+    with the first copy's checked reply (again, or once it comes: one answer for both); a copy heard
+    while the first is checked gets nothing (the first's outcome answers it). The last 65 536
+    requests are remembered (assertions.Copies); an older copy would be checked and executed again.
+
     Parameters: ~request_assertions (list of package.module:function, default none); ~reply_assertions
         (the After's, read here only to refuse an A&D that checks nothing: both lists empty is a
         ConfigError, not a mechanism that passes everything; review of session 34);
@@ -124,6 +133,8 @@ class AdBeforeNode(BeforeNode):
                                                         PortSpec('errors', PUBLISH, 'aft_msgs/Reply'),
                                                         PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')])
         self.run = _bounded_run(self, 'ad')
+        self.lock = threading.Lock()
+        self.copies = assertions.Copies()
 
     def setup(self, timeout):
         self.ports.bind('to_after', 'bfr2aft')
@@ -132,18 +143,49 @@ class AdBeforeNode(BeforeNode):
         return super(AdBeforeNode, self).setup(timeout)
 
     def handle(self, request):
-        if self.checks:
-            try:
-                violations = assertions.check(self.checks, _app_request(request), run=self.run)
-            except Exception as e:   # undecodable request: refused, not executed
-                violations = [('decoding', str(e))]
-            if violations:
-                detail = '; '.join('request assertion %s violated: %s' % v for v in violations)
-                alarm(self.ports, 'ad', 'assertion_violated', detail, request)
-                self.ports.publish('errors', _error(request, detail))
-                return None
+        once = key(request)
+        with self.lock:   # taken before it is checked: two copies heard at once do not both pass
+            copy, refusal = self.copies.take(once)
+            copies = self.copies.copies
+        if copy is not Copy.FIRST:
+            return self._copy(request, copy, refusal, copies)
+        refusal = self._refusal(request) if self.checks else None
+        with self.lock:
+            self.copies.checked(once, refusal)
+        if refusal is not None:
+            self.ports.publish('errors', refusal)
+            return None
         self.ports.publish('to_after', request)
         return request
+
+    def _refusal(self, request):
+        """The error reply refusing request (alarmed), or None if no request assertion is violated."""
+        try:
+            violations = assertions.check(self.checks, _app_request(request), run=self.run)
+        except Exception as e:   # undecodable request: refused, not executed
+            violations = [('decoding', str(e))]
+        if not violations:
+            return None
+        detail = '; '.join('request assertion %s violated: %s' % v for v in violations)
+        alarm(self.ports, 'ad', 'assertion_violated', detail, request)
+        return _error(request, detail)
+
+    def _copy(self, request, copy, refusal, copies):
+        """A second copy of a request this Before took: never checked or executed again."""
+        if copy == Copy.CHECKING:
+            outcome = 'its first copy is being checked, and its outcome answers it'
+        elif copy == Copy.PASSED:
+            outcome = 'After answers it with the first copy\'s checked reply'
+        else:
+            outcome = 'its refusal given again' if refusal is not None else 'its refusal was forgotten: no answer'
+        alarm(self.ports, 'ad', 'duplicate_request', '%s/%d (attempt %d) refused: taken by this Before already; a '
+              'second copy is not executed (%d refused so far); %s' % (
+                  request.origin, request.id, request.attempt, copies, outcome), request)
+        if copy == Copy.PASSED:
+            self.ports.publish('to_after', request)
+        elif refusal is not None:
+            self.ports.publish('errors', refusal)
+        return None
 
 
 class AdAfterNode(AfterNode):
@@ -157,6 +199,12 @@ class AdAfterNode(AfterNode):
     client was answered again (review of session 36). A request whose reply never comes is kept, at
     most ~max_waiting; past that the oldest is forgotten with the alarm ``request_forgotten`` (its
     reply, if it comes, is then answered as above) (assertions.Pairing).
+
+    A request that comes again once answered (a copy, which Before gives to After only, never to
+    execute) gets the same answer again: the last 4 096 answers are kept, as far as 8 MiB of their
+    payloads allow (one forgotten: no answer, and a warning in the log). A copy of a request whose
+    reply has not come waits with it: the reply answers both, once. A copy of a reply answered already
+    is ignored (with a warning in the log), not answered again as "outcome unknown".
 
     Parameters: ~reply_assertions (list of package.module:function, default none);
         ~request_wait (float, 5 s); ~max_waiting (int, 10000); ~assertion_timeout (float >= 0, default
@@ -188,21 +236,42 @@ class AdAfterNode(AfterNode):
         return True
 
     def _on_request(self, request):
+        k = key(request)
         with self.lock:
-            reply, evicted = self.pairing.request(key(request), request)
+            again, answer = self.pairing.again(k)
+            reply, evicted = (None, None) if again else self.pairing.request(k, request)
+        if again:   # a copy of a request answered already (Before executed it once)
+            if answer is not None:
+                self.ports.publish('out', answer)
+            else:
+                rospy.logwarn('%s: %s/%d (attempt %d) came again, answered already; its answer is no longer kept: '
+                              'none given', self.name, request.origin, request.id, request.attempt)
+            return
         if evicted is not None:
             alarm(self.ports, 'ad', 'request_forgotten', 'request %s/%d forgotten unanswered: %d requests wait for '
                   'their replies (~max_waiting); its reply, if it comes, is not passed on unchecked'
                   % (evicted.origin, evicted.id, self.pairing.max_requests), evicted)
         if reply is not None:
-            self.ports.publish('out', self._checked(request, reply))
+            self.ports.publish('out', self._answered(self._checked(request, reply)))
 
     def handle(self, reply):
+        k = key(reply)
         with self.lock:
-            request = self.pairing.reply(key(reply), reply, time.monotonic())
+            again, _ = self.pairing.again(k)
+            request = None if again else self.pairing.reply(k, reply, time.monotonic())
+        if again:   # parked, it would have been answered again, "outcome unknown", past ~request_wait
+            rospy.logwarn('%s: the reply to %s/%d (attempt %d) came again, answered already: ignored', self.name,
+                          reply.origin, reply.id, reply.attempt)
+            return None
         if request is None:
             return None   # checked when its request arrives
-        return self._checked(request, reply)
+        return self._answered(self._checked(request, reply))
+
+    def _answered(self, answer):
+        """Keep answer, which After gives now: a copy of its request gets it again."""
+        with self.lock:
+            self.pairing.answer(key(answer), answer)
+        return answer
 
     def _sweep(self, _event):
         with self.lock:
@@ -211,7 +280,7 @@ class AdAfterNode(AfterNode):
             detail = ('the reply to %s/%d came, but its request did not within %.1f s (this After started again '
                       'after Before passed it on?): it cannot be checked' % (reply.origin, reply.id, self.pairing.wait))
             alarm(self.ports, 'ad', 'unchecked_reply', detail + '; answered "outcome unknown"', reply)
-            self.ports.publish('out', _error(reply, 'outcome unknown: ' + detail))
+            self.ports.publish('out', self._answered(_error(reply, 'outcome unknown: ' + detail)))
 
     def _checked(self, request, reply):
         if reply.status != Reply.OK or not self.checks:

@@ -12,7 +12,7 @@ from ..errors import ConfigError
 from ..once import KeptAnswers, RecentKeys, answer_size
 from ..recovery import OnHang
 from ..ports import PUBLISH, PortSpec
-from ..voting import Outcome, TimeRedundancyVote
+from ..voting import Outcome, Votes
 from .alarms import alarm
 from .bpa_nodes import AfterNode, BeforeNode
 from .deadline import CallTimeout, Deadline
@@ -351,7 +351,12 @@ class TrAfterNode(AfterNode):
     TR Before that does not answer within ``~repeat_timeout`` (stopped, deadlocked: its own calls
     of the server are bounded by its ``~server_timeout``) is out of reach as well: in a replica the
     replica fail-stops; outside one the request is answered "outcome unknown" (Before may still
-    execute it again later: its result is then ignored, the vote having ended).
+    execute it again later: its result is then refused, the vote having ended).
+
+    Only the execution outstanding is counted: execution 0 of a new vote, then the one After asked
+    Before for (aft_ftm.voting.Votes). Any other result (a copy, one of an earlier attempt or of a vote
+    that ended, one not asked for: forged, or published again by anyone on the graph) is refused with
+    the alarm ``stray_execution``, its reason and the count so far, never counted in a vote.
 
     Parameters: ~executions (int >= 2, default 3); ~site (str, default ''): the replica site this
         mechanism belongs to ('' : none); ~server_timeout (float, 5 s): TR Before's; ~repeat_timeout
@@ -370,7 +375,8 @@ class TrAfterNode(AfterNode):
         if executions >= SPAN:
             raise ConfigError('parameter %s must be below %d, got %d' % (rospy.resolve_name('~executions'),
                                                                          SPAN, executions))
-        self.voter = TimeRedundancyVote(executions)
+        # Each request's vote counts only the execution it asked Before for (review: any number not counted yet was).
+        self.votes = Votes(executions)
         self.site = param('site', config.optional_name, '')
         super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
@@ -383,9 +389,9 @@ class TrAfterNode(AfterNode):
                               'first, which may take that long' % (rospy.resolve_name('~repeat_timeout'),
                                                                     self.repeat_timeout, server_timeout))
         self._repeat_deadline = Deadline('repeat')
-        self.voted = RecentKeys()   # (origin, id, attempt) of the votes ended: a result heard later is refused
-        self.vote_lock = threading.Lock()   # the vote's records, for results heard on several threads
+        self.vote_lock = threading.Lock()   # the votes, for results heard on several threads
         self.masked = 0
+        self.strays = 0   # results refused: not the execution outstanding (alarm stray_execution)
 
     def setup(self, timeout):
         self.ports.bind('alarms')
@@ -425,22 +431,19 @@ class TrAfterNode(AfterNode):
             return None   # fail-stopped: the peer answers
         execution = reply.attempt % SPAN
         reply.attempt //= SPAN   # back to the attempt the request came with
-        voting = (reply.origin, reply.id, reply.attempt)
+        request = (reply.origin, reply.id)
         with self.vote_lock:   # (copies heard on two connections come on two threads)
-            ended = voting in self.voted
-            vote = None if ended else self.voter.add(voting, (reply.status, reply.error, bytes(reply.payload)),
-                                                     execution)
-            if vote is not None and vote.outcome != Outcome.REPEAT:
-                self.voted.add(voting)
-        if ended:
-            # A copy of a result heard after its vote ended: as a vote of its own it would ask Before to
-            # execute again a request Before no longer holds (a false restore_failed), and answer twice.
-            rospy.logwarn('%s: execution %d of %s/%d heard after its vote ended: ignored', self.name, execution,
-                          reply.origin, reply.id)
-            return None
-        if vote is None:
-            rospy.logwarn('%s: execution %d of %s/%d heard twice: counted once' % (self.name, execution, reply.origin,
-                                                                                reply.id))
+            vote, stray = self.votes.add(request, reply.attempt, execution,
+                                         (reply.status, reply.error, bytes(reply.payload)))
+            if stray is not None:
+                self.strays += 1
+                strays = self.strays
+        if stray is not None:
+            # Counted, a result not asked for could decide the vote with a value the server never computed; one
+            # heard after its vote ended would ask Before to execute again a request it no longer holds.
+            alarm(self.ports, 'tr', 'stray_execution', 'execution %d of %s/%d (attempt %d) refused: %s; only the '
+                  'execution outstanding is counted in the vote (%d refused so far)' % (
+                      execution, reply.origin, reply.id, reply.attempt, stray.value, strays), reply)
             return None
         if vote.outcome == Outcome.REPEAT:
             ok, why = self._tell_before(reply, Repeat._request_class.REPEAT)
@@ -450,8 +453,7 @@ class TrAfterNode(AfterNode):
             # the server holds an execution the vote never confirmed. Never told as "failed, nothing
             # changed" (a retry would apply it twice); the saved state and the votes are let go.
             with self.vote_lock:
-                self.voter.forget(voting)
-                self.voted.add(voting)
+                self.votes.end(request, reply.attempt)
             detail = ('cannot execute %s/%d again (%s): the server state may hold an execution the vote did '
                       'not confirm' % (reply.origin, reply.id, why))
             answer = self._error(reply, 'outcome unknown: ' + detail)
