@@ -113,7 +113,7 @@ def test_every_decision_is_reachable_from_the_running_composition():
         node.run(LOST_AFTER + 1.0, sites=SITES[:cpus])
         for d in node.decisions:
             assert reachable(d.from_, d.to, SITES[:cpus]), (running, faults, d)
-        assert core.state == MonitorState.WATCHING, (running, faults, core.history[-3:])
+        assert core.state == MonitorState.WATCHING, (running, faults, list(core.history)[-3:])
 
 
 def test_no_reachable_target_is_alarmed_once_and_never_handed_out_as_a_decision():
@@ -330,7 +330,7 @@ def test_a_change_while_an_adaptation_runs_is_acted_on_after_it_failed():
     core.adaptation_failed('rolled back', clock.now)
     assert core.state == MonitorState.FAILED
     again = core.decide(clock.now)
-    assert again is not None and again.to == ('tr',), core.history[-3:]   # decided on the model as it is now
+    assert again is not None and again.to == ('tr',), list(core.history)[-3:]   # decided on the model as it is now
 
 
 def test_a_bandwidth_figure_no_longer_renewed_is_alarmed_once_stale():

@@ -66,6 +66,12 @@ SITE_NEVER_HEARD = 'site_never_heard'            # a site not heard since the st
 WITNESS_UNHEARD = 'witness_unheard'              # no configuration naming the sites, past never_heard_after
 
 
+# The notes the monitor keeps (MonitorCore.history): the newest, at most this many. A site lost for good
+# that goes on beating adds one at each heartbeat, for as long as the monitor runs: unbounded, its memory
+# grew without end (review of session 48). Those dropped are counted (MonitorCore.notes_dropped).
+HISTORY_MAX = 1000
+
+
 class MonitorAlarm(collections.namedtuple('MonitorAlarm', ['kind', 'detail'])):
     """An alarm for the operator (the node publishes it with mechanism 'monitor')."""
     __slots__ = ()
@@ -188,7 +194,8 @@ class MonitorCore(object):
         self.holds = {}
         self.hold_told = None       # the signature whose hold was noted last
         self.pending_signature = None   # the model signature of the decision under way
-        self.history = []           # [(now, description)]
+        self.history = collections.deque(maxlen=HISTORY_MAX)   # (now, description): the newest notes
+        self.notes_dropped = 0      # the older notes dropped from history to keep it at HISTORY_MAX
         self.condition = None       # (alarm kind, running, model signature) of the inconsistency alarmed last
         self.outbox = []            # MonitorAlarms not yet taken by take_alarms()
         self.model()                # validates the application
@@ -203,6 +210,8 @@ class MonitorCore(object):
         self.state = new
 
     def _note(self, now, text):
+        if len(self.history) == self.history.maxlen:   # the oldest goes: said by the count
+            self.notes_dropped += 1
         self.history.append((now, text))
 
     # -- the model ----------------------------------------------------------------------------------

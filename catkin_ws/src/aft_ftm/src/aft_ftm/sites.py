@@ -229,17 +229,26 @@ class Site(object):
             return None
         if self.proc.poll() is not None:
             return 'site %s exited (code %s)' % (self.name, self.proc.returncode)
-        if not self.log_path:
-            return None
-        try:
-            with open(self.log_path, 'rb') as f:
-                f.seek(self._log_start)
-                text = f.read().decode(errors='replace')
-        except OSError:   # not written yet
-            return None
+        text = self.output()
         if not [node for node in nodes_died(text) if node not in ignore]:
             return None
         return 'site %s: %s' % (self.name, launch_failure(text))
+
+    def output(self):
+        """What this start of the command wrote to its log so far ('' without a log, or none yet)."""
+        if self.proc is None or not self.log_path:
+            return ''
+        try:
+            with open(self.log_path, 'rb') as f:
+                f.seek(self._log_start)
+                return f.read().decode(errors='replace')
+        except OSError:   # not written yet
+            return ''
+
+    def ended(self):
+        """{node: how it ended} for the nodes of this start whose process its roslaunch says ended
+        (:func:`nodes_ended`) while the launch may run on (nodes not required)."""
+        return nodes_ended(self.output())
 
     def power_off(self):
         """Kill the whole site at once, as a power loss would."""
@@ -313,24 +322,52 @@ def nodes_died(text):
     return died
 
 
+_FINISHED = re.compile(r'\[([^\]\s]+?)-\d+\] process has finished cleanly')
+_RESTARTED = re.compile(r'\[([^\]\s]+?)-\d+\] restarting process')
+
+
+def nodes_ended(text):
+    """{node: how its process ended} for the nodes whose process a roslaunch's output says ended and
+    was not started again since (respawn): 'died (exit code N)', 'died' or 'finished cleanly'."""
+    ended = {}
+    for line in text.splitlines():
+        restarted = _RESTARTED.search(line)
+        if restarted:
+            ended.pop('/' + restarted.group(1).lstrip('/'), None)
+            continue
+        died, finished = _DIED.search(line), _FINISHED.search(line)
+        if died:
+            code = _EXIT_CODE.search(line)
+            ended['/' + (died.group(1) or died.group(2)).lstrip('/')] = \
+                'died (exit code %s)' % code.group(1) if code else 'died'
+        elif finished:
+            ended['/' + finished.group(1).lstrip('/')] = 'finished cleanly'
+    return ended
+
+
 def launch_failure(text, errors=2):
     """Why a roslaunch ended, from its output: the nodes that died with their exit codes, then its
     last errors. '' if the output says nothing of it."""
-    died, codes, messages = nodes_died(text), [], []
+    died, codes = nodes_died(text), []
     for line in text.splitlines():
         match = _EXIT_CODE.search(line)
         if match and 'has died' in line:
             codes.append(match.group(1))
-        match = _ERROR.search(line)
-        if match:
-            messages.append(match.group(1).strip())
     parts = []
     if died:
         parts.append('%s died%s' % (', '.join(died), ' (exit code %s)' % ', '.join(codes) if codes else ''))
-    if messages:
-        parts.append('last error%s: %s' % ('s' if len(messages[-errors:]) > 1 else '',
-                                           '; '.join(messages[-errors:])))
+    said = last_errors(text, errors)
+    if said:
+        parts.append(said)
     return '; '.join(parts)
+
+
+def last_errors(text, errors=2):
+    """'last error(s): ...': the last ``errors`` ERROR or FATAL lines of a roslaunch's output ('' if none)."""
+    messages = [m.group(1).strip() for m in (_ERROR.search(line) for line in text.splitlines()) if m]
+    if not messages:
+        return ''
+    return 'last error%s: %s' % ('s' if len(messages[-errors:]) > 1 else '', '; '.join(messages[-errors:]))
 
 
 def wait_until(predicate, timeout, interval=0.02):

@@ -5,39 +5,99 @@ graph. Run at once, each found the other's suspensions (a node suspended by anot
 second suspension) and rolled back, after launching, or worse rebound ports the other had just
 moved (review of session 35). An engine only kills and starts nodes of its own machine, so a lock
 of that machine is enough: :class:`Turn` is an exclusive ``flock`` on a file named after the ROS
-master's URI. The kernel releases it when its holder exits, however it exits, so a killed engine
-never keeps the turn. A waiting engine waits at most ``timeout`` seconds, and stops waiting as
-soon as ``stop()`` names a reason (an interrupt); either way it raises :class:`Busy`, naming the
-holder, which wrote who it is into the file.
+master (:func:`master_key`: one name however its URI spells it). The kernel releases it when its
+holder exits, however it exits, so a killed engine never keeps the turn. A waiting engine waits at
+most ``timeout`` seconds, and stops waiting as soon as ``stop()`` names a reason (an interrupt);
+either way it raises :class:`Busy`, naming the holder, which wrote who it is into the file.
 Plain Python, no ROS.
 """
 import fcntl
 import hashlib
+import ipaddress
 import os
 import socket
 import time
 import urllib.parse
+
+import psutil
 
 
 class Busy(Exception):
     """The turn was not had: the holder, and why the wait ended, are in the message."""
 
 
-def master_key(uri):
-    """One name for one master however its URI is spelt: localhost or its address, a trailing slash,
-    the case of the host (two spellings took two turns; review of session 36)."""
+DEFAULT_PORT = 11311   # a master URI's port when it names none (ROS's default)
+
+
+def _addresses(host):
+    """The IP addresses host resolves to here (ipaddress objects, scope ids dropped); [] if it does not."""
     try:
-        parsed = urllib.parse.urlparse(uri)
-        host = (parsed.hostname or '').lower()
+        infos = socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)
+    except (OSError, UnicodeError):   # not resolvable here (UnicodeError: not even a valid name)
+        return []
+    found = set()
+    for info in infos:
         try:
-            host = socket.gethostbyname(host) if host else host
-        except OSError:   # not resolvable here: as written
-            pass
-        if host.startswith('127.'):
-            host = '127.0.0.1'
-        return '%s:%s' % (host, parsed.port or 11311)
-    except ValueError:
+            found.add(ipaddress.ip_address(info[4][0].split('%')[0]))
+        except ValueError:
+            continue
+    return sorted(found, key=_order)
+
+
+def _local_addresses():
+    """The addresses of this machine's interfaces (of this network namespace: an emulated host's own)."""
+    found = set()
+    try:
+        interfaces = psutil.net_if_addrs()
+    except (OSError, psutil.Error):   # not readable here: loopback addresses are still known as such
+        return found
+    for addresses in interfaces.values():
+        for address in addresses:
+            if address.family in (socket.AF_INET, socket.AF_INET6):
+                try:
+                    found.add(ipaddress.ip_address(address.address.split('%')[0]))
+                except ValueError:
+                    continue
+    return found
+
+
+def _order(address):
+    return address.version, int(address)
+
+
+def _this_host(local):
+    """The one name of this machine in a key: its first address that is neither loopback nor link-local,
+    IPv4 first (the same whichever of its addresses or names a URI gives), 127.0.0.1 if it has none."""
+    routable = [a for a in local if not (a.is_loopback or a.is_link_local or a.is_unspecified)]
+    return min(routable, key=_order) if routable else ipaddress.ip_address('127.0.0.1')
+
+
+def master_key(uri):
+    """One name for one master however its URI is spelt (two spellings took two turns; reviews of sessions
+    36 and 48): the scheme (http:// when none is given) and a trailing slash left out, the port 11311 when
+    none is given, the host resolved to its addresses. A host that is this machine, by any of its names
+    or addresses (localhost, 127.0.0.1, ::1, its name, the address of one of its interfaces), is one
+    host; another by the first of its addresses. A name that cannot be resolved here stays as written
+    (in lower case): the turn is then that name's, and nothing is said. A URI that cannot be parsed at
+    all is its own key."""
+    text = uri.strip()
+    if '://' not in text:
+        text = 'http://' + text
+    try:
+        parsed = urllib.parse.urlsplit(text)
+        port = parsed.port or DEFAULT_PORT
+    except ValueError:   # a port that is no number, or out of range
         return uri
+    host = (parsed.hostname or '').lower()
+    addresses = _addresses(host) if host else []
+    if not addresses:   # not resolvable here: as written
+        return '%s:%d' % (host, port)
+    local = _local_addresses()
+    if any(a.is_loopback or a.is_unspecified or a in local for a in addresses):
+        address = _this_host(local)
+    else:
+        address = addresses[0]
+    return ('[%s]:%d' if address.version == 6 else '%s:%d') % (address, port)
 
 
 class Turn(object):

@@ -45,7 +45,7 @@ from ..suspension import MAX_LEASE
 from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
 from ..turns import Busy, Turn
 from ..site_watch import mark_retired
-from ..sites import Site, launch_failure, wait_dead, wait_until
+from ..sites import Site, last_errors, launch_failure, wait_dead, wait_until
 from ..where import WhereError, process_setting, run_where, site_tls, with_tls
 from .graph import roslaunch, unwired
 from .fencing import NotTheNode, node_api, visible_pid
@@ -302,6 +302,14 @@ class LaunchedSite(object):
 
     def alive(self):
         return self.site.alive()
+
+    def ended(self):
+        """{node: how it ended}: its nodes whose process ended while the launch runs on (Site.ended)."""
+        return self.site.ended()
+
+    def output(self):
+        """What its roslaunch wrote so far (Site.output)."""
+        return self.site.output()
 
     def set_niceness(self, niceness):
         return self.site.set_niceness(niceness)
@@ -913,9 +921,13 @@ class Engine(object):
         return site
 
     def _wait_launched(self):
-        """Wait until every launched node is set up (its ~rebind offered, or registered if it has
-        none) and its publishers are connected to every subscriber the master knows, but for
-        subscribers that do not answer after a while (see :meth:`_wired`)."""
+        """Wait until every launched node is set up (its ~rebind offered: an FTM node offers it last,
+        once set up) and its publishers are connected to every subscriber the master knows, but for
+        subscribers that do not answer after a while (see :meth:`_wired`). The set-up of a node under
+        load takes tens of seconds, so a node registered without its ~rebind is waited for until
+        ``launch_timeout``, and the error then names the service missing; a node whose process ended
+        (its roslaunch runs on: the node is not required) never offers it, and ends the wait at once
+        (it held the pause, or the turn, for the whole timeout: review of session 48)."""
         started = time.monotonic()
         deadline = started + self.launch_timeout
         pending = [(site, name) for site in self._run_sites for name in site.nodes]
@@ -928,15 +940,25 @@ class Engine(object):
                 if not site.alive():
                     raise StepError('the roslaunch of %s exited (a node failed to start%s): see %s'
                                     % (', '.join(site.nodes), self._why_launch_ended(site), site.log_path))
-            _, services = self._graph()
+            nodes, services = self._graph()
             lenient = time.monotonic() - started > self.SILENT_AFTER
             pending = [(s, n) for s, n in pending if not (n + '/rebind' in services and
                                                           self._wired(n, silent if lenient else None))]
+            for site in collections.OrderedDict((s, None) for s, _ in pending):
+                ended = site.ended()   # (what the master still lists of them is a dead process's)
+                gone = [n for s, n in pending if s is site and n in ended]
+                if gone:
+                    said = last_errors(site.output())
+                    raise StepError('%s: not set up%s (see %s)' % (', '.join(
+                        '%s %s before %s' % (n, ended[n], 'its publishers were connected' if n + '/rebind' in services
+                                             else 'it offered %s/rebind' % n) for n in gone),
+                        '; ' + said if said else '', site.log_path))
             if not pending:
                 break
             if time.monotonic() > deadline:
-                raise StepError('not set up within %.0f s: %s (see %s)' % (
-                    self.launch_timeout, ', '.join(n for _, n in pending), pending[0][0].log_path))
+                raise StepError('not set up within %g s: %s (see %s)' % (
+                    self.launch_timeout, '; '.join(self._not_set_up(n, nodes, services) for _, n in pending),
+                    pending[0][0].log_path))
             time.sleep(0.02)
         refused = []
         for site in self._run_sites:   # set up: back to the priority of the nodes they join
@@ -945,6 +967,16 @@ class Engine(object):
             self.log('warning: the new nodes keep niceness %d (no privilege to lower it back): pids %s'
                      % (self.launch_niceness, refused))
         return len(self._launched_names)
+
+    @staticmethod
+    def _not_set_up(node, nodes, services):
+        """What a launched node lacks, past the launch timeout."""
+        if node not in nodes:
+            return '%s is not registered with the master' % node
+        if node + '/rebind' not in services:
+            return ('%s is registered with the master but offers no %s/rebind (still in its set-up, or '
+                    'no FTM node)' % (node, node))
+        return '%s: its publishers are not connected to every subscriber' % node
 
     def _wired(self, node, silent=None):
         """wired(node); with ``silent`` (a dict kept over one wait), the subscribers node is not
