@@ -43,6 +43,35 @@ def remove_free_turns(since):
             os.close(fd)
 
 
+def pytest_configure(config):
+    config.addinivalue_line('markers', 'family(name, keep): one of a family of live cases of which the short suite '
+                                       'runs keep, drawn from AFT_SUITE_SEED (aft_ftm.suite)')
+
+
+def pytest_report_header(config):
+    from aft_ftm import suite
+    return 'suite: %s, AFT_SUITE_SEED=%d (the draw of each family\'s cases; AFT_SUITE=full runs them all)' % (
+        suite.suite(), suite.seed())
+
+
+def pytest_collection_modifyitems(config, items):
+    """The short suite runs keep cases of each family (@pytest.mark.family(name, keep)): the others are
+    skipped, the reason naming the family, the seed and how to run them."""
+    import pytest
+    from aft_ftm import suite
+    families = {}
+    for item in items:
+        mark = item.get_closest_marker('family')
+        if mark is not None:
+            families.setdefault(mark.args[0], (mark.args[1], []))[1].append(item)
+    which, seed = suite.suite(), suite.seed()
+    for family, (keep, members) in families.items():
+        chosen = suite.drawn(family, [item.nodeid for item in members], keep, seed, which)
+        for item in members:
+            if item.nodeid not in chosen:
+                item.add_marker(pytest.mark.skip(reason=suite.not_drawn(family, keep, len(members), seed)))
+
+
 def pytest_sessionfinish(session, exitstatus):
     remove_free_turns(STARTED - 1.0)
     if (exitstatus == 0 or not os.listdir(SCRATCH)) and not os.environ.get('AFT_KEEP_TMP'):

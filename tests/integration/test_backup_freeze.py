@@ -17,6 +17,8 @@ the node)."""
 import os
 import random
 
+import pytest
+
 from leftovers import run_tagged
 
 SCRIPT = r"""
@@ -190,6 +192,7 @@ print('ok')
 """
 
 
+@pytest.mark.family('backup_freeze', 1)
 def test_a_backup_node_frozen_during_the_failover_delays_it_or_is_excluded_loudly():
     seed = int(os.environ.get('AFT_SEED', random.randrange(1 << 16)))
     node = os.environ.get('AFT_FREEZE_NODE', '')
@@ -198,6 +201,7 @@ def test_a_backup_node_frozen_during_the_failover_delays_it_or_is_excluded_loudl
     assert code == 0 and output.rstrip().endswith('ok'), 'seed %d (AFT_SEED replays):\n%s' % (seed, output[-5000:])
 
 
+@pytest.mark.family('backup_freeze', 1)
 def test_a_frozen_protocol_delays_the_take_over_and_its_recovery_says_so():
     """The fixed case: SLAVE's Protocol frozen 3.2 s, MASTER powered off 0.1 s into it (a backup's
     Protocol is on no acknowledgment's path: SLAVE is not excluded). Its promotion waits about 3 s,
@@ -208,6 +212,7 @@ def test_a_frozen_protocol_delays_the_take_over_and_its_recovery_says_so():
     assert code == 0 and output.rstrip().endswith('ok'), output[-5000:]
 
 
+@pytest.mark.family('backup_freeze', 1)
 def test_a_single_restore_past_the_deadline_delays_the_take_over_but_does_not_cancel_it():
     """The fixed case, seed 7: one set_state of SLAVE's server takes 6.65 s, past the After's 5 s
     ~state_timeout, MASTER powered off 0.24 s after it began. The promotion waits for the applier's
@@ -218,6 +223,7 @@ def test_a_single_restore_past_the_deadline_delays_the_take_over_but_does_not_ca
     assert code == 0 and output.rstrip().endswith('ok') and '"took over: ' in output, output[-5000:]
 
 
+@pytest.mark.family('backup_freeze', 1)
 def test_a_backup_server_slow_to_restore_delays_the_take_over_or_makes_the_backup_invalid_loudly():
     """No process stops: SLAVE's server takes 0.3-7 s (drawn) over each of its next 1-3 set_state calls
     (drawn), while it serves and answers everything else at once, and MASTER is powered off 0-0.6 s

@@ -11,6 +11,11 @@ replacement nodes meet the faults that follow them, and a failed site must re-jo
 runs by then. The seed is AFT_CAMPAIGN_SEED (default: the time), printed; a violation prints its replay
 command.
 
+The short suite (aft_ftm.suite; `make test`) builds it from the campaign, the car and one benchmark of
+each group of GROUPS (two of those run beside the others), drawn from AFT_SUITE_SEED: every benchmark
+is built over runs, each section of one not drawn says "not run"; AFT_SUITE=full (`make test-full`)
+builds every step, as `make bench QUICK=1` does.
+
 Every process the run starts carries AFT_TEST_TAG; pass or fail, any still alive is killed after.
 """
 import json
@@ -24,6 +29,7 @@ import uuid
 import pytest
 from aft_examples import schedule
 from aft_examples.ros.campaign import AdaptingBackend
+from aft_ftm import suite
 from leftovers import kill_tagged
 from reporting import report as report_figure
 
@@ -34,6 +40,13 @@ from aft_bench import report  # noqa: E402
 CAMPAIGN_FAULTS = int(os.environ.get('AFT_CAMPAIGN_FAULTS', 50))
 BENCHES = ('pbr', 'mechanisms', 'adaptation', 'buffering', 'service_manager', 'master', 'healing', 'state',
            'clients', 'security', 'detection', 'campaign')
+# The short suite's draw: (family, how many, benchmarks); the campaign always runs (issue 15's short campaign).
+GROUPS = [('bench_failover', 1, ('pbr', 'mechanisms')), ('bench_load', 1, ('clients', 'security')),
+          ('bench_engines', 1, ('adaptation', 'service_manager', 'detection')),
+          ('bench_beside', 2, ('buffering', 'master', 'state', 'healing'))]
+assert sorted(b for _, _, group in GROUPS for b in group) == sorted(set(BENCHES) - {'campaign'})
+RAN = sorted(set().union(*(suite.drawn(family, group, keep, suite.seed(), suite.suite())
+                           for family, keep, group in GROUPS)) | {'campaign'})
 
 
 @pytest.fixture(scope='module')
@@ -42,8 +55,11 @@ def quick_report():
     tag = uuid.uuid4().hex
     seed = int(os.environ.get('AFT_CAMPAIGN_SEED', int(time.time()) % 100000))
     print('AFT_CAMPAIGN_SEED=%d (the campaign of the quick report)' % seed)
+    print('AFT_SUITE=%s AFT_SUITE_SEED=%d: benchmarks %s, the car' % (suite.suite(), suite.seed(), ', '.join(RAN)))
+    only = [] if set(RAN) == set(BENCHES) else ['--only', ','.join(RAN + ['car'])]
     try:
-        run = subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'bench_report'), '--quick', '--out', out],
+        run = subprocess.run([sys.executable, os.path.join(ROOT, 'scripts', 'bench_report'), '--quick', '--out', out]
+                             + only,
                              env=dict(os.environ, AFT_TEST_TAG=tag, AFT_CAMPAIGN_SEED=str(seed),
                                       AFT_CAMPAIGN_FAULTS=str(CAMPAIGN_FAULTS)), stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, timeout=900)
@@ -77,9 +93,11 @@ def test_every_section_and_the_machine(quick_report):
         assert '\n## %s\n' % title in text, 'section %r missing' % title
     assert figures['machine']['cpus'] >= 1 and figures['machine']['python']
     assert figures['mode'] == 'quick'
-    for name in BENCHES:
+    for name in RAN:
         assert figures['steps'][name]['ok'], '%s failed: %s' % (name, figures['steps'][name])
         assert name in figures
+    for name in set(BENCHES) - set(RAN):
+        assert name not in figures['steps'], 'step %s ran though not drawn' % name
 
 
 def test_every_claim_measured_where_its_benchmark_ran(quick_report):
@@ -90,7 +108,8 @@ def test_every_claim_measured_where_its_benchmark_ran(quick_report):
                   'alarm_stop': {'simulator_crash', 'master_crash', 'imu_crash', 'ultrasonic_crash'}}
     for claim in report.claims(figures):
         measured = claim['verdict'] != report.NOT_MEASURED
-        expected = bool(car_claims[claim['key']] & ran) if claim['key'] in car_claims else True
+        step = next(k for k, command in report.COMMANDS.items() if command == claim['command'])
+        expected = bool(car_claims[claim['key']] & ran) if claim['key'] in car_claims else step in RAN
         assert measured == expected, claim
         assert claim['claim'] in text
     assert figures['car']['rows'] and all(r['with'].get('hazards') is not None and r['without'].get('hazards')
@@ -102,30 +121,41 @@ def test_numbers_add_up(quick_report):
     failed = [c for c in report.consistency(figures) if not c[1]]
     assert not failed, failed
     assert ' checks, 0 failed.' in text
-    runs = figures['adaptation']['runs']
-    assert runs and all(r['requests'] > 0 for r in runs)
-    for r in runs:   # lost is a count: requests sent minus correct replies, run by run
-        assert r['lost'] == r['requests'] - r['checker']['correct']
-    for mode in ('prepared', 'paper'):
-        mine = [r for r in runs if r['mode'] == mode]
-        sent, answered = sum(r['requests'] for r in mine), sum(r['checker']['correct'] for r in mine)
-        row = next(line for line in text.split('\n') if line.startswith('| %s | %s |' % (mine[0]['adaptation'], mode)))
-        assert [c.strip() for c in row.split('|')][6:9] == [str(sent), str(answered), str(sent - answered)]
-    down = figures['master']['master_down']
-    for block in (down['established_service'], down['ftm_failover']):
-        assert block['lost'] == block['sent'] - block['answered'] and block['sent'] > 0
-    fo = figures['pbr']['failover']
-    assert len(figures['pbr']['failover_samples']) == fo['crashes'] > 0
-    heal = figures['healing']
-    assert all(r['exactly_once'] for runs in heal['failover'].values() for r in runs) and heal['joins']['exactly_once']
-    assert len(heal['failover']['witness']) == len(heal['failover']['no_witness']) == heal['crashes'] > 0
-    assert all(r['vote_s'] is None for r in heal['failover']['no_witness'])
-    assert all(r['vote_s'] is not None for r in heal['failover']['witness'])
+    if 'adaptation' in RAN:
+        runs = figures['adaptation']['runs']
+        assert runs and all(r['requests'] > 0 for r in runs)
+        for r in runs:   # lost is a count: requests sent minus correct replies, run by run
+            assert r['lost'] == r['requests'] - r['checker']['correct']
+        for mode in ('prepared', 'paper'):
+            mine = [r for r in runs if r['mode'] == mode]
+            sent, answered = sum(r['requests'] for r in mine), sum(r['checker']['correct'] for r in mine)
+            row = next(line for line in text.split('\n')
+                       if line.startswith('| %s | %s |' % (mine[0]['adaptation'], mode)))
+            assert [c.strip() for c in row.split('|')][6:9] == [str(sent), str(answered), str(sent - answered)]
+    if 'master' in RAN:
+        down = figures['master']['master_down']
+        for block in (down['established_service'], down['ftm_failover']):
+            assert block['lost'] == block['sent'] - block['answered'] and block['sent'] > 0
+    if 'pbr' in RAN:
+        fo = figures['pbr']['failover']
+        assert len(figures['pbr']['failover_samples']) == fo['crashes'] > 0
+    if 'healing' in RAN:
+        heal = figures['healing']
+        assert all(r['exactly_once'] for runs in heal['failover'].values() for r in runs) and \
+            heal['joins']['exactly_once']
+        assert len(heal['failover']['witness']) == len(heal['failover']['no_witness']) == heal['crashes'] > 0
+        assert all(r['vote_s'] is None for r in heal['failover']['no_witness'])
+        assert all(r['vote_s'] is not None for r in heal['failover']['witness'])
 
 
 def test_plots(quick_report):
     out, text, figures, _ = quick_report
-    for name in ('latency', 'failover', 'adaptation', 'car'):
+    # Each plot of the benchmark it draws, where that ran (the car always runs).
+    for name, step in (('latency', 'mechanisms'), ('failover', 'pbr'), ('adaptation', 'adaptation'),
+                       ('car', 'campaign')):
+        if step not in RAN:
+            assert name not in figures['plots'], 'plot %s drawn without its benchmark' % name
+            continue
         assert figures['plots'].get(name) == name + '.png', 'plot %s not drawn' % name
         with open(os.path.join(out, name + '.png'), 'rb') as f:
             assert f.read(8) == b'\x89PNG\r\n\x1a\n'

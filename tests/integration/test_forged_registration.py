@@ -237,6 +237,7 @@ print('ok')
 '''
 
 
+@pytest.mark.family('forged_registration', 1)
 @pytest.mark.parametrize('fault', ['power off', 'forged fail-stop'])
 def test_a_forged_registration_or_heartbeat_never_makes_fencing_or_an_adaptation_kill_another_process(fault):
     run_seeded(SCRIPT, [fault], home_prefix='aft_forged_home_')

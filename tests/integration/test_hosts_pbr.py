@@ -303,6 +303,7 @@ def _drive_until_the_slave_is_backup(d, sent, timeout=90.0):
     return records, sent
 
 
+@pytest.mark.family('slow_link_transfer', 1)
 def test_a_large_state_rejoins_over_a_slow_link_in_parts_and_no_client_waits_for_the_transfer(deployment, seed):
     """Issue 18: the slave host powered off, then back with its link limited to 8 Mbit/s, a 2 MB state:
     the re-join's state transfer takes about 2 s, twice the ack timeout, which in one message would
@@ -358,6 +359,7 @@ def test_a_large_state_rejoins_over_a_slow_link_in_parts_and_no_client_waits_for
                           max(after, default=0.0) * 1e3, join['sent_wall'] - frozen['at'], len(excluded), seed))
 
 
+@pytest.mark.family('slow_link_transfer', 1)
 def test_lfr_a_large_state_rejoins_over_a_slow_link_in_parts(deployment, seed):
     """Issue 18, LFR's re-join: the follower host powered off, then back with its link limited to
     2 Mbit/s, a 3 MB state. The transfer goes in parts of 64 KB (aft_ftm.transfer), at most 4 in
@@ -409,6 +411,7 @@ def _received_bytes(d, host):
     return _link_bytes(d, host, 'rx')
 
 
+@pytest.mark.family('slow_link_transfer', 1)
 def test_lfr_a_joiner_cut_off_mid_transfer_holds_the_leader_only_for_the_ack_timeout(deployment, seed):
     """LFR's leader suspends its Protocol while it transfers its state to a joiner. The joiner's host
     is cut off (link down, processes alive) for 5 s once a seeded part of its 2 MB transfer arrived over

@@ -88,6 +88,7 @@ print('ok')
 """
 
 
+@pytest.mark.family('late_promotion', 1)
 @pytest.mark.parametrize('mechanism', ['pbr', 'lfr'])
 def test_a_promote_granted_late_makes_its_site_take_over_and_nothing_answered_is_lost(mechanism):
     run_seeded(SCRIPT, [mechanism], home_prefix='aft_late_promotion_home_')

@@ -106,6 +106,7 @@ finally:
 '''
 
 
+@pytest.mark.family('master_death', 1)
 @pytest.mark.parametrize('mechanism,sec', [('pbr', ''), ('lfr', ''), ('pbr', 'sec')])
 def test_the_bank_fails_over_with_the_ros_master_dead(mechanism, sec):
     """PBR; LFR (the follower takes over); PBR behind SEC gates (the backup's gate is the entry)."""

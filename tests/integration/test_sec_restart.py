@@ -145,6 +145,7 @@ print('ok')
 '''
 
 
+@pytest.mark.family('sec_restart', 1)
 def test_captured_requests_are_refused_by_a_deployment_started_again_with_the_same_keys():
     run_seeded(SCRIPT, home_prefix='aft_sec_restart_home_')
 
@@ -257,12 +258,14 @@ print('ok')
 '''
 
 
+@pytest.mark.family('sec_restart', 1)
 def test_captured_requests_are_refused_by_a_deployment_started_again_that_lost_its_replay_logs():
     """Before session 48 a lost log looked like a first start: every captured request executed again. Each
     origin's first request in a gate's run now proves itself fresh (security.Freshness): a replay cannot."""
     run_seeded(LOST_LOG, home_prefix='aft_sec_lostlog_home_')
 
 
+@pytest.mark.family('sec_rejoin', 1)
 @pytest.mark.parametrize('peer', ['answering', 'paused'])
 def test_a_site_rejoined_after_calls_it_missed_refuses_their_replays_as_a_backup_and_as_primary(peer):
     """paused: MASTER's gate SIGSTOPped from before SLAVE's relaunch until SLAVE said floors_unavailable

@@ -14,6 +14,8 @@ import os
 import random
 import re
 
+import pytest
+
 from leftovers import run_tagged
 
 TALKER = r'''
@@ -182,6 +184,7 @@ def test_random_faults_a_listener_hears_its_talker_again_through_one_connection(
     assert 'subscription /kept had no connection to publisher /talker' in output, output[-3000:]
 
 
+@pytest.mark.family('control_experiments', 1)
 def test_without_the_keeper_each_of_those_faults_leaves_the_listener_deaf():
     code, output = _run(False, LOSING, 1)
     print(output[-3000:])

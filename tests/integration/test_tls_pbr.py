@@ -17,6 +17,8 @@ Runs in a process of its own with a master of its own; every process it starts c
 AFT_TEST_TAG and is killed at the end."""
 import re
 
+import pytest
+
 from leftovers import run_tagged
 
 SCRIPT = r'''
@@ -223,6 +225,7 @@ finally:
 '''
 
 
+@pytest.mark.family('control_experiments', 1)
 def test_without_tls_the_same_attacker_changes_roles_and_state():
     """The control: the attacks are real. On the default deployment (no TLS) the plain attacker's calls
     are served and its forgeries reach the replicas: the pair is no longer what it was."""
@@ -235,16 +238,19 @@ def test_without_tls_the_same_attacker_changes_roles_and_state():
     assert after and after[0] != 'AFTER ATTACKS epoch 2 primary master backup slave', after
 
 
+@pytest.mark.family('tls_pbr', 1)
 def test_the_control_plane_refuses_every_forgery_and_the_failover_holds_under_tls():
     check_under_tls('pbr')
 
 
+@pytest.mark.family('tls_pbr', 1)
 def test_lfr_under_tls_refuses_every_forgery_and_fails_over():
     """The same attacks and sweep against Leader-Follower Replication (its own topics: the leader's
     notifications, the followers' acknowledgements), under the same policy."""
     check_under_tls('lfr')
 
 
+@pytest.mark.family('tls_pbr', 1)
 def test_sec_pbr_tr_under_tls_refuses_every_forgery_and_fails_over():
     """Issue 16's deployment: SEC (requests and replies sealed per client, the CA) with PBR+TR, under
     mutual TLS: the same attacks and sweep refused, nothing of the deployment's own refused, the

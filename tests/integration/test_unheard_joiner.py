@@ -108,6 +108,7 @@ print('ok')
 """
 
 
+@pytest.mark.family('unheard_joiner', 1)
 @pytest.mark.parametrize('mechanism', ['pbr', 'lfr'])
 def test_a_site_whose_detector_is_silent_is_not_admitted_until_it_beats_again(mechanism):
     run_seeded(SCRIPT, [mechanism], home_prefix='aft_unheard_joiner_home_')

@@ -18,10 +18,34 @@ from aft_msgs.srv import Account, GetState
 from aft_examples.bank import Account as Model, ReplyChecker, account_state, operation
 from aft_examples.ros.bank_nodes import account_caller, drive_through_fault
 from aft_examples.ros.deployment import MechanismDeployment, PbrDeployment, last_failover, witness_status
+from aft_ftm import suite
 
 LIVE = []
 SEED = int(os.environ.get('AFT_TEST_SEED', int(time.time())))
 RNG = random.Random(SEED)
+
+
+# The families of cases the short suite draws from (aft_ftm.suite): a case of one runs only if drawn.
+FAMILIES = suite.Families()
+
+
+def family(name, keep):
+    """Declares a test method, or a TestCase class (its every method, not a subclass's), a member of family
+    name, of which the short suite runs keep."""
+    def declare(thing):
+        FAMILIES.add(name, keep, thing.__name__ if isinstance(thing, type) else thing.__qualname__)
+        return thing
+    return declare
+
+
+def skip_unless_drawn(case):
+    """case.skipTest() if its class or method is of a family and not drawn this time, said on the output
+    (rostest's summary counts a skipped case as passed)."""
+    method = getattr(type(case), case._testMethodName)
+    why = FAMILIES.skip_reason(type(case).__name__) or FAMILIES.skip_reason(method.__qualname__)
+    if why:
+        suite.say_not_drawn('%s.%s' % (type(case).__name__, case._testMethodName), why)
+        case.skipTest(why)
 
 
 def stop_all(*_):
@@ -94,6 +118,7 @@ class Sites(unittest.TestCase):
         raise NotImplementedError
 
     def setUp(self):
+        skip_unless_drawn(self)   # before anything starts
         # A site that does not come up is started afresh once: on a loaded 2-core machine rospy has
         # been seen to leave a subscriber's handshake hanging for 60 s, or a node's registration to
         # be interrupted. What the tests check starts once the sites are up, so this hides no
@@ -250,6 +275,7 @@ def run(package, name):
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     print('AFT_TEST_SEED=%d' % SEED)
+    print('AFT_SUITE=%s AFT_SUITE_SEED=%d' % (suite.suite(), suite.seed()))
     import rostest
     only = os.environ.get('AFT_TEST_ONLY', '')
     if only:
