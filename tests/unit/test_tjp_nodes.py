@@ -143,3 +143,41 @@ def test_voted_gaps_leave_in_the_order_they_were_decided(monkeypatch, clock):
     second.join(5.0)
     out = [(msg.header.stamp.to_sec(), msg.range) for port, msg in node.ports.sent if port == 'out']
     assert out == [(pytest.approx(t1), pytest.approx(8.0)), (pytest.approx(t2), pytest.approx(7.9))], out
+
+
+class SlowFirstCommand(FakePorts):
+    """commandManager's ports, whose first command takes its time to go out: it waits until another has
+    gone out (at most WAIT s). ``first_out`` is set once it waits."""
+
+    WAIT = 0.5
+
+    def __init__(self, specs=(), callbacks=None):
+        super(SlowFirstCommand, self).__init__(specs, callbacks)
+        self.first_out, self.second_out = threading.Event(), threading.Event()
+
+    def publish(self, port, msg):
+        if port == 'command' and not self.first_out.is_set():
+            self.first_out.set()
+            self.second_out.wait(self.WAIT)
+        elif port == 'command':
+            self.second_out.set()
+        super(SlowFirstCommand, self).publish(port, msg)
+
+
+def test_a_safe_stop_is_the_last_command_the_car_gets_never_overtaken_by_a_cycle_computed_before_it(monkeypatch,
+                                                                                                   clock):
+    """The timer's cycle computed a driving command and published it after the lock; a safe stop arriving
+    meanwhile sent its braking command at once, and the driving command went out after it: the car was
+    told to drive after the stop (review of session 49)."""
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode, ports=SlowFirstCommand)
+    node.ports.deliver('pid_command', pid(1.5, 10.0))
+    cycle = threading.Thread(target=node._send)
+    cycle.start()
+    assert node.ports.first_out.wait(5.0)            # the cycle's driving command, on its way out
+    stop = threading.Thread(target=node.ports.deliver, args=('safe_stop', tjp_nodes.String(data='test')))
+    stop.start()
+    cycle.join(5.0)
+    stop.join(5.0)
+    sent = [msg for port, msg in node.ports.sent if port == 'command']
+    assert [m.accel for m in sent] == [1.5, pytest.approx(-node.arbiter.stop_decel)], [m.accel for m in sent]
+    assert [m.cycle for m in sent] == [1, 2]

@@ -390,6 +390,11 @@ class CommandManagerNode(PortedNode):
              'service_safe_state': self._on_service_safe_state})
         self.pending = None
         self.cycle = 0
+        # The cycles' sends one at a time, in the order they were computed: a safe stop's immediate send
+        # and the timer's cycle ran at once, and the cycle computed first (a driving command) could go
+        # out after the stop (review of session 49). Not self.lock: a slow publish never holds up the
+        # inputs.
+        self.send_lock = threading.Lock()
         self.refused = {offer: Episodes() for offer in Offer if offer is not Offer.TAKEN}
 
     def setup(self, timeout):
@@ -444,10 +449,11 @@ class CommandManagerNode(PortedNode):
             self._on_safe_stop(String(data='service manager: %s' % msg.reason))
 
     def _send(self):
-        with self.lock:
-            accel = self.arbiter.command(self.pending, rospy.get_time())
-            self.pending = None
-            self.cycle += 1
-            msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(self.arbiter.mode), cycle=self.cycle,
-                             source=self.name)
-        self.ports.publish('command', msg)
+        with self.send_lock:
+            with self.lock:
+                accel = self.arbiter.command(self.pending, rospy.get_time())
+                self.pending = None
+                self.cycle += 1
+                msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(self.arbiter.mode), cycle=self.cycle,
+                                 source=self.name)
+            self.ports.publish('command', msg)
