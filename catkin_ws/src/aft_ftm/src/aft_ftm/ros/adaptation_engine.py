@@ -45,7 +45,7 @@ from ..suspension import MAX_LEASE
 from ..transaction import ABANDONED, TERMINAL, UNKNOWN, Action, Outcome, State, Transaction, stop_reason
 from ..turns import Busy, Turn
 from ..site_watch import mark_retired
-from ..sites import Site, last_errors, launch_failure, wait_dead, wait_until
+from ..sites import Site, last_errors, launch_failure, process_tree, wait_dead, wait_until
 from ..where import WhereError, process_setting, run_where, site_tls, with_tls
 from .graph import roslaunch, unwired
 from .fencing import NotTheNode, node_api, visible_pid
@@ -275,6 +275,8 @@ def _never_raises(log):
             pass
     return write
 
+
+RESPAWN_TIMEOUT = 30.0   # s a node a rollback starts again has to be set up (Engine._respawn_lacks)
 
 LaunchPlan = collections.namedtuple('LaunchPlan', 'path nodes owners tls')
 LaunchPlan.__doc__ = """A launch entry as validated: its file, the nodes it starts, the launchers
@@ -1088,10 +1090,19 @@ class Engine(object):
             site = Site('respawn', argv, env=env, cwd=record.cwd,
                         log_path=os.path.join(self.log_dir, 'respawn_%d.log' % record.pid)).start()
             self.respawned.append(site)
-            if not wait_until(lambda: step.target + '/rebind' in self._graph()[1] or
-                              (step.target in self._graph()[0] and not self._offers_rebind(record)), 30.0, 0.05):
-                raise StepError('%s started again (pid %d) but not set up within 30 s' % (step.target, site.pid))
-            return 'started again, pid %d' % site.pid
+            deadline = time.monotonic() + RESPAWN_TIMEOUT
+            while True:
+                if not site.alive():   # it will never be set up: said at once, not after the whole wait
+                    said = last_errors(site.output())
+                    raise StepError('%s started again (pid %d) but its process exited before it was set up%s '
+                                    '(see %s)' % (step.target, site.pid, '; ' + said if said else '', site.log_path))
+                lacks = self._respawn_lacks(step.target, record, site.pid)
+                if not lacks:
+                    return 'started again, pid %d' % site.pid
+                if time.monotonic() > deadline:
+                    raise StepError('%s started again (pid %d) but not set up within %g s: %s'
+                                    % (step.target, site.pid, RESPAWN_TIMEOUT, lacks))
+                time.sleep(0.05)
         if step.action in ('restore_binding', 'restore_promote') and (
                 step.detail is UNKNOWN or isinstance(step.detail, tuple) and step.detail[1] is UNKNOWN):
             raise StepError('its %s got no answer in time and may have been carried out later: what it replaced '
@@ -1112,6 +1123,34 @@ class Engine(object):
     @staticmethod
     def _offers_rebind(record):
         return any('aft_ftm' in part for part in record.cmdline)
+
+    def _respawn_lacks(self, node, record, root):
+        """'' once node, started again by a rollback as process ``root`` (or a process under it: its
+        guard's child), is set up: it offers its ~rebind (an FTM node offers it last, once set up), or,
+        another node, is registered; and that registration is the new process's. Else what it lacks.
+
+        A node killed with SIGKILL never unregisters: its name, its services and its URI stay with the
+        master until a process registers under that name anew (the master then drops them all). Taken
+        for the new node, they had the rollback say the node was started again while the new process
+        was still starting, or had failed, and the next undo call a dead URI. So the registered URI is
+        asked for its pid: a dead process's answers nothing, and the pid must be the new process's."""
+        nodes, services = self._graph()
+        if node not in nodes:
+            return '%s is not registered with the master' % node
+        if self._offers_rebind(record) and node + '/rebind' not in services:
+            return '%s is registered but offers no %s/rebind (still in its set-up)' % (node, node)
+        try:
+            uri = self.master.lookupNode(node)
+        except Exception as e:   # unregistered meanwhile
+            return '%s cannot be looked up: %s' % (node, e)
+        try:
+            pid = visible_pid(uri, rospy.get_name(), node)
+        except Exception as e:   # nothing answers there (NotTheNode: another process does)
+            return ('%s is registered at %s, which is not the new process (the registration its killed '
+                    'predecessor, pid %d, left?): %s' % (node, uri, record.pid, e))
+        if pid is None or (pid != root and pid not in [p.pid for p in process_tree(root)]):
+            return '%s is registered at %s by pid %s, not by the process started again' % (node, uri, pid)
+        return ''
 
     def stop_all(self):
         """Stop every process this engine started, those of runs done too (tests and benchmarks, which
