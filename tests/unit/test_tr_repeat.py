@@ -11,6 +11,7 @@ import pytest
 from aft_examples.history import classify_error
 from aft_ftm.once import KeptAnswers, RecentKeys, answer_size
 from aft_ftm.voting import Outcome, Stray, Votes
+from fakes import FakeClock
 
 tr = pytest.importorskip('aft_ftm.ros.tr_nodes')
 import rospy  # noqa: E402
@@ -411,6 +412,7 @@ OUTSTANDING = [
     ('one past ~executions', [(0, 0, 'x'), (0, 1, 'y'), (0, 3, 'y')],
      [Outcome.REPEAT, Outcome.REPEAT, Stray.NOT_ASKED]),
     ('another attempt while a vote runs', [(0, 0, 'x'), (1, 0, 'y')], [Outcome.REPEAT, Stray.OTHER_ATTEMPT]),
+    ('an earlier attempt while a vote runs', [(1, 0, 'x'), (0, 0, 'y')], [Outcome.REPEAT, Stray.EARLIER]),
     ('after its vote ended', [(0, 0, 'x'), (0, 1, 'x'), (0, 2, 'x')],
      [Outcome.REPEAT, Outcome.DECIDED, Stray.ENDED]),
     ('a newer attempt once the vote ended', [(0, 0, 'x'), (0, 1, 'x'), (1, 0, 'y'), (1, 1, 'y')],
@@ -444,3 +446,23 @@ def test_a_vote_ended_undecided_refuses_its_results_and_the_memory_is_bounded():
     for rid in (2, 3):
         votes.add(('/p', rid), 0, 0, 'x')
     assert votes.pending() == 2 and votes.add(('/p', 1), 0, 1, 'x') == (None, Stray.NOT_ASKED)   # forgotten
+
+
+def test_a_vote_stuck_on_a_lost_execution_is_superseded_by_a_newer_attempt_after_stale_after():
+    """Review of the first Votes: a vote whose repeated execution was lost (its result never heard) ran
+    for ever, and every newer attempt of the request (the Protocol's retries, each executed by Before,
+    which replaces the saved state) was refused as another attempt's: the request could never be
+    answered. Within ``stale_after`` of the last execution counted a newer attempt is still refused
+    (a forged one cannot cut a vote short); past it, its execution 0 supersedes the stuck vote."""
+    clock = FakeClock(100.0)
+    votes = Votes(3, stale_after=5.0, clock=lambda: clock.now)
+    assert votes.add(('/proxy', 1), 0, 0, 'x')[0].outcome == Outcome.REPEAT   # execution 1 asked for: lost
+    clock.now += 4.9
+    assert votes.add(('/proxy', 1), 1, 0, 'y') == (None, Stray.OTHER_ATTEMPT)
+    clock.now += 0.2
+    assert votes.add(('/proxy', 1), 1, 1, 'y') == (None, Stray.NOT_ASKED)     # a newer vote begins with 0 only
+    assert votes.add(('/proxy', 1), 1, 0, 'y')[0].outcome == Outcome.REPEAT   # supersedes the stuck vote
+    decided = votes.add(('/proxy', 1), 1, 1, 'y')[0]
+    assert decided.outcome == Outcome.DECIDED and decided.value == 'y'
+    assert votes.add(('/proxy', 1), 0, 1, 'x') == (None, Stray.EARLIER)       # the lost execution, late
+    assert votes.pending() == 0                                                # the stuck vote's results dropped

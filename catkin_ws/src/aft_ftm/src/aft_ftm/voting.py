@@ -1,6 +1,7 @@
 """Time Redundancy's decision: repeat, compare, and let a majority decide (paper Table II: TR)."""
 import collections
 import enum
+import time
 
 from .errors import ConfigError
 
@@ -68,12 +69,13 @@ class Stray(enum.Enum):
     COUNTED: a copy of a result. NOT_ASKED: ahead of the execution outstanding, past ~executions, or
     not the first execution of an attempt whose vote has not begun. ENDED: a copy, or an execution run
     after its vote gave up (Before stopped past ~repeat_timeout, then resumed). EARLIER: a late result
-    of an earlier attempt. OTHER_ATTEMPT: a vote runs on another attempt of the request."""
+    of an earlier attempt (or of one a newer attempt superseded). OTHER_ATTEMPT: a vote runs on another
+    attempt of the request, and has not waited for its execution long enough to be superseded."""
     COUNTED = 'counted already'
     NOT_ASKED = 'not asked for'
     ENDED = 'its vote has ended'
     EARLIER = 'of an attempt older than the last one voted on'
-    OTHER_ATTEMPT = 'the vote running is on another attempt'
+    OTHER_ATTEMPT = 'the vote running is on another attempt, and not stuck'
 
 
 class Votes(object):
@@ -82,9 +84,14 @@ class Votes(object):
 
     Before numbers the executions of an attempt 0, 1, ... and executes the next only once After,
     having counted the one before, asks for it (a repeat). So the execution outstanding is the number
-    of results counted in the vote running, or execution 0 of a new vote. A vote begins only when none
-    runs for its request (Before's saved state and its repeat are per request, not per attempt), on an
-    attempt newer than the last one voted on (an outer mechanism numbers its executions upward). Any
+    of results counted in the vote running, or execution 0 of a new vote. A vote begins on an attempt
+    newer than the last one voted on (an outer mechanism numbers its executions upward). One vote runs
+    per request (Before's saved state and its repeat are per request, not per attempt): a newer
+    attempt's result is refused while the vote running still waits for its execution, but once that
+    vote is stuck (no execution counted for ``stale_after`` s: its result lost, Before restarted), the
+    newer attempt's execution 0 supersedes it and its results are dropped. Before replaces the saved
+    state of an attempt whose vote never ended by the newer one's; refused for ever, the newer attempt
+    left the request unanswerable, every retry refused (review of the first version). Any
     other result (a copy, one of an earlier attempt or of a vote that ended, a number forged or
     published again by anyone on the graph) is refused with its reason (Stray): counted, one not
     asked for decided the vote with a value the server never computed, and the execution asked for,
@@ -98,36 +105,45 @@ class Votes(object):
     The last ``remember`` requests are remembered (their last attempt, and whether its vote runs);
     the oldest is forgotten first (a running vote with it)."""
 
-    def __init__(self, executions=3, remember=65536):
+    def __init__(self, executions=3, remember=65536, stale_after=10.0, clock=time.monotonic):
         self.vote = TimeRedundancyVote(executions)
         self.remember = remember
+        self.stale_after = stale_after
+        self.clock = clock
         self._requests = collections.OrderedDict()   # request -> [its last attempt, execution outstanding
-        #                                              (None: its vote has ended)]
+        #                                              (None: its vote has ended), when it last counted one]
 
     def add(self, request, attempt, execution, result):
         """The result of ``execution`` of ``request``'s ``attempt``: (its Vote, None) if it was the one
         outstanding, and counted; else (None, the Stray reason) and nothing changes."""
-        stray = self._stray(self._requests.get(request), attempt, execution)
+        now = self.clock()
+        stray = self._stray(self._requests.get(request), attempt, execution, now - self.stale_after)
         if stray is not None:
             return None, stray
+        last = self._requests.get(request)
+        if last is not None and last[1] is not None and attempt != last[0]:   # a newer attempt supersedes it
+            self.vote.forget(request + (last[0],))
         vote = self.vote.add(request + (attempt,), result, execution)
-        self._requests[request] = [attempt, execution + 1 if vote.outcome == Outcome.REPEAT else None]
+        self._requests[request] = [attempt, execution + 1 if vote.outcome == Outcome.REPEAT else None, now]
         self._requests.move_to_end(request)
         while len(self._requests) > self.remember:
-            old, (old_attempt, _) = self._requests.popitem(last=False)
+            old, (old_attempt, _, _) = self._requests.popitem(last=False)
             self.vote.forget(old + (old_attempt,))
         return vote, None
 
     @staticmethod
-    def _stray(last, attempt, execution):
+    def _stray(last, attempt, execution, stuck_before):
         """Why a result is not the one outstanding, or None. ``last``: its request's [last attempt,
-        execution outstanding or None], or None (not seen, or forgotten)."""
+        execution outstanding or None, when it counted the last], or None (not seen, or forgotten); a
+        vote running that counted none since ``stuck_before`` may be superseded by a newer attempt."""
         if last is None:
             return None if execution == 0 else Stray.NOT_ASKED
-        newest, outstanding = last
-        if outstanding is not None:   # a vote runs
-            if attempt != newest:
+        newest, outstanding, counted = last
+        if outstanding is not None and (attempt <= newest or counted > stuck_before):   # a vote runs
+            if attempt > newest:
                 return Stray.OTHER_ATTEMPT
+            if attempt < newest:
+                return Stray.EARLIER
             if execution < outstanding:
                 return Stray.COUNTED
             return None if execution == outstanding else Stray.NOT_ASKED

@@ -375,8 +375,6 @@ class TrAfterNode(AfterNode):
         if executions >= SPAN:
             raise ConfigError('parameter %s must be below %d, got %d' % (rospy.resolve_name('~executions'),
                                                                          SPAN, executions))
-        # Each request's vote counts only the execution it asked Before for (review: any number not counted yet was).
-        self.votes = Votes(executions)
         self.site = param('site', config.optional_name, '')
         super(TrAfterNode, self).__init__(extra_ports=[PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                                                        PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure')])
@@ -389,6 +387,9 @@ class TrAfterNode(AfterNode):
                               'first, which may take that long' % (rospy.resolve_name('~repeat_timeout'),
                                                                     self.repeat_timeout, server_timeout))
         self._repeat_deadline = Deadline('repeat')
+        # Each request's vote counts only the execution it asked Before for (review: any number not counted yet
+        # was); a vote that waited past a repeat's bound for its execution is stuck: a newer attempt supersedes it.
+        self.votes = Votes(executions, stale_after=self.repeat_timeout)
         self.vote_lock = threading.Lock()   # the votes, for results heard on several threads
         self.masked = 0
         self.strays = 0   # results refused: not the execution outstanding (alarm stray_execution)
