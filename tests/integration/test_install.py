@@ -69,6 +69,7 @@ def test_the_install_space_holds_the_packages_and_nothing_of_the_source_tree(ins
         assert package in out.split(), out
 
 
+@pytest.mark.family('install_space_runs', 1)
 def test_the_readme_walkthrough_runs_from_the_install_space(install_space):
     """README "Five commands": the PBR demo, a client, adapt mid-run, a power loss, the figures."""
     work, prefix = install_space
@@ -93,6 +94,7 @@ rosrun aft_ftm status --verbose || echo "status exit $?"
     assert 'master failed (no heartbeat' in out and 'recovered in' in out, out[-4000:]
 
 
+@pytest.mark.family('install_space_runs', 1)
 def test_a_car_scenario_runs_from_the_install_space(install_space):
     work, prefix = install_space
     out_dir = os.path.join(work, 'car')
