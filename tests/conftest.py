@@ -81,6 +81,8 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 def pytest_terminal_summary(terminalreporter):
+    # (pytest shows its header only without -q: the draw's seed is said here too, at the end)
+    terminalreporter.write_line(pytest_report_header(terminalreporter.config))
     kept = getattr(terminalreporter.config, 'aft_kept', None)
     if kept:
         terminalreporter.write_line('logs and temporary files of this run kept in %s' % kept)
