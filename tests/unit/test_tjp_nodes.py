@@ -105,9 +105,10 @@ def laser(stamp, value):
 
 
 class OvertakingPorts(FakePorts):
-    """The voter's ports, whose first voted gap takes its time to go out: it waits until a later one has
-    gone out (at most WAIT s). ``first_out`` is set once it waits."""
+    """Ports whose first message on PORT takes its time to go out: it waits until a later one has gone
+    out (at most WAIT s). ``first_out`` is set once it waits."""
 
+    PORT = 'out'   # the voter's voted gaps
     WAIT = 0.5
 
     def __init__(self, specs=(), callbacks=None):
@@ -115,10 +116,10 @@ class OvertakingPorts(FakePorts):
         self.first_out, self.second_out = threading.Event(), threading.Event()
 
     def publish(self, port, msg):
-        if port == 'out' and not self.first_out.is_set():
+        if port == self.PORT and not self.first_out.is_set():
             self.first_out.set()
             self.second_out.wait(self.WAIT)
-        elif port == 'out':
+        elif port == self.PORT:
             self.second_out.set()
         super(OvertakingPorts, self).publish(port, msg)
 
@@ -145,23 +146,10 @@ def test_voted_gaps_leave_in_the_order_they_were_decided(monkeypatch, clock):
     assert out == [(pytest.approx(t1), pytest.approx(8.0)), (pytest.approx(t2), pytest.approx(7.9))], out
 
 
-class SlowFirstCommand(FakePorts):
-    """commandManager's ports, whose first command takes its time to go out: it waits until another has
-    gone out (at most WAIT s). ``first_out`` is set once it waits."""
+class SlowFirstCommand(OvertakingPorts):
+    """commandManager's ports, whose first command waits until another has gone out."""
 
-    WAIT = 0.5
-
-    def __init__(self, specs=(), callbacks=None):
-        super(SlowFirstCommand, self).__init__(specs, callbacks)
-        self.first_out, self.second_out = threading.Event(), threading.Event()
-
-    def publish(self, port, msg):
-        if port == 'command' and not self.first_out.is_set():
-            self.first_out.set()
-            self.second_out.wait(self.WAIT)
-        elif port == 'command':
-            self.second_out.set()
-        super(SlowFirstCommand, self).publish(port, msg)
+    PORT = 'command'
 
 
 def test_a_safe_stop_is_the_last_command_the_car_gets_never_overtaken_by_a_cycle_computed_before_it(monkeypatch,
