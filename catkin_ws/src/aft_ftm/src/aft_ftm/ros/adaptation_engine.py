@@ -47,7 +47,7 @@ from ..turns import Busy, Turn
 from ..site_watch import mark_retired
 from ..sites import Site, last_errors, launch_failure, process_tree, wait_dead, wait_until
 from ..where import WhereError, process_setting, run_where, site_tls, with_tls
-from .graph import roslaunch, unwired
+from .graph import roslaunch, unregister, unwired
 from .fencing import NotTheNode, node_api, visible_pid
 from .guarded_launch import disarm_guard_of, guarded
 from .launch_files import launch_nodes, resolve_launch_file, stopped_with
@@ -1036,6 +1036,10 @@ class Engine(object):
             raise prepared
         proc, record = prepared if prepared is not None else self._kill_record(node)
         pid = record.pid
+        try:   # where it is registered now: what its death leaves with the master, if it never unregisters
+            uri = self.master.lookupNode(node)
+        except Exception:   # not registered, or the master not answering: nothing of it to remove later
+            uri = None
         # A node an adaptation started: its guard, disarmed, lets it go. A node of the site's own launch:
         # marked, its crash detector lets it die (aft_ftm.site_watch).
         if disarm_guard_of(pid) is None:
@@ -1052,11 +1056,35 @@ class Engine(object):
             alive = wait_dead([proc], 5.0)
             if alive:
                 proc.kill()
-                wait_dead([proc], 2.0)
+                alive = wait_dead([proc], 2.0)
+            if not alive:
+                self._forget_dead(node, uri, pid)
             wait_until(lambda: node not in self._graph()[0], 5.0, 0.02)
         except Exception as e:   # (the master unreachable, the process gone): killed all the same
             self.log('kill %s: after its signal: %s: %s' % (node, type(e).__name__, e))
         return record
+
+    def _forget_dead(self, node, uri, pid):
+        """The registrations a dead node left with the master removed at once. A node that ends on its
+        SIGINT unregisters itself; one SIGKILLed (by the engine, 5 s later, or by a fault before the
+        kill) never does, and the wait for it to leave the master held the pause for its whole 5 s.
+        Removed only while the name is still registered at the URI the node had before its signal,
+        and no other process answers there as the node (one registered anew under the name keeps it)."""
+        if uri is None:
+            return
+        try:
+            if self.master.lookupNode(node) != uri:
+                return
+        except Exception:   # unregistered meanwhile: nothing left
+            return
+        try:
+            if visible_pid(uri, rospy.get_name(), node) != pid:
+                return   # the node answers there, as another process: registered anew, it keeps the name
+        except Exception:   # nothing answers there, or another program does (the port taken again)
+            pass
+        removed = unregister(self.master, [node], {node: uri})
+        self.log('kill %s: its process ended without unregistering: %d registration(s) removed from the master'
+                 % (node, removed))
 
     # -- rollback -------------------------------------------------------------------------------
     def _undo(self, step):
