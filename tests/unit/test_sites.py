@@ -1,5 +1,6 @@
 """Power-off of a site's whole process tree, with real processes (no ROS); what a roslaunch log says of its end."""
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -7,7 +8,7 @@ import time
 import psutil
 
 from aft_ftm.sites import (PF_EXITING, Site, launch_failure, pid_gone, power_off, process_tree, silence_trees,
-                           thread_silent)
+                           thread_silent, wait_stopped)
 
 # A parent whose children start their own sessions, as roslaunch's nodes do.
 TREE = ('import os, subprocess, sys, time\n'
@@ -173,3 +174,43 @@ def test_a_site_whose_node_died_while_its_launch_runs_on_is_a_failure_named_with
         site.stop(grace=1)
     assert site.failure() == 'site site exited (code %s)' % site.proc.returncode
     assert Site('never', ['true']).failure() is None
+
+
+def _sigkill_sent_or_dead(pid):
+    """Whether pid can run no more of its own code: gone, a zombie, exiting, or SIGKILL pending."""
+    try:
+        with open('/proc/%d/status' % pid) as f:
+            fields = dict(line.split(':', 1) for line in f if ':' in line)
+    except OSError:
+        return True
+    pending = int(fields['ShdPnd'], 16) | int(fields['SigPnd'], 16)
+    return fields['State'].split()[0] in ('Z', 'X') or bool(pending & (1 << (9 - 1))) or pid_gone(pid)
+
+
+def test_a_stop_undone_by_someone_elses_sigcont_is_sent_again(tmp_path):
+    """Fencing stops a whole site before anything else; a SIGCONT from anyone else (a frozen host resumed,
+    a parent, a debugger) undid it, and the wait for the stop ran out its whole timeout while the
+    process ran (tjp_sim's board_freeze: the board ran on 5 s, its backup promoted only then)."""
+    proc = subprocess.Popen([sys.executable, '-c', 'import time\nwhile True: time.sleep(0.001)'])
+    try:
+        p = psutil.Process(proc.pid)
+        p.send_signal(signal.SIGSTOP)
+        p.send_signal(signal.SIGCONT)   # the resume, right after the fencing's stop
+        assert wait_stopped([p], 2.0) == [], 'the process resumed by someone else was never stopped again'
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_site_is_killed_before_its_power_off_lets_anyone_take_over():
+    """on_stopped() (the watchdog promotes the backup there) runs once every process of the site was sent
+    SIGKILL: a stopped process resumed meanwhile by anyone would otherwise run beside the new primary."""
+    site = start_tree()
+    seen = {}
+    try:
+        pids = [p.pid for p in process_tree(site.pid)]
+        killed = power_off(site.pid, on_stopped=lambda: seen.update({pid: _sigkill_sent_or_dead(pid) for pid in pids}))
+        assert killed == 4 and sorted(seen) == sorted(pids)
+        assert all(seen.values()), 'processes not yet sent SIGKILL when the take-over ran: %s' % seen
+    finally:
+        site.stop(grace=1)

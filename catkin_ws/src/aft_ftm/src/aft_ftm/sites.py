@@ -37,8 +37,9 @@ def power_off(pid, timeout=5.0, on_stopped=None, snapshot=None):
     """SIGSTOP then SIGKILL pid and every descendant, as a power loss would end them; returns once
     they are dead. Returns the number of processes killed.
 
-    on_stopped() is called the moment every process is stopped: that is when the site stops
-    computing, the instant a power loss would happen.
+    on_stopped() is called the moment every process is stopped (and sent SIGKILL, so that no one's
+    SIGCONT can start it again): that is when the site stops computing, the instant a power loss
+    would happen.
     """
     return power_off_trees([pid], timeout, on_stopped, snapshot)
 
@@ -61,9 +62,11 @@ def power_off_trees(pids, timeout=5.0, on_stopped=None, snapshot=None):
             procs.append(proc)
             _signal_all([proc], signal.SIGSTOP)
     wait_stopped(procs, timeout)
+    # Killed before on_stopped() (a promotion) runs: a stopped process resumed by anyone meanwhile ran
+    # during the promotion; a killed one never runs another instruction, whoever resumes it.
+    _signal_all(procs, signal.SIGKILL)
     if on_stopped is not None:
         on_stopped()
-    _signal_all(procs, signal.SIGKILL)
     wait_dead(procs, timeout)
     return len(procs)
 
@@ -142,19 +145,26 @@ def silence_trees(roots, first=(), timeout=5.0):
     return procs
 
 
-def _wait_all(procs, done, timeout, poll):
-    """Wait until done(p) for every process, polling; returns those it still is not."""
+def _wait_all(procs, done, timeout, poll, meanwhile=None):
+    """Wait until done(p) for every process, polling (meanwhile(left) at each poll, if given); returns
+    those it still is not."""
     deadline = time.monotonic() + timeout
     left = [p for p in procs if not done(p)]
     while left and time.monotonic() < deadline:
+        if meanwhile is not None:
+            meanwhile(left)
         time.sleep(poll)
         left = [p for p in left if not done(p)]
     return left
 
 
 def wait_stopped(procs, timeout):
-    """Wait until every process is stopped or dead (see _stopped). Returns those still running."""
-    return _wait_all(procs, _stopped, timeout, 0.0005)
+    """Wait until every process is stopped or dead (see _stopped), sending SIGSTOP again to those not
+    yet: a SIGCONT from anyone else (a frozen host resumed, its processes' own parent, a debugger)
+    undoes a stop, and the wait then held a fencing for its whole timeout while the process ran (a
+    whole board frozen and resumed in the middle of its fencing ran on for 5 s, and its backup was
+    promoted only then: tjp_sim's board_freeze). Returns those still running."""
+    return _wait_all(procs, _stopped, timeout, 0.0005, meanwhile=lambda left: _signal_all(left, signal.SIGSTOP))
 
 
 def wait_dead(procs, timeout):

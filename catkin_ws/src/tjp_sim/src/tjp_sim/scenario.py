@@ -17,7 +17,8 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   returns alternate, a power loss first; ``board_hang`` (a ``board``, and an ``until`` if the node
   resumes, or a ``pause``: resumed that long after, a number or [low, high]) stops that board's
   controllerPid (or the ``node`` of :data:`BOARD_NODES` named) without killing it (SIGSTOP, then
-  SIGCONT): its board, and its crash detector, live on;
+  SIGCONT): its board, and its crash detector, live on; ``node: board`` freezes the whole board
+  (every process of its launch, its crash detector included), as a host frozen and resumed;
   ``simulator_crash`` and ``master_crash`` take nothing more; ``node_crash`` and ``node_hang``
   (SIGKILL, SIGSTOP) name a ``node`` of :data:`MANAGED_NODES`; ``intrusion`` takes nothing more:
   an intruder on the car's network (aft_ftm's ``intruder``, once in clear and, under TLS, once with
@@ -58,7 +59,7 @@ SENSORS = ('imu', 'laser_0', 'laser_1', 'laser_2', 'ultrasonic')
 BOARDS = {'board_a': 'board_a', 'board_b': 'board_b', 'primary': 'board_a', 'backup': 'board_b'}
 PROCESS_FAULTS = ('power_loss', 'board_back', 'board_hang', 'simulator_crash', 'master_crash', 'node_crash',
                   'node_hang', 'intrusion')
-BOARD_NODES = ('controller_pid', 'cycle_after')   # what a board_hang may stop
+BOARD_NODES = ('controller_pid', 'cycle_after', 'board')   # what a board_hang may stop (board: all of it)
 MANAGED_NODES = ('measure_manager', 'distance_security_calculator', 'command_manager', 'emergency_braking')
 HAZARDS = ('collision', 'gap_violation', 'unjustified_emergency', 'service_lost', 'no_stop')
 PROFILES = {

@@ -194,7 +194,8 @@ class WatchdogNode(object):
 
     def _power_off(self, board, verdict, on_stopped):
         """Enforce the fail-silence of a failed board: on_stopped() runs once every process of it is
-        stopped (it can send nothing more), before they are killed. Returns the number of processes."""
+        stopped (it can send nothing more) and sent SIGKILL (nobody's SIGCONT can start it again), before
+        their tear-down is waited for. Returns the number of processes."""
         self._close(self.proxies.pop(board, {}))
         info = verdict.last_info
         if info is not None and info.host == self.host and info.pid > 0:

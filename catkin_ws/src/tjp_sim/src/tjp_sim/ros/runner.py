@@ -397,11 +397,12 @@ class ScenarioRun(object):
             thread.start()
 
     def _board_nodes(self, board, node):
-        """The processes of ``node`` in ``board``'s launch (none once it is powered off)."""
+        """The processes of ``node`` in ``board``'s launch, or all of them for ``board`` (none once it is
+        powered off)."""
         found = []
         for proc in process_tree(self.sites[board].pid):
             try:
-                if '__name:=%s' % node in proc.cmdline():
+                if node == 'board' or '__name:=%s' % node in proc.cmdline():
                     found.append(proc)
             except psutil.Error:   # gone meanwhile
                 pass
@@ -415,9 +416,12 @@ class ScenarioRun(object):
         alive = []
         for proc in procs:
             try:
-                proc.send_signal(signal.SIGCONT)
-                alive.append(proc.pid)
-            except psutil.Error:   # fenced meanwhile: killed
+                # A process fenced meanwhile is killed: gone, or a zombie while its frozen launch has not
+                # reaped it (a whole board frozen). Only a live one is resumed, and counted.
+                if proc.status() != psutil.STATUS_ZOMBIE:
+                    proc.send_signal(signal.SIGCONT)
+                    alive.append(proc.pid)
+            except psutil.Error:   # fenced meanwhile: killed and reaped
                 pass
         self.event('fault', fault='board_resumed', target=node, resumed=len(alive))
 

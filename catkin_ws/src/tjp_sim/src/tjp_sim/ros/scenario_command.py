@@ -16,6 +16,10 @@ def tls_policy():
     return os.path.join(rospkg.RosPack().get_path('tjp_sim'), 'config', 'tls_policy.yaml')
 
 
+class Terminated(BaseException):
+    """The scenario command was asked to stop (SIGTERM): the run is stopped, every process of it."""
+
+
 def main(argv):
     parser = argparse.ArgumentParser(prog='scenario', description=__doc__)
     parser.add_argument('scenario', help='a scenario file, or the name of one shipped in tjp_sim/scenarios')
@@ -47,15 +51,17 @@ def main(argv):
     from .runner import RunError, run_scenario
 
     def terminated(signum, _frame):
-        # SIGTERM (a test's timeout, a supervisor): stop every process of the run on the way out.
-        raise RunError('terminated by signal %d' % signum)
+        # SIGTERM (a test's timeout, a supervisor): stop every process of the run on the way out. Not an
+        # Exception: raised wherever the main thread is, a RunError was swallowed by the first
+        # `except Exception` around a master call (the set-up's wait), and the run went on to its end.
+        raise Terminated('terminated by signal %d' % signum)
     signal.signal(signal.SIGTERM, terminated)
     log = (lambda line: print(line, file=sys.stderr)) if options.json else print
     try:
         summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,
                                plot=not options.no_plot, log=log, until_hazard=options.until_hazard,
                                tls_policy=tls_policy() if options.tls else None)
-    except (RunError, TjpError) as e:
+    except (RunError, TjpError, Terminated) as e:
         print('scenario: the run failed: %s' % e, file=sys.stderr)
         return 2
     if options.json:
