@@ -118,6 +118,22 @@ def test_a_process_answering_as_the_node_at_its_uri_keeps_the_name(victim, monke
     assert master.removed == [] and NODE in master.registered
 
 
+@pytest.mark.parametrize('answer', [TimeoutError('timed out'), OSError(113, 'No route to host')])
+def test_a_registration_whose_uri_does_not_refuse_is_kept(answer, victim, monkeypatch):
+    """Only a refused connection (nothing listens) proves the registration dead: a slow or frozen node's
+    API, or an unreachable one, may belong to a live process registered anew."""
+    master = Master(OLD_URI)
+    refused = master.visible_pid
+
+    def slow(uri, caller_id, node, timeout=1.0):
+        if uri == OLD_URI:
+            raise answer
+        return refused(uri, caller_id, node, timeout)
+    master.visible_pid = slow
+    kill(master, victim, monkeypatch)
+    assert master.removed == [] and NODE in master.registered
+
+
 def test_a_node_that_was_not_registered_leaves_nothing_to_remove(victim, monkeypatch):
     master = Master(OLD_URI)
     del master.registered[NODE]

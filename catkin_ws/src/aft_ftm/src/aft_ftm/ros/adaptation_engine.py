@@ -1069,7 +1069,8 @@ class Engine(object):
         SIGINT unregisters itself; one SIGKILLed (by the engine, 5 s later, or by a fault before the
         kill) never does, and the wait for it to leave the master held the pause for its whole 5 s.
         Removed only while the name is still registered at the URI the node had before its signal,
-        and no other process answers there as the node (one registered anew under the name keeps it)."""
+        and nothing listens there any more (connection refused): a name registered anew, or an answer
+        that is only slow, keeps it."""
         if uri is None:
             return
         try:
@@ -1078,13 +1079,15 @@ class Engine(object):
         except Exception:   # unregistered meanwhile: nothing left
             return
         try:
-            if visible_pid(uri, rospy.get_name(), node) != pid:
-                return   # the node answers there, as another process: registered anew, it keeps the name
-        except Exception:   # nothing answers there, or another program does (the port taken again)
+            visible_pid(uri, rospy.get_name(), node)
+            return   # a process answers there as the node: registered anew, it keeps the name
+        except ConnectionRefusedError:   # nothing listens there: the registration is the dead one's
             pass
-        removed = unregister(self.master, [node], {node: uri})
-        self.log('kill %s: its process ended without unregistering: %d registration(s) removed from the master'
-                 % (node, removed))
+        except Exception:   # a slow answer, another program on the port: not known to be stale, kept
+            return
+        answered = unregister(self.master, [node], {node: uri})
+        self.log('kill %s: its process ended without unregistering: its registrations removed from the master '
+                 '(%d removal(s) answered)' % (node, answered))
 
     # -- rollback -------------------------------------------------------------------------------
     def _undo(self, step):

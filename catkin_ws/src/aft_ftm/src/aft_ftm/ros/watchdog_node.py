@@ -29,7 +29,7 @@ class WatchdogNode(object):
 
     1. its fail-silence is enforced: a board that only stalled must not come back as a second
        primary, so the process tree of its launcher is stopped, then killed (if it runs on this host);
-    2. as soon as it is stopped, the backup is promoted: SetRole ALONE on each of its nodes, in order, over connections opened
+    2. as soon as it is stopped and sent SIGKILL, the backup is promoted: SetRole ALONE on each of its nodes, in order, over connections opened
        before the failure (a failover does not need the ROS master). Only a board that acknowledged
        a checkpoint of the primary is ever promoted;
     3. the failover is published, with the detection time (the silence) and the switch time.
@@ -253,8 +253,8 @@ class WatchdogNode(object):
         promoted, problems, switched = [], [], []
 
         def promote():
-            # The failed board is stopped (it can publish nothing more): the backup may take over now,
-            # while the stopped processes are killed.
+            # The failed board is stopped and sent SIGKILL (it can publish nothing more, whoever resumes
+            # it): the backup may take over now, while the kernel tears the processes down.
             proxies = self.proxies.get(failover.to, {})
             for node in failover.nodes:
                 if node not in proxies:

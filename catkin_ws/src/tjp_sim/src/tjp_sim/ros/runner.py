@@ -10,6 +10,7 @@ back, and writes the summary (JSON) and the plot.
 
 A scenario's own master makes every run independent, and lets a scenario kill the master.
 """
+import contextlib
 import functools
 import glob
 import json
@@ -357,7 +358,10 @@ class ScenarioRun(object):
             self.event('fault', fault='board_hang', target=board, node=node, processes=len(procs),
                        until=item.get('until'))
             for proc in procs:
-                proc.send_signal(signal.SIGSTOP)
+                try:
+                    proc.send_signal(signal.SIGSTOP)
+                except psutil.Error:   # ended since it was listed (its resume skips it)
+                    pass
             if item.get('until') is not None:
                 thread = threading.Thread(target=self._resume, args=(procs, item['until'], node), daemon=True)
                 self.threads.append(thread)
@@ -592,12 +596,14 @@ def stop_expected(scenario):
     return scenario['expect']['stop_within'] is not None or control.get('hazard') == 'no_stop'
 
 
-def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until_hazard=False, tls_policy=None):
+def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until_hazard=False, tls_policy=None,
+                 stopping=contextlib.nullcontext):
     """Run scenario name (a file or shipped name), with mechanism disable removed if given (the
     control experiment). With until_hazard (a control experiment only), the run ends HAZARD_MARGIN_S
     of road time after the scenario's control hazard has shown, not at its duration. Returns the
     summary (with its verdict and hazards); writes summary.json, run.bag and plot.png into out.
-    With tls_policy, every connection between the car's nodes is mutual TLS under that policy."""
+    With tls_policy, every connection between the car's nodes is mutual TLS under that policy.
+    stopping(): a context the run's stop runs in (the scenario command defers its SIGTERM there)."""
     path = scenarios.path_of(name)
     scenario = scenarios.load(name)
     if disable:
@@ -612,7 +618,8 @@ def run_scenario(name, out, disable=None, gui=False, plot=True, log=print, until
         runner.start()
         ended = runner.run()
     finally:
-        runner.stop()
+        with stopping():   # a signal's exception waits for the stop: raised in it, it left processes behind
+            runner.stop()
     left = runner.leftovers()
     if left:
         raise RunError('processes of the run still alive after stopping: %s' % ', '.join(left))

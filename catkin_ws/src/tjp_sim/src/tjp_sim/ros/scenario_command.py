@@ -1,5 +1,6 @@
 """The ``scenario`` command: run one scenario of the car case study and print its summary."""
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -17,7 +18,41 @@ def tls_policy():
 
 
 class Terminated(BaseException):
-    """The scenario command was asked to stop (SIGTERM): the run is stopped, every process of it."""
+    """The scenario command was asked to stop (SIGTERM): the run is stopped, every process of it.
+
+    Not an Exception: raised wherever the main thread is, a RunError was swallowed by the first
+    `except Exception` around a master call (the set-up's wait), and the run went on to its end."""
+
+
+class Deferred(object):
+    """SIGTERM (a test's time limit, a supervisor) raises Terminated, once: the run stops every process
+    of it on the way out. While the run is stopping (``deferred()``), a SIGTERM is held and raised once
+    the stop is done: raised inside it, it left the master, the recorder or a board running."""
+
+    def __init__(self):
+        self.stopping = False
+        self.held = None
+        self.raised = False
+
+    def terminated(self, signum, _frame):
+        if self.raised:
+            return   # once: the stop it started goes on
+        if self.stopping:
+            self.held = signum
+            return
+        self.raised = True
+        raise Terminated('terminated by signal %d' % signum)
+
+    @contextlib.contextmanager
+    def deferred(self):
+        self.stopping = True
+        try:
+            yield
+        finally:
+            self.stopping = False
+            if self.held is not None and not self.raised:
+                self.raised = True
+                raise Terminated('terminated by signal %d' % self.held)
 
 
 def main(argv):
@@ -50,17 +85,13 @@ def main(argv):
         scenario['name'], '-without-' + options.without if options.without else '', time.strftime('%Y%m%d-%H%M%S')))
     from .runner import RunError, run_scenario
 
-    def terminated(signum, _frame):
-        # SIGTERM (a test's timeout, a supervisor): stop every process of the run on the way out. Not an
-        # Exception: raised wherever the main thread is, a RunError was swallowed by the first
-        # `except Exception` around a master call (the set-up's wait), and the run went on to its end.
-        raise Terminated('terminated by signal %d' % signum)
-    signal.signal(signal.SIGTERM, terminated)
+    signals = Deferred()
+    signal.signal(signal.SIGTERM, signals.terminated)
     log = (lambda line: print(line, file=sys.stderr)) if options.json else print
     try:
         summary = run_scenario(options.scenario, out, disable=options.without, gui=options.gui,
                                plot=not options.no_plot, log=log, until_hazard=options.until_hazard,
-                               tls_policy=tls_policy() if options.tls else None)
+                               tls_policy=tls_policy() if options.tls else None, stopping=signals.deferred)
     except (RunError, TjpError, Terminated) as e:
         print('scenario: the run failed: %s' % e, file=sys.stderr)
         return 2
