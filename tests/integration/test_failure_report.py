@@ -4,8 +4,9 @@ rospy handles a publisher's inbound connections one at a time: one stalled hands
 Recovery's subscription back for 60 s in a CI run, and the failure published meanwhile reached
 nobody (the backup never took over). Here the detector declares its peer failed with nobody
 subscribed: it must say so on /aft/alarms and send the report as soon as a subscriber connects,
-unless the peer was heard again meanwhile (then the report is moot: the peer came back, and must
-re-join; the detector says so with peer_back and sends no failure).
+unless the peer was heard again meanwhile (then the report is moot: the peer came back; the detector
+says so with peer_back, sends no failure, and, the peer being the incarnation declared failed, watches
+it again: peer_watched).
 The script runs in a process of its own, with a master of its own; every process it starts carries
 the test's AFT_TEST_TAG and is killed at the end."""
 import re
@@ -97,7 +98,7 @@ try:
         look('stopped')
         print('peer_status: %s' % seen)
         sys.exit(0 if seen == [('beating', True, 'ALIVE', 'b'), ('silent', False, 'FAILED', 'b'),
-                               ('beating again', True, 'FAILED', 'b'), ('stopped', False, 'FAILED', 'b')] else 1)
+                               ('beating again', True, 'ALIVE', 'b'), ('stopped', False, 'FAILED', 'b')] else 1)
     if sys.argv[1] == 'stall':   # heard, then its next beat sent 0.3 s late: the peer_back alarm says so
         peer = rospy.Publisher('/t/peer', Heartbeat, queue_size=10)
         seq = 0
@@ -121,11 +122,28 @@ try:
             sys.exit('the peer heard again raised no peer_back: %s' % [(a.kind, a.detail) for a in alarms])
     recovery = rospy.Subscriber('/t/failures', Failure, failures.append)       # a Recovery connects late
     if sys.argv[1] == 'back':
-        if not wait_until(lambda: recovery.get_num_connections() > 0, 10, 0.01):
+        # The peer beats on: the report is moot, and the peer, heard again as the incarnation declared
+        # failed, is watched again (peer_watched): its real failure later is reported.
+        connected = time.monotonic()
+        while time.monotonic() < connected + 10 and (recovery.get_num_connections() < 1 or
+                                                     time.monotonic() < connected + 1.0):
+            seq += 1
+            peer.publish(Heartbeat(site='b', host='h', pid=4242, seq=seq, stamp=rospy.Time.now()))
+            time.sleep(0.01)
+        if recovery.get_num_connections() < 1:
             sys.exit('the late subscriber never connected to the detector')
         # A kept report goes out within a check period (2 ms) of the connection: 1 s is 500 of them.
-        time.sleep(1.0)
-        sys.exit('a moot failure report was sent: %s' % failures if failures else 0)
+        if failures:
+            sys.exit('a moot failure report was sent: %s' % failures)
+        if not any(a.kind == 'peer_watched' for a in alarms):
+            sys.exit('the peer heard again is not watched again: %s' % [(a.kind, a.detail) for a in alarms])
+        # Then it stops for real: reported once, to the Recovery now connected.
+        if not wait_until(lambda: failures, 10, 0.05):
+            sys.exit('the real failure of the peer watched again was never reported')
+        time.sleep(0.3)
+        print('reported after being watched again: %s' % [(f.site, f.pid, f.reason) for f in failures])
+        sys.exit(0 if len(failures) == 1 and failures[0].site == 'b' and failures[0].pid == 4242
+                 else 'wrong report(s): %s' % failures)
     if not wait_until(lambda: failures, 10, 0.05):
         sys.exit('the failure report never reached the subscriber that connected late')
     print('delivered late: site %s, %s' % (failures[0].site, failures[0].reason))
@@ -148,9 +166,12 @@ def test_a_failure_declared_before_recovery_connects_is_sent_once_it_does():
     assert 'delivered late: site b' in output, output[-3000:]
 
 
-def test_a_kept_failure_report_is_dropped_once_the_peer_is_heard_again():
+def test_a_kept_failure_report_is_dropped_once_the_peer_is_heard_again_and_the_peer_watched_again():
+    """Without a witness to re-arm it, the detector left the peer FAILED for good: a pair whose detectors
+    suspected each other while they started never reported the real failure that came later (session 50)."""
     code, output = run_script('back')
     assert code == 0, output[-3000:]
+    assert 'reported after being watched again' in output, output[-3000:]
 
 
 def test_a_peer_heard_again_after_its_sender_stalled_is_told_as_a_stall():
@@ -164,7 +185,8 @@ def test_a_peer_heard_again_after_its_sender_stalled_is_told_as_a_stall():
 
 def test_a_detector_says_whether_its_peer_site_runs_even_after_declaring_it_failed():
     """What a primary's After asks before it admits a joiner: its beats heard within the timeout (also
-    after the verdict: a site back), and not once it announced its fail-stop (a site stopping, whose
-    After may still join)."""
+    after a verdict: a site back; here no Recovery is connected, so the peer heard again as the same
+    incarnation is watched again, ALIVE), and not once it announced its fail-stop (a site stopping,
+    whose After may still join)."""
     code, output = run_script('heard')
     assert code == 0, output[-3000:]

@@ -221,7 +221,13 @@ def test_a_bandwidth_drop_between_the_replica_hosts_makes_the_monitor_switch_pbr
     suspend and rebind, and the nodes it starts speak as their sites' parties; nothing of the
     deployment's own is refused by the policy."""
     rng = random.Random(seed)
-    d = deployment(adaptable=True, link_monitor=True, monitor=True, timeout=0.5, tls_policy=demo_tls_policy())
+    # The crash detectors at 2 s: the limit saturates the slave's link (the switch's state transfer, the
+    # checkpoints), and the heartbeats share it. The token bucket drops what waits over 100 ms, and TCP
+    # resends a lost heartbeat only after its retransmission timeout (200 ms, then doubled): in a
+    # clean-clone CI (session 50) the master's beats reached the slave 501 ms late, sent on time, and at
+    # 500 ms the master was fenced in the middle of the switch. Heartbeats are not given priority on a
+    # saturated link yet (README, "Limits today"); detection is measured elsewhere.
+    d = deployment(adaptable=True, link_monitor=True, monitor=True, timeout=2.0, tls_policy=demo_tls_policy())
     d.strings('/aft/monitor/events')            # subscribed from now on
 
     def measured():

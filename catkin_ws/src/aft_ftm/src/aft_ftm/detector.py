@@ -59,6 +59,10 @@ DEFAULT_PHI = {'threshold': 8.0, 'window': 100, 'min_std': 0.005, 'acceptable_pa
 DEFAULT_REALTIME_PRIORITY = 10    # SCHED_FIFO priority of the crash detectors' threads (0: off)
 
 
+# How a verdict on a peer's own fail-stop begins (the peer said it stops; not a silence judged).
+ANNOUNCED = 'it announced its fail-stop'
+
+
 class PeerState(enum.Enum):
     UNKNOWN = 0   # never heard
     ALIVE = 1
@@ -138,7 +142,7 @@ class HeartbeatMonitor(object):
         silence = now - self.last_heard if self.last_heard is not None else 0.0
         self._change(PeerState.FAILED)
         self.last_info = info if info is not None else self.last_info
-        self.announcement = Verdict('it announced its fail-stop: %s' % reason, silence, self.last_info)
+        self.announcement = Verdict('%s: %s' % (ANNOUNCED, reason), silence, self.last_info)
         return True
 
     stale_announcements = 0   # fail-stops announced by an incarnation other than the one heard last

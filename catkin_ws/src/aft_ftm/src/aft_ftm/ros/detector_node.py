@@ -9,8 +9,8 @@ from aft_msgs.msg import Configuration, Failure, Heartbeat
 from aft_msgs.srv import PeerStatus, PeerStatusResponse
 
 from .. import config, health
-from ..detector import (DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT, HeartbeatMonitor,
-                        PeerState, PhiAccrualMonitor, incarnation, why_heard_again)
+from ..detector import (ANNOUNCED, DEFAULT_PHI, DEFAULT_REALTIME_PRIORITY, DEFAULT_RULE, DEFAULT_TIMEOUT,
+                        HeartbeatMonitor, PeerState, PhiAccrualMonitor, incarnation, why_heard_again)
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..site_watch import SiteWatch, WatchError, children_nodes
 from ..sites import this_host
@@ -437,16 +437,19 @@ class CrashDetectorNode(object):
         with self.lock:
             if self.monitor.state != PeerState.FAILED:
                 return
-            now = time.monotonic()
-            last = self.monitor.last_info
-            self.monitor = self._new_monitor(now)
-            # heard (it joined): silent from now on, it is declared failed. The incarnation heard last
-            # (the new one, beating since it started again) is kept: a late last word of the old one is
-            # then stale, also before the new one's next beat.
-            self.monitor.beat(now, last)
+            self._watch_again()
             self.watched_since = conf.epoch
-            self.peer_back_told = False
         alarm(self.ports, 'pbr', 'peer_watched', 'site %s re-joined (epoch %d): watched again' % (self.peer, conf.epoch))
+
+    def _watch_again(self):
+        """A fresh monitor of the peer, heard now (under self.lock): silent from now on, it is declared
+        failed. The incarnation heard last (a new one, beating since it started again) is kept: a late
+        last word of an older one is then stale, also before the next beat."""
+        now = time.monotonic()
+        last = self.monitor.last_info
+        self.monitor = self._new_monitor(now)
+        self.monitor.beat(now, last)
+        self.peer_back_told = False
 
     def _loop(self):
         """Send a heartbeat every period; check the peer five times as often, so that a
@@ -491,7 +494,7 @@ class CrashDetectorNode(object):
                           epoch=self.watched_since)
         if not self._connected('failures'):
             # Published now, it would reach nobody: kept until Recovery is connected. Never silent.
-            self.undelivered = (self.monitor, failure)
+            self.undelivered = (self.monitor, failure, verdict.reason.startswith(ANNOUNCED))
             alarm(self.ports, 'pbr', 'failure_undelivered', 'site %s failed, but no Recovery is connected to %s: '
                   'the report is sent as soon as one is' % (self.peer, self.ports.topic('failures')))
             return
@@ -503,10 +506,21 @@ class CrashDetectorNode(object):
 
     def _deliver_late(self):
         """The kept failure report, once Recovery is connected, if the peer is still the failed one
-        (not heard again, not re-joined since): otherwise it is moot and dropped, saying so."""
-        monitor, failure = self.undelivered
+        (not heard again, not re-joined since): otherwise it is moot and dropped, saying so.
+
+        A peer heard again, as the incarnation declared failed (or first heard now, if it was never
+        heard within the start-up grace), after a silence (not its own fail-stop) is watched again: the verdict reached nobody, so nothing was fenced, promoted or excluded, and
+        the FAILED it left was final with no witness to re-arm it (a site re-joins only through one).
+        A later real failure of that peer was then never reported: a pair without a witness whose
+        detectors suspected each other while they started stayed so, and once its primary was powered
+        off nobody took over (session 48's clean-clone CI; session 50)."""
+        monitor, failure, announced = self.undelivered
         with self.lock:
             current = self.monitor is monitor and monitor.beats_after_failure == 0
+            same = (self.monitor is monitor and not announced
+                    and (failure.pid == 0 or incarnation(monitor.last_info) == (failure.host, failure.pid)))
+            if self.stopped is None and not current and same:
+                self._watch_again()
         if self.stopped is not None:   # a fail-stopped site takes nothing over
             self.undelivered = None
             rospy.logwarn('%s: the failure report of %s is dropped: this site fail-stopped', rospy.get_name(),
@@ -515,6 +529,10 @@ class CrashDetectorNode(object):
             self.undelivered = None
             rospy.logwarn('%s: the failure report of %s is dropped: %s was heard again before a Recovery '
                           'connected', rospy.get_name(), failure.site, failure.site)
+            if same:
+                alarm(self.ports, 'pbr', 'peer_watched', 'site %s, declared failed (%s) before any Recovery '
+                      'connected, is heard again: nothing was fenced or promoted; watched again'
+                      % (failure.site, failure.reason))
         elif self._connected('failures'):
             self.undelivered = None
             self.ports.publish('failures', failure)
