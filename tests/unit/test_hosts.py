@@ -8,7 +8,7 @@ from aft_ftm import hosts_command, hosts_exec
 from aft_ftm.hosts import (DEFAULT_HOSTS, EDGES, FaultError, HostState, Network, Signal, Step, Topology,
                            TopologyError, choose_network, plan_down, plan_freeze, plan_link_down,
                            plan_pair_partition, plan_power_off, plan_power_on, plan_rate, plan_unrate, plan_up,
-                           run_prefix_pattern)
+                           URGENT_TOS, run_prefix_pattern)
 
 TOP = Topology.make(DEFAULT_HOSTS, token='1a2b', taken=['192.0.2.0/24', '0.0.0.0/0'])
 
@@ -85,11 +85,34 @@ def test_power_loss_takes_the_link_down_before_any_signal():
 def test_rate_is_a_token_bucket_on_both_ends_and_unrate_removes_both():
     h = TOP.host('slave')
     plan = plan_rate(TOP, 'slave', 800)
-    assert [(s.argv[:2], s.argv[3], s.argv[6], s.argv[8]) for s in plan] == [
-        (['tc', '-n'], 'qdisc', h.host_if, 'tbf'), (['tc', '-n'], 'qdisc', h.switch_if, 'tbf')]
-    assert all(s.argv[s.argv.index('rate') + 1] == '800kbit' for s in plan)
+    roots = [s for s in plan if s.undo is not None]
+    assert [(s.argv[:2], s.argv[3], s.argv[6], s.argv[10]) for s in roots] == [
+        (['tc', '-n'], 'qdisc', h.host_if, 'htb'), (['tc', '-n'], 'qdisc', h.switch_if, 'htb')]
+    for dev in (h.host_if, h.switch_if):   # the whole rate, shared by the two classes, none above it
+        rates = {s.argv[s.argv.index('classid') + 1]: (s.argv[s.argv.index('rate') + 1], s.argv[s.argv.index('ceil') + 1])
+                 for s in plan if dev in s.argv and 'class' in s.argv}
+        assert rates == {'1:1': ('800kbit', '800kbit'), '1:10': ('400kbit', '800kbit'), '1:20': ('400kbit', '800kbit')}
     assert all('netem' not in s.argv for s in plan)
-    assert [s.argv for s in plan_unrate(TOP, 'slave')] == [s.undo for s in plan]
+    assert [s.argv for s in plan_unrate(TOP, 'slave')] == [s.undo for s in roots]
+
+
+def test_under_a_rate_limit_low_delay_packets_go_first_and_each_queue_holds_what_the_bucket_would():
+    """The heartbeats share a rate-limited link with the data: behind a full token bucket they were
+    dropped (past its 100 ms latency) and resent by TCP 200 ms or more later (a 500 ms detector fenced
+    a healthy site, session 50). The urgent class (IP TOS low delay, the crash detectors' connections)
+    is served first; each class's queue holds 100 ms of traffic and a burst, as the bucket did."""
+    plan = plan_rate(TOP, 'slave', 800)
+    for dev in (TOP.host('slave').host_if, TOP.host('slave').switch_if):
+        mine = [s.argv for s in plan if dev in s.argv]
+        assert mine[0][-2:] == ['root', 'pfifo_fast']   # a limit set before is removed first (htb cannot change)
+        assert mine[1][-5:] == ['handle', '1:', 'htb', 'default', '20']
+        prios = {a[a.index('classid') + 1]: a[a.index('prio') + 1] for a in mine if 'prio' in a and 'class' in a}
+        assert prios == {'1:10': '0', '1:20': '1'}
+        queues = [a for a in mine if 'bfifo' in a]
+        assert [a[a.index('parent') + 1] for a in queues] == ['1:10', '1:20']
+        assert all(a[-1] == str(100000 // 10 + 3028) for a in queues)
+        [urgent] = [a for a in mine if 'filter' in a]
+        assert urgent[urgent.index('tos') + 1:] == ['0x10', '0xfc', 'flowid', '1:10'] and URGENT_TOS == 0x10
 
 
 def test_pair_partition_points_each_at_a_mac_nobody_has():
@@ -184,7 +207,8 @@ def test_a_failed_step_undoes_the_steps_done(monkeypatch):
     plan = plan_rate(TOP, 'slave', 800)
     with pytest.raises(hosts_exec.CommandError, match='no such device'):
         hosts_exec.carry_out(plan)
-    assert ran == [plan[0].argv, plan[1].argv, plan[0].undo]
+    upload = [s for s in plan if TOP.host('slave').host_if in s.argv]   # done; then the download's first step failed
+    assert ran == [s.argv for s in upload] + [plan[len(upload)].argv] + [s.undo for s in upload if s.undo]
 
 
 def test_the_command_refuses_without_root_or_with_bad_input_and_runs_nothing(monkeypatch, capsys):

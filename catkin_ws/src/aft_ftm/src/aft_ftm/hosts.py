@@ -33,8 +33,9 @@ The faults, each a plan (a list of :class:`Step` and :class:`Signal`):
   address pointing at a MAC that no interface has, so their packets to each other are dropped
   silently while both still reach everybody else. (This kernel has neither nftables nor iptables,
   nor the tc classifiers and drop action; this needs neither.)
-- rate limit: a token bucket (``tc tbf``) on both ends of the host's cable, so both its upload and
-  its download are limited. This kernel has no netem: no delay, loss or reordering.
+- rate limit: a token bucket (``tc htb``) on both ends of the host's cable, so both its upload and
+  its download are limited, low-delay packets (the heartbeats) first (:func:`plan_rate`). This
+  kernel has no netem: no delay, loss or reordering.
 - power loss: link down, then SIGSTOP of every process of the host, then SIGKILL of them all.
   Power on makes the host again from nothing (a new namespace: no socket of the old one survives).
 - freeze: SIGSTOP of a host's processes or of one process, SIGCONT after a bounded time.
@@ -58,7 +59,7 @@ FIRST_HOST = 10                  # host I has address 10.213.X.(FIRST_HOST + I)
 MAX_HOSTS = 50
 MAX_FREEZE = 60.0                # seconds
 MIN_KBIT, MAX_KBIT = 8, 10000000
-TBF_LATENCY = '100ms'            # how long a packet may wait in the bucket before it is dropped
+QUEUE_LATENCY = 0.1              # s: how much traffic a rate limit's queue holds (more is dropped)
 IFNAMSIZ = 15
 _HOST = re.compile(r'^[a-z][a-z0-9]{0,15}$')
 _RUN = re.compile(r'^[a-z]{1,8}[0-9a-f]{4}$')
@@ -294,22 +295,58 @@ def _pair(top, a, b):
     return ha, hb
 
 
-def tbf_args(kbit):
-    """rate, burst (bytes) and latency of the token bucket for a limit of kbit kbit/s: the burst
-    holds 20 ms of traffic and at least two full frames."""
-    kbit = check_kbit(kbit)
-    burst = max(2 * 1514, kbit * 1000 // 8 // 50)
-    return ['rate', '%dkbit' % kbit, 'burst', str(burst), 'latency', TBF_LATENCY]
+def burst_bytes(kbit):
+    """The token bucket's burst for a limit of kbit kbit/s: 20 ms of traffic and at least two full frames."""
+    return max(2 * 1514, check_kbit(kbit) * 1000 // 8 // 50)
+
+
+# What a link's rate limit sends first: packets whose IP TOS says low delay (0x10), which the crash
+# detectors' heartbeat connections carry (aft_ftm.ros.qos). Behind a full token bucket the heartbeats
+# waited with the data, were dropped past the bucket's latency and resent by TCP 200 ms or more later:
+# a 500 ms detector fenced a healthy site (session 50). A network with QoS gives them priority too.
+URGENT_TOS = 0x10
+
+
+def queue_bytes(kbit):
+    """The bytes a class's queue holds under a rate limit: QUEUE_LATENCY of traffic and a burst, what
+    the single token bucket held before the classes (tbf's latency 100 ms)."""
+    return int(check_kbit(kbit) * 1000 / 8 * QUEUE_LATENCY) + burst_bytes(kbit)
 
 
 def plan_rate(top, name, kbit):
-    """A token bucket on both ends of the host's cable: its upload (host end) and download (switch end)."""
+    """A rate limit on both ends of the host's cable, its upload (host end) and download (switch end):
+    a hierarchical token bucket (htb; this kernel has no prio qdisc) of two classes sharing the rate,
+    the urgent one (IP TOS low delay: the heartbeats) served first, each with a queue of what the
+    bucket alone held (:func:`queue_bytes`). A limit already there is replaced (htb cannot be changed
+    in place: the root is reset first)."""
     h = top.host(name)
-    args = tbf_args(kbit)
-    return [Step(_tc(ns, 'qdisc', 'replace', 'dev', dev, 'root', 'tbf', *args),
-                 _tc(ns, 'qdisc', 'del', 'dev', dev, 'root'), '%s limited to %d kbit/s' % (what, kbit))
-            for ns, dev, what in ((h.namespace, h.host_if, 'upload of %s' % name),
-                                  (top.switch_ns, h.switch_if, 'download of %s' % name))]
+    burst = str(burst_bytes(kbit))
+    limit = str(queue_bytes(kbit))
+    urgent = max(MIN_KBIT, kbit // 2)
+    bulk = max(MIN_KBIT, kbit - urgent)
+    steps = []
+    for ns, dev, what in ((h.namespace, h.host_if, 'upload of %s' % name),
+                          (top.switch_ns, h.switch_if, 'download of %s' % name)):
+        def tc(*args):
+            return _tc(ns, *args[:2] + ('dev', dev) + args[2:])
+
+        def cls(parent, classid, rate, *more):
+            return tc('class', 'replace', 'parent', parent, 'classid', classid, 'htb', 'rate', '%dkbit' % rate,
+                      'ceil', '%dkbit' % kbit, 'burst', burst, 'cburst', burst, *more)
+        steps += [
+            Step(tc('qdisc', 'replace', 'root', 'pfifo_fast'), None, '%s: any limit before removed' % what),
+            Step(tc('qdisc', 'replace', 'root', 'handle', '1:', 'htb', 'default', '20'),
+                 tc('qdisc', 'del', 'root'), '%s limited to %d kbit/s' % (what, kbit)),
+            Step(cls('1:', '1:1', kbit), None, '%s: the whole rate' % what),
+            Step(cls('1:1', '1:10', urgent, 'prio', '0'), None, '%s: the urgent class, served first' % what),
+            Step(cls('1:1', '1:20', bulk, 'prio', '1'), None, '%s: the rest' % what),
+            Step(tc('qdisc', 'replace', 'parent', '1:10', 'handle', '10:', 'bfifo', 'limit', limit), None,
+                 '%s: the urgent queue holds %s bytes' % (what, limit)),
+            Step(tc('qdisc', 'replace', 'parent', '1:20', 'handle', '20:', 'bfifo', 'limit', limit), None,
+                 '%s: the data\'s queue holds %s bytes' % (what, limit)),
+            Step(tc('filter', 'replace', 'parent', '1:', 'protocol', 'ip', 'prio', '1', 'u32', 'match', 'ip', 'tos',
+                    '0x%02x' % URGENT_TOS, '0xfc', 'flowid', '1:10'), None, '%s: low-delay packets urgent' % what)]
+    return steps
 
 
 def plan_unrate(top, name):

@@ -6,7 +6,7 @@ up between commands, and the faults on them.
   hosts exec HOST -- COMMAND ...        run COMMAND in HOST, ROS_IP/ROS_HOSTNAME set to its address
   hosts fault partition HOST [HOST2]    HOST's link down (with HOST2: only HOST and HOST2 cut apart)
   hosts fault heal HOST [HOST2]
-  hosts fault rate KBIT HOST            token bucket (tc tbf) on both directions of HOST's link
+  hosts fault rate KBIT HOST            token bucket (tc htb) on both directions of HOST's link
   hosts fault unrate HOST
   hosts fault power_off HOST            link down first, then every process of HOST killed
   hosts fault power_on HOST             HOST made again from nothing, linked
@@ -44,7 +44,7 @@ def _parser():
         k = kinds.add_parser(kind, help=text)
         k.add_argument('host')
         k.add_argument('other', nargs='?')
-    k = kinds.add_parser('rate', help='rate limit (tc tbf) on both directions of the host link')
+    k = kinds.add_parser('rate', help='rate limit (tc htb, low-delay packets first) on both directions of the host link')
     k.add_argument('kbit')
     k.add_argument('host')
     kinds.add_parser('unrate', help='remove the rate limit').add_argument('host')

@@ -19,6 +19,7 @@ from .diagnostics import Diagnostics
 from .launch_files import replaceable_by_launch, required_by_launch
 from .params import param
 from .ports import Ports
+from .qos import Marker
 from .witness_client import configuration_topic, from_witness_only
 
 
@@ -170,6 +171,7 @@ class CrashDetectorNode(object):
         # inbound connections one at a time: one stalled handshake holds the others back for up to
         # 60 s): (the monitor that declared it, the message), published once Recovery connects.
         self.undelivered = None
+        self.qos = Marker()   # the heartbeat connections, low delay on the network (aft_ftm.ros.qos)
 
     def _new_monitor(self, now):
         """A monitor of the peer by the chosen rule. A check later than one period after the
@@ -475,6 +477,7 @@ class CrashDetectorNode(object):
                                 return   # the node is going down: its topics are closed
                             raise
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
+                self.qos.mark(self.ports.publisher('heartbeat'), self.ports.publisher('peer_heartbeat'))
             if self.alive is not None:
                 self._check_alive(now)
             with self.lock:

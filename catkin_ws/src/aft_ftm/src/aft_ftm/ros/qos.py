@@ -1,0 +1,42 @@
+"""Priority on the network for the crash detectors' heartbeats.
+
+A heartbeat shares its link with the data. Behind a saturated rate limit it waited with the
+checkpoints and the state transfers, was dropped past the limit's latency, and was resent by TCP only
+after its retransmission timeout (200 ms, doubled each time): sent on time, the master's beats
+reached the slave 501 ms late, and a 500 ms detector fenced a healthy site (a clean-clone CI, session
+50). Each connection of a detector's heartbeat topics (both ways: the beats, and the
+acknowledgments the receiver sends back) is marked low delay (IP TOS 0x10; Linux also gives such a
+socket the interactive priority): the emulated hosts' rate limits serve it first
+(:func:`aft_ftm.hosts.plan_rate`), as a network with QoS would.
+"""
+import socket
+import weakref
+
+from ..hosts import URGENT_TOS
+
+
+class Marker(object):
+    """Marks the sockets of rospy Publishers' and Subscribers' connections urgent, each once."""
+
+    def __init__(self):
+        self.marked = weakref.WeakSet()
+        self.failures = 0   # sockets that refused the mark (closed meanwhile)
+
+    def mark(self, *handles):
+        """Mark the connections of these rospy handles not marked yet; returns how many were marked now."""
+        count = 0
+        for handle in handles:
+            impl = getattr(handle, 'impl', None)
+            for conn in list(getattr(impl, 'connections', None) or ()):
+                if conn in self.marked:
+                    continue
+                sock = getattr(conn, 'socket', None)
+                if sock is None:
+                    continue   # not connected yet: marked at a later look
+                try:
+                    sock.setsockopt(socket.IPPROTO_IP, socket.IP_TOS, URGENT_TOS)
+                    count += 1
+                except (OSError, ValueError):   # closed meanwhile (ValueError: a closed SSL socket)
+                    self.failures += 1
+                self.marked.add(conn)
+        return count
