@@ -124,3 +124,15 @@ def test_a_peer_never_heard_within_the_start_up_grace_then_heard_is_watched(node
     connections['failures'] = 1
     run(n, clock, 0.5, beats=False)
     assert [m.pid for port, m in published if port == 'failures'] == [4242]
+
+
+def test_a_peer_that_beats_once_then_announces_its_fail_stop_is_not_watched_again(node):
+    """Heard again after the verdict, then its stopping beat within the same check: it stopped (review)."""
+    n, clock, alarms, published, connections = node
+    run(n, clock, 0.2)
+    run(n, clock, 0.26, beats=False)
+    with n.lock:
+        n.monitor.beat(clock.t, beat())
+        n.monitor.announced(clock.t, 'its server died', beat())
+    n._deliver_late()
+    assert n.monitor.state == PeerState.FAILED and 'peer_watched' not in kinds(alarms)

@@ -91,7 +91,11 @@ def test_rate_is_a_token_bucket_on_both_ends_and_unrate_removes_both():
     for dev in (h.host_if, h.switch_if):   # the whole rate, shared by the two classes, none above it
         rates = {s.argv[s.argv.index('classid') + 1]: (s.argv[s.argv.index('rate') + 1], s.argv[s.argv.index('ceil') + 1])
                  for s in plan if dev in s.argv and 'class' in s.argv}
-        assert rates == {'1:1': ('800kbit', '800kbit'), '1:10': ('400kbit', '800kbit'), '1:20': ('400kbit', '800kbit')}
+        assert rates == {'1:1': ('800kbit', '800kbit'), '1:10': ('720kbit', '800kbit'), '1:20': ('80kbit', '800kbit')}
+    for kbit in (8, 15, 200, 800, 10000):   # htb serves a class under its rate first: the urgent one is assured
+        classes = {s.argv[s.argv.index('classid') + 1]: int(s.argv[s.argv.index('rate') + 1][:-4])
+                   for s in plan_rate(TOP, 'slave', kbit) if h.host_if in s.argv and 'class' in s.argv}
+        assert classes['1:10'] + classes['1:20'] == classes['1:1'] == kbit and classes['1:10'] >= 0.9 * kbit - 1
     assert all('netem' not in s.argv for s in plan)
     assert [s.argv for s in plan_unrate(TOP, 'slave')] == [s.undo for s in roots]
 

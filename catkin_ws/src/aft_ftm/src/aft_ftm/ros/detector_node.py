@@ -477,7 +477,11 @@ class CrashDetectorNode(object):
                                 return   # the node is going down: its topics are closed
                             raise
                 next_beat = max(next_beat + self.period, now)   # late: do not burst to catch up
-                self.qos.mark(self.ports.publisher('heartbeat'), self.ports.publisher('peer_heartbeat'))
+                try:
+                    self.qos.mark(self.ports.publisher('heartbeat'), self.ports.publisher('peer_heartbeat'))
+                except Exception as e:   # never the heartbeats' end: the mark is an optimisation
+                    rospy.logwarn_throttle(60.0, '%s: cannot mark the heartbeat connections low delay: %s: %s',
+                                           rospy.get_name(), type(e).__name__, e)
             if self.alive is not None:
                 self._check_alive(now)
             with self.lock:
@@ -520,7 +524,8 @@ class CrashDetectorNode(object):
         monitor, failure, announced = self.undelivered
         with self.lock:
             current = self.monitor is monitor and monitor.beats_after_failure == 0
-            same = (self.monitor is monitor and not announced
+            # (last_beat None: its fail-stop announced since, also after the verdict: not watched again)
+            same = (self.monitor is monitor and not announced and monitor.last_beat is not None
                     and (failure.pid == 0 or incarnation(monitor.last_info) == (failure.host, failure.pid)))
             if self.stopped is None and not current and same:
                 self._watch_again()

@@ -19,24 +19,30 @@ class Marker(object):
     """Marks the sockets of rospy Publishers' and Subscribers' connections urgent, each once."""
 
     def __init__(self):
-        self.marked = weakref.WeakSet()
+        # connection -> the socket marked (a connection made again, e.g. after a failed TLS handshake,
+        # keeps its object and gets a new socket: marked again)
+        self.marked = weakref.WeakKeyDictionary()
         self.failures = 0   # sockets that refused the mark (closed meanwhile)
 
     def mark(self, *handles):
-        """Mark the connections of these rospy handles not marked yet; returns how many were marked now."""
+        """Mark the sockets of these rospy handles' connections not marked yet; returns how many were
+        marked now. Never raises (it runs in the heartbeat loop)."""
         count = 0
         for handle in handles:
             impl = getattr(handle, 'impl', None)
             for conn in list(getattr(impl, 'connections', None) or ()):
-                if conn in self.marked:
-                    continue
                 sock = getattr(conn, 'socket', None)
                 if sock is None:
                     continue   # not connected yet: marked at a later look
+                try:
+                    if self.marked.get(conn) is sock:
+                        continue
+                    self.marked[conn] = sock
+                except TypeError:   # an object without weak references: never remembered, marked each look
+                    pass
                 try:
                     sock.setsockopt(socket.IPPROTO_IP, socket.IP_TOS, URGENT_TOS)
                     count += 1
                 except (OSError, ValueError):   # closed meanwhile (ValueError: a closed SSL socket)
                     self.failures += 1
-                self.marked.add(conn)
         return count
