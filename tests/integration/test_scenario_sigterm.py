@@ -31,8 +31,8 @@ def test_a_scenario_stopped_by_sigterm_stops_every_process_of_its_run(tmp_path):
     rng = random.Random(SEED)
     at = rng.uniform(1.0, 7.0)   # its nodes start within about 5 s under TLS: both phases are drawn
     env = {k: v for k, v in os.environ.items() if k != 'ROS_MASTER_URI'}   # it starts a master of its own
-    proc = subprocess.Popen([SCENARIO, 'board_power_loss', '--json', '--no-plot', '--tls', '--out', str(tmp_path / 'run')],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    argv = [SCENARIO, 'board_power_loss', '--json', '--no-plot', '--tls', '--out', str(tmp_path / 'run')]
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     seen = {}   # pid -> psutil.Process of every process of the run seen before the signal
     try:
         deadline = time.monotonic() + at

@@ -89,8 +89,8 @@ def test_rate_is_a_token_bucket_on_both_ends_and_unrate_removes_both():
     assert [(s.argv[:2], s.argv[3], s.argv[6], s.argv[10]) for s in roots] == [
         (['tc', '-n'], 'qdisc', h.host_if, 'htb'), (['tc', '-n'], 'qdisc', h.switch_if, 'htb')]
     for dev in (h.host_if, h.switch_if):   # the whole rate, shared by the two classes, none above it
-        rates = {s.argv[s.argv.index('classid') + 1]: (s.argv[s.argv.index('rate') + 1], s.argv[s.argv.index('ceil') + 1])
-                 for s in plan if dev in s.argv and 'class' in s.argv}
+        rates = {a[a.index('classid') + 1]: (a[a.index('rate') + 1], a[a.index('ceil') + 1])
+                 for a in (s.argv for s in plan) if dev in a and 'class' in a}
         assert rates == {'1:1': ('800kbit', '800kbit'), '1:10': ('720kbit', '800kbit'), '1:20': ('80kbit', '800kbit')}
     for kbit in (8, 15, 200, 800, 10000):   # htb serves a class under its rate first: the urgent one is assured
         classes = {s.argv[s.argv.index('classid') + 1]: int(s.argv[s.argv.index('rate') + 1][:-4])

@@ -44,7 +44,8 @@ def _parser():
         k = kinds.add_parser(kind, help=text)
         k.add_argument('host')
         k.add_argument('other', nargs='?')
-    k = kinds.add_parser('rate', help='rate limit (tc htb, low-delay packets first) on both directions of the host link')
+    k = kinds.add_parser('rate', help='rate limit (tc htb, low-delay packets first) on both directions '
+                                      'of the host link')
     k.add_argument('kbit')
     k.add_argument('host')
     kinds.add_parser('unrate', help='remove the rate limit').add_argument('host')

@@ -516,8 +516,8 @@ class CrashDetectorNode(object):
         (not heard again, not re-joined since): otherwise it is moot and dropped, saying so.
 
         A peer heard again, as the incarnation declared failed (or first heard now, if it was never
-        heard within the start-up grace), after a silence (not its own fail-stop) is watched again: the verdict reached nobody, so nothing was fenced, promoted or excluded, and
-        the FAILED it left was final with no witness to re-arm it (a site re-joins only through one).
+        heard within the start-up grace), after a silence (not its own fail-stop) is watched again: the
+        verdict reached nobody, so nothing was fenced, promoted or excluded, and the FAILED it left was final with no witness to re-arm it (a site re-joins only through one).
         A later real failure of that peer was then never reported: a pair without a witness whose
         detectors suspected each other while they started stayed so, and once its primary was powered
         off nobody took over (session 48's clean-clone CI; session 50)."""

@@ -29,7 +29,8 @@ class WatchdogNode(object):
 
     1. its fail-silence is enforced: a board that only stalled must not come back as a second
        primary, so the process tree of its launcher is stopped, then killed (if it runs on this host);
-    2. as soon as it is stopped and sent SIGKILL, the backup is promoted: SetRole ALONE on each of its nodes, in order, over connections opened
+    2. as soon as it is stopped and sent SIGKILL, the backup is promoted: SetRole ALONE on each of its
+       nodes, in order, over connections opened
        before the failure (a failover does not need the ROS master). Only a board that acknowledged
        a checkpoint of the primary is ever promoted;
     3. the failover is published, with the detection time (the silence) and the switch time.
