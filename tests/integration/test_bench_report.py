@@ -109,7 +109,10 @@ def test_every_claim_measured_where_its_benchmark_ran(quick_report):
     for claim in report.claims(figures):
         measured = claim['verdict'] != report.NOT_MEASURED
         step = next(k for k, command in report.COMMANDS.items() if command == claim['command'])
-        expected = bool(car_claims[claim['key']] & ran) if claim['key'] in car_claims else step in RAN
+        # (a claim read from several benchmarks is measured when any of them ran: the short suite's draw can run
+        # pbr without adaptation, and the failover's rebind confirms dynamic binding; a clean-clone CI, session 50)
+        steps = {step} | set(report.ALSO_FROM.get(claim['key'], ()))
+        expected = bool(car_claims[claim['key']] & ran) if claim['key'] in car_claims else bool(steps & set(RAN))
         assert measured == expected, claim
         assert claim['claim'] in text
     assert figures['car']['rows'] and all(r['with'].get('hazards') is not None and r['without'].get('hazards')

@@ -467,6 +467,9 @@ CLAIMS = [
                     'restarted', LAUER + ', 7', 'master', _claim_master),
 ]
 
+# The benchmarks besides its own command whose figures a claim also reads: measured when any of them ran.
+ALSO_FROM = {'dynamic_binding': ('pbr',)}   # the failover's rebind of the client (_claim_binding)
+
 
 def claims(figures):
     """One dict per claim: key, claim, source, command, measured, verdict, condition."""
