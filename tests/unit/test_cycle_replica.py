@@ -529,3 +529,33 @@ def test_a_primary_whose_site_fail_stopped_serves_on_until_it_is_fenced():
     notes = primary.site_stopped('the After hung')
     assert alarms(notes) == ['site_stopped'] and 'serves on' in notes[0].detail
     assert primary.passes_outputs() and primary.cycle_end(b's1', now=2.0)[0] is not None
+
+
+def test_a_primary_the_watchdog_deposed_while_it_could_not_hear_stops_and_fails_its_site():
+    """board_a froze past its failover on a host nobody could power off: on resuming it hears the
+    watchdog name board_b the primary (term 2). Before session 51 it passed its outputs on for good."""
+    primary = replica(A, Role.PRIMARY)
+    assert primary.primary_named('board_a', 'board_a', 1, 'w1') == (None, [])   # itself, at the start
+    assert primary.passes_outputs()
+    stop, notes = primary.primary_named('board_a', 'board_b', 2, 'w1')
+    assert 'board board_b' in stop and alarms(notes) == ['deposed']
+    assert not primary.passes_outputs()
+    assert primary.cycle_end(b'state', 1.0)[0] is None      # no checkpoint either
+    assert primary.primary_named('board_a', 'board_b', 2, 'w1') == (None, [])   # said once
+
+
+@pytest.mark.parametrize('role', [Role.BACKUP, Role.ALONE])
+def test_the_word_naming_another_board_changes_nothing_for_a_backup_nor_for_the_board_named(role):
+    r = replica(B, role)
+    assert r.primary_named('board_b', 'board_a' if role == Role.BACKUP else 'board_b', 5, 'w1') == (None, [])
+    assert r.stopped is None
+
+
+def test_an_earlier_term_or_another_watchdog_run_deposes_nobody():
+    alone = replica(B, Role.ALONE)
+    assert alone.primary_named('board_b', 'board_b', 2, 'w1') == (None, [])
+    assert alone.primary_named('board_b', 'board_a', 1, 'w1') == (None, [])   # reordered, or replayed
+    stop, notes = alone.primary_named('board_b', 'board_a', 1, 'w2')          # a watchdog started again
+    assert stop is None and alarms(notes) == ['primary_disputed'] and alone.passes_outputs()
+    stop, _ = alone.primary_named('board_b', 'board_a', 3, 'w1')
+    assert stop and not alone.passes_outputs()

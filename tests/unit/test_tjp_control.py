@@ -1,7 +1,8 @@
 """The TJP's control logic without a master: safety distance, controllerPid, commandManager."""
+import random
 import pytest
 
-from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, SafetyDistance
+from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, PrimarySources, SafetyDistance
 from tjp_sim.errors import TjpConfigError
 
 
@@ -352,3 +353,137 @@ def test_a_command_not_after_the_last_one_taken_is_refused_unless_the_clock_went
     # The simulation started again (/clock went back): its commands are taken afresh, not refused for good.
     assert arbiter.offer(0.2, 0.2) is Offer.TAKEN and arbiter.resets == 1
     assert arbiter.offer(0.3, 0.3) is Offer.TAKEN and arbiter.offer(0.25, 0.3) is Offer.REORDERED
+
+
+A, B = '/board_a/cycle_after', '/board_b/cycle_after'
+
+
+def test_commands_are_taken_from_the_configured_board_until_the_watchdog_names_another():
+    arbiter = CommandArbiter(sources=[A])
+    assert arbiter.offer(10.0, 10.0, A) is Offer.TAKEN
+    assert arbiter.offer(10.1, 10.1, B) is Offer.UNNAMED          # the backup, or anyone else: held
+    assert arbiter.expire(10.15) == []                             # within name_wait (0.1 s)
+    assert arbiter.expire(10.25) == [(10.1, B)] and arbiter.foreign == 1
+    assert arbiter.offer(10.3, 10.3, '') is Offer.UNNAMED         # a sender that gave no name
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.3) == (True, None)   # (the held one is not B's)
+    assert arbiter.expire(10.35) == [] and arbiter.expire(10.45) == [(10.3, '')] and arbiter.foreign == 2
+    assert arbiter.offer(10.4, 10.4, A) is Offer.UNNAMED          # the deposed board, resumed
+    assert arbiter.offer(10.4, 10.4, B) is Offer.TAKEN
+    assert arbiter.offer(10.5, 10.5, A) is Offer.UNNAMED          # replaces the last one: that one refused
+    assert arbiter.expire(10.5) == [(10.4, A)]
+    assert arbiter.expire(10.7) == [(10.5, A)] and arbiter.foreign == 4
+
+
+def test_the_new_primarys_command_that_comes_before_the_watchdogs_word_is_taken_with_it():
+    """The watchdog names board_b before promoting it, on another connection: board_b's first command
+    can come first (seen in the car scenario board_freeze, alarmed as foreign before it was held)."""
+    arbiter = CommandArbiter(sources=[A])
+    assert arbiter.offer(10.0, 10.0, A) is Offer.TAKEN
+    assert arbiter.offer(10.1, 10.1, B, payload='b1') is Offer.UNNAMED
+    taken, offered = arbiter.announce('board_b', [B], 2, 'w1', 10.12)
+    assert taken and offered == (Offer.TAKEN, 10.1, B, 'b1')
+    assert arbiter.expire(10.5) == [] and arbiter.foreign == 0 and arbiter.last_stamp == 10.1
+    # Named too late (past name_wait), it is refused, whoever is named.
+    arbiter = CommandArbiter(sources=[A])
+    assert arbiter.offer(10.1, 10.1, B, payload='b1') is Offer.UNNAMED
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.25) == (True, None)
+    assert arbiter.expire(10.25) == [(10.1, B)] and arbiter.last_stamp is None
+    # Taken late, its stamp is checked as any command's: too old by then, it is refused as stale.
+    arbiter = CommandArbiter(sources=[A], name_wait=1.0)
+    assert arbiter.offer(10.0, 10.0, B, payload='b1') is Offer.UNNAMED
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.5) == (True, (Offer.STALE, 10.0, B, 'b1'))
+
+
+def test_a_deposed_boards_fresh_commands_do_not_move_the_order_the_primarys_are_checked_against():
+    """Set aside before its stamp is looked at: a deposed board's command stamped a moment later than the
+    primary's would otherwise make the primary's next one 'reordered'."""
+    arbiter = CommandArbiter(sources=[B])
+    assert arbiter.offer(10.0, 10.0, B) is Offer.TAKEN
+    assert arbiter.offer(10.09, 10.09, A) is Offer.UNNAMED
+    assert arbiter.offer(10.05, 10.1, B) is Offer.TAKEN
+    assert (arbiter.last_stamp, arbiter.reordered) == (10.05, 0)
+
+
+def test_without_sources_every_sender_is_taken_until_a_watchdog_names_one():
+    arbiter = CommandArbiter()
+    assert arbiter.offer(10.0, 10.0, A) is Offer.TAKEN and arbiter.offer(10.1, 10.1, B) is Offer.TAKEN
+    assert arbiter.announce('board_a', [A], 1, 'w1', 10.1) == (True, None)
+    assert arbiter.offer(10.2, 10.2, B) is Offer.UNNAMED
+
+
+@pytest.mark.parametrize('seed', range(30))
+def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
+    """Two boards send every 0.1 s, the watchdog's take-overs come at random, its word delayed at random
+    (before or after the new primary's first command, up to 0.15 s), announcements repeated and
+    reordered at random. Whatever the order: a command taken was sent by the board of the highest term
+    heard when it was taken; each command is taken, refused or still held, once; every command the
+    primary sent at most name_wait before its word came is taken."""
+    rng = random.Random(seed)
+    arbiter = CommandArbiter(sources=[A], name_wait=0.1)
+    primary, term, events = A, 1, []
+    t = 10.0
+    for step in range(200):
+        t = round(t + 0.01, 2)
+        if rng.random() < 0.02:   # a take-over; the word comes with a delay drawn at random
+            primary, term = (B if primary == A else A), term + 1
+            events.append((round(t + rng.uniform(-0.05, 0.15), 2), 'announce', primary, term))
+        if step % 10 == 0:
+            for board in (A, B):
+                events.append((t, 'command', board, (t, board)))
+        if rng.random() < 0.05 and term > 1:   # an old announcement again
+            old = rng.randint(1, term)
+            events.append((t, 'announce', A if old % 2 else B, old))
+    events.sort(key=lambda e: e[0])
+    taken, sent, last, best = [], [], {}, 1   # term 1: board_a, as configured
+    for now, kind, board, arg in events:
+        if kind == 'announce':
+            before = arbiter.sources.nodes
+            ok, offered = arbiter.announce(board, [board], arg, 'w1', now)
+            if ok:
+                best = arg
+                # The board named, if it was not allowed already, gets its last command offered if it came
+                # within name_wait (the one its After published before it heard it was the primary).
+                waited, held = last.get(board, (None, False))
+                if board not in before and held and now - waited[0] < 0.1 - 1e-6:
+                    assert offered is not None and offered[3] == waited, 'seed %d' % seed
+            if offered is not None and offered[0] is Offer.TAKEN:
+                taken.append((offered[3], board, best))
+        else:
+            sent.append(arg)
+            offer = arbiter.offer(arg[0], now, board, payload=arg)
+            last[board] = (arg, offer is Offer.UNNAMED)
+            if offer is Offer.TAKEN:
+                taken.append((arg, board, best))
+        arbiter.expire(now)
+    why = 'seed %d' % seed
+    for command, board, at_term in taken:
+        assert command[1] == board and (A if at_term % 2 else B) == board, why
+    refused = arbiter.foreign + len(arbiter.unnamed)
+    assert len({c for c, _, _ in taken}) == len(taken), why
+    assert len(taken) + refused + arbiter.stale + arbiter.ahead + arbiter.reordered == len(sent), why
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_an_announcement_of_a_passed_term_changes_nothing_whatever_order_they_come_in(seed):
+    """Announcements duplicated, reordered and replayed at random: the primary is always the one of the
+    highest term heard of the watchdog's run; another run's (a watchdog started again) is taken."""
+    rng = random.Random(seed)
+    terms = [(t, 'board_a' if t % 2 else 'board_b') for t in range(1, 8)]
+    heard = [rng.choice(terms[:i + 1]) for i in range(len(terms)) for _ in range(rng.randint(1, 3))]
+    sources = PrimarySources([A])
+    best = passed = 0
+    for term, board in heard:
+        nodes = ['/%s/cycle_after' % board]
+        assert sources.announce(board, nodes, term, 'w1') is (term > best), 'seed %d' % seed
+        passed += term <= best
+        best = max(best, term)
+        expected = dict(terms)[best]
+        assert (sources.board, sources.term, sources.nodes) == (expected, best, {'/%s/cycle_after' % expected})
+    assert sources.ignored == passed > 0, 'seed %d' % seed
+    assert sources.announce('board_b', [B], 1, 'w2') and sources.nodes == {B}   # a new run: its word is taken
+
+
+def test_an_announcement_naming_no_node_is_refused():
+    sources = PrimarySources([A])
+    assert not sources.announce('board_b', [], 5, 'w1')
+    assert sources.nodes == {A} and sources.ignored == 1

@@ -290,3 +290,14 @@ def test_every_shipped_scenario_loads():
     assert len(names) >= len(fmeca.load())
     for name in names:
         assert scenarios.load(name)['name'] == name
+
+
+def test_boards_remote_is_a_flag_and_the_shipped_unfenced_freeze_uses_it():
+    assert parse()['boards_remote'] is False
+    assert parse('boards_remote: true\n')['boards_remote'] is True
+    with pytest.raises(scenarios.ScenarioError, match='boards_remote must be true or false'):
+        parse('boards_remote: yes please\n')
+    s = scenarios.load('board_freeze_unfenced')
+    assert s['boards_remote'] and set(scenarios.BOARD_HOSTS) == {'board_a', 'board_b'}
+    [fault] = s['faults']
+    assert (fault['kind'], fault['node'], fault['board']) == ('board_hang', 'board', 'board_a')

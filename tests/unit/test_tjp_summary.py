@@ -357,3 +357,15 @@ def test_a_hazard_shown_so_far_is_shown_by_every_longer_run():
                 seed, case, until, shown, sorted(whole))
     assert {'collision', 'gap_violation', 'unjustified_emergency', 'service_lost'} <= seen, (seed, seen)
     assert shown_so_far({'states': []}, {'min_gap_fraction': 0.5, 'stop_within': None}) == []
+
+
+def test_the_car_s_drivers_are_the_senders_of_the_commands_of_controllerpid_it_got():
+    """A deposed board whose commands were taken between the primary's shows as a driver again (what
+    the car scenario board_freeze_unfenced checks never happens); emergencies and safe stops are not
+    controllerPid's."""
+    commands = [(0.0, 0.0, TJP, BOARD_A), (0.5, 0.0, HOLD, BOARD_A), (1.0, 0.0, TJP, BOARD_B),
+                (1.5, -6.0, EMERGENCY, '/tjp/command_manager'), (2.0, 0.0, TJP, BOARD_A),
+                (2.5, -3.0, SAFE_STOP, '/tjp/command_manager')]
+    s = summarize(steady_run(seconds=3.0, commands=commands))
+    assert s['drivers'] == [[0.0, BOARD_A], [1.0, BOARD_B], [2.0, BOARD_A]]
+    assert 'car driven by       : %s from' % BOARD_A in text(s)

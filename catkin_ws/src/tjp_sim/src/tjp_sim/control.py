@@ -307,6 +307,45 @@ class Offer(enum.Enum):
     STALE = 'stale_command'           # computed longer ago than a command is used for
     FUTURE = 'future_command'         # stamped more than ahead_max after the caller's clock
     REORDERED = 'reordered_command'   # stamped at or before the last one taken
+    FOREIGN = 'foreign_command'       # sent by a node that is not the primary board's (a deposed board)
+    UNNAMED = 'unnamed'               # held: the watchdog may be naming its sender the primary this moment
+
+
+class PrimarySources(object):
+    """Whose commands of controllerPid commandManager takes: those of the nodes of the primary board,
+    as the watchdog of the replicated controllerPid names them (:meth:`announce`, from
+    aft_msgs/PrimaryBoard), and until it first does, the nodes given at the start. None given and none
+    named: any node's (controllerPid not replicated).
+
+    This is the take-over's fencing at the actuator's side. The watchdog powers a failed board off
+    before it promotes the backup, but where it cannot (a board on a machine of its own with no power
+    switch wired in), a board that only froze resumes taking itself for the primary and publishes fresh
+    commands: both boards drove the car, one command in two, for the rest of the run (before session 51).
+
+    An announcement is taken if it is the first of a watchdog's run (``incarnation``) or names a later
+    ``term`` of the same run; one of that run's earlier or same term (duplicated, reordered,
+    replayed) changes nothing and is counted in ``ignored``. One naming no node is refused (it would
+    open the car to any sender).
+    """
+
+    def __init__(self, nodes=()):
+        self.nodes = frozenset(nodes)
+        self.board = None
+        self.term = 0
+        self.incarnation = None
+        self.ignored = 0
+
+    def allows(self, node):
+        return not self.nodes or node in self.nodes
+
+    def announce(self, board, nodes, term, incarnation):
+        """The watchdog names ``board`` (its ``nodes``) the primary in ``term`` of its run
+        ``incarnation``. Returns whether it was taken (see the class)."""
+        if not nodes or (incarnation == self.incarnation and term <= self.term):
+            self.ignored += 1
+            return False
+        self.board, self.nodes, self.term, self.incarnation = board, frozenset(nodes), term, incarnation
+        return True
 
 
 # Allowed mode changes and what causes each.
@@ -341,9 +380,18 @@ class CommandArbiter(object):
       the bound of the sensors' readings), unless the caller has no clock yet (0);
     - stamped at or before the last one taken (``reordered``: a reordered, duplicated or replayed
       one), unless the caller's own clock went back since (a /clock reset: taken afresh, ``resets``).
+    Before the stamp is looked at, a command sent by a node that ``sources`` (:class:`PrimarySources`)
+    does not allow is held (``UNNAMED``), the last one of each sender (of at most ``HELD_SENDERS``, the
+    oldest refused first): the watchdog names the new primary before
+    promoting it, but the two come on separate connections, and the new primary's first command can
+    come first (seen in the car scenario board_freeze). If :meth:`announce` names its sender within
+    ``name_wait`` of its coming, it is offered then; otherwise, or replaced by a later one, it is
+    refused (``foreign``, :meth:`expire`): a deposed board's fresh commands neither drive nor move the
+    order the primary's are checked against.
     """
 
-    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15, ahead_max=0.5):
+    def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15, ahead_max=0.5, sources=(),
+                 name_wait=0.1):
         self.hold = _non_negative('hold', hold)
         self.late = _positive('late', late)   # controllerPid silent this long is late (its period + margin)
         self.emergency_decel = _positive('emergency_decel', emergency_decel)
@@ -360,6 +408,11 @@ class CommandArbiter(object):
         self.ahead = 0           # commands refused: stamped ahead of the clock
         self.reordered = 0       # commands refused: stamped at or before the last one taken
         self.resets = 0          # the clock gone back: commands taken afresh
+        self.sources = PrimarySources(sources)
+        self.foreign = 0         # commands refused: sent by a node other than the primary board's
+        self.name_wait = _non_negative('name_wait', name_wait)
+        self.unnamed = collections.OrderedDict()   # sender -> (stamp, sender, payload, when) held by offer()
+        self.refused_foreign = []   # (stamp, sender) refused as foreign, until expire() hands them over
 
     def _change(self, mode, reason):
         if self.mode == mode:
@@ -380,9 +433,16 @@ class CommandArbiter(object):
         """How old a command may be when it comes (s): the longest a command that came on time is used."""
         return max(self.late, self.hold)
 
-    def offer(self, stamp, now):
-        """Whether a command of controllerPid stamped ``stamp`` may be passed on to :meth:`command` at
-        ``now`` (the caller's clock, in the stamps' units; 0: none yet). See the class."""
+    def offer(self, stamp, now, sender=None, payload=None):
+        """Whether a command of controllerPid stamped ``stamp``, sent by node ``sender``, may be passed
+        on to :meth:`command` at ``now`` (the caller's clock, in the stamps' units; 0: none yet). See the
+        class. ``payload`` (the command) is kept with a command held (UNNAMED), for :meth:`announce`."""
+        if not self.sources.allows(sender):
+            self._drop_unnamed(sender)
+            while len(self.unnamed) >= self.HELD_SENDERS:
+                self._drop_unnamed(next(iter(self.unnamed)))
+            self.unnamed[sender] = (stamp, sender, payload, now)
+            return Offer.UNNAMED
         if now and stamp > now + self.ahead_max:
             self.ahead += 1
             return Offer.FUTURE
@@ -398,6 +458,43 @@ class CommandArbiter(object):
             self.resets += 1
         self.last_stamp, self.last_clock = stamp, now
         return Offer.TAKEN
+
+    HELD_SENDERS = 4
+
+    def _drop_unnamed(self, sender):
+        dropped = self.unnamed.pop(sender, None)
+        if dropped is not None:
+            self.foreign += 1
+            self.refused_foreign.append(dropped[:2])
+
+    def announce(self, board, nodes, term, incarnation, now):
+        """The watchdog's word (:meth:`PrimarySources.announce`). Returns (taken, offered): offered is
+        None, or (offer, stamp, sender, payload) of the command held if the new primary sent it within
+        ``name_wait``, offered again now (:meth:`offer`'s answer: TAKEN, or why not)."""
+        if not self.sources.announce(board, nodes, term, incarnation):
+            return False, None
+        named = [held for held in self.unnamed.values() if self.sources.allows(held[1])]
+        for held in named:   # (a board's output comes from one node: at most one is offered)
+            if now - held[3] > self.name_wait:
+                self._drop_unnamed(held[1])
+        fresh = [held for held in named if held[1] in self.unnamed]
+        if not fresh:
+            return True, None
+        best = max(fresh, key=lambda held: held[0])
+        for held in fresh:
+            if held is not best:
+                self._drop_unnamed(held[1])
+        stamp, sender, payload, _ = self.unnamed.pop(best[1])
+        return True, (self.offer(stamp, now, sender), stamp, sender, payload)
+
+    def expire(self, now):
+        """The commands refused as foreign since the last call, [(stamp, sender), ...]: held longer than
+        ``name_wait`` with their sender not named, or replaced by a later one."""
+        for held in list(self.unnamed.values()):
+            if now - held[3] > self.name_wait:
+                self._drop_unnamed(held[1])
+        refused, self.refused_foreign = self.refused_foreign, []
+        return refused
 
     def command(self, tjp_command, now):
         """The acceleration sent to the actuator this cycle, given controllerPid's latest command

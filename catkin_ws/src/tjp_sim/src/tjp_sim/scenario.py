@@ -25,6 +25,9 @@ A scenario (YAML, ``catkin_ws/src/tjp_sim/scenarios/``) has these keys (defaults
   a certificate the policy trusts with nothing) forges a message on every topic and calls every
   service
 - ``managed_tjp`` [false]: those TJP nodes run under aft_ftm's service manager
+- ``boards_remote`` [false]: each board runs as a host of its own (its nodes bound to and known by an
+  address of their own on the loopback, :data:`BOARD_HOSTS`): the watchdog has no power switch for it
+  and cannot fence it, as with two boards on machines of their own and no switch wired in
 - ``events`` [[]]: ``pedestrian`` (``at``, ``ahead`` m in front of the bumper [3.0], ``leaves`` sim s
   [never]); ``adapt`` (``script``: an adaptation script of tjp_sim or aft_ftm, ``args`` [{}], and
   either ``at`` a time or ``on_alarm``: the first alarm of that kind, e.g. implausible_gap)
@@ -70,7 +73,9 @@ PROFILES = {
     'slow_creep': [[0, 3.0], [10, 3.0], [12, 0.0], [16, 0.0], [20, 4.0]],
 }
 KEYS = {'name', 'description', 'duration', 'seed', 'rate', 'profile', 'initial_speed', 'initial_gap',
-        'mechanisms', 'faults', 'events', 'expect', 'control', 'managed_tjp'}
+        'mechanisms', 'faults', 'events', 'expect', 'control', 'managed_tjp', 'boards_remote'}
+# The boards' own addresses under boards_remote (the loopback answers every 127/8 address).
+BOARD_HOSTS = {'board_a': '127.0.0.2', 'board_b': '127.0.0.3'}
 
 
 def _number(where, value, low=None, high=None, positive=False):
@@ -248,9 +253,11 @@ def parse(text, source='scenario'):
         'initial_speed': _number(source + ': initial_speed', data.get('initial_speed', profile[0][1]), 0, 35 / 3.6),
         'mechanisms': list(mechanisms),
         'managed_tjp': data.get('managed_tjp', False),
+        'boards_remote': data.get('boards_remote', False),
     }
-    if not isinstance(scenario['managed_tjp'], bool):
-        raise ScenarioError('%s: managed_tjp must be true or false, got %r' % (source, scenario['managed_tjp']))
+    for key in ('managed_tjp', 'boards_remote'):
+        if not isinstance(scenario[key], bool):
+            raise ScenarioError('%s: %s must be true or false, got %r' % (source, key, scenario[key]))
     _check_managed(source, scenario)
     scenario['initial_gap'] = _number(source + ': initial_gap',
                                       data.get('initial_gap', SafetyDistance()(scenario['initial_speed'])), positive=True)

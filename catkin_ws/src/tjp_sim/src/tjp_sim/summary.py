@@ -8,7 +8,8 @@ by ``t``):
   pedestrian);
   ``collided`` stays True once set. Required, and not empty.
 - ``commands``: ``(t, accel, mode, source)``, what commandManager sent to the car; ``mode`` is a
-  :class:`tjp_sim.control.Mode` (0 TJP, 1 EMERGENCY, 2 SAFE_STOP, 3 HOLD).
+  :class:`tjp_sim.control.Mode` (0 TJP, 1 EMERGENCY, 2 SAFE_STOP, 3 HOLD); in TJP and HOLD, ``source``
+  is the node whose command of controllerPid commandManager took last (the board's After).
 - ``pid_commands``: ``(t, source)``, each command of controllerPid and the node that published it.
 - ``alarms``: ``(t, source, mechanism, kind, detail)``.
 - ``events``: dicts with at least ``t`` and ``kind``; the kinds read here are ``fault``,
@@ -111,6 +112,12 @@ def _handovers(pid_commands):
     return changes
 
 
+def _drivers(commands):
+    """[t, source] each time the commands of controllerPid the car got (modes TJP and HOLD) come from
+    another node than the last such command's (the first included)."""
+    return _handovers([(c[0], c[3]) for c in commands if c[2] in (Mode.TJP, Mode.HOLD)])
+
+
 def _number(name, value):
     if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
         raise TjpConfigError('expect.%s must be a number >= 0, got %r' % (name, value))
@@ -198,6 +205,7 @@ def summarize(run, expect=None):
         'longest_pid_silence': end - start if silence is None else silence,
         'pid_sources': sorted({row[1] for row in pid_commands}),
         'pid_handovers': _handovers(pid_commands),
+        'drivers': _drivers(commands),
         'failovers': _events(run, 'failover'),
         'rejoins': _events(run, 'rejoin'),
         'faults': _events(run, 'fault'),
@@ -285,6 +293,8 @@ def text(summary):
     lines.append(('held commands', '%d' % s['holds'], []))
     lines.append(('longest pid silence', '%.3f s' % s['longest_pid_silence'], []))
     lines.append(('pid sources', ', '.join(s['pid_sources']) or 'none', []))
+    drivers = s.get('drivers') or []
+    lines.append(('car driven by', ' then '.join('%s from %s' % (d, _at(t)) for t, d in drivers) or 'nobody', []))
     lines.append(('failovers', '%d' % len(s['failovers']), [
         '%s, board %s failed: detected in %s, %s' % (
             _at(f.get('t')), f.get('board', '?'), _ms(f.get('silence')),

@@ -100,6 +100,10 @@ class CycleAfterNode(object):
             crash detector's, ~site_detector, from this node's own launcher): the last one, saying the
             site fail-stops (``stopping``, ``site`` equal to ~site), stops a backup After for good
             (aft_ftm.cycle_replica.CycleReplica.site_stopped)
+        primary (aft_msgs/PrimaryBoard), port ``primary``: the watchdog's word on the primary board: a
+            primary or lone After of another board (~site) was deposed while it could not hear, and
+            nobody could fence it: it passes nothing on from then and its site fail-stops (alarm
+            ``deposed``; CycleReplica.primary_named)
     Publishes:
         out (~msg_type), port ``out``: the replicated node's outputs, for the rest of the system
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
@@ -114,7 +118,7 @@ class CycleAfterNode(object):
             After that hangs (stopped, or deadlocked on its lock) is failed over like a hung node
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
             goes on alone), ``backup_invalid`` (a backup no longer mirrors its primary), ``node_hung``
-            and ``fail_stop``
+            ``fail_stop``, ``deposed`` and ``primary_disputed`` (another watchdog run's word, not obeyed)
     Services called:
         set_state (aft_msgs/SetState): the node's state manager (backup)
     Services:
@@ -155,17 +159,19 @@ class CycleAfterNode(object):
                             PortSpec('fail_stop', PUBLISH, 'aft_msgs/Failure'),
                             PortSpec('alive', PUBLISH, 'std_msgs/Bool'),
                             PortSpec('site_heartbeat', SUBSCRIBE, 'aft_msgs/Heartbeat'),
+                            PortSpec('primary', SUBSCRIBE, 'aft_msgs/PrimaryBoard'),
                             PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
                            {'raw': self._on_output, 'cycle_end': self._on_cycle_end,
                             'peer_checkpoints': self._on_checkpoint, 'peer_acks': self._on_ack,
-                            'join_requests': self._on_join, 'site_heartbeat': self._on_site_beat})
+                            'join_requests': self._on_join, 'site_heartbeat': self._on_site_beat,
+                            'primary': self._on_primary})
         self.ports.suspension(['raw', 'cycle_end'])
         self.set_state = rospy.ServiceProxy('set_state', SetState, persistent=True)
         self.diagnostics = None
 
     def setup(self, timeout):
         for name in ('out', 'checkpoints', 'acks', 'join', 'fail_stop', 'alive', 'alarms', 'peer_checkpoints',
-                     'peer_acks', 'join_requests', 'site_heartbeat', 'raw', 'cycle_end'):
+                     'peer_acks', 'join_requests', 'site_heartbeat', 'primary', 'raw', 'cycle_end'):
             self.ports.bind(name)
         role = self.replica.role
         if role == Role.BACKUP:
@@ -275,6 +281,16 @@ class CycleAfterNode(object):
         with self.lock:
             notes = self.replica.site_stopped(beat.stopping)
         self._report(notes)
+
+    def _on_primary(self, msg):
+        """The watchdog's word on the primary board: a primary or lone After of another board was deposed
+        while it could not hear, and nobody fenced it; it stops passing anything on and its site
+        fail-stops (CycleReplica.primary_named)."""
+        with self.lock:
+            stop, notes = self.replica.primary_named(self.site, msg.board, msg.term, msg.incarnation)
+        self._report(notes)
+        if stop:
+            fail_stop(self.ports, self.site, '%s: %s' % (self.name, stop))
 
     # -- backup ----------------------------------------------------------------------------------
     def _on_checkpoint(self, cp):

@@ -5,10 +5,11 @@ import json
 import os
 import threading
 import time
+import uuid
 
 import psutil
 import rospy
-from aft_msgs.msg import Alarm
+from aft_msgs.msg import Alarm, PrimaryBoard
 from aft_msgs.srv import SetRole
 from std_msgs.msg import String
 
@@ -35,6 +36,11 @@ class WatchdogNode(object):
        a checkpoint of the primary is ever promoted;
     3. the failover is published, with the detection time (the silence) and the switch time.
 
+    Which board is the primary is said on ``primary`` (latched), at the start and at each take-over
+    before the backup is promoted, with a term one more each time: a consumer of the replicated
+    output (the car's commandManager) takes it from those nodes only. Where this watchdog cannot power
+    a failed board off (another host's, with no switch), that board resumed still publishes.
+
     A silent primary with no backup, or a silent backup, is reported and left running (it is not
     promoted while silent). A board heard from a new launcher (it was started again) holds no state:
     it is not promoted until its After acknowledged a checkpoint of the primary; the watchdog then
@@ -57,6 +63,9 @@ class WatchdogNode(object):
         heartbeat/<board> (aft_msgs/Heartbeat), port ``heartbeat/<board>``: each board's crash detector
         acks/<board> (aft_msgs/CheckpointAck), port ``acks/<board>``: each board's After's acknowledgments
     Publishes:
+        primary (aft_msgs/PrimaryBoard, latched), port ``primary``: the primary board and its nodes
+            (those promoted), the term (1 at the start, one more at each take-over) and this run's
+            incarnation
         events (std_msgs/String), port ``events``: one JSON record per failover (kind ``failover``),
             board brought back (``board_back``) and re-join (``rejoin``)
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``board_failed`` (a failover),
@@ -81,7 +90,11 @@ class WatchdogNode(object):
         self.watch = None            # BoardWatch, from set-up on
         self.proxies = {}            # board -> {node: persistent SetRole proxy}
         self.diagnostics = None
-        specs = [PortSpec('events', PUBLISH, 'std_msgs/String'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')]
+        self.term = 0
+        self.announce_lock = threading.Lock()
+        self.incarnation = '%d:%s' % (os.getpid(), uuid.uuid4().hex[:12])
+        specs = [PortSpec('events', PUBLISH, 'std_msgs/String'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
+                 PortSpec('primary', PUBLISH, 'aft_msgs/PrimaryBoard')]
         callbacks = {}
         for board in self.boards:
             specs += [PortSpec('heartbeat/' + board, SUBSCRIBE, 'aft_msgs/Heartbeat'),
@@ -106,7 +119,8 @@ class WatchdogNode(object):
             self.watch = BoardWatch(self.boards, self.first, self.timeout, time.monotonic(), self.grace,
                                     connected=set(self.proxies), stall_after=self.stall_after)
         for name in sorted(self.ports.specs):
-            self.ports.bind(name)
+            self.ports.bind(name, latch=name == 'primary')
+        self._announce(self.first)
         self.ports.advertise_service()
         self.diagnostics = Diagnostics(self._health)
         threading.Thread(target=self._loop, name='watchdog', daemon=True).start()
@@ -189,6 +203,13 @@ class WatchdogNode(object):
         if report.record is not None:
             self._publish(dict(report.record))
 
+    def _announce(self, board):
+        """Say that board is the primary, in a new term."""
+        with self.announce_lock:   # the terms go out in their order
+            self.term += 1
+            self.ports.publish('primary', PrimaryBoard(stamp=rospy.Time.now(), board=board, nodes=self.boards[board],
+                                                       term=self.term, incarnation=self.incarnation))
+
     def _publish(self, record):
         record['t'] = rospy.get_time()
         self.ports.publish('events', String(data=json.dumps(record)))
@@ -257,6 +278,8 @@ class WatchdogNode(object):
             # The failed board is stopped and sent SIGKILL (it can publish nothing more, whoever resumes
             # it): the backup may take over now, while the kernel tears the processes down.
             proxies = self.proxies.get(failover.to, {})
+            # Said before the promotion: the new primary's first output must find its consumers told.
+            self._announce(failover.to)
             for node in failover.nodes:
                 if node not in proxies:
                     problems.append('%s: no connection open to it' % node)
@@ -276,6 +299,7 @@ class WatchdogNode(object):
             self.watch.promoted(failover.to, problems, time.monotonic())
         self._publish({'kind': 'failover', 'board': failover.board, 'to': failover.to, 'reason': verdict.reason,
                        'silence': verdict.silence, 'switch': switch, 'killed': killed, 'promoted': promoted,
+                       'term': self.term,
                        'ok': not problems, 'problems': problems})
         if problems:
             self._report(Report('failover_failed', 'board %s failed (%s) and nobody took over: %s'

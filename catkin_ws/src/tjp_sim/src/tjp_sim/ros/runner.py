@@ -115,7 +115,12 @@ class ScenarioRun(object):
 
     def _site(self, name, argv):
         party = name if name in self.TLS_PARTIES else None   # the master: no TLS
-        site = Site(name, argv, env=self.tls_env(party), log_path=os.path.join(self.out, 'logs', name + '.log'))
+        env = self.tls_env(party)
+        if self.scenario.get('boards_remote') and name in scenarios.BOARD_HOSTS:
+            # A host of its own: its nodes bound to its address, its heartbeats naming it (not this host).
+            env.update(ROS_IP=scenarios.BOARD_HOSTS[name])
+            env.pop('ROS_HOSTNAME', None)
+        site = Site(name, argv, env=env, log_path=os.path.join(self.out, 'logs', name + '.log'))
         self.sites[name] = site.start()
         return site
 

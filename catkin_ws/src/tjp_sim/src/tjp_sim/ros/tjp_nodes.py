@@ -9,6 +9,7 @@ import json
 import math
 import threading
 
+import rosgraph
 import rospy
 from aft_msgs.msg import Alarm, CarCommand, Measure
 from aft_msgs.srv import GetState, GetStateResponse, SetState, SetStateResponse
@@ -360,16 +361,26 @@ class CommandManagerNode(PortedNode):
     A command of controllerPid stamped more than ``~hold`` (0.15 s at least) before this node's
     clock (computed long ago: a board frozen and resumed behind the fence), more than 0.5 s after it,
     or at or before the last one taken (reordered, duplicated, replayed) is refused: as if
-    controllerPid were silent.
+    controllerPid were silent. So is one sent by a node other than the primary board's (its
+    connection's caller id, which TLS binds to the board's certificate), as the watchdog names it on
+    ``primary``, and until it does, one of ``~sources`` (tjp_sim.control.PrimarySources): a deposed
+    board nobody could power off, resumed, publishes fresh commands.
 
-    Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2)
-    Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; emergency (std_msgs/Bool),
+    Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2),
+        ~sources (list of node names, []: any node): whose commands are taken until the watchdog names the
+        primary's; ~name_wait (float, 0.1 s): how long a command of another node is held, in case the
+        watchdog is naming it the primary (its word and the new primary's first command come on separate
+        connections), before it is refused
+    Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; primary (aft_msgs/PrimaryBoard),
+        port ``primary``: the watchdog's word on the primary board (latched); emergency (std_msgs/Bool),
         port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``;
         service_safe_state (aft_msgs/SafeState), port ``service_safe_state``: the service manager's safe
         state, obeyed as a safe stop
-    Publishes: command (aft_msgs/CarCommand), port ``command``; alarms (aft_msgs/Alarm), port ``alarms``:
-        a command of controllerPid refused, stale_command, future_command or reordered_command, each once
-        per run of them (a command taken ends it)
+    Publishes: command (aft_msgs/CarCommand), port ``command``: its ``source`` is the node whose command of
+        controllerPid was last taken in modes TJP and HOLD, this node otherwise; alarms (aft_msgs/Alarm),
+        port ``alarms``: a command of controllerPid refused, stale_command, future_command, reordered_command
+        or foreign_command, each once per run of them (a command taken ends it); an announcement of the
+        primary refused (primary_ignored: of a term already passed, or naming no node)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -378,48 +389,128 @@ class CommandManagerNode(PortedNode):
         try:
             self.arbiter = CommandArbiter(hold=param('hold', config.positive_float, 0.3),
                                           emergency_decel=param('emergency_decel', config.positive_float, 6.0),
-                                          stop_decel=param('stop_decel', config.positive_float, 3.0))
+                                          stop_decel=param('stop_decel', config.positive_float, 3.0),
+                                          sources=[rospy.resolve_name(n)
+                                                   for n in param('sources', config.name_list, [])],
+                                          name_wait=param('name_wait', config.non_negative_float, 0.1))
         except TjpConfigError as e:
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(CommandManagerNode, self).__init__(
             [PortSpec('pid_command', SUBSCRIBE, 'aft_msgs/CarCommand'), PortSpec('emergency', SUBSCRIBE, 'std_msgs/Bool'),
              PortSpec('safe_stop', SUBSCRIBE, 'std_msgs/String'), PortSpec('command', PUBLISH, 'aft_msgs/CarCommand'),
              PortSpec('service_safe_state', SUBSCRIBE, 'aft_msgs/SafeState'),
+             PortSpec('primary', SUBSCRIBE, 'aft_msgs/PrimaryBoard'),
              PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm')],
             {'pid_command': self._on_pid, 'emergency': self._on_emergency, 'safe_stop': self._on_safe_stop,
-             'service_safe_state': self._on_service_safe_state})
+             'service_safe_state': self._on_service_safe_state, 'primary': self._on_primary})
         self.pending = None
+        self.pending_sender = None
+        self.driver = self.name   # the sender of the last command of controllerPid taken
         self.cycle = 0
         # The cycles' sends one at a time, in the order they were computed: a safe stop's immediate send
         # and the timer's cycle ran at once, and the cycle computed first (a driving command) could go
         # out after the stop (review of session 49). Not self.lock: a slow publish never holds up the
         # inputs.
         self.send_lock = threading.Lock()
-        self.refused = {offer: Episodes() for offer in Offer if offer is not Offer.TAKEN}
+        self.refused = {offer: Episodes() for offer in Offer if offer not in (Offer.TAKEN, Offer.FOREIGN)}
+        # A deposed board's commands come between the primary's: their alarm is once per sender and
+        # primary announced, not ended by each command taken (it was raised every 0.1 s).
+        self.foreign_run = None
+        self.announced = threading.Event()   # the watchdog's word on the primary was taken
 
     def setup(self, timeout):
         self.bind_all()
+        self._await_primary(min(timeout, self.PRIMARY_WAIT))
         self.timer = rospy.Timer(rospy.Duration(self.period), lambda _e: self._send())
         return True
 
-    def _on_pid(self, msg):
-        stamp = msg.stamp.to_sec()
-        with self.lock:
-            now = rospy.get_time()
-            offer = self.arbiter.offer(stamp, now)
-            if offer is Offer.TAKEN:
-                self.pending = msg.accel
-                for run in self.refused.values():
-                    run.good()
-                return
-            first = self.refused[offer].bad()
-            last = self.arbiter.last_stamp
-            count = {Offer.STALE: self.arbiter.stale, Offer.FUTURE: self.arbiter.ahead,
-                     Offer.REORDERED: self.arbiter.reordered}[offer]
-        if not first:
+    PRIMARY_WAIT = 2.0   # s: the longest a commandManager started while the watchdog runs waits for its word
+
+    def _await_primary(self, limit):
+        """Started again while the watchdog runs (the service manager's restart), wait for its latched word
+        on the primary: taken from ~sources meanwhile, the primary's commands were refused when a take-over
+        had happened since the start."""
+        try:
+            published = {topic for topic, _ in rosgraph.Master(self.name).getPublishedTopics('')}
+        except Exception as e:   # no master: nothing to wait for (the watchdog's word comes when it comes)
+            rospy.logwarn('%s: cannot ask the master whether a watchdog runs: %s', self.name, e)
             return
-        what = 'controllerPid command %.2f m/s^2 from %s stamped %.3f s' % (msg.accel, msg.source or '?', stamp)
-        if offer is Offer.STALE:
+        if rospy.resolve_name('primary') in published and not self.announced.wait(limit):
+            rospy.logwarn('%s: the watchdog\'s word on the primary board did not come within %.1f s: controllerPid\'s '
+                          'commands are taken from %s until it does', self.name, limit,
+                          ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node')
+
+    def _on_primary(self, msg):
+        with self.lock:
+            taken, offered = self.arbiter.announce(msg.board, [rospy.resolve_name(n) for n in msg.nodes], msg.term,
+                                                   msg.incarnation, rospy.get_time())
+            if taken:
+                self.foreign_run = None
+                self.announced.set()
+            said = self._offered(*offered) if offered is not None else None
+        if said is not None:
+            self._refusal_alarm(*said)
+        if taken:
+            rospy.loginfo('%s: board %s is the primary (term %d): controllerPid\'s commands taken from %s only',
+                          self.name, msg.board, msg.term, ', '.join(msg.nodes))
+            return
+        detail = ('the primary announced as board %s (%s) in term %d of watchdog run %s: refused (%s); '
+                  'commands are still taken from %s only'
+                  % (msg.board, ', '.join(msg.nodes) or 'no node', msg.term, msg.incarnation,
+                     'it names no node' if not msg.nodes else 'term %d of that run was announced already'
+                     % self.arbiter.sources.term, ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node'))
+        rospy.logwarn('%s: %s', self.name, detail)
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='primary_ignored',
+                                           detail=detail, stamp=rospy.Time.now()))
+
+    def _on_pid(self, msg):
+        sender = (getattr(msg, '_connection_header', None) or {}).get('callerid', '')
+        with self.lock:
+            stamp = msg.stamp.to_sec()
+            said = self._offered(self.arbiter.offer(stamp, rospy.get_time(), sender, msg), stamp, sender, msg)
+        if said is not None:
+            self._refusal_alarm(*said)
+
+    def _offered(self, offer, stamp, sender, msg):
+        """What becomes of a command of controllerPid offered to the arbiter (under the lock): taken, held
+        (its sender may be the primary the watchdog is naming), or refused. Returns the refusal to alarm
+        (the first of its run), else None."""
+        if offer is Offer.TAKEN:
+            self.pending, self.pending_sender = msg.accel, sender
+            for run in self.refused.values():
+                run.good()
+            return None
+        if offer is Offer.UNNAMED:
+            return None
+        if not self.refused[offer].bad():
+            return None
+        count = {Offer.STALE: self.arbiter.stale, Offer.FUTURE: self.arbiter.ahead,
+                 Offer.REORDERED: self.arbiter.reordered}[offer]
+        return offer, stamp, sender, msg.accel, msg.source, count, rospy.get_time(), self.arbiter.last_stamp
+
+    def _foreign(self, now):
+        """The commands refused as foreign since the last look (under the lock): the alarm to raise (the
+        first of a sender's run since the primary was last named), else None."""
+        said = None
+        for stamp, sender in self.arbiter.expire(now):
+            if sender != self.foreign_run:
+                self.foreign_run = sender
+                sources = self.arbiter.sources
+                said = (Offer.FOREIGN, stamp, sender, None, None, self.arbiter.foreign, now,
+                        (sources.board, sources.term, sorted(sources.nodes)))
+        return said
+
+    def _refusal_alarm(self, offer, stamp, sender, accel, source, count, now, last):
+        what = ('controllerPid command %sfrom %s stamped %.3f s'
+                % ('' if accel is None else '%.2f m/s^2 ' % accel, source or sender or '?', stamp))
+        if offer is Offer.FOREIGN:
+            board, term, nodes = last
+            detail = ('%s, sent by %s, not by the primary board\'s %s (%s) nor named so within %.2f s: refused (a '
+                      'deposed board still running, or a forger), %d so far'
+                      % (what, sender or 'an unnamed node', ', '.join(nodes),
+                         'board %s, term %d' % (board, term) if board else 'as configured', self.arbiter.name_wait,
+                         count))
+        elif offer is Offer.STALE:
             detail = ('%s, %.2f s before this node\'s clock (%.3f s): computed longer ago than a command is used '
                       'for (%.2f s; a board frozen and resumed?): refused, %d so far; as if controllerPid were '
                       'silent' % (what, now - stamp, now, self.arbiter.stale_after(), count))
@@ -451,9 +542,15 @@ class CommandManagerNode(PortedNode):
     def _send(self):
         with self.send_lock:
             with self.lock:
+                foreign = self._foreign(rospy.get_time())
                 accel = self.arbiter.command(self.pending, rospy.get_time())
-                self.pending = None
+                if self.pending is not None:
+                    self.driver = self.pending_sender or self.name
+                self.pending = self.pending_sender = None
                 self.cycle += 1
-                msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(self.arbiter.mode), cycle=self.cycle,
-                                 source=self.name)
+                mode = self.arbiter.mode
+                msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(mode), cycle=self.cycle,
+                                 source=self.driver if mode in (Mode.TJP, Mode.HOLD) else self.name)
             self.ports.publish('command', msg)
+        if foreign is not None:
+            self._refusal_alarm(*foreign)
