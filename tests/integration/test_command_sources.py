@@ -5,8 +5,10 @@ board_a's accelerating, board_b's braking), as when a deposed board nobody could
 A stand-in for the watchdog publishes its latched word (aft_msgs/PrimaryBoard) at moments drawn from
 a seed. Checked on what reaches the car (/car/command): before any word, only ~sources (board_a);
 after the word naming board_b, only board_b, within the time the word takes; a word of a term
-already passed, or naming no node, changes nothing and is alarmed (primary_ignored); the refused
-board is alarmed (foreign_command) once per run; a commandManager started again while the word
+already passed, the same term naming another board, naming no node, from another watchdog run
+naming another board, or from a node that is not ~watchdog changes nothing and is alarmed
+(primary_ignored, primary_disputed); the word in force heard again is not; the refused board is
+alarmed (foreign_command) once per word; a commandManager started again while the word
 stands never takes board_a's commands, though its configuration names board_a (it waits for the
 latched word; on an idle machine the word also comes before board_a's first command without the
 wait, which matters on a loaded one: this phase checks the property, it does not isolate the wait).
@@ -47,7 +49,19 @@ def start(argv, name):
 
 def command_manager():
     return start(['rosrun', 'tjp_sim', 'command_manager', '__name:=command_manager', '__ns:=/tjp',
-                  '_sources:=[%s]' % A, 'command:=/car/command', 'alarms:=/aft/alarms'], 'command_manager')
+                  '_sources:=[%s]' % A, '_watchdog:=/watchdog', 'command:=/car/command', 'alarms:=/aft/alarms'],
+                 'command_manager')
+
+
+FORGER = r"""
+import sys, time, rospy
+from aft_msgs.msg import PrimaryBoard
+rospy.init_node('forger')
+out = rospy.Publisher('/tjp/primary', PrimaryBoard, queue_size=1, latch=True)
+out.publish(PrimaryBoard(stamp=rospy.Time.now(), board='board_a', nodes=[sys.argv[1]], term=99,
+                         incarnation=sys.argv[2]))
+time.sleep(3)
+"""
 
 
 def board(name, accel):
@@ -56,7 +70,7 @@ def board(name, accel):
 
 
 try:
-    rospy.init_node('checker', disable_signals=True)
+    rospy.init_node('watchdog', disable_signals=True)   # the stand-in for the watchdog
     car, alarms = [], []
     rospy.Subscriber('/car/command', CarCommand, lambda m: car.append((time.monotonic(), m.source, m.accel, m.mode)))
     rospy.Subscriber('/aft/alarms', Alarm, lambda m: alarms.append((time.monotonic(), m.source, m.kind, m.detail)))
@@ -73,11 +87,13 @@ try:
 
     if not wait_until(lambda: driven(0) == [A] and kinds('foreign_command', 0), 60.0, 0.05):
         sys.exit('seed %d: before any word, the car was not driven by board_a alone with board_b refused: %s; '
-                 'alarms %s; %s' % (seed, driven(0), alarms[-4:], open(log_dir + '/command_manager.out').read()[-2000:]))
+                 'alarms %s; %s' % (seed, driven(0), alarms[-4:],
+                                    open(log_dir + '/command_manager.out').read()[-2000:]))
     t0 = time.monotonic()
     time.sleep(rng.uniform(0.3, 1.0))
     if driven(t0) != [A] or any(B not in a[3] for a in kinds('foreign_command', 0)):
-        sys.exit('seed %d: before any word: driven by %s; foreign alarms %s' % (seed, driven(t0), kinds('foreign_command', 0)))
+        sys.exit('seed %d: before any word: driven by %s; foreign alarms %s'
+                 % (seed, driven(t0), kinds('foreign_command', 0)))
     print('seed %d: before any word the car was driven by board_a only, board_b refused (foreign_command)' % seed,
           flush=True)
 
@@ -95,22 +111,39 @@ try:
     print('seed %d: board_b drove %.0f ms after the word naming it, board_a refused from then on'
           % (seed, (switched - said) * 1e3), flush=True)
 
-    # Words that must change nothing, in an order drawn from the seed: a passed term, none named.
-    stale = [PrimaryBoard(stamp=rospy.Time.now(), board='board_a', nodes=[A], term=rng.choice([1, 2]), incarnation='w1'),
-             PrimaryBoard()]
+    # Words that must change nothing, in an order drawn from the seed: a passed term, the same term naming
+    # the other board, none named, another watchdog run naming the other board (a watchdog started again
+    # starts from its configured primary), a word from a node that is not the watchdog.
+    stale = [PrimaryBoard(stamp=rospy.Time.now(), board='board_a', nodes=[A], term=rng.choice([1, 2]),
+                          incarnation='w1'),
+             PrimaryBoard(),
+             PrimaryBoard(stamp=rospy.Time.now(), board='board_a', nodes=[A], term=1, incarnation='w2'),
+             'forger']
     rng.shuffle(stale)
     before = time.monotonic()
     for msg in stale:
-        word.publish(msg)
+        if msg == 'forger':
+            start([sys.executable, '-c', FORGER, A, rng.choice(['w1', 'w3'])], 'forger')
+            time.sleep(1.0)
+        else:
+            word.publish(msg)
         time.sleep(rng.uniform(0.05, 0.3))
-    if not wait_until(lambda: len(kinds('primary_ignored', before)) >= 2, 5.0, 0.05):
-        sys.exit('seed %d: a passed or empty word was not refused aloud: %s' % (seed, alarms[-4:]))
+    if not wait_until(lambda: len(kinds('primary_ignored', before)) >= 3 and kinds('primary_disputed', before),
+                      8.0, 0.05):
+        sys.exit('seed %d: a passed, empty, disputed or forged word was not refused aloud: %s' % (seed, alarms[-6:]))
+    if not any('not the watchdog' in a[3] for a in kinds('primary_ignored', before)):
+        sys.exit('seed %d: the forger\'s word was not refused as not the watchdog\'s: %s' % (seed, alarms[-6:]))
     time.sleep(0.5)
     if driven(before) != [B]:
-        sys.exit('seed %d: a passed or empty word changed the driver: %s' % (seed, driven(before)))
+        sys.exit('seed %d: a word that must change nothing changed the driver: %s' % (seed, driven(before)))
+    quiet = time.monotonic()
+    word.publish(PrimaryBoard(stamp=rospy.Time.now(), board='board_b', nodes=[B], term=2, incarnation='w1'))
+    time.sleep(0.5)
+    if kinds('primary_ignored', quiet) or kinds('primary_disputed', quiet):
+        sys.exit('seed %d: the word in force heard again was alarmed: %s' % (seed, alarms[-2:]))
     word.publish(PrimaryBoard(stamp=rospy.Time.now(), board='board_b', nodes=[B], term=3, incarnation='w1'))
-    print('seed %d: a passed term and a word naming no node refused (primary_ignored), board_b drives on' % seed,
-          flush=True)
+    print('seed %d: a passed term, the same term naming board_a, no node named, another run naming board_a and a '
+          'forger\'s word refused aloud; the word in force again silent; board_b drives on' % seed, flush=True)
 
     # commandManager started again: its configuration names board_a; the latched word names board_b.
     manager.kill()

@@ -552,10 +552,23 @@ def test_the_word_naming_another_board_changes_nothing_for_a_backup_nor_for_the_
 
 
 def test_an_earlier_term_or_another_watchdog_run_deposes_nobody():
+    """A replayed or reordered word of a passed term, and a watchdog started again (which starts from its
+    configured primary whatever board drives) naming another board: said, not obeyed. The word in force
+    heard again (a latched word re-sent on a reconnect) is silent. Another run naming the board in
+    force is followed from then on."""
     alone = replica(B, Role.ALONE)
     assert alone.primary_named('board_b', 'board_b', 2, 'w1') == (None, [])
-    assert alone.primary_named('board_b', 'board_a', 1, 'w1') == (None, [])   # reordered, or replayed
-    stop, notes = alone.primary_named('board_b', 'board_a', 1, 'w2')          # a watchdog started again
+    assert alone.primary_named('board_b', 'board_b', 2, 'w1') == (None, [])   # the same again: silent
+    stop, notes = alone.primary_named('board_b', 'board_a', 1, 'w1')         # reordered, or replayed
+    assert stop is None and alarms(notes) == ['primary_ignored']
+    stop, notes = alone.primary_named('board_b', 'board_a', 1, 'w2')         # a watchdog started again
     assert stop is None and alarms(notes) == ['primary_disputed'] and alone.passes_outputs()
-    stop, _ = alone.primary_named('board_b', 'board_a', 3, 'w1')
-    assert stop and not alone.passes_outputs()
+    assert alone.primary_named('board_b', 'board_b', 1, 'w2') == (None, [])   # w2 names board_b: adopted
+    stop, notes = alone.primary_named('board_b', 'board_a', 2, 'w2')
+    assert stop and alarms(notes) == ['deposed'] and not alone.passes_outputs()
+
+
+def test_a_word_naming_no_node_deposes_nobody():
+    primary = replica(A, Role.PRIMARY)
+    stop, notes = primary.primary_named('board_a', 'board_b', 2, 'w1', names_nodes=False)
+    assert stop is None and alarms(notes) == ['primary_ignored'] and primary.passes_outputs()

@@ -2,6 +2,7 @@
 import random
 import pytest
 
+from aft_ftm.primary_word import Word
 from tjp_sim.control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, PrimarySources, SafetyDistance
 from tjp_sim.errors import TjpConfigError
 
@@ -356,6 +357,7 @@ def test_a_command_not_after_the_last_one_taken_is_refused_unless_the_clock_went
 
 
 A, B = '/board_a/cycle_after', '/board_b/cycle_after'
+TAKEN, ADOPTED, DUPLICATE, PASSED, DISPUTED = Word.TAKEN, Word.ADOPTED, Word.DUPLICATE, Word.PASSED, Word.DISPUTED
 
 
 def test_commands_are_taken_from_the_configured_board_until_the_watchdog_names_another():
@@ -365,33 +367,47 @@ def test_commands_are_taken_from_the_configured_board_until_the_watchdog_names_a
     assert arbiter.expire(10.15) == []                             # within name_wait (0.1 s)
     assert arbiter.expire(10.25) == [(10.1, B)] and arbiter.foreign == 1
     assert arbiter.offer(10.3, 10.3, '') is Offer.UNNAMED         # a sender that gave no name
-    assert arbiter.announce('board_b', [B], 2, 'w1', 10.3) == (True, None)   # (the held one is not B's)
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.3) == (TAKEN, None)   # (the held one is not B's)
     assert arbiter.expire(10.35) == [] and arbiter.expire(10.45) == [(10.3, '')] and arbiter.foreign == 2
     assert arbiter.offer(10.4, 10.4, A) is Offer.UNNAMED          # the deposed board, resumed
     assert arbiter.offer(10.4, 10.4, B) is Offer.TAKEN
-    assert arbiter.offer(10.5, 10.5, A) is Offer.UNNAMED          # replaces the last one: that one refused
-    assert arbiter.expire(10.5) == [(10.4, A)]
-    assert arbiter.expire(10.7) == [(10.5, A)] and arbiter.foreign == 4
+    assert arbiter.offer(10.45, 10.45, A) is Offer.UNNAMED        # replaces its own: superseded
+    assert arbiter.expire(10.48) == [] and arbiter.superseded == 1
+    # The hold counts from the first: a board sending faster than name_wait is refused all the same.
+    assert arbiter.expire(10.55) == [(10.45, A)] and arbiter.foreign == 3
 
 
 def test_the_new_primarys_command_that_comes_before_the_watchdogs_word_is_taken_with_it():
-    """The watchdog names board_b before promoting it, on another connection: board_b's first command
-    can come first (seen in the car scenario board_freeze, alarmed as foreign before it was held)."""
+    """The watchdog names board_b once it promoted it, on another connection than board_b's commands:
+    board_b's first command can come first (seen in the car scenario board_freeze)."""
     arbiter = CommandArbiter(sources=[A])
     assert arbiter.offer(10.0, 10.0, A) is Offer.TAKEN
     assert arbiter.offer(10.1, 10.1, B, payload='b1') is Offer.UNNAMED
-    taken, offered = arbiter.announce('board_b', [B], 2, 'w1', 10.12)
-    assert taken and offered == (Offer.TAKEN, 10.1, B, 'b1')
-    assert arbiter.expire(10.5) == [] and arbiter.foreign == 0 and arbiter.last_stamp == 10.1
+    assert arbiter.offer(10.15, 10.15, B, payload='b2') is Offer.UNNAMED   # the word is slow: b1 superseded
+    word, offered = arbiter.announce('board_b', [B], 2, 'w1', 10.18)
+    assert word is TAKEN and offered == (Offer.TAKEN, 10.15, B, 'b2')
+    assert arbiter.expire(10.5) == [] and arbiter.foreign == 0 and arbiter.last_stamp == 10.15
     # Named too late (past name_wait), it is refused, whoever is named.
     arbiter = CommandArbiter(sources=[A])
     assert arbiter.offer(10.1, 10.1, B, payload='b1') is Offer.UNNAMED
-    assert arbiter.announce('board_b', [B], 2, 'w1', 10.25) == (True, None)
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.25) == (TAKEN, None)
     assert arbiter.expire(10.25) == [(10.1, B)] and arbiter.last_stamp is None
     # Taken late, its stamp is checked as any command's: too old by then, it is refused as stale.
     arbiter = CommandArbiter(sources=[A], name_wait=1.0)
     assert arbiter.offer(10.0, 10.0, B, payload='b1') is Offer.UNNAMED
-    assert arbiter.announce('board_b', [B], 2, 'w1', 10.5) == (True, (Offer.STALE, 10.0, B, 'b1'))
+    assert arbiter.announce('board_b', [B], 2, 'w1', 10.5) == (TAKEN, (Offer.STALE, 10.0, B, 'b1'))
+
+
+def test_the_hold_is_timed_on_the_wall_clock_not_on_the_simulations():
+    """At 20 times real time, 0.1 s of road time is 5 ms: the race the hold covers is in real time. A
+    wall clock before the hold (a held command's time gone wrong) does not keep it for ever."""
+    arbiter = CommandArbiter(sources=[A])
+    assert arbiter.offer(10.0, 10.0, B, payload='b1', wall=500.0) is Offer.UNNAMED
+    word, offered = arbiter.announce('board_b', [B], 2, 'w1', 11.5, wall=500.05)   # 1.5 s of road time later
+    assert offered == (Offer.STALE, 10.0, B, 'b1')   # offered (its stamp then too old: refused as stale)
+    arbiter = CommandArbiter(sources=[A])
+    assert arbiter.offer(10.0, 10.0, B, wall=500.0) is Offer.UNNAMED
+    assert arbiter.expire(499.0) == [(10.0, B)]
 
 
 def test_a_deposed_boards_fresh_commands_do_not_move_the_order_the_primarys_are_checked_against():
@@ -407,17 +423,37 @@ def test_a_deposed_boards_fresh_commands_do_not_move_the_order_the_primarys_are_
 def test_without_sources_every_sender_is_taken_until_a_watchdog_names_one():
     arbiter = CommandArbiter()
     assert arbiter.offer(10.0, 10.0, A) is Offer.TAKEN and arbiter.offer(10.1, 10.1, B) is Offer.TAKEN
-    assert arbiter.announce('board_a', [A], 1, 'w1', 10.1) == (True, None)
+    assert arbiter.announce('board_a', [A], 1, 'w1', 10.1) == (TAKEN, None)
     assert arbiter.offer(10.2, 10.2, B) is Offer.UNNAMED
+
+
+def test_started_again_it_takes_nobodys_commands_until_the_word_comes_or_the_wait_ends():
+    """A commandManager started again after board_b took over: its configuration names board_a, the
+    deposed board may still publish. Nothing is taken, nothing expires, until the latched word."""
+    arbiter = CommandArbiter(sources=[A])
+    arbiter.wait_for_word()
+    assert arbiter.offer(10.0, 10.0, A) is Offer.UNNAMED and arbiter.offer(10.0, 10.0, B, payload='b') is Offer.UNNAMED
+    assert arbiter.expire(10.5) == []
+    assert arbiter.offer(10.55, 10.55, B, payload='b2') is Offer.UNNAMED
+    word, offered = arbiter.announce('board_b', [B], 2, 'w1', 10.6)
+    assert word is TAKEN and offered == (Offer.TAKEN, 10.55, B, 'b2')
+    assert arbiter.expire(10.6) == [(10.0, A)]     # the deposed board's, now it is known not to be named
+    # The word never came: the configured board is taken again, its last command if it came within name_wait.
+    arbiter = CommandArbiter(sources=[A])
+    arbiter.wait_for_word()
+    assert arbiter.offer(12.0, 12.0, A, payload='a') is Offer.UNNAMED
+    assert arbiter.end_wait(12.05) == (Offer.TAKEN, 12.0, A, 'a')
+    assert arbiter.end_wait(12.1) is None and arbiter.offer(12.1, 12.1, A) is Offer.TAKEN
 
 
 @pytest.mark.parametrize('seed', range(30))
 def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
     """Two boards send every 0.1 s, the watchdog's take-overs come at random, its word delayed at random
-    (before or after the new primary's first command, up to 0.15 s), announcements repeated and
-    reordered at random. Whatever the order: a command taken was sent by the board of the highest term
-    heard when it was taken; each command is taken, refused or still held, once; every command the
-    primary sent at most name_wait before its word came is taken."""
+    (before or after the new primary's first command, up to 0.15 s), words repeated and reordered at
+    random. Whatever the order: a command taken was sent by the board of the highest term heard when
+    it was taken; each command is taken, refused, superseded or still held, once; the command the
+    named board sent within name_wait before its word came is offered when the word comes, and taken
+    unless its stamp is not after the last one taken."""
     rng = random.Random(seed)
     arbiter = CommandArbiter(sources=[A], name_wait=0.1)
     primary, term, events = A, 1, []
@@ -428,24 +464,29 @@ def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
             primary, term = (B if primary == A else A), term + 1
             events.append((round(t + rng.uniform(-0.05, 0.15), 2), 'announce', primary, term))
         if step % 10 == 0:
-            for board in (A, B):
-                events.append((t, 'command', board, (t, board)))
-        if rng.random() < 0.05 and term > 1:   # an old announcement again
+            for board in rng.sample((A, B), 2):
+                events.append((round(t + rng.uniform(0, 0.005), 3), 'command', board, (t, board)))
+        if rng.random() < 0.05 and term > 1:   # an old word again
             old = rng.randint(1, term)
             events.append((t, 'announce', A if old % 2 else B, old))
     events.sort(key=lambda e: e[0])
     taken, sent, last, best = [], [], {}, 1   # term 1: board_a, as configured
     for now, kind, board, arg in events:
         if kind == 'announce':
-            before = arbiter.sources.nodes
-            ok, offered = arbiter.announce(board, [board], arg, 'w1', now)
-            if ok:
+            before, holding = arbiter.sources.nodes, board in arbiter.unnamed
+            word, offered = arbiter.announce(board, [board], arg, 'w1', now)
+            if word is TAKEN:
                 best = arg
                 # The board named, if it was not allowed already, gets its last command offered if it came
-                # within name_wait (the one its After published before it heard it was the primary).
+                # within name_wait (the one its After published before the word came) and its hold did not
+                # expire (name_wait after the first one held).
                 waited, held = last.get(board, (None, False))
-                if board not in before and held and now - waited[0] < 0.1 - 1e-6:
+                if board not in before and held and holding and now - waited[0] < 0.1 - 1e-6:
                     assert offered is not None and offered[3] == waited, 'seed %d' % seed
+                    assert offered[0] is Offer.TAKEN or (offered[0] is Offer.REORDERED and
+                                                          waited[0] <= arbiter.last_stamp), 'seed %d' % seed
+            else:
+                assert word in (DUPLICATE, PASSED) and offered is None, 'seed %d' % seed
             if offered is not None and offered[0] is Offer.TAKEN:
                 taken.append((offered[3], board, best))
         else:
@@ -458,32 +499,45 @@ def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
     why = 'seed %d' % seed
     for command, board, at_term in taken:
         assert command[1] == board and (A if at_term % 2 else B) == board, why
-    refused = arbiter.foreign + len(arbiter.unnamed)
+    held = len(arbiter.unnamed)
     assert len({c for c, _, _ in taken}) == len(taken), why
-    assert len(taken) + refused + arbiter.stale + arbiter.ahead + arbiter.reordered == len(sent), why
+    assert len(taken) + arbiter.foreign + arbiter.superseded + held + arbiter.stale + arbiter.ahead + \
+        arbiter.reordered == len(sent), why
 
 
 @pytest.mark.parametrize('seed', range(20))
-def test_an_announcement_of_a_passed_term_changes_nothing_whatever_order_they_come_in(seed):
-    """Announcements duplicated, reordered and replayed at random: the primary is always the one of the
-    highest term heard of the watchdog's run; another run's (a watchdog started again) is taken."""
+def test_a_word_of_a_passed_term_changes_nothing_whatever_order_they_come_in(seed):
+    """Words duplicated, reordered and replayed at random: the primary is always the one of the highest
+    term heard of the watchdog's run; the word in force heard again is a silent duplicate, an older
+    term refused aloud."""
     rng = random.Random(seed)
     terms = [(t, 'board_a' if t % 2 else 'board_b') for t in range(1, 8)]
     heard = [rng.choice(terms[:i + 1]) for i in range(len(terms)) for _ in range(rng.randint(1, 3))]
     sources = PrimarySources([A])
-    best = passed = 0
+    best = 0
     for term, board in heard:
         nodes = ['/%s/cycle_after' % board]
-        assert sources.announce(board, nodes, term, 'w1') is (term > best), 'seed %d' % seed
-        passed += term <= best
+        word = sources.announce(board, nodes, term, 'w1')
+        assert word is (TAKEN if term > best else DUPLICATE if term == best else PASSED), 'seed %d' % seed
         best = max(best, term)
         expected = dict(terms)[best]
         assert (sources.board, sources.term, sources.nodes) == (expected, best, {'/%s/cycle_after' % expected})
-    assert sources.ignored == passed > 0, 'seed %d' % seed
-    assert sources.announce('board_b', [B], 1, 'w2') and sources.nodes == {B}   # a new run: its word is taken
 
 
-def test_an_announcement_naming_no_node_is_refused():
+def test_another_watchdog_run_is_followed_only_if_it_names_the_board_in_force():
+    """A watchdog started again starts from its configured primary (board_a) whatever board drives: its
+    word must not take the car from board_b. Naming board_b, its run is adopted."""
     sources = PrimarySources([A])
-    assert not sources.announce('board_b', [], 5, 'w1')
-    assert sources.nodes == {A} and sources.ignored == 1
+    assert sources.announce('board_a', [A], 1, 'w1') is TAKEN
+    assert sources.announce('board_b', [B], 2, 'w1') is TAKEN
+    assert sources.announce('board_a', [A], 1, 'w2') is DISPUTED and sources.nodes == {B}
+    assert sources.announce('board_a', [A], 3, 'w0') is DISPUTED and sources.nodes == {B}   # an old run, late
+    assert sources.announce('board_b', [B], 1, 'w2') is ADOPTED and sources.word.run == 'w2'
+    assert sources.announce('board_a', [A], 2, 'w2') is TAKEN and sources.nodes == {A}
+    assert sources.announce('board_b', [B], 2, 'w1') is DISPUTED and sources.ignored == 3
+
+
+def test_the_first_word_is_taken_whatever_its_run_and_a_word_naming_no_node_never():
+    sources = PrimarySources([A])
+    assert sources.announce('board_b', [], 5, 'w1') is PASSED and sources.nodes == {A}
+    assert sources.announce('board_b', [B], 7, 'w9') is TAKEN and sources.nodes == {B}

@@ -48,6 +48,7 @@ import collections
 
 from .checkpoint import CheckpointReceiver, CheckpointSender, Decision, Follow, Need
 from .errors import RoleError
+from .primary_word import PrimaryWord, Word
 from .protocol import Role, check_role_change
 
 
@@ -108,7 +109,7 @@ class CycleReplica(object):
         self.last_applied = None    # backup: when it last applied a checkpoint
         self.own_cycles = 0         # backup: its own node's cycles since then
         self.transfers = 0          # sender: state transfers sent to joiners
-        self.named = None           # (incarnation, term) of the watchdog's last word on the primary heard
+        self.named = PrimaryWord()  # the watchdog's word on the primary board, as followed
 
     @property
     def role(self):
@@ -189,26 +190,23 @@ class CycleReplica(object):
         return [Note('site_stopped', '%s: %s; it refuses checkpoints and does not join until its site is started '
                      'again' % (self.name, self.stopped), alarm=True)]
 
-    def primary_named(self, site, board, term, incarnation):
+    def primary_named(self, site, board, term, incarnation, names_nodes=True):
         """The watchdog named ``board`` the primary in ``term`` of its run ``incarnation`` (this replica
-        runs on ``site``). A PRIMARY or ALONE replica of another board was deposed while it could not hear
-        (frozen, cut off) and nobody fenced it (no power switch for its host): it stops passing anything on,
-        for good, and its site must fail-stop. Returns (why the site must fail-stop, or None; notes).
-
-        Only the watchdog run first heard is obeyed: another run's word (a watchdog started again, which
-        starts from its configured primary whatever board drives) is alarmed, not obeyed, since a primary
-        stepping down on it could leave nobody driving. An earlier or the same term of the run changes
-        nothing (duplicated, reordered)."""
-        if self.named is not None:
-            if incarnation != self.named[0]:
-                return None, [Note('primary_disputed', '%s: a watchdog run (%s) other than the one first heard (%s) '
-                                   'names board %s the primary in its term %d: not obeyed; this After stays %s'
-                                   % (self.name, incarnation, self.named[0], board, term, self.role.name),
-                                   alarm=True)]
-            if term <= self.named[1]:
-                return None, []
-        self.named = (incarnation, term)
-        if board == site or self.role == Role.BACKUP or self.stopped is not None:
+        runs on ``site``), followed by aft_ftm.primary_word's rule. A PRIMARY or ALONE replica of another
+        board named in a new word was deposed while it could not hear (frozen, cut off) and nobody fenced
+        it (no power switch for its host): it stops passing anything on, for good, and its site must
+        fail-stop. Returns (why the site must fail-stop, or None; notes). A word refused (a term passed,
+        another run naming another board: a watchdog started again starts from its configured primary,
+        whatever board drives) is said, not obeyed."""
+        word = self.named.hear(board, term, incarnation, names_nodes)
+        if word.refused:
+            return None, [Note(word.value, '%s: the word naming board %s the primary in term %d of watchdog run %s is '
+                               'refused (%s); in force: %s; this After stays %s'
+                               % (self.name, board, term, incarnation,
+                                  'another run naming another board' if word is Word.DISPUTED else
+                                  'a term passed, or naming no node', self.named.describe(), self.role.name),
+                               alarm=True)]
+        if word is not Word.TAKEN or board == site or self.role == Role.BACKUP or self.stopped is not None:
             return None, []
         self.stopped = 'deposed: the watchdog named board %s the primary (term %d) while this %s ran on' % (
             board, term, self.role.name)

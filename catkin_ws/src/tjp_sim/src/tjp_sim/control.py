@@ -16,6 +16,8 @@ import collections
 import enum
 import math
 
+from aft_ftm.primary_word import PrimaryWord, Word
+
 from .errors import TjpConfigError
 
 
@@ -314,38 +316,47 @@ class Offer(enum.Enum):
 class PrimarySources(object):
     """Whose commands of controllerPid commandManager takes: those of the nodes of the primary board,
     as the watchdog of the replicated controllerPid names them (:meth:`announce`, from
-    aft_msgs/PrimaryBoard), and until it first does, the nodes given at the start. None given and none
-    named: any node's (controllerPid not replicated).
+    aft_msgs/PrimaryBoard, followed by :class:`aft_ftm.primary_word.PrimaryWord`'s rule), and until it
+    first does, the nodes given at the start. None given and none named: any node's (controllerPid not
+    replicated). While ``waiting`` (a commandManager started again while the watchdog runs, until its
+    word comes) nobody's.
 
     This is the take-over's fencing at the actuator's side. The watchdog powers a failed board off
     before it promotes the backup, but where it cannot (a board on a machine of its own with no power
     switch wired in), a board that only froze resumes taking itself for the primary and publishes fresh
     commands: both boards drove the car, one command in two, for the rest of the run (before session 51).
-
-    An announcement is taken if it is the first of a watchdog's run (``incarnation``) or names a later
-    ``term`` of the same run; one of that run's earlier or same term (duplicated, reordered,
-    replayed) changes nothing and is counted in ``ignored``. One naming no node is refused (it would
-    open the car to any sender).
     """
 
     def __init__(self, nodes=()):
         self.nodes = frozenset(nodes)
-        self.board = None
-        self.term = 0
-        self.incarnation = None
-        self.ignored = 0
+        self.word = PrimaryWord()
+        self.waiting = False
+
+    @property
+    def board(self):
+        return self.word.board
+
+    @property
+    def term(self):
+        return self.word.term
+
+    @property
+    def ignored(self):
+        return self.word.refused
 
     def allows(self, node):
-        return not self.nodes or node in self.nodes
+        return not self.waiting and (not self.nodes or node in self.nodes)
 
     def announce(self, board, nodes, term, incarnation):
         """The watchdog names ``board`` (its ``nodes``) the primary in ``term`` of its run
-        ``incarnation``. Returns whether it was taken (see the class)."""
-        if not nodes or (incarnation == self.incarnation and term <= self.term):
-            self.ignored += 1
-            return False
-        self.board, self.nodes, self.term, self.incarnation = board, frozenset(nodes), term, incarnation
-        return True
+        ``incarnation``. Returns the :class:`aft_ftm.primary_word.Word`; the nodes named are taken with
+        a new primary (TAKEN), and the wait ends with any word followed (TAKEN, ADOPTED, DUPLICATE)."""
+        verdict = self.word.hear(board, term, incarnation, bool(nodes))
+        if verdict is Word.TAKEN:
+            self.nodes = frozenset(nodes)
+        if not verdict.refused:
+            self.waiting = False
+        return verdict
 
 
 # Allowed mode changes and what causes each.
@@ -381,13 +392,17 @@ class CommandArbiter(object):
     - stamped at or before the last one taken (``reordered``: a reordered, duplicated or replayed
       one), unless the caller's own clock went back since (a /clock reset: taken afresh, ``resets``).
     Before the stamp is looked at, a command sent by a node that ``sources`` (:class:`PrimarySources`)
-    does not allow is held (``UNNAMED``), the last one of each sender (of at most ``HELD_SENDERS``, the
-    oldest refused first): the watchdog names the new primary before
-    promoting it, but the two come on separate connections, and the new primary's first command can
-    come first (seen in the car scenario board_freeze). If :meth:`announce` names its sender within
-    ``name_wait`` of its coming, it is offered then; otherwise, or replaced by a later one, it is
-    refused (``foreign``, :meth:`expire`): a deposed board's fresh commands neither drive nor move the
-    order the primary's are checked against.
+    does not allow is held (``UNNAMED``): the watchdog names the new primary once it promoted it, on
+    another connection than the new primary's commands, so its first command can come first. The last
+    one of each sender is held (an earlier one it replaces is ``superseded``), of at most
+    ``HELD_SENDERS`` senders (the oldest refused first). If :meth:`announce` names its sender within
+    ``name_wait`` of the first one held (on the caller's ``wall`` clock: the race is in real time,
+    whatever rate the simulation runs at), the last one is offered then; otherwise it is refused
+    (``foreign``, :meth:`expire`), and the sender's next one starts a new hold: a deposed board's
+    fresh commands neither drive nor move the order the primary's are checked against. While the
+    sources wait for the watchdog's word (:meth:`wait_for_word`), every command is held and none
+    expires; :meth:`end_wait` (the word did not come) takes the configured sources' and expires the
+    rest.
     """
 
     def __init__(self, hold=0.3, emergency_decel=6.0, stop_decel=3.0, late=0.15, ahead_max=0.5, sources=(),
@@ -411,8 +426,10 @@ class CommandArbiter(object):
         self.sources = PrimarySources(sources)
         self.foreign = 0         # commands refused: sent by a node other than the primary board's
         self.name_wait = _non_negative('name_wait', name_wait)
-        self.unnamed = collections.OrderedDict()   # sender -> (stamp, sender, payload, when) held by offer()
+        # sender -> (stamp, sender, payload, first held, last held) of the command held by offer()
+        self.unnamed = collections.OrderedDict()
         self.refused_foreign = []   # (stamp, sender) refused as foreign, until expire() hands them over
+        self.superseded = 0      # commands held, replaced by a later one of the same sender
 
     def _change(self, mode, reason):
         if self.mode == mode:
@@ -433,15 +450,21 @@ class CommandArbiter(object):
         """How old a command may be when it comes (s): the longest a command that came on time is used."""
         return max(self.late, self.hold)
 
-    def offer(self, stamp, now, sender=None, payload=None):
+    def offer(self, stamp, now, sender=None, payload=None, wall=None):
         """Whether a command of controllerPid stamped ``stamp``, sent by node ``sender``, may be passed
         on to :meth:`command` at ``now`` (the caller's clock, in the stamps' units; 0: none yet). See the
-        class. ``payload`` (the command) is kept with a command held (UNNAMED), for :meth:`announce`."""
+        class. ``payload`` (the command) is kept with a command held (UNNAMED), for :meth:`announce`;
+        ``wall`` (default ``now``) times the hold."""
         if not self.sources.allows(sender):
-            self._drop_unnamed(sender)
+            wall = now if wall is None else wall
+            first = wall
+            earlier = self.unnamed.pop(sender, None)
+            if earlier is not None:   # superseded: the hold still counts from the sender's first one
+                self.superseded += 1
+                first = earlier[3]
             while len(self.unnamed) >= self.HELD_SENDERS:
                 self._drop_unnamed(next(iter(self.unnamed)))
-            self.unnamed[sender] = (stamp, sender, payload, now)
+            self.unnamed[sender] = (stamp, sender, payload, first, wall)
             return Offer.UNNAMED
         if now and stamp > now + self.ahead_max:
             self.ahead += 1
@@ -460,39 +483,60 @@ class CommandArbiter(object):
         return Offer.TAKEN
 
     HELD_SENDERS = 4
+    REFUSED_KEPT = 64   # refusals kept for expire() to hand over (the count goes on)
 
     def _drop_unnamed(self, sender):
         dropped = self.unnamed.pop(sender, None)
         if dropped is not None:
             self.foreign += 1
-            self.refused_foreign.append(dropped[:2])
+            if len(self.refused_foreign) < self.REFUSED_KEPT:
+                self.refused_foreign.append(dropped[:2])
 
-    def announce(self, board, nodes, term, incarnation, now):
-        """The watchdog's word (:meth:`PrimarySources.announce`). Returns (taken, offered): offered is
-        None, or (offer, stamp, sender, payload) of the command held if the new primary sent it within
-        ``name_wait``, offered again now (:meth:`offer`'s answer: TAKEN, or why not)."""
-        if not self.sources.announce(board, nodes, term, incarnation):
-            return False, None
+    def _release(self, now, wall):
+        """The freshest command held of a sender the sources allow now, if it came within name_wait (a
+        hold not yet expired: see :meth:`expire`),
+        offered again (its stamp checked then): None or (offer, stamp, sender, payload). The other held
+        commands of allowed senders are refused."""
         named = [held for held in self.unnamed.values() if self.sources.allows(held[1])]
-        for held in named:   # (a board's output comes from one node: at most one is offered)
-            if now - held[3] > self.name_wait:
-                self._drop_unnamed(held[1])
-        fresh = [held for held in named if held[1] in self.unnamed]
-        if not fresh:
-            return True, None
-        best = max(fresh, key=lambda held: held[0])
-        for held in fresh:
+        fresh = [held for held in named if wall - held[4] <= self.name_wait]
+        best = max(fresh, key=lambda held: held[0]) if fresh else None
+        for held in named:
             if held is not best:
                 self._drop_unnamed(held[1])
-        stamp, sender, payload, _ = self.unnamed.pop(best[1])
-        return True, (self.offer(stamp, now, sender), stamp, sender, payload)
+        if best is None:
+            return None
+        stamp, sender, payload = self.unnamed.pop(best[1])[:3]
+        return self.offer(stamp, now, sender), stamp, sender, payload
 
-    def expire(self, now):
-        """The commands refused as foreign since the last call, [(stamp, sender), ...]: held longer than
-        ``name_wait`` with their sender not named, or replaced by a later one."""
-        for held in list(self.unnamed.values()):
-            if now - held[3] > self.name_wait:
-                self._drop_unnamed(held[1])
+    def announce(self, board, nodes, term, incarnation, now, wall=None):
+        """The watchdog's word (:meth:`PrimarySources.announce`). Returns (word, offered): the
+        :class:`aft_ftm.primary_word.Word`, and None or (offer, stamp, sender, payload) of the command
+        held if the primary named sent it within ``name_wait``, offered again now (:meth:`offer`'s
+        answer: TAKEN, or why not)."""
+        word = self.sources.announce(board, nodes, term, incarnation)
+        if word.refused:
+            return word, None
+        return word, self._release(now, now if wall is None else wall)
+
+    def wait_for_word(self):
+        """Take nobody's commands (hold them) until the watchdog's word comes, or :meth:`end_wait`."""
+        self.sources.waiting = True
+
+    def end_wait(self, now, wall=None):
+        """The watchdog's word did not come: the configured sources again. Returns as :meth:`_release`."""
+        if not self.sources.waiting:
+            return None
+        self.sources.waiting = False
+        return self._release(now, now if wall is None else wall)
+
+    def expire(self, wall):
+        """The commands refused as foreign since the last call, [(stamp, sender), ...] (the first
+        ``REFUSED_KEPT``): held longer than ``name_wait`` (on the ``wall`` clock the hold was timed on)
+        with their sender not named. Nothing expires while the sources wait for the word."""
+        if not self.sources.waiting:
+            for held in list(self.unnamed.values()):
+                if wall - held[3] > self.name_wait or wall < held[3]:
+                    self._drop_unnamed(held[1])
         refused, self.refused_foreign = self.refused_foreign, []
         return refused
 

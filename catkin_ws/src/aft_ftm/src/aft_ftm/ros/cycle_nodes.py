@@ -40,6 +40,7 @@ from ..cycle_replica import CycleReplica
 from ..errors import RoleError
 from ..ports import PUBLISH, SUBSCRIBE, PortSpec
 from ..protocol import Role
+from .alarms import alarm
 from .diagnostics import Diagnostics
 from .fail_stop import fail_stop
 from .params import param
@@ -103,7 +104,7 @@ class CycleAfterNode(object):
         primary (aft_msgs/PrimaryBoard), port ``primary``: the watchdog's word on the primary board: a
             primary or lone After of another board (~site) was deposed while it could not hear, and
             nobody could fence it: it passes nothing on from then and its site fail-stops (alarm
-            ``deposed``; CycleReplica.primary_named)
+            ``deposed``; CycleReplica.primary_named); only ~watchdog's word is heard where it is set
     Publishes:
         out (~msg_type), port ``out``: the replicated node's outputs, for the rest of the system
         checkpoints (aft_msgs/Checkpoint), port ``checkpoints``
@@ -118,7 +119,8 @@ class CycleAfterNode(object):
             After that hangs (stopped, or deadlocked on its lock) is failed over like a hung node
         alarms (aft_msgs/Alarm), port ``alarms``: mechanism ``pbr``, kinds ``backup_lost`` (a primary
             goes on alone), ``backup_invalid`` (a backup no longer mirrors its primary), ``node_hung``
-            ``fail_stop``, ``deposed`` and ``primary_disputed`` (another watchdog run's word, not obeyed)
+            ``fail_stop``, ``deposed``, ``primary_disputed`` and ``primary_ignored`` (a word refused,
+            aft_ftm.primary_word, or not from ~watchdog)
     Services called:
         set_state (aft_msgs/SetState): the node's state manager (backup)
     Services:
@@ -137,6 +139,8 @@ class CycleAfterNode(object):
         self.first_seq = int(time.time() * 1e6)   # numbered from the clock, as PBR's After
         self.peer_after = param('peer_after', config.optional_name, '')
         self.site_detector = param('site_detector', config.optional_name, '')
+        self.watchdog = param('watchdog', config.optional_name, '')
+        self.watchdog = rospy.resolve_name(self.watchdog) if self.watchdog else ''
         self.replica = CycleReplica(
             self.name, role, self.first_seq, expect=self.peer_after,
             ack_timeout=param('ack_timeout', config.positive_float, 0.5),
@@ -286,8 +290,14 @@ class CycleAfterNode(object):
         """The watchdog's word on the primary board: a primary or lone After of another board was deposed
         while it could not hear, and nobody fenced it; it stops passing anything on and its site
         fail-stops (CycleReplica.primary_named)."""
+        sender = (getattr(msg, '_connection_header', None) or {}).get('callerid', '')
+        if self.watchdog and sender != self.watchdog:
+            alarm(self.ports, 'pbr', 'primary_ignored', '%s: a word naming board %s the primary (term %d) from %s, '
+                  'not the watchdog %s: ignored' % (self.name, msg.board, msg.term, sender or 'an unnamed node',
+                                                    self.watchdog))
+            return
         with self.lock:
-            stop, notes = self.replica.primary_named(self.site, msg.board, msg.term, msg.incarnation)
+            stop, notes = self.replica.primary_named(self.site, msg.board, msg.term, msg.incarnation, bool(msg.nodes))
         self._report(notes)
         if stop:
             fail_stop(self.ports, self.site, '%s: %s' % (self.name, stop))

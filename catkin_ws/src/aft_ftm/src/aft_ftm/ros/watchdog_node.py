@@ -37,9 +37,11 @@ class WatchdogNode(object):
     3. the failover is published, with the detection time (the silence) and the switch time.
 
     Which board is the primary is said on ``primary`` (latched), at the start and at each take-over
-    before the backup is promoted, with a term one more each time: a consumer of the replicated
-    output (the car's commandManager) takes it from those nodes only. Where this watchdog cannot power
-    a failed board off (another host's, with no switch), that board resumed still publishes.
+    once the backup's nodes all took their role (a failed promotion says nothing: a board that only
+    stalled drives on), with a term one more each time: a consumer of the replicated output (the car's
+    commandManager) takes it from those nodes only, and the boards' Afters of another board step down
+    (aft_ftm.primary_word). Where this watchdog cannot power a failed board off (another host's, with no
+    switch), that board resumed still publishes, until it hears the word.
 
     A silent primary with no backup, or a silent backup, is reported and left running (it is not
     promoted while silent). A board heard from a new launcher (it was started again) holds no state:
@@ -278,8 +280,6 @@ class WatchdogNode(object):
             # The failed board is stopped and sent SIGKILL (it can publish nothing more, whoever resumes
             # it): the backup may take over now, while the kernel tears the processes down.
             proxies = self.proxies.get(failover.to, {})
-            # Said before the promotion: the new primary's first output must find its consumers told.
-            self._announce(failover.to)
             for node in failover.nodes:
                 if node not in proxies:
                     problems.append('%s: no connection open to it' % node)
@@ -292,6 +292,11 @@ class WatchdogNode(object):
                     problems.append('%s refused: %s' % (node, answer.message))
                     break
                 promoted.append(node)
+            if not problems:
+                # Said once every node took its role, never before: a promotion that failed must not depose
+                # a board that was only stalled and that nobody could power off (it drives on). The new
+                # primary's first output may come before the word: its consumers hold it a moment.
+                self._announce(failover.to)
             switched.append(time.monotonic() - started)
         killed = self._power_off(failover.board, verdict, promote)
         switch = switched[0]

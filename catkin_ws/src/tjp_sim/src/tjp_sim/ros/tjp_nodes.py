@@ -8,6 +8,7 @@ simulator's clock (``/use_sim_time``).
 import json
 import math
 import threading
+import time
 
 import rosgraph
 import rospy
@@ -19,6 +20,7 @@ from aft_ftm import config
 from aft_ftm.ports import PUBLISH, SUBSCRIBE, PortSpec
 from aft_ftm.ros.cycle_nodes import Terminate
 from aft_ftm.ros.params import param
+from aft_ftm.primary_word import Word
 from aft_ftm.ros.ports import Ports
 
 from ..control import CommandArbiter, EmergencyBraking, Mode, Offer, PidController, SafetyDistance, speed_refused
@@ -368,9 +370,10 @@ class CommandManagerNode(PortedNode):
 
     Parameters: ~period (float, 0.05 s), ~hold (float, 0.3 s), ~emergency_decel (6), ~stop_decel (3 m/s^2),
         ~sources (list of node names, []: any node): whose commands are taken until the watchdog names the
-        primary's; ~name_wait (float, 0.1 s): how long a command of another node is held, in case the
+        primary's; ~name_wait (float, 0.25 s): how long a command of another node is held, in case the
         watchdog is naming it the primary (its word and the new primary's first command come on separate
-        connections), before it is refused
+        connections), before it is refused (wall clock); ~watchdog (node name, '': any): the only node whose
+        word on the primary is heard
     Subscribes: pid_command (aft_msgs/CarCommand), port ``pid_command``; primary (aft_msgs/PrimaryBoard),
         port ``primary``: the watchdog's word on the primary board (latched); emergency (std_msgs/Bool),
         port ``emergency``; safe_stop (std_msgs/String: the reason), port ``safe_stop``;
@@ -379,8 +382,11 @@ class CommandManagerNode(PortedNode):
     Publishes: command (aft_msgs/CarCommand), port ``command``: its ``source`` is the node whose command of
         controllerPid was last taken in modes TJP and HOLD, this node otherwise; alarms (aft_msgs/Alarm),
         port ``alarms``: a command of controllerPid refused, stale_command, future_command, reordered_command
-        or foreign_command, each once per run of them (a command taken ends it); an announcement of the
-        primary refused (primary_ignored: of a term already passed, or naming no node)
+        or foreign_command, each once per run of them (a command taken ends it; foreign_command once per
+        sender and primary named); the watchdog's word refused (primary_ignored: of a term passed, naming no
+        node, or not from ~watchdog; primary_disputed: another watchdog run naming another board,
+        aft_ftm.primary_word); its word not come within 2 s of a start while the watchdog runs
+        (primary_unknown: ~sources taken)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -392,7 +398,9 @@ class CommandManagerNode(PortedNode):
                                           stop_decel=param('stop_decel', config.positive_float, 3.0),
                                           sources=[rospy.resolve_name(n)
                                                    for n in param('sources', config.name_list, [])],
-                                          name_wait=param('name_wait', config.non_negative_float, 0.1))
+                                          name_wait=param('name_wait', config.non_negative_float, 0.25))
+            self.watchdog = param('watchdog', config.optional_name, '')
+            self.watchdog = rospy.resolve_name(self.watchdog) if self.watchdog else ''
         except TjpConfigError as e:
             raise config.ConfigError('%s: %s' % (rospy.get_name(), e))
         super(CommandManagerNode, self).__init__(
@@ -414,60 +422,108 @@ class CommandManagerNode(PortedNode):
         self.send_lock = threading.Lock()
         self.refused = {offer: Episodes() for offer in Offer if offer not in (Offer.TAKEN, Offer.FOREIGN)}
         # A deposed board's commands come between the primary's: their alarm is once per sender and
-        # primary announced, not ended by each command taken (it was raised every 0.1 s).
-        self.foreign_run = None
-        self.announced = threading.Event()   # the watchdog's word on the primary was taken
+        # primary named, not ended by each command taken (it was raised every 0.1 s).
+        self.foreign_alarmed = set()
+        self.announced = threading.Event()   # the watchdog's word on the primary was followed
 
     def setup(self, timeout):
-        self.bind_all()
-        self._await_primary(min(timeout, self.PRIMARY_WAIT))
+        # The watchdog's word is heard before any command of controllerPid: a commandManager started again
+        # after a take-over must not take the deposed board's first.
+        for name, spec in self.ports.specs.items():
+            if spec.direction == PUBLISH:
+                self.ports.bind(name)
+        self.ports.bind('primary')
+        for name, spec in self.ports.specs.items():
+            if spec.direction == SUBSCRIBE and name != 'primary':
+                self.ports.bind(name)
+        self.ports.advertise_service()
+        if self.arbiter.sources.nodes and self._watchdog_runs():
+            with self.lock:
+                if not self.announced.is_set():
+                    self.arbiter.wait_for_word()
+            waiter = threading.Timer(self.PRIMARY_WAIT, self._end_wait)
+            waiter.daemon = True
+            waiter.start()
         self.timer = rospy.Timer(rospy.Duration(self.period), lambda _e: self._send())
         return True
 
     PRIMARY_WAIT = 2.0   # s: the longest a commandManager started while the watchdog runs waits for its word
 
-    def _await_primary(self, limit):
-        """Started again while the watchdog runs (the service manager's restart), wait for its latched word
-        on the primary: taken from ~sources meanwhile, the primary's commands were refused when a take-over
-        had happened since the start."""
-        try:
-            published = {topic for topic, _ in rosgraph.Master(self.name).getPublishedTopics('')}
-        except Exception as e:   # no master: nothing to wait for (the watchdog's word comes when it comes)
-            rospy.logwarn('%s: cannot ask the master whether a watchdog runs: %s', self.name, e)
-            return
-        if rospy.resolve_name('primary') in published and not self.announced.wait(limit):
-            rospy.logwarn('%s: the watchdog\'s word on the primary board did not come within %.1f s: controllerPid\'s '
-                          'commands are taken from %s until it does', self.name, limit,
-                          ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node')
+    def _watchdog_runs(self):
+        """Whether a node publishes the watchdog's word (asked of the master, 1 s at most)."""
+        topic, found = rospy.resolve_name('primary'), []
 
-    def _on_primary(self, msg):
+        def ask():
+            try:
+                found.append(topic in {t for t, _ in rosgraph.Master(self.name).getPublishedTopics('')})
+            except Exception as e:   # no master: nothing to wait for (the watchdog's word comes when it comes)
+                rospy.logwarn('%s: cannot ask the master whether a watchdog runs: %s', self.name, e)
+        asker = threading.Thread(target=ask, daemon=True)
+        asker.start()
+        asker.join(1.0)
+        return bool(found and found[0])
+
+    def _end_wait(self):
+        """The wait for the watchdog's word ran out: ~sources are taken, and it is said."""
         with self.lock:
-            taken, offered = self.arbiter.announce(msg.board, [rospy.resolve_name(n) for n in msg.nodes], msg.term,
-                                                   msg.incarnation, rospy.get_time())
-            if taken:
-                self.foreign_run = None
-                self.announced.set()
+            if not self.arbiter.sources.waiting:
+                return
+            offered = self.arbiter.end_wait(rospy.get_time(), time.monotonic())
             said = self._offered(*offered) if offered is not None else None
         if said is not None:
             self._refusal_alarm(*said)
-        if taken:
-            rospy.loginfo('%s: board %s is the primary (term %d): controllerPid\'s commands taken from %s only',
-                          self.name, msg.board, msg.term, ', '.join(msg.nodes))
-            return
-        detail = ('the primary announced as board %s (%s) in term %d of watchdog run %s: refused (%s); '
-                  'commands are still taken from %s only'
-                  % (msg.board, ', '.join(msg.nodes) or 'no node', msg.term, msg.incarnation,
-                     'it names no node' if not msg.nodes else 'term %d of that run was announced already'
-                     % self.arbiter.sources.term, ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node'))
+        detail = ('the watchdog publishes on %s but its word on the primary board did not come within %.1f s of this '
+                  'start: controllerPid\'s commands are taken from %s (configured) until it comes'
+                  % (rospy.resolve_name('primary'), self.PRIMARY_WAIT, ', '.join(sorted(self.arbiter.sources.nodes))))
         rospy.logwarn('%s: %s', self.name, detail)
-        self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='primary_ignored',
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='primary_unknown',
+                                           detail=detail, stamp=rospy.Time.now()))
+
+    def _on_primary(self, msg):
+        sender = (getattr(msg, '_connection_header', None) or {}).get('callerid', '')
+        if self.watchdog and sender != self.watchdog:
+            word, said = None, None
+        else:
+            with self.lock:
+                word, offered = self.arbiter.announce(msg.board, [rospy.resolve_name(n) for n in msg.nodes], msg.term,
+                                                      msg.incarnation, rospy.get_time(), time.monotonic())
+                if not word.refused:
+                    self.announced.set()
+                if word is Word.TAKEN:
+                    self.foreign_alarmed.clear()
+                said = self._offered(*offered) if offered is not None else None
+        if said is not None:
+            self._refusal_alarm(*said)
+        if word in (Word.TAKEN, Word.ADOPTED):
+            rospy.loginfo('%s: board %s is the primary (term %d of watchdog run %s%s): controllerPid\'s commands taken '
+                          'from %s only', self.name, msg.board, msg.term, msg.incarnation,
+                          ', a run adopted' if word is Word.ADOPTED else '', ', '.join(msg.nodes))
+        if word is not None and not word.refused:
+            return
+        what = 'board %s (%s) named the primary in term %d of watchdog run %s by %s' % (
+            msg.board, ', '.join(msg.nodes) or 'no node', msg.term, msg.incarnation, sender or 'an unnamed node')
+        if word is None:
+            why = 'not the watchdog (%s)' % self.watchdog
+        elif word is Word.DISPUTED:
+            why = 'another watchdog run than the one followed names another board than the one in force'
+        elif not msg.nodes:
+            why = 'it names no node'
+        else:
+            why = 'a term passed or the same term naming another board'
+        detail = '%s: refused (%s); in force: %s, commands taken from %s only' % (
+            what, why, self.arbiter.sources.word.describe(),
+            ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node')
+        rospy.logwarn('%s: %s', self.name, detail)
+        self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility',
+                                           kind=Word.DISPUTED.value if word is Word.DISPUTED else Word.PASSED.value,
                                            detail=detail, stamp=rospy.Time.now()))
 
     def _on_pid(self, msg):
         sender = (getattr(msg, '_connection_header', None) or {}).get('callerid', '')
         with self.lock:
             stamp = msg.stamp.to_sec()
-            said = self._offered(self.arbiter.offer(stamp, rospy.get_time(), sender, msg), stamp, sender, msg)
+            said = self._offered(self.arbiter.offer(stamp, rospy.get_time(), sender, msg, time.monotonic()), stamp,
+                                 sender, msg)
         if said is not None:
             self._refusal_alarm(*said)
 
@@ -488,15 +544,17 @@ class CommandManagerNode(PortedNode):
                  Offer.REORDERED: self.arbiter.reordered}[offer]
         return offer, stamp, sender, msg.accel, msg.source, count, rospy.get_time(), self.arbiter.last_stamp
 
-    def _foreign(self, now):
+    FOREIGN_ALARMED_MAX = 64   # senders alarmed as foreign per primary named (a forger's names are many)
+
+    def _foreign(self, wall):
         """The commands refused as foreign since the last look (under the lock): the alarm to raise (the
-        first of a sender's run since the primary was last named), else None."""
+        first of a sender since the primary was last named), else None."""
         said = None
-        for stamp, sender in self.arbiter.expire(now):
-            if sender != self.foreign_run:
-                self.foreign_run = sender
+        for stamp, sender in self.arbiter.expire(wall):
+            if sender not in self.foreign_alarmed and len(self.foreign_alarmed) < self.FOREIGN_ALARMED_MAX:
+                self.foreign_alarmed.add(sender)
                 sources = self.arbiter.sources
-                said = (Offer.FOREIGN, stamp, sender, None, None, self.arbiter.foreign, now,
+                said = (Offer.FOREIGN, stamp, sender, None, None, self.arbiter.foreign, rospy.get_time(),
                         (sources.board, sources.term, sorted(sources.nodes)))
         return said
 
@@ -542,7 +600,7 @@ class CommandManagerNode(PortedNode):
     def _send(self):
         with self.send_lock:
             with self.lock:
-                foreign = self._foreign(rospy.get_time())
+                foreign = self._foreign(time.monotonic())
                 accel = self.arbiter.command(self.pending, rospy.get_time())
                 if self.pending is not None:
                     self.driver = self.pending_sender or self.name
