@@ -47,6 +47,10 @@ def calls_captured(count, what):
                                lambda m: captured.setdefault(m.id, m) if m.origin == '/proxy' else None)
     proxy = rospy.ServiceProxy('/account', Account, persistent=True)
     proxy.wait_for_service(30)
+    # The capture connected to the Proxy before the first call (CI, seed 51318: the first of 13 requests
+    # went out while the connection was being made, 12 captured)
+    if not wait_until(lambda: capture.get_num_connections() >= 1, 10.0, 0.05):
+        sys.exit('seed %d: %s: the capture never connected to the Proxy' % (seed, what))
     call, checker = account_caller(proxy), ReplyChecker()
     for i in range(count):
         op = operation(i)

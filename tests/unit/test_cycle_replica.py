@@ -568,6 +568,29 @@ def test_an_earlier_term_or_another_watchdog_run_deposes_nobody():
     assert stop and alarms(notes) == ['deposed'] and not alone.passes_outputs()
 
 
+def test_a_board_started_again_and_promoted_before_it_heard_the_latched_word_is_not_deposed_by_it():
+    """board_a failed (term 2 named board_b), was started again, joined, and board_b failed in turn: the
+    watchdog made board_a ALONE before board_a's After handled the latched word of term 2. Taken as news,
+    it deposed the board that just took over (review of session 51). A later word is news."""
+    alone = replica(A, Role.ALONE)
+    assert alone.primary_named('board_a', 'board_b', 2, 'w1') == (None, []) and alone.passes_outputs()
+    assert alone.primary_named('board_a', 'board_a', 3, 'w1') == (None, []) and alone.passes_outputs()
+    stop, notes = alone.primary_named('board_a', 'board_b', 4, 'w1')
+    assert stop and alarms(notes) == ['deposed']
+
+
+def test_a_watchdog_run_left_is_never_followed_again():
+    """Run w2 adopted (it named the board in force), then a late word of w1 naming that board too: it
+    re-adopted w1, and w2's next take-over was disputed for good (review of session 51)."""
+    alone = replica(B, Role.ALONE)
+    assert alone.primary_named('board_b', 'board_b', 2, 'w1') == (None, [])
+    assert alone.primary_named('board_b', 'board_b', 1, 'w2') == (None, [])   # adopted
+    stop, notes = alone.primary_named('board_b', 'board_b', 2, 'w1')         # late, from the run left
+    assert stop is None and alarms(notes) == ['primary_ignored'] and 'left' in notes[0].detail
+    stop, notes = alone.primary_named('board_b', 'board_a', 2, 'w2')         # w2's take-over: obeyed
+    assert stop and alarms(notes) == ['deposed']
+
+
 def test_a_word_naming_no_node_deposes_nobody():
     primary = replica(A, Role.PRIMARY)
     stop, notes = primary.primary_named('board_a', 'board_b', 2, 'w1', names_nodes=False)

@@ -58,3 +58,33 @@ def test_a_connection_listed_before_the_binding_is_not_taken_for_the_new_one(mon
     both = old + [(9, '/master/proceed', 'o', 'TCPROS', TOPIC, True, '')]
     monkeypatch.setattr(fencing, 'node_api', lambda uri, timeout: FakeApi(both))
     assert _writes_to(FakeMaster(), '/master/before', '/master/proceed', TOPIC, deadline=1e18, above=7)
+
+
+def test_a_latched_port_rebound_gives_its_last_message_to_the_subscribers_of_its_new_topic(monkeypatch):
+    """The watchdog's word on the primary board is latched: rebound (recover(), an adaptation), the new
+    publisher held nothing, and a commandManager started later waited for a word that never came
+    (review of session 51)."""
+    from aft_msgs.msg import PrimaryBoard
+    from aft_ftm.ports import PUBLISH, PortSpec
+    from aft_ftm.ros import ports as ports_module
+    published = []
+
+    class Publisher(object):
+        def __init__(self, topic, cls, latch=False, **_kwargs):
+            self.topic, self.latch = topic, latch
+
+        def publish(self, msg):
+            published.append((self.topic, self.latch, msg.term))
+
+        def unregister(self):
+            pass
+    monkeypatch.setattr(ports_module.rospy, 'Publisher', Publisher)
+    monkeypatch.setattr(ports_module, 'param', lambda name, convert, default=None: default)
+    ports = ports_module.Ports([PortSpec('primary', PUBLISH, 'aft_msgs/PrimaryBoard'),
+                                PortSpec('events', PUBLISH, 'std_msgs/String')], {})
+    ports.bind('primary', '/tjp/primary', latch=True)
+    ports.bind('events', '/tjp/events')
+    ports.publish('primary', PrimaryBoard(board='board_b', term=2))
+    ports.bind('primary', '/car/primary')
+    ports.bind('events', '/car/events')   # not latched: nothing again
+    assert published == [('/tjp/primary', True, 2), ('/car/primary', True, 2)]

@@ -387,11 +387,14 @@ def test_the_new_primarys_command_that_comes_before_the_watchdogs_word_is_taken_
     word, offered = arbiter.announce('board_b', [B], 2, 'w1', 10.18)
     assert word is TAKEN and offered == (Offer.TAKEN, 10.15, B, 'b2')
     assert arbiter.expire(10.5) == [] and arbiter.foreign == 0 and arbiter.last_stamp == 10.15
-    # Named too late (past name_wait), it is refused, whoever is named.
+    # Named too late (past name_wait), it is not used, and not refused as foreign either: its sender is
+    # the primary named (alarmed as foreign, the alarm named it the primary; review of session 51).
     arbiter = CommandArbiter(sources=[A])
     assert arbiter.offer(10.1, 10.1, B, payload='b1') is Offer.UNNAMED
     assert arbiter.announce('board_b', [B], 2, 'w1', 10.25) == (TAKEN, None)
-    assert arbiter.expire(10.25) == [(10.1, B)] and arbiter.last_stamp is None
+    assert arbiter.expire(10.25) == [] and arbiter.last_stamp is None
+    assert (arbiter.named_late, arbiter.foreign, arbiter.unnamed) == (1, 0, {})
+    assert arbiter.offer(10.3, 10.3, B) is Offer.TAKEN
     # Taken late, its stamp is checked as any command's: too old by then, it is refused as stale.
     arbiter = CommandArbiter(sources=[A], name_wait=1.0)
     assert arbiter.offer(10.0, 10.0, B, payload='b1') is Offer.UNNAMED
@@ -453,7 +456,8 @@ def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
     random. Whatever the order: a command taken was sent by the board of the highest term heard when
     it was taken; each command is taken, refused, superseded or still held, once; the command the
     named board sent within name_wait before its word came is offered when the word comes, and taken
-    unless its stamp is not after the last one taken."""
+    unless its stamp is not after the last one taken; a fresh command of the board in force, stamped
+    after the last one taken, is taken at once (liveness: nothing refuses the primary)."""
     rng = random.Random(seed)
     arbiter = CommandArbiter(sources=[A], name_wait=0.1)
     primary, term, events = A, 1, []
@@ -491,7 +495,11 @@ def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
                 taken.append((offered[3], board, best))
         else:
             sent.append(arg)
+            # Liveness: a fresh command of the board in force, after the last one taken, is taken at once.
+            due = board in arbiter.sources.nodes and (arbiter.last_stamp is None or arg[0] > arbiter.last_stamp) \
+                and now - arg[0] <= arbiter.stale_after()
             offer = arbiter.offer(arg[0], now, board, payload=arg)
+            assert offer is Offer.TAKEN or not due, 'seed %d: %s of the board in force: %s' % (seed, arg, offer)
             last[board] = (arg, offer is Offer.UNNAMED)
             if offer is Offer.TAKEN:
                 taken.append((arg, board, best))
@@ -501,8 +509,8 @@ def test_no_command_of_a_board_not_named_the_primary_is_ever_taken(seed):
         assert command[1] == board and (A if at_term % 2 else B) == board, why
     held = len(arbiter.unnamed)
     assert len({c for c, _, _ in taken}) == len(taken), why
-    assert len(taken) + arbiter.foreign + arbiter.superseded + held + arbiter.stale + arbiter.ahead + \
-        arbiter.reordered == len(sent), why
+    assert len(taken) + arbiter.foreign + arbiter.superseded + arbiter.named_late + held + arbiter.stale + \
+        arbiter.ahead + arbiter.reordered == len(sent), why
 
 
 @pytest.mark.parametrize('seed', range(20))
@@ -534,7 +542,17 @@ def test_another_watchdog_run_is_followed_only_if_it_names_the_board_in_force():
     assert sources.announce('board_a', [A], 3, 'w0') is DISPUTED and sources.nodes == {B}   # an old run, late
     assert sources.announce('board_b', [B], 1, 'w2') is ADOPTED and sources.word.run == 'w2'
     assert sources.announce('board_a', [A], 2, 'w2') is TAKEN and sources.nodes == {A}
-    assert sources.announce('board_b', [B], 2, 'w1') is DISPUTED and sources.ignored == 3
+    # w1 was left for w2: never followed again, even naming the board in force (re-adopted, it disputed
+    # every later term of w2; review of session 51).
+    assert sources.announce('board_a', [A], 2, 'w1') is PASSED and sources.ignored == 3
+    assert sources.announce('board_b', [B], 3, 'w2') is TAKEN and sources.word.run == 'w2'
+
+
+def test_a_run_adopted_brings_its_nodes():
+    sources = PrimarySources([A])
+    assert sources.announce('board_a', [A], 1, 'w1') is TAKEN
+    assert sources.announce('board_a', [A, '/board_a/other'], 1, 'w2') is ADOPTED
+    assert sources.nodes == {A, '/board_a/other'}
 
 
 def test_the_first_word_is_taken_whatever_its_run_and_a_word_naming_no_node_never():

@@ -2,10 +2,11 @@
 (tjp_sim.ros.ftm_nodes), built by their own constructors with their parameters' defaults, their ports
 faked and ROS time a fake clock. Inputs are handed to them as their subscribers' threads would."""
 import threading
+import types
 
 import pytest
 import rospy
-from aft_msgs.msg import CarCommand
+from aft_msgs.msg import CarCommand, PrimaryBoard
 from sensor_msgs.msg import Range
 
 from fakes import FakeClock, FakePorts
@@ -169,3 +170,103 @@ def test_a_safe_stop_is_the_last_command_the_car_gets_never_overtaken_by_a_cycle
     sent = [msg for port, msg in node.ports.sent if port == 'command']
     assert [m.accel for m in sent] == [1.5, pytest.approx(-node.arbiter.stop_decel)], [m.accel for m in sent]
     assert [m.cycle for m in sent] == [1, 2]
+
+
+# -- commandManager: whose commands it takes (the watchdog's word; review of session 51) -------------
+A, B, WATCHDOG = '/board_a/cycle_after', '/board_b/cycle_after', '/ftm/watchdog'
+
+
+def sent_by(msg, sender):
+    msg._connection_header = {'callerid': sender}
+    return msg
+
+
+@pytest.fixture
+def wall(monkeypatch, clock):
+    """commandManager's wall clock (the hold of a command whose sender is not named) the fake clock too."""
+    monkeypatch.setattr(tjp_nodes, 'time', types.SimpleNamespace(monotonic=lambda: clock.now))
+    return clock
+
+
+def word(board, node, term, run='w1', sender=WATCHDOG):
+    return sent_by(PrimaryBoard(stamp=rospy.Time.from_sec(10.0), board=board, nodes=[node], term=term,
+                                incarnation=run), sender)
+
+
+class BindingPorts(FakePorts):
+    """Ports that can be bound: board_a's command comes the moment pid_command is bound (a deposed board
+    publishing as the restarted commandManager subscribes)."""
+
+    def __init__(self, specs=(), callbacks=None):
+        super(BindingPorts, self).__init__(specs, callbacks)
+        self.bound = []
+
+    def bind(self, name, topic=None, **_kwargs):
+        self.bound.append(name)
+        if name == 'pid_command':
+            self.deliver('pid_command', sent_by(pid(1.0, 10.0), A))
+
+    def advertise_service(self):
+        pass
+
+
+def command_manager(monkeypatch, watchdog_runs):
+    """commandManager configured as car.launch does with PBR (~sources board_a's After, ~watchdog), set up
+    with ``watchdog_runs`` the master's answer on whether the watchdog publishes its word."""
+    given = {'sources': [A], 'watchdog': WATCHDOG}
+    monkeypatch.setattr(tjp_nodes, 'Ports', BindingPorts)
+    monkeypatch.setattr(tjp_nodes, 'param', lambda name, convert, default=None, required=False:
+                        given.get(name, default))
+    monkeypatch.setattr(tjp_nodes.rospy, 'Timer', lambda *args, **kwargs: None)
+    node = tjp_nodes.CommandManagerNode()
+    monkeypatch.setattr(node, '_watchdog_runs', lambda: watchdog_runs)
+    node.setup(1.0)
+    if node.waiter is not None:
+        node.waiter.cancel()
+    return node
+
+
+def test_a_restarted_command_manager_takes_no_command_before_the_watchdogs_word(monkeypatch, wall):
+    """Bound before the wait for the word began, the deposed board_a's command that came in between was
+    taken (review of session 51). Now every command is held from the start; the word names board_b."""
+    node = command_manager(monkeypatch, watchdog_runs=True)
+    assert node.ports.bound.index('primary') < node.ports.bound.index('pid_command')
+    assert node.pending is None and node.arbiter.sources.waiting
+    node.ports.deliver('primary', word('board_b', B, 2))
+    node.ports.deliver('pid_command', sent_by(pid(-1.0, 10.02), B))
+    wall.now = 10.3   # board_a's command held past name_wait (0.25 s): refused
+    node._send()
+    assert [m.accel for p, m in node.ports.sent if p == 'command'] == [-1.0]
+    assert node.driver == B and node.arbiter.foreign == 1
+
+
+def test_with_no_watchdog_running_the_configured_board_is_taken_at_once(monkeypatch, clock):
+    node = command_manager(monkeypatch, watchdog_runs=False)
+    assert not node.arbiter.sources.waiting and node.pending == 1.0 and node.pending_sender == A
+    assert node.ports.alarms() == []   # nothing to wait for: nothing to say
+
+
+def test_each_foreign_sender_is_alarmed_not_only_the_last(monkeypatch, wall):
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    node.arbiter.sources.nodes = frozenset([A])
+    for i, sender in enumerate(('/forger_1', '/forger_2', B)):
+        node.ports.deliver('pid_command', sent_by(pid(0.5, 10.0 + 0.001 * i), sender))
+    wall.now = 10.3
+    node._send()
+    alarmed = [m.detail for p, m in node.ports.sent if p == 'alarms' and m.kind == 'foreign_command']
+    assert len(alarmed) == 3 and all(any(s in d for d in alarmed) for s in ('/forger_1', '/forger_2', B))
+
+
+def test_a_refused_word_repeated_is_alarmed_once_per_sender_and_reason(monkeypatch, clock):
+    """A forger repeating its word, or a stale word resent, flooded the alarms (one per word)."""
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    node.watchdog = WATCHDOG
+    node.ports.deliver('primary', word('board_a', A, 3))
+    for _ in range(10):
+        node.ports.deliver('primary', word('board_b', B, 9, sender='/forger'))
+        node.ports.deliver('primary', word('board_b', B, 2))   # a term passed
+    assert node.ports.alarms() == ['primary_ignored', 'primary_ignored'] and node.words_refused == 20
+    node.ports.deliver('primary', word('board_b', B, 4))       # a new word followed: said again
+    node.ports.deliver('primary', word('board_a', A, 3))
+    assert node.ports.alarms() == ['primary_ignored'] * 3
+    assert '21 words refused' in [m.detail for p, m in node.ports.sent if p == 'alarms'][-1]

@@ -197,16 +197,19 @@ class CycleReplica(object):
         it (no power switch for its host): it stops passing anything on, for good, and its site must
         fail-stop. Returns (why the site must fail-stop, or None; notes). A word refused (a term passed,
         another run naming another board: a watchdog started again starts from its configured primary,
-        whatever board drives) is said, not obeyed."""
+        whatever board drives) is said, not obeyed.
+
+        The first word this replica hears never deposes it: it may be older than the role the watchdog
+        gave it (a board started again, then promoted, before the latched word of the take-over that
+        failed it reached it; review of session 51). Only a word heard after another one is news."""
+        first = self.named.run is None
         word = self.named.hear(board, term, incarnation, names_nodes)
         if word.refused:
             return None, [Note(word.value, '%s: the word naming board %s the primary in term %d of watchdog run %s is '
                                'refused (%s); in force: %s; this After stays %s'
-                               % (self.name, board, term, incarnation,
-                                  'another run naming another board' if word is Word.DISPUTED else
-                                  'a term passed, or naming no node', self.named.describe(), self.role.name),
-                               alarm=True)]
-        if word is not Word.TAKEN or board == site or self.role == Role.BACKUP or self.stopped is not None:
+                               % (self.name, board, term, incarnation, self.named.why, self.named.describe(),
+                                  self.role.name), alarm=True)]
+        if word is not Word.TAKEN or first or board == site or self.role == Role.BACKUP or self.stopped is not None:
             return None, []
         self.stopped = 'deposed: the watchdog named board %s the primary (term %d) while this %s ran on' % (
             board, term, self.role.name)

@@ -350,9 +350,10 @@ class PrimarySources(object):
     def announce(self, board, nodes, term, incarnation):
         """The watchdog names ``board`` (its ``nodes``) the primary in ``term`` of its run
         ``incarnation``. Returns the :class:`aft_ftm.primary_word.Word`; the nodes named are taken with
-        a new primary (TAKEN), and the wait ends with any word followed (TAKEN, ADOPTED, DUPLICATE)."""
+        a word followed from now on (TAKEN, ADOPTED), and the wait ends with any word followed (TAKEN,
+        ADOPTED, DUPLICATE)."""
         verdict = self.word.hear(board, term, incarnation, bool(nodes))
-        if verdict is Word.TAKEN:
+        if verdict in (Word.TAKEN, Word.ADOPTED):   # (adopted: the run followed from now on names them)
             self.nodes = frozenset(nodes)
         if not verdict.refused:
             self.waiting = False
@@ -429,7 +430,8 @@ class CommandArbiter(object):
         # sender -> (stamp, sender, payload, first held, last held) of the command held by offer()
         self.unnamed = collections.OrderedDict()
         self.refused_foreign = []   # (stamp, sender) refused as foreign, until expire() hands them over
-        self.superseded = 0      # commands held, replaced by a later one of the same sender
+        self.superseded = 0      # commands held, replaced by a later one (of the same sender, or of the board named)
+        self.named_late = 0      # commands held, their sender named after name_wait: dropped (not used, not foreign)
 
     def _change(self, mode, reason):
         if self.mode == mode:
@@ -494,15 +496,20 @@ class CommandArbiter(object):
 
     def _release(self, now, wall):
         """The freshest command held of a sender the sources allow now, if it came within name_wait (a
-        hold not yet expired: see :meth:`expire`),
-        offered again (its stamp checked then): None or (offer, stamp, sender, payload). The other held
-        commands of allowed senders are refused."""
+        hold not yet expired: see :meth:`expire`), offered again (its stamp checked then): None or
+        (offer, stamp, sender, payload). The other held commands of allowed senders are dropped, not
+        refused as foreign (their sender is named: alarmed so, the alarm contradicted itself; review of
+        session 51): ``superseded`` if another was fresher, ``named_late`` if held too long for the word."""
         named = [held for held in self.unnamed.values() if self.sources.allows(held[1])]
         fresh = [held for held in named if wall - held[4] <= self.name_wait]
         best = max(fresh, key=lambda held: held[0]) if fresh else None
         for held in named:
             if held is not best:
-                self._drop_unnamed(held[1])
+                del self.unnamed[held[1]]
+                if held in fresh:
+                    self.superseded += 1
+                else:
+                    self.named_late += 1
         if best is None:
             return None
         stamp, sender, payload = self.unnamed.pop(best[1])[:3]

@@ -68,6 +68,7 @@ class Ports(object):
         self._queues = {}   # port -> the queue size it was bound with: a rebind keeps it
         self._spill = set()   # ports whose publisher's writes never block (bind(spill=True)): kept too
         self._latched = set()   # ports whose publisher latches (bind(latch=True)): kept too
+        self._last_latched = {}   # port -> the last message published on a latched port (published again on a rebind)
         self._handles = {}
         self._topics = {}
         self._lock = threading.RLock()
@@ -102,7 +103,9 @@ class Ports(object):
         """Bind port name to topic (default: the port's own name, so it can be remapped). A queue_size
         given (0: none) stays the port's for later binds that give none (a rebind). ``spill``: a
         publisher without a queue whose writes never block (aft_ftm.ros.spillover), kept on rebinds too.
-        ``latch``: a publisher whose last message each new subscriber gets, kept on rebinds too."""
+        ``latch``: a publisher whose last message each new subscriber gets, kept on rebinds too (its last
+        message is published again on the new topic: rebound, the watchdog's word on the primary board
+        was lost for every subscriber that came later; review of session 51)."""
         spec = self.specs[name]
         resolved = rospy.resolve_name(topic if topic else name)
         cls = roslib.message.get_message_class(spec.msg_type)
@@ -125,6 +128,8 @@ class Ports(object):
                                              latch=name in self._latched)
                 if name in self._spill:
                     spill_over(handle, warn=rospy.logwarn)
+                if name in self._last_latched:
+                    handle.publish(self._last_latched[name])
             else:
                 handle = rospy.Subscriber(resolved, cls, self._deliver, callback_args=name, queue_size=qs,
                                           tcp_nodelay=True)
@@ -155,6 +160,13 @@ class Ports(object):
 
     def publish(self, name, msg):
         """Publish on a port; returns False (and counts it) if the port is unbound."""
+        if name in self._latched:
+            with self._lock:   # (a rebind in between must not latch an older message on the new topic)
+                self._last_latched[name] = msg
+                return self._publish(name, msg)
+        return self._publish(name, msg)
+
+    def _publish(self, name, msg):
         handle = self._handles.get(name)
         if handle is None:
             self.unbound_publishes += 1

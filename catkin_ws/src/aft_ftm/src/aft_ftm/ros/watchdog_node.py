@@ -33,7 +33,8 @@ class WatchdogNode(object):
     2. as soon as it is stopped and sent SIGKILL, the backup is promoted: SetRole ALONE on each of its
        nodes, in order, over connections opened
        before the failure (a failover does not need the ROS master). Only a board that acknowledged
-       a checkpoint of the primary is ever promoted;
+       a checkpoint of the primary is ever promoted. A node that does not answer within
+       ``~service_timeout`` is asked again (``PROMOTE_TRIES`` calls in all, on new connections);
     3. the failover is published, with the detection time (the silence) and the switch time.
 
     Which board is the primary is said on ``primary`` (latched), at the start and at each take-over
@@ -253,6 +254,8 @@ class WatchdogNode(object):
             actions = self.watch.connected(action.board, error, time.monotonic())
         self._carry_out(actions)
 
+    PROMOTE_TRIES = 3   # calls of SetRole ALONE on a backup's node that does not answer, each ~service_timeout
+
     @staticmethod
     def _call(proxy, timeout, **request):
         """A service call limited to timeout seconds (rospy's calls have no limit of their own).
@@ -274,7 +277,7 @@ class WatchdogNode(object):
     def _failover(self, failover):
         started = time.monotonic()   # nothing is logged before the switch: with the master gone, logging is slow
         verdict = failover.verdict
-        promoted, problems, switched = [], [], []
+        promoted, problems, switched, retried = [], [], [], [0]
 
         def promote():
             # The failed board is stopped and sent SIGKILL (it can publish nothing more, whoever resumes
@@ -285,6 +288,14 @@ class WatchdogNode(object):
                     problems.append('%s: no connection open to it' % node)
                     break
                 answer, error = self._call(proxies[node], self.service_timeout, role=Role.ALONE.value, last_seq=0)
+                # A node that did not answer (stalled past service_timeout: a load peak, a pause) is asked
+                # again, on a connection of its own (the first call may still hold the persistent one): the
+                # role change is idempotent (ALONE again is nothing to do). Given up, the word is never said
+                # and a node that took its role late drives nobody (review of session 51).
+                while error and retried[0] < self.PROMOTE_TRIES - 1:
+                    retried[0] += 1
+                    answer, error = self._call(rospy.ServiceProxy(node + '/set_role', SetRole), self.service_timeout,
+                                               role=Role.ALONE.value, last_seq=0)
                 if error:
                     problems.append('%s: %s' % (node, error))
                     break
@@ -304,7 +315,7 @@ class WatchdogNode(object):
             self.watch.promoted(failover.to, problems, time.monotonic())
         self._publish({'kind': 'failover', 'board': failover.board, 'to': failover.to, 'reason': verdict.reason,
                        'silence': verdict.silence, 'switch': switch, 'killed': killed, 'promoted': promoted,
-                       'term': self.term,
+                       'term': self.term, 'retried': retried[0],
                        'ok': not problems, 'problems': problems})
         if problems:
             self._report(Report('failover_failed', 'board %s failed (%s) and nobody took over: %s'
@@ -312,6 +323,8 @@ class WatchdogNode(object):
         else:
             rospy.logwarn('%s: switched to board %s in %.1f ms (silence %.1f ms)', rospy.get_name(), failover.to,
                           switch * 1e3, verdict.silence * 1e3)
-            self._report(Report('board_failed', 'board %s failed (%s): powered off, board %s took over in %.1f ms and '
+            self._report(Report('board_failed', 'board %s failed (%s): powered off, board %s took over in %.1f ms%s and '
                                 'goes on without a backup until a board re-joins'
-                                % (failover.board, verdict.reason, failover.to, switch * 1e3), True, None))
+                                % (failover.board, verdict.reason, failover.to, switch * 1e3,
+                                   ' (asked %d more times: it did not answer within %.1f s)'
+                                   % (retried[0], self.service_timeout) if retried[0] else ''), True, None))

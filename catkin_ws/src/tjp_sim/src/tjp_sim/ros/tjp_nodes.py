@@ -383,10 +383,11 @@ class CommandManagerNode(PortedNode):
         controllerPid was last taken in modes TJP and HOLD, this node otherwise; alarms (aft_msgs/Alarm),
         port ``alarms``: a command of controllerPid refused, stale_command, future_command, reordered_command
         or foreign_command, each once per run of them (a command taken ends it; foreign_command once per
-        sender and primary named); the watchdog's word refused (primary_ignored: of a term passed, naming no
-        node, or not from ~watchdog; primary_disputed: another watchdog run naming another board,
-        aft_ftm.primary_word); its word not come within 2 s of a start while the watchdog runs
-        (primary_unknown: ~sources taken)
+        sender and primary named); the watchdog's word refused (primary_ignored: of a term passed, of a run
+        left, naming no node, or not from ~watchdog; primary_disputed: another watchdog run naming another
+        board, aft_ftm.primary_word), once per sender and reason while the word followed stands; its word
+        not come within 2 s of a start while the watchdog runs (primary_unknown: ~sources taken; every
+        command is held until then)
     Services: ~rebind, ~suspend, ~resume
     """
 
@@ -424,11 +425,19 @@ class CommandManagerNode(PortedNode):
         # A deposed board's commands come between the primary's: their alarm is once per sender and
         # primary named, not ended by each command taken (it was raised every 0.1 s).
         self.foreign_alarmed = set()
+        self.word_alarmed = set()   # (sender, reason) of the watchdog's words refused and alarmed (see _on_primary)
+        self.words_refused = 0
         self.announced = threading.Event()   # the watchdog's word on the primary was followed
+        self.waiter = None   # the timer that ends the wait for the watchdog's word (setup)
 
     def setup(self, timeout):
         # The watchdog's word is heard before any command of controllerPid: a commandManager started again
-        # after a take-over must not take the deposed board's first.
+        # after a take-over must not take the deposed board's first. Every command is held from the
+        # start (review of session 51: bound before the wait began, the deposed board's came through in
+        # between), until the word comes, or at once if no watchdog runs (no word will come).
+        if self.arbiter.sources.nodes:
+            with self.lock:
+                self.arbiter.wait_for_word()
         for name, spec in self.ports.specs.items():
             if spec.direction == PUBLISH:
                 self.ports.bind(name)
@@ -437,13 +446,13 @@ class CommandManagerNode(PortedNode):
             if spec.direction == SUBSCRIBE and name != 'primary':
                 self.ports.bind(name)
         self.ports.advertise_service()
-        if self.arbiter.sources.nodes and self._watchdog_runs():
-            with self.lock:
-                if not self.announced.is_set():
-                    self.arbiter.wait_for_word()
-            waiter = threading.Timer(self.PRIMARY_WAIT, self._end_wait)
-            waiter.daemon = True
-            waiter.start()
+        if self.arbiter.sources.nodes:
+            if self._watchdog_runs():
+                self.waiter = threading.Timer(self.PRIMARY_WAIT, self._end_wait)
+                self.waiter.daemon = True
+                self.waiter.start()
+            else:
+                self._end_wait(said=False)
         self.timer = rospy.Timer(rospy.Duration(self.period), lambda _e: self._send())
         return True
 
@@ -463,15 +472,18 @@ class CommandManagerNode(PortedNode):
         asker.join(1.0)
         return bool(found and found[0])
 
-    def _end_wait(self):
-        """The wait for the watchdog's word ran out: ~sources are taken, and it is said."""
+    def _end_wait(self, said=True):
+        """The wait for the watchdog's word ran out (``said``: it is said), or no watchdog runs: ~sources
+        are taken."""
         with self.lock:
             if not self.arbiter.sources.waiting:
                 return
             offered = self.arbiter.end_wait(rospy.get_time(), time.monotonic())
-            said = self._offered(*offered) if offered is not None else None
-        if said is not None:
-            self._refusal_alarm(*said)
+            refusal = self._offered(*offered) if offered is not None else None
+        if refusal is not None:
+            self._refusal_alarm(*refusal)
+        if not said:
+            return
         detail = ('the watchdog publishes on %s but its word on the primary board did not come within %.1f s of this '
                   'start: controllerPid\'s commands are taken from %s (configured) until it comes'
                   % (rospy.resolve_name('primary'), self.PRIMARY_WAIT, ', '.join(sorted(self.arbiter.sources.nodes))))
@@ -479,40 +491,44 @@ class CommandManagerNode(PortedNode):
         self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility', kind='primary_unknown',
                                            detail=detail, stamp=rospy.Time.now()))
 
+    WORD_ALARMED_MAX = 64   # (sender, reason) pairs alarmed per word followed (a forger's names are many)
+
     def _on_primary(self, msg):
         sender = (getattr(msg, '_connection_header', None) or {}).get('callerid', '')
-        if self.watchdog and sender != self.watchdog:
-            word, said = None, None
-        else:
-            with self.lock:
+        what = 'board %s (%s) named the primary in term %d of watchdog run %s by %s' % (
+            msg.board, ', '.join(msg.nodes) or 'no node', msg.term, msg.incarnation, sender or 'an unnamed node')
+        with self.lock:
+            sources = self.arbiter.sources
+            if self.watchdog and sender != self.watchdog:
+                word, refusal, why = None, None, 'not the watchdog (%s)' % self.watchdog
+            else:
                 word, offered = self.arbiter.announce(msg.board, [rospy.resolve_name(n) for n in msg.nodes], msg.term,
                                                       msg.incarnation, rospy.get_time(), time.monotonic())
+                why = sources.word.why
                 if not word.refused:
                     self.announced.set()
-                if word is Word.TAKEN:
+                if word in (Word.TAKEN, Word.ADOPTED):
                     self.foreign_alarmed.clear()
-                said = self._offered(*offered) if offered is not None else None
-        if said is not None:
-            self._refusal_alarm(*said)
+                    self.word_alarmed.clear()
+                refusal = self._offered(*offered) if offered is not None else None
+            refused = word is None or word.refused
+            # A refused word is alarmed once per sender and reason while the word in force stands: a forger
+            # repeating it (or naming itself many ways) must not flood the alarms; the count goes on.
+            alarm = refused and (sender, why) not in self.word_alarmed and \
+                len(self.word_alarmed) < self.WORD_ALARMED_MAX
+            if alarm:
+                self.word_alarmed.add((sender, why))
+            self.words_refused += int(refused)
+            detail = '%s: refused (%s), %d words refused so far; in force: %s, commands taken from %s only' % (
+                what, why, self.words_refused, sources.word.describe(), ', '.join(sorted(sources.nodes)) or 'any node')
+        if refusal is not None:
+            self._refusal_alarm(*refusal)
         if word in (Word.TAKEN, Word.ADOPTED):
             rospy.loginfo('%s: board %s is the primary (term %d of watchdog run %s%s): controllerPid\'s commands taken '
                           'from %s only', self.name, msg.board, msg.term, msg.incarnation,
                           ', a run adopted' if word is Word.ADOPTED else '', ', '.join(msg.nodes))
-        if word is not None and not word.refused:
+        if not alarm:
             return
-        what = 'board %s (%s) named the primary in term %d of watchdog run %s by %s' % (
-            msg.board, ', '.join(msg.nodes) or 'no node', msg.term, msg.incarnation, sender or 'an unnamed node')
-        if word is None:
-            why = 'not the watchdog (%s)' % self.watchdog
-        elif word is Word.DISPUTED:
-            why = 'another watchdog run than the one followed names another board than the one in force'
-        elif not msg.nodes:
-            why = 'it names no node'
-        else:
-            why = 'a term passed or the same term naming another board'
-        detail = '%s: refused (%s); in force: %s, commands taken from %s only' % (
-            what, why, self.arbiter.sources.word.describe(),
-            ', '.join(sorted(self.arbiter.sources.nodes)) or 'any node')
         rospy.logwarn('%s: %s', self.name, detail)
         self.ports.publish('alarms', Alarm(source=self.name, mechanism='plausibility',
                                            kind=Word.DISPUTED.value if word is Word.DISPUTED else Word.PASSED.value,
@@ -547,15 +563,15 @@ class CommandManagerNode(PortedNode):
     FOREIGN_ALARMED_MAX = 64   # senders alarmed as foreign per primary named (a forger's names are many)
 
     def _foreign(self, wall):
-        """The commands refused as foreign since the last look (under the lock): the alarm to raise (the
-        first of a sender since the primary was last named), else None."""
-        said = None
+        """The commands refused as foreign since the last look (under the lock): the alarms to raise (the
+        first of each sender since the primary was last named; all of them, not the last one only)."""
+        said = []
         for stamp, sender in self.arbiter.expire(wall):
             if sender not in self.foreign_alarmed and len(self.foreign_alarmed) < self.FOREIGN_ALARMED_MAX:
                 self.foreign_alarmed.add(sender)
                 sources = self.arbiter.sources
-                said = (Offer.FOREIGN, stamp, sender, None, None, self.arbiter.foreign, rospy.get_time(),
-                        (sources.board, sources.term, sorted(sources.nodes)))
+                said.append((Offer.FOREIGN, stamp, sender, None, None, self.arbiter.foreign, rospy.get_time(),
+                             (sources.board, sources.term, sorted(sources.nodes))))
         return said
 
     def _refusal_alarm(self, offer, stamp, sender, accel, source, count, now, last):
@@ -610,5 +626,5 @@ class CommandManagerNode(PortedNode):
                 msg = CarCommand(stamp=rospy.Time.now(), accel=accel, mode=int(mode), cycle=self.cycle,
                                  source=self.driver if mode in (Mode.TJP, Mode.HOLD) else self.name)
             self.ports.publish('command', msg)
-        if foreign is not None:
-            self._refusal_alarm(*foreign)
+        for refusal in foreign:
+            self._refusal_alarm(*refusal)

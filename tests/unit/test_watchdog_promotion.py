@@ -1,0 +1,106 @@
+"""The watchdog's promotion of the backup board, without a master (aft_ftm.ros.watchdog_node): its
+SetRole calls faked, ROS time a fake clock.
+
+A backup node that does not answer SetRole ALONE within ~service_timeout (a load peak, a pause) took
+the role a moment later, but the watchdog gave up at the first call: it never said which board is the
+primary, and the car's commandManager refused the promoted board's commands for good (review of
+session 51). It is now asked again, on a connection of its own (the role change is idempotent), and the
+word is said once every node took its role; a node that never answers leaves the word unsaid
+(a board nobody fenced may still drive) and failover_failed raised."""
+import json
+import threading
+import time
+
+import pytest
+import rospy
+from aft_msgs.srv import SetRoleResponse
+
+from aft_ftm.board_watch import Failover
+from aft_ftm.detector import Verdict
+from aft_ftm.ros import watchdog_node
+from fakes import FakeClock, FakePorts
+
+A, B = '/board_a/cycle_after', '/board_b/cycle_after'
+
+
+class Watch(object):
+    """BoardWatch's face to the failover: what promoted() was told."""
+
+    def __init__(self):
+        self.told = []
+
+    def promoted(self, name, problems, now):
+        self.told.append((name, list(problems)))
+        return []
+
+
+class Node(object):
+    """A backup board's node behind SetRole: it takes the role ``pause`` s after the first call (a node
+    stalled), then answers every call at once (ALONE again is nothing to do); None: never answers."""
+
+    def __init__(self, pause):
+        self.pause, self.first, self.calls = pause, None, 0
+        self.lock = threading.Lock()
+
+    def __call__(self, role, last_seq):
+        with self.lock:
+            self.calls += 1
+            self.first = self.first or time.monotonic()
+        if self.pause is None:
+            time.sleep(3600)
+        time.sleep(max(0.0, self.first + self.pause - time.monotonic()))
+        return SetRoleResponse(success=True, message='', last_seq=0)
+
+
+@pytest.fixture
+def watchdog(monkeypatch):
+    clock = FakeClock(10.0)
+    monkeypatch.setattr(rospy, 'get_time', lambda: clock.now)
+    monkeypatch.setattr(rospy.Time, 'now', staticmethod(lambda: rospy.Time.from_sec(clock.now)))
+    monkeypatch.setattr(rospy, 'get_name', lambda: '/ftm/watchdog')
+    node = watchdog_node.WatchdogNode.__new__(watchdog_node.WatchdogNode)
+    node.boards = {'board_a': [A], 'board_b': [B]}
+    node.service_timeout = 0.2
+    node.lock, node.announce_lock = threading.Lock(), threading.Lock()
+    node.term, node.incarnation, node.host = 1, 'w1', 'this-host'
+    node.watch, node.ports = Watch(), FakePorts()
+    return node
+
+
+def fail_over(monkeypatch, node, backup):
+    """board_a silent on another host (nobody can power it off); board_b's node is ``backup``, reached
+    on the persistent connection and on any new one. Returns the failover record."""
+    node.proxies = {'board_b': {B: backup}}
+    monkeypatch.setattr(watchdog_node.rospy, 'ServiceProxy', lambda name, cls: backup)
+    node._failover(Failover('board_a', Verdict('silent for 0.10 s', 0.1, None), 'board_b', [B]))
+    return [json.loads(m.data) for port, m in node.ports.sent if port == 'events'][-1]
+
+
+def words(node):
+    return [(m.board, m.term) for port, m in node.ports.sent if port == 'primary']
+
+
+def test_a_backup_node_that_answers_late_is_asked_again_and_the_new_primary_is_named(monkeypatch, watchdog):
+    backup = Node(pause=0.3)   # past one service_timeout (0.2 s), within two
+    record = fail_over(monkeypatch, watchdog, backup)
+    assert record['ok'] and record['retried'] >= 1 and record['term'] == 2, record
+    assert words(watchdog) == [('board_b', 2)]
+    assert watchdog.watch.told == [('board_b', [])]
+    assert 'asked 1 more times' in [m.detail for p, m in watchdog.ports.sent if p == 'alarms'
+                                    and m.kind == 'board_failed'][0]
+
+
+def test_a_backup_node_that_never_answers_is_given_up_and_no_word_is_said(monkeypatch, watchdog):
+    backup = Node(pause=None)
+    started = time.monotonic()
+    record = fail_over(monkeypatch, watchdog, backup)
+    assert time.monotonic() - started < 1.5   # PROMOTE_TRIES calls of 0.2 s, bounded
+    assert not record['ok'] and record['retried'] == watchdog.PROMOTE_TRIES - 1 == backup.calls - 1
+    assert words(watchdog) == [] and watchdog.term == 1
+    assert 'failover_failed' in watchdog.ports.alarms()
+
+
+def test_a_backup_node_that_answers_at_once_is_asked_once(monkeypatch, watchdog):
+    backup = Node(pause=0.0)
+    record = fail_over(monkeypatch, watchdog, backup)
+    assert record['ok'] and record['retried'] == 0 and backup.calls == 1 and words(watchdog) == [('board_b', 2)]
