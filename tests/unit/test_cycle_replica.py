@@ -572,11 +572,20 @@ def test_a_board_started_again_and_promoted_before_it_heard_the_latched_word_is_
     """board_a failed (term 2 named board_b), was started again, joined, and board_b failed in turn: the
     watchdog made board_a ALONE before board_a's After handled the latched word of term 2. Taken as news,
     it deposed the board that just took over (review of session 51). A later word is news."""
-    alone = replica(A, Role.ALONE)
+    _, alone = pair()                # (the board started again, joined: it holds a checkpoint)
+    alone.set_role(Role.ALONE, 1)
     assert alone.primary_named('board_a', 'board_b', 2, 'w1') == (None, []) and alone.passes_outputs()
     assert alone.primary_named('board_a', 'board_a', 3, 'w1') == (None, []) and alone.passes_outputs()
     stop, notes = alone.primary_named('board_a', 'board_b', 4, 'w1')
     assert stop and alarms(notes) == ['deposed']
+
+
+def test_a_primary_whose_first_word_names_another_board_steps_down():
+    """Frozen before its subscription to the word connected, the primary hears the take-over's latched
+    word first: exempt as a first word, it ran on as a second primary (review of session 52)."""
+    primary = replica(A, Role.PRIMARY)
+    stop, notes = primary.primary_named('board_a', 'board_b', 2, 'w1')
+    assert stop and alarms(notes) == ['deposed'] and not primary.passes_outputs()
 
 
 def test_a_watchdog_run_left_is_never_followed_again():

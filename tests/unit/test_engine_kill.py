@@ -61,8 +61,12 @@ class Master(object):
 
 @pytest.fixture
 def victim():
-    """A process that ends on SIGINT (Python's KeyboardInterrupt) and unregisters nothing."""
-    proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])
+    """A process that ends on SIGINT (Python's KeyboardInterrupt) and unregisters nothing. (Its handler
+    set explicitly: started from a background shell, SIGINT is ignored on entry and Python keeps it so.)"""
+    proc = subprocess.Popen([sys.executable, '-c', 'import signal, time; '
+                             'signal.signal(signal.SIGINT, signal.default_int_handler); print("ready", flush=True); '
+                             'time.sleep(60)'], stdout=subprocess.PIPE)
+    assert proc.stdout.readline().strip() == b'ready'
     yield proc
     if proc.poll() is None:
         proc.kill()

@@ -559,3 +559,23 @@ def test_the_first_word_is_taken_whatever_its_run_and_a_word_naming_no_node_neve
     sources = PrimarySources([A])
     assert sources.announce('board_b', [], 5, 'w1') is PASSED and sources.nodes == {A}
     assert sources.announce('board_b', [B], 7, 'w9') is TAKEN and sources.nodes == {B}
+
+
+def test_a_late_word_of_an_earlier_watchdog_run_never_locks_out_the_live_one():
+    """w1 (started at 200) names board_a; a late word of w0 (started at 100) naming board_a too was
+    adopted and w1 left: its take-over naming board_b was refused for good (review of session 52)."""
+    w0, w1, w2 = '100.0:7:aaa', '200.0:8:bbb', '300.0:9:ccc'
+    sources = PrimarySources([A])
+    assert sources.announce('board_a', [A], 1, w1) is TAKEN
+    assert sources.announce('board_a', [A], 7, w0) is PASSED and sources.word.run == w1
+    assert 'earlier' in sources.word.why
+    assert sources.announce('board_b', [B], 2, w1) is TAKEN and sources.nodes == {B}
+    assert sources.announce('board_a', [A], 9, w0) is PASSED          # an earlier run naming another board
+    assert sources.announce('board_b', [B], 1, w2) is ADOPTED         # a later one naming the board in force
+    assert sources.announce('board_b', [B], 3, w1) is PASSED and sources.word.run == w2
+
+
+def test_a_watchdog_run_says_when_it_started():
+    from aft_ftm.primary_word import run_started
+    assert run_started('1796278101.141202:4242:0123456789ab') == 1796278101.141202
+    assert run_started('w1') is None and run_started('x:1:y') is None and run_started('') is None

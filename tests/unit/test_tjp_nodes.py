@@ -230,7 +230,6 @@ def test_a_restarted_command_manager_takes_no_command_before_the_watchdogs_word(
     """Bound before the wait for the word began, the deposed board_a's command that came in between was
     taken (review of session 51). Now every command is held from the start; the word names board_b."""
     node = command_manager(monkeypatch, watchdog_runs=True)
-    assert node.ports.bound.index('primary') < node.ports.bound.index('pid_command')
     assert node.pending is None and node.arbiter.sources.waiting
     node.ports.deliver('primary', word('board_b', B, 2))
     node.ports.deliver('pid_command', sent_by(pid(-1.0, 10.02), B))
@@ -270,3 +269,20 @@ def test_a_refused_word_repeated_is_alarmed_once_per_sender_and_reason(monkeypat
     node.ports.deliver('primary', word('board_a', A, 3))
     assert node.ports.alarms() == ['primary_ignored'] * 3
     assert '21 words refused' in [m.detail for p, m in node.ports.sent if p == 'alarms'][-1]
+
+
+def test_a_forger_with_many_names_never_mutes_the_watchdogs_refused_word(monkeypatch, clock):
+    node = build(monkeypatch, tjp_nodes.CommandManagerNode)
+    node.watchdog = WATCHDOG
+    node.ports.deliver('primary', word('board_a', A, 3))
+    for i in range(100):
+        node.ports.deliver('primary', word('board_b', B, 9, sender='/forger_%d' % i))
+    assert len(node.ports.alarms()) == node.WORD_ALARMED_MAX
+    node.ports.deliver('primary', word('board_b', B, 1, run='w2'))   # a watchdog started again disputes
+    node.ports.deliver('primary', word('board_b', B, 1, run='w3'))   # and again
+    assert node.ports.alarms()[-2:] == ['primary_disputed', 'primary_disputed']
+
+
+def test_unknown_whether_the_watchdog_runs_is_waited_as_if_it_did(monkeypatch, wall):
+    node = command_manager(monkeypatch, watchdog_runs=None)
+    assert node.arbiter.sources.waiting and node.pending is None and node.waiter is not None

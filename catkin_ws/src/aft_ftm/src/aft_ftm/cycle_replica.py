@@ -110,6 +110,7 @@ class CycleReplica(object):
         self.own_cycles = 0         # backup: its own node's cycles since then
         self.transfers = 0          # sender: state transfers sent to joiners
         self.named = PrimaryWord()  # the watchdog's word on the primary board, as followed
+        self.promoted = False       # made ALONE by the watchdog (SetRole) since this replica started
 
     @property
     def role(self):
@@ -199,10 +200,12 @@ class CycleReplica(object):
         another run naming another board: a watchdog started again starts from its configured primary,
         whatever board drives) is said, not obeyed.
 
-        The first word this replica hears never deposes it: it may be older than the role the watchdog
+        The first word a promoted replica hears never deposes it: it may be older than the role the watchdog
         gave it (a board started again, then promoted, before the latched word of the take-over that
-        failed it reached it; review of session 51). Only a word heard after another one is news."""
-        first = self.named.run is None
+        failed it reached it; review of session 51). Only a replica the watchdog promoted is so
+        exempted: a primary started so, frozen before its subscription connected, hears the word of
+        the take-over first and must step down (review of session 52)."""
+        first = self.named.run is None and self.promoted
         word = self.named.hear(board, term, incarnation, names_nodes)
         if word.refused:
             return None, [Note(word.value, '%s: the word naming board %s the primary in term %d of watchdog run %s is '
@@ -259,6 +262,7 @@ class CycleReplica(object):
         if role == Role.ALONE and self.receiver is not None and self.receiver.role == Role.BACKUP:
             last_seq = self.receiver.promote()   # RoleError if it holds no state
             self.sender = CheckpointSender(Role.ALONE, first_seq)
+            self.promoted = True
             return last_seq
         if role == Role.ALONE and self.sender is not None and self.sender.role == Role.PRIMARY:
             self.sender.go_alone()

@@ -16,7 +16,9 @@ one rule, :meth:`PrimaryWord.hear`:
   that no restart of the watchdog deposes the board that drives;
 - a run left (another adopted since) is never followed again: its words are refused aloud. Adopted
   again by a late word naming the board in force, it left the consumer refusing every later term of
-  the run that replaced it (review of session 51);
+  the run that replaced it (review of session 51). Runs say when they started (the incarnation
+  ``START:PID:ID``): a word of a run older than the one followed is refused, never adopted (a late
+  word of an old run had locked out the live one for good; review of session 52);
 - a word naming no node is refused aloud (taken, it would open the car to any sender).
 
 What the first word heard means is the consumer's to say: a board's After started again must not take
@@ -36,6 +38,22 @@ class Word(enum.Enum):
     @property
     def refused(self):
         return self in (Word.PASSED, Word.DISPUTED)
+
+
+def run_started(run):
+    """When a watchdog run started (s since the epoch, the first field of its incarnation
+    ``START:PID:ID``), or None if the incarnation does not say."""
+    parts = str(run).split(':')
+    try:
+        return float(parts[0]) if len(parts) == 3 else None
+    except ValueError:
+        return None
+
+
+def _older(run, than):
+    """Whether watchdog run ``run`` started before run ``than`` (both saying when)."""
+    started, other = run_started(run), run_started(than)
+    return started is not None and other is not None and started < other
 
 
 class PrimaryWord(object):
@@ -65,6 +83,8 @@ class PrimaryWord(object):
             verdict = Word.DUPLICATE if (term, board) == (self.term, self.board) else Word.PASSED
             if verdict is Word.PASSED:
                 self.why = 'a term passed' if term < self.term else 'the term in force naming another board'
+        elif _older(run, self.run):
+            verdict, self.why = Word.PASSED, 'an earlier watchdog run than the one followed'
         elif board == self.board:
             verdict = Word.ADOPTED
         else:

@@ -68,6 +68,7 @@ class Ports(object):
         self._queues = {}   # port -> the queue size it was bound with: a rebind keeps it
         self._spill = set()   # ports whose publisher's writes never block (bind(spill=True)): kept too
         self._latched = set()   # ports whose publisher latches (bind(latch=True)): kept too
+        self._latch_lock = threading.Lock()
         self._last_latched = {}   # port -> the last message published on a latched port (published again on a rebind)
         self._handles = {}
         self._topics = {}
@@ -128,13 +129,15 @@ class Ports(object):
                                              latch=name in self._latched)
                 if name in self._spill:
                     spill_over(handle, warn=rospy.logwarn)
-                if name in self._last_latched:
-                    handle.publish(self._last_latched[name])
             else:
                 handle = rospy.Subscriber(resolved, cls, self._deliver, callback_args=name, queue_size=qs,
                                           tcp_nodelay=True)
             self._handles[name] = handle
             self._topics[name] = resolved
+        if spec.direction == rules.PUBLISH and name in self._latched:
+            with self._latch_lock:
+                if name in self._last_latched and self._handles.get(name) is handle:
+                    handle.publish(self._last_latched[name])
         return 'port %s bound to %s' % (name, resolved)
 
     def _deliver(self, msg, name):
@@ -161,7 +164,10 @@ class Ports(object):
     def publish(self, name, msg):
         """Publish on a port; returns False (and counts it) if the port is unbound."""
         if name in self._latched:
-            with self._lock:   # (a rebind in between must not latch an older message on the new topic)
+            # Not under the port-wide lock (a bind holds it while the master registers, for as long as the
+            # master is away): a lock of the latched messages' own, which bind takes once its new
+            # publisher is installed, so the newest message is the one latched on the new topic.
+            with self._latch_lock:
                 self._last_latched[name] = msg
                 return self._publish(name, msg)
         return self._publish(name, msg)

@@ -34,7 +34,7 @@ class WatchdogNode(object):
        nodes, in order, over connections opened
        before the failure (a failover does not need the ROS master). Only a board that acknowledged
        a checkpoint of the primary is ever promoted. A node that does not answer within
-       ``~service_timeout`` is asked again (``PROMOTE_TRIES`` calls in all, on new connections);
+       ``~service_timeout`` is waited for on the same call, ``PROMOTE_TRIES`` periods in all (each node);
     3. the failover is published, with the detection time (the silence) and the switch time.
 
     Which board is the primary is said on ``primary`` (latched), at the start and at each take-over
@@ -95,7 +95,8 @@ class WatchdogNode(object):
         self.diagnostics = None
         self.term = 0
         self.announce_lock = threading.Lock()
-        self.incarnation = '%d:%s' % (os.getpid(), uuid.uuid4().hex[:12])
+        # START:PID:ID: consumers follow a later run, never an earlier one (aft_ftm.primary_word)
+        self.incarnation = '%.6f:%d:%s' % (time.time(), os.getpid(), uuid.uuid4().hex[:12])
         specs = [PortSpec('events', PUBLISH, 'std_msgs/String'), PortSpec('alarms', PUBLISH, 'aft_msgs/Alarm'),
                  PortSpec('primary', PUBLISH, 'aft_msgs/PrimaryBoard')]
         callbacks = {}
@@ -254,12 +255,13 @@ class WatchdogNode(object):
             actions = self.watch.connected(action.board, error, time.monotonic())
         self._carry_out(actions)
 
-    PROMOTE_TRIES = 3   # calls of SetRole ALONE on a backup's node that does not answer, each ~service_timeout
+    PROMOTE_TRIES = 3   # periods of ~service_timeout a backup's node is waited for on its SetRole ALONE
 
     @staticmethod
-    def _call(proxy, timeout, **request):
+    def _call(proxy, timeout, periods=None, **request):
         """A service call limited to timeout seconds (rospy's calls have no limit of their own).
-        Returns (answer, error)."""
+        Returns (answer, error); with ``periods``, waits up to that many timeouts for the same call and
+        returns (answer, error, the periods waited past the first)."""
         result = {}
 
         def call():
@@ -269,10 +271,16 @@ class WatchdogNode(object):
                 result['error'] = str(e) or type(e).__name__
         thread = threading.Thread(target=call, daemon=True)
         thread.start()
+        waited = 0
         thread.join(timeout)
+        while thread.is_alive() and periods is not None and waited < periods - 1:
+            waited += 1
+            thread.join(timeout)
         if thread.is_alive():
-            return None, 'no answer within %.1f s' % timeout
-        return result.get('answer'), result.get('error')
+            answer, error = None, 'no answer within %.1f s' % (timeout * (waited + 1))
+        else:
+            answer, error = result.get('answer'), result.get('error')
+        return (answer, error) if periods is None else (answer, error, waited)
 
     def _failover(self, failover):
         started = time.monotonic()   # nothing is logged before the switch: with the master gone, logging is slow
@@ -287,15 +295,14 @@ class WatchdogNode(object):
                 if node not in proxies:
                     problems.append('%s: no connection open to it' % node)
                     break
-                answer, error = self._call(proxies[node], self.service_timeout, role=Role.ALONE.value, last_seq=0)
-                # A node that did not answer (stalled past service_timeout: a load peak, a pause) is asked
-                # again, on a connection of its own (the first call may still hold the persistent one): the
-                # role change is idempotent (ALONE again is nothing to do). Given up, the word is never said
-                # and a node that took its role late drives nobody (review of session 51).
-                while error and retried[0] < self.PROMOTE_TRIES - 1:
-                    retried[0] += 1
-                    answer, error = self._call(rospy.ServiceProxy(node + '/set_role', SetRole), self.service_timeout,
-                                               role=Role.ALONE.value, last_seq=0)
+                # A node that does not answer within service_timeout (stalled: a load peak, a pause) is
+                # waited for longer, on the same call (PROMOTE_TRIES periods in all): ALONE taken late is
+                # still taken. A second call through the master failed at once with the master gone, the
+                # case the persistent connections are for (review of session 52). Given up, the word is
+                # never said and a node that took its role later drives nobody.
+                answer, error, waited = self._call(proxies[node], self.service_timeout, periods=self.PROMOTE_TRIES,
+                                                   role=Role.ALONE.value, last_seq=0)
+                retried[0] += waited
                 if error:
                     problems.append('%s: %s' % (node, error))
                     break
@@ -326,5 +333,5 @@ class WatchdogNode(object):
             self._report(Report('board_failed', 'board %s failed (%s): powered off, board %s took over in %.1f ms%s and '
                                 'goes on without a backup until a board re-joins'
                                 % (failover.board, verdict.reason, failover.to, switch * 1e3,
-                                   ' (asked %d more times: it did not answer within %.1f s)'
+                                   ' (waited %d more periods: it did not answer within %.1f s)'
                                    % (retried[0], self.service_timeout) if retried[0] else ''), True, None))

@@ -425,7 +425,7 @@ class CommandManagerNode(PortedNode):
         # A deposed board's commands come between the primary's: their alarm is once per sender and
         # primary named, not ended by each command taken (it was raised every 0.1 s).
         self.foreign_alarmed = set()
-        self.word_alarmed = set()   # (sender, reason) of the watchdog's words refused and alarmed (see _on_primary)
+        self.word_alarmed = set()   # (sender, reason, run, board) of words refused and alarmed (see _on_primary)
         self.words_refused = 0
         self.announced = threading.Event()   # the watchdog's word on the primary was followed
         self.waiter = None   # the timer that ends the wait for the watchdog's word (setup)
@@ -447,7 +447,9 @@ class CommandManagerNode(PortedNode):
                 self.ports.bind(name)
         self.ports.advertise_service()
         if self.arbiter.sources.nodes:
-            if self._watchdog_runs():
+            # Unknown (the master slow or away) is waited as if it ran: taken for "no watchdog", the
+            # configured board (deposed, after a take-over) was taken at once, unsaid (review of session 52).
+            if self._watchdog_runs() is not False:
                 self.waiter = threading.Timer(self.PRIMARY_WAIT, self._end_wait)
                 self.waiter.daemon = True
                 self.waiter.start()
@@ -459,18 +461,19 @@ class CommandManagerNode(PortedNode):
     PRIMARY_WAIT = 2.0   # s: the longest a commandManager started while the watchdog runs waits for its word
 
     def _watchdog_runs(self):
-        """Whether a node publishes the watchdog's word (asked of the master, 1 s at most)."""
+        """Whether a node publishes the watchdog's word (asked of the master, 1 s at most): True, False, or
+        None if the master did not say."""
         topic, found = rospy.resolve_name('primary'), []
 
         def ask():
             try:
                 found.append(topic in {t for t, _ in rosgraph.Master(self.name).getPublishedTopics('')})
-            except Exception as e:   # no master: nothing to wait for (the watchdog's word comes when it comes)
+            except Exception as e:   # no master: unknown
                 rospy.logwarn('%s: cannot ask the master whether a watchdog runs: %s', self.name, e)
         asker = threading.Thread(target=ask, daemon=True)
         asker.start()
         asker.join(1.0)
-        return bool(found and found[0])
+        return found[0] if found else None
 
     def _end_wait(self, said=True):
         """The wait for the watchdog's word ran out (``said``: it is said), or no watchdog runs: ~sources
@@ -514,10 +517,14 @@ class CommandManagerNode(PortedNode):
             refused = word is None or word.refused
             # A refused word is alarmed once per sender and reason while the word in force stands: a forger
             # repeating it (or naming itself many ways) must not flood the alarms; the count goes on.
-            alarm = refused and (sender, why) not in self.word_alarmed and \
-                len(self.word_alarmed) < self.WORD_ALARMED_MAX
+            # (The run and board are in the key: another restart of the watchdog disputing is news. Other
+            # senders fill half the room at most: a forger's many names never mute the watchdog; review of
+            # session 52.)
+            key = (sender, why, msg.incarnation, msg.board)
+            alarm = refused and key not in self.word_alarmed and \
+                len(self.word_alarmed) < self.WORD_ALARMED_MAX * (2 if sender == self.watchdog else 1)
             if alarm:
-                self.word_alarmed.add((sender, why))
+                self.word_alarmed.add(key)
             self.words_refused += int(refused)
             detail = '%s: refused (%s), %d words refused so far; in force: %s, commands taken from %s only' % (
                 what, why, self.words_refused, sources.word.describe(), ', '.join(sorted(sources.nodes)) or 'any node')
